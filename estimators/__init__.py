@@ -1,0 +1,1 @@
+"""Estimators: registered plug-ins that take a :class:`tofloc.problem.Problem` and return an Estimate."""

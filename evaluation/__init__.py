@@ -1,0 +1,1 @@
+"""Evaluation: metrics (e_x, e_gamma, NEES), the paper's trial protocol, tables and plots."""

@@ -1,0 +1,454 @@
+"""Sensor geometry: the VL53L5CX (and any multizone ToF) zone model and the rig of sensors.
+
+One home for everything that turns a frame of zone distances into 3-D points:
+
+* zone directions (the spec's uniform grid, or an explicit ``zone_directions`` table),
+* the two distance conventions: ``"perpendicular"`` (ST's on-chip depth along the
+  boresight, default) and ``"radial"`` (along the zone's ray),
+* the validity rule on ``target_status`` (default {5, 9}),
+* the conversion of ST's raw zone order to scene-image order for a given mounting,
+* vectorized frames -> points in the sensor, tip, base and map frames.
+
+Sensor frame: optical convention, +z along the boresight, +x to the right of the scene
+image, +y down. Zone index = row * C + col, row 0 the top of the scene, col 0 its left.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc import frames
+from tofloc.errors import FormatError
+
+__all__ = [
+    "DEFAULT_VALID_STATUSES",
+    "DISTANCE_CONVENTIONS",
+    "RawOrder",
+    "Sensor",
+    "Rig",
+    "default_zone_directions",
+    "valid_mask",
+]
+
+#: ``target_status`` values counted as valid by default (ST: 5 = valid, 9 = valid with a
+#: large pulse). 6 ("wrap-around not performed") may be added by the user.
+DEFAULT_VALID_STATUSES: frozenset[int] = frozenset({5, 9})
+DISTANCE_CONVENTIONS = ("perpendicular", "radial")
+#: Resolutions the VL53L5CX supports (rows, cols).
+VL53L5CX_RESOLUTIONS = ((4, 4), (8, 8))
+#: Largest number of zones a sensor may declare (bounds what a rig file may ask for).
+MAX_ZONES = 4096
+MAX_SENSORS = 256
+
+
+def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float]) -> NDArray[np.float64]:
+    """Zone directions of the spec's uniform grid, as ``(tan a_col, tan a_row, 1)``, shape ``(R*C, 3)``.
+
+    ``a_col = (col - (C-1)/2) * F_cols / C`` and ``a_row = (row - (R-1)/2) * F_rows / R``
+    (log-format v1). The vectors are *not* normalized: their z component is 1, so a
+    perpendicular distance ``d`` gives the point ``d * v``.
+    """
+    R, C = int(resolution[0]), int(resolution[1])
+    f_rows, f_cols = math.radians(float(fov_deg[0])), math.radians(float(fov_deg[1]))
+    rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+    a_col = (cols.ravel() - (C - 1) / 2.0) * f_cols / C
+    a_row = (rows.ravel() - (R - 1) / 2.0) * f_rows / R
+    return np.stack([np.tan(a_col), np.tan(a_row), np.ones(R * C)], axis=-1)
+
+
+def valid_mask(
+    status: ArrayLike, distance: ArrayLike | None = None, valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES
+) -> NDArray[np.bool_]:
+    """Zones to use: status in ``valid_statuses`` and (when given) a finite, positive distance."""
+    status = np.asarray(status)
+    ok = np.isin(status, np.fromiter(valid_statuses, dtype=np.int64))
+    if distance is not None:
+        d = np.asarray(distance, dtype=float)
+        ok &= np.isfinite(d) & (d > 0)
+    return ok
+
+
+@dataclass(frozen=True)
+class RawOrder:
+    """How ST's raw zone order maps to scene-image order for one mounting.
+
+    ST's driver reports zones as they fall on the SPAD array. The receiver lens inverts
+    the image, so for a sensor mounted upright (datasheet orientation) the raw grid is
+    the scene mirrored both ways: ``flip_rows = flip_cols = True`` (the default).
+    A sensor mounted rotated or read by firmware that already reorders differs; the
+    rig file states it. ``transpose`` is applied first, then the flips.
+    """
+
+    flip_rows: bool = True
+    flip_cols: bool = True
+    transpose: bool = False
+
+    def raw_to_scene(self, resolution: Sequence[int]) -> NDArray[np.intp]:
+        """Permutation ``p`` with ``scene = raw[..., p]`` for an ``R x C`` sensor."""
+        R, C = int(resolution[0]), int(resolution[1])
+        if self.transpose and R != C:
+            raise ValueError(f"transpose needs a square grid, got {R}x{C}")
+        raw_index = np.arange(R * C).reshape(R, C)
+        if self.transpose:
+            raw_index = raw_index.T
+        if self.flip_rows:
+            raw_index = raw_index[::-1, :]
+        if self.flip_cols:
+            raw_index = raw_index[:, ::-1]
+        return raw_index.ravel().astype(np.intp)
+
+    def scene_to_raw(self, resolution: Sequence[int]) -> NDArray[np.intp]:
+        """Inverse permutation: ``raw = scene[..., q]``."""
+        p = self.raw_to_scene(resolution)
+        q = np.empty_like(p)
+        q[p] = np.arange(p.size)
+        return q
+
+    def to_dict(self) -> dict[str, bool]:
+        return {"flip_rows": self.flip_rows, "flip_cols": self.flip_cols, "transpose": self.transpose}
+
+
+def _fail(source: str, where: str, expected: str, found: object | None = None) -> FormatError:
+    return FormatError(source, where, expected, found)
+
+
+def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
+    try:
+        T = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise _fail(source, where, "a 4x4 numeric matrix", repr(value)[:80]) from None
+    if T.shape != (4, 4):
+        raise _fail(source, where, "a 4x4 matrix", f"shape {T.shape}")
+    if not bool(frames.is_rigid(T, atol=1e-4)):
+        raise _fail(source, where, "a finite rigid transform (orthonormal rotation, last row 0 0 0 1)")
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """One multizone ToF sensor of a rig.
+
+    Parameters
+    ----------
+    name : str
+        Unique name within the rig.
+    model : str
+        Sensor model, ``"vl53l5cx"`` for ST's part.
+    resolution : tuple of int
+        ``(rows, cols)``; ``(1, Z)`` is allowed with an explicit ``zone_directions``.
+    fov_deg : tuple of float
+        Field of view ``(across rows, across columns)`` in degrees (default 45 x 45).
+    distance : {"perpendicular", "radial"}
+        What the reported distance measures.
+    T_tip_sensor : ndarray, shape (4, 4)
+        Pose of the sensor in the tip frame.
+    zone_directions : ndarray, shape (Z, 3), optional
+        Explicit unit ray of every zone in the sensor frame (overrides the grid).
+    raw_order : RawOrder
+        Mounting used to reorder ST's raw zones (importers and serial parsers).
+    max_range_m : float
+        Largest distance the sensor reports (VL53L5CX: 4 m).
+    """
+
+    name: str
+    model: str = "vl53l5cx"
+    resolution: tuple[int, int] = (8, 8)
+    fov_deg: tuple[float, float] = (45.0, 45.0)
+    distance: str = "perpendicular"
+    T_tip_sensor: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    zone_directions: NDArray[np.float64] | None = None
+    raw_order: RawOrder = field(default_factory=RawOrder)
+    max_range_m: float = 4.0
+
+    def __post_init__(self) -> None:
+        T = np.array(self.T_tip_sensor, dtype=float)
+        T.setflags(write=False)
+        object.__setattr__(self, "T_tip_sensor", T)
+        if self.zone_directions is not None:
+            u = np.array(self.zone_directions, dtype=float)
+            u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+            u.setflags(write=False)
+            object.__setattr__(self, "zone_directions", u)
+        object.__setattr__(self, "resolution", (int(self.resolution[0]), int(self.resolution[1])))
+        object.__setattr__(self, "fov_deg", (float(self.fov_deg[0]), float(self.fov_deg[1])))
+
+    @property
+    def n_zones(self) -> int:
+        """Number of zones Z."""
+        if self.zone_directions is not None:
+            return int(self.zone_directions.shape[0])
+        return self.resolution[0] * self.resolution[1]
+
+    @property
+    def unit_directions(self) -> NDArray[np.float64]:
+        """Unit ray of every zone in the sensor frame, ``(Z, 3)``."""
+        if self.zone_directions is not None:
+            return self.zone_directions
+        v = default_zone_directions(self.resolution, self.fov_deg)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    @property
+    def range_factor(self) -> NDArray[np.float64]:
+        """Per zone, the length along the unit ray of a reported distance of 1 m, ``(Z,)``.
+
+        ``1 / u_z`` for the perpendicular convention, 1 for the radial one.
+        """
+        u = self.unit_directions
+        if self.distance == "perpendicular":
+            return 1.0 / u[:, 2]
+        return np.ones(u.shape[0])
+
+    def points(self, distance_m: ArrayLike) -> NDArray[np.float64]:
+        """Points in the sensor frame, ``(..., Z, 3)``, from distances ``(..., Z)`` in metres.
+
+        NaN distances give NaN points.
+        """
+        d = np.asarray(distance_m, dtype=float)
+        return (d * self.range_factor)[..., None] * self.unit_directions
+
+    def reported_distance(self, ray_length_m: ArrayLike) -> NDArray[np.float64]:
+        """Distance the sensor reports for a hit at ``ray_length_m`` along each zone's unit ray."""
+        return np.asarray(ray_length_m, dtype=float) / self.range_factor
+
+    def to_dict(self) -> dict[str, Any]:
+        """The rig-JSON form of this sensor (log-format v1 plus our optional keys)."""
+        return {
+            "name": self.name,
+            "model": self.model,
+            "resolution": list(self.resolution),
+            "fov_deg": list(self.fov_deg),
+            "distance": self.distance,
+            "T_tip_sensor": self.T_tip_sensor.tolist(),
+            "zone_directions": None if self.zone_directions is None else self.zone_directions.tolist(),
+            "raw_order": self.raw_order.to_dict(),
+            "max_range_m": self.max_range_m,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], source: str = "<rig>", where: str = "sensors[0]") -> "Sensor":
+        """Validate and build a sensor from its rig-JSON object; errors name ``source`` and ``where``."""
+        if not isinstance(d, Mapping):
+            raise _fail(source, where, "a JSON object", type(d).__name__)
+        name = d.get("name")
+        if not isinstance(name, str) or not name:
+            raise _fail(source, f"{where}.name", "a non-empty string", repr(name))
+        model = d.get("model", "vl53l5cx")
+        if not isinstance(model, str) or not model:
+            raise _fail(source, f"{where}.model", "a non-empty string", repr(model))
+        res = d.get("resolution", [8, 8])
+        if (
+            not isinstance(res, (list, tuple))
+            or len(res) != 2
+            or not all(isinstance(r, int) and not isinstance(r, bool) and r > 0 for r in res)
+        ):
+            raise _fail(source, f"{where}.resolution", "[rows, cols] of positive integers", repr(res))
+        fov = d.get("fov_deg", [45.0, 45.0])
+        if (
+            not isinstance(fov, (list, tuple))
+            or len(fov) != 2
+            or not all(isinstance(f, (int, float)) and not isinstance(f, bool) and 0 < f < 180 for f in fov)
+        ):
+            raise _fail(source, f"{where}.fov_deg", "[across rows, across cols] in degrees, each in (0, 180)", repr(fov))
+        conv = d.get("distance", "perpendicular")
+        if conv not in DISTANCE_CONVENTIONS:
+            raise _fail(source, f"{where}.distance", f"one of {list(DISTANCE_CONVENTIONS)}", repr(conv))
+        T = _as_transform(d.get("T_tip_sensor", np.eye(4).tolist()), source, f"{where}.T_tip_sensor")
+        zd = d.get("zone_directions")
+        zone_dirs = None
+        if zd is not None:
+            try:
+                zone_dirs = np.asarray(zd, dtype=float)
+            except (TypeError, ValueError):
+                raise _fail(source, f"{where}.zone_directions", "a Z x 3 numeric table") from None
+            if zone_dirs.ndim != 2 or zone_dirs.shape[1] != 3 or not 1 <= zone_dirs.shape[0] <= MAX_ZONES:
+                raise _fail(source, f"{where}.zone_directions", f"a Z x 3 table with 1 <= Z <= {MAX_ZONES}", f"shape {zone_dirs.shape}")
+            norms = np.linalg.norm(zone_dirs, axis=1)
+            if not np.all(np.isfinite(zone_dirs)) or np.any(np.abs(norms - 1.0) > 1e-3):
+                raise _fail(source, f"{where}.zone_directions", "finite unit vectors (norm 1 within 1e-3)")
+            if conv == "perpendicular" and np.any(zone_dirs[:, 2] <= 1e-6):
+                raise _fail(source, f"{where}.zone_directions", "rays with a positive z component (in front of the sensor)")
+            if res[0] * res[1] != zone_dirs.shape[0] and list(res) != [1, zone_dirs.shape[0]]:
+                raise _fail(source, f"{where}.resolution", f"rows*cols equal to the {zone_dirs.shape[0]} zone directions", repr(res))
+        else:
+            if res[0] * res[1] > MAX_ZONES:
+                raise _fail(source, f"{where}.resolution", f"at most {MAX_ZONES} zones", repr(res))
+            if model.lower() == "vl53l5cx" and tuple(res) not in VL53L5CX_RESOLUTIONS:
+                raise _fail(source, f"{where}.resolution", "[4, 4] or [8, 8] for a vl53l5cx", repr(res))
+        ro = d.get("raw_order")
+        raw_order = RawOrder()
+        if ro is not None:
+            if not isinstance(ro, Mapping) or set(ro) - {"flip_rows", "flip_cols", "transpose"} or not all(
+                isinstance(v, bool) for v in ro.values()
+            ):
+                raise _fail(source, f"{where}.raw_order", "an object with boolean flip_rows, flip_cols, transpose", repr(ro))
+            raw_order = RawOrder(**ro)
+            if raw_order.transpose and res[0] != res[1]:
+                raise _fail(source, f"{where}.raw_order.transpose", "a square resolution", repr(res))
+        max_range = d.get("max_range_m", 4.0)
+        if not isinstance(max_range, (int, float)) or isinstance(max_range, bool) or not 0 < max_range <= 100:
+            raise _fail(source, f"{where}.max_range_m", "a number in (0, 100] metres", repr(max_range))
+        return cls(
+            name=name,
+            model=model,
+            resolution=(res[0], res[1]),
+            fov_deg=(float(fov[0]), float(fov[1])),
+            distance=conv,
+            T_tip_sensor=T,
+            zone_directions=zone_dirs,
+            raw_order=raw_order,
+            max_range_m=float(max_range),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """The sensors mounted on the robot's tip, and the names of its actuators.
+
+    All sensors of a rig share the number of zones Z (the log stores ``(K, S, Z)``).
+    """
+
+    sensors: tuple[Sensor, ...]
+    actuators: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sensors", tuple(self.sensors))
+        object.__setattr__(self, "actuators", tuple(self.actuators))
+        if not self.sensors:
+            raise ValueError("a rig needs at least one sensor")
+        zs = {s.n_zones for s in self.sensors}
+        if len(zs) != 1:
+            raise ValueError(f"all sensors of a rig must have the same number of zones, got {sorted(zs)}")
+
+    # -- sizes -----------------------------------------------------------------------
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensors)
+
+    @property
+    def n_zones(self) -> int:
+        return self.sensors[0].n_zones
+
+    @property
+    def n_actuators(self) -> int:
+        return len(self.actuators)
+
+    # -- stacked geometry ------------------------------------------------------------
+    @property
+    def T_tip_sensor(self) -> NDArray[np.float64]:
+        """``(S, 4, 4)``."""
+        return np.stack([s.T_tip_sensor for s in self.sensors])
+
+    @property
+    def unit_directions(self) -> NDArray[np.float64]:
+        """Unit zone rays in each sensor's frame, ``(S, Z, 3)``."""
+        return np.stack([s.unit_directions for s in self.sensors])
+
+    @property
+    def range_factor(self) -> NDArray[np.float64]:
+        """``(S, Z)``; see :attr:`Sensor.range_factor`."""
+        return np.stack([s.range_factor for s in self.sensors])
+
+    @property
+    def max_range_m(self) -> NDArray[np.float64]:
+        """``(S,)``."""
+        return np.array([s.max_range_m for s in self.sensors])
+
+    def rays_in_tip(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Ray origins ``(S, 3)`` and unit directions ``(S, Z, 3)`` of every zone in the tip frame."""
+        T = self.T_tip_sensor
+        dirs = np.einsum("sij,szj->szi", T[:, :3, :3], self.unit_directions)
+        return T[:, :3, 3].copy(), dirs
+
+    # -- frames -> points --------------------------------------------------------------
+    def points_in_sensor(self, distance_m: ArrayLike) -> NDArray[np.float64]:
+        """``(..., S, Z)`` distances in metres -> ``(..., S, Z, 3)`` points, each in its sensor's frame."""
+        d = np.asarray(distance_m, dtype=float)
+        self._check_last_axes(d.shape)
+        return (d * self.range_factor)[..., None] * self.unit_directions
+
+    def points_in_tip(self, distance_m: ArrayLike) -> NDArray[np.float64]:
+        """``(..., S, Z)`` distances in metres -> ``(..., S, Z, 3)`` points in the tip frame."""
+        return frames.transform_points(self.T_tip_sensor, self.points_in_sensor(distance_m))
+
+    def points_in_base(self, distance_m: ArrayLike, T_base_tip: ArrayLike) -> NDArray[np.float64]:
+        """``(K, S, Z)`` distances and ``(K, 4, 4)`` configurations -> ``(K, S, Z, 3)`` points in the base frame."""
+        p_tip = self.points_in_tip(distance_m)
+        T = np.asarray(T_base_tip, dtype=float)
+        return frames.transform_points(T[..., None, :, :], p_tip)
+
+    def points_in_map(self, distance_m: ArrayLike, T_base_tip: ArrayLike, T_map_base: ArrayLike) -> NDArray[np.float64]:
+        """As :meth:`points_in_base`, then through ``T_map_base`` (``(4, 4)`` or ``(K, 4, 4)``)."""
+        p_base = self.points_in_base(distance_m, T_base_tip)
+        T = np.asarray(T_map_base, dtype=float)
+        if T.ndim == 2:
+            return frames.transform_points(T, p_base.reshape(p_base.shape[:-3] + (-1, 3))).reshape(p_base.shape)
+        return frames.transform_points(T[..., None, :, :], p_base)
+
+    def _check_last_axes(self, shape: tuple[int, ...]) -> None:
+        if len(shape) < 2 or shape[-2:] != (self.n_sensors, self.n_zones):
+            raise ValueError(f"expected distances shaped (..., {self.n_sensors}, {self.n_zones}), got {shape}")
+
+    # -- (de)serialization -------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {"sensors": [s.to_dict() for s in self.sensors], "actuators": list(self.actuators)}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "<rig>") -> "Rig":
+        """Validate a rig object (log-format v1); every error names ``source`` and the key."""
+        if not isinstance(d, Mapping):
+            raise _fail(source, "rig", "a JSON object with 'sensors' and 'actuators'", type(d).__name__)
+        sensors = d.get("sensors")
+        if not isinstance(sensors, list) or not 1 <= len(sensors) <= MAX_SENSORS:
+            raise _fail(source, "rig.sensors", f"a list of 1 to {MAX_SENSORS} sensor objects", repr(sensors)[:80])
+        built = [Sensor.from_dict(s, source, f"rig.sensors[{i}]") for i, s in enumerate(sensors)]
+        names = [s.name for s in built]
+        if len(set(names)) != len(names):
+            raise _fail(source, "rig.sensors[].name", "unique names", names)
+        zs = sorted({s.n_zones for s in built})
+        if len(zs) != 1:
+            raise _fail(source, "rig.sensors", "the same number of zones for every sensor", zs)
+        acts = d.get("actuators", [])
+        if not isinstance(acts, list) or not all(isinstance(a, str) and a for a in acts) or len(acts) > 1024:
+            raise _fail(source, "rig.actuators", "a list of actuator names (strings)", repr(acts)[:80])
+        if len(set(acts)) != len(acts):
+            raise _fail(source, "rig.actuators", "unique names", acts)
+        return cls(sensors=tuple(built), actuators=tuple(acts))
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "<rig>") -> "Rig":
+        try:
+            d = json.loads(text)
+        except (json.JSONDecodeError, TypeError) as e:
+            raise _fail(source, "rig", "valid JSON", str(e)) from None
+        return cls.from_dict(d, source)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "Rig":
+        """Read a rig from a ``.json`` or ``.toml`` file (TOML: same keys, ``[[sensors]]`` tables)."""
+        p = Path(path)
+        try:
+            raw = p.read_bytes()
+        except OSError as e:
+            raise FormatError(p, "file", "a readable rig file", e.strerror) from None
+        if len(raw) > 16 * 2**20:
+            raise FormatError(p, "file", "a rig file of at most 16 MiB", f"{len(raw)} bytes")
+        if p.suffix.lower() == ".toml":
+            try:
+                d = tomllib.loads(raw.decode("utf-8"))
+            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+                raise FormatError(p, "rig", "valid TOML", str(e)) from None
+            return cls.from_dict(d, str(p))
+        if p.suffix.lower() == ".json":
+            return cls.from_json(raw.decode("utf-8", errors="replace"), str(p))
+        raise FormatError(p, "file", "a .json or .toml rig file", p.suffix or "no suffix")
