@@ -12,7 +12,12 @@ import pkgutil
 import sys
 from typing import Sequence
 
-import click
+try:  # typer >= 0.16 vendors its own copy of click
+    from typer._click import exceptions as _click_exc
+except ImportError:  # pragma: no cover - older typer on plain click
+    from click import exceptions as _click_exc
+
+import typer
 
 from tofloc.cli.app import app, debug_enabled, err_console
 from tofloc.errors import TofLocError
@@ -44,12 +49,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
         code = 2
-    except click.exceptions.Exit as e:
+    except typer.Exit as e:
         code = e.exit_code
-    except click.exceptions.Abort:
+    except typer.Abort:
         err_console.print("aborted")
         code = 130
-    except click.ClickException as e:
+    except _click_exc.ClickException as e:
         e.show()
         code = 2
     except KeyboardInterrupt:

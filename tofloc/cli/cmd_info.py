@@ -1,0 +1,66 @@
+"""``tofloc info LOG``: what a log holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from tofloc.cli.app import app, console
+
+
+@app.command()
+def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (format v1).")) -> None:
+    """Summarize a log: samples, sensors, zones, valid fraction, actuation ranges, truth."""
+    from tofloc.logs import read_log
+    from tofloc.rig import DEFAULT_VALID_STATUSES
+
+    log = read_log(log_path)
+    t = Table(title=str(log_path), show_header=False)
+    t.add_row("format", "tofloc-log v1")
+    t.add_row("source", log.source)
+    t.add_row("created", log.created)
+    t.add_row("samples", str(log.n_samples))
+    if log.n_samples > 1:
+        ts = log.timestamp_s
+        t.add_row("time span", f"{ts.min():.3f} .. {ts.max():.3f} s")
+    t.add_row("sensors", ", ".join(f"{s.name} ({s.model} {s.resolution[0]}x{s.resolution[1]}, {s.distance})" for s in log.rig.sensors))
+    t.add_row("zones per sensor", str(log.n_zones))
+    valid = log.valid()
+    t.add_row(f"valid zones (status in {sorted(DEFAULT_VALID_STATUSES)})", f"{valid.mean():.1%}")
+    per_sensor = ", ".join(f"{s.name} {valid[:, i].mean():.1%}" for i, s in enumerate(log.rig.sensors))
+    t.add_row("valid per sensor", per_sensor)
+    counts = np.bincount(log.status.ravel(), minlength=256)
+    top = np.argsort(counts)[::-1][:6]
+    t.add_row("statuses", ", ".join(f"{s}: {counts[s] / counts.sum():.1%}" for s in top if counts[s]))
+    d = log.distance_m[valid]
+    if d.size:
+        t.add_row("valid distances", f"{d.min():.3f} .. {d.max():.3f} m (median {np.median(d):.3f})")
+    t.add_row("range sigma", "present" if log.sigma_mm is not None else "absent")
+    if log.pressure_kpa is not None and log.n_actuators:
+        rng = ", ".join(
+            f"{a} {log.pressure_kpa[:, i].min():.1f}..{log.pressure_kpa[:, i].max():.1f} kPa"
+            for i, a in enumerate(log.rig.actuators)
+        )
+        t.add_row("actuation", rng)
+    else:
+        t.add_row("actuation", "absent")
+    if log.T_base_tip is not None:
+        known = int(np.isfinite(log.T_base_tip[:, 0, 0]).sum())
+        t.add_row("configuration T_base_tip", f"{known} of {log.n_samples} samples")
+    else:
+        t.add_row("configuration T_base_tip", "absent")
+    if log.T_map_base is not None:
+        from tofloc.frames import xyyaw_from_se3
+
+        T = log.T_map_base if log.T_map_base.ndim == 2 else log.T_map_base[0]
+        x, y, yaw = xyyaw_from_se3(T)
+        kind = "static" if log.T_map_base.ndim == 2 else "per sample"
+        t.add_row("truth T_map_base", f"present ({kind}): x={x:.4f} m, y={y:.4f} m, yaw={np.degrees(yaw):.2f} deg, z={T[2, 3]:.3f} m")
+    else:
+        t.add_row("truth T_map_base", "absent")
+    mp = log.map_path()
+    t.add_row("map", f"{log.map} ({'found' if mp is not None and mp.exists() else 'missing'})" if log.map else "none")
+    console.print(t)

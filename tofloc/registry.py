@@ -1,0 +1,178 @@
+"""Plug-in registry for sensor models and estimators (built-ins plus entry points).
+
+A plug-in is named by a string and points at ``"module:attribute"``. Built-ins are
+listed below; third-party packages declare theirs as ``importlib.metadata`` entry
+points in the groups ``tofloc.sensor_models`` and ``tofloc.estimators``::
+
+    [project.entry-points."tofloc.sensor_models"]
+    my_model = "my_package.models:MyModel"
+
+Nothing is imported until a plug-in is asked for (as xarray's backends). A plug-in whose
+import fails because a dependency is missing raises :class:`PluginError` with an install
+hint when loaded by name; when iterating over all plug-ins (``tofloc list``, the common
+check suite), a broken one warns and is skipped.
+"""
+
+from __future__ import annotations
+
+import importlib
+import warnings
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any, Callable, Iterator
+
+from tofloc.errors import PluginError
+
+__all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "get_estimator", "get_sensor_model"]
+
+#: pip package to install when an import of this module fails.
+_INSTALL_HINTS = {
+    "open3d": "pip install open3d  (and the system library libusb-1.0: apt-get install libusb-1.0-0)",
+    "gtsam": "pip install gtsam",
+    "filterpy": "pip install filterpy",
+    "sklearn": "pip install scikit-learn",
+    "serial": "pip install pyserial",
+    "dask": "pip install 'dask[distributed]'",
+    "distributed": "pip install 'dask[distributed]'",
+}
+
+
+@dataclass(frozen=True)
+class PluginSpec:
+    """Where a plug-in lives: ``target`` is ``"module:attribute"``; ``origin`` is
+    ``"builtin"`` or the distribution that declared the entry point."""
+
+    name: str
+    target: str
+    origin: str = "builtin"
+
+
+class Registry:
+    """Named plug-ins of one kind, loaded lazily.
+
+    Parameters
+    ----------
+    group : str
+        Entry-point group scanned for third-party plug-ins.
+    builtins : dict
+        ``name -> "module:attribute"`` of the plug-ins shipped with tofloc.
+    """
+
+    def __init__(self, group: str, builtins: dict[str, str]) -> None:
+        self.group = group
+        self._specs: dict[str, PluginSpec] = {n: PluginSpec(n, t) for n, t in builtins.items()}
+        self._entry_points_scanned = False
+        self._cache: dict[str, Any] = {}
+
+    def _scan(self) -> None:
+        if self._entry_points_scanned:
+            return
+        self._entry_points_scanned = True
+        for ep in metadata.entry_points(group=self.group):
+            if ep.name in self._specs:
+                if self._specs[ep.name].target != ep.value:
+                    warnings.warn(
+                        f"{self.group}: entry point {ep.name!r} = {ep.value!r} ignored: the name is taken by "
+                        f"{self._specs[ep.name].target!r}",
+                        stacklevel=3,
+                    )
+                continue
+            dist = getattr(ep, "dist", None)
+            origin = dist.name if dist is not None else "entry point"
+            self._specs[ep.name] = PluginSpec(ep.name, ep.value, origin)
+
+    def register(self, name: str, target: str | Any, origin: str = "runtime") -> None:
+        """Register a plug-in at run time: ``target`` is ``"module:attribute"`` or the object itself."""
+        self._scan()
+        if isinstance(target, str):
+            self._specs[name] = PluginSpec(name, target, origin)
+            self._cache.pop(name, None)
+        else:
+            self._specs[name] = PluginSpec(name, f"{target.__module__}:{target.__qualname__}", origin)
+            self._cache[name] = target
+
+    def unregister(self, name: str) -> None:
+        self._specs.pop(name, None)
+        self._cache.pop(name, None)
+
+    def names(self) -> list[str]:
+        """Every registered name (nothing imported)."""
+        self._scan()
+        return sorted(self._specs)
+
+    def spec(self, name: str) -> PluginSpec:
+        self._scan()
+        try:
+            return self._specs[name]
+        except KeyError:
+            raise PluginError(
+                f"unknown {self._kind} {name!r}; available: {', '.join(self.names()) or 'none'}"
+            ) from None
+
+    @property
+    def _kind(self) -> str:
+        return self.group.split(".")[-1].rstrip("s").replace("_", " ")
+
+    def load(self, name: str) -> Any:
+        """Import and return the plug-in's object; :class:`PluginError` with an install hint on failure."""
+        if name in self._cache:
+            return self._cache[name]
+        spec = self.spec(name)
+        module_name, _, attr = spec.target.partition(":")
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as e:
+            missing = (e.name or "").split(".")[0]
+            hint = _INSTALL_HINTS.get(missing, f"pip install {missing}" if missing else "")
+            raise PluginError(
+                f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) needs the missing module "
+                f"{e.name!r}" + (f": {hint}" if hint else "")
+            ) from e
+        except Exception as e:  # a plug-in's own import error
+            raise PluginError(f"{self._kind} {name!r} ({spec.target}) failed to import: {e}") from e
+        try:
+            obj = module
+            for part in attr.split(".") if attr else []:
+                obj = getattr(obj, part)
+        except AttributeError as e:
+            raise PluginError(f"{self._kind} {name!r}: {spec.target} does not exist ({e})") from e
+        self._cache[name] = obj
+        return obj
+
+    def iter_loaded(self) -> Iterator[tuple[str, Any]]:
+        """Every plug-in that loads; a broken one warns and is skipped."""
+        for name in self.names():
+            try:
+                yield name, self.load(name)
+            except PluginError as e:
+                warnings.warn(f"skipping {self._kind} {name!r}: {e}", stacklevel=2)
+
+    def status(self) -> list[tuple[PluginSpec, str]]:
+        """``(spec, "ok" | error message)`` for every plug-in (imports them)."""
+        out = []
+        for name in self.names():
+            try:
+                self.load(name)
+                out.append((self.spec(name), "ok"))
+            except PluginError as e:
+                out.append((self.spec(name), str(e)))
+        return out
+
+
+#: Built-in estimators (name -> class). Each class follows tofloc.problem.Estimator.
+ESTIMATORS = Registry("tofloc.estimators", {})
+
+#: Built-in sensor models (name -> class). Each follows sensor_models.base.SensorModel.
+SENSOR_MODELS = Registry("tofloc.sensor_models", {})
+
+
+def get_estimator(name: str) -> Any:
+    """The estimator class registered under ``name``."""
+    return ESTIMATORS.load(name)
+
+
+def get_sensor_model(name: str) -> Any:
+    """The sensor-model class registered under ``name``."""
+    return SENSOR_MODELS.load(name)
+
+

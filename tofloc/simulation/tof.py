@@ -1,0 +1,158 @@
+"""ToF physics of a VL53L5CX zone: sub-ray footprint, mixed zones, noise, bias,
+multipath, ghosts, statuses.
+
+Everything is vectorized over samples, sensors, zones and sub-rays; the only ray casts
+are one batched call to :meth:`tofloc.maps.Map.raycast`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc import frames
+from tofloc.rig import Rig, Sensor
+from tofloc.simulation.scenario import RigDesign, ToFPhysics
+
+__all__ = ["build_rig", "subray_directions", "ZoneReturns", "cast_zones", "measure"]
+
+NO_TARGET = 255
+
+
+def build_rig(design: RigDesign, actuators: tuple[str, ...]) -> Rig:
+    """The CAD rig: sensors around the tip axis, boresights tilted down, x to the right of
+    the scene image, y down (optical convention)."""
+    sensors = []
+    up = np.array([0.0, 0.0, 1.0])
+    tilt = math.radians(design.tilt_down_deg)
+    for i, az_deg in enumerate(design.azimuths_deg):
+        az = math.radians(az_deg)
+        out = np.array([math.cos(az), math.sin(az), 0.0])
+        forward = math.cos(tilt) * out - math.sin(tilt) * up
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R = np.stack([right, down, forward], axis=1)  # columns: sensor axes in the tip frame
+        t = design.radius * out + np.array([0.0, 0.0, design.height])
+        sensors.append(
+            Sensor(
+                name=f"tof{i}",
+                model="vl53l5cx",
+                resolution=tuple(design.resolution),  # type: ignore[arg-type]
+                fov_deg=tuple(design.fov_deg),  # type: ignore[arg-type]
+                distance=design.distance,
+                T_tip_sensor=frames.se3(R, t),
+            )
+        )
+    return Rig(tuple(sensors), actuators)
+
+
+def subray_directions(sensor: Sensor, n_sub: int) -> NDArray[np.float64]:
+    """Unit directions ``(Z, n_sub**2, 3)`` of sub-rays spread evenly over each zone's
+    angular footprint (the spec's uniform grid, split n_sub x n_sub)."""
+    R, C = sensor.resolution
+    f_rows, f_cols = math.radians(sensor.fov_deg[0]), math.radians(sensor.fov_deg[1])
+    rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+    off = (np.arange(n_sub) + 0.5) / n_sub - 0.5
+    orow, ocol = np.meshgrid(off, off, indexing="ij")
+    a_col = ((cols.ravel()[:, None] - (C - 1) / 2.0) + ocol.ravel()[None, :]) * f_cols / C
+    a_row = ((rows.ravel()[:, None] - (R - 1) / 2.0) + orow.ravel()[None, :]) * f_rows / R
+    v = np.stack([np.tan(a_col), np.tan(a_row), np.ones_like(a_col)], axis=-1)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class ZoneReturns:
+    """Noise-free zone returns, all ``(K, S, Z)``: the reported-convention distance (NaN
+    with no target), the fraction of the footprint that returned, the mean cosine of
+    incidence, and whether the footprint spans faces at an angle (a corner)."""
+
+    distance: NDArray[np.float64]
+    hit_fraction: NDArray[np.float64]
+    mean_cos: NDArray[np.float64]
+    corner: NDArray[np.bool_]
+
+
+def cast_zones(world, rig: Rig, T_map_sensor: NDArray[np.float64], tof: ToFPhysics) -> ZoneReturns:
+    """Ray-cast every sub-ray of every zone of every sensor pose ``T_map_sensor`` (K, S, 4, 4)
+    against the true ``world`` (a :class:`tofloc.maps.Map`)."""
+    n_sub = tof.sub_rays
+    d_sensor = np.stack([subray_directions(s, n_sub) for s in rig.sensors])  # (S, Z, M, 3)
+    R = T_map_sensor[..., :3, :3]  # (K, S, 3, 3)
+    dirs = np.einsum("ksij,szmj->kszmi", R, d_sensor)
+    origins = np.broadcast_to(T_map_sensor[:, :, None, None, :3, 3], dirs.shape)
+    hits = world.raycast(origins, dirs, max_range=tof.max_range)
+    t = np.asarray(hits.t, dtype=float)
+    normal = np.asarray(hits.normal, dtype=float)
+    hit = np.isfinite(t) & (t >= tof.min_range) & (t <= tof.max_range)
+    cos_inc = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), dirs))
+    # reported convention along each sub-ray: depth (z in the sensor frame) or range
+    perpendicular = np.array([s.distance == "perpendicular" for s in rig.sensors])
+    along = np.where(perpendicular[None, :, None, None], d_sensor[None, ..., 2], 1.0)
+    value = np.where(hit, t * along, 0.0)
+    # signal of a sub-ray ~ cos(incidence) / range^2 (Lambertian target)
+    w = np.where(hit, np.maximum(cos_inc, 0.05) / np.maximum(np.where(hit, t, 1.0), 0.05) ** 2, 0.0)
+    wsum = w.sum(axis=-1)
+    frac = hit.mean(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dist = (w * value).sum(axis=-1) / wsum
+        mean_cos = np.where(hit, cos_inc, 0.0).sum(axis=-1) / np.maximum(hit.sum(axis=-1), 1)
+    has_target = frac >= tof.min_hit_fraction
+    dist = np.where(has_target, dist, np.nan)
+    # corner: two hit sub-rays whose surface normals differ by more than 30 deg
+    n_hit = np.where(hit[..., None], normal, 0.0)
+    gram = np.einsum("...ai,...bi->...ab", n_hit, n_hit)
+    both = hit[..., :, None] & hit[..., None, :]
+    corner = np.any(both & (np.abs(gram) < math.cos(math.radians(30.0))), axis=(-1, -2))
+    return ZoneReturns(dist, frac, mean_cos, corner & has_target)
+
+
+def _edge_zone_mask(rig: Rig) -> NDArray[np.bool_]:
+    out = []
+    for s in rig.sensors:
+        R, C = s.resolution
+        rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+        out.append(((rows == 0) | (rows == R - 1) | (cols == 0) | (cols == C - 1)).ravel())
+    return np.stack(out)
+
+
+def noise_sigma(distance: NDArray[np.float64], tof: ToFPhysics, edge: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Range-noise standard deviation (m) of the model for true distances (..., S, Z)."""
+    base = np.maximum(tof.sigma_floor, tof.accuracy_percent / 100.0 * distance / tof.accuracy_sigmas)
+    return base * np.where(edge, tof.edge_zone_sigma_factor, 1.0)
+
+
+def measure(
+    returns: ZoneReturns, rig: Rig, tof: ToFPhysics, rng: np.random.Generator
+) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.float32]]:
+    """Turn noise-free zone returns into what the sensor reports: ``distance_mm`` (integer
+    millimetres as float32, NaN with no target), ``status`` and ``sigma_mm``."""
+    d = returns.distance
+    shape = d.shape
+    target = np.isfinite(d)
+    edge = np.broadcast_to(_edge_zone_mask(rig), shape)
+    d0 = np.where(target, d, 0.0)
+    sigma = noise_sigma(d0, tof, edge)
+    meas = d0 + tof.bias_offset + tof.bias_slope * d0 + rng.normal(0.0, 1.0, shape) * sigma
+    # multipath at corners: a longer path
+    mp = returns.corner & (rng.random(shape) < tof.multipath_probability)
+    meas = meas + np.where(mp, rng.exponential(max(tof.multipath_excess_mean, 1e-12), shape), 0.0)
+    # specular ghosts: a spurious shorter return anywhere
+    ghost = target & (rng.random(shape) < tof.ghost_probability)
+    meas = np.where(ghost, rng.uniform(tof.min_range, np.maximum(d0, tof.min_range + 1e-3)), meas)
+    meas = np.clip(meas, tof.min_range, tof.max_range)
+    # statuses
+    weakness = np.clip(1.0 - returns.hit_fraction * returns.mean_cos, 0.0, 1.0)
+    p_invalid = np.clip(tof.invalid_base_rate + tof.invalid_weak_rate * weakness, 0.0, 1.0)
+    invalid = target & (rng.random(shape) < p_invalid)
+    codes = np.asarray(tof.invalid_statuses, dtype=np.uint8)
+    status = np.where(rng.random(shape) < tof.status9_rate, 9, 5).astype(np.uint8)
+    status = np.where(invalid, codes[rng.integers(0, codes.size, shape)], status)
+    status = np.where(target, status, NO_TARGET).astype(np.uint8)
+    distance_mm = np.where(target, np.round(meas * 1000.0), np.nan).astype(np.float32)
+    jitter = np.clip(1.0 + tof.reported_sigma_jitter * rng.normal(0.0, 1.0, shape), 0.2, None)
+    sigma_mm = np.where(target, np.round(sigma * 1000.0 * jitter, 1), np.nan).astype(np.float32)
+    return distance_mm, status, sigma_mm
