@@ -160,10 +160,20 @@ class Registry:
 
 
 #: Built-in estimators (name -> class). Each class follows tofloc.problem.Estimator.
-ESTIMATORS = Registry("tofloc.estimators", {})
+ESTIMATORS = Registry(
+    "tofloc.estimators",
+    {
+        "icp_pf": "estimators.particle_filter:ICPScorePF",
+    },
+)
 
 #: Built-in sensor models (name -> class). Each follows sensor_models.base.SensorModel.
-SENSOR_MODELS = Registry("tofloc.sensor_models", {})
+SENSOR_MODELS = Registry(
+    "tofloc.sensor_models",
+    {
+        "icp_score": "sensor_models.icp_score:ICPScore",
+    },
+)
 
 
 def get_estimator(name: str) -> Any:

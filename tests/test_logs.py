@@ -1,0 +1,597 @@
+"""Log format v1 (tofloc.logs): reading any conforming file, refusing every violation, atomic writes.
+
+Bad files are made with plain h5py, so the reader is tested against files our writer
+would never produce.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from tofloc import frames
+from tofloc.errors import FormatError, ParameterError, TofLocError
+from tofloc.logs import FORMAT_NAME, FORMAT_VERSION, Log, LogFormatError, read_log, write_log
+from tofloc.rig import Rig, Sensor
+
+K, S, Z, C = 4, 2, 64, 3
+EYE = np.eye(4).tolist()
+
+
+# -- fixtures: a conforming file made with plain h5py (no tofloc) --------------------------
+
+
+def rig_dict() -> dict[str, Any]:
+    T1 = [[0.0, -1.0, 0.0, 0.1], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.05], [0.0, 0.0, 0.0, 1.0]]
+    sensor = {"model": "vl53l5cx", "resolution": [8, 8], "fov_deg": [45.0, 45.0], "distance": "perpendicular", "zone_directions": None}
+    return {
+        "sensors": [dict(sensor, name="tof0", T_tip_sensor=EYE), dict(sensor, name="tof1", T_tip_sensor=T1)],
+        "actuators": ["chamber1", "chamber2", "chamber3"],
+    }
+
+
+def conforming() -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Root attributes and datasets of a valid log with every optional field."""
+    rng = np.random.default_rng(7)
+    distance = rng.uniform(50.0, 3000.0, (K, S, Z)).astype(np.float32)
+    status = np.full((K, S, Z), 5, np.uint8)
+    distance[0, 1, 10] = np.nan
+    status[0, 1, 10] = 255
+    status[2, 0, 3] = 9
+    T_base_tip = frames.se3_from_xyyaw(rng.normal(size=K) * 0.1, rng.normal(size=K) * 0.1, rng.normal(size=K))
+    T_base_tip[1] = np.nan  # configuration unknown for sample 1
+    attrs = {
+        "format": FORMAT_NAME,
+        "version": 1,
+        "rig": json.dumps(rig_dict()),
+        "source": "simulation",
+        "created": "2024-05-01T12:00:00+00:00",
+        "map": "maps/cuboid.ply",
+    }
+    datasets = {
+        "/samples/timestamp_s": np.arange(K, dtype=np.float64) * 0.066,
+        "/samples/distance_mm": distance,
+        "/samples/status": status,
+        "/samples/sigma_mm": rng.uniform(1.0, 10.0, (K, S, Z)).astype(np.float32),
+        "/samples/pressure_kpa": rng.uniform(0.0, 50.0, (K, C)).astype(np.float32),
+        "/samples/T_base_tip": T_base_tip,
+        "/truth/T_map_base": frames.se3_from_xyyaw(0.3, -0.2, 0.5),
+    }
+    return attrs, datasets
+
+
+def write_plain(path: Path, attrs: dict[str, Any], datasets: dict[str, Any]) -> Path:
+    with h5py.File(path, "w") as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v
+        for name, data in datasets.items():
+            f.create_dataset(name, data=data)
+    return path
+
+
+def bad_file(tmp_path: Path, *, attrs: dict[str, Any] | None = None, datasets: dict[str, Any] | None = None, drop: tuple[str, ...] = ()) -> Path:
+    """A conforming file with some attributes/datasets replaced (``None`` value or ``drop``: removed)."""
+    a, d = conforming()
+    a.update(attrs or {})
+    d.update(datasets or {})
+    a = {k: v for k, v in a.items() if v is not None and k not in drop}
+    d = {k: v for k, v in d.items() if v is not None and k not in drop}
+    return write_plain(tmp_path / "bad.h5", a, d)
+
+
+def assert_refused(path: Path, where: str, *expected: str) -> LogFormatError:
+    with pytest.raises(LogFormatError) as info:
+        read_log(path)
+    e = info.value
+    msg = str(e)
+    assert msg.startswith(f"{path}: "), msg
+    assert e.file == str(path)
+    assert e.where == where, msg
+    assert f": {where}: expected " in msg
+    for frag in expected:
+        assert frag in msg, msg
+    return e
+
+
+@pytest.fixture
+def rig() -> Rig:
+    return Rig.from_dict(rig_dict())
+
+
+@pytest.fixture
+def full_log(rig: Rig) -> Log:
+    a, d = conforming()
+    return Log(
+        rig=rig,
+        timestamp_s=d["/samples/timestamp_s"],
+        distance_mm=d["/samples/distance_mm"],
+        status=d["/samples/status"],
+        sigma_mm=d["/samples/sigma_mm"],
+        pressure_kpa=d["/samples/pressure_kpa"],
+        T_base_tip=d["/samples/T_base_tip"],
+        T_map_base=np.stack([frames.se3_from_xyyaw(0.1 * k, 0.0, 0.2 * k) for k in range(K)]),
+        source="import:test",
+        created="2024-05-01T12:00:00+00:00",
+        map="../maps/cuboid.ply",
+    )
+
+
+# -- accepting conforming files ----------------------------------------------------------
+
+
+def test_plain_h5py_file_is_accepted(tmp_path: Path) -> None:
+    a, d = conforming()
+    path = write_plain(tmp_path / "plain.h5", a, d)
+    log = read_log(path)
+    assert (log.n_samples, log.n_sensors, log.n_zones, log.n_actuators) == (K, S, Z, C)
+    assert [s.name for s in log.rig.sensors] == ["tof0", "tof1"]
+    assert log.rig.actuators == ("chamber1", "chamber2", "chamber3")
+    np.testing.assert_allclose(log.rig.sensors[1].T_tip_sensor, rig_dict()["sensors"][1]["T_tip_sensor"])
+    for name, arr in d.items():
+        field = name.rsplit("/", 1)[1]
+        got = getattr(log, field)
+        assert got.dtype == arr.dtype, field
+        np.testing.assert_array_equal(got, arr)  # NaN compare equal here
+    assert log.source == "simulation" and log.created == "2024-05-01T12:00:00+00:00"
+    assert log.map == "maps/cuboid.ply"
+    assert log.path == path.absolute()
+    assert log.map_path() == path.absolute().parent / "maps" / "cuboid.ply"
+
+
+def test_only_required_fields(tmp_path: Path) -> None:
+    a, d = conforming()
+    del a["map"]
+    d = {k: v for k, v in d.items() if k in ("/samples/timestamp_s", "/samples/distance_mm", "/samples/status")}
+    log = read_log(write_plain(tmp_path / "min.h5", a, d))
+    assert log.sigma_mm is None and log.pressure_kpa is None and log.T_base_tip is None and log.T_map_base is None
+    assert log.map is None and log.map_path() is None and log.truth_per_sample() is None
+
+
+def test_other_writers_encodings_are_accepted(tmp_path: Path) -> None:
+    """Big-endian data, bytes/fixed-length/one-element attributes, other chunking and filters."""
+    a, d = conforming()
+    a["format"] = np.bytes_(FORMAT_NAME)  # fixed-length ASCII string
+    a["rig"] = a["rig"].encode("utf-8")  # bytes
+    a["source"] = np.array([b"serial"])  # one-element array (MATLAB style)
+    a["created"] = np.array(["2024-05-01T12:00:00Z"], dtype=h5py.string_dtype())
+    a["version"] = np.array([1], dtype=">i4")  # big-endian, one element
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in a.items():
+            f.attrs[k] = v
+        for name, arr in d.items():
+            f.create_dataset(name, data=arr.astype(arr.dtype.newbyteorder(">")), compression="lzf", shuffle=True, fletcher32=True)
+    log = read_log(path)
+    assert log.source == "serial" and log.created == "2024-05-01T12:00:00Z"
+    assert log.distance_mm.dtype == np.dtype(np.float32) and log.distance_mm.dtype.isnative
+    for name, arr in d.items():
+        np.testing.assert_array_equal(getattr(log, name.rsplit("/", 1)[1]), arr)
+
+
+def test_extra_datasets_attributes_and_groups_are_ignored(tmp_path: Path) -> None:
+    a, d = conforming()
+    a["operator"] = "someone"
+    a["calibration"] = np.arange(5)
+    d["/samples/ambient_kcps"] = np.zeros((K, S, Z), np.float32)
+    d["/samples/nb_target_detected"] = np.ones((K, S, Z), np.int16)
+    d["/mocap/markers"] = np.zeros((10, 3))
+    d["/truth/T_world_map"] = np.eye(4)
+    path = write_plain(tmp_path / "extra.h5", a, d)
+    log = read_log(path)
+    np.testing.assert_array_equal(log.distance_mm, d["/samples/distance_mm"])
+    assert not hasattr(log, "ambient_kcps")
+
+
+def test_timestamps_need_not_be_monotonic(tmp_path: Path) -> None:
+    ts = np.array([3.0, 1.0, 2.0, 2.0])
+    log = read_log(bad_file(tmp_path, datasets={"/samples/timestamp_s": ts}))
+    np.testing.assert_array_equal(log.timestamp_s, ts)
+
+
+def test_per_sample_truth_is_accepted(tmp_path: Path) -> None:
+    truth = frames.se3_from_xyyaw(np.linspace(0, 1, K), 0.0, np.linspace(-3, 3, K))
+    log = read_log(bad_file(tmp_path, datasets={"/truth/T_map_base": truth}))
+    np.testing.assert_array_equal(log.T_map_base, truth)
+
+
+# -- refusing violations: each names the file, the place and the expectation ---------------
+
+
+@pytest.mark.parametrize(
+    "name, shape",
+    [("/samples/timestamp_s", "(K,)"), ("/samples/distance_mm", "(4, 2, 64)"), ("/samples/status", "(4, 2, 64)")],
+)
+def test_missing_required_dataset(tmp_path: Path, name: str, shape: str) -> None:
+    assert_refused(bad_file(tmp_path, drop=(name,)), name, "(required)", shape, "missing")
+
+
+def test_missing_samples_group(tmp_path: Path) -> None:
+    a, _ = conforming()
+    path = write_plain(tmp_path / "nogroup.h5", a, {"/other/timestamp_s": np.zeros(K)})
+    assert_refused(path, "/samples/timestamp_s", "float64 dataset", "(required)", "no /samples group")
+
+
+def test_group_where_a_dataset_is_expected(tmp_path: Path) -> None:
+    path = bad_file(tmp_path, drop=("/samples/status",), datasets={"/samples/status/inner": np.zeros(3, np.uint8)})
+    assert_refused(path, "/samples/status", "uint8 dataset", "found a group")
+
+
+@pytest.mark.parametrize(
+    "name, data, shape",
+    [
+        ("/samples/distance_mm", np.zeros((K, S, Z + 1), np.float32), "(4, 2, 65)"),
+        ("/samples/status", np.zeros((K, S), np.uint8), "(4, 2)"),
+        ("/samples/sigma_mm", np.zeros((K + 1, S, Z), np.float32), "(5, 2, 64)"),
+        ("/samples/timestamp_s", np.zeros((K, 1)), "(4, 1)"),
+        ("/samples/T_base_tip", np.tile(np.eye(4), (K, 1, 1))[:, :3, :], "(4, 3, 4)"),
+        ("/truth/T_map_base", np.eye(4)[:3], "(3, 4)"),
+    ],
+)
+def test_wrong_shape(tmp_path: Path, name: str, data: np.ndarray, shape: str) -> None:
+    assert_refused(bad_file(tmp_path, datasets={name: data}), name, "shape", f"found shape {shape}")
+
+
+@pytest.mark.parametrize(
+    "name, data, want, found",
+    [
+        ("/samples/distance_mm", np.zeros((K, S, Z), np.float64), "dtype float32", "float64"),
+        ("/samples/status", np.full((K, S, Z), 5, np.int16), "dtype uint8", "int16"),
+        ("/samples/status", np.full((K, S, Z), True), "dtype uint8", "bool"),
+        ("/samples/timestamp_s", np.zeros(K, np.float32), "dtype float64", "float32"),
+        ("/samples/sigma_mm", np.zeros((K, S, Z), np.float16), "dtype float32", "float16"),
+        ("/samples/pressure_kpa", np.zeros((K, C), np.float64), "dtype float32", "float64"),
+        ("/samples/T_base_tip", np.tile(np.eye(4), (K, 1, 1)).astype(np.float32), "dtype float64", "float32"),
+        ("/truth/T_map_base", np.eye(4, dtype=">f4"), "dtype float64", "float32 (>f4)"),
+    ],
+)
+def test_wrong_dtype(tmp_path: Path, name: str, data: np.ndarray, want: str, found: str) -> None:
+    assert_refused(bad_file(tmp_path, datasets={name: data}), name, want, f"found {found}")
+
+
+def test_bad_rig_json(tmp_path: Path) -> None:
+    e = assert_refused(bad_file(tmp_path, attrs={"rig": "{'sensors': oops"}), "rig", "valid JSON")
+    assert isinstance(e, FormatError)
+
+
+def test_bad_rig_content_is_delegated_to_rig(tmp_path: Path) -> None:
+    rd = rig_dict()
+    rd["sensors"][1]["T_tip_sensor"] = [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}), "rig.sensors[1].T_tip_sensor", "rigid transform")
+
+
+def test_rig_attribute_must_be_a_string(tmp_path: Path) -> None:
+    assert_refused(bad_file(tmp_path, attrs={"rig": np.int64(3)}), "root attribute `rig`", "JSON string", "int64")
+    assert_refused(bad_file(tmp_path, attrs={"rig": np.arange(3)}), "root attribute `rig`", "scalar attribute", "shape (3,)")
+
+
+@pytest.mark.parametrize(
+    "attrs, where, frags",
+    [
+        ({"version": 2}, "root attribute `version`", ("the integer 1", "version 1 only", "found 2")),
+        ({"version": "1"}, "root attribute `version`", ("the integer 1", "integer attribute", "'1'")),
+        ({"version": 1.0}, "root attribute `version`", ("the integer 1", "float64")),
+        ({"version": None}, "root attribute `version`", ("the integer 1", "(required)", "missing")),
+        ({"format": "tofloc-log-v2"}, "root attribute `format`", ("'tofloc-log'", "found 'tofloc-log-v2'")),
+        ({"format": None}, "root attribute `format`", ("'tofloc-log'", "missing")),
+        ({"source": None}, "root attribute `source`", ("(required)", "missing")),
+        ({"created": "yesterday"}, "root attribute `created`", ("ISO 8601", "'yesterday'")),
+        ({"created": b"\xff\xfe"}, "root attribute `created`", ("UTF-8",)),
+        ({"map": "/etc/passwd"}, "root attribute `map`", ("relative to the log's folder", "'/etc/passwd'")),
+        ({"map": ""}, "root attribute `map`", ("non-empty path",)),
+        ({"source": np.array(["a", "b"], dtype=h5py.string_dtype())}, "root attribute `source`", ("scalar attribute", "(2,)")),
+    ],
+)
+def test_bad_root_attributes(tmp_path: Path, attrs: dict[str, Any], where: str, frags: tuple[str, ...]) -> None:
+    assert_refused(bad_file(tmp_path, attrs=attrs), where, *frags)
+
+
+def test_nan_truth_pose(tmp_path: Path) -> None:
+    T = frames.se3_from_xyyaw(0.3, -0.2, 0.5)
+    T[0, 3] = np.nan
+    assert_refused(bad_file(tmp_path, datasets={"/truth/T_map_base": T}), "/truth/T_map_base", "finite rigid transform", "partly NaN")
+
+
+def test_non_rigid_per_sample_truth_names_the_sample(tmp_path: Path) -> None:
+    T = frames.se3_from_xyyaw(np.zeros(K), 0.0, 0.0)
+    T[2, :3, :3] *= 1.1
+    assert_refused(bad_file(tmp_path, datasets={"/truth/T_map_base": T}), "/truth/T_map_base[2]", "finite rigid transform", "not rigid")
+
+
+def test_all_nan_truth_is_refused(tmp_path: Path) -> None:
+    """Unlike a configuration, a truth cannot be 'unknown': leave the dataset out instead."""
+    assert_refused(bad_file(tmp_path, datasets={"/truth/T_map_base": np.full((4, 4), np.nan)}), "/truth/T_map_base", "finite rigid")
+
+
+def test_partly_nan_configuration(tmp_path: Path) -> None:
+    _, d = conforming()
+    T = d["/samples/T_base_tip"].copy()
+    T[3, 1, 1] = np.nan
+    assert_refused(bad_file(tmp_path, datasets={"/samples/T_base_tip": T}), "/samples/T_base_tip[3]", "all NaN where unknown", "partly NaN")
+
+
+def test_infinite_configuration(tmp_path: Path) -> None:
+    _, d = conforming()
+    T = d["/samples/T_base_tip"].copy()
+    T[0, 0, 3] = np.inf
+    assert_refused(bad_file(tmp_path, datasets={"/samples/T_base_tip": T}), "/samples/T_base_tip[0]", "finite rigid", "infinite")
+
+
+def test_sensor_count_mismatch_with_rig(tmp_path: Path) -> None:
+    path = bad_file(
+        tmp_path,
+        datasets={"/samples/distance_mm": np.ones((K, 3, Z), np.float32), "/samples/status": np.full((K, 3, Z), 5, np.uint8)},
+    )
+    assert_refused(path, "/samples/distance_mm", "(K, S, Z) = (4, 2, 64)", "found shape (4, 3, 64)")
+
+
+def test_zone_count_mismatch_with_rig(tmp_path: Path) -> None:
+    rd = rig_dict()
+    for s in rd["sensors"]:
+        s["resolution"] = [4, 4]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}), "/samples/distance_mm", "(4, 2, 16)", "found shape (4, 2, 64)")
+
+
+def test_actuator_count_mismatch_with_rig(tmp_path: Path) -> None:
+    rd = rig_dict()
+    rd["actuators"] = ["only_one"]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}), "/samples/pressure_kpa", "(K, C) = (4, 1)", "found shape (4, 3)")
+
+
+def test_zero_samples(tmp_path: Path) -> None:
+    path = bad_file(
+        tmp_path,
+        datasets={
+            "/samples/timestamp_s": np.zeros(0),
+            "/samples/distance_mm": np.zeros((0, S, Z), np.float32),
+            "/samples/status": np.zeros((0, S, Z), np.uint8),
+        },
+        drop=("/samples/sigma_mm", "/samples/pressure_kpa", "/samples/T_base_tip"),
+    )
+    assert_refused(path, "/samples/timestamp_s", "between 1 and", "K = 0")
+
+
+@pytest.mark.parametrize("value, found", [(-1.5, "-1.5"), (np.inf, "inf"), (-np.inf, "-inf")])
+def test_bad_distance_values(tmp_path: Path, value: float, found: str) -> None:
+    _, d = conforming()
+    dist = d["/samples/distance_mm"].copy()
+    dist[1, 0, 5] = value
+    assert_refused(
+        bad_file(tmp_path, datasets={"/samples/distance_mm": dist}), "/samples/distance_mm", "NaN or a finite distance >= 0 mm", found, "(1, 0, 5)"
+    )
+
+
+def test_non_finite_timestamp(tmp_path: Path) -> None:
+    ts = np.array([0.0, 0.1, np.nan, 0.3])
+    assert_refused(bad_file(tmp_path, datasets={"/samples/timestamp_s": ts}), "/samples/timestamp_s", "finite times", "at index 2")
+
+
+def test_negative_sigma_and_infinite_pressure(tmp_path: Path) -> None:
+    _, d = conforming()
+    sig = d["/samples/sigma_mm"].copy()
+    sig[0, 0, 0] = -1.0
+    assert_refused(bad_file(tmp_path, datasets={"/samples/sigma_mm": sig}), "/samples/sigma_mm", "finite sigma >= 0")
+    p = d["/samples/pressure_kpa"].copy()
+    p[2, 1] = np.inf
+    assert_refused(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p}), "/samples/pressure_kpa", "finite pressures", "(2, 1)")
+
+
+def test_nan_pressure_means_unknown(tmp_path: Path) -> None:
+    _, d = conforming()
+    p = d["/samples/pressure_kpa"].copy()
+    p[2, 1] = np.nan
+    assert np.isnan(read_log(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p})).pressure_kpa[2, 1])
+
+
+def test_not_an_hdf5_file(tmp_path: Path) -> None:
+    path = tmp_path / "log.h5"
+    path.write_text("timestamp,distance\n0.0,123\n")
+    assert_refused(path, "file", "an HDF5 file", "not an HDF5 file")
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    assert_refused(tmp_path / "nope.h5", "file", "an existing HDF5 log file", "no such file")
+
+
+def test_external_link_is_refused(tmp_path: Path) -> None:
+    a, d = conforming()
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f.create_dataset("status", data=d.pop("/samples/status"))
+    path = write_plain(tmp_path / "linked.h5", a, d)
+    with h5py.File(path, "a") as f:
+        f["/samples/status"] = h5py.ExternalLink(str(other), "/status")
+    assert_refused(path, "/samples/status", "inside this file", "external links are refused", str(other))
+
+
+def test_log_format_error_is_a_tofloc_error_for_the_cli(tmp_path: Path) -> None:
+    assert issubclass(LogFormatError, FormatError) and issubclass(LogFormatError, TofLocError)
+
+
+# -- writing --------------------------------------------------------------------------------
+
+
+def test_round_trip_identical_arrays(tmp_path: Path, full_log: Log) -> None:
+    path = write_log(full_log, tmp_path / "rt.h5")
+    assert path == tmp_path / "rt.h5"
+    back = read_log(path)
+    for name in ("timestamp_s", "distance_mm", "status", "sigma_mm", "pressure_kpa", "T_base_tip", "T_map_base"):
+        a, b = getattr(full_log, name), getattr(back, name)
+        assert b.dtype == a.dtype and b.shape == a.shape, name
+        np.testing.assert_array_equal(b, a, err_msg=name)
+    assert np.isnan(back.distance_mm[0, 1, 10]) and np.isnan(back.T_base_tip[1]).all()
+    assert (back.source, back.created, back.map) == (full_log.source, full_log.created, full_log.map)
+    assert back.rig.to_dict() == full_log.rig.to_dict()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rt.h5"]
+    with h5py.File(path) as f:
+        assert f.attrs["format"] == FORMAT_NAME and int(f.attrs["version"]) == FORMAT_VERSION
+        ds = f["/samples/distance_mm"]
+        assert ds.compression == "gzip" and ds.compression_opts == 4 and ds.chunks is not None
+        assert ds.dtype == np.dtype("<f4") and f["/samples/status"].dtype == np.dtype("u1")
+
+
+def test_writer_omits_absent_optional_fields_and_fills_created(tmp_path: Path, full_log: Log) -> None:
+    log = Log(full_log.rig, full_log.timestamp_s, full_log.distance_mm, full_log.status)
+    path = write_log(log, tmp_path / "min.h5")
+    with h5py.File(path) as f:
+        assert set(f["samples"]) == {"timestamp_s", "distance_mm", "status"}
+        assert "truth" not in f and "map" not in f.attrs
+    back = read_log(path)
+    assert log.created == ""  # the input is not modified
+    from datetime import datetime, timezone
+
+    age = datetime.now(timezone.utc) - datetime.fromisoformat(back.created)
+    assert 0 <= age.total_seconds() < 60
+
+
+def test_write_refuses_an_invalid_log_and_writes_nothing(tmp_path: Path, full_log: Log) -> None:
+    bad = Log(full_log.rig, full_log.timestamp_s, full_log.distance_mm.astype(np.float64), full_log.status)
+    dest = tmp_path / "bad.h5"
+    with pytest.raises(LogFormatError) as info:
+        write_log(bad, dest)
+    assert str(info.value) == f"{dest}: /samples/distance_mm: expected dtype float32 (either byte order), found float64 (<f8)"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_failure_leaves_nothing_behind(tmp_path: Path, full_log: Log, monkeypatch: pytest.MonkeyPatch) -> None:
+    dest = tmp_path / "session.h5"
+    write_log(full_log, dest)
+    before = dest.read_bytes()
+    other = full_log.subset([0, 1])
+
+    real = h5py.Group.create_dataset
+    calls = {"n": 0}
+
+    def failing_create_dataset(self: h5py.Group, name: str, *args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 3:  # after timestamp_s and distance_mm are written
+            raise OSError("disk full (simulated)")
+        return real(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", failing_create_dataset)
+    with pytest.raises(OSError, match="simulated"):
+        write_log(other, dest)
+    assert calls["n"] == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session.h5"]  # no temporary file left
+    assert dest.read_bytes() == before
+    monkeypatch.undo()
+    assert read_log(dest).n_samples == K
+
+    # and on a fresh name nothing at all appears
+    calls["n"] = 0
+    monkeypatch.setattr(h5py.Group, "create_dataset", failing_create_dataset)
+    with pytest.raises(OSError):
+        write_log(other, tmp_path / "fresh.h5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session.h5"]
+
+
+def test_write_into_missing_folder(tmp_path: Path, full_log: Log) -> None:
+    with pytest.raises(ParameterError, match="does not exist"):
+        write_log(full_log, tmp_path / "no" / "such" / "x.h5")
+
+
+def test_write_accepts_big_endian_arrays(tmp_path: Path, full_log: Log) -> None:
+    log = Log(full_log.rig, full_log.timestamp_s.astype(">f8"), full_log.distance_mm.astype(">f4"), full_log.status)
+    back = read_log(write_log(log, tmp_path / "be.h5"))
+    np.testing.assert_array_equal(back.distance_mm, full_log.distance_mm)
+    assert back.distance_mm.dtype.isnative
+
+
+def test_from_arrays_casts_and_refuses_unrepresentable_status(rig: Rig) -> None:
+    dist = np.full((2, S, Z), 1234.5678)  # float64
+    log = Log.from_arrays(rig, [0.0, 0.1], dist, np.full((2, S, Z), 5), T_map_base=np.eye(4))
+    assert log.distance_mm.dtype == np.float32 and log.status.dtype == np.uint8 and log.timestamp_s.dtype == np.float64
+    np.testing.assert_allclose(log.distance_mm, 1234.5678, rtol=1e-7)
+    with pytest.raises(LogFormatError, match=r"<arrays>: /samples/status: expected integers in \[0, 255\]"):
+        Log.from_arrays(rig, [0.0, 0.1], dist, np.full((2, S, Z), 256))
+    with pytest.raises(LogFormatError, match=r"/samples/distance_mm: expected shape \(K, S, Z\) = \(2, 2, 64\)"):
+        Log.from_arrays(rig, [0.0, 0.1], dist[:, :1], np.full((2, S, Z), 5))
+
+
+# -- derived views -------------------------------------------------------------------------
+
+
+def test_valid_and_distance_m(full_log: Log) -> None:
+    v = full_log.valid()
+    assert v.shape == (K, S, Z) and v.dtype == np.bool_
+    assert not v[0, 1, 10]  # status 255 and NaN distance
+    assert v[2, 0, 3]  # status 9 counts as valid
+    assert v.sum() == K * S * Z - 1
+    assert not full_log.valid(valid_statuses={5})[2, 0, 3]
+    dm = full_log.distance_m
+    assert dm.dtype == np.float64
+    np.testing.assert_allclose(dm[1, 0, 0], float(full_log.distance_mm[1, 0, 0]) / 1000.0)
+    assert np.isnan(dm[0, 1, 10])
+
+
+def test_zero_distance_with_valid_status_is_not_valid(rig: Rig) -> None:
+    d = np.full((1, S, Z), 500.0)
+    d[0, 0, 0] = 0.0
+    log = Log.from_arrays(rig, [0.0], d, np.full((1, S, Z), 5))
+    assert not log.valid()[0, 0, 0] and log.valid().sum() == S * Z - 1
+
+
+def test_truth_per_sample(full_log: Log, rig: Rig) -> None:
+    per = full_log.truth_per_sample()
+    assert per is not None
+    np.testing.assert_array_equal(per, full_log.T_map_base)
+    assert per is not full_log.T_map_base
+    fixed = Log.from_arrays(rig, np.arange(3.0), np.ones((3, S, Z)), np.full((3, S, Z), 5), T_map_base=frames.se3_from_xyyaw(1, 2, 3))
+    per = fixed.truth_per_sample()
+    assert per is not None and per.shape == (3, 4, 4)
+    for k in range(3):
+        np.testing.assert_array_equal(per[k], fixed.T_map_base)
+    per[0, 0, 3] = 99.0  # writable and independent of the log
+    assert fixed.T_map_base[0, 3] == 1.0
+
+
+def test_subset(full_log: Log) -> None:
+    sub = full_log.subset([3, 1])
+    assert sub.n_samples == 2
+    np.testing.assert_array_equal(sub.timestamp_s, full_log.timestamp_s[[3, 1]])
+    np.testing.assert_array_equal(sub.distance_mm, full_log.distance_mm[[3, 1]])
+    np.testing.assert_array_equal(sub.status, full_log.status[[3, 1]])
+    np.testing.assert_array_equal(sub.sigma_mm, full_log.sigma_mm[[3, 1]])
+    np.testing.assert_array_equal(sub.pressure_kpa, full_log.pressure_kpa[[3, 1]])
+    np.testing.assert_array_equal(sub.T_base_tip, full_log.T_base_tip[[3, 1]])
+    np.testing.assert_array_equal(sub.T_map_base, full_log.T_map_base[[3, 1]])
+    assert sub.rig is full_log.rig and sub.map == full_log.map and sub.source == full_log.source
+    sub.validate()
+    sub.distance_mm[0] = 1.0  # a copy
+    assert full_log.distance_mm[3, 0, 0] != 1.0
+
+    mask = np.array([True, False, True, False])
+    np.testing.assert_array_equal(full_log.subset(mask).timestamp_s, full_log.timestamp_s[[0, 2]])
+    np.testing.assert_array_equal(full_log.subset(slice(1, None, 2)).timestamp_s, full_log.timestamp_s[[1, 3]])
+    with pytest.raises(ParameterError, match="no sample"):
+        full_log.subset(np.zeros(K, bool))
+    with pytest.raises(ParameterError, match="indices must be in"):
+        full_log.subset([4])
+    with pytest.raises(ParameterError, match="boolean mask must have shape"):
+        full_log.subset([True, False])
+
+
+def test_subset_keeps_a_fixed_truth(rig: Rig) -> None:
+    T = frames.se3_from_xyyaw(1, 2, 3)
+    log = Log.from_arrays(rig, np.arange(3.0), np.ones((3, S, Z)), np.full((3, S, Z), 5), T_map_base=T)
+    sub = log.subset([2])
+    assert sub.T_map_base.shape == (4, 4)
+    np.testing.assert_array_equal(sub.T_map_base, T)
+
+
+def test_map_path_without_file(full_log: Log, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert full_log.path is None
+    assert full_log.map_path() == tmp_path / ".." / "maps" / "cuboid.ply"
+
+
+def test_truncated_hdf5_file(tmp_path: Path) -> None:
+    path = tmp_path / "x.h5"
+    path.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 10)  # HDF5 signature, then nothing usable
+    e = assert_refused(path, "file", "HDF5")
+    assert "\n" not in str(e)  # one line for the CLI

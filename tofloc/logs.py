@@ -1,0 +1,756 @@
+"""Log format v1: one recording session = one HDF5 file (reader, writer, validation).
+
+The contract is ``log-format-v1`` (documented for users in ``docs/log-format.md``):
+
+* root attributes ``format`` (``"tofloc-log"``), ``version`` (``1``), ``rig`` (JSON, see
+  :class:`tofloc.rig.Rig`), ``source``, ``created`` (ISO 8601) and, optionally, ``map``
+  (path of the map file relative to the log's folder);
+* datasets ``/samples/timestamp_s`` (K,) float64, ``/samples/distance_mm`` (K, S, Z)
+  float32, ``/samples/status`` (K, S, Z) uint8 and the optional ``/samples/sigma_mm``
+  (K, S, Z) float32, ``/samples/pressure_kpa`` (K, C) float32,
+  ``/samples/T_base_tip`` (K, 4, 4) float64 and ``/truth/T_map_base`` (4, 4) or
+  (K, 4, 4) float64.
+
+:func:`read_log` accepts any file that follows the contract, whoever wrote it (extra
+attributes, datasets and groups are ignored; either byte order; strings stored as
+``str`` or ``bytes``), and refuses everything else with one :class:`LogFormatError`
+naming the file, the place inside it and the expectation. Nothing is repaired.
+:func:`write_log` validates first and writes atomically.
+"""
+
+from __future__ import annotations
+
+import calendar
+import math
+import os
+import re
+import secrets
+from dataclasses import dataclass, replace
+from datetime import date, datetime, timedelta, timezone
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Any, Iterable
+
+import h5py
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc import __version__ as _TOFLOC_VERSION
+from tofloc import frames
+from tofloc.errors import FormatError, ParameterError
+from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MAX_SAMPLES",
+    "MAX_DATASET_VALUES",
+    "MAX_RIG_JSON_BYTES",
+    "POSE_ATOL",
+    "Log",
+    "LogFormatError",
+    "read_log",
+    "write_log",
+]
+
+FORMAT_NAME = "tofloc-log"
+FORMAT_VERSION = 1
+
+#: Largest number of samples K the reader accepts.
+MAX_SAMPLES = 10_000_000
+#: Largest number of values in one dataset (2**28: 1 GiB of float32).
+MAX_DATASET_VALUES = 2**28
+#: Largest rig JSON (root attribute ``rig``), in bytes.
+MAX_RIG_JSON_BYTES = 16 * 2**20
+#: Largest other string attribute (``format``, ``source``, ``created``, ``map``), in bytes.
+MAX_TEXT_BYTES = 4096
+#: Tolerance of the rigidity test on poses (same as the rig's ``T_tip_sensor``): the
+#: rotation must be orthonormal within ``10 * POSE_ATOL`` and the last row ``0 0 0 1``
+#: within ``POSE_ATOL``.
+POSE_ATOL = 1e-4
+#: gzip level of every dataset :func:`write_log` writes.
+GZIP_LEVEL = 4
+
+_F32 = np.dtype(np.float32)
+_F64 = np.dtype(np.float64)
+_U8 = np.dtype(np.uint8)
+
+
+class LogFormatError(FormatError):
+    """A log breaks log format v1: names the file, the place inside it and the expectation."""
+
+
+# -- the in-memory log --------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Log:
+    """One recording session (log format v1) in memory, SI-agnostic: arrays as stored.
+
+    Parameters
+    ----------
+    rig : Rig
+        The sensors (S of them, Z zones each) and the actuators (C of them).
+    timestamp_s : ndarray of float64, shape (K,)
+        Time of every sample in seconds (finite; need not be monotonic).
+    distance_mm : ndarray of float32, shape (K, S, Z)
+        Reported distance in millimetres (scene-image zone order), NaN where there is none.
+    status : ndarray of uint8, shape (K, S, Z)
+        VL53L5CX ``target_status`` (5 and 9 valid, 255 no target).
+    sigma_mm : ndarray of float32, shape (K, S, Z), optional
+        The sensor's ``range_sigma_mm``.
+    pressure_kpa : ndarray of float32, shape (K, C), optional
+        Actuation of every actuator (NaN where unknown).
+    T_base_tip : ndarray of float64, shape (K, 4, 4), optional
+        Measured configuration of every sample; a sample's matrix is all NaN where unknown.
+    T_map_base : ndarray of float64, shape (4, 4) or (K, 4, 4), optional
+        Ground-truth base pose (``/truth/T_map_base``).
+    source : str
+        ``"simulation"``, ``"serial"``, ``"import:<what>"``, ...
+    created : str
+        ISO 8601 time; :func:`write_log` writes the current UTC time when empty.
+    map : str, optional
+        Path of the map file relative to the log's folder (root attribute ``map``).
+    path : Path, optional
+        The file the samples came from (set by :func:`read_log`).
+
+    Notes
+    -----
+    The constructor stores what it is given; :meth:`validate` checks everything (and
+    :func:`write_log` calls it). Use :meth:`from_arrays` to build a log from array-likes
+    of any numeric dtype.
+    """
+
+    rig: Rig
+    timestamp_s: NDArray[np.float64]
+    distance_mm: NDArray[np.float32]
+    status: NDArray[np.uint8]
+    sigma_mm: NDArray[np.float32] | None = None
+    pressure_kpa: NDArray[np.float32] | None = None
+    T_base_tip: NDArray[np.float64] | None = None
+    T_map_base: NDArray[np.float64] | None = None
+    source: str = "unknown"
+    created: str = ""
+    map: str | None = None
+    path: Path | None = None
+
+    # -- construction -----------------------------------------------------------------
+    @classmethod
+    def from_arrays(
+        cls,
+        rig: Rig,
+        timestamp_s: ArrayLike,
+        distance_mm: ArrayLike,
+        status: ArrayLike,
+        *,
+        sigma_mm: ArrayLike | None = None,
+        pressure_kpa: ArrayLike | None = None,
+        T_base_tip: ArrayLike | None = None,
+        T_map_base: ArrayLike | None = None,
+        source: str = "unknown",
+        created: str = "",
+        map: str | None = None,
+    ) -> "Log":
+        """Build and validate a log from array-likes, converting them to the spec's dtypes.
+
+        Floating-point inputs are cast (float64 distances become float32); ``status``
+        must hold integers in ``[0, 255]`` (it is never wrapped or rounded).
+
+        Raises
+        ------
+        LogFormatError
+            If a value cannot be represented or the log breaks the format
+            (the file named in the message is ``<arrays>``).
+        """
+        where = "<arrays>"
+        st = np.asarray(status)
+        if st.dtype.kind not in "iuf" or (st.size and not np.all((st >= 0) & (st <= 255) & (st == np.round(st)))):
+            raise LogFormatError(where, "/samples/status", "integers in [0, 255]", f"{st.dtype} values")
+
+        def f(a: ArrayLike | None, dt: np.dtype) -> Any:
+            return None if a is None else np.asarray(a, dtype=dt)
+
+        log = cls(
+            rig=rig,
+            timestamp_s=f(timestamp_s, _F64),
+            distance_mm=f(distance_mm, _F32),
+            status=st.astype(_U8),
+            sigma_mm=f(sigma_mm, _F32),
+            pressure_kpa=f(pressure_kpa, _F32),
+            T_base_tip=f(T_base_tip, _F64),
+            T_map_base=f(T_map_base, _F64),
+            source=source,
+            created=created,
+            map=map,
+        )
+        log.validate(where)
+        return log
+
+    # -- sizes --------------------------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        """Number of samples K."""
+        return int(np.shape(self.timestamp_s)[0])
+
+    @property
+    def n_sensors(self) -> int:
+        """Number of sensors S (from the rig)."""
+        return self.rig.n_sensors
+
+    @property
+    def n_zones(self) -> int:
+        """Number of zones per sensor Z (from the rig)."""
+        return self.rig.n_zones
+
+    @property
+    def n_actuators(self) -> int:
+        """Number of actuators C (from the rig)."""
+        return self.rig.n_actuators
+
+    # -- derived views ------------------------------------------------------------------
+    @property
+    def distance_m(self) -> NDArray[np.float64]:
+        """Distances in metres, ``(K, S, Z)`` float64, NaN where there is none (a new array)."""
+        return np.asarray(self.distance_mm, dtype=np.float64) * 1e-3
+
+    def valid(self, valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES) -> NDArray[np.bool_]:
+        """Zones to use, ``(K, S, Z)``: status in ``valid_statuses`` and a finite distance > 0.
+
+        See :func:`tofloc.rig.valid_mask`.
+        """
+        return valid_mask(self.status, self.distance_mm, valid_statuses)
+
+    def map_path(self) -> Path | None:
+        """The map file: ``map`` resolved against the log's folder (the cwd if ``path`` is None)."""
+        if self.map is None:
+            return None
+        base = self.path.parent if self.path is not None else Path.cwd()
+        return base / self.map
+
+    def truth_per_sample(self) -> NDArray[np.float64] | None:
+        """Ground truth as ``(K, 4, 4)`` (a fixed ``(4, 4)`` truth repeated), or None (a new array)."""
+        if self.T_map_base is None:
+            return None
+        T = np.asarray(self.T_map_base, dtype=np.float64)
+        if T.ndim == 2:
+            return np.broadcast_to(T, (self.n_samples, 4, 4)).copy()
+        return T.copy()
+
+    def subset(self, indices: ArrayLike | slice) -> "Log":
+        """A new log holding the selected samples (in the order given; arrays are copies).
+
+        Parameters
+        ----------
+        indices : slice, int array or bool mask of shape (K,)
+            The samples to keep (at least one). A per-sample truth is selected too;
+            a fixed ``(4, 4)`` truth is kept as is.
+
+        Raises
+        ------
+        ParameterError
+            If the selection is empty, out of range or not integer/boolean.
+        """
+        K = self.n_samples
+        if isinstance(indices, slice):
+            idx = np.arange(K)[indices]
+        else:
+            sel = np.asarray(indices)
+            if sel.dtype == np.bool_:
+                if sel.shape != (K,):
+                    raise ParameterError(f"subset: a boolean mask must have shape ({K},), got {sel.shape}")
+                idx = np.flatnonzero(sel)
+            elif sel.dtype.kind in "iu" and sel.ndim <= 1:
+                idx = sel.reshape(-1).astype(np.intp)
+                if idx.size and (idx.min() < -K or idx.max() >= K):
+                    raise ParameterError(f"subset: indices must be in [-{K}, {K - 1}], got {idx.min()}..{idx.max()}")
+            else:
+                raise ParameterError(f"subset: expected a slice, 1-D integer indices or a boolean mask, got {sel.dtype} {sel.shape}")
+        if idx.size == 0:
+            raise ParameterError("subset: the selection holds no sample (a log needs at least one)")
+
+        def take(a: NDArray[Any] | None) -> Any:
+            return None if a is None else np.asarray(a)[idx]
+
+        truth = self.T_map_base
+        if truth is not None:
+            truth = np.array(truth) if np.ndim(truth) == 2 else take(truth)
+        return replace(
+            self,
+            timestamp_s=take(self.timestamp_s),
+            distance_mm=take(self.distance_mm),
+            status=take(self.status),
+            sigma_mm=take(self.sigma_mm),
+            pressure_kpa=take(self.pressure_kpa),
+            T_base_tip=take(self.T_base_tip),
+            T_map_base=truth,
+        )
+
+    # -- validation ---------------------------------------------------------------------
+    def validate(self, where: str = "<log>") -> None:
+        """Check every rule of log format v1; ``where`` names the file in the message.
+
+        Raises
+        ------
+        LogFormatError
+            On the first violation: wrong type, dtype (either byte order is fine) or
+            shape, K = 0 or K > :data:`MAX_SAMPLES`, S/Z/C different from the rig,
+            non-finite timestamps, distances or sigmas that are neither NaN nor finite
+            >= 0, infinite pressures, a configuration that is neither all NaN nor a
+            finite rigid transform, a truth that is not finite rigid, or a bad
+            ``source``/``created``/``map``.
+        """
+        if not isinstance(self.rig, Rig):
+            raise LogFormatError(where, "root attribute `rig`", "a tofloc.rig.Rig", type(self.rig).__name__)
+        S, Z, C = self.rig.n_sensors, self.rig.n_zones, self.rig.n_actuators
+
+        ts = _check_array(self.timestamp_s, where, "/samples/timestamp_s", _F64)
+        if ts.ndim != 1:
+            raise LogFormatError(where, "/samples/timestamp_s", "shape (K,)", f"shape {ts.shape}")
+        K = ts.shape[0]
+        if not 1 <= K <= MAX_SAMPLES:
+            raise LogFormatError(where, "/samples/timestamp_s", f"between 1 and {MAX_SAMPLES} samples", f"K = {K}")
+        _first_bad(~np.isfinite(ts), ts, where, "/samples/timestamp_s", "finite times in seconds")
+
+        kSZ = (K, S, Z)
+        d = _check_array(self.distance_mm, where, "/samples/distance_mm", _F32, kSZ, _KSZ)
+        _first_bad(~(np.isnan(d) | (d >= 0) & np.isfinite(d)), d, where, "/samples/distance_mm", "NaN or a finite distance >= 0 mm")
+        _check_array(self.status, where, "/samples/status", _U8, kSZ, _KSZ)
+        if self.sigma_mm is not None:
+            s = _check_array(self.sigma_mm, where, "/samples/sigma_mm", _F32, kSZ, _KSZ)
+            _first_bad(~(np.isnan(s) | (s >= 0) & np.isfinite(s)), s, where, "/samples/sigma_mm", "NaN or a finite sigma >= 0 mm")
+        if self.pressure_kpa is not None:
+            p = _check_array(self.pressure_kpa, where, "/samples/pressure_kpa", _F32, (K, C), "(K, C)")
+            _first_bad(np.isinf(p), p, where, "/samples/pressure_kpa", "finite pressures in kPa (NaN where unknown)")
+        if self.T_base_tip is not None:
+            T = _check_array(self.T_base_tip, where, "/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)")
+            unknown = np.all(np.isnan(T), axis=(1, 2))
+            bad = ~(unknown | frames.is_rigid(T, atol=POSE_ATOL))
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise LogFormatError(
+                    where, f"/samples/T_base_tip[{k}]", "a finite rigid transform, or all NaN where unknown", _describe_pose(T[k])
+                )
+        if self.T_map_base is not None:
+            T = _check_array(self.T_map_base, where, "/truth/T_map_base", _F64)
+            if T.shape != (4, 4) and T.shape != (K, 4, 4):
+                raise LogFormatError(where, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {T.shape}")
+            bad = ~np.atleast_1d(frames.is_rigid(T, atol=POSE_ATOL))
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                loc = "/truth/T_map_base" if T.ndim == 2 else f"/truth/T_map_base[{k}]"
+                raise LogFormatError(where, loc, "a finite rigid transform", _describe_pose(T.reshape(-1, 4, 4)[k]))
+
+        _check_text(self.source, where, "root attribute `source`", "a string")
+        _check_text(self.created, where, "root attribute `created`", "an ISO 8601 time")
+        if self.created and not _is_iso8601(self.created):
+            raise LogFormatError(where, "root attribute `created`", "an ISO 8601 time, e.g. 2024-05-01T12:00:00+00:00", repr(self.created[:80]))
+        if self.map is not None:
+            _check_text(self.map, where, "root attribute `map`", "a relative path")
+            if not self.map or "\x00" in self.map or _is_absolute(self.map):
+                raise LogFormatError(where, "root attribute `map`", "a non-empty path relative to the log's folder", repr(self.map[:200]))
+
+    def __repr__(self) -> str:
+        opt = [n for n in ("sigma_mm", "pressure_kpa", "T_base_tip", "T_map_base") if getattr(self, n) is not None]
+        try:
+            k = str(self.n_samples)
+        except (IndexError, TypeError):
+            k = "?"
+        return (
+            f"Log(K={k}, S={self.rig.n_sensors}, Z={self.rig.n_zones}, C={self.rig.n_actuators}, "
+            f"optional={opt}, source={self.source!r}, created={self.created!r}, map={self.map!r}, path={self.path})"
+        )
+
+
+_KSZ = "(K, S, Z)"
+
+
+def _check_array(
+    a: Any, where: str, loc: str, dtype: np.dtype, shape: tuple[int, ...] | None = None, shape_name: str = ""
+) -> NDArray[Any]:
+    if not isinstance(a, np.ndarray):
+        raise LogFormatError(where, loc, f"a numpy array of {dtype.name}", type(a).__name__)
+    if not _same_dtype(a.dtype, dtype):
+        raise LogFormatError(where, loc, f"dtype {dtype.name} (either byte order)", _dtype_name(a.dtype))
+    if shape is not None and a.shape != shape:
+        raise LogFormatError(where, loc, f"shape {shape_name} = {shape}", f"shape {a.shape}")
+    return a
+
+
+def _first_bad(bad: NDArray[np.bool_], values: NDArray[Any], where: str, loc: str, expected: str) -> None:
+    if bad.any():
+        i = tuple(int(v) for v in np.argwhere(bad)[0])
+        raise LogFormatError(where, loc, expected, f"{values[i]!r} at index {i if len(i) > 1 else i[0]}")
+
+
+def _describe_pose(T: NDArray[np.float64]) -> str:
+    if np.isnan(T).all():
+        return "a matrix that is all NaN"
+    if np.isnan(T).any():
+        return "a matrix that is partly NaN"
+    if not np.isfinite(T).all():
+        return "a matrix with infinite values"
+    return "a matrix that is not rigid: " + np.array2string(T, precision=4, separator=",").replace("\n", "")
+
+
+def _same_dtype(found: np.dtype, want: np.dtype) -> bool:
+    return found.fields is None and found.subdtype is None and found.kind == want.kind and found.itemsize == want.itemsize
+
+
+def _dtype_name(dt: np.dtype) -> str:
+    if h5py.check_string_dtype(dt) is not None:
+        return "a string"
+    return f"{dt.name} ({dt.str})" if dt.fields is None else f"compound {dt}"
+
+
+def _check_text(s: Any, where: str, loc: str, expected: str) -> None:
+    if not isinstance(s, str):
+        raise LogFormatError(where, loc, expected, type(s).__name__)
+    try:
+        n = len(s.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise LogFormatError(where, loc, f"{expected} encodable as UTF-8") from None
+    if n > MAX_TEXT_BYTES:
+        raise LogFormatError(where, loc, f"{expected} of at most {MAX_TEXT_BYTES} bytes", f"{n} bytes")
+
+
+_ISO_REDUCED = re.compile(r"\d{4}(-(0[1-9]|1[0-2]))?")  # "2024", "2024-05"
+_ISO_ORDINAL = re.compile(r"(\d{4})-?(\d{3})((T.*)?)")  # "2024-123", "2024123T12:00Z"
+
+
+def _is_iso8601(s: str) -> bool:
+    """ISO 8601 date or date-time: Python's parser, plus reduced-precision and ordinal dates."""
+    try:
+        datetime.fromisoformat(s)
+        return True
+    except ValueError:
+        pass
+    if _ISO_REDUCED.fullmatch(s):
+        return True
+    m = _ISO_ORDINAL.fullmatch(s)
+    if m:
+        year, day = int(m.group(1)), int(m.group(2))
+        if year >= 1 and 1 <= day <= (366 if calendar.isleap(year) else 365):
+            return _is_iso8601((date(year, 1, 1) + timedelta(days=day - 1)).isoformat() + m.group(3))
+    return False
+
+
+def _is_absolute(p: str) -> bool:
+    return PurePosixPath(p).is_absolute() or PureWindowsPath(p).is_absolute() or bool(PureWindowsPath(p).drive)
+
+
+# -- reading -----------------------------------------------------------------------------
+
+
+def read_log(path: str | Path) -> Log:
+    """Read and validate a log (format v1) written by any program.
+
+    Extra attributes, groups and datasets are ignored; datasets may be stored in either
+    byte order, with any chunking and any filter HDF5 can decode; string attributes may
+    be variable- or fixed-length, ``str`` or UTF-8 ``bytes``, scalar or one-element.
+    Everything is read into memory.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.h5`` file.
+
+    Returns
+    -------
+    Log
+        With ``path`` set to the file's absolute path.
+
+    Raises
+    ------
+    LogFormatError
+        The file is missing, not HDF5, or breaks the format; the message names the file,
+        the place inside it (``/samples/status``, root attribute ``version``,
+        ``rig.sensors[1].T_tip_sensor``, ...) and the expectation.
+    """
+    p = Path(path)
+    file = str(path)
+    if not p.exists():
+        raise LogFormatError(file, "file", "an existing HDF5 log file", "no such file")
+    if not p.is_file():
+        raise LogFormatError(file, "file", "an HDF5 log file", "not a regular file")
+    try:
+        is_hdf5 = h5py.is_hdf5(p)
+    except OSError as e:
+        raise LogFormatError(file, "file", "a readable HDF5 log file", str(e)) from None
+    if not is_hdf5:
+        raise LogFormatError(file, "file", "an HDF5 file (tofloc log format v1)", "not an HDF5 file")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as e:
+        raise LogFormatError(file, "file", "a readable HDF5 file", str(e).splitlines()[0] if str(e) else "unreadable") from None
+    with f:
+        fmt = _read_str_attr(f, "format", file, MAX_TEXT_BYTES, f"the string {FORMAT_NAME!r}")
+        if fmt != FORMAT_NAME:
+            raise LogFormatError(file, "root attribute `format`", f"the string {FORMAT_NAME!r}", repr(fmt[:80]))
+        version = _read_int_attr(f, "version", file)
+        if version != FORMAT_VERSION:
+            raise LogFormatError(
+                file, "root attribute `version`", f"the integer {FORMAT_VERSION} (this reader knows format version 1 only)", version
+            )
+        rig_text = _read_str_attr(f, "rig", file, MAX_RIG_JSON_BYTES, "the rig as a JSON string")
+        try:
+            rig = Rig.from_json(rig_text, source=file)
+        except LogFormatError:
+            raise
+        except FormatError as e:
+            raise LogFormatError(e.file, e.where, e.expected, e.found) from None
+        except RecursionError:  # json gives up on absurdly deep nesting
+            raise LogFormatError(file, "rig", "valid JSON", "nesting too deep") from None
+        source = _read_str_attr(f, "source", file, MAX_TEXT_BYTES, "a string naming where the samples come from")
+        created = _read_str_attr(f, "created", file, MAX_TEXT_BYTES, "an ISO 8601 time")
+        if not _is_iso8601(created):
+            raise LogFormatError(file, "root attribute `created`", "an ISO 8601 time, e.g. 2024-05-01T12:00:00+00:00", repr(created[:80]))
+        map_rel = None
+        if "map" in f.attrs:
+            map_rel = _read_str_attr(f, "map", file, MAX_TEXT_BYTES, "a path relative to the log's folder")
+
+        S, Z, C = rig.n_sensors, rig.n_zones, rig.n_actuators
+        ts_ds = _get_dataset(f, "/samples/timestamp_s", file, required=True, expected="a float64 dataset of shape (K,)")
+        assert ts_ds is not None
+        _check_dataset_meta(ts_ds, file, _F64, None, "(K,)")
+        if len(ts_ds.shape) != 1:
+            raise LogFormatError(file, "/samples/timestamp_s", "shape (K,)", f"shape {ts_ds.shape}")
+        K = int(ts_ds.shape[0])
+        if not 1 <= K <= MAX_SAMPLES:
+            raise LogFormatError(file, "/samples/timestamp_s", f"between 1 and {MAX_SAMPLES} samples", f"K = {K}")
+
+        def load(name: str, dtype: np.dtype, shape: tuple[int, ...] | None, shape_name: str, required: bool) -> Any:
+            desc = f"a {dtype.name} dataset of shape {shape_name}" + (f" = {shape}" if shape else "")
+            ds = _get_dataset(f, name, file, required=required, expected=desc)
+            if ds is None:
+                return None
+            _check_dataset_meta(ds, file, dtype, shape, shape_name)
+            return _read_dataset(ds, file, dtype)
+
+        timestamp = _read_dataset(ts_ds, file, _F64)
+        distance = load("/samples/distance_mm", _F32, (K, S, Z), _KSZ, True)
+        status = load("/samples/status", _U8, (K, S, Z), _KSZ, True)
+        sigma = load("/samples/sigma_mm", _F32, (K, S, Z), _KSZ, False)
+        pressure = load("/samples/pressure_kpa", _F32, (K, C), "(K, C)", False)
+        T_base_tip = load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False)
+        truth_ds = _get_dataset(f, "/truth/T_map_base", file, required=False, expected="a float64 dataset of shape (4, 4) or (K, 4, 4)")
+        truth = None
+        if truth_ds is not None:
+            _check_dataset_meta(truth_ds, file, _F64, None, "")
+            if truth_ds.shape not in ((4, 4), (K, 4, 4)):
+                raise LogFormatError(file, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {truth_ds.shape}")
+            truth = _read_dataset(truth_ds, file, _F64)
+
+    log = Log(
+        rig=rig,
+        timestamp_s=timestamp,
+        distance_mm=distance,
+        status=status,
+        sigma_mm=sigma,
+        pressure_kpa=pressure,
+        T_base_tip=T_base_tip,
+        T_map_base=truth,
+        source=source,
+        created=created,
+        map=map_rel,
+        path=p.absolute(),
+    )
+    log.validate(file)
+    return log
+
+
+def _attr_meta(f: h5py.File, name: str, file: str, expected: str) -> tuple[np.dtype, tuple[int, ...]]:
+    loc = f"root attribute `{name}`"
+    if name not in f.attrs:
+        raise LogFormatError(file, loc, f"{expected} (required)", "nothing (missing)")
+    aid = f.attrs.get_id(name)
+    shape = aid.shape
+    if shape is None or shape not in ((), (1,)):
+        raise LogFormatError(file, loc, f"{expected} (a scalar attribute)", f"an attribute of shape {shape}")
+    return aid.dtype, shape
+
+
+def _read_str_attr(f: h5py.File, name: str, file: str, max_bytes: int, expected: str) -> str:
+    loc = f"root attribute `{name}`"
+    dtype, _ = _attr_meta(f, name, file, expected)
+    info = h5py.check_string_dtype(dtype)
+    if info is None and dtype.kind not in "SU":
+        raise LogFormatError(file, loc, f"{expected} (a string attribute)", _dtype_name(dtype))
+    if info is not None and info.length is not None and info.length > max_bytes:
+        raise LogFormatError(file, loc, f"{expected} of at most {max_bytes} bytes", f"{info.length} bytes")
+    try:
+        value = f.attrs[name]
+    except (OSError, ValueError, TypeError) as e:
+        raise LogFormatError(file, loc, f"{expected} (a readable string)", str(e)) from None
+    if isinstance(value, np.ndarray):
+        value = value.reshape(-1)[0]
+    if isinstance(value, (bytes, np.bytes_)):
+        if len(value) > max_bytes:
+            raise LogFormatError(file, loc, f"{expected} of at most {max_bytes} bytes", f"{len(value)} bytes")
+        try:
+            value = bytes(value).decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise LogFormatError(file, loc, f"{expected} encoded as UTF-8", str(e)) from None
+    if not isinstance(value, str):
+        raise LogFormatError(file, loc, f"{expected} (a string attribute)", type(value).__name__)
+    try:  # h5py decodes undecodable bytes of variable-length strings with surrogate escapes
+        n = len(value.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise LogFormatError(file, loc, f"{expected} encoded as UTF-8", "bytes that are not UTF-8") from None
+    if n > max_bytes:
+        raise LogFormatError(file, loc, f"{expected} of at most {max_bytes} bytes", f"{n} bytes")
+    return str(value)
+
+
+def _read_int_attr(f: h5py.File, name: str, file: str) -> int:
+    loc = f"root attribute `{name}`"
+    expected = f"the integer {FORMAT_VERSION}"
+    dtype, _ = _attr_meta(f, name, file, expected)
+    if dtype.kind not in "iu" or dtype.fields is not None:
+        shown = ""
+        if h5py.check_string_dtype(dtype) is not None:
+            shown = " " + repr(f.attrs[name])[:40]
+        raise LogFormatError(file, loc, f"{expected} (an integer attribute)", _dtype_name(dtype) + shown)
+    return int(np.asarray(f.attrs[name]).reshape(-1)[0])
+
+
+def _get_dataset(f: h5py.File, path: str, file: str, *, required: bool, expected: str) -> h5py.Dataset | None:
+    """Walk ``path`` link by link, refusing links to other files; None if absent and optional."""
+    node: h5py.Group = f
+    parts = path.strip("/").split("/")
+    for i, part in enumerate(parts):
+        here = "/" + "/".join(parts[: i + 1])
+        link = node.get(part, getlink=True)
+        if link is None:
+            if required:
+                raise LogFormatError(file, path, f"{expected} (required)", "nothing (missing)" if here == path else f"no {here} group")
+            return None
+        if isinstance(link, h5py.ExternalLink):
+            raise LogFormatError(file, here, "an object inside this file (external links are refused)", f"a link to {link.filename}:{link.path}")
+        obj = node.get(part)
+        if obj is None:
+            raise LogFormatError(file, here, "an object inside this file", f"a dangling soft link to {getattr(link, 'path', '?')}")
+        if i < len(parts) - 1:
+            if not isinstance(obj, h5py.Group):
+                raise LogFormatError(file, here, "a group", type(obj).__name__)
+            node = obj
+        elif not isinstance(obj, h5py.Dataset):
+            raise LogFormatError(file, path, expected, f"a {type(obj).__name__.lower()}")
+        else:
+            return obj
+    return None  # pragma: no cover - the loop returns or raises
+
+
+def _check_dataset_meta(ds: h5py.Dataset, file: str, dtype: np.dtype, shape: tuple[int, ...] | None, shape_name: str) -> None:
+    name = ds.name
+    if ds.shape is None:
+        raise LogFormatError(file, name, f"a {dtype.name} dataset of shape {shape_name}", "an empty (null) dataspace")
+    if not _same_dtype(ds.dtype, dtype):
+        raise LogFormatError(file, name, f"dtype {dtype.name} (either byte order)", _dtype_name(ds.dtype))
+    if shape is not None and ds.shape != shape:
+        raise LogFormatError(file, name, f"shape {shape_name} = {shape}", f"shape {ds.shape}")
+    if math.prod(ds.shape) > MAX_DATASET_VALUES:
+        raise LogFormatError(file, name, f"at most {MAX_DATASET_VALUES} values", f"{math.prod(ds.shape)}")
+    if ds.is_virtual or ds.external:
+        raise LogFormatError(file, name, "data stored inside this file (virtual and external datasets are refused)")
+
+
+def _read_dataset(ds: h5py.Dataset, file: str, dtype: np.dtype) -> NDArray[Any]:
+    out = np.empty(ds.shape, dtype=dtype)  # native byte order; HDF5 converts on read
+    if out.size:
+        try:
+            ds.read_direct(out)
+        except (OSError, ValueError, TypeError) as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise LogFormatError(file, ds.name, "data this HDF5 library can decode", msg) from None
+    return out
+
+
+# -- writing -----------------------------------------------------------------------------
+
+
+def write_log(log: Log, path: str | Path) -> Path:
+    """Validate ``log`` and write it (format v1) atomically to ``path``.
+
+    The file is written to ``<name>.tmp-<random>`` in the destination folder, then renamed
+    over ``path`` with :func:`os.replace`; on any error the temporary file is removed and
+    ``path`` is left as it was. Datasets are chunked and gzip-compressed (level 4, with
+    the shuffle filter); optional datasets and the ``map`` attribute are written only
+    when present. An empty ``log.created`` is written as the current UTC time (``log``
+    itself is not modified). An extra root attribute ``writer`` names this toolkit.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    LogFormatError
+        If the log breaks the format (nothing is written).
+    ParameterError
+        If the destination folder does not exist.
+    """
+    dest = Path(path)
+    log.validate(str(dest))
+    folder = dest.parent
+    if not folder.is_dir():
+        raise ParameterError(f"{dest}: cannot write the log: folder {folder} does not exist")
+    if dest.is_dir():
+        raise ParameterError(f"{dest}: cannot write the log: a folder has that name")
+    created = log.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+    tmp = _fresh_temp(dest)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = FORMAT_NAME
+            f.attrs["version"] = np.int64(FORMAT_VERSION)
+            f.attrs["rig"] = log.rig.to_json()
+            f.attrs["source"] = log.source
+            f.attrs["created"] = created
+            if log.map is not None:
+                f.attrs["map"] = log.map
+            f.attrs["writer"] = f"tofloc {_TOFLOC_VERSION}"
+            samples = f.create_group("samples")
+            _write_dataset(samples, "timestamp_s", log.timestamp_s, "<f8")
+            _write_dataset(samples, "distance_mm", log.distance_mm, "<f4")
+            _write_dataset(samples, "status", log.status, "u1")
+            if log.sigma_mm is not None:
+                _write_dataset(samples, "sigma_mm", log.sigma_mm, "<f4")
+            if log.pressure_kpa is not None:
+                _write_dataset(samples, "pressure_kpa", log.pressure_kpa, "<f4")
+            if log.T_base_tip is not None:
+                _write_dataset(samples, "T_base_tip", log.T_base_tip, "<f8")
+            if log.T_map_base is not None:
+                _write_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, dest)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return dest
+
+
+def _fresh_temp(dest: Path) -> Path:
+    """Create an empty ``<name>.tmp-<random>`` next to ``dest`` (exclusive; permissions from the umask)."""
+    for _ in range(16):
+        tmp = dest.with_name(f"{dest.name}.tmp-{secrets.token_hex(6)}")
+        try:
+            fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise ParameterError(f"{dest}: cannot write the log: {e.strerror}") from None
+        os.close(fd)
+        return tmp
+    raise ParameterError(f"{dest}: cannot create a temporary file next to it")  # pragma: no cover
+
+
+def _write_dataset(group: h5py.Group, name: str, data: NDArray[Any], dtype: str) -> None:
+    arr = np.ascontiguousarray(data, dtype=np.dtype(dtype))
+    if arr.size == 0 or arr.ndim == 0:
+        group.create_dataset(name, data=arr)
+    else:
+        group.create_dataset(name, data=arr, chunks=True, compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True)

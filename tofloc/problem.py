@@ -1,0 +1,271 @@
+"""What every estimator receives (:class:`Problem`) and returns (:class:`Estimate`), and
+the estimator interface (:class:`Estimator`).
+
+An estimator is a dataclass of validated parameters only (no work in ``__init__``, as
+scikit-learn's estimators); :meth:`Estimator.estimate` takes a problem and an explicit
+``numpy.random.Generator`` and must not mutate the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Iterable, Literal, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc import frames
+from tofloc.errors import ParameterError, TofLocError
+from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
+
+__all__ = ["Prior", "Problem", "Estimate", "Estimator", "ProblemError", "TipSource"]
+
+TipSource = Literal["mocap", "knn"]
+
+
+class ProblemError(TofLocError, ValueError):
+    """A problem an estimator cannot work on (e.g. no valid zone in any frame)."""
+
+
+def _readonly(a: ArrayLike | None, dtype: Any = float) -> NDArray[Any] | None:
+    if a is None:
+        return None
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Prior:
+    """Gaussian prior on the planar base pose, with the known height, roll and pitch.
+
+    Parameters
+    ----------
+    mean : array (3,)
+        ``(x, y, yaw)`` in metres and radians.
+    sigma : array (3,)
+        Standard deviations ``(sigma_x, sigma_y, sigma_yaw)``.
+    z, roll, pitch : float
+        The known height of the base and its (fixed) tilt.
+    """
+
+    mean: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    z: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
+
+    def __post_init__(self) -> None:
+        mean = np.asarray(self.mean, dtype=float).copy()
+        sigma = np.asarray(self.sigma, dtype=float).copy()
+        if mean.shape != (3,) or not np.all(np.isfinite(mean)):
+            raise ParameterError(f"prior mean must be 3 finite numbers (x, y, yaw), got {mean!r}")
+        if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+            raise ParameterError(f"prior sigma must be 3 positive numbers, got {sigma!r}")
+        mean[2] = frames.wrap_angle(mean[2])
+        object.__setattr__(self, "mean", _readonly(mean))
+        object.__setattr__(self, "sigma", _readonly(sigma))
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        return np.diag(self.sigma**2)
+
+    def T_map_base(self, xyyaw: ArrayLike) -> NDArray[np.float64]:
+        """Full base poses ``(..., 4, 4)`` of planar poses ``(..., 3)`` with the known z, roll, pitch."""
+        p = np.asarray(xyyaw, dtype=float)
+        return frames.se3_from_xyyaw(p[..., 0], p[..., 1], p[..., 2], self.z, self.roll, self.pitch)
+
+    def sample(self, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
+        """``n`` draws ``(n, 3)`` (yaw wrapped)."""
+        p = self.mean + rng.normal(size=(n, 3)) * self.sigma
+        p[:, 2] = frames.wrap_angle(p[:, 2])
+        return p
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """The samples to use, the map and the prior: everything an estimator may look at.
+
+    Arrays are stored read-only copies, so an estimator cannot mutate its input.
+
+    Parameters
+    ----------
+    rig : Rig
+    distance_m : array (K, S, Z)
+        Reported distances in metres (NaN where none).
+    status : array (K, S, Z) of uint8
+    T_base_tip : array (K, 4, 4)
+        Configuration of every sample (from motion capture or the k-NN model).
+    map : tofloc.maps.Map
+    prior : Prior
+    sigma_m : array (K, S, Z), optional
+        The sensor's own range sigma in metres.
+    T_base_tip_cov : array (K, 6, 6), optional
+        Covariance of each configuration (rotation vector then translation, tip frame),
+        when its source knows it (motion capture, the k-NN cross-validation residuals).
+    valid_statuses : frozenset of int
+        Statuses counted as valid (default {5, 9}).
+    tip_source : str
+        Where ``T_base_tip`` came from (``"mocap"``, ``"knn"``, ...), for the record.
+    sample_indices : array (K,) of int
+        Indices of the samples in their log, for the record.
+    """
+
+    rig: Rig
+    distance_m: NDArray[np.float64]
+    status: NDArray[np.uint8]
+    T_base_tip: NDArray[np.float64]
+    map: Any
+    prior: Prior
+    sigma_m: NDArray[np.float64] | None = None
+    T_base_tip_cov: NDArray[np.float64] | None = None
+    valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
+    tip_source: str = "mocap"
+    sample_indices: NDArray[np.int64] | None = None
+
+    def __post_init__(self) -> None:
+        d = _readonly(self.distance_m)
+        K = d.shape[0] if d.ndim == 3 else -1
+        S, Z = self.rig.n_sensors, self.rig.n_zones
+        if d.ndim != 3 or d.shape[1:] != (S, Z) or K < 1:
+            raise ProblemError(f"distance_m must be shaped (K >= 1, {S}, {Z}), got {d.shape}")
+        st = _readonly(self.status, np.uint8)
+        if st.shape != d.shape:
+            raise ProblemError(f"status must be shaped {d.shape}, got {st.shape}")
+        T = _readonly(self.T_base_tip)
+        if T.shape != (K, 4, 4):
+            raise ProblemError(f"T_base_tip must be shaped ({K}, 4, 4), got {T.shape}")
+        if not np.all(frames.is_rigid(T, atol=1e-4)):
+            bad = np.flatnonzero(~frames.is_rigid(T, atol=1e-4))
+            raise ProblemError(f"T_base_tip of samples {bad[:5].tolist()} is not a finite rigid transform")
+        object.__setattr__(self, "distance_m", d)
+        object.__setattr__(self, "status", st)
+        object.__setattr__(self, "T_base_tip", T)
+        if self.sigma_m is not None:
+            s = _readonly(self.sigma_m)
+            if s.shape != d.shape:
+                raise ProblemError(f"sigma_m must be shaped {d.shape}, got {s.shape}")
+            object.__setattr__(self, "sigma_m", s)
+        if self.T_base_tip_cov is not None:
+            c = _readonly(self.T_base_tip_cov)
+            if c.shape != (K, 6, 6):
+                raise ProblemError(f"T_base_tip_cov must be shaped ({K}, 6, 6), got {c.shape}")
+            object.__setattr__(self, "T_base_tip_cov", c)
+        idx = np.arange(K) if self.sample_indices is None else np.asarray(self.sample_indices)
+        object.__setattr__(self, "sample_indices", _readonly(idx, np.int64))
+        object.__setattr__(self, "valid_statuses", frozenset(int(v) for v in self.valid_statuses))
+
+    # -- sizes and derived data ----------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        return int(self.distance_m.shape[0])
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Zones to use, ``(K, S, Z)``: valid status and a positive finite distance."""
+        return valid_mask(self.status, self.distance_m, self.valid_statuses)
+
+    def points_in_base(self) -> NDArray[np.float64]:
+        """Points ``(K, S, Z, 3)`` in the base frame; NaN for invalid zones."""
+        d = np.where(self.valid, self.distance_m, np.nan)
+        return self.rig.points_in_base(d, self.T_base_tip)
+
+    def require_valid_zones(self) -> None:
+        """Raise :class:`ProblemError` unless at least one zone is valid."""
+        if not self.valid.any():
+            raise ProblemError(
+                f"no valid zone in the {self.n_samples} sample(s) (statuses {sorted(set(np.unique(self.status).tolist()))}, "
+                f"valid: {sorted(self.valid_statuses)}): nothing to localize from"
+            )
+
+    def subset(self, k: int | slice | Sequence[int]) -> "Problem":
+        """The problem restricted to some samples (``k`` indexes the K axis)."""
+        idx = np.arange(self.n_samples)[k]
+        idx = np.atleast_1d(idx)
+        return dataclasses.replace(
+            self,
+            distance_m=self.distance_m[idx],
+            status=self.status[idx],
+            T_base_tip=self.T_base_tip[idx],
+            sigma_m=None if self.sigma_m is None else self.sigma_m[idx],
+            T_base_tip_cov=None if self.T_base_tip_cov is None else self.T_base_tip_cov[idx],
+            sample_indices=self.sample_indices[idx],
+        )
+
+
+@dataclass(eq=False)
+class Estimate:
+    """An estimator's answer.
+
+    Parameters
+    ----------
+    pose : array (3,)
+        ``(x, y, yaw)``, yaw wrapped to ``(-pi, pi]``.
+    covariance : array (3, 3)
+        Symmetric positive semi-definite (yaw in rad^2).
+    diagnostics : dict
+        Estimator-specific: for a particle filter ``ess`` per step and the final
+        ``particles``/``weights``; for a smoother iterations and final error.
+    runtime_s : float
+        Wall time of :meth:`Estimator.estimate`.
+    """
+
+    pose: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    runtime_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.pose = np.asarray(self.pose, dtype=float).copy()
+        self.pose[2] = frames.wrap_angle(self.pose[2])
+        cov = np.asarray(self.covariance, dtype=float)
+        self.covariance = 0.5 * (cov + cov.T)
+
+
+class Estimator(ABC):
+    """Interface of every estimator plug-in.
+
+    Subclasses are dataclasses whose fields are the parameters (validated in
+    ``__post_init__``, raising :class:`tofloc.errors.ParameterError`); they do no work
+    before :meth:`estimate`.
+    """
+
+    #: registry name
+    name: ClassVar[str] = ""
+
+    def get_params(self) -> dict[str, Any]:
+        """The parameters, as given to the constructor (JSON-friendly)."""
+        if dataclasses.is_dataclass(self):
+            return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
+        return {}
+
+    def estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        """Estimate the base pose; times the work and records it in the result."""
+        if not isinstance(rng, np.random.Generator):
+            raise ParameterError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        problem.require_valid_zones()
+        t0 = time.perf_counter()
+        est = self._estimate(problem, rng)
+        est.runtime_s = time.perf_counter() - t0
+        return est
+
+    @abstractmethod
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        """The algorithm (problem already checked to have valid zones)."""
+
+
+def check_positive(name: str, value: float, strict: bool = True) -> None:
+    """Raise :class:`ParameterError` unless ``value`` is a finite number > 0 (>= 0 if not strict)."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and np.isfinite(value)
+    if not ok or (value <= 0 if strict else value < 0):
+        raise ParameterError(f"{name} must be a finite number {'>' if strict else '>='} 0, got {value!r}")
+
+
+def check_in(name: str, value: Any, allowed: Iterable[Any]) -> None:
+    """Raise :class:`ParameterError` unless ``value`` is one of ``allowed``."""
+    allowed = list(allowed)
+    if value not in allowed:
+        raise ParameterError(f"{name} must be one of {allowed}, got {value!r}")
