@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from sensor_models.base import BoundSensorModel, SensorModel
 from tofloc import frames
+from tofloc.distance_grid import DistanceGrid, distance_grid_for
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
@@ -38,7 +39,10 @@ __all__ = ["ICPScore", "icp_fitness", "open3d_fitness", "merged_clouds"]
 
 
 def icp_fitness(
-    points_base: NDArray[np.float64], T_map_base: NDArray[np.float64], tree: cKDTree, max_correspondence: float
+    points_base: NDArray[np.float64],
+    T_map_base: NDArray[np.float64],
+    tree: "cKDTree | DistanceGrid",
+    max_correspondence: float,
 ) -> NDArray[np.float64]:
     """Open3D's registration fitness of one cloud under many poses, vectorized.
 
@@ -48,8 +52,8 @@ def icp_fitness(
         The source cloud in the base frame (finite points).
     T_map_base : array (M, 4, 4)
         Candidate poses.
-    tree : scipy.spatial.cKDTree
-        KD-tree of the map points.
+    tree : scipy.spatial.cKDTree or tofloc.distance_grid.DistanceGrid
+        KD-tree of the map points, or the grid that accelerates the same exact test.
     max_correspondence : float
         Inlier distance (m).
 
@@ -63,9 +67,12 @@ def icp_fitness(
     if P == 0:
         return np.zeros(M)
     moved = frames.transform_points(T_map_base, points_base[None, :, :])  # (M, P, 3)
-    d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=max_correspondence)
-    # Open3D's hybrid search keeps neighbours with squared distance < radius^2
-    inlier = (d < max_correspondence).reshape(M, P)
+    if isinstance(tree, DistanceGrid):
+        inlier = tree.within(moved, max_correspondence)
+    else:
+        d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=max_correspondence)
+        # Open3D's hybrid search keeps neighbours with squared distance < radius^2
+        inlier = (d < max_correspondence).reshape(M, P)
     return inlier.mean(axis=1)
 
 
@@ -76,8 +83,8 @@ def open3d_fitness(
     per pose (reference for tests and ``tofloc bench``)."""
     import open3d as o3d
 
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_base, dtype=float)))
-    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(map_points, dtype=float)))
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points_base, dtype=float)))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(map_points, dtype=float)))
     out = np.empty(T_map_base.shape[0])
     for i, T in enumerate(T_map_base):
         out[i] = o3d.pipelines.registration.evaluate_registration(src, tgt, max_correspondence, T).fitness
@@ -157,12 +164,18 @@ class BoundICPScore(BoundSensorModel):
         self.problem = problem
         self.clouds = merged_clouds(problem, model.voxel_size, model.crop_margin)
         self.n_steps = len(self.clouds)
-        self.tree = cKDTree(np.asarray(problem.map.points, dtype=float))
+        # exact inlier test accelerated by a distance grid (cell = max_correspondence / 8)
+        self.tree = distance_grid_for(problem.map.points, model.max_correspondence / 8.0, model.max_correspondence)
+        # the known height, roll and pitch applied once: a planar pose then moves the points
+        T_fixed = problem.prior.T_map_base(np.zeros(3))
+        self.clouds_lifted = [frames.transform_points(T_fixed, c) for c in self.clouds]
 
     def fitness(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Fitness ``(M,)`` in [0, 1] of ``X_step`` for planar poses ``(M, 3)``."""
-        T = self.problem.prior.T_map_base(poses)
-        return icp_fitness(self.clouds[step], T, self.tree, self.model.max_correspondence)
+        X = self.clouds_lifted[step]
+        if X.shape[0] == 0:
+            return np.zeros(poses.shape[0])
+        return self.tree.within_planar(X, poses, self.model.max_correspondence).mean(axis=1)
 
     def log_likelihood(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         f = self.fitness(poses, step)

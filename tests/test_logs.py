@@ -595,3 +595,44 @@ def test_truncated_hdf5_file(tmp_path: Path) -> None:
     path.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 10)  # HDF5 signature, then nothing usable
     e = assert_refused(path, "file", "HDF5")
     assert "\n" not in str(e)  # one line for the CLI
+
+
+def test_damaged_files_raise_only_log_format_errors(tmp_path: Path) -> None:
+    """Random byte corruption of a valid file: every refusal is one LogFormatError, never a raw h5py error."""
+    a, d = conforming()
+    good = write_plain(tmp_path / "good.h5", a, d).read_bytes()
+    rng = np.random.default_rng(0)
+    path = tmp_path / "damaged.h5"
+    refused = 0
+    for _ in range(300):
+        b = bytearray(good)
+        pos = rng.integers(0, len(b), size=rng.integers(1, 8))
+        b_arr = np.frombuffer(b, np.uint8).copy()
+        b_arr[pos] = rng.integers(0, 256, size=pos.size)
+        path.write_bytes(b_arr.tobytes())
+        try:
+            read_log(path)
+        except LogFormatError as e:
+            refused += 1
+            assert str(e).startswith(f"{path}: ") and ": expected " in str(e) and "\n" not in str(e)
+    assert 50 < refused < 300  # corruption of metadata is refused; corruption of sample values may be valid data
+
+
+# -- the documentation's worked example ----------------------------------------------------
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "log-format.md"
+
+
+def test_documented_plain_h5py_example_is_accepted(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    text = DOC.read_text(encoding="utf-8")
+    section = text[text.index("## Writing a log without tofloc") :]
+    code = section[section.index("```python\n") + len("```python\n") : section.index("```\n", section.index("```python\n") + 10)]
+    assert "import tofloc" not in code and "from tofloc" not in code
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, str(DOC), "exec"), {})
+    log = read_log(tmp_path / "session.h5")
+    assert (log.n_samples, log.n_sensors, log.n_zones, log.n_actuators) == (10, 2, 64, 3)
+    assert log.valid()[:, 1, :8].sum() == 0 and log.valid()[:, 0].all()
+    assert np.isnan(log.T_base_tip[0]).all() and log.T_base_tip[1, 2, 3] == 0.30
+    assert log.map_path() == tmp_path / "maps" / "cuboid.ply"
+    np.testing.assert_allclose(frames.xyyaw_from_se3(log.truth_per_sample()[0]), [0.12, -0.05, 0.25])

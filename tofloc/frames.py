@@ -109,9 +109,8 @@ def transform_points(T: ArrayLike, p: ArrayLike) -> FloatArray:
     """
     T = np.asarray(T, dtype=float)
     p = np.asarray(p, dtype=float)
-    R = T[..., None, :3, :3]
-    t = T[..., None, :3, 3]
-    return np.einsum("...ij,...j->...i", R, p) + t
+    # p @ R^T + t with matmul (BLAS-backed, several times faster than einsum here)
+    return np.matmul(p, np.swapaxes(T[..., :3, :3], -1, -2)) + T[..., None, :3, 3]
 
 
 def is_rigid(T: ArrayLike, atol: float = 1e-6) -> NDArray[np.bool_]:

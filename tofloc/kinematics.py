@@ -24,7 +24,7 @@ that protocol, with these choices made explicit:
   error, in m^2 (scikit-learn's ``mean_squared_error`` on (x, y, z) is a third of it).
   The rotation error is the geodesic angle ``|log(R_pred^T R_true)|`` in degrees.
 * **Choice of k.** The candidate with the smallest mean cross-validated position MSE;
-  ties go to the smaller k. Candidates larger than the smallest training fold cannot be
+  ties (equal to a relative 1e-9, so that rounding does not decide) go to the smaller k. Candidates larger than the smallest training fold cannot be
   evaluated and are dropped (they do not appear in :attr:`FitReport.cv_mse`).
 * **Randomness.** The train/validation split and the folds are drawn from the
   ``numpy.random.Generator`` passed in, and from nothing else.
@@ -85,6 +85,11 @@ MAX_FILE_PAYLOAD = 512 * 1024 * 1024
 #: so that every pose a valid log holds is accepted. Fitting re-projects the training
 #: rotations onto SO(3), so saved models are rigid to machine precision.
 RIGID_ATOL = POSE_ATOL
+
+#: Two CV scores closer than this (relative, plus an absolute 1e-20 m^2) are a tie:
+#: summation order alone must not decide between two k.
+_TIE_RTOL = 1e-9
+_TIE_ATOL_M2 = 1e-20
 
 _FIELDS = (
     "format",
@@ -225,8 +230,8 @@ def _check_indices(a: Any, name: str, fail: _Fail) -> NDArray[np.intp]:
         raise fail(name, "an integer array", f"dtype {arr.dtype}")
     if arr.ndim != 1:
         raise fail(name, "a 1-D array", f"shape {arr.shape}")
-    if arr.size and (arr.min() < 0 or arr.max() > np.iinfo(np.intp).max // 2):
-        raise fail(name, "non-negative indices", f"min {arr.min()}")
+    if arr.size and (arr.min() < 0 or arr.max() >= 2**62):
+        raise fail(name, "indices in [0, 2**62)", f"values from {arr.min()} to {arr.max()}")
     arr = arr.astype(np.intp)
     if np.unique(arr).size != arr.size:
         raise fail(name, "distinct indices", "duplicates")
@@ -369,9 +374,10 @@ class KinematicsModel:
             tr = np.arange(n, dtype=np.intp)
         if va is None:
             va = np.zeros(0, dtype=np.intp)
-        if fp is None:
-            fp = fingerprint(P_arr, np.asarray(T, dtype=float)) if P_arr.ndim == 2 else ""
-        k_, P_, T_, act, tr_, va_, fp_ = _validated(k, P, T, actuators, tr, va, fp, fail)
+        own_fp = fp is None
+        k_, P_, T_, act, tr_, va_, fp_ = _validated(k, P, T, actuators, tr, va, "0" * 64 if own_fp else fp, fail)
+        if own_fp:
+            fp_ = fingerprint(P_, T_)
         for a in (P_, T_, tr_, va_):
             a.setflags(write=False)
         self.k = k_
@@ -498,11 +504,12 @@ class KinematicsModel:
             bad = np.argwhere(~np.isfinite(P))[0]
             raise FormatError(path, "/samples/pressure_kpa", "finite pressures (kPa)",
                               f"{P[tuple(bad)]} at sample {int(bad[0])}, actuator {int(bad[1])}")
-        known = ~np.any(np.isnan(T), axis=(1, 2))
+        known = ~np.all(np.isnan(T), axis=(1, 2))  # unknown poses are all-NaN rows
         rigid = frames.is_rigid(T[known], atol=RIGID_ATOL)
         if not np.all(rigid):
             bad_row = int(np.flatnonzero(known)[np.argmin(rigid)])
-            raise FormatError(path, "/samples/T_base_tip", "rigid transforms or NaN rows", f"sample {bad_row}")
+            raise FormatError(path, f"/samples/T_base_tip[{bad_row}]", "a finite rigid transform, or all NaN where unknown",
+                              "a non-rigid or partly NaN matrix")
         actuators = tuple(getattr(getattr(log, "rig", None), "actuators", ()) or ())
         if actuators and len(actuators) != P.shape[1]:
             raise FormatError(path, "/samples/pressure_kpa", f"{len(actuators)} columns (rig actuators)", P.shape[1])
@@ -577,7 +584,8 @@ class KinematicsModel:
                 d = pos - T_tr[held, :3, 3]
                 sq_sum[k] += float(np.einsum("ij,ij->", d, d))
         cv_mse = {k: sq_sum[k] / n_tr for k in usable}
-        best = min(usable, key=lambda k: (cv_mse[k], k))
+        lowest = min(cv_mse.values())
+        best = min(k for k in usable if cv_mse[k] <= lowest * (1.0 + _TIE_RTOL) + _TIE_ATOL_M2)
 
         model = cls(best, P_tr, T_tr, actuators, rows[tr], rows[val], fp)
         T_fit = model.predict(P_tr)

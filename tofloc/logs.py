@@ -25,10 +25,11 @@ import math
 import os
 import re
 import secrets
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from datetime import date, datetime, timedelta, timezone
 from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import h5py
 import numpy as np
@@ -45,6 +46,8 @@ __all__ = [
     "MAX_SAMPLES",
     "MAX_DATASET_VALUES",
     "MAX_RIG_JSON_BYTES",
+    "MAX_TEXT_BYTES",
+    "GZIP_LEVEL",
     "POSE_ATOL",
     "Log",
     "LogFormatError",
@@ -323,7 +326,8 @@ class Log:
         if self.T_base_tip is not None:
             T = _check_array(self.T_base_tip, where, "/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)")
             unknown = np.all(np.isnan(T), axis=(1, 2))
-            bad = ~(unknown | frames.is_rigid(T, atol=POSE_ATOL))
+            with np.errstate(over="ignore", invalid="ignore"):
+                bad = ~(unknown | frames.is_rigid(T, atol=POSE_ATOL))
             if bad.any():
                 k = int(np.flatnonzero(bad)[0])
                 raise LogFormatError(
@@ -333,7 +337,8 @@ class Log:
             T = _check_array(self.T_map_base, where, "/truth/T_map_base", _F64)
             if T.shape != (4, 4) and T.shape != (K, 4, 4):
                 raise LogFormatError(where, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {T.shape}")
-            bad = ~np.atleast_1d(frames.is_rigid(T, atol=POSE_ATOL))
+            with np.errstate(over="ignore", invalid="ignore"):
+                bad = ~np.atleast_1d(frames.is_rigid(T, atol=POSE_ATOL))
             if bad.any():
                 k = int(np.flatnonzero(bad)[0])
                 loc = "/truth/T_map_base" if T.ndim == 2 else f"/truth/T_map_base[{k}]"
@@ -477,10 +482,8 @@ def read_log(path: str | Path) -> Log:
         raise LogFormatError(file, "file", "a readable HDF5 log file", str(e)) from None
     if not is_hdf5:
         raise LogFormatError(file, "file", "an HDF5 file (tofloc log format v1)", "not an HDF5 file")
-    try:
+    with _h5_guard(file, "file"):
         f = h5py.File(p, "r")
-    except OSError as e:
-        raise LogFormatError(file, "file", "a readable HDF5 file", str(e).splitlines()[0] if str(e) else "unreadable") from None
     with f:
         fmt = _read_str_attr(f, "format", file, MAX_TEXT_BYTES, f"the string {FORMAT_NAME!r}")
         if fmt != FORMAT_NAME:
@@ -504,40 +507,45 @@ def read_log(path: str | Path) -> Log:
         if not _is_iso8601(created):
             raise LogFormatError(file, "root attribute `created`", "an ISO 8601 time, e.g. 2024-05-01T12:00:00+00:00", repr(created[:80]))
         map_rel = None
-        if "map" in f.attrs:
+        with _h5_guard(file, "root attribute `map`"):
+            has_map = "map" in f.attrs
+        if has_map:
             map_rel = _read_str_attr(f, "map", file, MAX_TEXT_BYTES, "a path relative to the log's folder")
 
         S, Z, C = rig.n_sensors, rig.n_zones, rig.n_actuators
-        ts_ds = _get_dataset(f, "/samples/timestamp_s", file, required=True, expected="a float64 dataset of shape (K,)")
-        assert ts_ds is not None
-        _check_dataset_meta(ts_ds, file, _F64, None, "(K,)")
-        if len(ts_ds.shape) != 1:
-            raise LogFormatError(file, "/samples/timestamp_s", "shape (K,)", f"shape {ts_ds.shape}")
-        K = int(ts_ds.shape[0])
-        if not 1 <= K <= MAX_SAMPLES:
-            raise LogFormatError(file, "/samples/timestamp_s", f"between 1 and {MAX_SAMPLES} samples", f"K = {K}")
+        with _h5_guard(file, "/samples/timestamp_s"):
+            ts_ds = _get_dataset(f, "/samples/timestamp_s", file, required=True, expected="a float64 dataset of shape (K,)")
+            assert ts_ds is not None
+            _check_dataset_meta(ts_ds, file, _F64, None, "(K,)")
+            if len(ts_ds.shape) != 1:
+                raise LogFormatError(file, "/samples/timestamp_s", "shape (K,)", f"shape {ts_ds.shape}")
+            K = int(ts_ds.shape[0])
+            if not 1 <= K <= MAX_SAMPLES:
+                raise LogFormatError(file, "/samples/timestamp_s", f"between 1 and {MAX_SAMPLES} samples", f"K = {K}")
+            timestamp = _read_dataset(ts_ds, file, _F64)
 
         def load(name: str, dtype: np.dtype, shape: tuple[int, ...] | None, shape_name: str, required: bool) -> Any:
             desc = f"a {dtype.name} dataset of shape {shape_name}" + (f" = {shape}" if shape else "")
-            ds = _get_dataset(f, name, file, required=required, expected=desc)
-            if ds is None:
-                return None
-            _check_dataset_meta(ds, file, dtype, shape, shape_name)
-            return _read_dataset(ds, file, dtype)
+            with _h5_guard(file, name):
+                ds = _get_dataset(f, name, file, required=required, expected=desc)
+                if ds is None:
+                    return None
+                _check_dataset_meta(ds, file, dtype, shape, shape_name)
+                return _read_dataset(ds, file, dtype)
 
-        timestamp = _read_dataset(ts_ds, file, _F64)
         distance = load("/samples/distance_mm", _F32, (K, S, Z), _KSZ, True)
         status = load("/samples/status", _U8, (K, S, Z), _KSZ, True)
         sigma = load("/samples/sigma_mm", _F32, (K, S, Z), _KSZ, False)
         pressure = load("/samples/pressure_kpa", _F32, (K, C), "(K, C)", False)
         T_base_tip = load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False)
-        truth_ds = _get_dataset(f, "/truth/T_map_base", file, required=False, expected="a float64 dataset of shape (4, 4) or (K, 4, 4)")
         truth = None
-        if truth_ds is not None:
-            _check_dataset_meta(truth_ds, file, _F64, None, "")
-            if truth_ds.shape not in ((4, 4), (K, 4, 4)):
-                raise LogFormatError(file, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {truth_ds.shape}")
-            truth = _read_dataset(truth_ds, file, _F64)
+        with _h5_guard(file, "/truth/T_map_base"):
+            truth_ds = _get_dataset(f, "/truth/T_map_base", file, required=False, expected="a float64 dataset of shape (4, 4) or (K, 4, 4)")
+            if truth_ds is not None:
+                _check_dataset_meta(truth_ds, file, _F64, None, "")
+                if truth_ds.shape not in ((4, 4), (K, 4, 4)):
+                    raise LogFormatError(file, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {truth_ds.shape}")
+                truth = _read_dataset(truth_ds, file, _F64)
 
     log = Log(
         rig=rig,
@@ -557,6 +565,25 @@ def read_log(path: str | Path) -> Log:
     return log
 
 
+_H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, AttributeError)
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+@contextmanager
+def _h5_guard(file: str, where: str) -> Iterator[None]:
+    """Turn what HDF5/h5py raise on a damaged or exotic file into one LogFormatError."""
+    try:
+        yield
+    except LogFormatError:
+        raise
+    except _H5_ERRORS as e:
+        raise LogFormatError(file, where, "a readable HDF5 object (the file may be damaged)", _first_line(e)) from None
+
+
 def _attr_meta(f: h5py.File, name: str, file: str, expected: str) -> tuple[np.dtype, tuple[int, ...]]:
     loc = f"root attribute `{name}`"
     if name not in f.attrs:
@@ -569,6 +596,11 @@ def _attr_meta(f: h5py.File, name: str, file: str, expected: str) -> tuple[np.dt
 
 
 def _read_str_attr(f: h5py.File, name: str, file: str, max_bytes: int, expected: str) -> str:
+    with _h5_guard(file, f"root attribute `{name}`"):
+        return _read_str_attr_unguarded(f, name, file, max_bytes, expected)
+
+
+def _read_str_attr_unguarded(f: h5py.File, name: str, file: str, max_bytes: int, expected: str) -> str:
     loc = f"root attribute `{name}`"
     dtype, _ = _attr_meta(f, name, file, expected)
     info = h5py.check_string_dtype(dtype)
@@ -578,8 +610,8 @@ def _read_str_attr(f: h5py.File, name: str, file: str, max_bytes: int, expected:
         raise LogFormatError(file, loc, f"{expected} of at most {max_bytes} bytes", f"{info.length} bytes")
     try:
         value = f.attrs[name]
-    except (OSError, ValueError, TypeError) as e:
-        raise LogFormatError(file, loc, f"{expected} (a readable string)", str(e)) from None
+    except _H5_ERRORS as e:
+        raise LogFormatError(file, loc, f"{expected} (a readable string)", _first_line(e)) from None
     if isinstance(value, np.ndarray):
         value = value.reshape(-1)[0]
     if isinstance(value, (bytes, np.bytes_)):
@@ -601,6 +633,11 @@ def _read_str_attr(f: h5py.File, name: str, file: str, max_bytes: int, expected:
 
 
 def _read_int_attr(f: h5py.File, name: str, file: str) -> int:
+    with _h5_guard(file, f"root attribute `{name}`"):
+        return _read_int_attr_unguarded(f, name, file)
+
+
+def _read_int_attr_unguarded(f: h5py.File, name: str, file: str) -> int:
     loc = f"root attribute `{name}`"
     expected = f"the integer {FORMAT_VERSION}"
     dtype, _ = _attr_meta(f, name, file, expected)
@@ -658,9 +695,8 @@ def _read_dataset(ds: h5py.Dataset, file: str, dtype: np.dtype) -> NDArray[Any]:
     if out.size:
         try:
             ds.read_direct(out)
-        except (OSError, ValueError, TypeError) as e:
-            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            raise LogFormatError(file, ds.name, "data this HDF5 library can decode", msg) from None
+        except _H5_ERRORS as e:
+            raise LogFormatError(file, ds.name, "data this HDF5 library can decode", _first_line(e)) from None
     return out
 
 

@@ -429,7 +429,7 @@ class Rig:
     def from_json(cls, text: str, source: str = "<rig>") -> "Rig":
         try:
             d = json.loads(text)
-        except (json.JSONDecodeError, TypeError) as e:
+        except (json.JSONDecodeError, TypeError, RecursionError) as e:
             raise _fail(source, "rig", "valid JSON", str(e)) from None
         return cls.from_dict(d, source)
 

@@ -1,0 +1,166 @@
+"""Localization error metrics: the paper's e_x and e_gamma, the NEES, and their summaries.
+
+All functions are vectorized over leading axes. Poses are planar ``(x, y, yaw)`` in
+metres and radians (the layout of :attr:`tofloc.problem.Estimate.pose`).
+
+* ``e_x = ||(x, y)_true - (x, y)_est||`` in metres (the paper's position error);
+* ``e_gamma = |wrap(yaw_true - yaw_est)|`` in **degrees** (the paper's orientation error,
+  wrapped so that 179 deg against -179 deg is 2 deg, not 358 deg);
+* ``NEES = e^T P^-1 e`` with ``e = (x_true - x_est, y_true - y_est, wrap(yaw_true - yaw_est))``
+  and ``P`` the estimate's 3x3 covariance: chi-square with 3 degrees of freedom (mean 3)
+  for a consistent estimator. It is undefined (NaN / ``None``) when ``P`` is singular.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc import frames
+from tofloc.errors import ParameterError
+
+__all__ = [
+    "SINGULAR_RCOND",
+    "position_error",
+    "yaw_error_deg",
+    "pose_errors",
+    "nees",
+    "summarize",
+    "json_float",
+]
+
+#: A covariance counts as singular when the smallest eigenvalue of its correlation
+#: matrix (the covariance scaled to unit diagonal, so metres and radians do not mix)
+#: is below this, or when a variance is not strictly positive.
+SINGULAR_RCOND = 1e-10
+
+
+def _poses(a: ArrayLike, name: str) -> NDArray[np.float64]:
+    p = np.asarray(a, dtype=float)
+    if p.ndim < 1 or p.shape[-1] != 3:
+        raise ParameterError(f"{name} must have shape (..., 3) = (x, y, yaw), got {p.shape}")
+    return p
+
+
+def position_error(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.float64]:
+    """The paper's position error ``e_x`` (metres), shape ``(...)``.
+
+    Parameters
+    ----------
+    truth, estimate : array (..., 3)
+        Planar poses ``(x, y, yaw)``; leading axes broadcast.
+    """
+    t, e = _poses(truth, "truth"), _poses(estimate, "estimate")
+    return np.hypot(t[..., 0] - e[..., 0], t[..., 1] - e[..., 1])
+
+
+def yaw_error_deg(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.float64]:
+    """The paper's orientation error ``e_gamma`` (degrees, in ``[0, 180]``), shape ``(...)``.
+
+    Parameters
+    ----------
+    truth, estimate : array (..., 3)
+        Planar poses ``(x, y, yaw)`` (yaw in radians); leading axes broadcast.
+    """
+    t, e = _poses(truth, "truth"), _poses(estimate, "estimate")
+    return np.degrees(np.abs(frames.wrap_angle(t[..., 2] - e[..., 2])))
+
+
+def pose_errors(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.float64]:
+    """Signed error vectors ``(x_t - x_e, y_t - y_e, wrap(yaw_t - yaw_e))``, shape ``(..., 3)``."""
+    t, e = _poses(truth, "truth"), _poses(estimate, "estimate")
+    d = t - e
+    d[..., 2] = frames.wrap_angle(d[..., 2])
+    return d
+
+
+def nees(truth: ArrayLike, estimate: ArrayLike, covariance: ArrayLike) -> NDArray[np.float64]:
+    """Normalized estimation error squared (3 dof), shape ``(...)``; NaN where undefined.
+
+    Parameters
+    ----------
+    truth, estimate : array (..., 3)
+        Planar poses ``(x, y, yaw)``.
+    covariance : array (..., 3, 3)
+        The estimate's covariance (yaw in rad^2).
+
+    Returns
+    -------
+    ndarray
+        ``e^T P^-1 e``; NaN where ``P`` is not finite or is singular (see
+        :data:`SINGULAR_RCOND`), as a particle filter whose particles collapsed onto one
+        pose reports.
+    """
+    err = pose_errors(truth, estimate)
+    P = np.asarray(covariance, dtype=float)
+    if P.shape[-2:] != (3, 3):
+        raise ParameterError(f"covariance must have shape (..., 3, 3), got {P.shape}")
+    shape = np.broadcast_shapes(err.shape[:-1], P.shape[:-2])
+    err = np.broadcast_to(err, shape + (3,)).reshape(-1, 3)
+    P = np.broadcast_to(P, shape + (3, 3)).reshape(-1, 3, 3)
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    out = np.full(err.shape[0], np.nan)
+    var = np.diagonal(P, axis1=-2, axis2=-1)
+    ok = np.all(np.isfinite(P), axis=(-1, -2)) & np.all(np.isfinite(err), axis=-1) & np.all(var > 0, axis=-1)
+    if ok.any():
+        s = 1.0 / np.sqrt(var[ok])  # scale to a correlation matrix: unit-free conditioning
+        C = P[ok] * s[:, :, None] * s[:, None, :]
+        z = err[ok] * s
+        lam_min = np.linalg.eigvalsh(C)[:, 0]
+        good = lam_min > SINGULAR_RCOND
+        vals = np.full(C.shape[0], np.nan)
+        if good.any():
+            sol = np.linalg.solve(C[good], z[good][..., None])[..., 0]
+            vals[good] = np.einsum("ni,ni->n", z[good], sol)
+        out[ok] = vals
+    return out.reshape(shape)
+
+
+def json_float(x: Any) -> float | None:
+    """``float(x)``, or ``None`` when it is not finite (JSON has no NaN)."""
+    if x is None:
+        return None
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def summarize(values: Iterable[float] | ArrayLike, keys: Iterable[str] = ("mean", "std", "median", "rmse")) -> dict[str, Any]:
+    """Summary statistics of a set of errors, JSON-ready.
+
+    Parameters
+    ----------
+    values : array-like of float
+        One value per trial; NaN values (undefined, e.g. a NEES) are left out.
+    keys : iterable of str
+        Which of ``mean``, ``std`` (population standard deviation, ``ddof=0``, so one
+        trial gives 0), ``median``, ``rmse`` (``sqrt(mean(v**2))``), ``min``, ``max``
+        and ``n`` (the count used) to return.
+
+    Returns
+    -------
+    dict
+        ``{key: float}`` in the order asked; every statistic is ``None`` when no finite
+        value is left.
+    """
+    v = np.asarray(list(values) if not isinstance(values, np.ndarray) else values, dtype=float).reshape(-1)
+    v = v[np.isfinite(v)]
+    funcs = {
+        "mean": lambda a: a.mean(),
+        "std": lambda a: a.std(ddof=0),
+        "median": lambda a: np.median(a),
+        "rmse": lambda a: np.sqrt(np.mean(a**2)),
+        "min": lambda a: a.min(),
+        "max": lambda a: a.max(),
+    }
+    out: dict[str, Any] = {}
+    for key in keys:
+        if key == "n":
+            out["n"] = int(v.size)
+        elif key in funcs:
+            out[key] = json_float(funcs[key](v)) if v.size else None
+        else:
+            raise ParameterError(f"unknown summary statistic {key!r}; known: n, {', '.join(funcs)}")
+    return out

@@ -1,0 +1,375 @@
+"""Results files: the ``localize`` JSON, ``results.json``, ``table.md`` and the Fig. 4 plots.
+
+Every file is written atomically (a temporary file in the same folder, then
+:func:`os.replace`), so an interrupted run never leaves a half-written result.
+JSON never holds NaN: undefined numbers are ``null``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from evaluation.metrics import json_float, summarize
+
+__all__ = [
+    "PAPER_TABLE_I",
+    "ERROR_KEYS",
+    "write_json_atomic",
+    "write_text_atomic",
+    "summarize_trials",
+    "group_summary",
+    "paired_comparison",
+    "table_markdown",
+    "plot_errors",
+    "results_document",
+]
+
+#: The paper's Table I: mean and standard deviation over all trials, k = 1..10, 50 trials.
+PAPER_TABLE_I: dict[str, dict[str, list[float]]] = {
+    "knn": {"e_x_m": [0.0300, 0.0076], "e_gamma_deg": [4.438, 0.181]},
+    "mocap": {"e_x_m": [0.0305, 0.0076], "e_gamma_deg": [4.428, 0.182]},
+}
+#: The two error measures, as named in every JSON file.
+ERROR_KEYS = ("e_x_m", "e_gamma_deg")
+_TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
+
+
+# -- atomic writes -----------------------------------------------------------------------------
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: read once at import (reading it means setting it, which is not thread-safe)
+_UMASK = _read_umask()
+
+
+def _atomic(path: str | Path, write: Any, mode: str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are ordinary files
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def write_json_atomic(obj: Any, path: str | Path) -> Path:
+    """Write ``obj`` as indented JSON (NaN refused: pass it through ``jsonable`` first)."""
+    text = json.dumps(obj, indent=1, allow_nan=False) + "\n"
+    return _atomic(path, lambda fh: fh.write(text), "w")
+
+
+def write_text_atomic(text: str, path: str | Path) -> Path:
+    """Write a text file atomically."""
+    return _atomic(path, lambda fh: fh.write(text), "w")
+
+
+# -- summaries ------------------------------------------------------------------------------------
+
+
+def _values(records: Iterable[Mapping[str, Any]], key: str) -> np.ndarray:
+    return np.array([np.nan if r.get(key) is None else float(r[key]) for r in records], dtype=float)
+
+
+def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The ``summary`` of a ``localize`` run.
+
+    Returns
+    -------
+    dict
+        ``{"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "runtime_s": {"median"}}``
+        plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES. The
+        error entries are ``None`` when no trial has a truth.
+    """
+    out: dict[str, Any] = {}
+    for key in ERROR_KEYS:
+        v = _values(records, key)
+        out[key] = summarize(v) if np.isfinite(v).any() else None
+    out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    nees = _values(records, "nees")
+    if np.isfinite(nees).any():
+        out["nees"] = summarize(nees, keys=("mean", "n"))
+    return out
+
+
+def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:
+    """``{"per_k": {"1": {...}, ...}, "overall": {...}}`` of one estimator/tip source/prior mode.
+
+    ``per_k[k]`` holds, for ``e_x_m`` and ``e_gamma_deg``, the mean, std (population),
+    median and RMSE over that k's trials, plus ``n`` (trials) and ``nees``
+    (mean, n) when defined. ``overall`` holds the same over every trial of every k, and
+    for each error also ``std_of_per_k_means``: the spread of the per-k means (the
+    other possible reading of the paper's Table I ``±``).
+    """
+    per_k: dict[str, Any] = {}
+    means: dict[str, list[float]] = {key: [] for key in ERROR_KEYS}
+    for k in k_values:
+        recs = [r for r in records if int(r["k"]) == int(k)]
+        entry: dict[str, Any] = {"n": len(recs)}
+        for key in ERROR_KEYS:
+            entry[key] = summarize(_values(recs, key))
+            if entry[key]["mean"] is not None:
+                means[key].append(entry[key]["mean"])
+        nees = _values(recs, "nees")
+        if np.isfinite(nees).any():
+            entry["nees"] = summarize(nees, keys=("mean", "n"))
+        per_k[str(int(k))] = entry
+    overall: dict[str, Any] = {"n": len(records)}
+    for key in ERROR_KEYS:
+        overall[key] = summarize(_values(records, key))
+        overall[key]["std_of_per_k_means"] = json_float(np.std(means[key])) if means[key] else None
+    nees = _values(records, "nees")
+    if np.isfinite(nees).any():
+        overall["nees"] = summarize(nees, keys=("mean", "median", "n"))
+    overall["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    return {"per_k": per_k, "overall": overall}
+
+
+def paired_comparison(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Compare two runs trial by trial (paired by ``(k, trial)``: the same samples and prior).
+
+    Returns
+    -------
+    dict
+        For ``e_x_m`` and ``e_gamma_deg``: ``n`` pairs, ``mean_diff`` (a - b) and the
+        two-sided Wilcoxon signed-rank ``p_value`` (None when every difference is 0 or
+        fewer than 2 pairs).
+    """
+    from scipy.stats import wilcoxon
+
+    ib = {(int(r["k"]), int(r["trial"])): r for r in b}
+    pairs = [(r, ib[(int(r["k"]), int(r["trial"]))]) for r in a if (int(r["k"]), int(r["trial"])) in ib]
+    out: dict[str, Any] = {}
+    for key in ERROR_KEYS:
+        x = _values([p[0] for p in pairs], key)
+        y = _values([p[1] for p in pairs], key)
+        ok = np.isfinite(x) & np.isfinite(y)
+        d = x[ok] - y[ok]
+        p_value = None
+        if d.size >= 2 and np.any(d != 0):
+            try:
+                p_value = json_float(wilcoxon(d).pvalue)
+            except ValueError:
+                p_value = None
+        out[key] = {"n": int(d.size), "mean_diff": json_float(d.mean()) if d.size else None, "p_value": p_value}
+    return out
+
+
+# -- table.md ---------------------------------------------------------------------------------------
+
+
+def _pm(s: Mapping[str, Any] | None, digits: int) -> str:
+    if not s or s.get("mean") is None:
+        return "n/a"
+    return f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
+
+
+def table_markdown(doc: Mapping[str, Any]) -> str:
+    """``table.md``: our rows under the paper's Table I row.
+
+    Parameters
+    ----------
+    doc : dict
+        A ``results.json`` document (see ``docs/evaluation.md``).
+    """
+    k_max = doc.get("k_max", "?")
+    lines = [
+        f"# Localization error over k = 1..{k_max} samples, {doc['trials']} trials per k (seed {doc['seed']})",
+        "",
+        "Mean ± standard deviation over every trial of every k (the paper's Table I reports the same).",
+        "Tip poses from the k-NN model (k-NN) or from motion capture (mocap, the paper's OptiTrack).",
+        "",
+        "| estimator | prior | k-NN e_x (m) | k-NN e_gamma (deg) | mocap e_x (m) | mocap e_gamma (deg) |",
+        "|---|---|---|---|---|---|",
+    ]
+    paper = doc["paper"]
+    cells = []
+    for tip in ("knn", "mocap"):
+        for key, digits in (("e_x_m", 4), ("e_gamma_deg", 3)):
+            m, s = paper[tip][key]
+            cells.append(f"{m:.{digits}f} ± {s:.{digits}f}")
+    lines.append("| **paper, Table I** (real robot) | 0.2 m / 20 deg around the truth | " + " | ".join(cells) + " |")
+    spread_rows = []
+    for est, by_tip in doc["results"].items():
+        modes = sorted({m for tip in by_tip.values() for m in tip}, key=lambda m: (m != "paper", m))
+        for mode in modes:
+            row, spread = [], []
+            for tip in ("knn", "mocap"):
+                ov = by_tip.get(tip, {}).get(mode, {}).get("overall")
+                for key, digits in (("e_x_m", 4), ("e_gamma_deg", 3)):
+                    s = ov[key] if ov else None
+                    row.append(_pm(s, digits))
+                    v = s.get("std_of_per_k_means") if s else None
+                    spread.append("n/a" if v is None else f"{v:.{digits}f}")
+            lines.append(f"| {est} | {mode} | " + " | ".join(row) + " |")
+            spread_rows.append(f"| {est} | {mode} | " + " | ".join(spread) + " |")
+    lines += [
+        "",
+        "Prior modes: `paper` = particles drawn from a Gaussian centred on the true pose (as the paper);",
+        "`offset` = the prior mean itself drawn from that Gaussian, so the estimator must find the truth.",
+        "",
+        "## Spread of the per-k means",
+        "",
+        f"The paper's ± may instead be the standard deviation of the {k_max} per-k means (its values are small",
+        "for e_gamma); ours, for that reading:",
+        "",
+        "| estimator | prior | k-NN e_x (m) | k-NN e_gamma (deg) | mocap e_x (m) | mocap e_gamma (deg) |",
+        "|---|---|---|---|---|---|",
+        *spread_rows,
+    ]
+    comps = doc.get("comparisons") or {}
+    if comps:
+        lines += [
+            "",
+            "## k-NN against motion capture (paired by trial)",
+            "",
+            "Mean difference knn - mocap and the two-sided Wilcoxon signed-rank p-value over the same trials.",
+            "",
+            "| estimator | prior | e_x diff (m) | p | e_gamma diff (deg) | p |",
+            "|---|---|---|---|---|---|",
+        ]
+        for est, by_mode in comps.items():
+            for mode, c in by_mode.items():
+                def f(v: Any, fmt: str) -> str:
+                    return "n/a" if v is None else format(v, fmt)
+
+                lines.append(
+                    f"| {est} | {mode} | {f(c['e_x_m']['mean_diff'], '+.4f')} | {f(c['e_x_m']['p_value'], '.3f')} | "
+                    f"{f(c['e_gamma_deg']['mean_diff'], '+.3f')} | {f(c['e_gamma_deg']['p_value'], '.3f')} |"
+                )
+    pool = doc.get("pool")
+    if pool:
+        lines += ["", f"Samples: {pool['note']}."]
+    if doc.get("log"):
+        lines += [f"Log: `{doc['log']}`; map: `{doc.get('map')}`."]
+    return "\n".join(lines) + "\n"
+
+
+# -- Fig. 4 -----------------------------------------------------------------------------------------
+
+
+def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Path:
+    """Fig. 4 of the paper for one tip source: bars of mean e_x and e_gamma (± std) per k.
+
+    One colour per estimator; the ``offset`` prior mode is hatched beside the ``paper``
+    one; the paper's overall mean is a dashed line. Written as PNG with the Agg canvas
+    (no display, no global backend change), atomically.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    results = doc["results"]
+    k_values = [int(k) for k in range(1, int(doc["k_max"]) + 1)]
+    series = []  # (estimator, mode, group)
+    for est, by_tip in results.items():
+        for mode in sorted(by_tip.get(tip_source, {}), key=lambda m: (m != "paper", m)):
+            series.append((est, mode, by_tip[tip_source][mode]))
+    fig = Figure(figsize=(max(6.0, 0.9 * len(k_values) + 2.0), 6.0), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 1, sharex=True)
+    colours = {est: f"C{i}" for i, est in enumerate(results)}
+    width = 0.8 / max(1, len(series))
+    x = np.arange(len(k_values), dtype=float)
+    for ax, key, label in ((axes[0], "e_x_m", "$e_x$ (m)"), (axes[1], "e_gamma_deg", r"$e_\gamma$ (deg)")):
+        for j, (est, mode, group) in enumerate(series):
+            mean = [group["per_k"].get(str(k), {}).get(key, {}).get("mean") for k in k_values]
+            std = [group["per_k"].get(str(k), {}).get(key, {}).get("std") for k in k_values]
+            m = np.array([np.nan if v is None else v for v in mean])
+            s = np.array([np.nan if v is None else v for v in std])
+            ax.bar(x - 0.4 + width * (j + 0.5), m, width, yerr=s, capsize=2, color=colours[est],
+                   hatch="//" if mode != "paper" else None, edgecolor="black", linewidth=0.4,
+                   error_kw={"elinewidth": 0.8})
+        paper = doc.get("paper", {}).get(tip_source, {}).get(key)
+        if paper:
+            ax.axhline(paper[0], color="grey", linestyle="--", linewidth=1.0)
+        ax.set_ylabel(label)
+        ax.set_ylim(bottom=0)
+        ax.grid(axis="y", alpha=0.3)
+    axes[1].set_xticks(x, [str(k) for k in k_values])
+    axes[1].set_xlabel("number of samples k")
+    handles = [Patch(facecolor=colours[e], edgecolor="black", hatch="//" if m != "paper" else None, label=f"{e}, prior {m}")
+               for e, m, _ in series]
+    handles.append(Patch(facecolor="none", edgecolor="grey", linestyle="--", label="paper, Table I mean"))
+    n_cols = min(len(handles), 3)
+    n_rows = math.ceil(len(handles) / n_cols)
+    h = fig.get_figheight()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - (0.45 + 0.22 * n_rows) / h))
+    # added after the layout, so that it does not reserve room for them a second time
+    fig.suptitle(f"Localization error, {_TIP_TITLES.get(tip_source, tip_source)} "
+                 f"(mean ± std, {doc['trials']} trials per k)", y=1.0 - 0.08 / h, va="top", fontsize=11)
+    fig.legend(handles=handles, fontsize=8, loc="upper center", ncol=n_cols, frameon=False,
+               bbox_to_anchor=(0.5, 1.0 - 0.36 / h))
+
+    def write(fh: Any) -> None:
+        fig.savefig(fh, format="png")
+
+    return _atomic(path, write, "wb")
+
+
+# -- results.json ---------------------------------------------------------------------------------
+
+
+def results_document(
+    records: Mapping[tuple[str, str, str], Sequence[Mapping[str, Any]]],
+    k_values: Sequence[int],
+    trials: int,
+    seed: int,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``results.json`` of ``tofloc paper``.
+
+    Parameters
+    ----------
+    records : dict
+        ``(estimator, tip_source, prior_mode) -> trial records``.
+    k_values : sequence of int
+    trials, seed : int
+    extra : dict, optional
+        More top-level keys (log, map, pool, seeds, ...), added after the issue's ones.
+
+    Returns
+    -------
+    dict
+        ``{"paper": PAPER_TABLE_I, "trials", "seed", "results": {EST: {TIP: {MODE:
+        {"per_k", "overall"}}}}, "comparisons": {EST: {MODE: knn vs mocap}}, "k_max", ...}``.
+    """
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    for (est, tip, mode), recs in records.items():
+        results.setdefault(est, {}).setdefault(tip, {})[mode] = group_summary(recs, k_values)
+    comparisons: dict[str, dict[str, Any]] = {}
+    for (est, tip, mode), recs in records.items():
+        if tip == "knn" and (est, "mocap", mode) in records:
+            comparisons.setdefault(est, {})[mode] = paired_comparison(recs, records[(est, "mocap", mode)])
+    doc: dict[str, Any] = {
+        "paper": PAPER_TABLE_I,
+        "trials": int(trials),
+        "seed": int(seed),
+        "results": results,
+        "comparisons": comparisons,
+        "k_max": int(max(k_values)),
+    }
+    if extra:
+        doc.update(extra)
+    return doc

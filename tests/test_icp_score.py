@@ -1,0 +1,78 @@
+"""The ICP score equals Open3D's evaluate_registration fitness (vectorized over particles)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from sensor_models.icp_score import ICPScore, icp_fitness, open3d_fitness
+from tofloc.distance_grid import DistanceGrid
+from tofloc.errors import ParameterError
+from tofloc.testing import easy_problem
+
+
+@pytest.fixture(scope="module")
+def bound():
+    problem, truth = easy_problem(n_samples=4)
+    return ICPScore().bind(problem), problem, truth
+
+
+def test_fitness_equals_open3d_on_random_poses(bound) -> None:
+    b, problem, truth = bound
+    rng = np.random.default_rng(0)
+    poses = truth + rng.normal(size=(300, 3)) * np.array([0.05, 0.05, math.radians(8)])
+    poses[:3] = truth  # include the truth
+    for step in (0, 3):
+        ours = b.fitness(poses, step)
+        T = problem.prior.T_map_base(poses)
+        ref = open3d_fitness(b.clouds[step], T, problem.map.points, b.model.max_correspondence)
+        np.testing.assert_array_equal(ours, ref)
+        # the KD-tree and grid paths of icp_fitness agree too
+        np.testing.assert_array_equal(icp_fitness(b.clouds[step], T, cKDTree(problem.map.points), 0.04), ref)
+        assert ours.min() < 0.5 < ours[0]
+
+
+def test_score_peaks_near_truth_and_lies_in_unit_interval(bound) -> None:
+    b, problem, truth = bound
+    offsets = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.1, 0], [0, 0, math.radians(15)]])
+    f = b.fitness(truth + offsets, 3)
+    assert np.all((0 <= f) & (f <= 1))
+    assert f[0] > 0.9 and np.all(f[1:] < f[0])
+    ll = b.log_likelihood(truth + offsets, 3)
+    np.testing.assert_allclose(ll, np.log(np.maximum(f, 1e-6)))
+
+
+def test_merged_clouds_grow_and_are_voxel_down_sampled(bound) -> None:
+    b, problem, _ = bound
+    sizes = [c.shape[0] for c in b.clouds]
+    assert sizes == sorted(sizes) and sizes[0] > 0
+    n_valid = int(problem.valid.sum())
+    assert sizes[-1] < n_valid  # down-sampling merged points
+    # at most one point per 5 cm voxel
+    keys = np.floor(b.clouds[-1] / 0.05).astype(int)
+    assert len({tuple(k) for k in keys}) == len(keys)
+
+
+def test_distance_grid_within_is_exact() -> None:
+    rng = np.random.default_rng(3)
+    pts = rng.random((500, 3))
+    g = DistanceGrid(pts, 0.01, 0.05)
+    q = rng.random((20000, 3)) * 1.2 - 0.1
+    d, _ = cKDTree(pts).query(q)
+    np.testing.assert_array_equal(g.within(q, 0.05), d < 0.05)
+    np.testing.assert_array_equal(g.within(q, 0.03), d < 0.03)
+    poses = rng.normal(size=(50, 3)) * 0.05
+    planar = g.within_planar(q[:400], poses, 0.05)
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    moved = np.stack([c * q[None, :400, 0] - s * q[None, :400, 1] + poses[:, :1], s * q[None, :400, 0] + c * q[None, :400, 1] + poses[:, 1:2], np.broadcast_to(q[None, :400, 2], (50, 400))], -1)
+    d2, _ = cKDTree(pts).query(moved.reshape(-1, 3))
+    np.testing.assert_array_equal(planar, (d2 < 0.05).reshape(50, 400))
+
+
+@pytest.mark.parametrize("kw", [{"max_correspondence": 0.0}, {"voxel_size": -1.0}, {"crop_margin": 20.0}, {"log_floor": 1.0}])
+def test_bad_parameters_are_refused(kw) -> None:
+    with pytest.raises(ParameterError):
+        ICPScore(**kw)

@@ -1,0 +1,398 @@
+"""evaluation.protocol: problems from logs, priors, the sample pool, paired seeds, executors."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+
+from evaluation.protocol import (
+    Batch,
+    PriorSpec,
+    SamplePool,
+    TrialContext,
+    TrialError,
+    base_pose_parts,
+    draw_samples_and_prior,
+    knn_residual_covariance,
+    make_tasks,
+    problem_from_log,
+    run_batches,
+    run_tasks,
+    sample_pool,
+    trial_rngs,
+    trial_seed,
+)
+from tofloc import frames
+from tofloc.errors import FormatError, ParameterError
+from tofloc.kinematics import KinematicsModel
+from tofloc.logs import Log
+from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
+from tofloc.registry import ESTIMATORS
+
+# -- estimators defined for these tests only (top level: worker processes import them) --------
+
+
+@dataclass(frozen=True, eq=False)
+class NoisyPriorMean(Estimator):
+    """Returns the prior mean plus ``scale`` times three draws of the estimator's generator."""
+
+    name: ClassVar[str] = "test_noisy_prior_mean"
+    scale: float = 0.0
+
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        draws = rng.normal(size=3)
+        pose = problem.prior.mean + self.scale * draws
+        return Estimate(pose=pose, covariance=np.diag(problem.prior.sigma**2),
+                        diagnostics={"indices": problem.sample_indices.copy(), "T_base_tip": problem.T_base_tip.copy()})
+
+
+@dataclass(frozen=True, eq=False)
+class MustNotRun(Estimator):
+    name: ClassVar[str] = "test_must_not_run"
+    scale: float = 0.0
+
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        raise AssertionError("this batch should have been reused from its partial file")
+
+
+ESTIMATORS.register("test_noisy_prior_mean", NoisyPriorMean)
+
+TRUTH = (0.021, -0.013, math.radians(6.5))
+TRUTH_Z = 0.25
+
+
+# -- fixtures ------------------------------------------------------------------------------------
+
+
+def _rig() -> Any:
+    from tofloc.simulation.scenario import RigDesign
+    from tofloc.simulation.tof import build_rig
+
+    return build_rig(RigDesign(), ("chamber1", "chamber2", "chamber3"))
+
+
+def small_log(K: int = 40, seed: int = 0, truth: Any = None) -> Log:
+    """A synthetic log: random valid distances, pressures, tip poses smooth in the pressures."""
+    rng = np.random.default_rng(seed)
+    rig = _rig()
+    S, Z = rig.n_sensors, rig.n_zones
+    pressure = rng.uniform(3.0, 18.0, size=(K, 3))
+    angle = np.radians(2.0 * (pressure[:, 0] - pressure[:, 1]))
+    T_base_tip = frames.se3(frames.rot_z(angle), np.stack([0.01 * pressure[:, 2], 0.0 * angle, np.full(K, 0.1)], axis=-1))
+    d = rng.uniform(200.0, 400.0, size=(K, S, Z))
+    status = np.full((K, S, Z), 5, dtype=np.uint8)
+    T_map_base = frames.se3_from_xyyaw(*TRUTH, TRUTH_Z) if truth is None else truth
+    return Log.from_arrays(rig, np.arange(K, dtype=float), d, status, sigma_mm=np.full((K, S, Z), 10.0),
+                           pressure_kpa=pressure, T_base_tip=T_base_tip, T_map_base=T_map_base, source="test")
+
+
+class FakeMap:
+    points = np.zeros((4, 3))
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The paper's scenario simulated once, its map, a k-NN model fit on it."""
+    from tofloc.logs import read_log
+    from tofloc.maps import Map
+    from tofloc.simulation import simulate, write_simulation
+
+    out = tmp_path_factory.mktemp("sim") / "paper.h5"
+    write_simulation(simulate("paper", 0), out)
+    log = read_log(out)
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(0))
+    return {"log": log, "map": Map.load(log.map_path()), "kin": kin}
+
+
+# -- priors ----------------------------------------------------------------------------------------
+
+
+def test_base_pose_parts_inverts_se3_from_xyyaw() -> None:
+    T = frames.se3_from_xyyaw(0.1, -0.2, math.radians(170.0), 0.3, roll=0.02, pitch=-0.03)
+    xyyaw, z, roll, pitch = base_pose_parts(T)
+    np.testing.assert_allclose(xyyaw, [0.1, -0.2, math.radians(170.0)], atol=1e-12)
+    assert (z, roll, pitch) == pytest.approx((0.3, 0.02, -0.03), abs=1e-12)
+
+
+def test_paper_prior_is_centred_on_the_truth() -> None:
+    T = frames.se3_from_xyyaw(*TRUTH, TRUTH_Z, roll=0.01, pitch=0.02)
+    prior = PriorSpec("paper").make(T, [3.0, -2.0, 1.0])  # offsets ignored in paper mode
+    np.testing.assert_allclose(prior.mean, TRUTH, atol=1e-12)
+    np.testing.assert_allclose(prior.sigma, [0.2, 0.2, math.radians(20.0)])
+    assert (prior.z, prior.roll, prior.pitch) == pytest.approx((TRUTH_Z, 0.01, 0.02))
+
+
+def test_offset_prior_draws_have_the_stated_statistics() -> None:
+    T = frames.se3_from_xyyaw(*TRUTH, TRUTH_Z)
+    spec = PriorSpec("offset", sigma_xy_m=0.2, sigma_yaw_deg=20.0)
+    pool = np.arange(50)
+    n = 3000
+    offsets = np.empty((n, 3))
+    for t in range(n):
+        _, normals = draw_samples_and_prior(pool, 2, trial_seed(7, 2, t))
+        prior = spec.make(T, normals)
+        offsets[t] = pose_delta(prior.mean, TRUTH)
+        np.testing.assert_allclose(prior.sigma, spec.sigma)
+        assert prior.z == pytest.approx(TRUTH_Z)
+    sigma = np.array([0.2, 0.2, math.radians(20.0)])
+    z = offsets / sigma
+    assert np.all(np.abs(z.mean(axis=0)) < 4.0 / math.sqrt(n))  # unbiased
+    np.testing.assert_allclose(z.std(axis=0), 1.0, atol=0.05)  # the stated spread
+    corr = np.corrcoef(z.T)
+    assert np.all(np.abs(corr[np.triu_indices(3, 1)]) < 0.06)  # independent components
+
+
+def pose_delta(a: Any, b: Any) -> np.ndarray:
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    d[2] = frames.wrap_angle(d[2])
+    return d
+
+
+def test_given_prior_and_bad_specs() -> None:
+    spec = PriorSpec("given", 0.1, 5.0, (0.1, 0.2, 0.3), z=0.4)
+    prior = spec.make(None, np.zeros(3))
+    np.testing.assert_allclose(prior.mean, [0.1, 0.2, 0.3])
+    assert prior.z == 0.4
+    assert spec.to_json()["mean"] == [0.1, 0.2, 0.3]
+    assert PriorSpec("paper").to_json() == {"mode": "paper", "sigma_xy_m": 0.2, "sigma_yaw_deg": 20.0}
+    with pytest.raises(ParameterError, match="prior mode"):
+        PriorSpec("uniform")
+    with pytest.raises(ParameterError, match="sigma_xy_m"):
+        PriorSpec("paper", sigma_xy_m=0.0)
+    with pytest.raises(ParameterError, match="needs the true base pose"):
+        PriorSpec("offset").make(None, np.zeros(3))
+    with pytest.raises(ParameterError, match="mean"):
+        PriorSpec("given")
+
+
+# -- problems from logs ---------------------------------------------------------------------------
+
+
+def test_problem_from_log_mocap_and_knn() -> None:
+    log = small_log()
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
+    prior = Prior(mean=np.array(TRUTH), sigma=np.ones(3), z=TRUTH_Z)
+    idx = np.array([7, 3, 11])
+    p = problem_from_log(log, idx, FakeMap(), prior, "mocap")
+    np.testing.assert_array_equal(p.T_base_tip, log.T_base_tip[idx])
+    np.testing.assert_allclose(p.distance_m, log.distance_mm[idx].astype(float) / 1000.0)
+    np.testing.assert_allclose(p.sigma_m, 0.01)
+    np.testing.assert_array_equal(p.sample_indices, idx)
+    assert p.tip_source == "mocap" and p.T_base_tip_cov is None
+    q = problem_from_log(log, idx, FakeMap(), prior, "knn", kin, valid_statuses={5, 6}, T_base_tip_cov=np.eye(6))
+    np.testing.assert_allclose(q.T_base_tip, kin.predict(log.pressure_kpa[idx]))
+    assert q.T_base_tip_cov.shape == (3, 6, 6) and q.valid_statuses == frozenset({5, 6})
+
+
+def test_problem_from_log_refusals() -> None:
+    log = small_log()
+    T = log.T_base_tip.copy()
+    T[4] = np.nan
+    log_nan = dataclasses.replace(log, T_base_tip=T)
+    prior = Prior(mean=np.zeros(3), sigma=np.ones(3))
+    with pytest.raises(ProblemError, match=r"samples \[4\] have no motion-capture pose"):
+        problem_from_log(log_nan, [1, 4], FakeMap(), prior, "mocap")
+    with pytest.raises(FormatError, match="/samples/T_base_tip"):
+        problem_from_log(dataclasses.replace(log, T_base_tip=None), [1], FakeMap(), prior, "mocap")
+    with pytest.raises(ParameterError, match="kinematics"):
+        problem_from_log(log, [1], FakeMap(), prior, "knn")
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
+    with pytest.raises(FormatError, match="/samples/pressure_kpa"):
+        problem_from_log(dataclasses.replace(log, pressure_kpa=None), [1], FakeMap(), prior, "knn", kin)
+    with pytest.raises(ParameterError, match="tip source"):
+        problem_from_log(log, [1], FakeMap(), prior, "odometry")
+    with pytest.raises(ParameterError, match="indices"):
+        problem_from_log(log, [40], FakeMap(), prior, "mocap")
+
+
+def test_knn_residual_covariance() -> None:
+    log = small_log(K=60)
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
+    cov = knn_residual_covariance(kin, log)
+    assert cov.shape == (6, 6)
+    np.testing.assert_allclose(cov, cov.T)
+    assert np.linalg.eigvalsh(cov).min() >= -1e-15
+    # by hand: the translation error variance along x on the held-out samples
+    val = kin.validation_indices
+    T_err = frames.invert(kin.predict(log.pressure_kpa[val])) @ log.T_base_tip[val]
+    assert cov[3, 3] == pytest.approx(np.mean(T_err[:, 0, 3] ** 2))
+    few, _ = KinematicsModel.fit_log(small_log(K=20), np.random.default_rng(1), k_candidates=range(1, 3))
+    assert knn_residual_covariance(few, small_log(K=20)) is None  # 4 held-out samples: too few
+
+
+# -- the pool -------------------------------------------------------------------------------------
+
+
+def test_pool_uses_the_validation_split_for_both_tip_sources() -> None:
+    log = small_log(K=50)
+    T = log.T_base_tip.copy()
+    status = log.status.copy()
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(2), k_candidates=range(1, 4))
+    val = np.sort(kin.validation_indices)
+    T[val[0]] = np.nan  # no motion capture for this one
+    status[val[1]] = 255  # no valid zone in that one
+    log2 = dataclasses.replace(log, T_base_tip=T, status=status)
+    # the model still matches log2 (its fingerprint covers pressures and poses): refit on log2
+    kin2, _ = KinematicsModel.fit_log(log2, np.random.default_rng(2), k_candidates=range(1, 4))
+    pool = sample_pool(log2, kin2, k_max=3)
+    expected = [i for i in np.sort(kin2.validation_indices) if np.all(np.isfinite(T[i])) and (status[i] == 5).any()]
+    assert pool.source == "validation"
+    np.testing.assert_array_equal(pool.indices, expected)
+    assert "held-out validation split" in pool.note and "same for both tip sources" in pool.note
+
+
+def test_pool_fallbacks() -> None:
+    log = small_log(K=40)
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(2), k_candidates=range(1, 4))
+    n_val = kin.validation_indices.size  # 8
+    pool = sample_pool(log, kin, k_max=n_val + 1)
+    assert pool.source == "all" and pool.indices.size == 40
+    assert f"only {n_val} usable samples" in pool.note
+    pool = sample_pool(log, None, k_max=2)
+    assert pool.source == "all" and "no kinematics model" in pool.note
+    other = small_log(K=40, seed=5)
+    pool = sample_pool(other, kin, k_max=2)
+    assert pool.source == "all" and "fit on another log" in pool.note
+    with pytest.raises(ProblemError, match="40 of 40 samples are usable"):
+        sample_pool(log, None, k_max=41)
+
+
+def test_static_base_is_required() -> None:
+    log = small_log(K=10)
+    truth = np.stack([frames.se3_from_xyyaw(0.01 * k, 0.0, 0.0, 0.2) for k in range(10)])
+    moving = dataclasses.replace(log, T_map_base=truth)
+    pool = sample_pool(moving, None, 2)
+    with pytest.raises(ProblemError, match="static base"):
+        TrialContext(moving, FakeMap(), pool)
+    # a per-sample truth that does not move is fine
+    still = dataclasses.replace(log, T_map_base=np.repeat(frames.se3_from_xyyaw(*TRUTH, TRUTH_Z)[None], 10, axis=0))
+    ctx = TrialContext(still, FakeMap(), pool)
+    np.testing.assert_allclose(frames.xyyaw_from_se3(ctx.truth(np.array([1, 2]))), TRUTH, atol=1e-12)
+
+
+# -- seeds and pairing ------------------------------------------------------------------------------
+
+
+def test_trial_seed_derivation() -> None:
+    assert trial_seed(0, 1, 0) == int(np.random.SeedSequence([0, 1, 0]).generate_state(1, np.uint32)[0])
+    seeds = {trial_seed(3, k, t) for k in range(1, 11) for t in range(50)}
+    assert len(seeds) == 500  # distinct for every (k, trial)
+    a, b = trial_rngs(12345)
+    a2, b2 = trial_rngs(12345)
+    assert a.integers(1 << 30) == a2.integers(1 << 30) and b.normal() == b2.normal()
+    with pytest.raises(ParameterError):
+        trial_seed(-1, 1, 0)
+
+
+def test_paired_trials_across_estimators_and_tip_sources() -> None:
+    log = small_log(K=60)
+    kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(2), k_candidates=range(1, 4))
+    pool = sample_pool(log, kin, 4)
+    ctx = TrialContext(log, FakeMap(), pool, kin)
+    out = {}
+    for scale in (0.0, 0.5):
+        for tip in ("mocap", "knn"):
+            for mode in ("paper", "offset"):
+                tasks = make_tasks("g", "test_noisy_prior_mean", NoisyPriorMean, {"scale": scale}, tip, PriorSpec(mode), [1, 4], 5, 11)
+                out[(scale, tip, mode)] = run_tasks(ctx, tasks)
+    ref = out[(0.0, "mocap", "offset")]
+    for key, recs in out.items():
+        assert [r["seed"] for r in recs] == [r["seed"] for r in ref]
+        assert [r["sample_indices"] for r in recs] == [r["sample_indices"] for r in ref]  # same samples everywhere
+        assert all(set(r["sample_indices"]) <= set(pool.indices.tolist()) for r in recs)
+        if key[2] == "offset":
+            assert [r["prior_mean"] for r in recs] == [r["prior_mean"] for r in ref]  # same priors per mode
+    # the estimator's generator is the same for every estimator: its draws pair too
+    a, b = out[(0.5, "knn", "paper")], out[(0.5, "mocap", "paper")]
+    for ra, rb in zip(a, b):
+        np.testing.assert_allclose(ra["estimate"], rb["estimate"])
+    # the paper prior is centred on the truth; the estimate of scale 0 is the prior mean
+    for r in out[(0.0, "knn", "paper")]:
+        np.testing.assert_allclose(r["prior_mean"], TRUTH, atol=1e-12)
+        np.testing.assert_allclose(r["estimate"], r["prior_mean"], atol=1e-12)
+        assert r["e_x_m"] == pytest.approx(0.0, abs=1e-12)
+        assert r["nees"] == pytest.approx(0.0, abs=1e-12)
+    # per-k sample counts
+    assert [len(r["sample_indices"]) for r in ref] == [1] * 5 + [4] * 5
+
+
+def test_trial_errors_cross_process_boundaries() -> None:
+    log = dataclasses.replace(small_log(K=10), pressure_kpa=None)
+    kin, _ = KinematicsModel.fit_log(small_log(K=40), np.random.default_rng(2), k_candidates=range(1, 4))
+    ctx = TrialContext(log, FakeMap(), sample_pool(log, None, 1), kin)
+    tasks = make_tasks("g", "x", NoisyPriorMean, {}, "knn", PriorSpec("paper"), [1], 1, 0)
+    with pytest.raises(TrialError, match="/samples/pressure_kpa") as info:
+        run_tasks(ctx, tasks)
+    again = pickle.loads(pickle.dumps(info.value))
+    assert str(again) == str(info.value)
+
+
+# -- executors -------------------------------------------------------------------------------------
+
+
+def _numbers(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in r.items() if k != "runtime_s"} for r in records]
+
+
+def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
+    distributed = pytest.importorskip("distributed")
+    log, the_map, kin = sim["log"], sim["map"], sim["kin"]
+    pool = sample_pool(log, kin, 2)
+    ctx = TrialContext(log, the_map, pool, kin, knn_cov=knn_residual_covariance(kin, log))
+    cls = ESTIMATORS.load("icp_pf")
+    tasks = make_tasks("g", "icp_pf", cls, {"n_particles": 100}, "knn", PriorSpec("offset"), [1, 2], 2, 5)
+    tasks += make_tasks("h", "test_noisy_prior_mean", NoisyPriorMean, {"scale": 0.1}, "mocap", PriorSpec("paper"), [2], 2, 5)
+    inline = run_tasks(ctx, tasks, workers=1)
+    order: list[int] = []
+    procs = run_tasks(ctx, tasks, workers=2, on_result=lambda i, rec: order.append(i))
+    assert sorted(order) == list(range(len(tasks)))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        with distributed.Client(cluster, set_as_default=False) as client:
+            dask = run_tasks(ctx, tasks, scheduler=client)
+    assert _numbers(inline) == _numbers(procs) == _numbers(dask)
+    assert all(r["runtime_s"] >= 0 for r in procs + dask)
+    # the particle filter did move away from its prior (the test is not vacuous)
+    assert any(r["estimate"] != r["prior_mean"] for r in inline[:4])
+
+
+def test_unreachable_scheduler_is_a_clear_error() -> None:
+    pytest.importorskip("distributed")
+    log = small_log(K=10)
+    ctx = TrialContext(log, FakeMap(), sample_pool(log, None, 1))
+    tasks = make_tasks("g", "x", NoisyPriorMean, {}, "mocap", PriorSpec("paper"), [1], 1, 0)
+    with pytest.raises(ParameterError, match="cannot reach the Dask scheduler"):
+        run_tasks(ctx, tasks, scheduler="tcp://127.0.0.1:9")
+
+
+# -- batches with partial results ------------------------------------------------------------------
+
+
+def test_run_batches_saves_and_reuses_partial_results(tmp_path: Path) -> None:
+    log = small_log(K=30)
+    ctx = TrialContext(log, FakeMap(), sample_pool(log, None, 2))
+    batch = Batch("test_noisy_prior_mean", NoisyPriorMean, {"scale": 0.1}, "mocap", PriorSpec("offset"))
+    seen: list[tuple[str, bool]] = []
+    first = run_batches(ctx, [batch], [1, 2], 3, 4, partial_dir=tmp_path, on_batch=lambda b, r, reused: seen.append((b.group, reused)))
+    assert seen == [("test_noisy_prior_mean/mocap/offset", False)]
+    saved = tmp_path / "test_noisy_prior_mean__mocap__offset.json"
+    assert saved.is_file()
+    recs = first["test_noisy_prior_mean/mocap/offset"]
+    assert [(r["k"], r["trial"]) for r in recs] == [(1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    # same arguments: reused (an estimator that must not run proves it)
+    reuse = dataclasses.replace(batch, estimator_cls=MustNotRun)
+    again = run_batches(ctx, [reuse], [1, 2], 3, 4, partial_dir=tmp_path, on_batch=lambda b, r, reused: seen.append((b.group, reused)))
+    assert seen[-1] == ("test_noisy_prior_mean/mocap/offset", True)
+    assert again["test_noisy_prior_mean/mocap/offset"] == recs
+    # other arguments (more trials, another seed, other params): run again
+    for kwargs in ({"trials": 4, "seed": 4}, {"trials": 3, "seed": 5}):
+        with pytest.raises(AssertionError, match="should have been reused"):
+            run_batches(ctx, [reuse], [1, 2], partial_dir=tmp_path, **kwargs)
+    with pytest.raises(AssertionError, match="should have been reused"):
+        run_batches(ctx, [dataclasses.replace(reuse, params={"scale": 0.2})], [1, 2], 3, 4, partial_dir=tmp_path)

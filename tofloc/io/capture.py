@@ -1,0 +1,289 @@
+"""Read a serial port (pyserial) and turn its lines into samples, journaling every byte.
+
+:class:`SerialCapture` is the one reader loop behind ``tofloc record`` (and, later, live
+localization): iterate over :meth:`SerialCapture.samples` to get each sample as soon as
+it is complete. Every line is appended to the journal *before* it is decoded, so an
+interruption at any point leaves a journal from which :func:`tofloc.io.journal.recover`
+rebuilds the same samples.
+
+The port is opened with :func:`serial.serial_for_url`, so a device path (``/dev/ttyACM0``,
+a pty from ``tofloc replay --pty``), ``COM3`` or a pyserial URL (``loop://``,
+``socket://host:port``, ``rfc2217://...``) all work.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import serial
+
+from tofloc.errors import ParameterError, TofLocError
+from tofloc.io.formats import FORMAT_HINTS, check_format
+from tofloc.io.journal import JournalWriter
+from tofloc.io.lines import DEFAULT_MAX_LINE_BYTES, LineSplitter
+from tofloc.io.samples import Sample
+from tofloc.io.stream import CaptureStats, StreamProcessor
+from tofloc.rig import Rig
+
+__all__ = ["CaptureError", "CaptureTimeout", "SerialCapture", "open_port"]
+
+
+class CaptureError(TofLocError):
+    """The port cannot be opened or read, or the data is not the format expected."""
+
+
+class CaptureTimeout(CaptureError):
+    """No data (or no decodable data) arrived within the time-out."""
+
+
+def open_port(port: str, baud: int, read_timeout_s: float = 0.05) -> serial.SerialBase:
+    """Open ``port`` (a path or a pyserial URL) for reading; CaptureError naming it on failure."""
+    try:
+        return serial.serial_for_url(port, baudrate=baud, timeout=read_timeout_s)
+    except (serial.SerialException, OSError, ValueError) as e:
+        raise CaptureError(f"cannot open serial port {port} at {baud} baud: {e}") from None
+
+
+@dataclass
+class _Conn:
+    port: serial.SerialBase | None = None
+
+
+class SerialCapture:
+    """The reader loop: port -> journal -> decoder -> samples.
+
+    Parameters
+    ----------
+    port : str
+        Device path or pyserial URL.
+    fmt : str
+        Wire format (:data:`tofloc.io.formats.FORMATS`).
+    rig : Rig
+        The rig the device streams.
+    journal : Path
+        Journal to create (never overwritten).
+    baud : int
+        Baud rate (ignored by USB CDC devices and ptys, but sent).
+    timeout_s : float
+        With no byte at all after this long, :class:`CaptureTimeout` names the port,
+        baud rate and format; with bytes but no decodable frame, likewise. Later silences
+        of this length are journaled and reported through ``on_notice``.
+    duration_s : float, optional
+        Stop after this long (seconds since the port opened).
+    reconnect : bool
+        After a disconnect, reopen the same port (retrying every ``retry_s``) instead of
+        ending the capture; gives up after ``reconnect_timeout_s``.
+    window_s : float
+        Grouping window for frames without a sample counter.
+    no_target_at_or_below_mm : float
+        SparkFun formats: distances at or below this are "no target".
+    meta : dict, optional
+        Extra fields for the journal header.
+    on_notice : callable, optional
+        Called with a short message on a disconnect, reconnection or silence.
+    clock : callable
+        Host time in Unix seconds (injectable for tests).
+
+    Notes
+    -----
+    Stop from another thread (or a signal handler) with :meth:`stop`; a
+    ``KeyboardInterrupt`` inside the loop propagates after the journal is closed.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        fmt: str,
+        rig: Rig,
+        journal: str | Path,
+        baud: int = 115200,
+        timeout_s: float = 5.0,
+        duration_s: float | None = None,
+        reconnect: bool = False,
+        reconnect_timeout_s: float = 60.0,
+        retry_s: float = 0.25,
+        window_s: float = 0.5,
+        no_target_at_or_below_mm: float = 0.0,
+        max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
+        meta: dict[str, Any] | None = None,
+        on_notice: Callable[[str], None] | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        check_format(fmt)
+        if not timeout_s > 0:
+            raise ParameterError(f"timeout must be > 0 s, got {timeout_s}")
+        if duration_s is not None and not duration_s > 0:
+            raise ParameterError(f"duration must be > 0 s, got {duration_s}")
+        if baud <= 0:
+            raise ParameterError(f"baud must be > 0, got {baud}")
+        self.port_name = port
+        self.fmt = fmt
+        self.rig = rig
+        self.journal_path = Path(journal)
+        self.baud = int(baud)
+        self.timeout_s = float(timeout_s)
+        self.duration_s = duration_s
+        self.reconnect = reconnect
+        self.reconnect_timeout_s = reconnect_timeout_s
+        self.retry_s = retry_s
+        self.max_line_bytes = max_line_bytes
+        self.meta = {"port": port, "baud": self.baud, **(meta or {})}
+        self.on_notice = on_notice or (lambda msg: None)
+        self.clock = clock
+        # built here so that a bad rig/format combination fails before the port is touched
+        self.processor = StreamProcessor(fmt, rig, window_s=window_s, no_target_at_or_below_mm=no_target_at_or_below_mm)
+        self._stop = threading.Event()
+        self.started_at: float | None = None
+        self.ended_by: str = ""
+
+    @property
+    def stats(self) -> CaptureStats:
+        return self.processor.stats
+
+    def stop(self) -> None:
+        """Ask the loop to finish (thread-safe); it returns within one read time-out."""
+        self._stop.set()
+
+    # -- the loop ------------------------------------------------------------------------
+    def samples(self) -> Iterator[Sample]:
+        """Open the port and yield samples as they complete, until the duration, a stop,
+        a disconnect (without ``reconnect``) or an interruption.
+
+        Raises
+        ------
+        CaptureError
+            The port cannot be opened.
+        CaptureTimeout
+            Nothing (decodable) arrived within ``timeout_s``.
+        """
+        conn = _Conn(open_port(self.port_name, self.baud))
+        journal = JournalWriter(self.journal_path, fmt=self.fmt, rig=self.rig, meta=self.meta)
+        splitter = LineSplitter(self.max_line_bytes)
+        proc = self.processor
+        t0 = self.started_at = self.clock()
+        last_data = t0
+        got_bytes = False
+        silent_reported = False
+        journal.event(t0, f"open {self.port_name} at {self.baud} baud, format {self.fmt}")
+        try:
+            while not self._stop.is_set():
+                now = self.clock()
+                if self.duration_s is not None and now - t0 >= self.duration_s:
+                    self.ended_by = "duration"
+                    break
+                try:
+                    assert conn.port is not None
+                    waiting = conn.port.in_waiting
+                    chunk = conn.port.read(min(max(waiting, 1), 65536))
+                except (serial.SerialException, OSError) as e:
+                    now = self.clock()
+                    yield from self._lost(conn, journal, splitter, now, str(e) or type(e).__name__)
+                    if conn.port is None:
+                        break
+                    splitter = LineSplitter(self.max_line_bytes)
+                    last_data = self.clock()
+                    continue
+                now = self.clock()
+                if chunk:
+                    got_bytes = True
+                    last_data = now
+                    silent_reported = False
+                    out: list[Sample] = []
+                    for line in splitter.push(chunk):
+                        journal.line(line, now)
+                        out += proc.feed(line, now)
+                    journal.flush()
+                    yield from out
+                    self._check_decoding(now - t0)
+                    continue
+                if not got_bytes and now - t0 > self.timeout_s:
+                    raise CaptureTimeout(
+                        f"no data from {self.port_name} at {self.baud} baud within {self.timeout_s:g} s; "
+                        f"expected {FORMAT_HINTS[self.fmt]}. Check the port, the baud rate (--baud), "
+                        "the format (--format) and that the device is streaming"
+                    )
+                self._check_decoding(now - t0)
+                if got_bytes and not silent_reported and now - last_data > self.timeout_s:
+                    silent_reported = True
+                    journal.event(now, f"silence: no data for {self.timeout_s:g} s")
+                    self.on_notice(f"no data from {self.port_name} for {self.timeout_s:g} s")
+            else:
+                self.ended_by = self.ended_by or "stop"
+        except KeyboardInterrupt:
+            self.ended_by = "interrupted"
+            journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
+            raise
+        finally:
+            tail = splitter.flush_partial()
+            end = self.clock()
+            if tail is not None:
+                journal.line(tail, end)
+                self._final = proc.feed(tail, end)
+            else:
+                self._final = []
+            self._final += proc.finish()
+            journal.event(end, f"end: {self.ended_by or 'error'}; {proc.stats.summary()}")
+            journal.close()
+            if conn.port is not None:
+                conn.port.close()
+        yield from self._final
+
+    def _check_decoding(self, elapsed: float) -> None:
+        """Bytes but no frame after the time-out: wrong format or baud rate (text lines
+        alone, such as a start-up banner, do not count)."""
+        st = self.stats
+        if st.frames == 0 and st.malformed > 0 and elapsed > self.timeout_s:
+            raise CaptureTimeout(self._nothing_decoded())
+
+    def _nothing_decoded(self) -> str:
+        st = self.stats
+        why = f" (first: {st.first_rejections[0]})" if st.first_rejections else ""
+        return (
+            f"{st.lines} lines from {self.port_name} at {self.baud} baud in {self.timeout_s:g} s, but none is a frame of "
+            f"format {self.fmt}{why}; expected {FORMAT_HINTS[self.fmt]}. Check --format and --baud"
+        )
+
+    def _lost(self, conn: _Conn, journal: JournalWriter, splitter: LineSplitter, now: float, why: str) -> Iterator[Sample]:
+        """The port went away: journal it, close blocks, and reopen when asked to."""
+        proc = self.processor
+        tail = splitter.flush_partial()
+        out: list[Sample] = []
+        if tail is not None:
+            journal.line(tail, now)
+            out += proc.feed(tail, now)
+        journal.event(now, f"disconnect: {why}")
+        out += proc.connection_lost()
+        try:
+            assert conn.port is not None
+            conn.port.close()
+        except (serial.SerialException, OSError):
+            pass
+        conn.port = None
+        yield from out
+        if not self.reconnect:
+            self.ended_by = "disconnect"
+            self.on_notice(f"{self.port_name} disconnected ({why}); stopping (use --reconnect to wait for it)")
+            return
+        self.on_notice(f"{self.port_name} disconnected ({why}); reconnecting")
+        give_up = self.clock() + self.reconnect_timeout_s
+        while not self._stop.is_set():
+            if self.duration_s is not None and self.started_at is not None and self.clock() - self.started_at >= self.duration_s:
+                self.ended_by = "duration"
+                return
+            try:
+                conn.port = serial.serial_for_url(self.port_name, baudrate=self.baud, timeout=0.05)
+            except (serial.SerialException, OSError, ValueError):
+                if self.clock() > give_up:
+                    self.ended_by = "disconnect"
+                    self.on_notice(f"{self.port_name} did not come back within {self.reconnect_timeout_s:g} s; stopping")
+                    return
+                time.sleep(self.retry_s)
+                continue
+            journal.event(self.clock(), "reconnected")
+            self.on_notice(f"{self.port_name} reconnected")
+            return

@@ -1,0 +1,129 @@
+"""The wire formats by name: a decoder for the recorder, an encoder for the virtual device.
+
+=================  =========================================  ============================
+name               what the device prints                     carries
+=================  =========================================  ============================
+``tofloc``         our line protocol (docs/serial-protocol)   S sensors, statuses, sigmas,
+                                                              pressures, time, CRC
+``sparkfun-csv``   SparkFun Example 4: 64 values, one line    1 sensor, distances only
+``sparkfun-grid``  SparkFun Example 1: 8 tab-separated rows   1 sensor, distances only
+``st-uld``         ST ULD example: ``Zone : i, Status : ...`` 1 sensor, distances, statuses
+=================  =========================================  ============================
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+
+from tofloc.errors import ParameterError
+from tofloc.io.events import Decoder
+from tofloc.io.protocol import TofLocDecoder, encode_frame_line, encode_pressure_line
+from tofloc.io.sparkfun import SparkFunCsvDecoder, SparkFunGridDecoder, encode_sparkfun_csv, encode_sparkfun_grid
+from tofloc.io.st_uld import StUldDecoder, encode_st_uld
+from tofloc.logs import Log
+from tofloc.rig import Rig
+
+__all__ = ["FORMATS", "FORMAT_HINTS", "make_decoder", "encode_log", "EncodedSample"]
+
+FORMATS: tuple[str, ...] = ("tofloc", "sparkfun-csv", "sparkfun-grid", "st-uld")
+
+#: What a line of each format looks like (for error messages).
+FORMAT_HINTS = {
+    "tofloc": "tofloc protocol lines such as '$F,0,1000,0,0,8x8,...*1A2B'",
+    "sparkfun-csv": "SparkFun Example 4 lines of 64 comma-separated distances",
+    "sparkfun-grid": "SparkFun Example 1 grids of 8 tab-separated rows",
+    "st-uld": "ST ULD blocks of 'Zone : 0, Status : 5, Distance : 352 mm' lines",
+}
+
+#: One sample of a log as the device would send it: time (s, from the log) and its lines
+#: (each ``bytes`` ends with its newline; a block format's separator belongs to the block).
+EncodedSample = tuple[float, list[bytes], list[int]]
+
+
+def check_format(fmt: str) -> str:
+    if fmt not in FORMATS:
+        raise ParameterError(f"unknown format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    return fmt
+
+
+def make_decoder(fmt: str, rig: Rig, *, no_target_at_or_below_mm: float = 0.0) -> Decoder:
+    """A fresh decoder of ``fmt`` for ``rig`` (single-sensor formats need a 1-sensor rig)."""
+    check_format(fmt)
+    if fmt == "tofloc":
+        return TofLocDecoder(rig=rig)
+    if fmt == "sparkfun-csv":
+        return SparkFunCsvDecoder(rig=rig, no_target_at_or_below_mm=no_target_at_or_below_mm)
+    if fmt == "sparkfun-grid":
+        return SparkFunGridDecoder(rig=rig, no_target_at_or_below_mm=no_target_at_or_below_mm)
+    return StUldDecoder(rig=rig)
+
+
+def encode_log(log: Log, fmt: str, *, sensor: int | None = None) -> Iterator[EncodedSample]:
+    """The lines a device would send for every sample of ``log``, in ``fmt``.
+
+    Yields ``(t_s, lines, sensors)``: the sample's time, its lines (``$P`` first, then one
+    ``$F`` per sensor, for ``tofloc``; one frame for the single-sensor formats) and, for
+    each line, the sensor index it carries (-1 for a pressure line, and for the extra
+    lines of a block format, the block's sensor).
+
+    Parameters
+    ----------
+    sensor : int, optional
+        For the single-sensor formats, which sensor of a multi-sensor log to send
+        (default: the log must have exactly one).
+
+    Notes
+    -----
+    ``tofloc`` writes ``t_us = round(timestamp_s * 1e6)`` (clamped at 0), sample counters
+    ``0, 1, ...`` and zones in raw order (the inverse of the rig's ``raw_order``), so
+    decoding gives back the same float32 distances, statuses, sigmas and pressures.
+    The other formats round distances to whole millimetres, print 0 for "no target" and
+    (SparkFun) drop statuses.
+    """
+    check_format(fmt)
+    rig = log.rig
+    if fmt != "tofloc":
+        if sensor is None:
+            if rig.n_sensors != 1:
+                raise ParameterError(f"format {fmt} carries one sensor and the log has {rig.n_sensors}: choose one (--sensor)")
+            sensor = 0
+        if not 0 <= sensor < rig.n_sensors:
+            raise ParameterError(f"sensor index {sensor} not in the log's rig (0..{rig.n_sensors - 1})")
+    qs = [s.raw_order.scene_to_raw(s.resolution) for s in rig.sensors]
+    seq = 0
+    for k in range(log.n_samples):
+        t = float(log.timestamp_s[k])
+        lines: list[bytes] = []
+        who: list[int] = []
+        if fmt == "tofloc":
+            t_us = max(0, int(round(t * 1e6)))
+            if log.pressure_kpa is not None:
+                lines.append(encode_pressure_line(seq, t_us, k, log.pressure_kpa[k]))
+                who.append(-1)
+                seq += 1
+            for i, s in enumerate(rig.sensors):
+                q = qs[i]
+                sig = None if log.sigma_mm is None else log.sigma_mm[k, i][q]
+                lines.append(encode_frame_line(seq, t_us, k, i, s.resolution, log.distance_mm[k, i][q], log.status[k, i][q], sig))
+                who.append(i)
+                seq += 1
+        else:
+            assert sensor is not None
+            s = rig.sensors[sensor]
+            d = log.distance_mm[k, sensor]
+            if fmt == "sparkfun-csv":
+                lines.append(encode_sparkfun_csv(s, d))
+            elif fmt == "sparkfun-grid":
+                lines += _split_lines(encode_sparkfun_grid(s, d))
+            else:
+                lines += _split_lines(encode_st_uld(s, d, log.status[k, sensor], k))
+            who += [sensor] * len(lines)
+        yield t, lines, who
+
+
+def _split_lines(block: bytes) -> list[bytes]:
+    """A block of text -> its lines, each keeping its terminator."""
+    return block.splitlines(keepends=True)
+
+

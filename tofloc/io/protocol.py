@@ -1,0 +1,298 @@
+"""The tofloc line protocol: one text line per sensor frame or actuation reading.
+
+The full specification, for firmware authors, is ``docs/serial-protocol.md``. In short::
+
+    $F,<seq>,<t_us>,<sample>,<sensor>,<R>x<C>,<d_0 ... d_Z-1>,<s_0 ... s_Z-1>[,<g_0 ... g_Z-1>]*<CRC>\\n
+    $P,<seq>,<t_us>,<sample>,<p_0 ... p_C-1>*<CRC>\\n
+
+``seq`` counts every line the device sends (mod 65536), so the host knows how many
+lines were lost; ``t_us`` is the device clock in microseconds; ``sample`` numbers the read
+cycle (all sensors of one posture share it; ``-`` lets the host group by time);
+``sensor`` is the sensor's index in the rig file (or its name); distances ``d`` (mm),
+statuses ``s`` and optional sigmas ``g`` (mm) are space-separated, in the raw order of
+ST's driver (the host reorders them with the rig's ``raw_order``); ``-`` is "no value".
+``CRC`` is the CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) of the bytes between ``$``
+and ``*``, as 4 hex digits. A line is decoded from its *last* ``$``: bytes lost before it,
+or the tail of a line whose newline was lost, cannot hide the next good line.
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc.errors import ParameterError
+from tofloc.io.events import Decoder, Event, Frame, Gap, Pressure, Rejected, is_text
+from tofloc.rig import Rig
+
+__all__ = [
+    "crc16_ccitt",
+    "format_values",
+    "encode_frame_line",
+    "encode_pressure_line",
+    "TofLocDecoder",
+    "SEQ_MODULO",
+]
+
+SEQ_MODULO = 65536
+_WRAP32 = 2**32
+
+_NUM = rb"(?:-|-?[0-9]{1,7}(?:\.[0-9]{1,50})?)"
+_VALUES = re.compile(rb"^" + _NUM + rb"(?: " + _NUM + rb")*$")
+_STATUSES = re.compile(rb"^[0-9]{1,3}(?: [0-9]{1,3})*$")
+_LINE = re.compile(rb"^\$([FP]),([^*]*)\*([0-9A-Fa-f]{4})$")
+_UINT = re.compile(rb"^[0-9]{1,20}$")
+_NAME = re.compile(rb"^[A-Za-z_][A-Za-z0-9_.\-]{0,63}$")
+_RES = re.compile(rb"^([0-9]{1,4})x([0-9]{1,4})$")
+
+
+def crc16_ccitt(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final xor).
+
+    ``crc16_ccitt(b"123456789") == 0x29B1`` (the catalogue check value).
+    """
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def format_values(values: ArrayLike) -> bytes:
+    """Space-separated values as the protocol writes them: ``-`` for NaN, else the
+    shortest decimal that reads back to the same float32 (integers without a dot)."""
+    a = np.asarray(values, dtype=np.float32).reshape(-1)
+    out = []
+    for x in a.tolist():  # formatting only (encoder side, not a decode hot path)
+        if math.isnan(x):
+            out.append("-")
+        else:
+            out.append(np.format_float_positional(np.float32(x), unique=True, trim="-"))
+    return " ".join(out).encode("ascii")
+
+
+def _finish(body: bytes) -> bytes:
+    return b"$" + body + b"*" + f"{crc16_ccitt(body):04X}".encode("ascii") + b"\n"
+
+
+def encode_frame_line(
+    seq: int,
+    t_us: int,
+    sample: int | None,
+    sensor: int | str,
+    resolution: Sequence[int],
+    distance_mm: ArrayLike,
+    status: ArrayLike,
+    sigma_mm: ArrayLike | None = None,
+) -> bytes:
+    """One ``$F`` line (with its ``\\n``); arrays in the order the firmware sends (raw ST order).
+
+    Raises
+    ------
+    ParameterError
+        If a value cannot be written (negative time, status outside 0-255, wrong length,
+        distance that needs more than 7 integer digits).
+    """
+    R, C = int(resolution[0]), int(resolution[1])
+    d = np.asarray(distance_mm, dtype=np.float32).reshape(-1)
+    s = np.asarray(status).reshape(-1)
+    if d.size != R * C or s.size != R * C:
+        raise ParameterError(f"a {R}x{C} frame needs {R * C} distances and statuses, got {d.size} and {s.size}")
+    if s.size and (s.min() < 0 or s.max() > 255):
+        raise ParameterError("statuses must be in [0, 255]")
+    if t_us < 0:
+        raise ParameterError(f"t_us must be >= 0, got {t_us}")
+    if np.any(np.abs(d[np.isfinite(d)]) >= 1e7) or np.any(np.isinf(d)):
+        raise ParameterError("distances must be finite and below 1e7 mm (or NaN)")
+    fields = [
+        str(int(seq) % SEQ_MODULO).encode(),
+        str(int(t_us)).encode(),
+        b"-" if sample is None else str(int(sample)).encode(),
+        str(sensor).encode(),
+        f"{R}x{C}".encode(),
+        format_values(d),
+        b" ".join(str(int(v)).encode() for v in s.tolist()),
+    ]
+    if sigma_mm is not None:
+        g = np.asarray(sigma_mm, dtype=np.float32).reshape(-1)
+        if g.size != R * C:
+            raise ParameterError(f"a {R}x{C} frame needs {R * C} sigmas, got {g.size}")
+        fields.append(format_values(g))
+    return _finish(b"F," + b",".join(fields))
+
+
+def encode_pressure_line(seq: int, t_us: int, sample: int | None, pressure_kpa: ArrayLike) -> bytes:
+    """One ``$P`` line (with its ``\\n``)."""
+    p = np.asarray(pressure_kpa, dtype=np.float32).reshape(-1)
+    if p.size == 0:
+        raise ParameterError("a pressure line needs at least one value")
+    if t_us < 0:
+        raise ParameterError(f"t_us must be >= 0, got {t_us}")
+    fields = [
+        str(int(seq) % SEQ_MODULO).encode(),
+        str(int(t_us)).encode(),
+        b"-" if sample is None else str(int(sample)).encode(),
+        format_values(p),
+    ]
+    return _finish(b"P," + b",".join(fields))
+
+
+def _parse_values(field_: bytes, n: int) -> NDArray[np.float64] | None:
+    """``n`` space-separated numbers (``-`` = NaN) -> float64 array; None if malformed."""
+    if not _VALUES.match(field_):
+        return None
+    tok = np.array(field_.split(b" "), dtype="S60")
+    if tok.size != n:
+        return None
+    tok[tok == b"-"] = b"nan"
+    return tok.astype(np.float64)
+
+
+@dataclass
+class TofLocDecoder(Decoder):
+    """Decoder of the tofloc line protocol for a given rig.
+
+    Parameters
+    ----------
+    rig : Rig
+        Sensors (index, name, resolution, raw order) and actuators (count).
+    """
+
+    rig: Rig = field(default=None)  # type: ignore[assignment]
+    _last_seq: int | None = field(default=None, init=False, repr=False)
+    _last_t_raw: int | None = field(default=None, init=False, repr=False)
+    _t_offset: int = field(default=0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.rig, Rig):
+            raise ParameterError("TofLocDecoder needs a Rig")
+        self.name = "tofloc"
+        self._perm = [s.raw_order.raw_to_scene(s.resolution) for s in self.rig.sensors]
+        self._names = {s.name.encode(): i for i, s in enumerate(self.rig.sensors)}
+
+    # -- helpers --------------------------------------------------------------------------
+    def _time(self, raw: int) -> float:
+        """Device seconds, unwrapping a 32-bit microsecond counter (micros() on most MCUs)."""
+        last = self._last_t_raw
+        if last is not None and raw < last and last >= 0xC0000000 and raw < 0x40000000 and last < _WRAP32:
+            self._t_offset += _WRAP32
+        self._last_t_raw = raw
+        return (raw + self._t_offset) * 1e-6
+
+    def _seq(self, seq: int, line_no: int) -> list[Event]:
+        out: list[Event] = []
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq - 1) % SEQ_MODULO
+            # a huge "gap" is a restart or a reordering, not 60000 lost lines
+            if 0 < gap < SEQ_MODULO // 2:
+                out.append(Gap(gap, line_no))
+        self._last_seq = seq
+        return out
+
+    # -- decoding -------------------------------------------------------------------------
+    def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
+        if partial:
+            return [Rejected("line cut short by a disconnect", line_no)]
+        start = line.rfind(b"$")
+        if start < 0:
+            if not line.strip():
+                return [Rejected("empty line", line_no, "text")]
+            return [Rejected("no '$' start marker", line_no, "text" if is_text(line) else "malformed")]
+        m = _LINE.match(line[start:])
+        if m is None:
+            return [Rejected("not '$F,...*XXXX' or '$P,...*XXXX' (truncated or garbled)", line_no)]
+        kind, body, crc_hex = m.group(1), m.group(2), m.group(3)
+        crc = crc16_ccitt(kind + b"," + body)
+        if crc != int(crc_hex, 16):
+            return [Rejected(f"checksum mismatch (line says {crc_hex.decode()}, computed {crc:04X})", line_no)]
+        fields = body.split(b",")
+        if kind == b"F":
+            return self._frame(fields, t_host_s, line_no)
+        return self._pressure(fields, t_host_s, line_no)
+
+    def _header(self, fields: list[bytes], line_no: int) -> tuple[int, int, int | None] | Rejected:
+        seq_b, t_b, sample_b = fields[0], fields[1], fields[2]
+        if not _UINT.match(seq_b) or int(seq_b) >= SEQ_MODULO:
+            return Rejected(f"seq must be an integer in [0, {SEQ_MODULO - 1}]", line_no)
+        if not _UINT.match(t_b) or int(t_b) >= 2**64:
+            return Rejected("t_us must be an unsigned integer (microseconds)", line_no)
+        if sample_b == b"-":
+            sample = None
+        elif _UINT.match(sample_b) and len(sample_b) <= 10:
+            sample = int(sample_b)
+        else:
+            return Rejected("sample must be an unsigned integer or '-'", line_no)
+        return int(seq_b), int(t_b), sample
+
+    def _frame(self, fields: list[bytes], t_host_s: float, line_no: int) -> list[Event]:
+        if len(fields) not in (7, 8):
+            return [Rejected(f"a frame line has 7 or 8 fields, found {len(fields)}", line_no)]
+        head = self._header(fields, line_no)
+        if isinstance(head, Rejected):
+            return [head]
+        seq, t_raw, sample = head
+        sensor_b = fields[3]
+        if sensor_b.isdigit() and len(sensor_b) <= 4:
+            idx = int(sensor_b)
+            if idx >= self.rig.n_sensors:
+                return [Rejected(f"sensor index {idx} not in the rig (it has {self.rig.n_sensors})", line_no)]
+        elif _NAME.match(sensor_b) and sensor_b in self._names:
+            idx = self._names[sensor_b]
+        else:
+            return [Rejected(f"unknown sensor {sensor_b[:40]!r}", line_no)]
+        sensor = self.rig.sensors[idx]
+        res = _RES.match(fields[4])
+        if res is None:
+            return [Rejected("resolution must read <rows>x<cols>", line_no)]
+        R, C = int(res.group(1)), int(res.group(2))
+        if (R, C) != sensor.resolution:
+            return [Rejected(f"sensor {sensor.name} is {sensor.resolution[0]}x{sensor.resolution[1]} in the rig, line says {R}x{C}", line_no)]
+        Z = R * C
+        d = _parse_values(fields[5], Z)
+        if d is None:
+            return [Rejected(f"expected {Z} distances (numbers or '-')", line_no)]
+        if not _STATUSES.match(fields[6]):
+            return [Rejected("statuses must be integers 0-255", line_no)]
+        st = np.array(fields[6].split(b" "), dtype="S3").astype(np.int64)
+        if st.size != Z or st.max() > 255:
+            return [Rejected(f"expected {Z} statuses in [0, 255]", line_no)]
+        sigma = None
+        if len(fields) == 8:
+            sigma = _parse_values(fields[7], Z)
+            if sigma is None or np.any(sigma < 0):
+                return [Rejected(f"expected {Z} sigmas (numbers >= 0 or '-')", line_no)]
+        d[d < 0] = np.nan  # the driver's int16 can dip below 0 on invalid zones: no distance
+        p = self._perm[idx]
+        events = self._seq(seq, line_no)
+        events.append(
+            Frame(
+                sensor=idx,
+                distance_mm=d[p].astype(np.float32),
+                status=st[p].astype(np.uint8),
+                sigma_mm=None if sigma is None else sigma[p].astype(np.float32),
+                t_device_s=self._time(t_raw),
+                t_host_s=t_host_s,
+                sample=sample,
+                line_no=line_no,
+            )
+        )
+        return events
+
+    def _pressure(self, fields: list[bytes], t_host_s: float, line_no: int) -> list[Event]:
+        if len(fields) != 4:
+            return [Rejected(f"a pressure line has 4 fields, found {len(fields)}", line_no)]
+        head = self._header(fields, line_no)
+        if isinstance(head, Rejected):
+            return [head]
+        seq, t_raw, sample = head
+        C = self.rig.n_actuators
+        if C == 0:
+            return [Rejected("pressure line, but the rig declares no actuators", line_no)]
+        p = _parse_values(fields[3], C)
+        if p is None:
+            return [Rejected(f"expected {C} pressures (the rig's actuators)", line_no)]
+        events = self._seq(seq, line_no)
+        events.append(Pressure(p.astype(np.float32), self._time(t_raw), t_host_s, sample, line_no))
+        return events

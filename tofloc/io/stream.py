@@ -1,0 +1,149 @@
+"""Lines -> events -> samples, with the counts the recorder shows (one pipeline for the
+live capture and for rebuilding a log from a journal, so both give the same samples)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from tofloc.io.events import Frame, Gap, Pressure, Rejected
+from tofloc.io.formats import make_decoder
+from tofloc.io.lines import RawLine
+from tofloc.io.samples import Sample, SampleAssembler
+from tofloc.rig import Rig
+
+__all__ = ["CaptureStats", "StreamProcessor"]
+
+
+@dataclass
+class CaptureStats:
+    """What came in so far.
+
+    Attributes
+    ----------
+    lines : int
+        Lines received (including text and malformed ones).
+    frames : int
+        Sensor frames decoded.
+    pressures : int
+        Actuation lines decoded.
+    samples : int
+        Samples emitted; ``incomplete`` of them lacked a sensor.
+    malformed : int
+        Lines (or blocks) that failed to decode: kept in the journal, never fatal.
+    text : int
+        Plain-text lines (banners, ``rate: ...``), ignored.
+    lost : int
+        Lines the device sent that never decoded, from the tofloc sequence counter
+        (includes the malformed ones that were protocol lines; 0 for other formats).
+    duplicates, incomplete, orphan_pressures : int
+        See :class:`tofloc.io.samples.SampleAssembler`.
+    disconnects : int
+        Times the port went away.
+    first_rejections : list of str
+        The first few rejection reasons, with line numbers (for messages).
+    """
+
+    lines: int = 0
+    frames: int = 0
+    pressures: int = 0
+    samples: int = 0
+    malformed: int = 0
+    text: int = 0
+    lost: int = 0
+    duplicates: int = 0
+    incomplete: int = 0
+    orphan_pressures: int = 0
+    disconnects: int = 0
+    first_rejections: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """One line: frames, samples, dropped/malformed lines, disconnects."""
+        s = f"{self.frames} frames, {self.samples} samples"
+        if self.incomplete:
+            s += f" ({self.incomplete} incomplete)"
+        s += f", {self.malformed} malformed lines"
+        if self.lost:
+            s += f", {self.lost} lines lost in transit"
+        if self.duplicates:
+            s += f", {self.duplicates} duplicates"
+        if self.disconnects:
+            s += f", {self.disconnects} disconnects"
+        return s
+
+
+class StreamProcessor:
+    """Feed raw lines with their host time; get samples; read :attr:`stats`.
+
+    Parameters
+    ----------
+    fmt : str
+        One of :data:`tofloc.io.formats.FORMATS`.
+    rig : Rig
+        The rig the device streams (sensor order, resolutions, raw order, actuators).
+    window_s : float
+        Grouping window for frames without a sample counter.
+    no_target_at_or_below_mm : float
+        SparkFun formats: distances at or below this are "no target".
+    """
+
+    MAX_REASONS = 20
+
+    def __init__(self, fmt: str, rig: Rig, *, window_s: float = 0.5, no_target_at_or_below_mm: float = 0.0) -> None:
+        self.fmt = fmt
+        self.rig = rig
+        self.decoder = make_decoder(fmt, rig, no_target_at_or_below_mm=no_target_at_or_below_mm)
+        self.assembler = SampleAssembler(rig, window_s=window_s)
+        self.stats = CaptureStats()
+
+    def feed(self, line: RawLine, t_host_s: float) -> list[Sample]:
+        """Decode one line (counted as line number ``stats.lines``)."""
+        self.stats.lines += 1
+        n = self.stats.lines
+        if line.overflow:
+            # like a cut line (it ends any open block), but say why
+            events = self.decoder.feed(b"", t_host_s, n, partial=True)[:-1] + [Rejected("line longer than the length bound", n)]
+        else:
+            events = self.decoder.feed(line.data, t_host_s, n, partial=line.partial)
+        return self._handle(events)
+
+    def connection_lost(self) -> list[Sample]:
+        """The port went away: close any open block and sample."""
+        self.stats.disconnects += 1
+        return self._handle(self.decoder.finish()) + self._flush_samples()
+
+    def finish(self) -> list[Sample]:
+        """End of the stream: close any open block and sample."""
+        return self._handle(self.decoder.finish()) + self._flush_samples()
+
+    def _flush_samples(self) -> list[Sample]:
+        out = self.assembler.flush()
+        self._sync()
+        self.stats.samples += len(out)
+        return out
+
+    def _sync(self) -> None:
+        a = self.assembler
+        self.stats.duplicates, self.stats.incomplete, self.stats.orphan_pressures = a.duplicates, a.incomplete, a.orphan_pressures
+
+    def _handle(self, events: list) -> list[Sample]:
+        out: list[Sample] = []
+        st = self.stats
+        for e in events:
+            if isinstance(e, Frame):
+                st.frames += 1
+                out += self.assembler.push(e)
+            elif isinstance(e, Pressure):
+                st.pressures += 1
+                out += self.assembler.push(e)
+            elif isinstance(e, Gap):
+                st.lost += e.lost_lines
+            elif isinstance(e, Rejected):
+                if e.kind == "text":
+                    st.text += 1
+                else:
+                    st.malformed += 1
+                    if len(st.first_rejections) < self.MAX_REASONS:
+                        st.first_rejections.append(f"line {e.line_no}: {e.reason}")
+        self._sync()
+        st.samples += len(out)
+        return out
