@@ -61,7 +61,7 @@ def simulate(scenario: Scenario | str = "paper", seed: int = 0) -> SimulationRes
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     if seed < 0:
         raise ValueError(f"seed must be non-negative, got {seed}")
-    r_env, r_map, r_robot, r_mocap, r_tof = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5))
+    r_env, r_map, r_robot, r_mocap, r_tof, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
 
     env = sc.environment
     cad_mesh = Map.cuboid(size=env.size, origin=env.origin, open_faces=env.open_faces)
@@ -78,8 +78,9 @@ def simulate(scenario: Scenario | str = "paper", seed: int = 0) -> SimulationRes
     b = sc.base
     T_map_base = frames.se3_from_xyyaw(b.x, b.y, np.radians(b.yaw_deg), b.z)
     actuators = tuple(f"chamber{i + 1}" for i in range(n_ch))
-    rig = build_rig(sc.rig, actuators)
-    T_map_sensor = T_map_base @ T_base_tip_true[:, None] @ rig.T_tip_sensor[None]
+    rig = build_rig(sc.rig, actuators)  # the CAD rig, what the log carries
+    rig_true = build_rig(sc.rig, actuators, r_mount)  # how the sensors are really mounted
+    T_map_sensor = T_map_base @ T_base_tip_true[:, None] @ rig_true.T_tip_sensor[None]
     returns = cast_zones(world, rig, T_map_sensor, sc.tof)
     distance_mm, status, sigma_mm = measure(returns, rig, sc.tof, r_tof)
 

@@ -95,6 +95,9 @@ class RigDesign:
     resolution: tuple[int, int] = (8, 8)
     fov_deg: tuple[float, float] = field(default=(45.0, 45.0), metadata=_r(1.0, 179.0))
     distance: str = "perpendicular"
+    support_yaw_error_deg: float = field(default=0.0, metadata=_r(-45.0, 45.0))
+    mounting_sigma_deg: float = field(default=0.0, metadata=_r(0.0, 20.0))
+    mounting_sigma: float = field(default=0.0, metadata=_r(0.0, 0.05))
 
 
 @dataclass(frozen=True)

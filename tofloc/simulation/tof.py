@@ -22,10 +22,15 @@ __all__ = ["build_rig", "subray_directions", "ZoneReturns", "cast_zones", "measu
 NO_TARGET = 255
 
 
-def build_rig(design: RigDesign, actuators: tuple[str, ...]) -> Rig:
+def build_rig(design: RigDesign, actuators: tuple[str, ...], rng: np.random.Generator | None = None) -> Rig:
     """The CAD rig: sensors around the tip axis, boresights tilted down, x to the right of
-    the scene image, y down (optical convention)."""
+    the scene image, y down (optical convention).
+
+    With ``rng``, the *true* rig: the support rotated about the tip axis by
+    ``support_yaw_error_deg`` and every sensor moved by the mounting scatter.
+    """
     sensors = []
+    support = frames.se3(frames.rot_z(math.radians(design.support_yaw_error_deg)), np.zeros(3)) if rng is not None else np.eye(4)
     up = np.array([0.0, 0.0, 1.0])
     tilt = math.radians(design.tilt_down_deg)
     for i, az_deg in enumerate(design.azimuths_deg):
@@ -44,10 +49,18 @@ def build_rig(design: RigDesign, actuators: tuple[str, ...]) -> Rig:
                 resolution=tuple(design.resolution),  # type: ignore[arg-type]
                 fov_deg=tuple(design.fov_deg),  # type: ignore[arg-type]
                 distance=design.distance,
-                T_tip_sensor=frames.se3(R, t),
+                T_tip_sensor=_mounted(support, frames.se3(R, t), design, rng),
             )
         )
     return Rig(tuple(sensors), actuators)
+
+
+def _mounted(support: NDArray[np.float64], T_cad: NDArray[np.float64], design: RigDesign, rng: np.random.Generator | None) -> NDArray[np.float64]:
+    if rng is None:
+        return T_cad
+    dR = frames.matrix_from_rotvec(rng.normal(0.0, math.radians(design.mounting_sigma_deg), 3))
+    dt = rng.normal(0.0, design.mounting_sigma, 3)
+    return support @ frames.se3(T_cad[:3, :3] @ dR, T_cad[:3, 3] + dt)
 
 
 def subray_directions(sensor: Sensor, n_sub: int) -> NDArray[np.float64]:
