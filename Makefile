@@ -4,6 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_DIR ?= demo-output
+DEMO_TRIALS ?= 10
 
 .PHONY: demo test test-fast install syslibs clean
 
@@ -20,7 +21,7 @@ $(STAMP): pyproject.toml
 install: syslibs $(STAMP)
 
 demo: install
-	$(VENV)/bin/tofloc demo --out $(DEMO_DIR)
+	$(VENV)/bin/tofloc paper --estimators $$($(VENV)/bin/python -c 'from tofloc.registry import ESTIMATORS; print(",".join(ESTIMATORS.names()))') --trials $(DEMO_TRIALS) --out $(DEMO_DIR)
 
 test: install
 	$(PY) -m pytest -q

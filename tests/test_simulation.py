@@ -1,0 +1,175 @@
+"""The simulator of the paper's experiment: determinism, physics sanity, scenario files, CLI."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+from tofloc import frames
+from tofloc.cli import main
+from tofloc.errors import FormatError
+from tofloc.logs import read_log
+from tofloc.maps import Map
+from tofloc.rig import Rig, Sensor
+from tofloc.simulation import simulate, write_simulation
+from tofloc.simulation.robot import protocol_pressures
+from tofloc.simulation.scenario import Protocol, ToFPhysics, load_scenario, n_postures
+from tofloc.simulation.tof import build_rig, cast_zones, measure
+
+
+@pytest.fixture(scope="module")
+def paper_sim():
+    return simulate("paper", 1)
+
+
+def test_protocol_is_the_papers() -> None:
+    p = protocol_pressures(Protocol(), 3)
+    assert p.shape == (816, 3)
+    assert n_postures(load_scenario("paper")) == 816
+    # one chamber at a time first, then two chambers at every combination
+    assert np.count_nonzero(p[:48], axis=1).max() == 1
+    assert np.all(np.count_nonzero(p[48:], axis=1) == 2)
+    assert p.min() == 0.0 and p[p > 0].min() == 3.0 and p.max() == 18.0
+    assert len({tuple(r) for r in p}) == 816
+
+
+def test_paper_log_statistics(paper_sim) -> None:
+    log = paper_sim.log
+    assert (log.n_samples, log.n_sensors, log.n_zones) == (816, 3, 64)
+    valid = log.valid()
+    other_invalid = (log.status != 255) & ~valid
+    assert 0.6 < valid.mean() < 0.9, valid.mean()
+    # real VL53L5CX data: ~5-10 % of the returns carry a status other than 5/9
+    frac = other_invalid.sum() / (log.status != 255).sum()
+    assert 0.04 < frac < 0.12, frac
+    assert np.all(np.isnan(log.distance_mm[log.status == 255]))
+    assert np.all(np.isfinite(log.distance_mm[log.status != 255]))
+    # distances are integer millimetres, as the sensor reports them
+    d = log.distance_mm[np.isfinite(log.distance_mm)]
+    np.testing.assert_array_equal(d, np.round(d))
+    # 9 postures lost to marker occlusion: 807 with motion capture, as the paper kept
+    assert int(np.isfinite(log.T_base_tip[:, 0, 0]).sum()) == 807
+    # motion capture is within a millimetre of the true tip pose
+    ok = np.isfinite(log.T_base_tip[:, 0, 0])
+    err = np.linalg.norm(log.T_base_tip[ok, :3, 3] - paper_sim.T_base_tip_true[ok, :3, 3], axis=1)
+    assert err.max() < 1e-3 and 5e-5 < np.sqrt(np.mean(err**2)) < 5e-4
+    # the truth is the scenario's, not the centre
+    x, y, yaw = frames.xyyaw_from_se3(log.T_map_base)
+    assert (x, y) == pytest.approx((0.021, -0.013)) and math.degrees(yaw) == pytest.approx(6.5)
+
+
+def test_measured_distances_match_geometry(paper_sim) -> None:
+    """Valid zones' points lie near the true walls: median error ~ bias + noise, not more."""
+    log = paper_sim.log
+    valid = log.valid()
+    T_map_base = log.T_map_base
+    pts = log.rig.points_in_map(np.where(valid, log.distance_m, np.nan), paper_sim.T_base_tip_true, T_map_base)
+    p = pts[valid]
+    d = paper_sim.world.distance_to_surface(p)
+    assert np.median(d) < 0.02
+    assert np.mean(d > 0.1) < 0.05  # outliers (multipath, ghosts) are a minority
+
+
+def test_same_seed_same_bytes(tmp_path) -> None:
+    a = write_simulation(simulate("paper", 3), tmp_path / "a" / "paper.h5")
+    b = write_simulation(simulate("paper", 3), tmp_path / "b" / "paper.h5")
+    c = write_simulation(simulate("paper", 4), tmp_path / "c" / "paper.h5")
+    digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()
+    for key in ("log", "map", "cad"):
+        assert digest(a[key]) == digest(b[key]), key
+    assert digest(a["log"]) != digest(c["log"])
+    log = read_log(a["log"])
+    assert log.map == "paper.map.ply" and log.map_path() == a["map"]
+    assert Map.load(a["map"]).points.shape == (2000, 3)
+
+
+def _plane_world(d: float) -> Map:
+    v = np.array([[-5, -5, d], [5, -5, d], [5, 5, d], [-5, 5, d]], dtype=float)
+    return Map.from_mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+@pytest.mark.parametrize("convention", ["perpendicular", "radial"])
+def test_plane_through_zone_footprints(convention: str) -> None:
+    rig = Rig((Sensor("s", distance=convention),))
+    T = np.eye(4)[None, None]
+    r = cast_zones(_plane_world(0.4), rig, T, ToFPhysics(sub_rays=3))
+    if convention == "perpendicular":
+        np.testing.assert_allclose(r.distance[0, 0], 0.4, rtol=1e-6)  # Open3D casts in float32
+    else:
+        # the signal-weighted mean over the footprint: close to the zone centre's range
+        expected = 0.4 / rig.sensors[0].unit_directions[:, 2]
+        np.testing.assert_allclose(r.distance[0, 0], expected, rtol=5e-3)
+        assert r.distance[0, 0, 0] > r.distance[0, 0, 27]
+    assert np.all(r.hit_fraction == 1.0) and not r.corner.any()
+
+
+def test_target_in_top_left_of_scene_lands_in_zone_0() -> None:
+    rig = Rig((Sensor("s"),))
+    a = math.tan(math.radians(19.6875)) * 0.5
+    v = np.array([[-a - 0.02, -a - 0.02, 0.5], [-a + 0.02, -a - 0.02, 0.5], [-a + 0.02, -a + 0.02, 0.5], [-a - 0.02, -a + 0.02, 0.5]])
+    patch = Map.from_mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    r = cast_zones(patch, rig, np.eye(4)[None, None], ToFPhysics(sub_rays=3))
+    hit = np.flatnonzero(np.isfinite(r.distance[0, 0]))
+    assert hit.tolist() == [0]
+
+
+def test_noise_matches_the_datasheet_knobs() -> None:
+    rig = Rig((Sensor("s"),))
+    tof = ToFPhysics(sub_rays=1, bias_offset=0.0, bias_slope=0.0, multipath_probability=0.0, ghost_probability=0.0,
+                     invalid_base_rate=0.0, invalid_weak_rate=0.0, accuracy_percent=11.0, accuracy_sigmas=2.7, edge_zone_sigma_factor=1.0)
+    r = cast_zones(_plane_world(0.5), rig, np.repeat(np.eye(4)[None, None], 400, axis=0), tof)
+    d, status, sigma = measure(r, rig, tof, np.random.default_rng(0))
+    err = d / 1000.0 - 0.5
+    assert abs(err.std() - 0.11 * 0.5 / 2.7) < 0.002
+    assert abs(err.mean()) < 0.001
+    assert set(np.unique(status)) <= {5, 9}
+
+
+def test_scenario_file_errors_name_file_and_key(tmp_path) -> None:
+    bad = tmp_path / "s.toml"
+    bad.write_text("[tof]\naccuracy_percent = 500.0\n")
+    with pytest.raises(FormatError, match=r"s\.toml: \[tof\]\.accuracy_percent: expected a value in \[0.0, 100.0\]"):
+        load_scenario(bad)
+    bad.write_text("[robot]\nlenght = 0.1\n")
+    with pytest.raises(FormatError, match=r"\[robot\]\.lenght: expected one of the keys"):
+        load_scenario(bad)
+    bad.write_text("[environment]\nopen_faces = ['+w']\n")
+    with pytest.raises(FormatError, match="open_faces"):
+        load_scenario(bad)
+    with pytest.raises(FormatError, match="no-such.toml"):
+        load_scenario(tmp_path / "no-such.toml")
+
+
+def test_user_scenario_overrides(tmp_path) -> None:
+    f = tmp_path / "mine.toml"
+    f.write_text('[scenario]\nname = "mine"\n[protocol]\npressure_min = 10.0\npressure_max = 12.0\n[robot]\nmocap_dropouts = 0\n')
+    sim = simulate(load_scenario(f), 0)
+    assert sim.log.n_samples == 3 * 3 + 3 * 9
+    assert sim.log.source == "simulation:mine seed=0"
+
+
+def test_cad_rig_vs_true_mounting() -> None:
+    sc = load_scenario("paper")
+    cad = build_rig(sc.rig, ("a", "b", "c"))
+    true = build_rig(sc.rig, ("a", "b", "c"), np.random.default_rng(0))
+    # boresights 120 deg apart, tilted 30 deg down
+    b = cad.T_tip_sensor[:, :3, 2]
+    np.testing.assert_allclose(np.degrees(np.arcsin(-b[:, 2])), 30.0)
+    az = np.degrees(np.arctan2(b[:, 1], b[:, 0]))
+    np.testing.assert_allclose(np.sort(np.mod(az, 360)), [0, 120, 240], atol=1e-9)
+    yaw_err = np.degrees(np.arctan2(true.T_tip_sensor[:, 1, 2], true.T_tip_sensor[:, 0, 2]) - np.arctan2(b[:, 1], b[:, 0]))
+    assert np.all(np.abs(frames.wrap_angle(np.radians(yaw_err)) - math.radians(4.0)) < math.radians(4.0))
+
+
+def test_cli_simulate_then_info(tmp_path, capsys) -> None:
+    out = tmp_path / "x" / "paper.h5"
+    assert main(["simulate", "--scenario", "paper", "--seed", "1", "--out", str(out)]) == 0
+    assert out.exists() and (tmp_path / "x" / "paper.map.ply").exists()
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "816" in text and "truth T_map_base" in text and "chamber1 0.0..18.0 kPa" in text
+    assert main(["simulate", "--scenario", "nope", "--out", str(out)]) == 2
+    assert main(["info", str(tmp_path / "missing.h5")]) == 2
