@@ -83,6 +83,7 @@ __all__ = [
     "fingerprint_arrays",
     "Batch",
     "context_fingerprint",
+    "code_fingerprint",
     "run_batches",
 ]
 
@@ -110,15 +111,37 @@ class TrialError(TofLocError):
 # -- priors --------------------------------------------------------------------------------
 
 
-def base_pose_parts(T_map_base: ArrayLike) -> tuple[NDArray[np.float64], float, float, float]:
-    """Split a base pose ``(4, 4)`` into ``(x, y, yaw)``, ``z``, ``roll``, ``pitch``.
+def base_pose_parts(T_map_base: ArrayLike) -> tuple[Any, Any, Any, Any]:
+    """Split base poses ``(..., 4, 4)`` into ``(x, y, yaw)``, ``z``, ``roll``, ``pitch``.
 
-    Inverse of :func:`tofloc.frames.se3_from_xyyaw` (rotation ``Rz(yaw) Ry(pitch) Rx(roll)``).
+    The exact inverse of :func:`tofloc.frames.se3_from_xyyaw`: the parameters it would
+    need to rebuild ``T_map_base`` (so that the yaw an estimator estimates and the true
+    yaw are the same quantity even for a tilted base). For a single pose the last three
+    are floats; for a stack, arrays.
     """
     T = np.asarray(T_map_base, dtype=float)
-    yaw, pitch, roll = Rotation.from_matrix(T[:3, :3]).as_euler("ZYX")
-    xyyaw = np.array([T[0, 3], T[1, 3], frames.wrap_angle(yaw)])
-    return xyyaw, float(T[2, 3]), float(roll), float(pitch)
+    R = T[..., :3, :3].reshape(-1, 3, 3)
+    # se3_from_xyyaw composes Rz(yaw) with a fixed tilt; take the Euler order that rebuilds it
+    best = None
+    for seq, order in (("ZXY", (0, 1, 2)), ("ZYX", (0, 2, 1))):
+        ang = Rotation.from_matrix(R).as_euler(seq)
+        yaw, roll, pitch = ang[:, order[0]], ang[:, order[1]], ang[:, order[2]]
+        ok = all(
+            np.allclose(frames.se3_from_xyyaw(0.0, 0.0, yaw[i], 0.0, float(roll[i]), float(pitch[i]))[:3, :3], R[i], atol=1e-9)
+            for i in range(min(len(R), 3))
+        )
+        if ok or best is None:
+            best = (yaw, roll, pitch)
+        if ok:
+            break
+    assert best is not None
+    yaw, roll, pitch = best
+    lead = T.shape[:-2]
+    xyyaw = np.stack([T[..., 0, 3], T[..., 1, 3], frames.wrap_angle(yaw.reshape(lead))], axis=-1)
+    z, roll, pitch = T[..., 2, 3], roll.reshape(lead), pitch.reshape(lead)
+    if not lead:
+        return xyyaw, float(z), float(roll), float(pitch)
+    return xyyaw, z, roll, pitch
 
 
 @dataclass(frozen=True)
@@ -536,9 +559,9 @@ class TrialContext:
         if truth is None:
             return
         pool = self.pool.indices
-        xyyaw = frames.xyyaw_from_se3(truth)
+        xyyaw = base_pose_parts(truth)[0]
         p = xyyaw[pool]
-        ref = p[0]
+        ref = p[0] if p.size else np.zeros(3)
         dxy = float(np.max(np.hypot(p[:, 0] - ref[0], p[:, 1] - ref[1]))) if p.size else 0.0
         dyaw = float(np.max(np.abs(frames.wrap_angle(p[:, 2] - ref[2])))) if p.size else 0.0
         if dxy > STATIC_BASE_TOL_M or dyaw > STATIC_BASE_TOL_RAD:
@@ -554,14 +577,19 @@ class TrialContext:
         return self.log.T_map_base is not None
 
     def truth(self, indices: NDArray[np.intp]) -> NDArray[np.float64] | None:
-        """The true base pose ``(4, 4)`` for these samples: x, y and the circular-mean yaw
-        of their truths; z, roll and pitch of the first one. None without truth."""
+        """The true base pose ``(4, 4)`` for these samples, None without truth.
+
+        A fixed ``(4, 4)`` truth is returned as is; a per-sample truth (static within
+        tolerance) is averaged: x, y and the circular-mean yaw of the samples', with the
+        z, roll and pitch of the first one.
+        """
         if self._truth_xyyaw is None:
             return None
-        p = self._truth_xyyaw[indices]
         T = np.asarray(self.log.T_map_base, dtype=float)
-        first = T[indices[0]] if T.ndim == 3 else T
-        _, z, roll, pitch = base_pose_parts(first)
+        if T.ndim == 2:
+            return T.copy()
+        p = self._truth_xyyaw[indices]
+        _, z, roll, pitch = base_pose_parts(T[indices[0]])
         yaw = float(frames.circular_mean(p[:, 2]))
         return frames.se3_from_xyyaw(float(p[:, 0].mean()), float(p[:, 1].mean()), yaw, z, roll, pitch)
 
@@ -601,7 +629,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "runtime_s": float(result.runtime_s),
     }
     if truth_T is not None:
-        truth = frames.xyyaw_from_se3(truth_T)
+        truth = base_pose_parts(truth_T)[0]
         record["truth"] = jsonable(truth)
         record["e_x_m"] = json_float(position_error(truth, result.pose))
         record["e_gamma_deg"] = json_float(yaw_error_deg(truth, result.pose))
@@ -671,6 +699,7 @@ def run_tasks(
     scheduler: Any | None = None,
     on_result: Callable[[int, dict[str, Any]], None] | None = None,
     start_method: str = "spawn",
+    connect_timeout_s: float = 10.0,
 ) -> list[dict[str, Any]]:
     """Run trials and return their records in the order of ``tasks``.
 
@@ -689,6 +718,8 @@ def run_tasks(
         (in completion order), e.g. to advance a progress bar or save a batch.
     start_method : {"spawn", "forkserver"}
         How local workers start (never ``fork``: Open3D and threads do not survive it).
+    connect_timeout_s : float
+        How long to wait for the Dask scheduler named by an address.
 
     Returns
     -------
@@ -710,7 +741,7 @@ def run_tasks(
             on_result(i, rec)
 
     if scheduler is not None:
-        _run_dask(context, tasks, scheduler, done)
+        _run_dask(context, tasks, scheduler, done, connect_timeout_s)
     elif workers <= 1 or n <= 1:
         for i, task in enumerate(tasks):
             done(i, _guarded(context, task))
@@ -732,7 +763,9 @@ def run_tasks(
     return results  # type: ignore[return-value]
 
 
-def _run_dask(context: TrialContext, tasks: Sequence[TrialTask], scheduler: Any, done: Callable[[int, dict[str, Any]], None]) -> None:
+def _run_dask(
+    context: TrialContext, tasks: Sequence[TrialTask], scheduler: Any, done: Callable[[int, dict[str, Any]], None], timeout_s: float
+) -> None:
     try:
         from distributed import Client, as_completed
     except ImportError as e:  # pragma: no cover - dask[distributed] is a dependency
@@ -741,7 +774,7 @@ def _run_dask(context: TrialContext, tasks: Sequence[TrialTask], scheduler: Any,
     if own:
         addr = str(scheduler)
         try:
-            client = Client(addr, timeout=10, set_as_default=False)
+            client = Client(addr, timeout=timeout_s, set_as_default=False)
         except (OSError, TimeoutError) as e:
             raise ParameterError(f"cannot reach the Dask scheduler at {addr!r}: {e}") from None
     else:
@@ -751,7 +784,7 @@ def _run_dask(context: TrialContext, tasks: Sequence[TrialTask], scheduler: Any,
         futures = [client.submit(_run_with_context, t, ctx_future, pure=False) for t in tasks]
         index = {f.key: i for i, f in enumerate(futures)}
         try:
-            for fut in as_completed(futures):
+            for fut in as_completed(futures, loop=client.loop):
                 done(index[fut.key], fut.result())
         except BaseException:
             client.cancel(futures)
@@ -820,6 +853,38 @@ def context_fingerprint(context: TrialContext) -> str:
     )
 
 
+def code_fingerprint(*objects: Any) -> str:
+    """SHA-256 (16 hex digits) of the toolkit's Python sources and of the modules defining ``objects``.
+
+    Saved partial results carry it, so that editing an estimator, a sensor model or the
+    protocol invalidates them instead of silently mixing old and new numbers.
+    """
+    import importlib
+    import inspect
+    from pathlib import Path
+
+    files: set[Path] = set()
+    for pkg in ("tofloc", "estimators", "sensor_models", "evaluation"):
+        try:
+            mod = importlib.import_module(pkg)
+        except ImportError:  # pragma: no cover - all four ship together
+            continue
+        for base in getattr(mod, "__path__", []):
+            files.update(Path(base).rglob("*.py"))
+    for obj in objects:
+        try:
+            files.add(Path(inspect.getfile(obj)))
+        except (TypeError, OSError):
+            pass
+    h = hashlib.sha256()
+    for f in sorted(files):
+        try:
+            h.update(f.read_bytes())
+        except OSError:
+            continue
+    return h.hexdigest()[:16]
+
+
 def _partial_path(folder: Any, group: str) -> Any:
     from pathlib import Path
 
@@ -858,7 +923,8 @@ def run_batches(
         with a key identifying the data, the estimator, its parameters, the prior, the
         k values, the trial count and the seed; a rerun with the same key reuses the file
         instead of running the batch again, so an interrupted run loses only unfinished
-        batches.
+        batches. The key also covers the estimator's full parameters (defaults included)
+        and the toolkit's source code (:func:`code_fingerprint`).
     on_progress : callable, optional
         ``on_progress(done, total)`` over the trials that actually run.
     on_batch : callable, optional
@@ -875,8 +941,10 @@ def run_batches(
     out: dict[str, list[dict[str, Any]]] = {}
     todo: list[tuple[Batch, str]] = []
     for b in batches:
+        full_params = make_estimator(b.estimator_cls, b.params, b.estimator).get_params()  # defaults included
         key_fields = {
-            "data": data_key, "estimator": b.estimator, "params": jsonable(b.params), "tip_source": b.tip_source,
+            "data": data_key, "code": code_fingerprint(b.estimator_cls) if partial_dir is not None else "",
+            "estimator": b.estimator, "params": jsonable(full_params), "tip_source": b.tip_source,
             "prior": b.prior.to_json(), "k_values": [int(k) for k in k_values], "trials": int(trials), "seed": int(seed),
         }
         key = fingerprint_arrays(extra=key_fields)

@@ -10,11 +10,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
+
+from tofloc.atomic import atomic_path
 
 from evaluation.metrics import json_float, summarize
 
@@ -44,33 +45,11 @@ _TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
 # -- atomic writes -----------------------------------------------------------------------------
 
 
-def _read_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-#: read once at import (reading it means setting it, which is not thread-safe)
-_UMASK = _read_umask()
-
-
 def _atomic(path: str | Path, write: Any, mode: str) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, mode) as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are ordinary files
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path) as tmp, open(tmp, mode) as fh:
+        write(fh)
     return path
 
 

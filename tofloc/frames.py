@@ -76,7 +76,7 @@ def se3_from_xyyaw(
     x, y, yaw, z = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (x, y, yaw, z)))
     R = rot_z(yaw)
     if roll != 0.0 or pitch != 0.0:
-        R = R @ Rotation.from_euler("yx", [pitch, roll]).as_matrix()
+        R = R @ Rotation.from_euler("YX", [pitch, roll]).as_matrix()  # intrinsic: Ry(pitch) @ Rx(roll)
     return se3(R, np.stack([x, y, z], axis=-1))
 
 

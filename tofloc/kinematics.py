@@ -38,7 +38,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 from sklearn.neighbors import KNeighborsRegressor
 
 from tofloc import frames
+from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.logs import POSE_ATOL
 
@@ -633,20 +633,8 @@ class KinematicsModel:
             "validation_indices": np.asarray(self.validation_indices, dtype=np.int64),
             "log_fingerprint": np.asarray(self.log_fingerprint),
         }
-        folder = path.parent if str(path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            raise
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
         return path
 
     @classmethod

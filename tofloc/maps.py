@@ -35,19 +35,16 @@ import math
 import os
 import re
 import struct
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
+from typing import Any, Callable, Literal, Protocol, Sequence, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
-
-if TYPE_CHECKING:  # pragma: no cover
-    import open3d
 
 __all__ = [
     "CUBOID_FACES",
@@ -86,7 +83,10 @@ DEFAULT_SURFEL_SCALE = 1.5
 _SPACING_K = 8
 _NO_HIT = np.uint32(0xFFFFFFFF)
 
-Fail = Callable[[str, str, object], Exception]
+class Fail(Protocol):
+    """Builds the exception for a broken input: ``fail(where, expected, found=None)``."""
+
+    def __call__(self, where: str, expected: str, found: object = None) -> Exception: ...
 
 
 # --------------------------------------------------------------------------------------
@@ -310,6 +310,14 @@ def estimate_normals(
     return out
 
 
+@overload
+def voxel_down_sample_points(
+    points: ArrayLike, voxel: float, *, return_inverse: Literal[False] = ...
+) -> NDArray[np.float64]: ...
+@overload
+def voxel_down_sample_points(
+    points: ArrayLike, voxel: float, *, return_inverse: Literal[True]
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]: ...
 def voxel_down_sample_points(
     points: ArrayLike, voxel: float, *, return_inverse: bool = False
 ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -348,7 +356,9 @@ def voxel_down_sample_points(
         return (empty, np.empty(0, dtype=np.int64)) if return_inverse else empty
     scaled = np.floor(p / v)
     if np.abs(scaled).max() >= 2.0**52:
-        raise ParameterError(f"voxel_down_sample_points: voxel {v} is too small for coordinates up to {np.abs(p).max()}")
+        raise ParameterError(
+            f"voxel_down_sample_points: voxel {v} is too small for coordinates up to {np.abs(p).max()}"
+        )
     keys = scaled.astype(np.int64)
     keys -= keys.min(axis=0)
     dims = keys.max(axis=0) + 1
@@ -360,13 +370,13 @@ def voxel_down_sample_points(
     inverse = inverse.reshape(-1).astype(np.int64)
     m = int(inverse.max()) + 1
     count = np.bincount(inverse, minlength=m).astype(np.float64)
-    centroids = np.stack([np.bincount(inverse, weights=p[:, i], minlength=m) for i in range(3)], axis=1)
-    centroids /= count[:, None]
+    sums = np.stack([np.bincount(inverse, weights=p[:, i], minlength=m) for i in range(3)], axis=1)
+    centroids: NDArray[np.float64] = sums / count[:, None]
     return (centroids, inverse) if return_inverse else centroids
 
 
 def _cuboid_mesh(
-    size: Sequence[float], origin: Sequence[float], open_faces: Sequence[str]
+    size: ArrayLike, origin: ArrayLike, open_faces: Sequence[str]
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     lo = np.asarray(origin, dtype=np.float64)
     ext = np.asarray(size, dtype=np.float64)
@@ -664,17 +674,8 @@ class Map:
         else:
             data = _npy_bytes(self.points)
         p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, p)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_path(p) as tmp:
+            tmp.write_bytes(data)
         return p
 
     # ---- simple queries ----------------------------------------------------------------
@@ -837,7 +838,7 @@ class Map:
         if self.kind != "points":
             raise ParameterError(f"{self.source}: voxel_down_sample needs a point cloud (use sample_surface first)")
         assert self.normals is not None
-        pts, inv = voxel_down_sample_points(self.points, voxel, return_inverse=True)  # type: ignore[misc]
+        pts, inv = voxel_down_sample_points(self.points, voxel, return_inverse=True)
         m = pts.shape[0]
         acc = np.stack([np.bincount(inv, weights=self.normals[:, i], minlength=m) for i in range(3)], axis=1)
         norm = np.linalg.norm(acc, axis=1)
@@ -988,7 +989,9 @@ class Map:
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         if o.ndim == 0 or d.ndim == 0 or o.shape[-1] != 3 or d.shape[-1] != 3:
-            raise ParameterError(f"raycast: expected origins and directions of shape (..., 3), found {o.shape} and {d.shape}")
+            raise ParameterError(
+                f"raycast: expected origins and directions of shape (..., 3), found {o.shape} and {d.shape}"
+            )
         try:
             shape = np.broadcast_shapes(o.shape, d.shape)
         except ValueError:
@@ -1159,7 +1162,8 @@ class _PlyElement:
 def _split_header(data: bytes, end_marker: bytes, fail: Fail, what: str) -> tuple[str, int]:
     end = data.find(end_marker, 0, MAX_HEADER_BYTES)
     if end < 0:
-        raise fail("header", f"a {what} header ending with {end_marker.decode().strip()!r} within {MAX_HEADER_BYTES} bytes")
+        marker = end_marker.decode().strip()
+        raise fail("header", f"a {what} header ending with {marker!r} within {MAX_HEADER_BYTES} bytes")
     stop = end + len(end_marker)
     if data[stop : stop + 1] == b"\r":
         stop += 1
@@ -1497,10 +1501,10 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
     line_end = data.find(b"\n", head_end + 1)
     if line_end < 0:
         line_end = len(data)
-    header = _decode(data[: line_end], fail, "header").replace("\r", "")
+    header = _decode(data[:line_end], fail, "header").replace("\r", "")
     body_start = line_end + 1
     fields: dict[str, list[str]] = {}
-    for no, ln in enumerate(header.split("\n"), start=1):
+    for ln in header.split("\n"):
         s = ln.strip()
         if not s or s.startswith("#"):
             continue
@@ -1509,12 +1513,14 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
     for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
         if key not in fields:
             raise fail("header", f"a {key} line")
-    names = fields["FIELDS"]
+    # PCL names padding fields "_" (possibly several): make them distinct
+    names = [f"_pad{i}" if f == "_" else f for i, f in enumerate(fields["FIELDS"])]
     nf = len(names)
     sizes, types = fields["SIZE"], fields["TYPE"]
     counts = fields.get("COUNT", ["1"] * nf)
     if not (len(sizes) == len(types) == len(counts) == nf):
-        raise fail("header", "as many SIZE, TYPE and COUNT entries as FIELDS", f"{len(sizes)}, {len(types)}, {len(counts)} for {nf}")
+        found = f"{len(sizes)}, {len(types)}, {len(counts)} for {nf}"
+        raise fail("header", "as many SIZE, TYPE and COUNT entries as FIELDS", found)
     for c in ("x", "y", "z"):
         if c not in names:
             raise fail("header: FIELDS", "fields x, y and z", " ".join(names))
@@ -1527,14 +1533,18 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
             dt = np.dtype("<" + code)
             if (typ.upper() == "F" and size not in ("4", "8")) or size not in ("1", "2", "4", "8"):
                 raise KeyError
-            c = int(cnt)
-            if not 1 <= c <= 4096:
+            n_c = int(cnt)
+            if not 1 <= n_c <= 4096:
                 raise KeyError
-            dt_fields.append((name, dt) if c == 1 else (name, dt, (c,)))
+            dt_fields.append((name, dt) if n_c == 1 else (name, dt, (n_c,)))
     except (KeyError, ValueError, TypeError):
-        raise fail("header", "TYPE F/I/U with SIZE 1/2/4/8 (F: 4/8) and COUNT >= 1", f"{types} {sizes} {counts}") from None
+        expected = "TYPE F/I/U with SIZE 1/2/4/8 (F: 4/8) and COUNT >= 1"
+        raise fail("header", expected, f"{types} {sizes} {counts}") from None
     try:
-        n_points = int(fields["POINTS"][0]) if "POINTS" in fields else int(fields["WIDTH"][0]) * int(fields.get("HEIGHT", ["1"])[0])
+        if "POINTS" in fields:
+            n_points = int(fields["POINTS"][0])
+        else:
+            n_points = int(fields["WIDTH"][0]) * int(fields.get("HEIGHT", ["1"])[0])
     except (KeyError, IndexError, ValueError):
         raise fail("header", "a POINTS (or WIDTH and HEIGHT) count") from None
     if not 1 <= n_points <= MAX_POINTS:

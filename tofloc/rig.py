@@ -36,6 +36,7 @@ __all__ = [
     "Rig",
     "default_zone_directions",
     "valid_mask",
+    "edge_zone_mask",
 ]
 
 #: ``target_status`` values counted as valid by default (ST: 5 = valid, 9 = valid with a
@@ -62,6 +63,21 @@ def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float])
     a_col = (cols.ravel() - (C - 1) / 2.0) * f_cols / C
     a_row = (rows.ravel() - (R - 1) / 2.0) * f_rows / R
     return np.stack([np.tan(a_col), np.tan(a_row), np.ones(R * C)], axis=-1)
+
+
+def edge_zone_mask(rig: "Rig") -> NDArray[np.bool_]:
+    """``(S, Z)``: True for zones in the outer ring of their sensor's grid (explicit
+    ``zone_directions`` tables: the zones farthest off the boresight, top quartile)."""
+    out = []
+    for s in rig.sensors:
+        if s.zone_directions is not None:
+            off = np.arccos(np.clip(s.unit_directions[:, 2], -1, 1))
+            out.append(off >= np.quantile(off, 0.75))
+            continue
+        R, C = s.resolution
+        rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+        out.append(((rows == 0) | (rows == R - 1) | (cols == 0) | (cols == C - 1)).ravel())
+    return np.stack(out)
 
 
 def valid_mask(

@@ -17,7 +17,7 @@ import typer
 from rich.table import Table
 
 from tofloc.cli.app import app, console, err_console, make_progress
-from tofloc.errors import ParameterError
+from tofloc.errors import FormatError, ParameterError
 
 __all__ = ["localize", "parse_params", "parse_statuses", "resolve_workers", "load_estimator", "run_with_progress"]
 
@@ -157,6 +157,11 @@ def localize(
 
     # -- files ------------------------------------------------------------------------------------
     log = read_log(log_path)
+    if tip_source == "mocap" and log.T_base_tip is None:
+        raise FormatError(log_path, "/samples/T_base_tip", "motion-capture tip poses for --tip-source mocap "
+                          "(or use --tip-source knn --kinematics MODEL)", "no such dataset")
+    if tip_source == "knn" and log.pressure_kpa is None:
+        raise FormatError(log_path, "/samples/pressure_kpa", "actuator pressures for --tip-source knn", "no such dataset")
     if map_path is None:
         map_path = log.map_path()
         if map_path is None:

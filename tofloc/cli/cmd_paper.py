@@ -75,6 +75,8 @@ def prepare_data(out: Path, scenario: str, seed: int) -> PaperData:
             write_simulation(simulate(sc, seed), log_path)
         log = read_log(log_path)
         notes.append(f"simulated {log_path} (scenario {sc.scenario.name!r}, seed {seed})")
+    if log.T_map_base is None:
+        raise ParameterError(f"{log_path} has no /truth/T_map_base: the paper's protocol measures errors against the true pose")
     map_path = log.map_path()
     if map_path is None:
         raise ParameterError(f"{log_path}: the log names no map (root attribute `map`); put the map's file name there")

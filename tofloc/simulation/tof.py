@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc import frames
-from tofloc.rig import Rig, Sensor
+from tofloc.rig import Rig, Sensor, edge_zone_mask
 from tofloc.simulation.scenario import RigDesign, ToFPhysics
 
 __all__ = ["build_rig", "subray_directions", "ZoneReturns", "cast_zones", "measure"]
@@ -123,15 +123,6 @@ def cast_zones(world, rig: Rig, T_map_sensor: NDArray[np.float64], tof: ToFPhysi
     return ZoneReturns(dist, frac, mean_cos, corner & has_target)
 
 
-def _edge_zone_mask(rig: Rig) -> NDArray[np.bool_]:
-    out = []
-    for s in rig.sensors:
-        R, C = s.resolution
-        rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
-        out.append(((rows == 0) | (rows == R - 1) | (cols == 0) | (cols == C - 1)).ravel())
-    return np.stack(out)
-
-
 def noise_sigma(distance: NDArray[np.float64], tof: ToFPhysics, edge: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Range-noise standard deviation (m) of the model for true distances (..., S, Z)."""
     base = np.maximum(tof.sigma_floor, tof.accuracy_percent / 100.0 * distance / tof.accuracy_sigmas)
@@ -146,7 +137,7 @@ def measure(
     d = returns.distance
     shape = d.shape
     target = np.isfinite(d)
-    edge = np.broadcast_to(_edge_zone_mask(rig), shape)
+    edge = np.broadcast_to(edge_zone_mask(rig), shape)
     d0 = np.where(target, d, 0.0)
     sigma = noise_sigma(d0, tof, edge)
     meas = d0 + tof.bias_offset + tof.bias_slope * d0 + rng.normal(0.0, 1.0, shape) * sigma

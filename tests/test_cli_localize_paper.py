@@ -1,0 +1,247 @@
+"""`tofloc localize` and `tofloc paper` end to end on a small simulated log."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.metrics import position_error, yaw_error_deg
+from tofloc.cli import main
+
+FEW = ["--param", "n_particles=100", "--workers", "1"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The paper's scenario simulated once (as `tofloc paper` lays it out), and a k-NN model."""
+    from tofloc.kinematics import KinematicsModel
+    from tofloc.logs import read_log
+    from tofloc.simulation import simulate, write_simulation
+
+    folder = tmp_path_factory.mktemp("paper")
+    log_path = folder / "paper.h5"
+    write_simulation(simulate("paper", 0), log_path)
+    kin, _ = KinematicsModel.fit_log(read_log(log_path), np.random.default_rng(0))
+    knn = kin.save(tmp_path_factory.mktemp("knn") / "knn.npz")
+    return {"folder": folder, "log": log_path, "knn": knn}
+
+
+def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str, str]:
+    code = main(args)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+# -- localize --------------------------------------------------------------------------------------
+
+
+def test_localize_writes_the_issue_json(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out.json"
+    code, stdout, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "3", "--samples", "2",
+                                      "--json", str(out), "--seed", "4", *FEW])
+    assert code == 0, err
+    doc = json.loads(out.read_text())
+    for key, typ in (("log", str), ("map", str), ("estimator", str), ("params", dict), ("tip_source", str), ("samples", int),
+                     ("prior", dict), ("trials", list), ("summary", dict), ("seeds", dict)):
+        assert isinstance(doc[key], typ), key
+    assert doc["estimator"] == "icp_pf" and doc["tip_source"] == "mocap" and doc["samples"] == 2
+    assert doc["params"]["n_particles"] == 100
+    assert doc["map"].endswith("paper.map.ply")
+    assert doc["prior"] == {"mode": "offset", "sigma_xy_m": 0.2, "sigma_yaw_deg": 20.0}
+    assert len(doc["trials"]) == 3
+    for t in doc["trials"]:
+        assert {"seed", "sample_indices", "truth", "prior_mean", "estimate", "covariance", "e_x_m", "e_gamma_deg",
+                "runtime_s"} <= set(t)
+        assert isinstance(t["seed"], int) and len(t["sample_indices"]) == 2
+        assert all(isinstance(i, int) for i in t["sample_indices"])
+        assert len(t["truth"]) == len(t["prior_mean"]) == len(t["estimate"]) == 3
+        assert np.asarray(t["covariance"]).shape == (3, 3)
+        assert t["e_x_m"] == pytest.approx(float(position_error(t["truth"], t["estimate"])))
+        assert t["e_gamma_deg"] == pytest.approx(float(yaw_error_deg(t["truth"], t["estimate"])))
+        assert isinstance(t["runtime_s"], float) and t["runtime_s"] >= 0
+        # the simulated base: x 0.021, y -0.013 (scenario paper)
+        assert t["truth"][:2] == pytest.approx([0.021, -0.013])
+    assert doc["seeds"]["seed"] == 4 and doc["seeds"]["trial_seeds"] == [t["seed"] for t in doc["trials"]]
+    s = doc["summary"]
+    for key in ("e_x_m", "e_gamma_deg"):
+        assert set(s[key]) == {"mean", "std", "median", "rmse"}
+        assert s[key]["mean"] == pytest.approx(np.mean([t[key] for t in doc["trials"]]))
+    assert set(s["runtime_s"]) == {"median"}
+    assert isinstance(s["nees"]["mean"], float)
+    assert "e_x (m)" in stdout and "mean" in stdout
+    assert "samples: all" in err  # no kinematics model: the pool is every usable sample
+
+
+def test_localize_tip_sources_are_paired(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    docs = {}
+    for tip in ("mocap", "knn"):
+        out = tmp_path / f"{tip}.json"
+        code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "2", "--samples", "3",
+                                     "--tip-source", tip, "--kinematics", str(data["knn"]), "--prior-mode", "paper",
+                                     "--json", str(out), *FEW])
+        assert code == 0, err
+        assert "held-out validation split" in err
+        docs[tip] = json.loads(out.read_text())
+    a, b = docs["mocap"]["trials"], docs["knn"]["trials"]
+    assert [t["sample_indices"] for t in a] == [t["sample_indices"] for t in b]
+    assert [t["prior_mean"] for t in a] == [t["prior_mean"] for t in b]
+    assert docs["knn"]["pool"]["source"] == "validation"
+    for t in a:  # paper mode: the prior is centred on the truth
+        assert t["prior_mean"] == pytest.approx(t["truth"])
+
+
+def test_localize_without_truth_prints_the_estimate(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.logs import read_log, write_log
+
+    log = read_log(data["log"])
+    no_truth = tmp_path / "no_truth.h5"
+    shutil.copy(data["folder"] / "paper.map.ply", tmp_path / "paper.map.ply")
+    write_log(dataclasses.replace(log, T_map_base=None), no_truth)
+    out = tmp_path / "est.json"
+    code, stdout, err = _run(capsys, ["localize", str(no_truth), "--estimator", "icp_pf", "--samples", "2",
+                                      "--prior-x", "0.0", "--prior-y", "0.0", "--prior-yaw-deg", "5", "--base-z", "0.0",
+                                      "--json", str(out), *FEW])
+    assert code == 0, err
+    assert "estimates" in stdout and "e_x" not in stdout
+    doc = json.loads(out.read_text())
+    t = doc["trials"][0]
+    assert t["truth"] is None and t["e_x_m"] is None and t["e_gamma_deg"] is None
+    assert t["prior_mean"] == pytest.approx([0.0, 0.0, math.radians(5.0)])
+    assert doc["prior"]["mode"] == "given"
+    assert doc["summary"]["e_x_m"] is None and "median" in doc["summary"]["runtime_s"]
+    # no base height: a clear one-line refusal
+    code, _, err = _run(capsys, ["localize", str(no_truth), "--estimator", "icp_pf", "--prior-x", "0", "--prior-y", "0",
+                                 "--prior-yaw-deg", "0", *FEW])
+    assert code == 2 and "--base-z" in err and len(err.strip().splitlines()) == 1
+    code, _, err = _run(capsys, ["localize", str(no_truth), "--estimator", "icp_pf", *FEW])
+    assert code == 2 and "no /truth/T_map_base" in err and "--prior-x" in err
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--estimator", "nope"], "unknown estimator 'nope'"),
+        (["--estimator", "icp_pf", "--param", "bogus=1"], "bogus"),
+        (["--estimator", "icp_pf", "--param", "n_particles=0"], "n_particles"),
+        (["--estimator", "icp_pf", "--samples", "0"], "--samples"),
+        (["--estimator", "icp_pf", "--samples", "many"], "--samples"),
+        (["--estimator", "icp_pf", "--tip-source", "knn"], "--kinematics"),
+        (["--estimator", "icp_pf", "--tip-source", "gps"], "--tip-source"),
+        (["--estimator", "icp_pf", "--prior-mode", "wide"], "prior mode"),
+        (["--estimator", "icp_pf", "--prior-x", "0.1"], "--prior-y"),
+        (["--estimator", "icp_pf", "--samples", "5000"], "are usable"),
+        (["--estimator", "icp_pf", "--map", "/nonexistent/map.ply"], "/nonexistent/map.ply"),
+        (["--estimator", "icp_pf", "--kinematics", "/nonexistent/knn.npz"], "/nonexistent/knn.npz"),
+    ],
+)
+def test_localize_bad_input_exits_2_with_one_line(
+    data: dict[str, Path], capsys: pytest.CaptureFixture[str], args: list[str], needle: str
+) -> None:
+    code, _, err = _run(capsys, ["localize", str(data["log"]), *args, "--workers", "1"])
+    assert code == 2, err
+    assert needle in err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+def test_localize_missing_log_names_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "missing.h5"
+    code, _, err = _run(capsys, ["localize", str(missing), "--estimator", "icp_pf"])
+    assert code == 2 and str(missing) in err and len(err.strip().splitlines()) == 1
+
+
+# -- paper -----------------------------------------------------------------------------------------
+
+
+def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("paper.h5", "paper.map.ply", "paper.cad.ply"):  # reuse the fixture's simulation
+        shutil.copy(data["folder"] / name, out / name)
+    args = ["paper", "--trials", "2", "--k-max", "2", "--seed", "3", "--out", str(out), *FEW]
+    code, stdout, err = _run(capsys, args)
+    assert code == 0, err
+    assert "reused" in err and "paper.h5" in err and "fit " in err
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["paper"]["knn"] == {"e_x_m": [0.0300, 0.0076], "e_gamma_deg": [4.438, 0.181]}
+    assert doc["paper"]["mocap"] == {"e_x_m": [0.0305, 0.0076], "e_gamma_deg": [4.428, 0.182]}
+    assert doc["trials"] == 2 and doc["seed"] == 3
+    assert set(doc["results"]) == {"icp_pf"}
+    assert set(doc["results"]["icp_pf"]) == {"knn", "mocap"}
+    for tip in ("knn", "mocap"):
+        assert set(doc["results"]["icp_pf"][tip]) == {"paper", "offset"}
+        for mode in ("paper", "offset"):
+            g = doc["results"]["icp_pf"][tip][mode]
+            assert set(g["per_k"]) == {"1", "2"}
+            for entry in (*g["per_k"].values(), g["overall"]):
+                for key in ("e_x_m", "e_gamma_deg"):
+                    assert isinstance(entry[key]["mean"], float) and isinstance(entry[key]["std"], float)
+            assert g["per_k"]["1"]["n"] == 2 and g["overall"]["n"] == 4
+    # the overall mean is the mean of the partial file's trials
+    part = json.loads((out / "partial" / "icp_pf__knn__paper.json").read_text())
+    assert doc["results"]["icp_pf"]["knn"]["paper"]["overall"]["e_x_m"]["mean"] == pytest.approx(
+        np.mean([r["e_x_m"] for r in part["records"]]))
+    assert doc["pool"]["source"] == "validation"
+    table = (out / "table.md").read_text()
+    lines = table.splitlines()
+    paper_row = next(i for i, line in enumerate(lines) if "paper, Table I" in line)
+    ours = [i for i, line in enumerate(lines) if line.startswith("| icp_pf |")]
+    assert ours and min(ours) == paper_row + 1  # our rows right under the paper's
+    assert "0.0300 ± 0.0076" in lines[paper_row]
+    for png in ("errors_knn.png", "errors_mocap.png"):
+        blob = (out / png).read_bytes()
+        assert blob[:8] == b"\x89PNG\r\n\x1a\n" and len(blob) > 10_000
+    assert (out / "knn.npz").is_file()
+    assert "Table I" in stdout and "icp_pf" in stdout
+
+    # rerun with the same arguments: every batch comes from partial/, nothing is recomputed
+    mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "partial").iterdir()}
+    code, _, err = _run(capsys, args)
+    assert code == 0, err
+    assert err.count("reused icp_pf/") == 4 and "finished" not in err
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "partial").iterdir()} == mtimes
+    assert json.loads((out / "results.json").read_text())["results"] == doc["results"]
+
+
+def test_paper_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(capsys, ["paper", "--estimators", "nope", "--out", str(tmp_path / "x")])
+    assert code == 2 and "unknown estimator 'nope'" in err and len(err.strip().splitlines()) == 1
+    code, _, err = _run(capsys, ["paper", "--trials", "0", "--out", str(tmp_path / "x")])
+    assert code == 2 and "--trials" in err
+    assert not (tmp_path / "x").exists()  # nothing made before the arguments were checked
+
+
+def test_localize_on_a_dask_scheduler_matches_inline(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    distributed = pytest.importorskip("distributed")
+    common = ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "2", "--samples", "2", "--seed", "9",
+              "--param", "n_particles=100"]
+    code, _, err = _run(capsys, [*common, "--workers", "1", "--json", str(tmp_path / "inline.json")])
+    assert code == 0, err
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        code, _, err = _run(capsys, [*common, "--scheduler", cluster.scheduler_address, "--json", str(tmp_path / "dask.json")])
+    assert code == 0, err
+    strip = lambda doc: [{k: v for k, v in t.items() if k != "runtime_s"} for t in doc["trials"]]  # noqa: E731
+    inline = json.loads((tmp_path / "inline.json").read_text())
+    dask = json.loads((tmp_path / "dask.json").read_text())
+    assert strip(inline) == strip(dask)
+    assert inline["summary"]["e_x_m"] == dask["summary"]["e_x_m"]
+
+
+def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path], tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.logs import read_log, write_log
+
+    log = read_log(data["log"])
+    bare = tmp_path / "bare.h5"
+    shutil.copy(data["folder"] / "paper.map.ply", tmp_path / "paper.map.ply")
+    write_log(dataclasses.replace(log, T_base_tip=None, pressure_kpa=None), bare)
+    code, _, err = _run(capsys, ["localize", str(bare), "--estimator", "icp_pf", *FEW])
+    assert code == 2 and "/samples/T_base_tip" in err and str(bare) in err and len(err.strip().splitlines()) == 1
+    code, _, err = _run(capsys, ["localize", str(bare), "--estimator", "icp_pf", "--tip-source", "knn",
+                                 "--kinematics", str(data["knn"]), *FEW])
+    assert code == 2 and "/samples/pressure_kpa" in err and len(err.strip().splitlines()) == 1
