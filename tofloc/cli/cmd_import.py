@@ -17,7 +17,7 @@ app.add_typer(import_app, name="import")
 def eth_matrix(
     run_dir: Path = typer.Argument(..., help="A run folder of ETH's Matrix_ToF_Drones data (state_ToF.csv + state_Vicon.csv)."),
     out: Path = typer.Option(..., "--out", "-o", help="Log (.h5) to write."),
-    latency: float = typer.Option(0.1, "--latency", help="ToF stamp minus Vicon time of the measurement, seconds."),
+    latency: float = typer.Option(0.085, "--latency", help="ToF stamp minus Vicon time of the measurement, seconds (fitted on the dataset: docs/real-data.md)."),
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
 ) -> None:
     """Import one ETH Matrix_ToF_Drones run: the drone's Vicon pose as configuration, the panel kept under /import."""
@@ -35,4 +35,5 @@ def eth_matrix(
         f"wrote {out}: {n['frames']} frames ({n['frames_with_pose']} with a Vicon pose), "
         f"bodies {', '.join(n['bodies'])}, latency {latency:g} s",
         highlight=False,
+        soft_wrap=True,
     )

@@ -45,12 +45,12 @@ def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: floa
 
     samples, stats, header, warnings = recover(journal, rig, window_s=window, no_target_at_or_below_mm=no_target_mm)
     for w in warnings:
-        err_console.print(f"[yellow]warning:[/] {w}", highlight=False)
+        err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
     log = samples_to_log(samples, rig if rig is not None else _rig_from_header(header, journal), source=f"serial:{header['format']}")
     write_log(log, out)
-    console.print(f"wrote {out}: {stats.summary()}", highlight=False)
+    console.print(f"wrote {out}: {stats.summary()}", highlight=False, soft_wrap=True)
     if stats.first_rejections:
-        err_console.print(f"first rejected line: {stats.first_rejections[0]} (all lines are kept in {journal})", highlight=False)
+        err_console.print(f"first rejected line: {stats.first_rejections[0]} (all lines are kept in {journal})", highlight=False, soft_wrap=True)
     return log.n_samples
 
 
@@ -103,7 +103,7 @@ def record(
         journal.unlink()
 
     def notice(msg: str) -> None:
-        live.console.print(f"[yellow]{msg}[/]", highlight=False)
+        live.console.print(f"[yellow]{msg}[/]", highlight=False, soft_wrap=True)
 
     cap = SerialCapture(
         port,
@@ -122,19 +122,20 @@ def record(
     previous = signal.signal(signal.SIGTERM, lambda *_: cap.stop())
     interrupted = False
     t0 = time.monotonic()
-    live = Live(Text(f"waiting for data on {port} ({fmt}, {baud} baud)"), console=err_console, refresh_per_second=4, transient=False)
+    live = Live(Text(f"waiting for data on {port} ({fmt}, {baud} baud)"), console=err_console, refresh_per_second=4, transient=True)
+    stream = cap.samples()
     try:
         with live:
             last = 0.0
-            for _ in cap.samples():
+            for _ in stream:
                 now = time.monotonic()
                 if now - last > 0.25:
                     last = now
                     live.update(_progress(cap, port, now - t0))
-            live.update(_progress(cap, port, time.monotonic() - t0))
     except KeyboardInterrupt:
         interrupted = True
     except BaseException:
+        stream.close()
         if journal.exists() and cap.stats.lines == 0:
             journal.unlink()
         elif journal.exists():
@@ -142,14 +143,18 @@ def record(
                 f"the journal {journal} holds everything received; rebuild the log with "
                 f"'tofloc record --recover {journal} --out {out}'",
                 highlight=False,
+                soft_wrap=True,
             )
         raise
     finally:
+        stream.close()  # closes the journal now, before the log is rebuilt from it
         signal.signal(signal.SIGTERM, previous)
+        if cap.stats.lines:
+            err_console.print(_progress(cap, port, time.monotonic() - t0))
     if interrupted:
-        err_console.print("stopped (Ctrl-C); writing the log from the journal", highlight=False)
+        err_console.print("stopped (Ctrl-C); writing the log from the journal", highlight=False, soft_wrap=True)
     elif cap.ended_by == "disconnect":
-        err_console.print(f"{port} disconnected; writing the log from the journal", highlight=False)
+        err_console.print(f"{port} disconnected; writing the log from the journal", highlight=False, soft_wrap=True)
     n = _write(journal, out, rig, window, no_target_mm)
     return 0 if n else 1
 

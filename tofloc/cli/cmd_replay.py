@@ -26,7 +26,7 @@ def replay(
     wait: float = typer.Option(60.0, "--wait", help="Seconds to wait for a reader to open the device."),
 ) -> int:
     """Stream LOG as a device would (tofloc protocol by default) and print the device path."""
-    from tofloc.io.replay import PtyDevice, SerialDevice, replay as run_replay
+    from tofloc.io.replay import PtyDevice, ReaderGone, SerialDevice, replay as run_replay
     from tofloc.logs import read_log
 
     if pty == (port is not None):
@@ -48,10 +48,13 @@ def replay(
     def ready(path: str) -> None:
         shown = f"{path} (link {link})" if link else path
         console.print(shown, highlight=False, soft_wrap=True)
-        err_console.print(f"streaming {data.n_samples} samples of {log} as {fmt} at speed {speed:g} once a reader opens it", highlight=False)
+        err_console.print(f"streaming {data.n_samples} samples of {log} as {fmt} at speed {speed:g} once a reader opens it", highlight=False, soft_wrap=True)
 
     try:
         report = run_replay(data, fmt, device, speed=speed, sensor=idx, reader_timeout_s=wait, on_ready=ready, stop=stop)
+    except ReaderGone:
+        err_console.print("the reader closed the device; stopping", highlight=False, soft_wrap=True)
+        return 0
     except KeyboardInterrupt:
         err_console.print("stopped")
         return 130
@@ -59,5 +62,5 @@ def replay(
         signal.signal(signal.SIGTERM, previous)
         if isinstance(device, PtyDevice):
             device.remove_link()
-    err_console.print(f"sent {report.lines_sent} lines", highlight=False)
+    err_console.print(f"sent {report.lines_sent} lines", highlight=False, soft_wrap=True)
     return 0

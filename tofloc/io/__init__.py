@@ -15,6 +15,7 @@ module                 what it holds
 ``capture``            the pyserial reader loop (:class:`SerialCapture`)
 ``replay``             the virtual device (pty) with fault injection
 ``eth_matrix``         importer of ETH's Matrix_ToF_Drones flight data
+``eth_check``          the real-data check of the sensor model on those runs
 =====================  ===============================================================
 """
 

@@ -87,6 +87,9 @@ class SerialCapture:
         Called with a short message on a disconnect, reconnection or silence.
     clock : callable
         Host time in Unix seconds (injectable for tests).
+    opener : callable, optional
+        ``opener(port, baud) -> serial port`` (default :func:`open_port`); lets a caller
+        hand in an already-open ``loop://`` port, for instance.
 
     Notes
     -----
@@ -113,6 +116,7 @@ class SerialCapture:
         meta: dict[str, Any] | None = None,
         on_notice: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.time,
+        opener: Callable[[str, int], serial.SerialBase] | None = None,
     ) -> None:
         check_format(fmt)
         if not timeout_s > 0:
@@ -135,6 +139,7 @@ class SerialCapture:
         self.meta = {"port": port, "baud": self.baud, **(meta or {})}
         self.on_notice = on_notice or (lambda msg: None)
         self.clock = clock
+        self.opener = opener or open_port
         # built here so that a bad rig/format combination fails before the port is touched
         self.processor = StreamProcessor(fmt, rig, window_s=window_s, no_target_at_or_below_mm=no_target_at_or_below_mm)
         self._stop = threading.Event()
@@ -161,8 +166,12 @@ class SerialCapture:
         CaptureTimeout
             Nothing (decodable) arrived within ``timeout_s``.
         """
-        conn = _Conn(open_port(self.port_name, self.baud))
-        journal = JournalWriter(self.journal_path, fmt=self.fmt, rig=self.rig, meta=self.meta)
+        conn = _Conn(self.opener(self.port_name, self.baud))
+        try:
+            journal = JournalWriter(self.journal_path, fmt=self.fmt, rig=self.rig, meta=self.meta)
+        except BaseException:
+            conn.port.close()  # type: ignore[union-attr]
+            raise
         splitter = LineSplitter(self.max_line_bytes)
         proc = self.processor
         t0 = self.started_at = self.clock()
@@ -217,6 +226,9 @@ class SerialCapture:
         except KeyboardInterrupt:
             self.ended_by = "interrupted"
             journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
+            raise
+        except GeneratorExit:  # the caller stopped iterating (or was interrupted)
+            self.ended_by = self.ended_by or "closed by the caller"
             raise
         finally:
             tail = splitter.flush_partial()
@@ -276,8 +288,8 @@ class SerialCapture:
                 self.ended_by = "duration"
                 return
             try:
-                conn.port = serial.serial_for_url(self.port_name, baudrate=self.baud, timeout=0.05)
-            except (serial.SerialException, OSError, ValueError):
+                conn.port = self.opener(self.port_name, self.baud)
+            except (CaptureError, serial.SerialException, OSError, ValueError):
                 if self.clock() > give_up:
                     self.ended_by = "disconnect"
                     self.on_notice(f"{self.port_name} did not come back within {self.reconnect_timeout_s:g} s; stopping")

@@ -18,7 +18,7 @@ evidence behind every choice):
   floor shows in the bottom rows only with this order (``tests/test_real_eth.py``).
 * **time**: the ToF stamp (ms) is a ~15 Hz logging tick; a frame logged late shares its
   stamp with the next one, so runs of equal stamps are spread evenly back to the previous
-  stamp. Each frame is stamped ``latency_s`` (default 0.1 s, fitted on these runs) after
+  stamp. Each frame is stamped ``latency_s`` (default 0.085 s, fitted on these runs) after
   the Vicon time of its measurement; ``timestamp_s = stamp / 1000 - latency_s``.
 * **Vicon**: rows are stamped with the same ms clock but in bursts (several rows, even
   slightly out of order, per stamp); rows sharing a stamp are averaged (quaternions
@@ -37,7 +37,6 @@ sensor should report in front of the panel.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from tofloc import frames
+from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.logs import Log, write_log
 from tofloc.rig import RawOrder, Rig, Sensor
@@ -73,8 +73,8 @@ __all__ = [
 ETH_RAW_ORDER = RawOrder(flip_rows=False, flip_cols=False, transpose=False)
 #: Sensor pose in the Vicon ``Drone`` body: boresight +x, image right -y, image down -z.
 T_DRONE_SENSOR = frames.se3(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.zeros(3))
-#: ToF stamp minus Vicon time of the measurement (s), fitted on the 12 runs (docs/real-data.md).
-DEFAULT_LATENCY_S = 0.100
+#: ToF stamp minus Vicon time of the measurement (s), fitted on the Approach runs (docs/real-data.md).
+DEFAULT_LATENCY_S = 0.085
 VICON_HEADER = "name,timeStamp,posx,posy,posz,qw,qx,qy,qz"
 ZONES = 64
 MAX_FILE_BYTES = 512 * 2**20
@@ -267,7 +267,8 @@ def interpolate_track(track: ViconTrack, t_ms: ArrayLike, max_gap_s: float = MAX
         return T
     i1 = np.clip(np.searchsorted(tt, tq, side="right"), 1, tt.size - 1)
     i0 = i1 - 1
-    ok = (tq >= tt[0]) & (tq <= tt[-1]) & (tt[i1] - tt[i0] <= max_gap_s * 1000.0)
+    on_sample = (tq == tt[i0]) | (tq == tt[i1])
+    ok = (tq >= tt[0]) & (tq <= tt[-1]) & ((tt[i1] - tt[i0] <= max_gap_s * 1000.0) | on_sample)
     if not ok.any():
         return T
     a0, a1, q = i0[ok], i1[ok], tq[ok]
@@ -368,9 +369,8 @@ def import_run(
 def write_import(imp: EthImport, out: str | Path) -> Path:
     """Write the log (format v1) plus the ``/import`` extras, atomically."""
     dest = Path(out)
-    tmp = dest.with_name(f"{dest.name}.import-tmp-{os.getpid()}")
-    write_log(imp.log, tmp)
-    try:
+    with atomic_path(dest) as tmp:
+        write_log(imp.log, tmp)
         with h5py.File(tmp, "a") as f:
             g = f.create_group("import")
             g.attrs["importer"] = "eth-matrix"
@@ -381,12 +381,6 @@ def write_import(imp: EthImport, out: str | Path) -> Path:
                 g.create_dataset("T_map_panel", data=imp.T_map_panel.astype("<f8"), compression="gzip")
             if imp.T_map_panel_median is not None:
                 g.create_dataset("T_map_panel_median", data=imp.T_map_panel_median.astype("<f8"))
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, dest)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return dest
 
 

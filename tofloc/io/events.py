@@ -2,9 +2,10 @@
 
 Every decoder turns raw lines (bytes, without the line terminator) into a list of
 events: a :class:`Frame` (one sensor's zones), a :class:`Pressure` reading (one line of
-actuation), or a :class:`Rejected` line (malformed, kept for the statistics; the raw
-bytes are in the journal). Lines that are plain text (banners, ``rate: 15.0Hz``) are
-:class:`Rejected` with ``kind="text"`` so they are counted apart from real corruption.
+actuation), a :class:`Gap` (lines lost in transit), or a :class:`Rejected` line (kept for
+the statistics; the raw bytes are in the journal). Lines that are plain text (banners,
+``rate: 15.0Hz``) are :class:`Rejected` with ``kind="text"`` so they are counted apart
+from real corruption.
 """
 
 from __future__ import annotations
@@ -15,7 +16,10 @@ from typing import Literal, Union
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Frame", "Pressure", "Rejected", "Event", "Decoder", "Gap", "is_text"]
+__all__ = ["Frame", "Pressure", "Rejected", "Event", "Decoder", "Gap", "is_text", "UNFINISHED"]
+
+#: Reason given for a line cut short by a disconnect or by the end of the capture.
+UNFINISHED = "unfinished line (cut by a disconnect or the end of the capture)"
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,11 +69,16 @@ class Pressure:
 
 @dataclass(frozen=True)
 class Rejected:
-    """A line (or block of lines) that did not decode; ``kind`` is ``"malformed"`` or ``"text"``."""
+    """A line (or block of lines) that did not decode.
+
+    ``kind``: ``"malformed"`` (corrupt or not the format), ``"text"`` (a printable
+    message line) or ``"unfinished"`` (a line cut short by a disconnect or by the end of
+    the capture; it was never complete, so it is not counted as malformed).
+    """
 
     reason: str
     line_no: int = 0
-    kind: Literal["malformed", "text"] = "malformed"
+    kind: Literal["malformed", "text", "unfinished"] = "malformed"
 
 
 @dataclass(frozen=True)

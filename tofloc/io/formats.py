@@ -1,20 +1,18 @@
 """The wire formats by name: a decoder for the recorder, an encoder for the virtual device.
 
-=================  =========================================  ============================
-name               what the device prints                     carries
-=================  =========================================  ============================
-``tofloc``         our line protocol (docs/serial-protocol)   S sensors, statuses, sigmas,
-                                                              pressures, time, CRC
-``sparkfun-csv``   SparkFun Example 4: 64 values, one line    1 sensor, distances only
-``sparkfun-grid``  SparkFun Example 1: 8 tab-separated rows   1 sensor, distances only
-``st-uld``         ST ULD example: ``Zone : i, Status : ...`` 1 sensor, distances, statuses
-=================  =========================================  ============================
+* ``tofloc``: our line protocol (``docs/serial-protocol.md``): any number of sensors,
+  statuses, optional sigmas, pressures, device time, a checksum and a line counter.
+* ``sparkfun-csv``: SparkFun library Example 4, one line of 64 comma-separated distances
+  (one sensor, distances only).
+* ``sparkfun-grid``: SparkFun library Example 1, 8 tab-separated rows then an empty line
+  (one sensor, distances only).
+* ``st-uld``: ST's ULD example, blocks of ``Zone : i, Status : s, Distance : d mm`` lines
+  (one sensor, distances and statuses).
 """
 
 from __future__ import annotations
 
 from typing import Iterator
-
 
 from tofloc.errors import ParameterError
 from tofloc.io.events import Decoder
@@ -24,7 +22,7 @@ from tofloc.io.st_uld import StUldDecoder, encode_st_uld
 from tofloc.logs import Log
 from tofloc.rig import Rig
 
-__all__ = ["FORMATS", "FORMAT_HINTS", "make_decoder", "encode_log", "EncodedSample"]
+__all__ = ["FORMATS", "FORMAT_HINTS", "check_format", "make_decoder", "encode_log", "EncodedSample"]
 
 FORMATS: tuple[str, ...] = ("tofloc", "sparkfun-csv", "sparkfun-grid", "st-uld")
 
@@ -42,6 +40,7 @@ EncodedSample = tuple[float, list[bytes], list[int]]
 
 
 def check_format(fmt: str) -> str:
+    """``fmt`` if it names a format, else a ParameterError listing them."""
     if fmt not in FORMATS:
         raise ParameterError(f"unknown format {fmt!r}: expected one of {', '.join(FORMATS)}")
     return fmt
@@ -90,6 +89,14 @@ def encode_log(log: Log, fmt: str, *, sensor: int | None = None) -> Iterator[Enc
             sensor = 0
         if not 0 <= sensor < rig.n_sensors:
             raise ParameterError(f"sensor index {sensor} not in the log's rig (0..{rig.n_sensors - 1})")
+        R, C = rig.sensors[sensor].resolution
+        if R != C or rig.sensors[sensor].n_zones != R * C:
+            raise ParameterError(f"format {fmt} prints a square grid; sensor {rig.sensors[sensor].name} is {R}x{C}")
+    return _encode(log, fmt, sensor)
+
+
+def _encode(log: Log, fmt: str, sensor: int | None) -> Iterator[EncodedSample]:
+    rig = log.rig
     qs = [s.raw_order.scene_to_raw(s.resolution) for s in rig.sensors]
     seq = 0
     for k in range(log.n_samples):

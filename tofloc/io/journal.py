@@ -191,15 +191,15 @@ def read_journal(path: str | Path) -> tuple[dict[str, Any], Iterator[JournalReco
                 if not text:
                     return
                 n += 1
-                complete = text.endswith("\n")
-                if not complete and len(text) > MAX_RECORD_CHARS:
-                    raise FormatError(p, f"line {n}", f"a record of at most {MAX_RECORD_CHARS} characters")
+                if not text.endswith("\n"):
+                    if len(text) > MAX_RECORD_CHARS:
+                        raise FormatError(p, f"line {n}", f"a record of at most {MAX_RECORD_CHARS} characters")
+                    # the last record, cut by a crash while it was being written
+                    warnings.append(f"{p}: line {n}: unfinished last record skipped (the recorder stopped while writing it)")
+                    return
                 try:
-                    rec = _parse_record(text.rstrip("\n"))
+                    rec = _parse_record(text[:-1])
                 except ValueError as e:
-                    if not complete and not fh.readline(1):  # cut by a crash while writing
-                        warnings.append(f"{p}: line {n}: unfinished last record skipped (the recorder stopped while writing it)")
-                        return
                     raise FormatError(p, f"line {n}", "a record '<L|O|P|E> <unix time> <escaped bytes>'", str(e)) from None
                 yield rec
 

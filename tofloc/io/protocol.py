@@ -19,7 +19,6 @@ or the tail of a line whose newline was lost, cannot hide the next good line.
 from __future__ import annotations
 
 import binascii
-import math
 import re
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -28,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc.errors import ParameterError
-from tofloc.io.events import Decoder, Event, Frame, Gap, Pressure, Rejected, is_text
+from tofloc.io.events import UNFINISHED, Decoder, Event, Frame, Gap, Pressure, Rejected, is_text
 from tofloc.rig import Rig
 
 __all__ = [
@@ -64,13 +63,14 @@ def format_values(values: ArrayLike) -> bytes:
     """Space-separated values as the protocol writes them: ``-`` for NaN, else the
     shortest decimal that reads back to the same float32 (integers without a dot)."""
     a = np.asarray(values, dtype=np.float32).reshape(-1)
-    out = []
-    for x in a.tolist():  # formatting only (encoder side, not a decode hot path)
-        if math.isnan(x):
-            out.append("-")
-        else:
-            out.append(np.format_float_positional(np.float32(x), unique=True, trim="-"))
-    return " ".join(out).encode("ascii")
+    nan = np.isnan(a)
+    whole = np.where(nan, 0, a)
+    if np.all(whole == np.rint(whole)) and np.all(np.abs(whole) < 2**24):  # what firmware sends: integers
+        text = np.char.mod("%d", whole.astype(np.int64))
+    else:  # shortest round-tripping float32 decimals (simulated logs)
+        text = np.array([np.format_float_positional(x, unique=True, trim="-") for x in a], dtype=object)
+    text = np.where(nan, "-", text)
+    return " ".join(text.tolist()).encode("ascii")
 
 
 def _finish(body: bytes) -> bytes:
@@ -194,7 +194,7 @@ class TofLocDecoder(Decoder):
     # -- decoding -------------------------------------------------------------------------
     def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
         if partial:
-            return [Rejected("line cut short by a disconnect", line_no)]
+            return [Rejected(UNFINISHED, line_no, "unfinished")]
         start = line.rfind(b"$")
         if start < 0:
             if not line.strip():

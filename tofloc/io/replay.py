@@ -29,11 +29,15 @@ from tofloc.errors import ParameterError, TofLocError
 from tofloc.io.formats import check_format, encode_log
 from tofloc.logs import Log
 
-__all__ = ["Faults", "ReplayReport", "PtyDevice", "SerialDevice", "ReplayError", "replay"]
+__all__ = ["Faults", "ReplayReport", "PtyDevice", "SerialDevice", "ReplayError", "ReaderGone", "replay"]
 
 
 class ReplayError(TofLocError):
-    """The virtual device could not deliver (nobody opened it, the reader went away)."""
+    """The virtual device could not deliver (nobody opened it, the reader stalled)."""
+
+
+class ReaderGone(ReplayError):
+    """The reader closed the device before the end of the log."""
 
 
 @dataclass(frozen=True)
@@ -182,11 +186,11 @@ class PtyDevice:
                 pass
             except OSError as e:
                 if e.errno == errno.EIO:
-                    raise ReplayError(f"the reader of {self.path} went away") from None
+                    raise ReaderGone(f"the reader of {self.path} went away") from None
                 raise
             ev = self._poll(select.POLLOUT, 0.1)
             if ev & select.POLLHUP and not ev & select.POLLOUT:
-                raise ReplayError(f"the reader of {self.path} went away")
+                raise ReaderGone(f"the reader of {self.path} went away")
             if time.monotonic() > deadline:
                 raise ReplayError(f"the reader of {self.path} stopped reading for {self.write_timeout_s:g} s")
 
@@ -204,8 +208,10 @@ class PtyDevice:
     def drain(self, timeout_s: float) -> None:
         """Wait until the reader has read everything written (or the time-out)."""
         deadline = time.monotonic() + timeout_s
-        while self.pending() > 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        empty = 0
+        while empty < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)  # bytes in the tty layer's flip buffer are not counted yet
+            empty = empty + 1 if self.pending() == 0 else 0
 
     def close(self) -> None:
         if self._master is not None:
@@ -312,6 +318,7 @@ def replay(
         raise ParameterError("garbage injection needs an explicit numpy Generator (rng)")
     if faults.bad_crc_every and fmt != "tofloc":
         raise ParameterError("bad checksums can only be injected in the tofloc format (the others have none)")
+    stream = encode_log(log, fmt, sensor=sensor)  # checks the format/sensor before any device exists
     report = ReplayReport()
     device.open()
     report.devices.append(device.path)
@@ -324,7 +331,7 @@ def replay(
     t_first: float | None = None
     start = time.monotonic()
     try:
-        for k, (t, lines, who) in enumerate(encode_log(log, fmt, sensor=sensor)):
+        for k, (t, lines, who) in enumerate(stream):
             if stop is not None and stop.is_set():
                 break
             if t_first is None:

@@ -12,7 +12,8 @@ Rules (:class:`SampleAssembler`):
   without a counter belongs to the open sample (or, if none, to the next one).
 * A sample that closes with sensors missing is still emitted (nothing valid is thrown
   away): the missing sensors' zones are NaN with status 255, and it is counted as
-  incomplete. A second frame of the same sensor for the same counter is counted as a
+  incomplete. That includes a sample whose pressure line arrived but none of its
+  frames. A second frame of the same sensor for the same counter is counted as a
   duplicate and ignored (the first one wins).
 * The sample's time is the earliest device time stamp of its frames (the host's receive
   time for formats without one).
@@ -193,8 +194,7 @@ class SampleAssembler:
         o, self._open = self._open, None
         if o is None:
             return []
-        if not o.frames:  # a pressure reading with no frame at all
-            self.orphan_pressures += 1
+        if not o.frames and o.pressure is None:
             return []
         S, Z, C = self.rig.n_sensors, self.rig.n_zones, self.rig.n_actuators
         d = np.full((S, Z), np.nan, np.float32)
@@ -214,8 +214,13 @@ class SampleAssembler:
         present = tuple(i in o.frames for i in range(S))
         if not all(present):
             self.incomplete += 1
-        t_host = max(f.t_host_s for f in o.frames.values())
-        sample = Sample(self._count, float(o.t_first), t_host, d, st, sg, pressure, o.sample_id, present)
+        if o.frames:
+            t_first = o.t_first
+            t_host = max(f.t_host_s for f in o.frames.values())
+        else:  # only the pressure line arrived: kept (its frames were lost), as an incomplete sample
+            assert o.pressure is not None
+            t_first, t_host = self._t(o.pressure), o.pressure.t_host_s
+        sample = Sample(self._count, float(t_first), t_host, d, st, sg, pressure, o.sample_id, present)
         self._count += 1
         self._last_emitted_id = o.sample_id
         return [sample]

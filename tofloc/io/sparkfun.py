@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
-from tofloc.io.events import Decoder, Event, Frame, Rejected, is_text
+from tofloc.io.events import UNFINISHED, Decoder, Event, Frame, Rejected, is_text
 from tofloc.rig import Rig, Sensor
 
 __all__ = ["SparkFunCsvDecoder", "SparkFunGridDecoder", "encode_sparkfun_csv", "encode_sparkfun_grid", "STATUS_VALID", "STATUS_NO_TARGET"]
@@ -91,12 +91,13 @@ class SparkFunCsvDecoder(_SparkFunBase):
 
     def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
         if partial:
-            return [Rejected("line cut short by a disconnect", line_no)]
+            return [Rejected(UNFINISHED, line_no, "unfinished")]
         if not _CSV.match(line):
             if not line.strip():
                 return [Rejected("empty line", line_no, "text")]
             return [Rejected("not a comma-separated line of integers", line_no, "text" if is_text(line) else "malformed")]
-        vals = np.array([v for v in line.replace(b" ", b"").split(b",") if v], dtype="S8").astype(np.float64)
+        tok = np.array(line.replace(b" ", b"").split(b","), dtype="S8")
+        vals = tok[tok != b""].astype(np.float64)
         if vals.size != self._W * self._W:
             return [Rejected(f"expected {self._W * self._W} distances, found {vals.size}", line_no)]
         return [self._frame(vals, t_host_s, line_no)]
@@ -128,7 +129,7 @@ class SparkFunGridDecoder(_SparkFunBase):
     def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
         if partial:
             out = self._close(line_no, t_host_s, separator=False)
-            return out + [Rejected("line cut short by a disconnect", line_no)]
+            return out + [Rejected(UNFINISHED, line_no, "unfinished")]
         if not line.strip():
             return self._close(line_no, t_host_s, separator=True)
         if not self._rows and not self._bad:

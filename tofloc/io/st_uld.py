@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tofloc.errors import ParameterError
-from tofloc.io.events import Decoder, Event, Frame, Rejected, is_text
+from tofloc.io.events import UNFINISHED, Decoder, Event, Frame, Rejected, is_text
 from tofloc.rig import Rig, Sensor
 
 __all__ = ["StUldDecoder", "encode_st_uld"]
@@ -59,7 +59,7 @@ class StUldDecoder(Decoder):
 
     def _close(self, line_no: int, t_host_s: float, separator: bool) -> list[Event]:
         zones, bad, first = self._zones, self._bad, self._first_line
-        self._zones, self._bad = [], None
+        self._zones, self._bad, self._first_line = [], None, 0
         if not zones and bad is None:
             return []
         span = f"(lines {first}-{line_no})"
@@ -80,7 +80,7 @@ class StUldDecoder(Decoder):
 
     def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
         if partial:
-            return self._close(line_no, t_host_s, separator=False) + [Rejected("line cut short by a disconnect", line_no)]
+            return self._close(line_no, t_host_s, separator=False) + [Rejected(UNFINISHED, line_no, "unfinished")]
         if not line.strip():
             return self._close(line_no, t_host_s, separator=True)
         if _HEAD.match(line):
@@ -92,7 +92,7 @@ class StUldDecoder(Decoder):
             out = self._close(line_no, t_host_s, separator=False)
             kind = "text" if is_text(line) else "malformed"
             return out + [Rejected("not a 'Zone : i, Status : s, Distance : d mm' line", line_no, kind)]
-        if not self._zones and self._bad is None:
+        if not self._first_line:
             self._first_line = line_no
         if self._bad is None:
             i, s = int(m.group(1)), int(m.group(2))

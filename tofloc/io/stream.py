@@ -32,6 +32,8 @@ class CaptureStats:
         Lines (or blocks) that failed to decode: kept in the journal, never fatal.
     text : int
         Plain-text lines (banners, ``rate: ...``), ignored.
+    unfinished : int
+        Lines cut short by a disconnect or by the end of the capture.
     lost : int
         Lines the device sent that never decoded, from the tofloc sequence counter
         (includes the malformed ones that were protocol lines; 0 for other formats).
@@ -49,6 +51,7 @@ class CaptureStats:
     samples: int = 0
     malformed: int = 0
     text: int = 0
+    unfinished: int = 0
     lost: int = 0
     duplicates: int = 0
     incomplete: int = 0
@@ -62,6 +65,8 @@ class CaptureStats:
         if self.incomplete:
             s += f" ({self.incomplete} incomplete)"
         s += f", {self.malformed} malformed lines"
+        if self.unfinished:
+            s += f", {self.unfinished} unfinished"
         if self.lost:
             s += f", {self.lost} lines lost in transit"
         if self.duplicates:
@@ -100,7 +105,7 @@ class StreamProcessor:
         self.stats.lines += 1
         n = self.stats.lines
         if line.overflow:
-            # like a cut line (it ends any open block), but say why
+            # like an unfinished line (it ends any open block), but it is malformed
             events = self.decoder.feed(b"", t_host_s, n, partial=True)[:-1] + [Rejected("line longer than the length bound", n)]
         else:
             events = self.decoder.feed(line.data, t_host_s, n, partial=line.partial)
@@ -140,6 +145,8 @@ class StreamProcessor:
             elif isinstance(e, Rejected):
                 if e.kind == "text":
                     st.text += 1
+                elif e.kind == "unfinished":
+                    st.unfinished += 1
                 else:
                     st.malformed += 1
                     if len(st.first_rejections) < self.MAX_REASONS:

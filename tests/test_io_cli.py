@@ -1,0 +1,137 @@
+"""`tofloc replay --pty` + `tofloc record --port`, `record --recover`, Ctrl-C, `import eth-matrix`."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from tofloc.cli import main
+from tofloc.logs import Log, read_log, write_log
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+ETH = SHARED / "datasets" / "eth_matrix_tof_drones"
+
+
+def cli_process(*args: str) -> subprocess.Popen:
+    """``tofloc ARGS`` in a child process (stdout piped)."""
+    code = "import sys; from tofloc.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        if proc.poll() is not None:
+            raise AssertionError(f"the device process ended: {proc.stderr.read() if proc.stderr else ''}")
+        assert time.monotonic() < deadline, f"{path} did not appear"
+        time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """60 samples of the simulator's paper scenario (3 sensors, sigmas, pressures)."""
+    d = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "--out", str(d / "paper.h5"), "--seed", "3"]) == 0
+    small = read_log(d / "paper.h5").subset(slice(0, 60))
+    return write_log(small, d / "paper60.h5")
+
+
+def assert_same_frames(got: Log, want: Log) -> None:
+    assert got.n_samples == want.n_samples
+    np.testing.assert_array_equal(got.distance_mm, want.distance_mm)
+    np.testing.assert_array_equal(got.status, want.status)
+    for a, b in ((got.sigma_mm, want.sigma_mm), (got.pressure_kpa, want.pressure_kpa)):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(got.timestamp_s, want.timestamp_s, rtol=0, atol=1e-6)
+    assert got.rig.to_dict() == want.rig.to_dict()
+
+
+def test_replay_pty_then_record_round_trips_a_simulated_log(simulated: Path, tmp_path: Path) -> None:
+    link = tmp_path / "ttyTOF"
+    dev = cli_process("replay", str(simulated), "--pty", "--speed", "0", "--link", str(link), "--wait", "30")
+    try:
+        wait_for(link, dev)
+        out = tmp_path / "rec.h5"
+        code = main(["record", "--port", str(link), "--rig", str(simulated), "--out", str(out), "--timeout", "20"])
+        assert code == 0
+        stdout, stderr = dev.communicate(timeout=30)
+    finally:
+        dev.kill() if dev.poll() is None else None
+    assert dev.returncode == 0, stderr
+    assert stdout.splitlines()[0].startswith("/dev/pts/")  # the device path is printed first
+    got = read_log(out)
+    assert got.source == "serial:tofloc"
+    assert_same_frames(got, read_log(simulated))
+    journal = out.with_name(out.name + ".journal")
+    assert journal.exists()
+    # the journal alone rebuilds the same log
+    again = tmp_path / "again.h5"
+    assert main(["record", "--recover", str(journal), "--out", str(again)]) == 0
+    assert_same_frames(read_log(again), got)
+
+
+def test_ctrl_c_still_writes_the_log_from_the_journal(simulated: Path, tmp_path: Path) -> None:
+    sim = read_log(simulated)
+    # 15 Hz for 4 s: the recorder is interrupted in the middle
+    slow = Log.from_arrays(sim.rig, np.arange(60) / 15.0, sim.distance_mm, sim.status, sigma_mm=sim.sigma_mm, pressure_kpa=sim.pressure_kpa)
+    path = write_log(slow, tmp_path / "slow.h5")
+    link = tmp_path / "ttyTOF"
+    dev = cli_process("replay", str(path), "--pty", "--link", str(link))
+    out = tmp_path / "rec.h5"
+    try:
+        wait_for(link, dev)
+        rec = cli_process("record", "--port", str(link), "--rig", str(path), "--out", str(out))
+        time.sleep(2.0)
+        rec.send_signal(signal.SIGINT)
+        _, err = rec.communicate(timeout=20)
+    finally:
+        dev.kill()
+        dev.wait()
+    assert rec.returncode == 0, err
+    assert "Ctrl-C" in err
+    got = read_log(out)
+    assert 3 < got.n_samples < 60
+    assert_same_frames(got, slow.subset(slice(0, got.n_samples)))
+
+
+def test_record_refuses_bad_combinations(simulated: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "x.h5"
+    assert main(["record", "--out", str(out)]) == 2
+    assert "exactly one of --port" in capsys.readouterr().err
+    assert main(["record", "--port", "loop://", "--out", str(out)]) == 2
+    assert "--rig is required" in capsys.readouterr().err
+    assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(simulated)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(out), "--format", "st-uld"]) == 2
+    assert "carries one sensor" in capsys.readouterr().err
+    code = main(["record", "--port", "/dev/does-not-exist", "--rig", str(simulated), "--out", str(out)])
+    assert code == 2 and "cannot open serial port /dev/does-not-exist at 115200 baud" in capsys.readouterr().err
+    assert not out.with_name(out.name + ".journal").exists()
+
+
+@pytest.mark.skipif(not ETH.is_dir(), reason=f"ETH dataset not found at {ETH}")
+def test_import_eth_matrix_writes_a_valid_log_with_the_panel(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "r1.h5"
+    assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(out)]) == 0
+    assert "426 frames" in capsys.readouterr().out
+    log = read_log(out)
+    assert log.source == "import:eth-matrix" and log.n_samples == 426 and log.rig.n_sensors == 1
+    assert log.rig.sensors[0].raw_order.to_dict() == {"flip_rows": False, "flip_cols": False, "transpose": False}
+    np.testing.assert_array_equal(log.T_map_base, np.eye(4))
+    with h5py.File(out) as f:
+        panel = f["/import/T_map_panel"][()]
+        assert panel.shape == (426, 4, 4)
+        np.testing.assert_allclose(f["/import/T_map_panel_median"][:3, 3], [1.4142, 0.0556, 0.4491], atol=2e-3)
+        assert f["/import/tof_stamp_ms"][0] == 370927
+    assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(out)]) == 2  # exists
+    assert main(["import", "eth-matrix", str(tmp_path), "--out", str(tmp_path / "y.h5")]) == 2  # no CSVs
+    assert "state_ToF.csv" in capsys.readouterr().err

@@ -1,0 +1,107 @@
+"""``tofloc calibrate``: fit the sensor model (beam mixture, bias/sigma curves) from logs with ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.table import Table
+
+from tofloc.cli.app import app, console, err_console, status
+from tofloc.errors import ParameterError
+
+__all__ = ["calibrate"]
+
+
+@app.command()
+def calibrate(
+    logs: list[Path] = typer.Argument(..., metavar="LOG...", help="Logs (format v1) with /truth/T_map_base and /samples/T_base_tip."),
+    out: Path = typer.Option(..., "--out", help="Sensor-model TOML to write ([uncertainty], [beam], [calibration])."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Save a PNG of error vs distance per zone class here."),
+    map_paths: Optional[list[Path]] = typer.Option(
+        None, "--map", help="Map to ray cast: once for every log, or once per log in order. Default: the CAD mesh "
+        "<stem>.cad.ply beside a log's map when it exists, else the log's map."),
+    footprint: int = typer.Option(3, "--footprint", help="Sub-rays per side of a zone's footprint (1 = centre ray only)."),
+    valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid returns."),
+    max_iter: int = typer.Option(200, "--max-iter", help="EM iterations at most."),
+) -> None:
+    """Calibrate the per-zone range model and the beam mixture by EM (Probabilistic Robotics, Table 6.2)."""
+    from sensor_models.calibration import (
+        ZoneSamples,
+        collect_zones,
+        fit_em,
+        plot_calibration,
+        resolve_calibration_map,
+        write_model,
+    )
+    from tofloc.cli.cmd_localize import parse_statuses
+    from tofloc.logs import read_log
+    from tofloc.maps import Map
+
+    statuses = parse_statuses(valid_statuses)
+    maps = list(map_paths or [])
+    if maps and len(maps) not in (1, len(logs)):
+        raise ParameterError(f"--map must be given once (for every log) or once per log ({len(logs)}), got {len(maps)}")
+    if not 1 <= footprint <= 9:
+        raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
+    if not 1 <= max_iter <= 10_000:
+        raise ParameterError(f"--max-iter must be in [1, 10000], got {max_iter}")
+    if out.exists() and out.is_dir():
+        raise ParameterError(f"--out {out} is a folder")
+
+    parts: list[ZoneSamples] = []
+    used_maps: list[str] = []
+    loaded: dict[Path, Any] = {}
+    for i, lp in enumerate(logs):
+        log = read_log(lp)
+        mp = maps[i if len(maps) > 1 else 0] if maps else resolve_calibration_map(log)
+        if mp is None:
+            raise ParameterError(f"{lp}: the log names no map (root attribute `map`): give one with --map")
+        if mp not in loaded:
+            loaded[mp] = Map.load(mp)
+        m = loaded[mp]
+        with status(f"ray casting {lp.name} against {mp.name}"):
+            zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses)
+        err_console.print(
+            f"{lp}: {zs.counts['samples']} samples, {zs.n} zones with an expected distance (map {mp}, {m.kind}); "
+            f"{zs.counts['no_expected_hit']} zones see no map, {zs.counts['partial_footprint']} only partly",
+            highlight=False,
+        )
+        parts.append(zs)
+        used_maps.append(str(mp))
+    samples = ZoneSamples.concatenate(parts)
+    with status(f"EM on {samples.n} zones"):
+        result = fit_em(samples, max_iter=max_iter)
+    meta = {"logs": [str(p) for p in logs], "maps": used_maps, "footprint": footprint,
+            "valid_statuses": sorted(statuses)}
+    write_model(result, out, meta)
+    _print(result)
+    for note in result.notes:
+        err_console.print(f"note: {note}", highlight=False)
+    err_console.print(f"wrote {out}", highlight=False)
+    if plot is not None:
+        plot_calibration(result, plot)
+        err_console.print(f"wrote {plot}", highlight=False)
+
+
+def _print(result: Any) -> None:
+    u = result.uncertainty
+    t = Table(title=f"range model fitted on {result.samples.n} zones ({result.iterations} EM iterations"
+              f"{'' if result.converged else ', not converged'})")
+    for col in ("zones", "bias (mm)", "sigma (mm)", "σ@0.2m", "σ@0.5m", "σ@1m", "σ@2m"):
+        t.add_column(col, justify="right")
+    for name, a, b, f in (("inner", u.bias_offset, u.bias_slope, 1.0), ("edge", u.edge_bias_offset, u.edge_bias_slope, u.edge_factor)):
+        sig = [max(u.sigma_floor, u.sigma_slope * d) * f for d in (0.2, 0.5, 1.0, 2.0)]
+        t.add_row(name, f"{1000 * a:+.1f}{'+' if b >= 0 else '-'}{abs(1000 * b):.1f}d",
+                  f"max({1000 * u.sigma_floor:.1f}, {100 * u.sigma_slope:.2f}%d)" + (f"x{f:.2f}" if f != 1.0 else ""),
+                  *(f"{1000 * s:.1f}" for s in sig))
+    console.print(t)
+    b = result.beam
+    t2 = Table(title="beam mixture (Thrun's z_hit, z_short, z_max, z_rand)")
+    for col in ("z_hit", "z_short", "z_max", "z_rand", "lambda_short (1/m)"):
+        t2.add_column(col, justify="right")
+    t2.add_row(f"{b.z_hit:.4f}", f"{b.z_short:.4f}", f"{b.z_max:.4f}", f"{b.z_rand:.4f}", f"{b.lambda_short:.3f}")
+    console.print(t2)
+    console.print(f"datasheet (11 % at 2.7 sigma): sigma = {100 * 0.11 / 2.7:.2f} % d; fitted: {100 * u.sigma_slope:.2f} % d "
+                  f"(x {u.edge_factor:.2f} on edge zones)", highlight=False)

@@ -1,0 +1,224 @@
+"""The real-data check of the sensor model on ETH's Matrix_ToF_Drones runs.
+
+Predicts, from the Vicon poses alone (drone, panel, our stated mounting), what the
+VL53L5CX should report, and compares with what it reported:
+
+* :func:`panel_errors`: zones whose ray hits the panel inside a conservative region,
+  frames facing the panel at 0.3-1.5 m: measured minus predicted distance.
+* :func:`order_scores`: for each of the 8 possible raw orders (transpose x flips), the
+  share of zones predicted on the panel or on the floor whose valid reading agrees with
+  the prediction: the right order is the one that explains the data.
+* :func:`edge_tracking`: in the Rotate runs, the column where the panel shows (its
+  edge) against the column the yaw predicts: correlation and slopes.
+
+The numbers quoted in ``docs/real-data.md`` come from :func:`report`
+(``python -m tofloc.io.eth_check /path/to/eth_matrix_tof_drones``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc import frames
+from tofloc.io.eth_matrix import ETH_RAW_ORDER, EthImport, import_run, plane_distances
+from tofloc.rig import RawOrder
+
+__all__ = [
+    "PANEL_EXTENT",
+    "CONSERVATIVE_REGION",
+    "ALL_ORDERS",
+    "Geometry",
+    "geometry",
+    "panel_errors",
+    "order_scores",
+    "edge_tracking",
+    "latency_scan",
+    "report",
+    "RUNS",
+]
+
+RUNS = ("Approach/A0", "Approach/A1", "Approach/A2", "Approach/A3", "Approach/A4", "Approach/A6", "Approach/A7", "Approach/A8", "Approach/A9", "Rotate/R0", "Rotate/R1", "Rotate/R2")
+#: Panel extent in the ``Surface`` body frame (y lateral, z up, metres), estimated from the
+#: agreement map of docs/real-data.md: 0.65 m wide, from the floor (z = -0.45) up to the markers.
+PANEL_EXTENT = ((-0.35, 0.30), (-0.45, 0.0))
+#: The region used for error statistics: the extent shrunk by 0.10-0.15 m on every side
+#: (more than a zone's footprint at 1.5 m, 0.15 m, plus the pose errors).
+CONSERVATIVE_REGION = ((-0.2, 0.2), (-0.35, -0.1))
+#: Every way ST's raw 8x8 array can map to the scene (transpose, then flips).
+ALL_ORDERS = tuple(RawOrder(fr, fc, tr) for tr, fr, fc in itertools.product((False, True), repeat=3))
+FACING_DEG = 30.0
+RANGE_M = (0.3, 1.5)
+
+
+@dataclass(eq=False)
+class Geometry:
+    """Per frame and zone: predicted distances to the panel plane and the floor, and where
+    each ray meets the panel plane (panel coordinates)."""
+
+    ok: NDArray[np.bool_]  # (K,) pose known
+    panel_mm: NDArray[np.float64]  # (K, Z) reported distance predicted for an infinite panel plane
+    panel_yz: NDArray[np.float64]  # (K, Z, 2) hit in panel coordinates (y, z)
+    floor_mm: NDArray[np.float64]  # (K, Z) predicted distance to the floor z = 0 (NaN: no hit)
+    floor_in_front: NDArray[np.bool_]  # (K, Z) the floor hit is in front of the panel plane
+    facing: NDArray[np.bool_]  # (K,) boresight within FACING_DEG of the panel normal
+    yaw_deg: NDArray[np.float64]  # (K,) drone yaw relative to the panel normal
+    panel_col: NDArray[np.float64]  # (K,) continuous column where the panel centre appears
+
+
+def geometry(imp: EthImport) -> Geometry:
+    """Predictions for one imported run (needs the panel pose)."""
+    if imp.T_map_panel_median is None:
+        raise ValueError(f"run {imp.notes.get('run')} has no panel (Surface) pose")
+    log = imp.log
+    sensor = log.rig.sensors[0]
+    T_ms = frames.compose(log.T_base_tip, sensor.T_tip_sensor)  # base = map
+    ok = ~np.isnan(T_ms[:, 0, 0])
+    Tp = imp.T_map_panel_median
+    c, R = Tp[:3, 3], Tp[:3, :3]
+    n = R[:, 0]
+    d_panel, hit = plane_distances(T_ms, sensor, c, n)
+    yz = np.einsum("ij,kzi->kzj", R[:, 1:], hit - c)
+    d_floor, fhit = plane_distances(T_ms, sensor, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    in_front = np.einsum("kzi,i->kz", fhit - c, n) < -0.1
+    bore = T_ms[:, :3, 2]
+    facing = bore @ n > np.cos(np.radians(FACING_DEG))
+    yaw = np.degrees(np.arctan2(bore @ R[:, 1], bore @ n))
+    centre = c + R @ np.array([0.0, 0.0, np.mean(PANEL_EXTENT[1])])
+    q = frames.transform_points(frames.invert(T_ms), centre[None, None, :])[:, 0]
+    col = np.degrees(np.arctan2(q[:, 0], q[:, 2])) / (sensor.fov_deg[1] / sensor.resolution[1]) + (sensor.resolution[1] - 1) / 2
+    return Geometry(ok, d_panel * 1000, yz, d_floor * 1000, in_front, facing, yaw, col)
+
+
+def _in(yz: NDArray[np.float64], region: tuple[tuple[float, float], tuple[float, float]]) -> NDArray[np.bool_]:
+    (y0, y1), (z0, z1) = region
+    return (yz[..., 0] >= y0) & (yz[..., 0] <= y1) & (yz[..., 1] >= z0) & (yz[..., 1] <= z1)
+
+
+def _reorder(imp: EthImport, order: RawOrder) -> tuple[NDArray[np.float64], NDArray[np.uint8]]:
+    """The run's distances and statuses as if the raw array were mapped with ``order``."""
+    src = imp.log.rig.sensors[0].raw_order
+    raw = src.scene_to_raw((8, 8))
+    p = raw[order.raw_to_scene((8, 8))]
+    return imp.log.distance_mm[:, 0][:, p].astype(np.float64), imp.log.status[:, 0][:, p]
+
+
+def panel_errors(imp: EthImport, geo: Geometry, region=CONSERVATIVE_REGION, order: RawOrder | None = None) -> dict[str, NDArray[Any]]:
+    """Measured minus predicted (mm) for valid zones predicted on the panel region, in
+    frames facing it at ``RANGE_M``; also how many such zones there were."""
+    d, st = _reorder(imp, order) if order is not None else (imp.log.distance_mm[:, 0].astype(np.float64), imp.log.status[:, 0])
+    sel = _in(geo.panel_yz, region) & (geo.panel_mm >= RANGE_M[0] * 1000) & (geo.panel_mm <= RANGE_M[1] * 1000)
+    sel &= (geo.ok & geo.facing)[:, None]
+    valid = sel & np.isin(st, (5, 9)) & np.isfinite(d)
+    return {"error_mm": (d - geo.panel_mm)[valid], "predicted_mm": geo.panel_mm[valid], "zones": np.array(sel.sum()), "valid": np.array(valid.sum())}
+
+
+def order_scores(runs: Sequence[tuple[EthImport, Geometry]], orders: Sequence[RawOrder] = ALL_ORDERS) -> list[dict[str, float]]:
+    """For each order: share of zones predicted on the panel (conservative region, facing,
+    0.3-1.5 m) or on the floor (in front of the panel, within 2.5 m) whose valid reading
+    agrees with the prediction within 10 % + 30 mm."""
+    out = []
+    for order in orders:
+        agree_p = tot_p = agree_f = tot_f = 0
+        for imp, geo in runs:
+            d, st = _reorder(imp, order)
+            valid = np.isin(st, (5, 9)) & np.isfinite(d)
+            on_panel = _in(geo.panel_yz, CONSERVATIVE_REGION) & (geo.panel_mm >= 300) & (geo.panel_mm <= 1500) & (geo.ok & geo.facing)[:, None]
+            on_floor = geo.floor_in_front & (geo.floor_mm <= 2500) & geo.ok[:, None] & ~on_panel
+            tol_p = 0.1 * geo.panel_mm + 30
+            tol_f = 0.1 * np.nan_to_num(geo.floor_mm) + 30
+            agree_p += int(np.sum(on_panel & valid & (np.abs(d - geo.panel_mm) <= tol_p)))
+            tot_p += int(on_panel.sum())
+            agree_f += int(np.sum(on_floor & valid & (np.abs(d - np.nan_to_num(geo.floor_mm)) <= tol_f)))
+            tot_f += int(on_floor.sum())
+        out.append({"order": order.to_dict(), "panel": agree_p / max(tot_p, 1), "floor": agree_f / max(tot_f, 1)})
+    return out
+
+
+def edge_tracking(imp: EthImport, geo: Geometry, order: RawOrder | None = None) -> dict[str, float]:
+    """Rotate runs: per frame with a vertical panel edge in view (middle rows 2-5), the mean
+    column of the zones that see something at the panel's distance against the mean
+    column of the zones predicted on the panel; their correlation and slopes vs yaw."""
+    d, st = _reorder(imp, order) if order is not None else (imp.log.distance_mm[:, 0].astype(np.float64), imp.log.status[:, 0])
+    rows = slice(2, 6)
+    P = (_in(geo.panel_yz, PANEL_EXTENT) & np.isfinite(geo.panel_mm)).reshape(-1, 8, 8)[:, rows]
+    M = (np.isin(st, (5, 9)) & (d < np.nan_to_num(geo.panel_mm, nan=0.0) + 300)).reshape(-1, 8, 8)[:, rows]
+    cols = np.arange(8)
+    pn, mn = P.sum((1, 2)), M.sum((1, 2))
+    sel = geo.ok & (pn >= 4) & (pn <= 28) & (mn >= 2)
+    pc = (P * cols).sum((1, 2)) / np.maximum(pn, 1)
+    mc = (M * cols).sum((1, 2)) / np.maximum(mn, 1)
+    yaw = geo.yaw_deg
+    return {
+        "frames": float(sel.sum()),
+        "r": float(np.corrcoef(pc[sel], mc[sel])[0, 1]),
+        "slope_predicted_col_per_deg": float(np.polyfit(yaw[sel], pc[sel], 1)[0]),
+        "slope_measured_col_per_deg": float(np.polyfit(yaw[sel], mc[sel], 1)[0]),
+        "yaw_span_deg": float(np.ptp(yaw[sel])),
+    }
+
+
+def latency_scan(run_dirs: Sequence[Path], latencies_s: Sequence[float]) -> list[tuple[float, float]]:
+    """Median absolute panel error (mm) over ``run_dirs`` for each assumed latency."""
+    out = []
+    for lat in latencies_s:
+        errs = []
+        for rd in run_dirs:
+            imp = import_run(rd, latency_s=lat)
+            errs.append(panel_errors(imp, geometry(imp))["error_mm"])
+        out.append((float(lat), float(np.median(np.abs(np.concatenate(errs))))))
+    return out
+
+
+def _stats(e: NDArray[np.float64], pred: NDArray[np.float64]) -> dict[str, float]:
+    a = np.abs(e)
+    return {
+        "n": int(e.size),
+        "median_abs_mm": float(np.median(a)),
+        "p90_abs_mm": float(np.percentile(a, 90)),
+        "bias_mm": float(np.median(e)),
+        "p90_rel": float(np.percentile(a / pred, 90)),
+    }
+
+
+def report(dataset: str | Path) -> dict[str, Any]:
+    """Every figure of docs/real-data.md, from the dataset folder."""
+    root = Path(dataset)
+    runs = {name: import_run(root / name) for name in RUNS}
+    geos = {name: geometry(imp) for name, imp in runs.items()}
+    per_run, all_e, all_p = {}, [], []
+    zones = valid = 0
+    for name in RUNS:
+        r = panel_errors(runs[name], geos[name])
+        per_run[name] = _stats(r["error_mm"], r["predicted_mm"]) | {"valid_share": float(r["valid"] / max(int(r["zones"]), 1))}
+        all_e.append(r["error_mm"])
+        all_p.append(r["predicted_mm"])
+        zones += int(r["zones"])
+        valid += int(r["valid"])
+    e, p = np.concatenate(all_e), np.concatenate(all_p)
+    bins = [(300, 600), (600, 900), (900, 1200), (1200, 1500)]
+    by_range = {f"{a}-{b}": _stats(e[(p >= a) & (p < b)], p[(p >= a) & (p < b)]) for a, b in bins}
+    default = [np.concatenate([panel_errors(runs[n], geos[n], order=RawOrder())["error_mm"] for n in RUNS])]
+    pairs = [(runs[n], geos[n]) for n in RUNS]
+    return {
+        "all": _stats(e, p) | {"zones": zones, "valid_share": valid / max(zones, 1)},
+        "by_range": by_range,
+        "per_run": per_run,
+        "default_order_all": {"median_abs_mm": float(np.median(np.abs(default[0]))), "p90_abs_mm": float(np.percentile(np.abs(default[0]), 90))},
+        "orders": order_scores(pairs),
+        "edges": {n: edge_tracking(runs[n], geos[n]) for n in RUNS if n.startswith("Rotate")},
+        "edges_default_order": {n: edge_tracking(runs[n], geos[n], RawOrder()) for n in RUNS if n.startswith("Rotate")},
+        "latency_approach": latency_scan([root / n for n in RUNS if n.startswith("Approach")], [0.0, 0.04, 0.07, 0.085, 0.1, 0.13, 0.2]),
+        "chosen_order": ETH_RAW_ORDER.to_dict(),
+    }
+
+
+if __name__ == "__main__":  # pragma: no cover - documentation helper
+    print(json.dumps(report(sys.argv[1]), indent=1))
