@@ -100,7 +100,8 @@ class RawOrder:
     the image, so for a sensor mounted upright (datasheet orientation) the raw grid is
     the scene mirrored both ways: ``flip_rows = flip_cols = True`` (the default).
     A sensor mounted rotated or read by firmware that already reorders differs; the
-    rig file states it. ``transpose`` is applied first, then the flips.
+    rig file states it. Check it on real data: on ETH's Matrix_ToF_Drones deck the raw
+    order is already the scene order (no flip); see docs/real-data.md. ``transpose`` is applied first, then the flips.
     """
 
     flip_rows: bool = True
