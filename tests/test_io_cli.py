@@ -90,7 +90,13 @@ def test_ctrl_c_still_writes_the_log_from_the_journal(simulated: Path, tmp_path:
     try:
         wait_for(link, dev)
         rec = cli_process("record", "--port", str(link), "--rig", str(path), "--out", str(out))
-        time.sleep(2.0)
+        # interrupt only once the recorder runs (its journal exists): under load, start-up
+        # (importing Open3D) alone can take seconds, and a signal then is not the case tested
+        journal = out.with_name(out.name + ".journal")
+        deadline = time.monotonic() + 60
+        while not journal.exists() and rec.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.5)
         rec.send_signal(signal.SIGINT)
         _, err = rec.communicate(timeout=20)
     finally:
