@@ -25,6 +25,8 @@ def calibrate(
     footprint: int = typer.Option(3, "--footprint", help="Sub-rays per side of a zone's footprint (1 = centre ray only)."),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid returns."),
     max_iter: int = typer.Option(200, "--max-iter", help="EM iterations at most."),
+    min_distance: float = typer.Option(0.0, "--min-distance", help="Use only zones expected at least this far (m)."),
+    max_distance: float = typer.Option(100.0, "--max-distance", help="Use only zones expected at most this far (m)."),
 ) -> None:
     """Calibrate the per-zone range model and the beam mixture by EM (Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration import (
@@ -47,6 +49,8 @@ def calibrate(
         raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
     if not 1 <= max_iter <= 10_000:
         raise ParameterError(f"--max-iter must be in [1, 10000], got {max_iter}")
+    if not 0.0 <= min_distance < max_distance:
+        raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
     if out.exists() and out.is_dir():
         raise ParameterError(f"--out {out} is a folder")
 
@@ -71,10 +75,14 @@ def calibrate(
         parts.append(zs)
         used_maps.append(str(mp))
     samples = ZoneSamples.concatenate(parts)
+    if min_distance > 0.0 or max_distance < 100.0:
+        samples = samples.subset((samples.expected_m >= min_distance) & (samples.expected_m <= max_distance))
+        err_console.print(f"{samples.n} zones expected within [{min_distance:g}, {max_distance:g}] m "
+                          f"({samples.counts['out_of_range']} left out)", highlight=False)
     with status(f"EM on {samples.n} zones"):
         result = fit_em(samples, max_iter=max_iter)
     meta = {"logs": [str(p) for p in logs], "maps": used_maps, "footprint": footprint,
-            "valid_statuses": sorted(statuses)}
+            "valid_statuses": sorted(statuses), "distance_range_m": [min_distance, max_distance]}
     write_model(result, out, meta)
     _print(result)
     for note in result.notes:

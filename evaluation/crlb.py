@@ -1,0 +1,276 @@
+"""Cramér-Rao lower bound of the planar base pose (x, y, yaw) from ToF zone distances.
+
+With independent Gaussian zone errors of standard deviation ``sigma_i`` (the shared
+:class:`~sensor_models.uncertainty.RangeUncertainty` at the expected distance), the
+Fisher information of the pose ``p = (x, y, yaw)`` is (Censi, ICRA 2007)::
+
+    I(p) = sum_i J_i^T J_i / sigma_i^2,     J_i = d r_i / d p  (1 x 3)
+
+over the valid zones ``i`` of every sample, where ``r_i`` is the distance zone ``i``
+would report from pose ``p``. The bound on any unbiased estimator's covariance is
+``I^-1``; we report ``sqrt(trace of its xy block)`` (m) and ``sqrt`` of its yaw entry (deg).
+
+Jacobian (analytic, the default): a zone's ray (origin ``o``, unit direction ``u``)
+hits the map at ``h = o + t u`` on a surface of normal ``n``. Moving the base by
+``(dx, dy)`` and turning it by ``dyaw`` about the map's z axis through the base origin
+``c`` moves every point ``q`` by ``v + dyaw e_z x (q - c)``; the hit length changes by::
+
+    dt = -n . (v + dyaw e_z x (h - c)) / (n . u)
+
+(Censi's ``n / cos(beta)`` and ``r tan(beta)`` terms in 3-D), and the reported distance
+by ``dt`` divided by the zone's range factor (perpendicular convention). ``method=
+"numeric"`` instead differentiates the ray cast itself by central differences (slower,
+and noisy where a perturbed ray crosses an edge; used to check the analytic form).
+
+The bound treats zones as independent and the configurations ``T_base_tip`` as exact,
+and it ignores a zone's footprint: it is optimistic. Directions the measurements do
+not constrain (e.g. sliding along a single wall) make ``I`` singular: the bound of any
+parameter with a component in its null space is infinite (``inf``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sensor_models.uncertainty import RangeUncertainty
+from tofloc import frames
+from tofloc.errors import ParameterError
+from tofloc.rig import Rig
+
+__all__ = ["CRLB", "expected_distances", "zone_jacobians", "fisher_information", "crlb_from_information", "crlb",
+           "crlb_for_problem"]
+
+#: Relative eigenvalue (of the scale-normalized information) below which a direction is unobservable.
+SINGULAR_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class CRLB:
+    """A Cramér-Rao bound.
+
+    Attributes
+    ----------
+    position_m : float
+        ``sqrt(C_xx + C_yy)`` (inf when x or y is unobservable).
+    yaw_deg : float
+        ``sqrt(C_yawyaw)`` in degrees (inf when unobservable).
+    information : ndarray (3, 3)
+        Fisher information of (x, y, yaw) in SI units (1/m^2, 1/(m rad), 1/rad^2).
+    covariance : ndarray (3, 3)
+        Its (pseudo-)inverse; rows/columns of unobservable parameters are inf.
+    n_zones : int
+        Zones that contributed.
+    """
+
+    position_m: float
+    yaw_deg: float
+    information: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    n_zones: int
+
+    def to_json(self) -> dict[str, float | None]:
+        """``{"position_m", "yaw_deg"}``; an infinite (unobservable) bound is ``None`` (JSON has no inf)."""
+        return {
+            "position_m": self.position_m if math.isfinite(self.position_m) else None,
+            "yaw_deg": self.yaw_deg if math.isfinite(self.yaw_deg) else None,
+        }
+
+
+def _sensor_rays(T_map_base: NDArray[np.float64], T_base_tip: NDArray[np.float64], rig: Rig
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Origins ``(K, S, Z, 3)`` and unit directions ``(K, S, Z, 3)`` of every zone in the map."""
+    T_map_sensor = T_map_base[:, None] @ T_base_tip[:, None] @ rig.T_tip_sensor[None]  # (K, S, 4, 4)
+    dirs = np.einsum("ksij,szj->kszi", T_map_sensor[..., :3, :3], rig.unit_directions)
+    origins = np.broadcast_to(T_map_sensor[:, :, None, :3, 3], dirs.shape)
+    return origins, dirs
+
+
+def _as_poses(T_map_base: ArrayLike, T_base_tip: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    Tt = np.asarray(T_base_tip, dtype=float)
+    if Tt.ndim == 2:
+        Tt = Tt[None]
+    if Tt.ndim != 3 or Tt.shape[1:] != (4, 4):
+        raise ParameterError(f"T_base_tip must be shaped (K, 4, 4), got {Tt.shape}")
+    Tb = np.asarray(T_map_base, dtype=float)
+    if Tb.shape == (4, 4):
+        Tb = np.broadcast_to(Tb, Tt.shape)
+    if Tb.shape != Tt.shape:
+        raise ParameterError(f"T_map_base must be (4, 4) or shaped like T_base_tip {Tt.shape}, got {Tb.shape}")
+    if not (np.isfinite(Tb).all() and np.isfinite(Tt).all()):
+        raise ParameterError("T_map_base and T_base_tip must be finite")
+    return Tb, Tt
+
+
+def expected_distances(T_map_base: ArrayLike, T_base_tip: ArrayLike, rig: Rig, the_map: Any) -> NDArray[np.float64]:
+    """Distance ``(K, S, Z)`` each zone's centre ray would report (NaN: no hit within range)."""
+    Tb, Tt = _as_poses(T_map_base, T_base_tip)
+    o, u = _sensor_rays(Tb, Tt, rig)
+    hits = the_map.raycast(o, u, max_range=float(rig.max_range_m.max()))
+    t = np.where(np.isfinite(hits.t), hits.t, np.nan)
+    t = np.where(t <= rig.max_range_m[None, :, None], t, np.nan)
+    return t / rig.range_factor[None]
+
+
+def zone_jacobians(
+    T_map_base: ArrayLike,
+    T_base_tip: ArrayLike,
+    rig: Rig,
+    the_map: Any,
+    *,
+    method: str = "analytic",
+    step: tuple[float, float] = (1e-4, 1e-4),
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Expected distances ``(K, S, Z)`` and their Jacobians ``(K, S, Z, 3)`` w.r.t. (x, y, yaw).
+
+    Parameters
+    ----------
+    T_map_base : array (4, 4) or (K, 4, 4)
+        Base pose at which to differentiate (the truth, for a bound).
+    T_base_tip : array (K, 4, 4)
+        Configurations of the samples.
+    rig : Rig
+    the_map : tofloc.maps.Map
+    method : {"analytic", "numeric"}
+        Map normal at the hit (see the module doc), or central differences of the ray cast.
+    step : (float, float)
+        Central-difference steps in metres and radians (``numeric`` only).
+
+    Returns
+    -------
+    r : ndarray (K, S, Z)
+        NaN where the centre ray hits nothing in range.
+    J : ndarray (K, S, Z, 3)
+        NaN where ``r`` is NaN (and, analytic, where the ray grazes the surface).
+    """
+    Tb, Tt = _as_poses(T_map_base, T_base_tip)
+    if method == "numeric":
+        r0 = expected_distances(Tb, Tt, rig, the_map)
+        J = np.empty(r0.shape + (3,))
+        c = Tb[:, :3, 3]
+        for j in range(3):  # three perturbation axes, each a vectorized ray cast
+            h = step[0] if j < 2 else step[1]
+            rs = []
+            for sgn in (1.0, -1.0):
+                if j < 2:
+                    D = np.eye(4)
+                    D[j, 3] = sgn * h
+                    D = np.broadcast_to(D, Tb.shape)
+                else:  # rotate about the map z axis through the base origin
+                    R = frames.rot_z(sgn * h)
+                    D = np.broadcast_to(frames.se3(R, np.zeros(3)), Tb.shape).copy()
+                    D[:, :3, 3] = c - c @ R.T
+                rs.append(expected_distances(D @ Tb, Tt, rig, the_map))
+            J[..., j] = (rs[0] - rs[1]) / (2 * h)
+        return r0, J
+    if method != "analytic":
+        raise ParameterError(f"method must be 'analytic' or 'numeric', got {method!r}")
+    o, u = _sensor_rays(Tb, Tt, rig)
+    hits = the_map.raycast(o, u, max_range=float(rig.max_range_m.max()))
+    t = np.where(np.isfinite(hits.t) & (hits.t <= rig.max_range_m[None, :, None]), hits.t, np.nan)
+    n = hits.normal
+    h = o + t[..., None] * u
+    c = Tb[:, None, None, :3, 3]
+    cos = np.einsum("...i,...i->...", n, u)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lever = h - c
+        # e_z x (h - c) = (-(h-c)_y, (h-c)_x, 0)
+        rot = np.stack([-lever[..., 1], lever[..., 0], np.zeros_like(lever[..., 0])], axis=-1)
+        dt = -np.stack([n[..., 0], n[..., 1], np.einsum("...i,...i->...", n, rot)], axis=-1) / cos[..., None]
+        dt = np.where((np.abs(cos) > 1e-6)[..., None], dt, np.nan)
+    f = rig.range_factor[None, :, :, None]
+    return t / rig.range_factor[None], dt / f
+
+
+def fisher_information(
+    T_map_base: ArrayLike,
+    T_base_tip: ArrayLike,
+    rig: Rig,
+    the_map: Any,
+    uncertainty: RangeUncertainty | None = None,
+    valid: ArrayLike | None = None,
+    *,
+    method: str = "analytic",
+) -> tuple[NDArray[np.float64], int]:
+    """Fisher information ``(3, 3)`` of (x, y, yaw) and the number of zones that contributed.
+
+    Parameters
+    ----------
+    valid : array (K, S, Z) of bool, optional
+        Zones to count (e.g. those the sensor actually returned); default: every zone whose
+        centre ray hits the map within range.
+    uncertainty : RangeUncertainty, optional
+        Sigma at the expected distance (default: the datasheet's).
+    """
+    unc = uncertainty or RangeUncertainty()
+    r, J = zone_jacobians(T_map_base, T_base_tip, rig, the_map, method=method)
+    use = np.isfinite(r) & np.all(np.isfinite(J), axis=-1)
+    if valid is not None:
+        v = np.asarray(valid, dtype=bool)
+        if v.shape != r.shape:
+            raise ParameterError(f"valid must be shaped {r.shape}, got {v.shape}")
+        use &= v
+    sigma = unc.sigma(rig, np.where(use, r, 1.0))
+    w = np.where(use, 1.0 / sigma**2, 0.0)
+    Jz = np.where(use[..., None], J, 0.0)
+    info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
+    return 0.5 * (info + info.T), int(use.sum())
+
+
+def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGULAR_RTOL) -> CRLB:
+    """The bound from an information matrix, with unobservable directions reported as inf.
+
+    The information is first scaled to unit diagonal (x, y in metres and yaw in radians
+    have different units); eigenvalues below ``rtol`` times the largest span the null
+    space. A parameter with a component in it (beyond ``1e-6``) has an infinite bound.
+    """
+    I = np.asarray(info, dtype=float)
+    if I.shape != (3, 3) or not np.isfinite(I).all():
+        raise ParameterError(f"information must be a finite 3x3 matrix, got shape {I.shape}")
+    diag = np.diag(I)
+    inf_cov = np.full((3, 3), np.inf)
+    if np.all(diag <= 0):
+        return CRLB(math.inf, math.inf, I, inf_cov, n_zones)
+    scale = np.where(diag > 0, 1.0 / np.sqrt(np.maximum(diag, 1e-300)), 0.0)
+    C = I * scale[:, None] * scale[None, :]
+    w, V = np.linalg.eigh(C)
+    keep = w > rtol * max(float(w.max()), 1e-300)
+    null = V[:, ~keep]
+    unobservable = (diag <= 0) | (np.linalg.norm(null, axis=1) > 1e-6 if null.size else np.zeros(3, dtype=bool))
+    Cinv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    cov = Cinv * scale[:, None] * scale[None, :]
+    cov[unobservable, :] = np.inf
+    cov[:, unobservable] = np.inf
+    pos = math.inf if unobservable[:2].any() else math.sqrt(max(float(cov[0, 0] + cov[1, 1]), 0.0))
+    yaw = math.inf if unobservable[2] else math.degrees(math.sqrt(max(float(cov[2, 2]), 0.0)))
+    return CRLB(pos, yaw, I, cov, n_zones)
+
+
+def crlb(
+    T_map_base: ArrayLike,
+    T_base_tip: ArrayLike,
+    rig: Rig,
+    the_map: Any,
+    uncertainty: RangeUncertainty | None = None,
+    valid: ArrayLike | None = None,
+    *,
+    method: str = "analytic",
+) -> CRLB:
+    """sqrt(CRLB) of position and yaw for samples ``T_base_tip`` seen from the base pose ``T_map_base``.
+
+    See :func:`fisher_information` for the parameters.
+    """
+    info, n = fisher_information(T_map_base, T_base_tip, rig, the_map, uncertainty, valid, method=method)
+    return crlb_from_information(info, n)
+
+
+def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, uncertainty: RangeUncertainty | None = None,
+                     *, method: str = "analytic") -> CRLB:
+    """The bound of a :class:`~tofloc.problem.Problem` at the true base pose: its configurations,
+    its rig and map, and only the zones it holds as valid."""
+    return crlb(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, uncertainty, problem.valid,
+                method=method)

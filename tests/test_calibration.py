@@ -1,0 +1,167 @@
+"""Sensor-model calibration: EM on Thrun's generative model, recovery of the simulator's
+noise knobs, the model TOML, and `tofloc calibrate` end to end."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sensor_models.beam import BeamMixture
+from sensor_models.calibration import ZoneSamples, collect_zones, fit_em, model_toml, resolve_calibration_map, write_model
+from sensor_models.uncertainty import RangeUncertainty
+from tofloc.cli import main
+
+#: The simulator's knobs in scenarios/paper.toml.
+TRUE_SIGMA_SLOPE = 0.11 / 2.7
+TRUE_EDGE_FACTOR = 1.4
+TRUE_BIAS_OFFSET = 0.002
+TRUE_BIAS_SLOPE = 0.02
+
+
+def _clean_scenario(pressure_step: float = 2.5):
+    """The paper scenario without the errors that are not range noise: no support/mounting
+    error (the log's CAD rig is then the true one), no CAD error of the frame, no multipath
+    (an exponential excess the beam mixture has no component for). Fewer postures."""
+    from tofloc.simulation import load_scenario
+
+    sc = load_scenario("paper")
+    return dataclasses.replace(
+        sc,
+        rig=dataclasses.replace(sc.rig, support_yaw_error_deg=0.0, mounting_sigma_deg=0.0, mounting_sigma=0.0),
+        environment=dataclasses.replace(sc.environment, cad_error_sigma=0.0),
+        tof=dataclasses.replace(sc.tof, multipath_probability=0.0),
+        protocol=dataclasses.replace(sc.protocol, pressure_step=pressure_step),
+    )
+
+
+@pytest.fixture(scope="module")
+def clean_sim():
+    from tofloc.simulation import simulate
+
+    return simulate(_clean_scenario(), seed=0)
+
+
+def _synthetic(rng: np.random.Generator, n: int = 60000) -> tuple[ZoneSamples, dict[str, float]]:
+    """Readings drawn from the beam mixture itself, with known curves (the floor active below 0.2 m)."""
+    truth = {"z_hit": 0.8, "z_short": 0.08, "z_max": 0.07, "z_rand": 0.05, "lambda_short": 2.0,
+             "sigma_slope": 0.03, "sigma_floor": 0.006, "edge_factor": 1.5,
+             "bias_offset": 0.004, "bias_slope": 0.015, "edge_bias_offset": -0.002, "edge_bias_slope": 0.03}
+    zmax = 4.0
+    d = rng.uniform(0.05, 2.0, n)
+    edge = rng.random(n) < 0.4
+    comp = rng.choice(4, size=n, p=[truth["z_hit"], truth["z_short"], truth["z_max"], truth["z_rand"]])
+    bias = np.where(edge, truth["edge_bias_offset"] + truth["edge_bias_slope"] * d, truth["bias_offset"] + truth["bias_slope"] * d)
+    sigma = np.maximum(truth["sigma_floor"], truth["sigma_slope"] * d) * np.where(edge, truth["edge_factor"], 1.0)
+    z = d + bias + sigma * rng.normal(size=n)
+    # short: exponential truncated to [0, d], by inversion
+    u = rng.random(n)
+    lam = truth["lambda_short"]
+    short = -np.log(1 - u * (1 - np.exp(-lam * d))) / lam
+    z = np.where(comp == 1, short, z)
+    z = np.where(comp == 3, rng.uniform(0, zmax, n), z)
+    no_ret = comp == 2
+    z = np.clip(z, 0.0, zmax - 1e-6)
+    samples = ZoneSamples(np.where(no_ret, np.nan, z), d, edge, no_ret, np.full(n, zmax), {"used": n})
+    return samples, truth
+
+
+def test_em_recovers_the_generative_model() -> None:
+    samples, truth = _synthetic(np.random.default_rng(7))
+    res = fit_em(samples)
+    assert res.converged
+    b, u = res.beam, res.uncertainty
+    for key, tol in (("z_hit", 0.01), ("z_short", 0.01), ("z_max", 0.005), ("z_rand", 0.01)):
+        assert getattr(b, key) == pytest.approx(truth[key], abs=tol), key
+    assert b.lambda_short == pytest.approx(truth["lambda_short"], rel=0.15)
+    assert u.sigma_slope == pytest.approx(truth["sigma_slope"], rel=0.03)
+    assert u.sigma_floor == pytest.approx(truth["sigma_floor"], rel=0.1)
+    assert u.edge_factor == pytest.approx(truth["edge_factor"], rel=0.03)
+    for key in ("bias_offset", "edge_bias_offset"):
+        assert getattr(u, key) == pytest.approx(truth[key], abs=0.0015), key
+    for key in ("bias_slope", "edge_bias_slope"):
+        assert getattr(u, key) == pytest.approx(truth[key], abs=0.003), key
+    # EM never decreases the likelihood: the fitted model explains the data better than the start
+    start = fit_em(samples, max_iter=1)
+    assert res.log_likelihood > start.log_likelihood
+    assert res.beam.z_hit + res.beam.z_short + res.beam.z_max + res.beam.z_rand == pytest.approx(1.0, abs=1e-12)
+
+
+def test_calibration_recovers_the_simulator_noise_knobs(clean_sim) -> None:
+    """Tolerances: 4 % on the sigma slope, 0.06 on the edge factor, 1 mm on the bias at
+    0.35 m (the paper's range) and 0.008 on the bias slope (168 postures, ~23k zones;
+    six seeds gave 0.0403-0.0414, 1.39-1.44, 8.45-9.19 mm and 0.018-0.026)."""
+    zs = collect_zones(clean_sim.log, clean_sim.cad_mesh, footprint=3)
+    assert zs.n > 15000
+    assert zs.counts["no_expected_hit_but_valid"] == 0  # a zone that sees no map reports nothing
+    res = fit_em(zs)
+    u = res.uncertainty
+    assert res.converged
+    assert u.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.04)
+    assert u.edge_factor == pytest.approx(TRUE_EDGE_FACTOR, abs=0.06)
+    for a, b in ((u.bias_offset, u.bias_slope), (u.edge_bias_offset, u.edge_bias_slope)):
+        assert a + 0.35 * b == pytest.approx(TRUE_BIAS_OFFSET + 0.35 * TRUE_BIAS_SLOPE, abs=0.001)
+        assert b == pytest.approx(TRUE_BIAS_SLOPE, abs=0.008)
+    # ghosts (2 % of the valid zones, uniform in [0.02 m, d]) are the short readings
+    assert res.beam.z_short == pytest.approx(0.02, abs=0.006)
+    assert res.beam.z_max < 1e-3  # a zone whose whole footprint hits always returns a target in the simulator
+
+
+def test_model_toml_is_read_by_both_readers(tmp_path: Path) -> None:
+    samples, _ = _synthetic(np.random.default_rng(1), n=5000)
+    res = fit_em(samples, max_iter=30)
+    path = write_model(res, tmp_path / "model.toml", {"logs": ["a.h5"], "footprint": 3})
+    assert RangeUncertainty.from_toml(path) == res.uncertainty
+    beam = BeamMixture.from_toml(path)
+    assert beam == res.beam
+    assert beam.z_hit + beam.z_short + beam.z_max + beam.z_rand == pytest.approx(1.0, abs=1e-9)
+    data = tomllib.loads(path.read_text())
+    assert data["calibration"]["zones_used"] == 5000 and data["calibration"]["logs"] == ["a.h5"]
+    assert model_toml(res, {"logs": ["a.h5"], "footprint": 3}) == path.read_text()
+
+
+def test_em_refuses_too_little_data() -> None:
+    from tofloc.errors import ParameterError
+
+    s = ZoneSamples(np.full(5, 0.5), np.full(5, 0.5), np.zeros(5, bool), np.zeros(5, bool), np.full(5, 4.0))
+    with pytest.raises(ParameterError, match="at least 20 zones"):
+        fit_em(s)
+
+
+def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.logs import read_log, write_log
+    from tofloc.simulation import simulate, write_simulation
+
+    sim = simulate(_clean_scenario(pressure_step=5.0), seed=3)
+    log_path = write_simulation(sim, tmp_path / "sim.h5")["log"]
+    assert resolve_calibration_map(read_log(log_path)) == tmp_path / "sim.cad.ply"  # the mesh beside the cloud
+    out, png = tmp_path / "model.toml", tmp_path / "cal.png"
+    code = main(["calibrate", str(log_path), "--out", str(out), "--plot", str(png)])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert "sim.cad.ply" in cap.err and "beam mixture" in cap.out
+    u = RangeUncertainty.from_toml(out)
+    assert u.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.08)
+    data = tomllib.loads(out.read_text())
+    assert data["calibration"]["maps"] == [str(tmp_path / "sim.cad.ply")]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
+
+    # the same log twice with an explicit map per log
+    code = main(["calibrate", str(log_path), str(log_path), "--out", str(out), "--map", str(tmp_path / "sim.map.ply"),
+                 "--map", str(tmp_path / "sim.cad.ply"), "--footprint", "1"])
+    assert code == 0, capsys.readouterr().err
+    assert tomllib.loads(out.read_text())["calibration"]["footprint"] == 1
+
+    # refusals: a map count that matches neither 1 nor the logs, a log without ground truth
+    capsys.readouterr()
+    code = main(["calibrate", str(log_path), "--out", str(out), "--map", "a.ply", "--map", "b.ply"])
+    assert code == 2 and "--map must be given once" in capsys.readouterr().err
+    log = read_log(log_path)
+    log.T_map_base = None
+    bare = write_log(log, tmp_path / "bare.h5")
+    code = main(["calibrate", str(bare), "--out", str(out), "--map", str(tmp_path / "sim.cad.ply")])
+    err = capsys.readouterr().err
+    assert code == 2 and "/truth/T_map_base" in err and "bare.h5" in err
