@@ -7,6 +7,22 @@ step's log-likelihood is added to the log-weights (a sequential Bayes filter). B
 steps the filter resamples (when the effective sample size falls below
 ``resample_threshold * N``) and adds Gaussian jitter (roughening).
 
+Progressive correction (Oudjane and Musso 2000; the annealed particle filter of
+Deutscher, Blake and Reid 2000), ``anneal_ess > 0``, incremental models only: one
+sample pins the pose to millimetres while 1000 particles over a 0.2 m / 20 deg prior
+sit centimetres apart, so a plain update puts all the weight on one particle. Instead
+the sample's log-likelihood ``l`` is applied in tempered stages ``beta_1 l, beta_2 l,
+...`` (``sum beta = 1``), each ``beta`` the largest keeping the effective sample size
+above ``anneal_ess`` times its value before the stage (bisection); between stages the
+particles are resampled, roughened and re-scored. At most ``max_stages`` stages per
+sample; the last one applies what remains.
+
+Roughening (Gordon, Salmond and Smith 1993): after a resampling, each coordinate gets
+Gaussian jitter of standard deviation ``max(floor, roughening * E * N^(-1/3))``, with
+``E`` the spread (max - min) of the resampled particles in that coordinate and the
+floors ``jitter_xy`` and ``jitter_yaw_deg``: the jitter shrinks as the posterior
+narrows. ``roughening = 0`` gives the fixed jitter of the floors.
+
 The paper's filter (``icp_pf``): 1000 particles from the Gaussian prior with uniform
 weights; per sample the ICP score, systematic resampling at every step and Gaussian
 jitter around the drawn (best-matching) particles; the estimate at k = N is the
@@ -28,7 +44,7 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_positive
 
-__all__ = ["ParticleFilter", "ICPScorePF", "weighted_pose_stats"]
+__all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step"]
 
 
 def weighted_pose_stats(particles: NDArray[np.float64], weights: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -44,6 +60,35 @@ def weighted_pose_stats(particles: NDArray[np.float64], weights: NDArray[np.floa
     dev[:, 2] = frames.wrap_angle(dev[:, 2])
     cov = (dev * w[:, None]).T @ dev
     return mean, 0.5 * (cov + cov.T)
+
+
+def _ess_of(log_w: NDArray[np.float64]) -> float:
+    return effective_sample_size(normalize_log_weights(log_w))
+
+
+def anneal_step(log_w: NDArray[np.float64], ll: NDArray[np.float64], remaining: float, ratio: float) -> float:
+    """The largest tempering exponent ``beta`` in ``(0, remaining]`` such that the weights
+    ``log_w + beta * ll`` keep an effective sample size of at least ``ratio`` times that of
+    ``log_w`` (bisection on ``log beta``; ``remaining`` if it already does; never below
+    ``remaining * 1e-12``)."""
+    target = ratio * _ess_of(log_w)
+    finite = np.isfinite(ll)
+    if _ess_of(log_w + remaining * ll) >= target:
+        return remaining
+    if not finite.any():
+        return remaining
+    lo, hi = math.log(remaining * 1e-12), math.log(remaining)
+    if _ess_of(log_w + math.exp(lo) * ll) < target:
+        return math.exp(lo)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if _ess_of(log_w + math.exp(mid) * ll) >= target:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 0.02:
+            break
+    return math.exp(lo)
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,9 +107,23 @@ class ParticleFilter(Estimator):
     resample_threshold : float
         Resample when ESS < threshold * M (1.0: at every step).
     jitter_xy : float
-        Standard deviation (m) of the Gaussian jitter added to x and y after resampling.
+        Standard deviation (m) of the Gaussian jitter added to x and y after resampling
+        (the floor of the roughening jitter when ``roughening > 0``).
     jitter_yaw_deg : float
-        Standard deviation (deg) of the yaw jitter.
+        Standard deviation (deg) of the yaw jitter (idem).
+    roughening : float
+        Gordon's roughening constant K (0: fixed jitter); see the module docstring.
+    anneal_ess : float
+        Progressive correction: each tempered stage keeps this fraction of the effective
+        sample size (0: off; incremental sensor models only).
+    max_stages : int
+        Most tempered stages per sample.
+    support_yaw_sigma_deg : float
+        When > 0, each particle also carries the rotation of the sensor support about the
+        tip's z axis (a rig calibration error the CAD rig does not know), drawn from
+        N(0, sigma^2) and estimated with the pose (marginalized out of the estimate; its
+        mean and standard deviation are in ``diagnostics["support_yaw_deg"]``). Needs a
+        sensor model with ``support_yaw = True`` (beam, likelihood field). 0: off.
     """
 
     name: ClassVar[str] = "pf"
@@ -76,6 +135,10 @@ class ParticleFilter(Estimator):
     resample_threshold: float = 1.0
     jitter_xy: float = 0.01
     jitter_yaw_deg: float = 1.0
+    roughening: float = 0.0
+    anneal_ess: float = 0.0
+    max_stages: int = 50
+    support_yaw_sigma_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_particles, (int, np.integer)) or isinstance(self.n_particles, bool) or not 1 <= self.n_particles <= 10_000_000:
@@ -86,9 +149,24 @@ class ParticleFilter(Estimator):
             raise ParameterError(f"resample_threshold must be in [0, 1], got {self.resample_threshold!r}")
         check_positive("jitter_xy", self.jitter_xy, strict=False)
         check_positive("jitter_yaw_deg", self.jitter_yaw_deg, strict=False)
+        check_positive("roughening", self.roughening, strict=False)
+        if self.roughening > 10:
+            raise ParameterError(f"roughening must be in [0, 10], got {self.roughening!r}")
+        check_positive("anneal_ess", self.anneal_ess, strict=False)
+        if self.anneal_ess >= 1.0:
+            raise ParameterError(f"anneal_ess must be in [0, 1), got {self.anneal_ess!r}")
+        if not isinstance(self.max_stages, (int, np.integer)) or isinstance(self.max_stages, bool) or not 1 <= self.max_stages <= 1000:
+            raise ParameterError(f"max_stages must be an integer in [1, 1000], got {self.max_stages!r}")
         if not isinstance(self.sensor_model_params, Mapping):
             raise ParameterError(f"sensor_model_params must be a mapping, got {type(self.sensor_model_params).__name__}")
-        self.make_sensor_model()  # validates the model's name and parameters now
+        model = self.make_sensor_model()  # validates the model's name and parameters now
+        check_positive("support_yaw_sigma_deg", self.support_yaw_sigma_deg, strict=False)
+        if self.support_yaw_sigma_deg > 90:
+            raise ParameterError(f"support_yaw_sigma_deg must be in [0, 90], got {self.support_yaw_sigma_deg!r}")
+        if self.support_yaw_sigma_deg > 0 and not getattr(model, "support_yaw", False):
+            raise ParameterError(f"support_yaw_sigma_deg > 0 needs a sensor model that takes the support's rotation; {self.sensor_model!r} does not")
+        if self.anneal_ess > 0 and model.cumulative:
+            raise ParameterError(f"anneal_ess > 0 needs an incremental sensor model; {self.sensor_model!r} is cumulative")
 
     def make_sensor_model(self) -> SensorModel:
         """The configured sensor model (from the registry)."""
@@ -100,20 +178,54 @@ class ParticleFilter(Estimator):
         except TypeError as e:
             raise ParameterError(f"sensor model {self.sensor_model!r}: {e}") from None
 
+    def _roughen(self, particles: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+        """Jitter resampled particles (fixed, or roughening that shrinks with their spread)."""
+        M, D = particles.shape
+        jitter = np.array([self.jitter_xy, self.jitter_xy] + [math.radians(self.jitter_yaw_deg)] * (D - 2))
+        if self.roughening > 0:
+            dev_yaw = frames.wrap_angle(particles[:, 2] - frames.circular_mean(particles[:, 2]))
+            spread = np.concatenate([[np.ptp(particles[:, 0]), np.ptp(particles[:, 1]), np.ptp(dev_yaw)], np.ptp(particles[:, 3:], axis=0)])
+            jitter = np.maximum(jitter, self.roughening * spread * M ** (-1.0 / D))
+        out = particles + rng.normal(size=(M, D)) * jitter
+        out[:, 2] = frames.wrap_angle(out[:, 2])
+        return out
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         model = self.make_sensor_model()
         bound = model.bind(problem)
         M = int(self.n_particles)
         particles = problem.prior.sample(M, rng)
+        if self.support_yaw_sigma_deg > 0:
+            particles = np.column_stack([particles, rng.normal(0.0, math.radians(self.support_yaw_sigma_deg), M)])
         log_w = np.zeros(M)
         resample = RESAMPLERS[self.resampling]
-        jitter = np.array([self.jitter_xy, self.jitter_xy, math.radians(self.jitter_yaw_deg)])
         ess: list[float] = []
         resampled: list[bool] = []
+        stages: list[int] = []
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
             ll = bound.log_likelihood(particles, k)
-            log_w = ll if model.cumulative else log_w + ll
+            n_stages = 1
+            if model.cumulative:
+                log_w = ll
+            elif self.anneal_ess > 0:
+                remaining = 1.0
+                while True:
+                    last_stage = n_stages >= self.max_stages
+                    beta = remaining if last_stage else anneal_step(log_w, ll, remaining, self.anneal_ess)
+                    log_w = log_w + beta * ll
+                    remaining -= beta
+                    if remaining <= 1e-12 or last_stage:
+                        break
+                    # an intermediate stage: resample, roughen, re-score what remains
+                    idx = resample(normalize_log_weights(log_w), rng)
+                    particles = self._roughen(particles[idx], rng)
+                    log_w = np.zeros(M)
+                    ll = bound.log_likelihood(particles, k)
+                    n_stages += 1
+            else:
+                log_w = log_w + ll
+            stages.append(n_stages)
             w = normalize_log_weights(log_w)
             ess.append(effective_sample_size(w))
             last = k == bound.n_steps - 1
@@ -121,16 +233,21 @@ class ParticleFilter(Estimator):
             resampled.append(bool(do))
             if do:
                 idx = resample(w, rng)
-                particles = particles[idx] + rng.normal(size=(M, 3)) * jitter
-                particles[:, 2] = frames.wrap_angle(particles[:, 2])
+                particles = self._roughen(particles[idx], rng)
                 log_w = np.zeros(M)
-        mean, cov = weighted_pose_stats(particles, w)
+        mean, cov = weighted_pose_stats(particles[:, :3], w)
+        extra: dict[str, Any] = {}
+        if particles.shape[1] == 4:
+            psi = w @ particles[:, 3]
+            extra["support_yaw_deg"] = {"mean": math.degrees(psi), "std": math.degrees(math.sqrt(max(w @ (particles[:, 3] - psi) ** 2, 0.0)))}
         return Estimate(
             pose=mean,
             covariance=cov,
             diagnostics={
+                **extra,
                 "ess": ess,
                 "resampled": resampled,
+                "stages": stages,
                 "particles": particles,
                 "weights": w,
                 "sensor_model": model.name,
@@ -145,3 +262,28 @@ class ICPScorePF(ParticleFilter):
 
     name: ClassVar[str] = "icp_pf"
     sensor_model: str = "icp_score"
+
+
+@dataclass(frozen=True, eq=False)
+class BeamPF(ParticleFilter):
+    """Sequential Bayes filter with the beam model (:mod:`sensor_models.beam`):
+    progressive correction keeping half the effective sample size per stage, resampling
+    when ESS < M/2, roughening K = 0.2 with 0.5 mm / 0.05 deg floors, and the sensor
+    support's rotation about the tip axis estimated with the pose (prior 10 deg)."""
+
+    name: ClassVar[str] = "beam_pf"
+    sensor_model: str = "beam"
+    resample_threshold: float = 0.5
+    jitter_xy: float = 0.0005
+    jitter_yaw_deg: float = 0.05
+    roughening: float = 0.2
+    anneal_ess: float = 0.5
+    support_yaw_sigma_deg: float = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class LikelihoodFieldPF(BeamPF):
+    """:class:`BeamPF` with the likelihood-field model (:mod:`sensor_models.likelihood_field`)."""
+
+    name: ClassVar[str] = "likelihood_field_pf"
+    sensor_model: str = "likelihood_field"

@@ -544,6 +544,9 @@ class TrialContext:
     valid_statuses : frozenset of int
     knn_cov : array (6, 6), optional
         Configuration covariance handed to the estimator with tip source ``knn``.
+    uncertainty : RangeUncertainty, optional
+        Zone range model of the Cramér-Rao bound every trial with ground truth reports
+        (:mod:`evaluation.crlb`); default: the datasheet's.
     """
 
     log: Any
@@ -552,6 +555,7 @@ class TrialContext:
     kinematics: Any | None = None
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
     knn_cov: NDArray[np.float64] | None = None
+    uncertainty: Any | None = None
     _truth_xyyaw: NDArray[np.float64] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -602,7 +606,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     dict
         ``seed``, ``k``, ``trial``, ``sample_indices``, ``truth`` ([x, y, yaw] or None),
         ``prior_mean``, ``estimate``, ``covariance`` (3x3), ``e_x_m``, ``e_gamma_deg``,
-        ``nees`` (None without truth or with a singular covariance) and ``runtime_s``.
+        ``nees`` (None without truth or with a singular covariance), ``runtime_s`` and
+        ``crlb``: ``{"position_m", "yaw_deg"}``, sqrt of the Cramér-Rao bound at the true
+        pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
+        ``null`` for an unobservable direction; the whole entry None without truth).
     """
     idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
     truth_T = context.truth(idx)
@@ -627,6 +634,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "e_gamma_deg": None,
         "nees": None,
         "runtime_s": float(result.runtime_s),
+        "crlb": None,
     }
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
@@ -634,6 +642,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         record["e_x_m"] = json_float(position_error(truth, result.pose))
         record["e_gamma_deg"] = json_float(yaw_error_deg(truth, result.pose))
         record["nees"] = json_float(nees(truth, result.pose, result.covariance))
+        if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
+            from evaluation.crlb import crlb_for_problem
+
+            record["crlb"] = crlb_for_problem(problem, truth_T, context.uncertainty).to_json()
     return record
 
 
@@ -849,7 +861,8 @@ def context_fingerprint(context: TrialContext) -> str:
         None if kin is None else np.asarray(kin.T_base_tip),
         None if kin is None else np.asarray(kin.validation_indices),
         context.pool.indices,
-        extra={"k": None if kin is None else int(kin.k), "valid_statuses": sorted(context.valid_statuses)},
+        extra={"k": None if kin is None else int(kin.k), "valid_statuses": sorted(context.valid_statuses),
+               "uncertainty": None if context.uncertainty is None else context.uncertainty.to_dict()},
     )
 
 

@@ -25,6 +25,7 @@ __all__ = [
     "write_json_atomic",
     "write_text_atomic",
     "summarize_trials",
+    "crlb_summary",
     "group_summary",
     "paired_comparison",
     "table_markdown",
@@ -71,6 +72,24 @@ def _values(records: Iterable[Mapping[str, Any]], key: str) -> np.ndarray:
     return np.array([np.nan if r.get(key) is None else float(r[key]) for r in records], dtype=float)
 
 
+def crlb_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """Mean sqrt(CRLB) over the trials that have one: ``{"position_m", "yaw_deg", "n",
+    "n_unobservable_position", "n_unobservable_yaw"}`` (means over the finite bounds;
+    an unobservable direction is ``null`` in a record and counted apart). None when no
+    trial has a bound."""
+    bounds = [r["crlb"] for r in records if isinstance(r.get("crlb"), Mapping)]
+    if not bounds:
+        return None
+    out: dict[str, Any] = {}
+    for key in ("position_m", "yaw_deg"):
+        v = np.array([np.nan if b.get(key) is None else float(b[key]) for b in bounds])
+        out[key] = json_float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else None
+    out["n"] = len(bounds)
+    out["n_unobservable_position"] = sum(b.get("position_m") is None for b in bounds)
+    out["n_unobservable_yaw"] = sum(b.get("yaw_deg") is None for b in bounds)
+    return out
+
+
 def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The ``summary`` of a ``localize`` run.
 
@@ -78,7 +97,8 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     -------
     dict
         ``{"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "runtime_s": {"median"}}``
-        plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES. The
+        plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES and
+        ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound. The
         error entries are ``None`` when no trial has a truth.
     """
     out: dict[str, Any] = {}
@@ -89,6 +109,9 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=("mean", "n"))
+    bound = crlb_summary(records)
+    if bound is not None:
+        out["crlb"] = bound
     return out
 
 
@@ -113,6 +136,9 @@ def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int])
         nees = _values(recs, "nees")
         if np.isfinite(nees).any():
             entry["nees"] = summarize(nees, keys=("mean", "n"))
+        bound = crlb_summary(recs)
+        if bound is not None:
+            entry["crlb"] = bound
         per_k[str(int(k))] = entry
     overall: dict[str, Any] = {"n": len(records)}
     for key in ERROR_KEYS:
@@ -122,6 +148,9 @@ def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int])
     if np.isfinite(nees).any():
         overall["nees"] = summarize(nees, keys=("mean", "median", "n"))
     overall["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    bound = crlb_summary(records)
+    if bound is not None:
+        overall["crlb"] = bound
     return {"per_k": per_k, "overall": overall}
 
 
@@ -164,6 +193,14 @@ def _pm(s: Mapping[str, Any] | None, digits: int) -> str:
     return f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
 
 
+def _crlb_cell(c: Mapping[str, Any] | None) -> str:
+    if not c:
+        return "n/a"
+    pos = "unobservable" if c.get("position_m") is None else f"{c['position_m']:.4f}"
+    yaw = "unobservable" if c.get("yaw_deg") is None else f"{c['yaw_deg']:.3f}"
+    return f"{pos} / {yaw}"
+
+
 def table_markdown(doc: Mapping[str, Any]) -> str:
     """``table.md``: our rows under the paper's Table I row.
 
@@ -179,8 +216,12 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "Mean ± standard deviation over every trial of every k (the paper's Table I reports the same).",
         "Tip poses from the k-NN model (k-NN) or from motion capture (mocap, the paper's OptiTrack).",
         "",
-        "| estimator | prior | k-NN e_x (m) | k-NN e_gamma (deg) | mocap e_x (m) | mocap e_gamma (deg) |",
-        "|---|---|---|---|---|---|",
+        "The sqrt(CRLB) columns: the mean over the same trials of the Cramér-Rao bound at the true pose",
+        "(position m / yaw deg; evaluation/crlb.py), the best any unbiased estimator can do with those zones.",
+        "",
+        "| estimator | prior | k-NN e_x (m) | k-NN e_gamma (deg) | mocap e_x (m) | mocap e_gamma (deg) "
+        "| k-NN sqrt(CRLB) (m / deg) | mocap sqrt(CRLB) (m / deg) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     paper = doc["paper"]
     cells = []
@@ -188,7 +229,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         for key, digits in (("e_x_m", 4), ("e_gamma_deg", 3)):
             m, s = paper[tip][key]
             cells.append(f"{m:.{digits}f} ± {s:.{digits}f}")
-    lines.append("| **paper, Table I** (real robot) | 0.2 m / 20 deg around the truth | " + " | ".join(cells) + " |")
+    lines.append("| **paper, Table I** (real robot) | 0.2 m / 20 deg around the truth | " + " | ".join(cells) + " | n/a | n/a |")
     spread_rows = []
     for est, by_tip in doc["results"].items():
         modes = sorted({m for tip in by_tip.values() for m in tip}, key=lambda m: (m != "paper", m))
@@ -201,6 +242,9 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
                     row.append(_pm(s, digits))
                     v = s.get("std_of_per_k_means") if s else None
                     spread.append("n/a" if v is None else f"{v:.{digits}f}")
+            for tip in ("knn", "mocap"):
+                ov = by_tip.get(tip, {}).get(mode, {}).get("overall")
+                row.append(_crlb_cell(ov.get("crlb") if ov else None))
             lines.append(f"| {est} | {mode} | " + " | ".join(row) + " |")
             spread_rows.append(f"| {est} | {mode} | " + " | ".join(spread) + " |")
     lines += [
@@ -248,11 +292,22 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
 # -- Fig. 4 -----------------------------------------------------------------------------------------
 
 
+def _crlb_per_k(series: Sequence[tuple[str, str, Mapping[str, Any]]], k_values: Sequence[int], key: str) -> np.ndarray | None:
+    """Mean sqrt(CRLB) per k for a tip source: the trials (hence the bounds) are the same for
+    every estimator and prior mode, so the first series that has them is used."""
+    for _, _, group in series:
+        vals = [((group["per_k"].get(str(k)) or {}).get("crlb") or {}).get(key) for k in k_values]
+        if any(v is not None for v in vals):
+            return np.array([np.nan if v is None else float(v) for v in vals])
+    return None
+
+
 def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Path:
     """Fig. 4 of the paper for one tip source: bars of mean e_x and e_gamma (± std) per k.
 
     One colour per estimator; the ``offset`` prior mode is hatched beside the ``paper``
-    one; the paper's overall mean is a dashed line. Written as PNG with the Agg canvas
+    one; the paper's overall mean is a dashed line; the mean sqrt(CRLB) per k (when the
+    records have it) is a black line. Written as PNG with the Agg canvas
     (no display, no global backend change), atomically.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -283,6 +338,9 @@ def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Pa
         paper = doc.get("paper", {}).get(tip_source, {}).get(key)
         if paper:
             ax.axhline(paper[0], color="grey", linestyle="--", linewidth=1.0)
+        bound = _crlb_per_k(series, k_values, "position_m" if key == "e_x_m" else "yaw_deg")
+        if bound is not None:
+            ax.plot(x, bound, color="black", marker=".", linewidth=1.2, zorder=5)
         ax.set_ylabel(label)
         ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
@@ -291,6 +349,10 @@ def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Pa
     handles = [Patch(facecolor=colours[e], edgecolor="black", hatch="//" if m != "paper" else None, label=f"{e}, prior {m}")
                for e, m, _ in series]
     handles.append(Patch(facecolor="none", edgecolor="grey", linestyle="--", label="paper, Table I mean"))
+    if any(_crlb_per_k(series, k_values, key) is not None for key in ("position_m", "yaw_deg")):
+        from matplotlib.lines import Line2D
+
+        handles.append(Line2D([], [], color="black", marker=".", linewidth=1.2, label="mean sqrt(CRLB)"))
     n_cols = min(len(handles), 3)
     n_rows = math.ceil(len(handles) / n_cols)
     h = fig.get_figheight()

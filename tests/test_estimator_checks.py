@@ -11,6 +11,9 @@ from tofloc.testing import parametrize_with_checks
 #: own algorithm. Estimators not listed run with their defaults.
 FAST_PARAMS: dict[str, dict] = {
     "icp_pf": {"n_particles": 400},
+    "gtsam_smoother": {"n_starts": 2, "n_candidates": 50},
+    "beam_pf": {"n_particles": 300},
+    "likelihood_field_pf": {"n_particles": 300},
 }
 
 

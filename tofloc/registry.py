@@ -164,6 +164,9 @@ ESTIMATORS = Registry(
     "tofloc.estimators",
     {
         "icp_pf": "estimators.particle_filter:ICPScorePF",
+        "gtsam_smoother": "estimators.gtsam_smoother:GTSAMSmoother",
+        "beam_pf": "estimators.particle_filter:BeamPF",
+        "likelihood_field_pf": "estimators.particle_filter:LikelihoodFieldPF",
     },
 )
 
@@ -172,6 +175,8 @@ SENSOR_MODELS = Registry(
     "tofloc.sensor_models",
     {
         "icp_score": "sensor_models.icp_score:ICPScore",
+        "beam": "sensor_models.beam:BeamModel",
+        "likelihood_field": "sensor_models.likelihood_field:LikelihoodFieldModel",
     },
 )
 

@@ -19,7 +19,16 @@ from rich.table import Table
 from tofloc.cli.app import app, console, err_console, make_progress
 from tofloc.errors import FormatError, ParameterError
 
-__all__ = ["localize", "parse_params", "parse_statuses", "resolve_workers", "load_estimator", "run_with_progress"]
+__all__ = [
+    "localize",
+    "parse_params",
+    "parse_statuses",
+    "resolve_workers",
+    "load_estimator",
+    "run_with_progress",
+    "with_sensor_model_file",
+    "crlb_uncertainty",
+]
 
 #: Largest number of trials or samples the command accepts (bounds the work a typo can ask for).
 MAX_TRIALS = 100_000
@@ -76,6 +85,75 @@ def load_estimator(name: str, params: dict[str, Any]) -> tuple[type, dict[str, A
     return cls, jsonable(est.get_params())
 
 
+def with_sensor_model_file(name: str, params: dict[str, Any], path: Optional[Path]) -> tuple[dict[str, Any], str]:
+    """Merge a calibrated sensor-model TOML file (``tofloc calibrate``'s output:
+    ``[uncertainty]`` and ``[beam]`` tables) into an estimator's parameters.
+
+    A particle filter whose sensor model takes ``uncertainty`` / ``mixture`` gets them in
+    its ``sensor_model_params``; another estimator with an ``uncertainty`` parameter gets
+    that. Values given explicitly with ``--param`` are not overridden: giving the same
+    table both ways is an error. Returns the new parameters and a one-line note.
+    """
+    import dataclasses
+
+    if path is None:
+        return params, ""
+    from estimators.particle_filter import ParticleFilter
+    from evaluation.protocol import make_estimator
+    from sensor_models.beam import load_sensor_model_toml
+    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+
+    tables = load_sensor_model_toml(path)
+    cls = ESTIMATORS.load(name)
+    est = make_estimator(cls, params, name)
+    out = dict(params)
+    if isinstance(est, ParticleFilter):
+        model_cls = SENSOR_MODELS.load(est.sensor_model)
+        accepted = {f.name for f in dataclasses.fields(model_cls)} if dataclasses.is_dataclass(model_cls) else set()
+        smp = dict(est.sensor_model_params)
+        explicit = dict(params.get("sensor_model_params", {}) or {})
+        used = []
+        for key, value in tables.items():
+            if key not in accepted:
+                continue
+            if key in explicit:
+                raise ParameterError(f"{name}: sensor_model_params.{key} given both with --param and in {path}")
+            smp[key] = value
+            used.append(key)
+        out["sensor_model_params"] = smp
+        target = f"sensor model {est.sensor_model!r}"
+    else:
+        accepted = {f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else set()
+        used = []
+        if "uncertainty" in accepted and "uncertainty" in tables:
+            if "uncertainty" in params:
+                raise ParameterError(f"{name}: uncertainty given both with --param and in {path}")
+            out["uncertainty"] = tables["uncertainty"]
+            used.append("uncertainty")
+        target = "estimator"
+    make_estimator(cls, out, name)  # validate the merged parameters now
+    tables_used = ", ".join(f"[{'beam' if k == 'mixture' else k}]" for k in used)
+    note = f"{name}: {target} takes {tables_used} from {path}" if used else f"{name}: {target} uses nothing from {path}"
+    return out, note
+
+
+def crlb_uncertainty(path: Optional[Path]) -> Any:
+    """The zone range model of the Cramér-Rao bound: the ``[uncertainty]`` table of a
+    sensor-model file when it has one, else the datasheet's."""
+    from sensor_models.uncertainty import RangeUncertainty
+
+    if path is not None:
+        import tomllib
+
+        try:
+            has = "uncertainty" in tomllib.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            has = True  # let the reader raise its FormatError
+        if has:
+            return RangeUncertainty.from_toml(path)
+    return RangeUncertainty()
+
+
 def run_with_progress(context: Any, tasks: Sequence[Any], workers: int, scheduler: Optional[str], label: str) -> list[dict[str, Any]]:
     """:func:`evaluation.protocol.run_tasks` under the shared progress bar."""
     from evaluation.protocol import run_tasks
@@ -120,6 +198,10 @@ def localize(
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="Estimator parameter key=value (repeatable)."),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
+    sensor_model_params: Optional[Path] = typer.Option(
+        None, "--sensor-model-params", metavar="MODEL.toml",
+        help="Calibrated sensor model (`tofloc calibrate` output: [uncertainty] and [beam] tables).",
+    ),
 ) -> None:
     """Localize the robot base from a log with a registered estimator (paper protocol)."""
     from evaluation.protocol import (
@@ -153,6 +235,9 @@ def localize(
         raise ParameterError("--prior-mode draws the prior around the truth; it cannot be combined with --prior-x/-y/-yaw-deg")
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
+    params, note = with_sensor_model_file(estimator, params, sensor_model_params)
+    if note:
+        err_console.print(note, highlight=False, markup=False)
     cls, full_params = load_estimator(estimator, params)
 
     # -- files ------------------------------------------------------------------------------------
@@ -194,7 +279,7 @@ def localize(
     pool = sample_pool(log, kin, 1 if k_asked is None else k_asked, statuses)
     k = pool.indices.size if k_asked is None else k_asked
     knn_cov = knn_residual_covariance(kin, log) if kin is not None and tip_source == "knn" else None
-    context = TrialContext(log, the_map, pool, kin, statuses, knn_cov)
+    context = TrialContext(log, the_map, pool, kin, statuses, knn_cov, uncertainty=crlb_uncertainty(sensor_model_params))
     tasks = make_tasks("localize", estimator, cls, params, tip_source, prior, [k], trials, seed)
     err_console.print(f"samples: {pool.note}", highlight=False)
     n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
@@ -215,6 +300,7 @@ def localize(
         "pool": pool.to_json(),
         "kinematics": None if kinematics is None else str(kinematics),
         "valid_statuses": sorted(statuses),
+        "sensor_model_params": None if sensor_model_params is None else str(sensor_model_params),
     }
     if json_out is not None:
         write_json_atomic(doc, json_out)
@@ -252,6 +338,12 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
         t.add_row(label, *(f"{s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
     console.print(t)
     extra = f"median runtime {s['runtime_s']['median']:.3f} s per trial"
+    if s.get("crlb"):
+        c = s["crlb"]
+        pos = "unobservable" if c["position_m"] is None else f"{c['position_m']:.4f} m"
+        yaw = "unobservable" if c["yaw_deg"] is None else f"{c['yaw_deg']:.3f} deg"
+        console.print(f"mean sqrt(CRLB) over {c['n']} trial(s): position {pos}, yaw {yaw} "
+                      "(the best an unbiased estimator can do with these zones)", highlight=False)
     if "nees" in s:
         extra += f"; mean NEES {s['nees']['mean']:.2f} over {s['nees']['n']} trial(s) (3 if consistent)"
     console.print(extra, highlight=False)

@@ -18,7 +18,14 @@ import typer
 from rich.table import Table
 
 from tofloc.cli.app import app, console, err_console, make_progress, status
-from tofloc.cli.cmd_localize import MAX_TRIALS, load_estimator, parse_params, resolve_workers
+from tofloc.cli.cmd_localize import (
+    MAX_TRIALS,
+    crlb_uncertainty,
+    load_estimator,
+    parse_params,
+    resolve_workers,
+    with_sensor_model_file,
+)
 from tofloc.errors import ParameterError
 
 __all__ = ["paper", "PaperData", "prepare_data", "LOG_NAME", "KNN_NAME"]
@@ -115,6 +122,10 @@ def paper(
     param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
     prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
+    sensor_model_params: Optional[Path] = typer.Option(
+        None, "--sensor-model-params", metavar="MODEL.toml",
+        help="Calibrated sensor model (`tofloc calibrate` output) given to every estimator that uses one.",
+    ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
     from evaluation.protocol import (
@@ -141,19 +152,25 @@ def paper(
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out} exists and is not a folder")
     params = parse_params(param)
-    classes = {n: load_estimator(n, params) for n in names}
+    est_params: dict[str, dict[str, Any]] = {}
+    for n in names:
+        est_params[n], note = with_sensor_model_file(n, params, sensor_model_params)
+        if note:
+            err_console.print(note, highlight=False, markup=False)
+    classes = {n: load_estimator(n, est_params[n]) for n in names}
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in PRIOR_MODES]
 
     t0 = time.perf_counter()
     data = prepare_data(out, scenario, seed)
     for note in data.notes:
-        err_console.print(note, highlight=False)
+        err_console.print(note, highlight=False, markup=False)
     k_values = list(range(1, k_max + 1))
     pool = sample_pool(data.log, data.kinematics, k_max)
     err_console.print(f"samples: {pool.note}", highlight=False)
-    context = TrialContext(data.log, data.map, pool, data.kinematics, knn_cov=knn_residual_covariance(data.kinematics, data.log))
+    context = TrialContext(data.log, data.map, pool, data.kinematics, knn_cov=knn_residual_covariance(data.kinematics, data.log),
+                           uncertainty=crlb_uncertainty(sensor_model_params))
     batches = [
-        Batch(n, classes[n][0], params, tip, prior) for n in names for tip in ("knn", "mocap") for prior in priors
+        Batch(n, classes[n][0], est_params[n], tip, prior) for n in names for tip in ("knn", "mocap") for prior in priors
     ]
     n_tasks = len(batches) * k_max * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
@@ -183,6 +200,7 @@ def paper(
                            "n_validation": int(data.kinematics.validation_indices.size)},
             "pool": pool.to_json(),
             "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {_KNN_STREAM}])"},
+            "sensor_model_params": None if sensor_model_params is None else str(sensor_model_params),
             "wall_time_s": round(time.perf_counter() - t0, 3),
         },
     )

@@ -1,0 +1,250 @@
+"""Residuals, analytic Jacobians and GTSAM factors of the factor-graph smoother.
+
+One :class:`SampleMeasurement` holds a sample's valid zones (points and rays in the tip
+frame, range sigmas) and their current data association (a plane per zone: a map point
+and its normal). :meth:`SampleMeasurement.evaluate` returns the stacked, whitened and
+robustified residuals of every zone and their Jacobians with respect to
+
+* the base pose (``gtsam.Pose2``, local coordinates ``(vx, vy, omega)`` in the base frame,
+  lifted to 3-D with the problem's known height, roll and pitch),
+* the sample's configuration ``T_base_tip`` (``gtsam.Pose3``, right perturbation
+  ``C Exp(xi)``, ``xi = (omega, v)``, GTSAM's order),
+* optionally the support correction ``T_tip_support`` shared by all samples (Pose3, same
+  convention): the sensors' true mounting is ``D @ T_tip_sensor`` (a printed support
+  rotated about the tip axis relative to its CAD model);
+* optionally a relative range bias ``b`` shared by all zones (a 1-vector): the reported
+  distance ``d`` is corrected by ``-b d`` on top of the uncertainty model's bias.
+
+Residual of a zone ``i`` with point ``p_i`` (map frame) and associated plane ``(q_i, n_i)``::
+
+    r_i = n_i . (p_i - q_i)                     # point-to-plane (m)
+    e_i = r_i / s_i,   s_i = sqrt((sigma_L,i |n_i . u_i|)^2 + map_sigma^2)
+
+``sigma_L`` is the range sigma along the ray and ``u_i`` the ray's unit direction: the
+range residual against the same plane is ``r_i / (n_i . u_i)``, with sigma
+``sqrt(sigma_L^2 + (map_sigma / |n.u|)^2)``, so both residual kinds whiten to the same
+``e_i``; they differ in the association (nearest map point vs ray cast), chosen by
+the smoother. ``s_i`` is frozen at association time. A robust kernel is applied per
+zone by the residual transform ``e' = sign(e) sqrt(2 rho(e))`` (so that
+``0.5 * sum e'^2 = sum rho(e)``, the robust cost), with the Gauss-Newton Jacobian
+``de'/de = rho'(e) / sqrt(2 rho(e))``. (GTSAM's ``noiseModel.Robust`` would weight the
+whole stacked vector of a sample by one weight from its norm: one multipath zone would
+discount the other 191.) Zones whose association is farther than the gate contribute
+the constant ``rho(gate / s)`` (a truncated cost, zero Jacobian), so that the total
+error of different starts is comparable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "ROBUST_KERNELS",
+    "robust_transform",
+    "robust_loss",
+    "SampleMeasurement",
+    "make_sample_factor",
+]
+
+ROBUST_KERNELS = ("huber", "cauchy", "none")
+FloatArray = NDArray[np.float64]
+
+
+def robust_loss(e: FloatArray, kernel: str, k: float) -> FloatArray:
+    """``rho(e)`` of whitened residuals (GTSAM's ``mEstimator.*.loss`` conventions).
+
+    ``none``: ``e^2 / 2``; ``huber``: ``e^2/2`` for ``|e| <= k`` else ``k|e| - k^2/2``;
+    ``cauchy``: ``k^2/2 log(1 + e^2/k^2)``.
+    """
+    e = np.asarray(e, dtype=float)
+    a = np.abs(e)
+    if kernel == "none":
+        return 0.5 * e * e
+    if kernel == "huber":
+        return np.where(a <= k, 0.5 * e * e, k * a - 0.5 * k * k)
+    if kernel == "cauchy":
+        return 0.5 * k * k * np.log1p((e / k) ** 2)
+    raise ValueError(f"unknown robust kernel {kernel!r}")
+
+
+def robust_transform(e: FloatArray, kernel: str, k: float) -> tuple[FloatArray, FloatArray]:
+    """Transformed residuals ``e' = sign(e) sqrt(2 rho(e))`` and ``de'/de`` (Gauss-Newton).
+
+    ``de'/de = rho'(e) / sqrt(2 rho(e))`` (its limit 1 at ``e = 0``): the derivative of
+    the transformed residual, so that ``0.5 e'^2 = rho(e)``.
+    """
+    e = np.asarray(e, dtype=float)
+    if kernel == "none":
+        return e.copy(), np.ones_like(e)
+    a = np.abs(e)
+    s = np.where(e < 0, -1.0, 1.0)
+    if kernel == "huber":
+        out = np.where(a <= k, e, s * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.where(a <= k, 1.0, k / np.sqrt(np.maximum(2.0 * k * a - k * k, 1e-300)))
+        return out, d
+    if kernel == "cauchy":
+        x = (e / k) ** 2
+        lg = np.log1p(x)
+        out = s * k * np.sqrt(lg)
+        small = x < 1e-8
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # rho' = e / (1 + x); sqrt(2 rho) = k sqrt(log1p(x)) ; ratio -> 1 as e -> 0
+            d = np.where(small, 1.0 - 0.75 * x, (a / (1.0 + x)) / (k * np.sqrt(np.where(small, 1.0, lg))))
+        return out, d
+    raise ValueError(f"unknown robust kernel {kernel!r}")
+
+
+def _T_map_base(xyyaw: FloatArray, z: float, R_tilt: FloatArray) -> FloatArray:
+    c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
+    T[:3, 3] = (xyyaw[0], xyyaw[1], z)
+    return T
+
+
+@dataclass(eq=False)
+class SampleMeasurement:
+    """The valid zones of one sample and their current association.
+
+    Parameters
+    ----------
+    p_tip : (N, 3)
+        Zone points in the (CAD) tip frame, from the bias-corrected distances.
+    o_tip, u_tip : (N, 3)
+        Ray origins and unit directions in the tip frame.
+    sigma_L : (N,)
+        Range sigma along each ray (m).
+    d : (N,)
+        Reported distances (m): the range-bias variable ``b`` moves each point by
+        ``-b d v`` with ``v`` the point's displacement per metre of reported distance
+        (``range_factor * u``).
+    v_tip : (N, 3)
+    zones : (N,) int
+        Flat ``sensor * Z + zone`` index of each row (for the record).
+    """
+
+    p_tip: FloatArray
+    o_tip: FloatArray
+    u_tip: FloatArray
+    sigma_L: FloatArray
+    d: FloatArray
+    v_tip: FloatArray
+    zones: NDArray[np.int64]
+    q: FloatArray = field(init=False)
+    n: FloatArray = field(init=False)
+    s: FloatArray = field(init=False)
+    inlier: NDArray[np.bool_] = field(init=False)
+    gate_e: FloatArray = field(init=False)
+    key: NDArray[np.int64] = field(init=False)
+
+    def __post_init__(self) -> None:
+        N = self.p_tip.shape[0]
+        self.q = np.zeros((N, 3))
+        self.n = np.zeros((N, 3))
+        self.n[:, 2] = 1.0
+        self.s = np.ones(N)
+        self.inlier = np.zeros(N, dtype=bool)
+        self.gate_e = np.ones(N)
+        self.key = np.full(N, -1, dtype=np.int64)
+
+    @property
+    def size(self) -> int:
+        return int(self.p_tip.shape[0])
+
+    def set_association(
+        self, q: FloatArray, n: FloatArray, s: FloatArray, inlier: NDArray[np.bool_], gate_e: FloatArray, key: NDArray[np.int64]
+    ) -> bool:
+        """Store a new association; True when it differs from the previous one."""
+        changed = not (np.array_equal(key, self.key) and np.array_equal(inlier, self.inlier))
+        self.q, self.n, self.s, self.inlier, self.gate_e, self.key = q, n, s, inlier, gate_e, key
+        return changed
+
+    def points(self, bias: FloatArray | None = None) -> FloatArray:
+        """Zone points in the tip frame with the relative range-bias correction ``b`` (a 1-vector) applied."""
+        if bias is None:
+            return self.p_tip
+        return self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
+
+    def evaluate(
+        self,
+        xyyaw: FloatArray,
+        z: float,
+        R_tilt: FloatArray,
+        C: FloatArray,
+        D: FloatArray,
+        kernel: str,
+        k: float,
+        jacobians: bool = True,
+        bias: FloatArray | None = None,
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
+        """Robustified whitened residuals ``(N,)`` and Jacobians w.r.t. the base ``(N, 3)``,
+        the configuration ``(N, 6)``, the support ``(N, 6)`` and the range bias ``(N, 1)``."""
+        p_tip = self.points(bias)
+        T_mb = _T_map_base(xyyaw, z, R_tilt)
+        R_mb = T_mb[:3, :3]
+        p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
+        p_b = p_d @ C[:3, :3].T + C[:3, 3]  # base frame
+        p_m = p_b @ R_mb.T + T_mb[:3, 3]
+        e = np.einsum("ni,ni->n", self.n, p_m - self.q) / self.s
+        e_rob, de = robust_transform(e, kernel, k)
+        out_const = np.sqrt(2.0 * robust_loss(self.gate_e, kernel, k))
+        res = np.where(self.inlier, e_rob, out_const)
+        if not jacobians:
+            return res, None, None, None, None
+        # rows n^T J of point_jacobians, without forming the (N, 3, 6) blocks:
+        # n^T R [-[p]x, I] = [p x (R^T n), R^T n]
+        w = np.where(self.inlier, de / self.s, 0.0)[:, None]
+        c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
+        a = self.n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
+        pp = p_b @ R_tilt.T
+        Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
+        b = self.n @ (R_mb @ C[:3, :3])  # (R_mb R_C)^T n
+        Hc = np.concatenate([np.cross(p_d, b), b], axis=1) * w
+        bd = b @ D[:3, :3]
+        Hd = np.concatenate([np.cross(p_tip, bd), bd], axis=1) * w
+        g = -np.einsum("ni,ni->n", bd, self.v_tip)[:, None] * w
+        Hbias = g * self.d[:, None]
+        return res, Hb, Hc, Hd, Hbias
+
+
+def make_sample_factor(
+    meas: SampleMeasurement,
+    key_base: int,
+    key_conf: int,
+    key_rig: int | None,
+    key_bias: int | None,
+    z: float,
+    R_tilt: FloatArray,
+    kernel: str,
+    k: float,
+) -> object:
+    """One ``gtsam.CustomFactor`` with the stacked residuals of a sample (unit noise: whitened inside)."""
+    import gtsam
+
+    keys = [key_base, key_conf] + [kk for kk in (key_rig, key_bias) if kk is not None]
+    eye = np.eye(4)
+
+    def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
+        P = values.atPose2(key_base)  # type: ignore[attr-defined]
+        xyyaw = np.array([P.x(), P.y(), P.theta()])
+        C = values.atPose3(key_conf).matrix()  # type: ignore[attr-defined]
+        D = values.atPose3(key_rig).matrix() if key_rig is not None else eye  # type: ignore[attr-defined]
+        bias = values.atVector(key_bias) if key_bias is not None else None  # type: ignore[attr-defined]
+        res, Hb, Hc, Hd, Hbias = meas.evaluate(xyyaw, z, R_tilt, C, D, kernel, k, jacobians=H is not None, bias=bias)
+        if H is not None:
+            H[0] = Hb
+            H[1] = Hc
+            i = 2
+            if key_rig is not None:
+                H[i] = Hd
+                i += 1
+            if key_bias is not None:
+                H[i] = Hbias
+        return res
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(meas.size), keys, error)

@@ -1,0 +1,195 @@
+"""The beam model (sensor_models/beam.py): mixture validation, the per-zone probabilities
+against hand-computed values, status 255 as information, tempering, no underflow, and the
+likelihood peaking at the truth on mesh and point-cloud maps."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from sensor_models.beam import BeamMixture, BeamModel, NO_TARGET_STATUS, load_sensor_model_toml
+from sensor_models.uncertainty import RangeUncertainty
+from tofloc.errors import FormatError, ParameterError
+from tofloc.maps import Map
+from tofloc.problem import Prior, Problem
+from tofloc.rig import Rig, Sensor
+from tofloc.testing import easy_problem
+
+
+# -- the [beam] table -----------------------------------------------------------------------
+def test_mixture_weights_must_sum_to_one() -> None:
+    with pytest.raises(ParameterError, match="sum to 1"):
+        BeamMixture(z_hit=0.8, z_short=0.1, z_max=0.1, z_rand=0.1)
+    with pytest.raises(ParameterError, match="lambda_short"):
+        BeamMixture(lambda_short=0.0)
+    with pytest.raises(ParameterError, match="z_rand"):
+        BeamMixture(z_hit=0.9, z_short=0.05, z_max=0.05, z_rand=0.0)
+    m = BeamMixture(z_hit=0.7, z_short=0.1, z_max=0.1, z_rand=0.1, lambda_short=3.0)
+    assert BeamMixture.from_dict(m.to_dict()) == m
+
+
+def test_toml_is_validated_at_load_time(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[beam]\nz_hit = 0.9\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n")
+    with pytest.raises(FormatError) as e:
+        load_sensor_model_toml(bad)
+    assert "bad.toml" in str(e.value) and "[beam]" in str(e.value) and "sum to 1" in str(e.value)
+    unknown = tmp_path / "unknown.toml"
+    unknown.write_text("[beam]\nz_hits = 0.9\n")
+    with pytest.raises(FormatError, match=r"\[beam\]\.z_hits"):
+        load_sensor_model_toml(unknown)
+    empty = tmp_path / "empty.toml"
+    empty.write_text("[other]\na = 1\n")
+    with pytest.raises(FormatError, match="uncertainty"):
+        load_sensor_model_toml(empty)
+    good = tmp_path / "good.toml"
+    good.write_text(
+        "[uncertainty]\nsigma_slope = 0.03\nbias_offset = 0.002\n"
+        "[beam]\nz_hit = 0.7\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n"
+    )
+    params = load_sensor_model_toml(good)
+    assert params["mixture"]["z_hit"] == 0.7 and params["mixture"]["lambda_short"] == 2.0
+    assert params["uncertainty"]["sigma_slope"] == 0.03 and params["uncertainty"]["bias_offset"] == 0.002
+    model = BeamModel(**params)  # the loaded tables build a model
+    assert model.mixture["z_rand"] == 0.1
+
+
+def test_model_parameters_are_validated() -> None:
+    with pytest.raises(ParameterError, match="temper"):
+        BeamModel(temper=0.0)
+    with pytest.raises(ParameterError, match="sub_rays"):
+        BeamModel(sub_rays=7)
+    with pytest.raises(ParameterError, match="sum to 1"):
+        BeamModel(mixture={"z_hit": 0.5, "z_short": 0.1, "z_max": 0.1, "z_rand": 0.1, "lambda_short": 1.0})
+    with pytest.raises(ParameterError, match="unknown key"):
+        BeamModel(uncertainty={"sigma": 0.1})
+
+
+# -- one wall, two zones: hand-computed probabilities ------------------------------------------
+WALL_Z = 0.40  # a wall at z = 0.4 m, facing down, under the sensor looking up along +z
+
+
+def _two_zone_problem(distance_m: list[float], status: list[int]) -> Problem:
+    wall = Map.from_mesh(
+        [[-1, -1, WALL_Z], [1, -1, WALL_Z], [1, 1, WALL_Z], [-1, 1, WALL_Z]], [[0, 2, 1], [0, 3, 2]], source="wall"
+    )
+    # zone 0 looks straight at the wall; zone 1 looks sideways (+x), past it: no target
+    sensor = Sensor(name="s", resolution=(1, 2), zone_directions=np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), distance="radial")
+    rig = Rig((sensor,))
+    prior = Prior(mean=np.zeros(3), sigma=np.array([0.1, 0.1, 0.1]), z=0.0)
+    return Problem(
+        rig=rig,
+        distance_m=np.array([[distance_m]]),
+        status=np.array([[status]], dtype=np.uint8),
+        T_base_tip=np.eye(4)[None],
+        map=wall,
+        prior=prior,
+    )
+
+
+def test_zone_probabilities_match_the_formula() -> None:
+    mix = BeamMixture(z_hit=0.7, z_short=0.1, z_max=0.05, z_rand=0.15, lambda_short=4.0)
+    unc = RangeUncertainty(sigma_slope=0.0, sigma_floor=0.01, bias_offset=0.003)
+    z = 0.415
+    p = _two_zone_problem([z, np.nan], [5, NO_TARGET_STATUS])
+    bound = BeamModel(mixture=mix.to_dict(), uncertainty=unc.to_dict(), temper=1.0).bind(p)
+    ll = bound.zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0]
+    r = 4.0
+    # zone 0 lies on the boresight: an inner zone (the off-axis zone 1 is the edge one)
+    sigma = 0.01
+    mu = WALL_Z + 0.003
+    mass = norm.cdf((r - mu) / sigma) - norm.cdf(-mu / sigma)
+    p_hit = norm.pdf(z, mu, sigma) / mass
+    p_short = 4.0 * math.exp(-4.0 * z) / (1 - math.exp(-4.0 * WALL_Z)) if z < WALL_Z else 0.0
+    expected0 = mix.z_hit * p_hit + mix.z_short * p_short + mix.z_rand / r
+    assert ll[0] == pytest.approx(math.log(expected0), abs=1e-5)  # float32 ray casting
+    # zone 1 expects nothing and saw nothing: z_max + z_hit
+    assert ll[1] == pytest.approx(math.log(mix.z_max + mix.z_hit), rel=1e-12)
+
+
+def test_no_return_is_information() -> None:
+    """Status 255 where the wall is expected scores z_max, far below a zone expecting nothing."""
+    mix = BeamMixture()
+    p = _two_zone_problem([np.nan, np.nan], [NO_TARGET_STATUS, NO_TARGET_STATUS])
+    ll = BeamModel(temper=1.0).bind(p).zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0]
+    assert ll[0] == pytest.approx(math.log(mix.z_max))
+    assert ll[1] == pytest.approx(math.log(mix.z_max + mix.z_hit))
+    # a short valid reading where nothing is expected: only z_short and z_rand explain it
+    p2 = _two_zone_problem([0.4, 0.3], [5, 5])
+    ll2 = BeamModel(temper=1.0).bind(p2).zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0]
+    lam, r = mix.lambda_short, 4.0
+    miss = mix.z_short * lam * math.exp(-lam * 0.3) / (1 - math.exp(-lam * r)) + mix.z_rand / r
+    assert ll2[1] == pytest.approx(math.log(miss), rel=1e-9)
+    # an invalid status (neither a reading nor "no target") is dropped
+    p3 = _two_zone_problem([0.4, 0.3], [5, 12])
+    assert BeamModel(temper=1.0).bind(p3).zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0, 1] == 0.0
+
+
+def test_tempering_scales_the_sum_and_no_underflow() -> None:
+    p, truth = easy_problem(n_samples=4)
+    poses = np.stack([truth, truth + [0.3, -0.3, 1.0]])  # the second is far off: outside the frame
+    full = BeamModel(temper=1.0).bind(p)
+    half = BeamModel(temper=0.5).bind(p)
+    for k in range(4):
+        a, b = full.log_likelihood(poses, k), half.log_likelihood(poses, k)
+        np.testing.assert_allclose(b, 0.5 * a, rtol=1e-12)
+        assert np.all(np.isfinite(a)), a
+        np.testing.assert_allclose(a, full.zone_log_likelihood(poses, k).sum(axis=(1, 2)), rtol=1e-12)
+    total_far = sum(full.log_likelihood(poses, k)[1] for k in range(4))
+    assert np.isfinite(total_far) and total_far < -500  # would underflow as a product of probabilities
+
+
+@pytest.mark.parametrize("kind", ["cloud", "mesh"])
+def test_likelihood_peaks_at_the_truth(kind: str) -> None:
+    p, truth = easy_problem(n_samples=2)
+    if kind == "mesh":
+        import dataclasses
+
+        p = dataclasses.replace(p, map=Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y")))
+    bound = BeamModel(temper=1.0).bind(p)
+    offsets = np.array([[0, 0, 0], [0.01, 0, 0], [-0.01, 0, 0], [0, 0.01, 0], [0, -0.01, 0], [0, 0, 0.02], [0, 0, -0.02]])
+    ll = bound.log_likelihood(truth + offsets, 0)
+    assert np.argmax(ll) == 0, ll
+    assert np.all(ll[0] - ll[1:] > 5.0), ll[0] - ll[1:]
+    # the expected readings at the truth reproduce the noise-free data
+    expected, frac = bound.expected(truth[None], 0)
+    v = p.valid[0]
+    assert np.nanmax(np.abs(expected[0][v] - p.distance_m[0][v])) < 2e-3
+    assert np.all(frac[0][v] == 1.0)
+
+
+def test_footprint_sub_rays_agree_on_walls() -> None:
+    p, truth = easy_problem(n_samples=1)
+    e1, f1 = BeamModel(sub_rays=1).bind(p).expected(truth[None], 0)
+    e3, f3 = BeamModel(sub_rays=3).bind(p).expected(truth[None], 0)
+    both = (f1[0] == 1) & (f3[0] == 1)
+    assert both.sum() > 100
+    # a zone's mean depth over its footprint equals its central depth on a plane, to within curvature of the grid
+    assert np.median(np.abs(e1[0][both] - e3[0][both])) < 2e-3
+    assert set(np.unique(f3)) <= {i / 9 for i in range(10)}
+
+
+def test_cli_merges_a_calibrated_file_into_the_estimators(tmp_path: Path) -> None:
+    from tofloc.cli.cmd_localize import with_sensor_model_file
+
+    f = tmp_path / "model.toml"
+    f.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.6\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.2\nlambda_short = 2.0\n")
+    params, note = with_sensor_model_file("beam_pf", {"n_particles": 10}, f)
+    assert params["n_particles"] == 10
+    assert params["sensor_model_params"]["mixture"]["z_rand"] == 0.2
+    assert params["sensor_model_params"]["uncertainty"]["sigma_slope"] == 0.03
+    assert "[uncertainty], [beam]" in note
+    lf, _ = with_sensor_model_file("likelihood_field_pf", {}, f)
+    assert set(lf["sensor_model_params"]) == {"uncertainty"}
+    icp, note = with_sensor_model_file("icp_pf", {}, f)
+    assert icp["sensor_model_params"] == {} and "uses nothing" in note
+    with pytest.raises(ParameterError, match="both"):
+        with_sensor_model_file("beam_pf", {"sensor_model_params": {"mixture": BeamMixture().to_dict()}}, f)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[beam]\nz_hit = 0.6\n")
+    with pytest.raises(FormatError, match="sum to 1"):
+        with_sensor_model_file("beam_pf", {}, bad)

@@ -1,0 +1,226 @@
+"""The GTSAM smoother: analytic Jacobians vs numerical ones, robust kernels vs GTSAM's,
+batch vs ISAM2, residual kinds, wrong-basin recovery, configuration correction, errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from estimators.gtsam_factors import SampleMeasurement, make_sample_factor, robust_loss, robust_transform  # noqa: E402
+from estimators.gtsam_smoother import GTSAMSmoother  # noqa: E402
+from tofloc import frames  # noqa: E402
+from tofloc.errors import ParameterError  # noqa: E402
+from tofloc.problem import Problem  # noqa: E402
+from tofloc.testing import easy_problem  # noqa: E402
+
+
+def _pose_err(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return float(np.hypot(*(pose[:2] - truth[:2]))), math.degrees(abs(float(frames.wrap_angle(pose[2] - truth[2]))))
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy"])
+def test_robust_kernels_match_gtsam_and_their_derivative(kernel: str) -> None:
+    k = 1.7
+    e = np.array([-9.0, -2.0, -1.7, -0.3, 0.0, 1e-5, 0.5, 1.69, 1.71, 4.0, 25.0])
+    est = (gtsam.noiseModel.mEstimator.Huber if kernel == "huber" else gtsam.noiseModel.mEstimator.Cauchy).Create(k)
+    np.testing.assert_allclose(robust_loss(e, kernel, k), [est.loss(float(x)) for x in e], rtol=1e-12, atol=1e-15)
+    r, d = robust_transform(e, kernel, k)
+    np.testing.assert_allclose(0.5 * r * r, robust_loss(e, kernel, k), rtol=1e-12, atol=1e-15)
+    assert np.all(np.sign(r[e != 0]) == np.sign(e[e != 0]))
+    h = 1e-6
+    num = (robust_transform(e + h, kernel, k)[0] - robust_transform(e - h, kernel, k)[0]) / (2 * h)
+    np.testing.assert_allclose(d, num, rtol=1e-5, atol=1e-6)
+
+
+def _random_measurement(rng: np.random.Generator, n: int = 40) -> SampleMeasurement:
+    p = rng.normal(size=(n, 3)) * 0.2
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    d = rng.uniform(0.1, 0.5, n)
+    m = SampleMeasurement(p, np.zeros((n, 3)), u, rng.uniform(0.004, 0.02, n), d, u * 1.1, np.arange(n))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    inlier = rng.random(n) > 0.1
+    m.set_association(rng.normal(size=(n, 3)) * 0.3, nrm, rng.uniform(0.005, 0.03, n), inlier,
+                      np.full(n, 3.0), np.arange(n))
+    return m
+
+
+@pytest.mark.parametrize("kernel", ["none", "huber", "cauchy"])
+def test_factor_jacobians_match_numerical_derivatives(kernel: str) -> None:
+    """The CustomFactor's analytic Jacobians (base Pose2, configuration Pose3, support
+    Pose3, range bias) against central differences through GTSAM's own retract."""
+    from gtsam.symbol_shorthand import B, C, D, X
+
+    rng = np.random.default_rng(3)
+    m = _random_measurement(rng)
+    R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, 0.05, -0.03)[:3, :3]
+    f = make_sample_factor(m, X(0), C(0), D(0), B(0), 0.5, R_tilt, kernel, 1.5)
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose2(0.03, -0.02, 0.4))
+    v.insert(C(0), gtsam.Pose3(gtsam.Rot3.RzRyRx(0.2, -0.3, 0.5), np.array([0.01, 0.02, -0.1])))
+    v.insert(D(0), gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, 0.02, 0.1), np.array([0.001, 0.0, 0.002])))
+    v.insert(B(0), np.array([0.03]))
+    lin = f.linearize(v)
+    A, b = lin.jacobian()  # whitened, b = -error
+    np.testing.assert_allclose(-b, f.unwhitenedError(v), rtol=1e-12, atol=1e-12)
+    # numerical: perturb each variable along its tangent space through retract
+    cols = []
+    h = 1e-6
+    for key, dim in ((X(0), 3), (C(0), 6), (D(0), 6), (B(0), 1)):
+        for j in range(dim):
+            dv = np.zeros(dim)
+            dv[j] = h
+            vp, vm = gtsam.Values(v), gtsam.Values(v)
+            if key == X(0):
+                vp.update(key, v.atPose2(key).retract(dv))
+                vm.update(key, v.atPose2(key).retract(-dv))
+            elif key in (C(0), D(0)):
+                vp.update(key, v.atPose3(key).retract(dv))
+                vm.update(key, v.atPose3(key).retract(-dv))
+            else:
+                vp.update(key, v.atVector(key) + dv)
+                vm.update(key, v.atVector(key) - dv)
+            cols.append((f.unwhitenedError(vp) - f.unwhitenedError(vm)) / (2 * h))
+    num = np.stack(cols, axis=1)
+    assert np.abs(num).max() > 1.0  # the test exercises non-trivial Jacobians
+    np.testing.assert_allclose(A, num, rtol=1e-5, atol=1e-5)
+    # outliers have zero rows and a constant residual
+    assert np.all(A[~m.inlier] == 0.0)
+
+
+@pytest.fixture(scope="module")
+def easy4():
+    return easy_problem(n_samples=4)
+
+
+def test_batch_converges_with_honest_covariance(easy4) -> None:
+    p, truth = easy4
+    r = GTSAMSmoother(n_starts=2).estimate(p, np.random.default_rng(0))
+    e_x, e_g = _pose_err(r.pose, truth)
+    assert e_x < 0.002 and e_g < 0.2, (e_x, e_g)
+    d = r.diagnostics
+    assert d["association_converged"] and d["covariance_source"] == "marginals" and not d["indeterminant"]
+    assert d["iterations"] > 0 and d["rounds"] >= 4 and np.isfinite(d["final_error"])
+    assert len(d["starts"]) == 2 and d["inlier_fraction"] > 0.95
+    sd = np.sqrt(np.diag(r.covariance))
+    assert 1e-4 < sd[0] < 0.01 and 1e-4 < sd[1] < 0.01 and math.radians(0.01) < sd[2] < math.radians(2.0)
+
+
+def test_isam2_matches_batch(easy4) -> None:
+    p, _ = easy4
+    a = GTSAMSmoother(n_starts=1).estimate(p, np.random.default_rng(0))
+    b = GTSAMSmoother(n_starts=1, incremental=True).estimate(p, np.random.default_rng(0))
+    # the same estimate within a tenth of its standard deviation, the same covariance within 5 %
+    sd = np.sqrt(np.diag(a.covariance))
+    diff = b.pose - a.pose
+    diff[2] = frames.wrap_angle(diff[2])
+    assert np.all(np.abs(diff) < 0.1 * sd), (diff, sd)
+    np.testing.assert_allclose(b.covariance, a.covariance, rtol=0.05, atol=1e-3 * sd.max() ** 2)
+    assert b.diagnostics["incremental"] and not a.diagnostics["incremental"]
+
+
+def test_range_residual_agrees_with_point_to_plane(easy4) -> None:
+    p, truth = easy4
+    a = GTSAMSmoother(n_starts=1).estimate(p, np.random.default_rng(0))
+    b = GTSAMSmoother(n_starts=1, residual="range").estimate(p, np.random.default_rng(0))
+    assert _pose_err(b.pose, truth)[0] < 0.003 and _pose_err(b.pose, truth)[1] < 0.3
+    assert _pose_err(a.pose, b.pose)[0] < 0.003
+    assert b.diagnostics["residual"] == "range"
+
+
+def test_multistart_escapes_a_far_prior() -> None:
+    """Prior mean 0.28 m / 40 deg off (sigma 0.2 m / 30 deg): one start from the prior mean
+    lands in a wrong basin, the scored starts find the truth."""
+    p, truth = easy_problem(n_samples=4, prior_offset=(0.2, -0.2, math.radians(40.0)))
+    p = dataclasses.replace(p, prior=dataclasses.replace(p.prior, sigma=np.array([0.2, 0.2, math.radians(30.0)])))
+    one = GTSAMSmoother(n_starts=1, n_candidates=0).estimate(p, np.random.default_rng(1))
+    multi = GTSAMSmoother(n_starts=4).estimate(p, np.random.default_rng(1))
+    e_x, e_g = _pose_err(multi.pose, truth)
+    assert e_x < 0.003 and e_g < 0.3, (e_x, e_g)
+    assert _pose_err(one.pose, truth)[0] > 0.1  # a single start from the prior mean is trapped
+    errors = [s["error"] for s in multi.diagnostics["starts"]]
+    assert multi.diagnostics["final_error"] == min(errors)
+
+
+def test_configuration_correction_absorbs_a_wrong_tip_pose(easy4) -> None:
+    """One sample's tip pose is 3 cm off. When its covariance says so (2 cm, the others
+    sub-millimetre) the smoother moves that configuration, not the base; when every
+    configuration is taken as exact, the base pays for it."""
+    p, truth = easy4
+    T = np.array(p.T_base_tip)
+    T[1, :3, 3] += np.array([0.03, 0.0, 0.0])
+    cov = np.tile(np.diag([math.radians(0.1) ** 2] * 3 + [0.0005**2] * 3), (p.n_samples, 1, 1))
+    cov[1] = np.diag([math.radians(2.0) ** 2] * 3 + [0.02**2] * 3)
+    est = GTSAMSmoother(n_starts=1, support_sigma_deg=0.0)
+    loose = est.estimate(dataclasses.replace(p, T_base_tip=T, T_base_tip_cov=cov, tip_source="knn"), np.random.default_rng(0))
+    exact = est.estimate(dataclasses.replace(p, T_base_tip=T), np.random.default_rng(0))
+    e_loose, e_exact = _pose_err(loose.pose, truth)[0], _pose_err(exact.pose, truth)[0]
+    assert e_loose < 0.001 and e_exact > 3 * e_loose, (e_loose, e_exact)
+
+
+def test_problem_covariance_is_used(easy4) -> None:
+    p, _ = easy4
+    est = GTSAMSmoother()
+    cov = np.broadcast_to(np.diag([1e-4] * 3 + [4e-6] * 3), (p.n_samples, 6, 6))
+    with_cov = dataclasses.replace(p, T_base_tip_cov=cov, tip_source="knn")
+    sig = est.config_noise(with_cov, 0).sigmas()
+    np.testing.assert_allclose(sig[:3], np.sqrt(1e-4 + math.radians(est.mocap_sigma_rot_deg) ** 2), rtol=1e-9)
+    np.testing.assert_allclose(est.config_noise(dataclasses.replace(p, tip_source="knn"), 0).sigmas()[3:], est.knn_sigma_m)
+    np.testing.assert_allclose(est.config_noise(p, 0).sigmas()[3:], est.mocap_sigma_m)
+    exact = GTSAMSmoother(exact_tip_poses=True)
+    np.testing.assert_allclose(exact.config_noise(with_cov, 0).sigmas()[3:], est.mocap_sigma_m)
+
+
+def test_indeterminant_system_is_reported_not_raised(easy4, monkeypatch) -> None:
+    p, _ = easy4
+
+    def boom(*a, **k):
+        raise RuntimeError("\nIndeterminant linear system detected while working near variable x0")
+
+    monkeypatch.setattr(gtsam, "Marginals", boom)
+    r = GTSAMSmoother(n_starts=1).estimate(p, np.random.default_rng(0))
+    assert r.diagnostics["indeterminant"] and r.diagnostics["covariance_source"].startswith("prior")
+    np.testing.assert_allclose(r.covariance, p.prior.covariance)
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [{"residual": "icp"}, {"robust": "tukey"}, {"information_scale": 1.5}, {"n_starts": 0}, {"gate_m": 0.3},
+     {"uncertainty": {"sigma_floor": -1.0}}, {"uncertainty": {"nope": 1}}, {"incremental": "yes"}, {"exact_tip_poses": 1}],
+)
+def test_bad_parameters_are_refused(kw) -> None:
+    with pytest.raises(ParameterError):
+        GTSAMSmoother(**kw)
+
+
+def test_single_plane_in_view_keeps_the_prior_where_unobservable() -> None:
+    """A sensor facing one wall (normal x) cannot see the in-plane position y: its
+    covariance stays at the prior's (0.05 m) while x shrinks to millimetres and yaw (the
+    zones' tilt against the wall) to less than half the prior's."""
+    from tofloc.maps import Map
+    from tofloc.rig import Rig, Sensor
+
+    R = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # boresight +x
+    rig = Rig((Sensor("s", T_tip_sensor=frames.se3(R, np.zeros(3))),))
+    g = np.linspace(-0.3, 0.3, 25)
+    yy, zz = np.meshgrid(g, g)
+    wall = np.stack([np.full(yy.size, 0.4), yy.ravel(), zz.ravel() + 0.3], axis=1)
+    the_map = Map.from_points(wall, normals=np.tile([-1.0, 0.0, 0.0], (wall.shape[0], 1)))
+    dist = np.full((1, 1, 64), 0.4)
+    from tofloc.problem import Prior
+
+    prior = Prior(mean=np.zeros(3), sigma=np.array([0.05, 0.05, 0.1]), z=0.3)
+    prob = Problem(rig=rig, distance_m=dist, status=np.full((1, 1, 64), 5, np.uint8), T_base_tip=np.eye(4)[None],
+                   map=the_map, prior=prior)
+    # without the support and range-scale variables (one wall cannot tell a range scale from x)
+    est = GTSAMSmoother(n_starts=1, n_candidates=0, support_sigma_deg=0.0, range_scale_sigma=0.0)
+    r = est.estimate(prob, np.random.default_rng(0))
+    sd = np.sqrt(np.diag(r.covariance))
+    assert sd[0] < 0.005 and abs(r.pose[0]) < 0.002
+    assert abs(sd[1] - 0.05) < 1e-3 and sd[2] < 0.5 * 0.1
