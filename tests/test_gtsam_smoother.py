@@ -224,3 +224,13 @@ def test_single_plane_in_view_keeps_the_prior_where_unobservable() -> None:
     sd = np.sqrt(np.diag(r.covariance))
     assert sd[0] < 0.005 and abs(r.pose[0]) < 0.002
     assert abs(sd[1] - 0.05) < 1e-3 and sd[2] < 0.5 * 0.1
+
+
+def test_bench_times_k_1_5_10() -> None:
+    from tofloc.cli.cmd_bench import bench_gtsam_smoother
+
+    p, _ = easy_problem(n_samples=10)
+    row = bench_gtsam_smoother(GTSAMSmoother(n_starts=1, n_candidates=20), p, 1)
+    assert row["update_s"] == row["k1_s"] and all(row[f"k{k}_s"] > 0 for k in (1, 5, 10))
+    assert [row[f"k{k}_work"]["starts"] for k in (1, 5, 10)] == [1, 1, 1]
+    assert row["k1_work"]["zones"] < row["k5_work"]["zones"] < row["k10_work"]["zones"]
