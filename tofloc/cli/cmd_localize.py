@@ -178,7 +178,7 @@ def _samples_option(text: str) -> int | None:
 
 @app.command()
 def localize(
-    log_path: Path = typer.Argument(..., metavar="LOG", help="Log file (format v1, HDF5)."),
+    log_path: Optional[Path] = typer.Argument(None, metavar="[LOG]", help="Log file (format v1, HDF5); omit with --port."),
     map_path: Optional[Path] = typer.Option(None, "--map", help="Map file; default: the log's `map` attribute."),
     estimator: str = typer.Option(..., "--estimator", help="Registered estimator (see `tofloc list`)."),
     samples: str = typer.Option("10", "--samples", help="Samples per trial (K), or 'all' (every sample of the pool)."),
@@ -202,8 +202,18 @@ def localize(
         None, "--sensor-model-params", metavar="MODEL.toml",
         help="Calibrated sensor model (`tofloc calibrate` output: [uncertainty] and [beam] tables).",
     ),
+    port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
+    baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
+    fmt: str = typer.Option("tofloc", "--format", help="Live: wire format (tofloc, sparkfun-csv, sparkfun-grid, st-uld)."),
+    rig_path: Optional[Path] = typer.Option(None, "--rig", help="Live: rig file (.toml/.json) or a log whose rig to use."),
+    window: int = typer.Option(10, "--window", help="Live: the estimator uses the latest N samples."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Live: stop after this many seconds."),
+    journal: Optional[Path] = typer.Option(None, "--journal", help="Live: journal of every raw line (default: beside --out)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Live: also write the captured samples as a log."),
+    timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
-    """Localize the robot base from a log with a registered estimator (paper protocol)."""
+    """Localize the robot base from a log with a registered estimator (paper protocol),
+    or live from a serial device with --port."""
     from evaluation.protocol import (
         SEED_DERIVATION,
         TIP_SOURCES,
@@ -218,6 +228,20 @@ def localize(
     from tofloc.logs import read_log
     from tofloc.maps import Map
 
+    if port is not None:
+        from tofloc.cli.live_cmd import run_live
+
+        live_params, _ = with_sensor_model_file(estimator, parse_params(param), sensor_model_params)
+        run_live(
+            port=port, baud=baud, fmt=fmt, rig_path=rig_path, map_path=map_path, kinematics_path=kinematics,
+            estimator=estimator, params=live_params, prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg,
+            prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window,
+            duration=duration, journal=journal, out=out, seed=seed, timeout=timeout,
+            valid_statuses=parse_statuses(valid_statuses),
+        )
+        return
+    if log_path is None:
+        raise ParameterError("give a LOG to localize from, or --port PORT for live localization")
     # -- options that need no file --------------------------------------------------------------
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"--tip-source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
