@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_DIR ?= demo-output
-DEMO_TRIALS ?= 10
+DEMO_TRIALS ?= 2
 
 .PHONY: demo test test-fast install syslibs clean
 

@@ -18,6 +18,7 @@ except ImportError:  # pragma: no cover - older typer on plain click
     from click import exceptions as _click_exc
 
 import typer
+from rich.markup import escape
 
 from tofloc.cli.app import app, debug_enabled, err_console
 from tofloc.errors import TofLocError
@@ -47,7 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TofLocError as e:
         if debug_enabled():
             raise
-        err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+        err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
         code = 2
     except typer.Exit as e:
         code = e.exit_code
