@@ -37,7 +37,6 @@ the mixture: :meth:`BeamMixture.from_toml`.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
@@ -46,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
 
-from sensor_models.base import BoundSensorModel, SensorModel
+from sensor_models.base import BoundSensorModel, SensorModel, params_from_table, params_from_toml, read_model_toml
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem
@@ -102,39 +101,12 @@ class BeamMixture:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<beam>") -> "BeamMixture":
         """From a ``[beam]`` table; unknown keys and bad values raise :class:`FormatError`."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise FormatError(source, f"[beam].{unknown[0]}", f"one of {sorted(known)}", "an unknown key")
-        try:
-            return cls(**dict(d))
-        except ParameterError as e:
-            raise FormatError(source, "[beam]", str(e)) from None
+        return params_from_table(cls, d, source, "beam")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "BeamMixture":
         """Read the ``[beam]`` table of a sensor-model TOML file (defaults when absent)."""
-        p = Path(path)
-        table = _read_toml(p).get("beam", {})
-        if not isinstance(table, Mapping):
-            raise FormatError(p, "[beam]", "a table")
-        return cls.from_dict(table, str(p))
-
-
-#: Largest sensor-model TOML file we read (bytes).
-MAX_TOML_BYTES = 1_000_000
-
-
-def _read_toml(p: Path) -> dict[str, Any]:
-    try:
-        size = p.stat().st_size
-        if size > MAX_TOML_BYTES:
-            raise FormatError(p, "file", f"at most {MAX_TOML_BYTES} bytes", f"{size} bytes")
-        return tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise FormatError(p, "file", "valid TOML", str(e)) from None
+        return params_from_toml(cls, path, "beam")
 
 
 def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
@@ -145,7 +117,7 @@ def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
     :class:`BeamModel` (and, ``uncertainty`` only, for the likelihood field).
     """
     p = Path(path)
-    data = _read_toml(p)
+    data = read_model_toml(p)
     out: dict[str, Any] = {}
     if "uncertainty" in data:
         out["uncertainty"] = RangeUncertainty.from_toml(p).to_dict()

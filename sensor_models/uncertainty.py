@@ -18,7 +18,6 @@ that file with ``--sensor-model-params``.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Mapping
@@ -107,26 +106,14 @@ class RangeUncertainty:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<uncertainty>") -> "RangeUncertainty":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise FormatError(source, f"[uncertainty].{unknown[0]}", f"one of {sorted(known)}", "an unknown key")
-        try:
-            return cls(**dict(d))
-        except ParameterError as e:
-            raise FormatError(source, "[uncertainty]", str(e)) from None
+        """From an ``[uncertainty]`` table; unknown keys and bad values raise :class:`FormatError`."""
+        from sensor_models.base import params_from_table
+
+        return params_from_table(cls, d, source, "uncertainty")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RangeUncertainty":
         """Read the ``[uncertainty]`` table of a sensor-model TOML file (``tofloc calibrate``'s output)."""
-        p = Path(path)
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except OSError as e:
-            raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-            raise FormatError(p, "file", "valid TOML", str(e)) from None
-        table = data.get("uncertainty", {})
-        if not isinstance(table, Mapping):
-            raise FormatError(p, "[uncertainty]", "a table")
-        return cls.from_dict(table, str(p))
+        from sensor_models.base import params_from_toml
+
+        return params_from_toml(cls, path, "uncertainty")
