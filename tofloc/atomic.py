@@ -30,6 +30,8 @@ _UMASK = _umask()
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is synced and renamed to ``path``.
 
+    The destination folder is created when missing.
+
     Examples
     --------
     >>> with atomic_path("out.npz") as tmp:          # doctest: +SKIP
@@ -37,6 +39,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     os.close(fd)
     tmp = Path(name)
