@@ -212,8 +212,7 @@ def localize(
     out: Optional[Path] = typer.Option(None, "--out", help="Live: also write the captured samples as a log."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
-    """Localize the robot base from a log with a registered estimator (paper protocol),
-    or live from a serial device with --port."""
+    """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
     from evaluation.protocol import (
         SEED_DERIVATION,
         TIP_SOURCES,
