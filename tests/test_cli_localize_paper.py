@@ -245,3 +245,24 @@ def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path
     code, _, err = _run(capsys, ["localize", str(bare), "--estimator", "icp_pf", "--tip-source", "knn",
                                  "--kinematics", str(data["knn"]), *FEW])
     assert code == 2 and "/samples/pressure_kpa" in err and len(err.strip().splitlines()) == 1
+
+
+def test_paper_calibrate_on_the_training_split(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sensor_models.uncertainty import RangeUncertainty
+
+    out = tmp_path / "cal"
+    out.mkdir()
+    for name in ("paper.h5", "paper.map.ply", "paper.cad.ply"):
+        shutil.copy(data["folder"] / name, out / name)
+    args = ["paper", "--estimators", "likelihood_field_pf", "--trials", "1", "--k-max", "1", "--seed", "3",
+            "--out", str(out), "--workers", "1", "--param", "n_particles=100", "--calibrate"]
+    code, _, err = _run(capsys, args)
+    assert code == 0, err
+    assert "calibrated sensor_model.toml" in err
+    u = RangeUncertainty.from_toml(out / "sensor_model.toml")
+    # the paper scenario's range noise is 11 % / 2.7 = 4.1 % of d, plus mounting errors: more, not less
+    assert 0.035 < u.sigma_slope < 0.10
+    doc = json.loads((out / "results.json").read_text())
+    assert set(doc["results"]) == {"likelihood_field_pf"}
+    code, _, err = _run(capsys, [*args, "--sensor-model-params", str(out / "sensor_model.toml")])
+    assert code == 2 and "not both" in err

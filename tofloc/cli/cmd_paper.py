@@ -109,6 +109,32 @@ def prepare_data(out: Path, scenario: str, seed: int) -> PaperData:
     return PaperData(log, the_map, map_path, kin, notes, report)
 
 
+def calibrate_on_training_split(data: PaperData, out: Path) -> Path:
+    """Fit the sensor model (``tofloc calibrate``'s EM) on the samples the k-NN model was
+    trained on, so that the trials (drawn from its held-out split) stay unseen; writes
+    ``out/sensor_model.toml``."""
+    import numpy as np
+
+    from sensor_models.calibration import collect_zones, fit_em, resolve_calibration_map, write_model
+    from tofloc.maps import Map
+
+    train = np.asarray(data.kinematics.train_indices)
+    if data.kinematics.log_fingerprint and not data.kinematics.matches(data.log.pressure_kpa, data.log.T_base_tip):
+        raise ParameterError("--calibrate: the k-NN model was not fit on this log, so its training split is unknown")
+    map_path = resolve_calibration_map(data.log) or data.map_path
+    with status(f"calibrating the sensor model on {train.size} training samples against {map_path.name}"):
+        zones = collect_zones(data.log.subset(train), Map.load(map_path))
+        result = fit_em(zones)
+        path = write_model(result, out / "sensor_model.toml", {"log": str(data.log.path), "samples": "k-NN training split",
+                                                                "map": str(map_path)})
+    u = result.uncertainty
+    err_console.print(
+        f"calibrated {path.name}: sigma {100 * u.sigma_slope:.2f} % d (edge x{u.edge_factor:.2f}), "
+        f"bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d", highlight=False,
+    )
+    return path
+
+
 @app.command()
 def paper(
     estimators: str = typer.Option("icp_pf", "--estimators", help="Comma-separated registered estimators."),
@@ -125,6 +151,11 @@ def paper(
     sensor_model_params: Optional[Path] = typer.Option(
         None, "--sensor-model-params", metavar="MODEL.toml",
         help="Calibrated sensor model (`tofloc calibrate` output) given to every estimator that uses one.",
+    ),
+    calibrate: bool = typer.Option(
+        False, "--calibrate",
+        help="Calibrate the sensor model (EM) on the k-NN training split (never on the trial samples), "
+        "write DIR/sensor_model.toml and give it to every estimator.",
     ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
@@ -164,6 +195,15 @@ def paper(
     data = prepare_data(out, scenario, seed)
     for note in data.notes:
         err_console.print(note, highlight=False, markup=False)
+    if calibrate:
+        if sensor_model_params is not None:
+            raise ParameterError("give either --calibrate or --sensor-model-params, not both")
+        sensor_model_params = calibrate_on_training_split(data, out)
+        for n in names:
+            est_params[n], note = with_sensor_model_file(n, params, sensor_model_params)
+            if note:
+                err_console.print(note, highlight=False, markup=False)
+        classes = {n: load_estimator(n, est_params[n]) for n in names}
     k_values = list(range(1, k_max + 1))
     pool = sample_pool(data.log, data.kinematics, k_max)
     err_console.print(f"samples: {pool.note}", highlight=False)
