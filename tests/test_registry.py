@@ -1,0 +1,71 @@
+"""Plug-in registry: built-ins, entry points (lazy), install hints, broken plug-ins skipped."""
+
+from __future__ import annotations
+
+import sys
+import types
+import warnings
+from importlib import metadata
+
+import pytest
+
+from tofloc.cli import main
+from tofloc.errors import PluginError
+from tofloc.registry import ESTIMATORS, SENSOR_MODELS, Registry
+
+
+def test_builtins_are_listed_without_importing_them() -> None:
+    r = Registry("tofloc.test_group_nothing", {"a": "some_module_never_imported:Thing"})
+    assert r.names() == ["a"]
+    assert "some_module_never_imported" not in sys.modules
+    assert {"icp_pf", "beam_pf", "likelihood_field_pf", "gtsam_smoother"} <= set(ESTIMATORS.names())
+    assert {"icp_score", "beam", "likelihood_field"} <= set(SENSOR_MODELS.names())
+
+
+def test_missing_dependency_gives_an_install_hint() -> None:
+    r = Registry("tofloc.test_group_nothing", {"needs_gtsam": "gtsam_is_not_this_module_xyz:Foo"})
+    with pytest.raises(PluginError, match="needs the missing module 'gtsam_is_not_this_module_xyz'.*pip install"):
+        r.load("needs_gtsam")
+    with pytest.raises(PluginError, match="unknown .* 'nope'; available: needs_gtsam"):
+        r.load("nope")
+
+
+def test_broken_plugin_warns_and_is_skipped() -> None:
+    mod = types.ModuleType("tofloc_test_plugin_mod")
+    mod.Good = type("Good", (), {})
+    sys.modules["tofloc_test_plugin_mod"] = mod
+    try:
+        r = Registry("tofloc.test_group_nothing", {"good": "tofloc_test_plugin_mod:Good", "bad": "tofloc_test_plugin_mod:Missing"})
+        with pytest.warns(UserWarning, match="skipping .* 'bad'"):
+            loaded = dict(r.iter_loaded())
+        assert list(loaded) == ["good"] and loaded["good"] is mod.Good
+    finally:
+        del sys.modules["tofloc_test_plugin_mod"]
+
+
+def test_entry_points_are_found(monkeypatch) -> None:
+    mod = types.ModuleType("tofloc_test_ep_mod")
+    mod.MyModel = type("MyModel", (), {})
+    sys.modules["tofloc_test_ep_mod"] = mod
+    ep = metadata.EntryPoint(name="my_model", value="tofloc_test_ep_mod:MyModel", group="tofloc.sensor_models")
+    real = metadata.entry_points
+
+    def fake(**kw):
+        return [ep] if kw.get("group") == "tofloc.sensor_models" else real(**kw)
+
+    monkeypatch.setattr(metadata, "entry_points", fake)
+    try:
+        r = Registry("tofloc.sensor_models", {"icp_score": "sensor_models.icp_score:ICPScore"})
+        assert r.names() == ["icp_score", "my_model"]
+        assert r.load("my_model") is mod.MyModel
+        assert r.spec("my_model").origin != "builtin"
+    finally:
+        del sys.modules["tofloc_test_ep_mod"]
+
+
+def test_tofloc_list(capsys) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "icp_pf" in out and "gtsam_smoother" in out and "likelihood_field" in out
