@@ -76,7 +76,7 @@ from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement, make_sam
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc import frames
 from tofloc.errors import ParameterError
-from tofloc.problem import Estimate, Estimator, Problem, check_in, check_positive
+from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 
 __all__ = ["GTSAMSmoother", "RESIDUALS", "DEFAULT_KNN_SIGMA_M", "DEFAULT_KNN_SIGMA_ROT_DEG"]
 
@@ -191,9 +191,7 @@ class GTSAMSmoother(Estimator):
         if self.gate_start_m < self.gate_m:
             raise ParameterError(f"gate_start_m ({self.gate_start_m}) must be >= gate_m ({self.gate_m})")
         for n, lo, hi in (("n_starts", 1, 1000), ("n_candidates", 0, 100_000), ("max_rounds", 1, 1000), ("lm_max_iterations", 1, 10000), ("gate_rounds", 0, 100)):
-            v = getattr(self, n)
-            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or not lo <= v <= hi:
-                raise ParameterError(f"{n} must be an integer in [{lo}, {hi}], got {v!r}")
+            check_int(n, getattr(self, n), lo, hi)
         for n in ("incremental", "exact_tip_poses"):
             if not isinstance(getattr(self, n), bool):
                 raise ParameterError(f"{n} must be true or false, got {getattr(self, n)!r}")

@@ -42,7 +42,7 @@ from estimators.resampling import RESAMPLERS, effective_sample_size, normalize_l
 from sensor_models.base import SensorModel
 from tofloc import frames
 from tofloc.errors import ParameterError
-from tofloc.problem import Estimate, Estimator, Problem, check_in, check_positive
+from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 
 __all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step"]
 
@@ -141,8 +141,7 @@ class ParticleFilter(Estimator):
     support_yaw_sigma_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.n_particles, (int, np.integer)) or isinstance(self.n_particles, bool) or not 1 <= self.n_particles <= 10_000_000:
-            raise ParameterError(f"n_particles must be an integer in [1, 1e7], got {self.n_particles!r}")
+        check_int("n_particles", self.n_particles, 1, 10_000_000)
         check_in("resampling", self.resampling, RESAMPLERS)
         check_positive("resample_threshold", self.resample_threshold, strict=False)
         if self.resample_threshold > 1.0:
@@ -155,8 +154,7 @@ class ParticleFilter(Estimator):
         check_positive("anneal_ess", self.anneal_ess, strict=False)
         if self.anneal_ess >= 1.0:
             raise ParameterError(f"anneal_ess must be in [0, 1), got {self.anneal_ess!r}")
-        if not isinstance(self.max_stages, (int, np.integer)) or isinstance(self.max_stages, bool) or not 1 <= self.max_stages <= 1000:
-            raise ParameterError(f"max_stages must be an integer in [1, 1000], got {self.max_stages!r}")
+        check_int("max_stages", self.max_stages, 1, 1000)
         if not isinstance(self.sensor_model_params, Mapping):
             raise ParameterError(f"sensor_model_params must be a mapping, got {type(self.sensor_model_params).__name__}")
         model = self.make_sensor_model()  # validates the model's name and parameters now

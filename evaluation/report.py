@@ -106,13 +106,20 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         v = _values(records, key)
         out[key] = summarize(v) if np.isfinite(v).any() else None
     out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    _add_nees_and_crlb(out, records)
+    return out
+
+
+def _add_nees_and_crlb(
+    out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
+) -> None:
+    """Add ``nees`` and ``crlb`` summaries to ``out`` where the trials define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
-        out["nees"] = summarize(nees, keys=("mean", "n"))
+        out["nees"] = summarize(nees, keys=nees_keys)
     bound = crlb_summary(records)
     if bound is not None:
         out["crlb"] = bound
-    return out
 
 
 def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:
@@ -133,24 +140,14 @@ def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int])
             entry[key] = summarize(_values(recs, key))
             if entry[key]["mean"] is not None:
                 means[key].append(entry[key]["mean"])
-        nees = _values(recs, "nees")
-        if np.isfinite(nees).any():
-            entry["nees"] = summarize(nees, keys=("mean", "n"))
-        bound = crlb_summary(recs)
-        if bound is not None:
-            entry["crlb"] = bound
+        _add_nees_and_crlb(entry, recs)
         per_k[str(int(k))] = entry
     overall: dict[str, Any] = {"n": len(records)}
     for key in ERROR_KEYS:
         overall[key] = summarize(_values(records, key))
         overall[key]["std_of_per_k_means"] = json_float(np.std(means[key])) if means[key] else None
-    nees = _values(records, "nees")
-    if np.isfinite(nees).any():
-        overall["nees"] = summarize(nees, keys=("mean", "median", "n"))
+    _add_nees_and_crlb(overall, records, nees_keys=("mean", "median", "n"))
     overall["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
-    bound = crlb_summary(records)
-    if bound is not None:
-        overall["crlb"] = bound
     return {"per_k": per_k, "overall": overall}
 
 

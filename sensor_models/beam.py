@@ -48,7 +48,7 @@ from scipy.special import ndtr
 from sensor_models.base import BoundSensorModel, SensorModel, params_from_table, params_from_toml, read_model_toml
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import FormatError, ParameterError
-from tofloc.problem import Problem
+from tofloc.problem import Problem, check_int
 
 __all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "ZoneGeometry", "load_sensor_model_toml"]
 
@@ -274,8 +274,7 @@ class BeamModel(SensorModel):
         _as_mixture(self.mixture)
         _as_uncertainty(self.uncertainty, "beam")
         check_temper("beam", self.temper)
-        if not isinstance(self.sub_rays, (int, np.integer)) or isinstance(self.sub_rays, bool) or not 1 <= self.sub_rays <= 5:
-            raise ParameterError(f"beam.sub_rays must be an integer in [1, 5], got {self.sub_rays!r}")
+        check_int("beam.sub_rays", self.sub_rays, 1, 5)
 
     def bind(self, problem: Problem) -> "BoundBeamModel":
         return BoundBeamModel(self, problem)

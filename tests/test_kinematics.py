@@ -29,6 +29,9 @@ from tofloc.kinematics import (
 )
 from tofloc.logs import Log, read_log, write_log
 from tofloc.rig import Rig, Sensor
+from tofloc.simulation.robot import nominal_state, tip_poses
+from tofloc.simulation.robot import protocol_pressures as sim_protocol_pressures
+from tofloc.simulation.scenario import Protocol, Robot
 
 ACTUATORS = ("chamber1", "chamber2", "chamber3")
 
@@ -36,41 +39,19 @@ ACTUATORS = ("chamber1", "chamber2", "chamber3")
 # -- synthetic robot ---------------------------------------------------------------------
 
 
-def cc_poses(P: np.ndarray, length: float = 0.2) -> np.ndarray:
-    """Constant-curvature T_base_tip (N, 4, 4) for pressures (N, 3): the tip bends away
-    from the pressurized chambers (40 deg at 18 kPa in one chamber) and the arc lengthens
-    with the mean pressure."""
-    ang = np.radians([90.0, 210.0, 330.0])
-    u = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
-    v = -(np.radians(40.0) / 18.0) * (P @ u)
-    beta = np.linalg.norm(v, axis=1)
-    theta = np.arctan2(v[:, 1], v[:, 0])
-    L = length + 0.0005 * P.mean(axis=1)
-    small = beta < 1e-9
-    safe = np.where(small, 1.0, beta)
-    lateral = np.where(small, 0.5 * L * beta, L * (1.0 - np.cos(safe)) / safe)
-    drop = np.where(small, L, L * np.sin(safe) / safe)
-    t = np.stack([lateral * np.cos(theta), lateral * np.sin(theta), -drop], axis=-1)
-    axis = np.stack([np.sin(theta), -np.cos(theta), np.zeros_like(theta)], axis=-1)
-    return frames.se3(frames.matrix_from_rotvec(axis * beta[:, None]), t)
+#: The synthetic robot: the simulator's constant-curvature model (40 deg at 18 kPa in one
+#: chamber), on a 20 cm arm with chambers at 90/210/330 deg, lengthening 0.5 mm/kPa.
+CC_ROBOT = Robot(length=0.2, chamber_angles_deg=(90.0, 210.0, 330.0), elongation_per_kpa=0.0005)
+
+
+def cc_poses(P: np.ndarray) -> np.ndarray:
+    """Constant-curvature T_base_tip (N, 4, 4) for pressures (N, 3), noise-free."""
+    return tip_poses(nominal_state(CC_ROBOT, P))
 
 
 def protocol_pressures() -> np.ndarray:
     """The paper's protocol for 3 chambers: 3 x 16 single + 3 x 256 pair postures (816)."""
-    levels = np.arange(3.0, 19.0)
-    rows = []
-    for c in range(3):
-        p = np.zeros((levels.size, 3))
-        p[:, c] = levels
-        rows.append(p)
-    a, b = np.meshgrid(levels, levels, indexing="ij")
-    for i in range(3):
-        for j in range(i + 1, 3):
-            p = np.zeros((a.size, 3))
-            p[:, i] = a.ravel()
-            p[:, j] = b.ravel()
-            rows.append(p)
-    return np.concatenate(rows)
+    return sim_protocol_pressures(Protocol(), 3)
 
 
 def mocap(T: np.ndarray, rng: np.random.Generator, pos_sigma: float = 0.004, rot_sigma_deg: float = 0.5) -> np.ndarray:

@@ -269,3 +269,9 @@ def check_in(name: str, value: Any, allowed: Iterable[Any]) -> None:
     allowed = list(allowed)
     if value not in allowed:
         raise ParameterError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def check_int(name: str, value: Any, lo: int, hi: int) -> None:
+    """Raise :class:`ParameterError` unless ``value`` is an integer (not a bool) in ``[lo, hi]``."""
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not lo <= value <= hi:
+        raise ParameterError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
