@@ -72,6 +72,32 @@ def test_distance_grid_within_is_exact() -> None:
     np.testing.assert_array_equal(planar, (d2 < 0.05).reshape(50, 400))
 
 
+@pytest.mark.parametrize("chunk_pairs", [131_072, 1_000])
+def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs) -> None:
+    """The two-level count equals a KD-tree's, also with crowded cells (a dense cluster:
+    rows answered by the KD-tree), points leaving the grid and several chunks of points."""
+    import tofloc.distance_grid as dg
+
+    monkeypatch.setattr(dg, "CHUNK_PAIRS", chunk_pairs)
+    rng = np.random.default_rng(11)
+    walls = rng.random((1500, 3)) * np.array([1.0, 1.0, 0.0]) + np.array([0, 0, 0.2])  # a floor
+    cluster = 0.3 + rng.normal(size=(300, 3)) * 0.004  # crowded cells
+    pts = np.concatenate([walls, cluster, rng.random((200, 3))])
+    g = DistanceGrid(pts, 0.005, 0.04)
+    assert g._crowded.any()
+    cloud = rng.random((700, 3)) * np.array([1.6, 1.6, 1.0]) - np.array([0.3, 0.3, 0.2])
+    cloud[:50, 2] = 0.2 + rng.normal(size=50) * 0.03  # near the floor: undecided cells
+    poses = np.column_stack([rng.normal(0.1, 0.3, 400), rng.normal(0.1, 0.3, 400), rng.uniform(-np.pi, np.pi, 400)])
+    count = g.count_within_planar(cloud, poses)
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    moved = np.stack([c * cloud[None, :, 0] - s * cloud[None, :, 1] + poses[:, :1], s * cloud[None, :, 0] + c * cloud[None, :, 1] + poses[:, 1:2], np.broadcast_to(cloud[None, :, 2], (400, 700))], -1)
+    d, _ = cKDTree(pts).query(moved.reshape(-1, 3))
+    np.testing.assert_array_equal(count, (d < 0.04).reshape(400, 700).sum(axis=1))
+    np.testing.assert_array_equal(count, g.within_planar(cloud, poses, 0.04).sum(axis=1))
+    assert count.max() > count.min() and g._sub_built.any()  # the second level was used
+    assert g.count_within_planar(cloud[:0], poses).tolist() == [0] * 400
+
+
 @pytest.mark.parametrize("kw", [{"max_correspondence": 0.0}, {"voxel_size": -1.0}, {"crop_margin": 20.0}, {"log_floor": 1.0}])
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):

@@ -8,6 +8,16 @@ stores, at every cell centre ``c``, the distance ``d_c`` to the nearest map poin
 the cell satisfies ``|d(p) - d_c| <= h sqrt(3) / 2``; so the test is decided by one
 array lookup except in a thin shell around the ``d = r`` surface, where the exact
 KD-tree query is made. Results are identical to the KD-tree's.
+
+The particle filter's question is narrower: for a cloud ``(P, 3)`` and ``M`` planar poses
+(x, y, yaw; the height, roll and pitch are known and already applied), how many moved
+points are inliers per pose (:meth:`DistanceGrid.count_within_planar`). A planar pose
+does not change a point's z, so each point's z layer is fixed: the per-cell decisions
+are stored z-major and the points are processed in chunks, so that a chunk's lookups
+stay in one cache-resident slab of layers. Points landing in an undecided cell go to a
+second level: the cell split into ``SUB^3`` sub-cells, each with its own decision
+(built lazily from the cell's candidate map points, the first time a cell is hit), and
+only the points still undecided there get the exact distance test.
 """
 
 from __future__ import annotations
@@ -24,6 +34,11 @@ __all__ = ["DistanceGrid", "distance_grid_for"]
 
 #: Largest grid (cells) we build; beyond it the cell size grows.
 MAX_CELLS = 8_000_000
+#: Sub-cells per axis of an undecided cell (second level of :meth:`DistanceGrid.count_within_planar`).
+SUB = 4
+#: Target number of (point, pose) pairs per chunk of :meth:`DistanceGrid.count_within_planar`
+#: (its temporaries, ~13 bytes a pair, then stay in the L2 cache).
+CHUNK_PAIRS = 131_072
 
 
 class DistanceGrid:
@@ -57,19 +72,21 @@ class DistanceGrid:
         d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack)
         self.d = d.astype(np.float32).reshape(self.shape)
         self.slack = slack
-        # Cells whose test at radius r_max is not decided by d_c alone keep the list of
-        # map points that can be within r_max of any point of the cell: the exact test
-        # there is a min over a handful of candidates instead of a KD-tree query.
+        # Cells whose test at radius r_max is not decided by d_c alone get a row: the list
+        # of map points that can be within r_max of any point of the cell (the exact test
+        # there is a min over a handful of candidates instead of a KD-tree query). Rows
+        # are numbered z-major (layer, x, y), the order in which count_within_planar meets them.
         margin = slack + 1e-3 * self.cell
-        amb = np.flatnonzero(np.abs(d - self.r_max) <= margin + 1e-12)
-        self._cand_row = np.full(d.size + 0, -1, dtype=np.int32)
+        amb_mask = (np.abs(d - self.r_max) <= margin + 1e-12).reshape(self.shape)
+        zz, xx, yy = np.nonzero(np.transpose(amb_mask, (2, 0, 1)))
+        amb = np.ravel_multi_index((xx, yy, zz), self.shape)
+        self._cand_row = np.full(d.size, -1, dtype=np.int32)
         self._cand_row[amb] = np.arange(amb.size, dtype=np.int32)
         lists = self.tree.query_ball_point(centres[amb], self.r_max + margin + 1e-9, return_sorted=False)
         lens_all = np.fromiter((len(x) for x in lists), dtype=np.intp, count=amb.size)
-        # cap the width at the 99th percentile; the rare crowded cell falls back to the KD-tree
+        # cap the width at the 99th percentile; the rare crowded row is answered by the KD-tree
         width = int(max(1, np.percentile(lens_all, 99))) if amb.size else 1
-        crowded = lens_all > width
-        self._cand_row[amb[crowded]] = -1
+        self._crowded = lens_all > width
         lists = [x if len(x) <= width else [] for x in lists]
         far = np.full(3, 1e9)
         table = np.tile(far, (amb.size, width, 1))
@@ -79,11 +96,21 @@ class DistanceGrid:
             rows = np.repeat(np.arange(amb.size), lens)
             cols = np.arange(flat_idx.size) - np.repeat(np.cumsum(lens) - lens, lens)
             table[rows, cols] = self.points[flat_idx]
-        self._cand = table
+        #: candidates, coordinate-major ``(3, rows, width)``: one contiguous (rows, width)
+        #: table per axis, so that a gather of rows is three fast ``np.take`` calls
+        self._cand = np.ascontiguousarray(table.transpose(2, 0, 1))
         # per-cell decision at radius r_max: 0 = no point within, 1 = surely within,
         # 2 = ambiguous (exact test needed); padded with a border of 0 cells
         state = np.where(d + margin < self.r_max, 1, np.where(d - margin < self.r_max, 2, 0)).astype(np.uint8)
         self._state = np.pad(state.reshape(self.shape), 1, constant_values=0)
+        # the same decisions and rows, padded, z-major (layer, x, y), flattened
+        self._state_z = np.ascontiguousarray(np.transpose(self._state, (2, 0, 1))).ravel()
+        rows_pad = np.pad(self._cand_row.reshape(self.shape), 1, constant_values=-1)
+        self._row_z = np.ascontiguousarray(np.transpose(rows_pad, (2, 0, 1))).ravel()
+        #: second level: per row, the SUB^3 sub-cells' decisions (built lazily), flattened
+        self._sub = np.zeros(amb.size * SUB**3, dtype=np.uint8)
+        self._sub_built = np.zeros(amb.size, dtype=bool)
+        self._row_centre = centres[amb]  # (rows, 3)
 
     def _cells(self, q: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
         """Flat cell index and inside-the-grid mask of points ``(N, 3)``."""
@@ -168,20 +195,146 @@ class DistanceGrid:
             out[m, k] = self._exact_within(q, radius)
         return out
 
+    def count_within_planar(self, points: NDArray[np.float64], poses: NDArray[np.float64]) -> NDArray[np.intp]:
+        """Number of the points ``(P, 3)`` moved by each planar pose ``(M, 3)``
+        (``p' = Rz(yaw) p + (x, y, 0)``) that lie closer than ``r_max`` to a map point.
+
+        Equal to ``within_planar(points, poses, r_max).sum(axis=1)`` (hence to a KD-tree
+        query), computed in chunks of points with the two-level decisions described in
+        the module docstring.
+        """
+        pts = np.asarray(points, dtype=float)
+        poses = np.asarray(poses, dtype=float)
+        P, M = pts.shape[0], poses.shape[0]
+        count = np.zeros(M, dtype=np.intp)
+        if P == 0 or M == 0:
+            return count
+        pts = pts[np.argsort(pts[:, 2], kind="stable")]  # a chunk then spans few z layers
+        nx, ny, nz = self._state.shape
+        inv = 1.0 / self.cell
+        # per point: its z layer (fixed by the planar pose) and the sub-cell row within it
+        uz = np.clip((pts[:, 2] - self.lo[2]) * inv + 1.0, 0.0, nz - 1.0)
+        iz = uz.astype(np.intp)
+        layer = (iz * (nx * ny)).astype(np.int32)
+        sub_z = np.minimum(((uz - iz) * SUB).astype(np.intp), SUB - 1)
+        # cell coordinates (float32) as one small matrix product per axis: u = B @ A
+        B = np.column_stack([pts[:, 0] * inv, pts[:, 1] * inv, np.ones(P)]).astype(np.float32)
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        Ax = np.stack([c, -s, (poses[:, 0] - self.lo[0]) * inv + 1.0]).astype(np.float32)
+        Ay = np.stack([s, c, (poses[:, 1] - self.lo[1]) * inv + 1.0]).astype(np.float32)
+        state = self._state_z
+        chunk = max(1, CHUNK_PAIRS // M)
+        amb_k, amb_flat, amb_ux, amb_uy = [], [], [], []
+        for a in range(0, P, chunk):  # a loop over chunks of points, each vectorized over (points, poses)
+            b = min(P, a + chunk)
+            ux = B[a:b] @ Ax
+            uy = B[a:b] @ Ay
+            np.clip(ux, 0, nx - 1, out=ux)  # the border cells decide "no map point near"
+            np.clip(uy, 0, ny - 1, out=uy)
+            flat = ux.astype(np.int32)
+            flat *= np.int32(ny)
+            flat += uy.astype(np.int32)
+            flat += layer[a:b, None]
+            st = np.take(state, flat)
+            count += np.count_nonzero(st == 1, axis=0)
+            k = np.flatnonzero(st == 2)
+            if k.size:
+                amb_k.append(k + a * M)
+                amb_flat.append(np.take(flat, k))
+                amb_ux.append(np.take(ux, k))
+                amb_uy.append(np.take(uy, k))
+        if not amb_k:
+            return count
+        k = np.concatenate(amb_k)
+        p_idx, m_idx = np.divmod(k, M)
+        row = np.take(self._row_z, np.concatenate(amb_flat))
+        # second level: the sub-cell's decision, where the cell has a candidate row
+        sx = (np.concatenate(amb_ux) * SUB).astype(np.intp) & (SUB - 1)
+        sy = (np.concatenate(amb_uy) * SUB).astype(np.intp) & (SUB - 1)
+        # every undecided cell has a row (the border cells are decided)
+        self._build_sub(row)
+        sub_state = np.take(self._sub, row * SUB**3 + (sx * SUB + sy) * SUB + sub_z[p_idx])
+        count += np.bincount(m_idx[sub_state == 1], minlength=M)
+        left = sub_state == 2
+        if left.any():
+            p_idx, m_idx, row = p_idx[left], m_idx[left], row[left]
+            x, y = pts[p_idx, 0], pts[p_idx, 1]
+            cm, sm = c[m_idx], s[m_idx]
+            q = np.empty((p_idx.size, 3))
+            q[:, 0] = cm * x - sm * y + poses[m_idx, 0]
+            q[:, 1] = sm * x + cm * y + poses[m_idx, 1]
+            q[:, 2] = pts[p_idx, 2]
+            inlier = self._exact_within_rows(q, row)
+            count += np.bincount(m_idx[inlier], minlength=M)
+        return count
+
+    def _build_sub(self, rows: NDArray[np.intp]) -> None:
+        """Decide the sub-cells of the candidate rows ``rows`` not yet decided.
+
+        A sub-cell of centre ``f`` and half-diagonal ``s_f`` is decided from the distance
+        ``d_f`` to its nearest candidate: the candidates hold every map point within
+        ``r_max + slack + 1e-3 h`` of the cell centre, and ``|f - c| + s_f <= slack``, so
+        they hold every map point within ``r_max + s_f`` of ``f`` (a nearer point outside
+        them cannot exist; a farther one does not matter). The decision widens ``s_f`` by
+        ``1e-3 h``, as the first level does, for float32 cell coordinates.
+        """
+        need = rows[~self._sub_built[rows]]
+        if need.size == 0:
+            return
+        need = np.unique(need)
+        sub = self._sub.reshape(-1, SUB**3)
+        h = self.cell
+        offsets = (np.stack(np.meshgrid(*[np.arange(SUB)] * 3, indexing="ij"), axis=-1).reshape(-1, 3) + 0.5) / SUB - 0.5
+        margin = h / SUB * math.sqrt(3.0) / 2.0 + 1e-3 * h
+        r = self.r_max
+        crowded = self._crowded[need]
+        for a in range(0, need.size, 4096):
+            rr = need[a : a + 4096][~crowded[a : a + 4096]]
+            centres = self._row_centre[rr][:, None, :] + offsets[None] * h  # (n, SUB^3, 3)
+            cand = np.take(self._cand, rr, axis=1).transpose(1, 2, 0)  # (n, W, 3)
+            d2 = (
+                np.einsum("nsj,nsj->ns", centres, centres)[:, :, None]
+                - 2.0 * np.einsum("nsj,nkj->nsk", centres, cand)
+                + np.einsum("nkj,nkj->nk", cand, cand)[:, None, :]
+            ).min(axis=2)
+            d = np.sqrt(np.maximum(d2, 0.0))
+            sub[rr] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
+        rc = need[crowded]  # rows with too many candidates: the KD-tree
+        if rc.size:
+            centres = (self._row_centre[rc][:, None, :] + offsets[None] * h).reshape(-1, 3)
+            d, _ = self.tree.query(centres, k=1, distance_upper_bound=r + margin)
+            d = d.reshape(rc.size, -1)
+            sub[rc] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
+        self._sub_built[need] = True
+
+    def _exact_within_rows(self, q: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.bool_]:
+        """Exact ``dist(q, map) < r_max`` for points ``(n, 3)`` whose cells have rows
+        ``rows`` (-1: no row; the KD-tree answers there and for crowded rows)."""
+        res = np.zeros(q.shape[0], dtype=bool)
+        r2 = self.r_max * self.r_max
+        has = rows >= 0
+        has[has] = ~self._crowded[rows[has]]
+        if has.any():
+            rh, qh = rows[has], q[has]
+            d2 = None
+            for axis in range(3):  # squared distances to the row's candidates, (n, width)
+                diff = np.take(self._cand[axis], rh, axis=0)
+                diff -= qh[:, axis : axis + 1]
+                diff *= diff
+                d2 = diff if d2 is None else np.add(d2, diff, out=d2)
+            res[has] = d2.min(axis=1) < r2
+        if not has.all():
+            d, _ = self.tree.query(q[~has], k=1, distance_upper_bound=self.r_max)
+            res[~has] = d < self.r_max
+        return res
+
     def _exact_within(self, q: NDArray[np.float64], radius: float) -> NDArray[np.bool_]:
         """Exact test for points ``(n, 3)``: candidate lists where they apply, else the KD-tree."""
-        res = np.zeros(q.shape[0], dtype=bool)
-        flat, inside = self._cells(q)
-        rows = np.where(inside, self._cand_row[flat], -1) if radius == self.r_max else np.full(q.shape[0], -1)
-        has = rows >= 0
-        if has.any():
-            diff = self._cand[rows[has]] - q[has, None, :]
-            res[has] = np.einsum("nkj,nkj->nk", diff, diff).min(axis=1) < radius * radius
-        rest = ~has
-        if rest.any():
-            d, _ = self.tree.query(q[rest], k=1, distance_upper_bound=radius)
-            res[rest] = d < radius
-        return res
+        if radius == self.r_max:
+            flat, inside = self._cells(q)
+            return self._exact_within_rows(q, np.where(inside, self._cand_row[flat], -1))
+        d, _ = self.tree.query(q, k=1, distance_upper_bound=radius)
+        return d < radius
 
     def _padded(self) -> NDArray[np.float32]:
         if getattr(self, "_pad", None) is None:
