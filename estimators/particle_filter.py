@@ -124,6 +124,14 @@ class ParticleFilter(Estimator):
         N(0, sigma^2) and estimated with the pose (marginalized out of the estimate; its
         mean and standard deviation are in ``diagnostics["support_yaw_deg"]``). Needs a
         sensor model with ``support_yaw = True`` (beam, likelihood field). 0: off.
+    range_scale_sigma : float
+        When > 0, each particle also carries a relative range-scale error ``s`` of the
+        sensors (a zone at expected distance ``d`` reads ``(1 + s) d`` before the model's
+        bias), drawn from N(0, sigma^2) and estimated with the pose like the support's
+        rotation (``diagnostics["range_scale"]``). Needs a sensor model with
+        ``range_scale = True`` (beam). 0: off.
+    jitter_scale : float
+        Floor of the roughening jitter of the range scale.
     """
 
     name: ClassVar[str] = "pf"
@@ -139,6 +147,8 @@ class ParticleFilter(Estimator):
     anneal_ess: float = 0.0
     max_stages: int = 50
     support_yaw_sigma_deg: float = 0.0
+    range_scale_sigma: float = 0.0
+    jitter_scale: float = 0.0002
 
     def __post_init__(self) -> None:
         check_int("n_particles", self.n_particles, 1, 10_000_000)
@@ -163,6 +173,12 @@ class ParticleFilter(Estimator):
             raise ParameterError(f"support_yaw_sigma_deg must be in [0, 90], got {self.support_yaw_sigma_deg!r}")
         if self.support_yaw_sigma_deg > 0 and not getattr(model, "support_yaw", False):
             raise ParameterError(f"support_yaw_sigma_deg > 0 needs a sensor model that takes the support's rotation; {self.sensor_model!r} does not")
+        check_positive("range_scale_sigma", self.range_scale_sigma, strict=False)
+        check_positive("jitter_scale", self.jitter_scale, strict=False)
+        if self.range_scale_sigma > 0.5:
+            raise ParameterError(f"range_scale_sigma must be in [0, 0.5], got {self.range_scale_sigma!r}")
+        if self.range_scale_sigma > 0 and not getattr(model, "range_scale", False):
+            raise ParameterError(f"range_scale_sigma > 0 needs a sensor model that takes a range scale; {self.sensor_model!r} does not")
         if self.anneal_ess > 0 and model.cumulative:
             raise ParameterError(f"anneal_ess > 0 needs an incremental sensor model; {self.sensor_model!r} is cumulative")
 
@@ -179,7 +195,7 @@ class ParticleFilter(Estimator):
     def _roughen(self, particles: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
         """Jitter resampled particles (fixed, or roughening that shrinks with their spread)."""
         M, D = particles.shape
-        jitter = np.array([self.jitter_xy, self.jitter_xy] + [math.radians(self.jitter_yaw_deg)] * (D - 2))
+        jitter = self._jitter_floors(D)
         if self.roughening > 0:
             dev_yaw = frames.wrap_angle(particles[:, 2] - frames.circular_mean(particles[:, 2]))
             spread = np.concatenate([[np.ptp(particles[:, 0]), np.ptp(particles[:, 1]), np.ptp(dev_yaw)], np.ptp(particles[:, 3:], axis=0)])
@@ -188,13 +204,26 @@ class ParticleFilter(Estimator):
         out[:, 2] = frames.wrap_angle(out[:, 2])
         return out
 
+    def _jitter_floors(self, D: int) -> NDArray[np.float64]:
+        """Jitter floors of the particle columns: x, y, yaw[, support yaw[, range scale]]."""
+        floors = [self.jitter_xy, self.jitter_xy, math.radians(self.jitter_yaw_deg)]
+        if D > 3:
+            floors.append(math.radians(self.jitter_yaw_deg) if self.support_yaw_sigma_deg > 0 else 0.0)
+        if D > 4:
+            floors.append(self.jitter_scale)
+        return np.array(floors)
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         model = self.make_sensor_model()
         bound = model.bind(problem)
         M = int(self.n_particles)
         particles = problem.prior.sample(M, rng)
-        if self.support_yaw_sigma_deg > 0:
-            particles = np.column_stack([particles, rng.normal(0.0, math.radians(self.support_yaw_sigma_deg), M)])
+        if self.support_yaw_sigma_deg > 0 or self.range_scale_sigma > 0:
+            # nuisance columns: the support's rotation (zero when not estimated), the range scale
+            psi = rng.normal(0.0, math.radians(self.support_yaw_sigma_deg), M) if self.support_yaw_sigma_deg > 0 else np.zeros(M)
+            particles = np.column_stack([particles, psi])
+        if self.range_scale_sigma > 0:
+            particles = np.column_stack([particles, rng.normal(0.0, self.range_scale_sigma, M)])
         log_w = np.zeros(M)
         resample = RESAMPLERS[self.resampling]
         ess: list[float] = []
@@ -235,7 +264,10 @@ class ParticleFilter(Estimator):
                 log_w = np.zeros(M)
         mean, cov = weighted_pose_stats(particles[:, :3], w)
         extra: dict[str, Any] = {}
-        if particles.shape[1] == 4:
+        if particles.shape[1] > 4:
+            sc = w @ particles[:, 4]
+            extra["range_scale"] = {"mean": float(sc), "std": math.sqrt(max(w @ (particles[:, 4] - sc) ** 2, 0.0))}
+        if particles.shape[1] >= 4 and self.support_yaw_sigma_deg > 0:
             psi = w @ particles[:, 3]
             extra["support_yaw_deg"] = {"mean": math.degrees(psi), "std": math.degrees(math.sqrt(max(w @ (particles[:, 3] - psi) ** 2, 0.0)))}
         return Estimate(

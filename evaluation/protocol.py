@@ -854,6 +854,8 @@ class Batch:
 def context_fingerprint(context: TrialContext) -> str:
     """Identifies the data a run used: the log's arrays, the map, the k-NN model, the pool."""
     log, kin = context.log, context.kinematics
+    surface = getattr(context.map, "surface", None)  # a cloud's mesh for ray casts (tofloc.maps.Map.with_surface)
+    surface_key = {} if surface is None else {"surface": fingerprint_arrays(surface.points, surface.triangles())}
     return fingerprint_arrays(
         log.distance_mm, log.status, log.T_base_tip, log.pressure_kpa, log.T_map_base,
         np.asarray(context.map.points),
@@ -862,7 +864,7 @@ def context_fingerprint(context: TrialContext) -> str:
         None if kin is None else np.asarray(kin.validation_indices),
         context.pool.indices,
         extra={"k": None if kin is None else int(kin.k), "valid_statuses": sorted(context.valid_statuses),
-               "uncertainty": None if context.uncertainty is None else context.uncertainty.to_dict()},
+               "uncertainty": None if context.uncertainty is None else context.uncertainty.to_dict(), **surface_key},
     )
 
 

@@ -50,7 +50,7 @@ from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_int
 
-__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "ZoneGeometry", "load_sensor_model_toml"]
+__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "ZoneGeometry", "load_sensor_model_toml", "check_support_yaw"]
 
 #: VL53L5CX ``target_status`` of a zone that saw no target (log format v1).
 NO_TARGET_STATUS = 255
@@ -112,9 +112,10 @@ class BeamMixture:
 def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
     """Sensor-model parameters from a calibrated TOML file (``tofloc calibrate``'s output).
 
-    Returns ``{"uncertainty": {...}, "mixture": {...}}`` (validated; a missing table
-    is left out, so the model's defaults apply): keyword parameters for
-    :class:`BeamModel` (and, ``uncertainty`` only, for the likelihood field).
+    Returns ``{"uncertainty": {...}, "mixture": {...}, "support_yaw_deg": float}``
+    (validated; a missing table is left out, so the model's defaults apply): keyword
+    parameters for :class:`BeamModel` (``uncertainty`` and ``support_yaw_deg`` also for
+    the likelihood field).
     """
     p = Path(path)
     data = read_model_toml(p)
@@ -123,6 +124,15 @@ def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
         out["uncertainty"] = RangeUncertainty.from_toml(p).to_dict()
     if "beam" in data:
         out["mixture"] = BeamMixture.from_toml(p).to_dict()
+    if "mounting" in data:
+        m = data["mounting"]
+        if not isinstance(m, Mapping) or set(m) != {"support_yaw_deg"}:
+            raise FormatError(p, "[mounting]", "exactly one key, support_yaw_deg", f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
+        try:
+            check_support_yaw("mounting", m["support_yaw_deg"])
+        except ParameterError:
+            raise FormatError(p, "[mounting].support_yaw_deg", "a number of degrees in [-90, 90]", repr(m["support_yaw_deg"])) from None
+        out["support_yaw_deg"] = float(m["support_yaw_deg"])
     if not out:
         raise FormatError(p, "file", "an [uncertainty] and/or a [beam] table", f"tables {sorted(data)}")
     return out
@@ -150,6 +160,12 @@ def _as_mixture(value: Any) -> BeamMixture:
         raise ParameterError(str(e)) from None
 
 
+def check_support_yaw(owner: str, value: Any) -> None:
+    """A calibrated support rotation must be a finite angle in [-90, 90] degrees."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or not -90 <= value <= 90:
+        raise ParameterError(f"{owner}.support_yaw_deg must be in [-90, 90] degrees, got {value!r}")
+
+
 def check_temper(owner: str, temper: Any) -> None:
     """``temper`` must lie in (0, 1]."""
     if not isinstance(temper, (int, float)) or isinstance(temper, bool) or not math.isfinite(temper) or not 0 < temper <= 1:
@@ -165,9 +181,12 @@ class ZoneGeometry:
     problem : Problem
     sub_rays : int
         ``n``: each zone's footprint is cast as ``n x n`` sub-rays (1: its central ray).
+    support_yaw : float
+        Calibrated rotation (rad) of the sensor support about the tip's z axis: the zones
+        are cast from ``Rz(support_yaw) @ T_tip_sensor`` (``tofloc calibrate``'s ``[mounting]``).
     """
 
-    def __init__(self, problem: Problem, sub_rays: int = 1) -> None:
+    def __init__(self, problem: Problem, sub_rays: int = 1, support_yaw: float = 0.0) -> None:
         rig = problem.rig
         S, Z = rig.n_sensors, rig.n_zones
         if sub_rays == 1 or any(s.zone_directions is not None for s in rig.sensors):
@@ -183,6 +202,10 @@ class ZoneGeometry:
         #: (K, 4, 4): the base frame with the known height, roll and pitch applied, to the tip
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip
         T_tip_sensor = rig.T_tip_sensor
+        if support_yaw != 0.0:
+            from tofloc import frames
+
+            T_tip_sensor = frames.se3(frames.rot_z(float(support_yaw)), np.zeros(3))[None] @ T_tip_sensor
         #: rays in the tip frame: origins (S, 3) and directions (S, Z, n, 3)
         self.origins_tip = T_tip_sensor[:, :3, 3].copy()
         self.dirs_tip = np.einsum("sij,sznj->szni", T_tip_sensor[:, :3, :3], dirs_s)
@@ -258,23 +281,32 @@ class BeamModel(SensorModel):
         Exponent in (0, 1] applied to the sum of the zones' log-likelihoods of a sample.
     sub_rays : int
         Footprint sub-rays per zone side (1..5).
+    support_yaw_deg : float
+        Calibrated rotation of the sensor support about the tip's z axis (deg; the
+        ``[mounting]`` table of ``tofloc calibrate``'s output): the zones are cast from
+        ``Rz(support_yaw_deg) @ T_tip_sensor``. A particle filter's online support-yaw
+        column (``support_yaw_sigma_deg``) adds to it.
     """
 
     name: ClassVar[str] = "beam"
     cumulative: ClassVar[bool] = False
     #: accepts a 4th pose column: the sensor support's rotation about the tip's z axis
     support_yaw: ClassVar[bool] = True
+    #: accepts a 5th pose column: the sensors' relative range-scale error
+    range_scale: ClassVar[bool] = True
 
     mixture: Mapping[str, Any] = field(default_factory=lambda: BeamMixture().to_dict())
     uncertainty: Mapping[str, Any] = field(default_factory=lambda: RangeUncertainty().to_dict())
     temper: float = 0.25
     sub_rays: int = 1
+    support_yaw_deg: float = 0.0
 
     def __post_init__(self) -> None:
         _as_mixture(self.mixture)
         _as_uncertainty(self.uncertainty, "beam")
         check_temper("beam", self.temper)
         check_int("beam.sub_rays", self.sub_rays, 1, 5)
+        check_support_yaw("beam", self.support_yaw_deg)
 
     def bind(self, problem: Problem) -> "BoundBeamModel":
         return BoundBeamModel(self, problem)
@@ -288,7 +320,7 @@ class BoundBeamModel(BoundSensorModel):
         self.problem = problem
         self.mixture = _as_mixture(model.mixture)
         self.uncertainty = _as_uncertainty(model.uncertainty, "beam")
-        self.geometry = ZoneGeometry(problem, int(model.sub_rays))
+        self.geometry = ZoneGeometry(problem, int(model.sub_rays), math.radians(model.support_yaw_deg))
         self.n_steps = problem.n_samples
         self.valid = problem.valid  # (K, S, Z)
         self.no_return = (problem.status == NO_TARGET_STATUS) & ~self.valid
@@ -303,6 +335,8 @@ class BoundBeamModel(BoundSensorModel):
         """Untempered log-probability of every zone ``(M, S, Z)`` (0 for dropped zones)."""
         mix, unc, rig = self.mixture, self.uncertainty, self.problem.rig
         expected, frac = self.expected(poses, step)
+        if poses.shape[1] > 4:  # the range-scale column: readings scale with the distance
+            expected = expected * (1.0 + poses[:, 4, None, None])
         valid, no_ret, z, r = self.valid[step], self.no_return[step], self.z[step], self.r
         lam = mix.lambda_short
         d = np.where(np.isfinite(expected), expected, r)

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensor_models.base import BoundSensorModel, SensorModel
-from sensor_models.beam import _as_uncertainty, check_temper
+from sensor_models.beam import _as_uncertainty, check_support_yaw, check_temper
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
@@ -102,8 +102,9 @@ class SurfaceField:
 
 
 def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
-    """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field``."""
-    if the_map.kind == "mesh":
+    """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field`` (a
+    cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's)."""
+    if the_map.kind == "mesh" or getattr(the_map, "surface", None) is not None:
         closest, normal = the_map.closest_surface_point(nodes)
         diff = nodes - closest
         dist = np.linalg.norm(diff, axis=1)
@@ -131,9 +132,12 @@ def _cached_field(key: str, cell: float, r_field: float, the_map: Any) -> Surfac
 
 def _map_key(the_map: Any) -> str:
     h = hashlib.sha1(np.ascontiguousarray(the_map.points, dtype=np.float64).tobytes())
-    tri = the_map.triangles
+    tri = the_map.triangles()
     if tri is not None:
         h.update(np.ascontiguousarray(tri).tobytes())
+    surface = getattr(the_map, "surface", None)
+    if surface is not None:
+        h.update(b"surface:" + _map_key(surface).encode())
     if the_map.kind == "points":
         h.update(np.ascontiguousarray(the_map.normals, dtype=np.float64).tobytes())
         h.update(repr(float(the_map.surfel_radius)).encode())
@@ -178,6 +182,9 @@ class LikelihoodFieldModel(SensorModel):
         Grid step of the precomputed field (m).
     r_field : float
         Largest distance the field resolves (m); also the support of ``z_rand``.
+    support_yaw_deg : float
+        Calibrated rotation of the sensor support about the tip's z axis (deg), as
+        :class:`sensor_models.beam.BeamModel`'s.
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -191,6 +198,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float = 0.05
+    support_yaw_deg: float = 0.0
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_rand"):
@@ -201,6 +209,7 @@ class LikelihoodFieldModel(SensorModel):
             raise ParameterError(f"likelihood_field.z_hit + z_rand must sum to 1, got {self.z_hit + self.z_rand:.6g}")
         _as_uncertainty(self.uncertainty, "likelihood_field")
         check_temper("likelihood_field", self.temper)
+        check_support_yaw("likelihood_field", self.support_yaw_deg)
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 1.0)):
             v = getattr(self, n)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not lo <= v <= hi:
@@ -227,6 +236,9 @@ class BoundLikelihoodField(BoundSensorModel):
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip  # (K, 4, 4)
         tip = rig.points_in_tip(z_true)  # (K, S, Z, 3)
+        if model.support_yaw_deg != 0.0:  # the calibrated support rotation about the tip's z axis
+            c0, s0 = math.cos(math.radians(model.support_yaw_deg)), math.sin(math.radians(model.support_yaw_deg))
+            tip = np.stack([c0 * tip[..., 0] - s0 * tip[..., 1], s0 * tip[..., 0] + c0 * tip[..., 1], tip[..., 2]], axis=-1)
         self.points_tip = [tip[k][valid[k]] for k in range(self.n_steps)]  # per sample (P_k, 3)
         pts = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], tip) + self.T_lift_tip[:, None, None, :3, 3]
         self.points = [pts[k][valid[k]] for k in range(self.n_steps)]  # lifted

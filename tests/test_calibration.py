@@ -4,6 +4,7 @@ noise knobs, the model TOML, and `tofloc calibrate` end to end."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from pathlib import Path
 
@@ -11,9 +12,10 @@ import numpy as np
 import pytest
 
 from sensor_models.beam import BeamMixture
-from sensor_models.calibration import ZoneSamples, collect_zones, fit_em, model_toml, resolve_calibration_map, write_model
+from sensor_models.calibration import ZoneSamples, collect_zones, fit_em, fit_support_yaw, model_toml, resolve_calibration_map, write_model
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.cli import main
+from tofloc.errors import FormatError
 
 #: The simulator's knobs in scenarios/paper.toml.
 TRUE_SIGMA_SLOPE = 0.11 / 2.7
@@ -165,3 +167,40 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     code = main(["calibrate", str(bare), "--out", str(out), "--map", str(tmp_path / "sim.cad.ply")])
     err = capsys.readouterr().err
     assert code == 2 and "/truth/T_map_base" in err and "bare.h5" in err
+
+
+def test_support_yaw_is_recovered_and_keeps_the_bias_fit_clean() -> None:
+    """A support rotated by 6 deg (no other mounting error): the search finds it, and the
+    EM on the rotated rig recovers the simulator's bias and sigma, which the CAD rig does not."""
+    from tofloc.maps import Map
+    from tofloc.simulation import simulate
+
+    sc = _clean_scenario(pressure_step=5.0)
+    sc = dataclasses.replace(sc, rig=dataclasses.replace(sc.rig, support_yaw_error_deg=6.0))
+    sim = simulate(sc, seed=4)
+    mesh = Map.cuboid(size=sc.environment.size, origin=sc.environment.origin, open_faces=sc.environment.open_faces)
+    fit = fit_support_yaw([(sim.log, mesh)], footprint=3, bound_deg=12.0, step_deg=3.0, max_samples=60)
+    assert fit.support_yaw_deg == pytest.approx(6.0, abs=0.5)
+    assert len(fit.grid_deg) == 9 and int(np.argmax(fit.grid_loglik)) == 6  # the 6 deg grid point wins
+    rotated = fit_em(collect_zones(sim.log, mesh, footprint=3, support_yaw=math.radians(fit.support_yaw_deg)))
+    cad = fit_em(collect_zones(sim.log, mesh, footprint=3))
+    assert rotated.uncertainty.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.1)
+    assert cad.uncertainty.sigma_slope > 1.2 * TRUE_SIGMA_SLOPE  # the rotation read as noise
+    assert rotated.log_likelihood / rotated.samples.n > cad.log_likelihood / cad.samples.n
+
+
+def test_mounting_table_round_trips_and_bad_ones_are_refused(tmp_path: Path) -> None:
+    from sensor_models.beam import load_sensor_model_toml
+
+    rng = np.random.default_rng(0)
+    zs, _ = _synthetic(rng, 5000)
+    res = fit_em(zs, max_iter=5)
+    path = write_model(res, tmp_path / "m.toml", support_yaw_deg=7.25)
+    assert load_sensor_model_toml(path)["support_yaw_deg"] == 7.25
+    text = path.read_text()
+    for bad, what in (("support_yaw_deg = 7.25", "support_yaw_deg = 120.0"), ("support_yaw_deg = 7.25", "support_yaw = 7.25"),
+                      ("support_yaw_deg = 7.25", 'support_yaw_deg = "7"')):
+        p = tmp_path / "bad.toml"
+        p.write_text(text.replace(bad, what))
+        with pytest.raises(FormatError, match="mounting"):
+            load_sensor_model_toml(p)

@@ -22,6 +22,10 @@ Conventions
   represents, ``median_i d8_i sqrt(pi / 8)`` with ``d8_i`` the distance to the 8th nearest
   neighbour). See ``docs/maps.md`` for the measured accuracy and why the spacing, not the
   nearest-neighbour distance, sets the radius.
+* A point-cloud map may carry a **surface** (:meth:`Map.with_surface`, :func:`load_map`):
+  a mesh of the same environment (the CAD model the cloud was exported from). Ray casts,
+  distances to the surface and closest surface points then use the mesh, while
+  :attr:`Map.points` and :meth:`Map.nearest` (the ICP score) keep the cloud.
 
 Files are untrusted: every reader here is bounded (:data:`MAX_POINTS`,
 :data:`MAX_TRIANGLES`, :data:`MAX_FILE_BYTES`), never unpickles, refuses non-finite
@@ -56,6 +60,7 @@ __all__ = [
     "Map",
     "RayHits",
     "estimate_normals",
+    "load_map",
     "voxel_down_sample_points",
 ]
 
@@ -79,6 +84,11 @@ _SURFEL_CORNERS = 6
 _SURFEL_TRIANGLES = _SURFEL_CORNERS - 2
 #: Default surfel circumradius, in units of :meth:`Map.spacing`.
 DEFAULT_SURFEL_SCALE = 1.5
+#: :meth:`Map.with_surface` refuses a surface whose bounding box corners lie farther than
+#: ``max(SURFACE_BOUNDS_ABS, SURFACE_BOUNDS_REL * size)`` from the cloud's (m; ``size`` the
+#: largest extent of the cloud's box): a guard against the wrong file, units or frame.
+SURFACE_BOUNDS_ABS = 0.05
+SURFACE_BOUNDS_REL = 0.10
 #: Neighbour used by the spacing estimate.
 _SPACING_K = 8
 _NO_HIT = np.uint32(0xFFFFFFFF)
@@ -426,6 +436,8 @@ class Map:
         winding normals (NaN for a vertex no triangle uses or whose faces cancel).
     source : str
         The file read, or a description (``"cuboid 0.7x0.7x0.6 open +z,+y"``).
+    surface : Map or None
+        A cloud's attached mesh for ray casts (:meth:`with_surface`), else ``None``.
     """
 
     kind: Literal["mesh", "points"]
@@ -454,6 +466,7 @@ class Map:
         self._face_normals: NDArray[np.float64] | None = None
         self._face_areas: NDArray[np.float64] | None = None
         self._spacing: float | None = None
+        self._surface: Map | None = None
 
     # ---- construction ----------------------------------------------------------------
     @classmethod
@@ -653,7 +666,8 @@ class Map:
         ``.ply``: binary little-endian; a cloud as ``x y z nx ny nz`` doubles, a mesh as
         ``x y z`` doubles and ``vertex_indices`` (uchar count, int32 indices). ``.npy``:
         the cloud's ``(N, 3)`` float64 points. ``.xyz``: the cloud's points as text.
-        Normals survive only in ``.ply``.
+        Normals survive only in ``.ply``. A cloud's attached :attr:`surface` is not
+        written (save it on its own and re-attach with :func:`load_map`).
 
         Returns
         -------
@@ -745,6 +759,96 @@ class Map:
         mesh.triangle_normals = o3d.utility.Vector3dVector(np.nan_to_num(self._face_normals))
         return mesh
 
+    # ---- attached surface --------------------------------------------------------------
+    @property
+    def surface(self) -> Map | None:
+        """The mesh a point-cloud map ray casts against (:meth:`with_surface`); ``None`` when absent."""
+        return self._surface
+
+    def with_surface(self, surface: Map) -> Map:
+        """This cloud with a mesh of the same environment attached for the surface queries.
+
+        The new map has the same :attr:`points`, :attr:`normals` (and surfel radius, and
+        :meth:`spacing`) and answers :meth:`nearest` from the cloud (what the ICP score
+        uses), but :meth:`raycast`, :meth:`distance_to_surface` and
+        :meth:`closest_surface_point` are the ``surface``'s: exact triangles instead of
+        surfels (no holes, no overhangs at open edges, no PCA tilt at edges). A ray hit's
+        ``index`` is then a triangle of ``surface``, not a point of the cloud.
+
+        Parameters
+        ----------
+        surface : Map
+            A mesh map (``kind == "mesh"``) in the same frame. Its bounding box must lie
+            within ``max(5 cm, 10 % of the cloud's largest extent)`` of the cloud's, corner
+            by corner (:data:`SURFACE_BOUNDS_ABS`, :data:`SURFACE_BOUNDS_REL`): a guard
+            against the wrong file, millimetres or another frame.
+
+        Returns
+        -------
+        Map
+            A new point-cloud map, ``source`` = ``"<cloud> with surface <surface>"``. A
+            surface already attached is replaced.
+
+        Raises
+        ------
+        ParameterError
+            This map is a mesh, ``surface`` is not a mesh map, or the bounds differ too much
+            (the message names both sources and the numbers).
+        """
+        if self.kind != "points":
+            raise ParameterError(
+                f"{self.source}: with_surface needs a point-cloud map, this is a mesh (it ray casts its own triangles)"
+            )
+        if not isinstance(surface, Map):
+            raise ParameterError(f"{self.source}: with_surface: expected a mesh Map, found {type(surface).__name__}")
+        if surface.kind != "mesh":
+            raise ParameterError(
+                f"{surface.source}: expected a mesh (triangles) as the surface of the point cloud {self.source}, "
+                f"found a point cloud of {surface.points.shape[0]} points"
+            )
+        c_lo, c_hi = self.bounds()
+        s_lo, s_hi = surface.bounds()
+        size = float((c_hi - c_lo).max())
+        tol = max(SURFACE_BOUNDS_ABS, SURFACE_BOUNDS_REL * size)
+        gap = float(max(np.abs(s_lo - c_lo).max(), np.abs(s_hi - c_hi).max()))
+        if not gap <= tol:
+
+            def box(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> str:
+                return f"[{', '.join(f'{x:.4g}' for x in lo)}]..[{', '.join(f'{x:.4g}' for x in hi)}]"
+
+            raise ParameterError(
+                f"surface {surface.source} does not fit the map {self.source}: bounding boxes "
+                f"{box(s_lo, s_hi)} vs {box(c_lo, c_hi)} m differ by up to {gap:.4g} m, expected at most "
+                f"{tol:.4g} m (max of {SURFACE_BOUNDS_ABS:g} m and {SURFACE_BOUNDS_REL:.0%} of the map's size {size:.4g} m)"
+            )
+        base = self._without_surface_source()
+        return self._clone_points(f"{base} with surface {surface.source}", surface)
+
+    def _surface_suffix(self) -> str:
+        return "" if self._surface is None else f" with surface {self._surface.source}"
+
+    def _without_surface_source(self) -> str:
+        if self._surface is not None:
+            tail = f" with surface {self._surface.source}"
+            if self.source.endswith(tail):
+                return self.source[: -len(tail)]
+        return self.source
+
+    def _clone_points(self, source: str, surface: Map | None) -> Map:
+        """This cloud (arrays shared, read-only) under a new source, with ``surface``."""
+        m = Map(
+            kind="points",
+            points=self.points,
+            normals=self.normals,
+            triangles=None,
+            source=source,
+            surfel_radius=self._surfel_radius_param,
+        )
+        m._spacing = self._spacing
+        m._tree = self._tree
+        m._surface = surface
+        return m
+
     # ---- derived maps ------------------------------------------------------------------
     def sample_surface(self, n: int, rng: np.random.Generator, *, even: bool = False) -> Map:
         """Sample a mesh's surface: a point-cloud map carrying the faces' normals.
@@ -798,7 +902,10 @@ class Map:
         """Keep what lies in the box ``lo <= p <= hi`` (inclusive).
 
         Clouds keep their points (and normals) inside; meshes keep the triangles whose
-        centroid is inside, and the vertices they use.
+        centroid is inside, and the vertices they use. A cloud's attached :attr:`surface`
+        is kept whole: it stands for the physical environment, which cropping the cloud
+        (for the ICP score) does not change; crop both and re-attach
+        (``cloud.crop(lo, hi).with_surface(mesh.crop(lo, hi))``) to cut the ray casts too.
 
         Raises
         ------
@@ -806,13 +913,14 @@ class Map:
             The box keeps nothing, or ``lo > hi``.
         """
         lo_a, hi_a = _check_box(lo, hi)
-        src = f"{self.source} cropped [{', '.join(f'{x:g}' for x in lo_a)}]..[{', '.join(f'{x:g}' for x in hi_a)}]"
+        src = f"{self._without_surface_source()} cropped [{', '.join(f'{x:g}' for x in lo_a)}]..[{', '.join(f'{x:g}' for x in hi_a)}]"
+        src += self._surface_suffix()
         if self.kind == "points":
             keep = ((self.points >= lo_a) & (self.points <= hi_a)).all(axis=1)
             if not keep.any():
                 raise ParameterError(f"{self.source}: crop box {lo_a.tolist()}..{hi_a.tolist()} keeps no point")
             assert self.normals is not None
-            return Map(
+            out = Map(
                 kind="points",
                 points=self.points[keep],
                 normals=self.normals[keep],
@@ -820,6 +928,8 @@ class Map:
                 source=src,
                 surfel_radius=self._surfel_radius_param,
             )
+            out._surface = self._surface
+            return out
         assert self._triangles is not None
         centroid = self.points[self._triangles].mean(axis=1)
         keep = ((centroid >= lo_a) & (centroid <= hi_a)).all(axis=1)
@@ -833,7 +943,8 @@ class Map:
         """A cloud with one point per occupied voxel (the centroid; normals averaged).
 
         Uses :func:`voxel_down_sample_points` (grid anchored at the map origin). A voxel
-        whose normals cancel keeps the normal of its first point.
+        whose normals cancel keeps the normal of its first point. An attached
+        :attr:`surface` is kept (fewer points for the ICP score, same environment).
         """
         if self.kind != "points":
             raise ParameterError(f"{self.source}: voxel_down_sample needs a point cloud (use sample_surface first)")
@@ -848,14 +959,16 @@ class Map:
             np.minimum.at(first, inv, np.arange(inv.size))
             acc[weak] = self.normals[first[weak]]
             norm[weak] = 1.0
-        return Map(
+        out = Map(
             kind="points",
             points=pts,
             normals=acc / norm[:, None],
             triangles=None,
-            source=f"{self.source} voxel {float(voxel):g} m",
+            source=f"{self._without_surface_source()} voxel {float(voxel):g} m{self._surface_suffix()}",
             surfel_radius=self._surfel_radius_param,
         )
+        out._surface = self._surface
+        return out
 
     # ---- nearest points and distances --------------------------------------------------
     def _kdtree(self) -> cKDTree:
@@ -886,8 +999,11 @@ class Map:
         """Unsigned distance (m) from each query point to the map.
 
         Mesh: exact distance to the triangles (Open3D ``RaycastingScene.compute_distance``,
-        float32 internally). Cloud: the distance to the nearest point.
+        float32 internally). Cloud: the distance to the nearest point; a cloud with a
+        :attr:`surface`: the surface's distance.
         """
+        if self._surface is not None:
+            return self._surface.distance_to_surface(query, nthreads=nthreads)
         q = _as_query(query)
         if self.kind == "points":
             return self.nearest(q)[0]
@@ -902,13 +1018,16 @@ class Map:
         """Closest point of the map's surface and the normal there.
 
         Mesh: the closest point on the triangles and that triangle's winding normal.
-        Cloud: the nearest point and its normal.
+        Cloud: the nearest point and its normal; a cloud with a :attr:`surface`: the
+        surface's closest point and normal.
 
         Returns
         -------
         points : ndarray, shape (..., 3)
         normals : ndarray, shape (..., 3)
         """
+        if self._surface is not None:
+            return self._surface.closest_surface_point(query, nthreads=nthreads)
         q = _as_query(query)
         if self.kind == "points":
             _, i = self.nearest(q)
@@ -965,7 +1084,9 @@ class Map:
         (default ``1.5 * spacing()``) centred on it, perpendicular to its normal, split in
         4 triangles; the hit's normal is the point's normal and ``index`` the point. This
         fills the gaps between points; near a cloud's open edges surfels overhang by up to
-        the radius, so grazing rays there may hit where the true surface has ended.
+        the radius, so grazing rays there may hit where the true surface has ended. A
+        cloud with a :attr:`surface` is cast against the surface's triangles instead
+        (``index``: a triangle of the surface).
 
         Parameters
         ----------
@@ -986,6 +1107,10 @@ class Map:
             ``t`` (inf on a miss), ``normal`` (NaN on a miss), ``index`` (-1 on a miss),
             shaped like the broadcast batch.
         """
+        if self._surface is not None:
+            return self._surface.raycast(
+                origins, directions, max_range, toward_origin=toward_origin, nthreads=nthreads
+            )
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         if o.ndim == 0 or d.ndim == 0 or o.shape[-1] != 3 or d.shape[-1] != 3:
@@ -1039,6 +1164,7 @@ class Map:
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
+        self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
             a = getattr(self, name, None)
             if a is not None:
@@ -1046,7 +1172,49 @@ class Map:
 
     def __repr__(self) -> str:
         extra = f", triangles={self._triangles.shape[0]}" if self._triangles is not None else ""
+        if self._surface is not None:
+            tri = self._surface.triangles()
+            n_tri = 0 if tri is None else tri.shape[0]
+            extra += f", surface=({n_tri} triangles, {self._surface.source!r})"
+            return f"Map(kind={self.kind!r}, points={self.points.shape[0]}{extra}, source={self._without_surface_source()!r})"
         return f"Map(kind={self.kind!r}, points={self.points.shape[0]}{extra}, source={self.source!r})"
+
+
+def load_map(path: str | Path, surface_path: str | Path | None = None, **load_kwargs: Any) -> Map:
+    """Read a map file and, optionally, a mesh of the same environment to ray cast against.
+
+    ``load_map("paper.map.ply", "paper.cad.ply")`` is
+    ``Map.load("paper.map.ply").with_surface(Map.load("paper.cad.ply"))``: the cloud's
+    points serve :meth:`Map.nearest` (the ICP score), the mesh :meth:`Map.raycast`,
+    :meth:`Map.distance_to_surface` and :meth:`Map.closest_surface_point` (the beam and
+    likelihood-field models, the Cramer-Rao bound).
+
+    Parameters
+    ----------
+    path : str or Path
+        The map (a point cloud when ``surface_path`` is given).
+    surface_path : str or Path, optional
+        A mesh file (``.ply`` with faces, ``.stl``, ``.obj``).
+    **load_kwargs
+        ``normal_k``, ``orient``, ``surfel_radius`` for :meth:`Map.load` of ``path``.
+
+    Raises
+    ------
+    FormatError
+        Either file is missing or malformed (the message names it).
+    ParameterError
+        ``path`` is a mesh, ``surface_path`` is a point cloud, or their bounds differ
+        (:meth:`Map.with_surface`; the message names the files).
+    """
+    the_map = Map.load(path, **load_kwargs)
+    if surface_path is None:
+        return the_map
+    if the_map.kind != "points":
+        raise ParameterError(
+            f"{path}: a surface is attached to a point-cloud map, this map is a mesh "
+            f"(it ray casts its own triangles): drop the surface {surface_path} or give a cloud"
+        )
+    return the_map.with_surface(Map.load(surface_path))
 
 
 def _fallback_normals(p: NDArray[np.float64], orient: Any) -> NDArray[np.float64]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -27,12 +28,17 @@ def calibrate(
     max_iter: int = typer.Option(200, "--max-iter", help="EM iterations at most."),
     min_distance: float = typer.Option(0.0, "--min-distance", help="Use only zones expected at least this far (m)."),
     max_distance: float = typer.Option(100.0, "--max-distance", help="Use only zones expected at most this far (m)."),
+    support_yaw: bool = typer.Option(
+        True, "--support-yaw/--no-support-yaw",
+        help="Also fit the sensor support's rotation about the tip axis (maximum likelihood; written as [mounting])."),
+    support_yaw_bound: float = typer.Option(20.0, "--support-yaw-bound", help="Search the support rotation within +- this (deg)."),
 ) -> None:
     """Calibrate the per-zone range model and the beam mixture by EM (Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration import (
         ZoneSamples,
         collect_zones,
         fit_em,
+        fit_support_yaw,
         plot_calibration,
         resolve_calibration_map,
         write_model,
@@ -53,10 +59,12 @@ def calibrate(
         raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
     if out.exists() and out.is_dir():
         raise ParameterError(f"--out {out} is a folder")
+    if not 1.0 <= support_yaw_bound <= 90.0:
+        raise ParameterError(f"--support-yaw-bound must be in [1, 90] degrees, got {support_yaw_bound}")
 
-    parts: list[ZoneSamples] = []
     used_maps: list[str] = []
     loaded: dict[Path, Any] = {}
+    pairs: list[tuple[Any, Any]] = []
     for i, lp in enumerate(logs):
         log = read_log(lp)
         mp = maps[i if len(maps) > 1 else 0] if maps else resolve_calibration_map(log)
@@ -64,16 +72,28 @@ def calibrate(
             raise ParameterError(f"{lp}: the log names no map (root attribute `map`): give one with --map")
         if mp not in loaded:
             loaded[mp] = Map.load(mp)
-        m = loaded[mp]
-        with status(f"ray casting {lp.name} against {mp.name}"):
-            zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses)
+        pairs.append((log, loaded[mp]))
+        used_maps.append(str(mp))
+    psi_deg = 0.0
+    if support_yaw:
+        with status(f"searching the support's rotation in +-{support_yaw_bound:g} deg (an EM fit per candidate)"):
+            fit = fit_support_yaw(pairs, footprint=footprint, valid_statuses=statuses, bound_deg=support_yaw_bound)
+        psi_deg = fit.support_yaw_deg
+        err_console.print(f"support rotation about the tip axis: {psi_deg:+.2f} deg (maximum likelihood on "
+                          f"{fit.samples_used} samples; the log's rig is the CAD one)", highlight=False)
+        if abs(psi_deg) > support_yaw_bound - 0.5:
+            err_console.print(f"note: the rotation lies at the search bound (+-{support_yaw_bound:g} deg): widen --support-yaw-bound",
+                              highlight=False)
+    parts: list[ZoneSamples] = []
+    for lp, (log, m), mp in zip(logs, pairs, used_maps):
+        with status(f"ray casting {lp.name} against {Path(mp).name}"):
+            zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses, support_yaw=math.radians(psi_deg))
         err_console.print(
             f"{lp}: {zs.counts['samples']} samples, {zs.n} zones with an expected distance (map {mp}, {m.kind}); "
             f"{zs.counts['no_expected_hit']} zones see no map, {zs.counts['partial_footprint']} only partly",
             highlight=False,
         )
         parts.append(zs)
-        used_maps.append(str(mp))
     samples = ZoneSamples.concatenate(parts)
     if min_distance > 0.0 or max_distance < 100.0:
         samples = samples.subset((samples.expected_m >= min_distance) & (samples.expected_m <= max_distance))
@@ -83,7 +103,7 @@ def calibrate(
         result = fit_em(samples, max_iter=max_iter)
     meta = {"logs": [str(p) for p in logs], "maps": used_maps, "footprint": footprint,
             "valid_statuses": sorted(statuses), "distance_range_m": [min_distance, max_distance]}
-    write_model(result, out, meta)
+    write_model(result, out, meta, support_yaw_deg=psi_deg if support_yaw else None)
     _print(result)
     for note in result.notes:
         err_console.print(f"note: {note}", highlight=False)

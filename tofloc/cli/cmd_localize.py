@@ -180,6 +180,12 @@ def _samples_option(text: str) -> int | None:
 def localize(
     log_path: Optional[Path] = typer.Argument(None, metavar="[LOG]", help="Log file (format v1, HDF5); omit with --port."),
     map_path: Optional[Path] = typer.Option(None, "--map", help="Map file; default: the log's `map` attribute."),
+    surface_path: Optional[Path] = typer.Option(
+        None, "--surface", metavar="MESH.ply",
+        help="A mesh of the same environment for ray casts (beam, likelihood field); the map's points still serve "
+             "the ICP score. The map must then be a point cloud with matching bounds (e.g. the simulator's "
+             "<stem>.cad.ply beside <stem>.map.ply).",
+    ),
     estimator: str = typer.Option(..., "--estimator", help="Registered estimator (see `tofloc list`)."),
     samples: str = typer.Option("10", "--samples", help="Samples per trial (K), or 'all' (every sample of the pool)."),
     trials: int = typer.Option(1, "--trials", help="Trials, each with its own random samples and prior."),
@@ -225,14 +231,15 @@ def localize(
     )
     from evaluation.report import summarize_trials, write_json_atomic
     from tofloc.logs import read_log
-    from tofloc.maps import Map
+    from tofloc.maps import load_map
 
     if port is not None:
         from tofloc.cli.live_cmd import run_live
 
         live_params, _ = with_sensor_model_file(estimator, parse_params(param), sensor_model_params)
         run_live(
-            port=port, baud=baud, fmt=fmt, rig_path=rig_path, map_path=map_path, kinematics_path=kinematics,
+            port=port, baud=baud, fmt=fmt, rig_path=rig_path, map_path=map_path, surface_path=surface_path,
+            kinematics_path=kinematics,
             estimator=estimator, params=live_params, prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window,
             duration=duration, journal=journal, out=out, seed=seed, timeout=timeout,
@@ -274,7 +281,7 @@ def localize(
         map_path = log.map_path()
         if map_path is None:
             raise ParameterError(f"{log_path}: the log names no map (root attribute `map`): give one with --map")
-    the_map = Map.load(map_path)
+    the_map = load_map(map_path, surface_path)
     kin = None
     if kinematics is not None:
         from tofloc.kinematics import KinematicsModel
@@ -312,6 +319,7 @@ def localize(
     doc = {
         "log": str(log.path),
         "map": str(map_path),
+        "surface": None if surface_path is None else str(surface_path),
         "estimator": estimator,
         "params": full_params,
         "tip_source": tip_source,

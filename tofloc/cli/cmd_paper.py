@@ -48,12 +48,15 @@ class PaperData:
     fit_report: Any | None = None
 
 
-def prepare_data(out: Path, scenario: str, seed: int) -> PaperData:
+def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True) -> PaperData:
     """Simulate ``out/paper.h5`` unless it exists, and fit (or reuse) ``out/knn.npz``.
 
     An existing ``paper.h5`` is used as it is, whoever made it (a real log conforming to
     log format v1 works too); one simulated from another scenario is refused. An
-    existing ``knn.npz`` is reused only if it was fit on this log.
+    existing ``knn.npz`` is reused only if it was fit on this log. With ``surface`` and a
+    CAD mesh ``<stem>.cad.ply`` beside the map (the simulator writes one), the map gets it
+    as its surface (:meth:`tofloc.maps.Map.with_surface`): the ray-casting models cast
+    against the CAD mesh, the ICP score keeps the map's points.
     """
     import numpy as np
 
@@ -88,6 +91,11 @@ def prepare_data(out: Path, scenario: str, seed: int) -> PaperData:
     if map_path is None:
         raise ParameterError(f"{log_path}: the log names no map (root attribute `map`); put the map's file name there")
     the_map = Map.load(map_path)
+    stem = map_path.name[: -len(".map.ply")] if map_path.name.endswith(".map.ply") else map_path.stem
+    cad_path = map_path.parent / f"{stem}.cad.ply"
+    if surface and the_map.kind == "points" and cad_path.exists():
+        the_map = the_map.with_surface(Map.load(cad_path))
+        notes.append(f"ray casts against the CAD mesh {cad_path.name} (the ICP score keeps the {len(the_map.points)} map points)")
 
     knn_path = out / KNN_NAME
     kin, report = None, None
@@ -109,28 +117,76 @@ def prepare_data(out: Path, scenario: str, seed: int) -> PaperData:
     return PaperData(log, the_map, map_path, kin, notes, report)
 
 
-def calibrate_on_training_split(data: PaperData, out: Path) -> Path:
-    """Fit the sensor model (``tofloc calibrate``'s EM) on the samples the k-NN model was
-    trained on, so that the trials (drawn from its held-out split) stay unseen; writes
-    ``out/sensor_model.toml``."""
+#: Name of the calibration session ``tofloc paper --calibrate`` simulates beside the log.
+CALIBRATION_LOG_NAME = "calibration-session.h5"
+#: The calibration session's seed is the run's seed plus this (its own noise and postures).
+CALIBRATION_SEED_OFFSET = 1000
+#: Where the calibration session places the base relative to the experiment: (dx, dy) m, dyaw deg.
+CALIBRATION_BASE_OFFSET = (-0.04, 0.04, -20.0)
+
+
+def _hardware_seed(source: str) -> int | None:
+    """The hardware seed of a simulated log, from its ``source`` ("simulation:NAME seed=S
+    [hardware_seed=H]"); None for a log the simulator did not write."""
+    if not source.startswith("simulation:"):
+        return None
+    fields = dict(part.split("=", 1) for part in source.split()[1:] if "=" in part)
+    try:
+        return int(fields.get("hardware_seed", fields["seed"]))
+    except (KeyError, ValueError):
+        return None
+
+
+def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1) -> Path:
+    """Fit the sensor model (``tofloc calibrate``: the support's rotation, then EM of the
+    bias/sigma curves and the mixture) and write ``out/sensor_model.toml``.
+
+    A simulated log gets a *calibration session*: the same set-up (hardware seed: frame,
+    CAD cloud, sensor mounting) recorded again with the base placed elsewhere
+    (:data:`CALIBRATION_BASE_OFFSET`) and its own noise, as a lab calibrates its rig with a
+    motion-captured base before the experiment; the experiment's samples and its base
+    pose are never used. Any other log is calibrated on the k-NN training split (the
+    trials draw from the held-out split). The zones' expected distances are cast as the
+    beam model casts them (``sub_rays`` per side, against the estimators' map), so that
+    the fitted bias is the one the model needs.
+    """
     import numpy as np
 
-    from sensor_models.calibration import collect_zones, fit_em, resolve_calibration_map, write_model
-    from tofloc.maps import Map
+    from sensor_models.calibration import collect_zones, fit_em, fit_support_yaw, write_model
+    from tofloc.logs import read_log
+    from tofloc.simulation import load_scenario, simulate, write_simulation
 
-    train = np.asarray(data.kinematics.train_indices)
-    if data.kinematics.log_fingerprint and not data.kinematics.matches(data.log.pressure_kpa, data.log.T_base_tip):
-        raise ParameterError("--calibrate: the k-NN model was not fit on this log, so its training split is unknown")
-    map_path = resolve_calibration_map(data.log) or data.map_path
-    with status(f"calibrating the sensor model on {train.size} training samples against {map_path.name}"):
-        zones = collect_zones(data.log.subset(train), Map.load(map_path))
+    hw = _hardware_seed(data.log.source)
+    if hw is not None:
+        cal_path = out / CALIBRATION_LOG_NAME
+        sc = load_scenario(scenario)
+        b = sc.base
+        base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
+        if not cal_path.exists():
+            with status(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
+                        f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
+                write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base), cal_path)
+        cal_log = read_log(cal_path)
+        rows = None
+        what = f"calibration session {cal_path.name} ({cal_log.n_samples} samples)"
+    else:
+        cal_log = data.log
+        rows = np.asarray(data.kinematics.train_indices)
+        if data.kinematics.log_fingerprint and not data.kinematics.matches(data.log.pressure_kpa, data.log.T_base_tip):
+            raise ParameterError("--calibrate: the k-NN model was not fit on this log, so its training split is unknown")
+        what = f"the k-NN training split ({rows.size} samples; the log is not simulated, so no calibration session)"
+    cal_log_used = cal_log if rows is None else cal_log.subset(rows)
+    with status(f"calibrating the sensor model on {what}: the support's rotation, then EM"):
+        fit = fit_support_yaw([(cal_log_used, data.map)], footprint=sub_rays)
+        zones = collect_zones(cal_log_used, data.map, footprint=sub_rays, support_yaw=float(np.radians(fit.support_yaw_deg)))
         result = fit_em(zones)
-        path = write_model(result, out / "sensor_model.toml", {"log": str(data.log.path), "samples": "k-NN training split",
-                                                                "map": str(map_path)})
+        path = write_model(result, out / "sensor_model.toml",
+                           {"log": str(cal_log.path), "samples": what, "map": str(data.map_path), "footprint": sub_rays},
+                           support_yaw_deg=fit.support_yaw_deg)
     u = result.uncertainty
     err_console.print(
-        f"calibrated {path.name}: sigma {100 * u.sigma_slope:.2f} % d (edge x{u.edge_factor:.2f}), "
-        f"bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d", highlight=False,
+        f"calibrated {path.name} on {what}: support rotation {fit.support_yaw_deg:+.2f} deg, sigma {100 * u.sigma_slope:.2f} % d "
+        f"(edge x{u.edge_factor:.2f}), bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d", highlight=False,
     )
     return path
 
@@ -152,10 +208,15 @@ def paper(
         None, "--sensor-model-params", metavar="MODEL.toml",
         help="Calibrated sensor model (`tofloc calibrate` output) given to every estimator that uses one.",
     ),
+    surface: bool = typer.Option(
+        True, "--surface/--no-surface",
+        help="Give the ray-casting models (beam, likelihood field) the CAD mesh <stem>.cad.ply beside the map when it "
+        "exists (the ICP score keeps the map's points); --no-surface casts against the points' surfels.",
+    ),
     calibrate: bool = typer.Option(
         False, "--calibrate",
-        help="Calibrate the sensor model (EM) on the k-NN training split (never on the trial samples), "
-        "write DIR/sensor_model.toml and give it to every estimator.",
+        help="Calibrate the sensor model (support rotation, then EM) on a simulated calibration session of the same "
+        "set-up (a non-simulated log: its k-NN training split), write DIR/sensor_model.toml and give it to every estimator.",
     ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
@@ -192,13 +253,13 @@ def paper(
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in PRIOR_MODES]
 
     t0 = time.perf_counter()
-    data = prepare_data(out, scenario, seed)
+    data = prepare_data(out, scenario, seed, surface)
     for note in data.notes:
         err_console.print(note, highlight=False, markup=False)
     if calibrate:
         if sensor_model_params is not None:
             raise ParameterError("give either --calibrate or --sensor-model-params, not both")
-        sensor_model_params = calibrate_on_training_split(data, out)
+        sensor_model_params = calibrate_for_paper(data, out, scenario, seed)
         for n in names:
             est_params[n], note = with_sensor_model_file(n, params, sensor_model_params)
             if note:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -18,16 +19,31 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="Log to write (HDF5); the maps are written beside it."),
     scenario: str = typer.Option("paper", "--scenario", help="Built-in scenario name or a scenario TOML file."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw (same seed, same bytes)."),
+    hardware_seed: Optional[int] = typer.Option(
+        None, "--hardware-seed",
+        help="Seed of the set-up's draws (frame assembly error, CAD cloud, sensor mounting) instead of --seed: "
+        "sessions with the same hardware seed record the same physical set-up."),
+    base: Optional[str] = typer.Option(None, "--base", help="Place the base at X,Y,YAW_DEG (m, m, deg) instead of the scenario's."),
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
     from tofloc.simulation import load_scenario, simulate as run, write_simulation
 
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
+    if hardware_seed is not None and hardware_seed < 0:
+        raise ParameterError(f"--hardware-seed must be >= 0, got {hardware_seed}")
+    placement = None
+    if base is not None:
+        try:
+            placement = tuple(float(v) for v in base.split(","))
+        except ValueError:
+            placement = ()
+        if len(placement) != 3 or not all(np.isfinite(placement)) or not -180 <= placement[2] <= 180:
+            raise ParameterError(f"--base expects X,Y,YAW_DEG (three finite numbers, yaw in [-180, 180]), got {base!r}")
     sc = load_scenario(scenario)
     t0 = time.perf_counter()
     with status(f"simulating scenario {sc.scenario.name!r} (seed {seed})"):
-        result = run(sc, seed)
+        result = run(sc, seed, hardware_seed=hardware_seed, base=placement)
         paths = write_simulation(result, out)
     elapsed = time.perf_counter() - t0
     log = result.log

@@ -27,6 +27,7 @@ def run_live(
     fmt: str,
     rig_path: Optional[Path],
     map_path: Optional[Path],
+    surface_path: Optional[Path] = None,
     kinematics_path: Optional[Path],
     estimator: str,
     params: dict[str, Any],
@@ -52,7 +53,7 @@ def run_live(
     from tofloc.kinematics import KinematicsModel
     from tofloc.live import LiveLocalizer
     from tofloc.logs import read_log, write_log
-    from tofloc.maps import Map
+    from tofloc.maps import load_map
     from tofloc.problem import Prior
     from tofloc.registry import ESTIMATORS
     from tofloc.rig import Rig
@@ -64,7 +65,7 @@ def run_live(
         raise ParameterError(f"live localization (--port) needs {', '.join(missing)}")
     assert rig_path is not None and map_path is not None and kinematics_path is not None
     rig = read_log(rig_path).rig if rig_path.suffix.lower() in (".h5", ".hdf5") else Rig.from_file(rig_path)
-    the_map = Map.load(map_path)
+    the_map = load_map(map_path, surface_path)
     kin = KinematicsModel.load(kinematics_path)
     est = make_estimator(ESTIMATORS.load(estimator), params, estimator)
     prior = Prior(

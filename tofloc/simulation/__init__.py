@@ -5,6 +5,13 @@ log (format v1) and the maps: the CAD map the estimators get (a point cloud samp
 the CAD cuboid, as the paper's 2000-point export), the CAD mesh, and the true world the
 rays were cast against (the CAD cuboid with each face shifted by the assembly error).
 Same seed, same bytes: every random draw comes from one ``numpy.random.SeedSequence``.
+
+Hardware and session: the draws of the *hardware* (the real frame's assembly error, the
+CAD cloud's sampling, the sensors' mounting) and of the *session* (the robot's postures,
+the motion capture, the sensors' noise) come from separate streams. ``simulate(sc, seed)``
+takes both from ``seed``; ``simulate(sc, seed, hardware_seed=h)`` takes the hardware's
+from ``h``, so that two sessions with the same ``h`` record the same physical set-up
+(e.g. a calibration session with the base placed elsewhere: ``base=(x, y, yaw_deg)``).
 """
 
 from __future__ import annotations
@@ -45,7 +52,13 @@ def _true_world(sc: Scenario, rng: np.random.Generator):
     return Map.cuboid(size=tuple(hi - lo), origin=tuple(lo), open_faces=env.open_faces)
 
 
-def simulate(scenario: Scenario | str = "paper", seed: int = 0) -> SimulationResult:
+def simulate(
+    scenario: Scenario | str = "paper",
+    seed: int = 0,
+    *,
+    hardware_seed: int | None = None,
+    base: tuple[float, float, float] | None = None,
+) -> SimulationResult:
     """Simulate a scenario: ``len(postures)`` samples of every sensor, with ground truth.
 
     Parameters
@@ -54,14 +67,28 @@ def simulate(scenario: Scenario | str = "paper", seed: int = 0) -> SimulationRes
         A scenario, a built-in name or a TOML path.
     seed : int
         Seed of every random draw (non-negative).
+    hardware_seed : int, optional
+        Seed of the hardware's draws (frame assembly error, CAD cloud, sensor mounting)
+        instead of ``seed``: sessions with the same ``hardware_seed`` share the set-up.
+    base : (x, y, yaw_deg), optional
+        The base's placement instead of the scenario's (height unchanged).
     """
     from tofloc.logs import Log
     from tofloc.maps import Map
 
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-    if seed < 0:
-        raise ValueError(f"seed must be non-negative, got {seed}")
+    if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
+        raise ValueError(f"seeds must be non-negative, got seed={seed}, hardware_seed={hardware_seed}")
     r_env, r_map, r_robot, r_mocap, r_tof, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
+    if hardware_seed is not None:
+        r_env, r_map, _, _, _, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(hardware_seed).spawn(6))
+    if base is not None:
+        import dataclasses
+
+        bx, by, byaw = (float(v) for v in base)
+        if not all(np.isfinite([bx, by, byaw])) or not -180.0 <= byaw <= 180.0:
+            raise ValueError(f"base must be finite (x, y, yaw_deg) with yaw in [-180, 180], got {base}")
+        sc = dataclasses.replace(sc, base=dataclasses.replace(sc.base, x=bx, y=by, yaw_deg=byaw))
 
     env = sc.environment
     cad_mesh = Map.cuboid(size=env.size, origin=env.origin, open_faces=env.open_faces)
@@ -94,7 +121,7 @@ def simulate(scenario: Scenario | str = "paper", seed: int = 0) -> SimulationRes
         pressure_kpa=pressures.astype(np.float32),
         T_base_tip=T_base_tip_mocap,
         T_map_base=T_map_base,
-        source=f"simulation:{sc.scenario.name} seed={seed}",
+        source=f"simulation:{sc.scenario.name} seed={seed}" + ("" if hardware_seed is None else f" hardware_seed={hardware_seed}"),
         created=sc.scenario.created,
     )
     return SimulationResult(log, map_cloud, cad_mesh, world, T_base_tip_true, sc, seed)
