@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from sensor_models.base import BoundSensorModel, SensorModel, params_from_table, params_from_toml, read_model_toml
+from sensor_models.mounting import check_sensor_mounting, corrected_T_tip_sensor
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_int
@@ -112,10 +113,10 @@ class BeamMixture:
 def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
     """Sensor-model parameters from a calibrated TOML file (``tofloc calibrate``'s output).
 
-    Returns ``{"uncertainty": {...}, "mixture": {...}, "support_yaw_deg": float}``
-    (validated; a missing table is left out, so the model's defaults apply): keyword
-    parameters for :class:`BeamModel` (``uncertainty`` and ``support_yaw_deg`` also for
-    the likelihood field).
+    Returns ``{"uncertainty": {...}, "mixture": {...}, "support_yaw_deg": float,
+    "sensor_mounting": {...}}`` (validated; a missing table or key is left out, so the
+    model's defaults apply): keyword parameters for :class:`BeamModel` (all but
+    ``mixture`` also for the likelihood field).
     """
     p = Path(path)
     data = read_model_toml(p)
@@ -126,13 +127,20 @@ def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
         out["mixture"] = BeamMixture.from_toml(p).to_dict()
     if "mounting" in data:
         m = data["mounting"]
-        if not isinstance(m, Mapping) or set(m) != {"support_yaw_deg"}:
-            raise FormatError(p, "[mounting]", "exactly one key, support_yaw_deg", f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
-        try:
-            check_support_yaw("mounting", m["support_yaw_deg"])
-        except ParameterError:
-            raise FormatError(p, "[mounting].support_yaw_deg", "a number of degrees in [-90, 90]", repr(m["support_yaw_deg"])) from None
-        out["support_yaw_deg"] = float(m["support_yaw_deg"])
+        if not isinstance(m, Mapping) or not set(m) <= {"support_yaw_deg", "sensors"} or not m:
+            raise FormatError(p, "[mounting]", "support_yaw_deg and/or a [mounting.sensors] table",
+                              f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
+        if "support_yaw_deg" in m:
+            try:
+                check_support_yaw("mounting", m["support_yaw_deg"])
+            except ParameterError:
+                raise FormatError(p, "[mounting].support_yaw_deg", "a number of degrees in [-90, 90]", repr(m["support_yaw_deg"])) from None
+            out["support_yaw_deg"] = float(m["support_yaw_deg"])
+        if "sensors" in m:
+            try:
+                out["sensor_mounting"] = check_sensor_mounting("mounting", m["sensors"])
+            except ParameterError as e:
+                raise FormatError(p, "[mounting.sensors]", "per sensor: rotation_deg and translation_m, 3 numbers each", str(e)) from None
     if not out:
         raise FormatError(p, "file", "an [uncertainty] and/or a [beam] table", f"tables {sorted(data)}")
     return out
@@ -181,12 +189,12 @@ class ZoneGeometry:
     problem : Problem
     sub_rays : int
         ``n``: each zone's footprint is cast as ``n x n`` sub-rays (1: its central ray).
-    support_yaw : float
-        Calibrated rotation (rad) of the sensor support about the tip's z axis: the zones
-        are cast from ``Rz(support_yaw) @ T_tip_sensor`` (``tofloc calibrate``'s ``[mounting]``).
+    T_tip_sensor : array (S, 4, 4), optional
+        Calibrated sensor poses in the tip frame (:mod:`sensor_models.mounting`) instead
+        of the rig's.
     """
 
-    def __init__(self, problem: Problem, sub_rays: int = 1, support_yaw: float = 0.0) -> None:
+    def __init__(self, problem: Problem, sub_rays: int = 1, T_tip_sensor: NDArray[np.float64] | None = None) -> None:
         rig = problem.rig
         S, Z = rig.n_sensors, rig.n_zones
         if sub_rays == 1 or any(s.zone_directions is not None for s in rig.sensors):
@@ -201,11 +209,7 @@ class ZoneGeometry:
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         #: (K, 4, 4): the base frame with the known height, roll and pitch applied, to the tip
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip
-        T_tip_sensor = rig.T_tip_sensor
-        if support_yaw != 0.0:
-            from tofloc import frames
-
-            T_tip_sensor = frames.se3(frames.rot_z(float(support_yaw)), np.zeros(3))[None] @ T_tip_sensor
+        T_tip_sensor = rig.T_tip_sensor if T_tip_sensor is None else np.asarray(T_tip_sensor, dtype=float)
         #: rays in the tip frame: origins (S, 3) and directions (S, Z, n, 3)
         self.origins_tip = T_tip_sensor[:, :3, 3].copy()
         self.dirs_tip = np.einsum("sij,sznj->szni", T_tip_sensor[:, :3, :3], dirs_s)
@@ -300,6 +304,7 @@ class BeamModel(SensorModel):
     temper: float = 0.25
     sub_rays: int = 1
     support_yaw_deg: float = 0.0
+    sensor_mounting: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _as_mixture(self.mixture)
@@ -307,6 +312,7 @@ class BeamModel(SensorModel):
         check_temper("beam", self.temper)
         check_int("beam.sub_rays", self.sub_rays, 1, 5)
         check_support_yaw("beam", self.support_yaw_deg)
+        check_sensor_mounting("beam", self.sensor_mounting)
 
     def bind(self, problem: Problem) -> "BoundBeamModel":
         return BoundBeamModel(self, problem)
@@ -320,7 +326,9 @@ class BoundBeamModel(BoundSensorModel):
         self.problem = problem
         self.mixture = _as_mixture(model.mixture)
         self.uncertainty = _as_uncertainty(model.uncertainty, "beam")
-        self.geometry = ZoneGeometry(problem, int(model.sub_rays), math.radians(model.support_yaw_deg))
+        self.geometry = ZoneGeometry(
+            problem, int(model.sub_rays), corrected_T_tip_sensor(problem.rig, model.support_yaw_deg, model.sensor_mounting)
+        )
         self.n_steps = problem.n_samples
         self.valid = problem.valid  # (K, S, Z)
         self.no_return = (problem.status == NO_TARGET_STATUS) & ~self.valid

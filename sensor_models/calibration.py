@@ -53,7 +53,12 @@ __all__ = [
     "ZoneSamples",
     "CalibrationResult",
     "SupportYawFit",
+    "MountingFit",
+    "cast_expected",
     "collect_zones",
+    "fit_mounting",
+    "calibrate_rig",
+    "RigCalibration",
     "fit_em",
     "fit_support_yaw",
     "model_toml",
@@ -152,6 +157,7 @@ def collect_zones(
     valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
     support_yaw: float = 0.0,
     sample_rows: NDArray[np.intp] | None = None,
+    T_tip_sensor: NDArray[np.float64] | None = None,
 ) -> ZoneSamples:
     """Expected distances of every zone of every sample with a known configuration.
 
@@ -169,6 +175,9 @@ def collect_zones(
         (CAD) rig: the sensors are cast from ``Rz(support_yaw) @ T_tip_sensor``.
     sample_rows : array of int, optional
         Use only these samples (indices into the log), e.g. a subsample.
+    T_tip_sensor : array (S, 4, 4), optional
+        Calibrated sensor poses in the tip frame (:mod:`sensor_models.mounting`) instead
+        of the rig's (``support_yaw`` then applies on top).
 
     Raises
     ------
@@ -177,9 +186,6 @@ def collect_zones(
     ParameterError
         A bad footprint, or no zone with an expected distance.
     """
-    from tofloc.simulation.scenario import ToFPhysics
-    from tofloc.simulation.tof import cast_zones
-
     name = str(log.path) if getattr(log, "path", None) is not None else "<log>"
     if not isinstance(footprint, (int, np.integer)) or not 1 <= int(footprint) <= MAX_FOOTPRINT:
         raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
@@ -203,21 +209,11 @@ def collect_zones(
         footprint = 1  # explicit zone tables have no grid footprint: cast their rays
     from tofloc import frames
 
-    T_tip_sensor = rig.T_tip_sensor
+    T_ts = rig.T_tip_sensor if T_tip_sensor is None else np.asarray(T_tip_sensor, dtype=float)
     if support_yaw != 0.0:
-        T_tip_sensor = frames.se3(frames.rot_z(float(support_yaw)), np.zeros(3))[None] @ T_tip_sensor
-    T_map_sensor = T_base[rows][:, None] @ T_tip[rows][:, None] @ T_tip_sensor[None]
-    max_range = float(rig.max_range_m.max())
-    tof = ToFPhysics(sub_rays=int(footprint), max_range=max_range, min_range=0.0, min_hit_fraction=0.0)
-    if footprint == 1:
-        dirs = np.einsum("ksij,szj->kszi", T_map_sensor[..., :3, :3], rig.unit_directions)
-        hits = the_map.raycast(np.broadcast_to(T_map_sensor[:, :, None, :3, 3], dirs.shape), dirs, max_range=max_range)
-        expected = rig.range_factor[None] ** -1 * hits.t
-        frac = np.isfinite(expected).astype(float)
-        expected = np.where(np.isfinite(expected), expected, np.nan)
-    else:
-        ret = cast_zones(the_map, rig, T_map_sensor, tof)
-        expected, frac = ret.distance, ret.hit_fraction
+        T_ts = frames.se3(frames.rot_z(float(support_yaw)), np.zeros(3))[None] @ T_ts
+    T_map_sensor = T_base[rows][:, None] @ T_tip[rows][:, None] @ T_ts[None]
+    expected, frac = cast_expected(the_map, rig, T_map_sensor, int(footprint))
     dist = np.asarray(log.distance_m)[rows]
     valid = np.asarray(log.valid(valid_statuses))[rows]
     full = frac >= 1.0 - 1e-9
@@ -245,6 +241,26 @@ def collect_zones(
         max_range_m=zmax[use].astype(float),
         counts=counts,
     )
+
+
+def cast_expected(the_map: Any, rig: Any, T_map_sensor: NDArray[np.float64], footprint: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Expected distance (sensor convention; NaN: no hit) and hit fraction of every zone
+    ``(K, S, Z)`` of the sensor poses ``T_map_sensor`` ``(K, S, 4, 4)``: the centre ray
+    (``footprint = 1``, as the beam model's default) or the footprint's sub-rays averaged
+    as the simulator forms a zone's depth."""
+    from tofloc.simulation.scenario import ToFPhysics
+    from tofloc.simulation.tof import cast_zones
+
+    max_range = float(rig.max_range_m.max())
+    if footprint == 1:
+        dirs = np.einsum("ksij,szj->kszi", T_map_sensor[..., :3, :3], rig.unit_directions)
+        hits = the_map.raycast(np.broadcast_to(T_map_sensor[:, :, None, :3, 3], dirs.shape), dirs, max_range=max_range)
+        expected = rig.range_factor[None] ** -1 * hits.t
+        frac = np.isfinite(expected).astype(float)
+        return np.where(np.isfinite(expected), expected, np.nan), frac
+    tof = ToFPhysics(sub_rays=int(footprint), max_range=max_range, min_range=0.0, min_hit_fraction=0.0)
+    ret = cast_zones(the_map, rig, T_map_sensor, tof)
+    return ret.distance, ret.hit_fraction
 
 
 # ---------------------------------------------------------------------------------------
@@ -560,6 +576,221 @@ def fit_support_yaw(
     return SupportYawFit(psi, tuple(float(g) for g in grid), tuple(float(v) for v in values), used)
 
 
+@dataclass(frozen=True)
+class MountingFit:
+    """What :func:`fit_mounting` found.
+
+    Attributes
+    ----------
+    sensor_mounting : dict
+        ``{sensor: {"rotation_deg": [3], "translation_m": [3]}}``: tip-frame corrections
+        applied after the support's rotation (:mod:`sensor_models.mounting`).
+    bias : tuple of float
+        The range bias fitted with them (offset m, slope; edge offset m, edge slope).
+    median_abs_residual_before_m, median_abs_residual_after_m : float
+        Median |reported - expected - bias| of the zones used, before and after.
+    zones : int
+        Zones used (valid returns whose expected distance is defined).
+    evaluations : int
+        Ray casts of the whole zone set.
+    """
+
+    sensor_mounting: dict[str, dict[str, list[float]]]
+    bias: tuple[float, float, float, float]
+    median_abs_residual_before_m: float
+    median_abs_residual_after_m: float
+    zones: int
+    evaluations: int
+
+
+def fit_mounting(
+    logs_and_maps: Sequence[tuple[Any, Any]],
+    uncertainty: RangeUncertainty,
+    *,
+    support_yaw_deg: float = 0.0,
+    footprint: int = 1,
+    valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
+    max_samples: int = 200,
+    prior_rotation_deg: float = 2.0,
+    prior_translation_m: float = 0.002,
+    rounds: int = 3,
+    max_nfev: int = 15,
+) -> MountingFit:
+    """Each sensor's mounting error (a rotation and a translation in the tip frame, after
+    the support's rotation) by robust nonlinear least squares against the ground truth.
+
+    Residual of a valid zone: ``(z - z*(mounting) - bias(z*)) / sigma(z*)`` with ``z*``
+    ray cast from the corrected sensor pose, ``bias`` and ``sigma`` from ``uncertainty``
+    (a first EM fit), plus a Gaussian prior on every correction (``prior_rotation_deg``,
+    ``prior_translation_m``: a sensor's translation along its boresight and the range
+    bias are nearly interchangeable, and the prior keeps the correction small where the
+    data cannot tell). Robust by iteratively reweighted least squares (``rounds`` rounds,
+    Cauchy weights ``1 / (1 + (r / 3)^2)``: multipath, ghosts and map error are not
+    Gaussian); each round is a Levenberg-Marquardt-type solve (SciPy ``least_squares``)
+    with a forward-difference Jacobian of the ray casts (0.02 deg, 0.02 mm), where a zone
+    whose expected distance jumps by more than 5 mm over a step (its ray crossed an edge)
+    gets no derivative. At most ``max_samples`` samples per log, evenly spaced.
+    """
+    from scipy.optimize import least_squares
+
+    from sensor_models.mounting import correction_matrices
+    from tofloc import frames
+
+    if not logs_and_maps:
+        raise ParameterError("fit_mounting needs at least one (log, map)")
+    rig = logs_and_maps[0][0].rig
+    S = rig.n_sensors
+    names = [x.name for x in rig.sensors]
+    for log, _ in logs_and_maps[1:]:
+        if [x.name for x in log.rig.sensors] != names:
+            raise ParameterError("fit_mounting: every log must carry the same rig (sensor names differ)")
+    statuses = frozenset(int(v) for v in valid_statuses)
+    data = []
+    for log, the_map in logs_and_maps:
+        T_tip = np.asarray(log.T_base_tip, dtype=float)
+        T_base = log.truth_per_sample()
+        known = np.flatnonzero(np.all(np.isfinite(T_tip), axis=(1, 2)) & np.all(np.isfinite(T_base), axis=(1, 2)))
+        rows = known[np.unique(np.linspace(0, known.size - 1, min(known.size, max_samples)).round().astype(np.intp))]
+        data.append((the_map, T_base[rows] @ T_tip[rows], np.asarray(log.distance_m)[rows], np.asarray(log.valid(statuses))[rows]))
+    support = correction_matrices(rig, support_yaw_deg)
+    step = 0.02  # deg and mm
+
+    def expected(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        C = np.empty((S, 4, 4))
+        for i in range(S):
+            R = frames.matrix_from_rotvec(np.radians(x[6 * i : 6 * i + 3]))
+            C[i] = frames.se3(R, 1e-3 * x[6 * i + 3 : 6 * i + 6]) @ support[i]
+        T_ts = C @ rig.T_tip_sensor
+        return np.concatenate([cast_expected(m, rig, T_bt[:, None] @ T_ts[None], footprint)[0][u]
+                               for (m, T_bt, _, _), u in zip(data, use)])
+
+    x0 = np.zeros(6 * S)
+    use = [np.ones(v.shape, dtype=bool) for *_, v in data]
+    e_all = expected(x0)
+    use = [v & np.isfinite(e.reshape(v.shape))
+           for (*_, v), e in zip(data, np.split(e_all, np.cumsum([u.size for u in use])[:-1]))]
+    e0 = expected(x0)
+    z = np.concatenate([zz[u] for (_, _, zz, _), u in zip(data, use)])
+    n_zones = int(z.size)
+    if n_zones < 50 * S:
+        raise ParameterError(f"fit_mounting: only {n_zones} zones with a valid return and an expected distance")
+    edge = np.concatenate([np.broadcast_to(edge_zone_mask(rig), u.shape)[u] for u in use])
+    counter = {"casts": 2}
+
+    def zone_residuals(e: NDArray[np.float64]) -> NDArray[np.float64]:
+        e = np.where(np.isfinite(e), e, z)  # a zone that lost its hit: no residual
+        bias = np.where(edge, uncertainty.edge_bias_offset + uncertainty.edge_bias_slope * e,
+                        uncertainty.bias_offset + uncertainty.bias_slope * e)
+        sig = np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e) * np.where(edge, uncertainty.edge_factor, 1.0)
+        return (z - e - bias) / sig
+
+    prior_scale = np.tile(np.r_[np.full(3, prior_rotation_deg), np.full(3, 1e3 * prior_translation_m)], S)
+    cache: dict[bytes, NDArray[np.float64]] = {}
+
+    def geometry(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        key = np.asarray(x, dtype=float).tobytes()
+        if key not in cache:
+            if len(cache) > 4 * x.size:
+                cache.clear()
+            cache[key] = expected(x)
+            counter["casts"] += 1
+        return cache[key]
+
+    x = x0
+    for _ in range(rounds):  # IRLS: Cauchy weights from the current residuals
+        r_now = zone_residuals(geometry(x))
+        sw = 1.0 / np.sqrt(1.0 + (r_now / 3.0) ** 2)
+
+        def fun(xx: NDArray[np.float64]) -> NDArray[np.float64]:
+            return np.concatenate([sw * zone_residuals(geometry(xx)), xx / prior_scale])
+
+        def jac(xx: NDArray[np.float64]) -> NDArray[np.float64]:
+            e_ref = geometry(xx)
+            r_ref = zone_residuals(e_ref)
+            J = np.zeros((n_zones + xx.size, xx.size))
+            for j in range(xx.size):
+                xj = xx.copy()
+                xj[j] += step
+                ej = geometry(xj)
+                col = (zone_residuals(ej) - r_ref) / step
+                jump = ~np.isfinite(ej) | ~np.isfinite(e_ref) | (np.abs(np.nan_to_num(ej - e_ref)) > 0.005)
+                col[jump] = 0.0
+                J[:n_zones, j] = sw * col
+                J[n_zones + j, j] = 1.0 / prior_scale[j]
+            return J
+
+        x = least_squares(fun, x, jac=jac, method="trf", max_nfev=max_nfev).x
+    e1 = geometry(x)
+
+    def med_abs(e: NDArray[np.float64]) -> float:
+        return float(np.nanmedian(np.abs(zone_residuals(e) * uncertainty.sigma(rig, 0.35)[0, 0] / max(uncertainty.sigma_slope * 0.35, uncertainty.sigma_floor))))
+
+    mounting = {
+        name: {"rotation_deg": [float(v) for v in x[6 * i : 6 * i + 3]],
+               "translation_m": [float(v) for v in 1e-3 * x[6 * i + 3 : 6 * i + 6]]}
+        for i, name in enumerate(names)
+    }
+    bias = (uncertainty.bias_offset, uncertainty.bias_slope, uncertainty.edge_bias_offset, uncertainty.edge_bias_slope)
+    before = float(np.nanmedian(np.abs(zone_residuals(e0) * np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e0))))
+    after = float(np.nanmedian(np.abs(zone_residuals(e1) * np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e1))))
+    return MountingFit(mounting, bias, before, after, n_zones, counter["casts"])
+
+
+@dataclass(eq=False)
+class RigCalibration:
+    """What :func:`calibrate_rig` found: the mounting and the range model fitted on it."""
+
+    result: CalibrationResult
+    support_yaw: SupportYawFit | None
+    mounting: MountingFit | None
+
+    @property
+    def support_yaw_deg(self) -> float | None:
+        return None if self.support_yaw is None else self.support_yaw.support_yaw_deg
+
+    @property
+    def sensor_mounting(self) -> dict[str, dict[str, list[float]]] | None:
+        return None if self.mounting is None else self.mounting.sensor_mounting
+
+
+def calibrate_rig(
+    logs_and_maps: Sequence[tuple[Any, Any]],
+    *,
+    footprint: int = 3,
+    valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
+    support_yaw: bool = True,
+    support_yaw_bound_deg: float = 20.0,
+    mounting: bool = True,
+    max_iter: int = 200,
+    zone_filter: Any = None,
+) -> RigCalibration:
+    """The whole calibration of ``tofloc calibrate``: the support's rotation
+    (:func:`fit_support_yaw`), a first EM fit on it, each sensor's mounting
+    (:func:`fit_mounting`), then the final EM fit (:func:`fit_em`) of the bias/sigma
+    curves and the mixture on the corrected rig. ``zone_filter(ZoneSamples) ->
+    ZoneSamples`` restricts the zones of the EM fits (e.g. a distance range)."""
+    from sensor_models.mounting import corrected_T_tip_sensor
+
+    psi = fit_support_yaw(logs_and_maps, footprint=footprint, valid_statuses=valid_statuses,
+                          bound_deg=support_yaw_bound_deg) if support_yaw else None
+    psi_deg = 0.0 if psi is None else psi.support_yaw_deg
+
+    def em(sensor_mounting: Mapping[str, Any] | None) -> CalibrationResult:
+        parts = [collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses,
+                               T_tip_sensor=corrected_T_tip_sensor(log.rig, psi_deg, sensor_mounting))
+                 for log, m in logs_and_maps]
+        zs = ZoneSamples.concatenate(parts)
+        return fit_em(zone_filter(zs) if zone_filter is not None else zs, max_iter=max_iter)
+
+    result = em(None)
+    fit = None
+    if mounting:
+        fit = fit_mounting(logs_and_maps, result.uncertainty, support_yaw_deg=psi_deg, footprint=footprint,
+                           valid_statuses=valid_statuses)
+        result = em(fit.sensor_mounting)
+    return RigCalibration(result, psi, fit)
+
+
 def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -577,7 +808,8 @@ def _toml_value(v: Any) -> str:
     raise ParameterError(f"cannot write {type(v).__name__} to TOML")
 
 
-def model_toml(result: CalibrationResult, meta: Mapping[str, Any] | None = None, support_yaw_deg: float | None = None) -> str:
+def model_toml(result: CalibrationResult, meta: Mapping[str, Any] | None = None, support_yaw_deg: float | None = None,
+               sensor_mounting: Mapping[str, Mapping[str, Sequence[float]]] | None = None) -> str:
     """The sensor-model TOML text: ``[uncertainty]``, ``[beam]``, ``[mounting]`` (when the
     support's rotation was fitted) and ``[calibration]`` tables.
 
@@ -608,6 +840,14 @@ def model_toml(result: CalibrationResult, meta: Mapping[str, Any] | None = None,
             "[mounting]",
             f"support_yaw_deg = {_toml_value(float(support_yaw_deg))}",
         ]
+    if sensor_mounting:
+        lines += ["", "# Per sensor, applied after the support's rotation: T_tip_sensor' = se3(R(rotation_deg), translation_m) @ ..."]
+        if support_yaw_deg is None:
+            lines += ["[mounting]"]
+        for name, entry in sensor_mounting.items():
+            lines += [f"[mounting.sensors.{name}]",
+                      f"rotation_deg = {_toml_value([float(v) for v in entry['rotation_deg']])}",
+                      f"translation_m = {_toml_value([float(v) for v in entry['translation_m']])}"]
     cal = {
         "zones_used": result.samples.n,
         "iterations": result.iterations,
@@ -623,12 +863,13 @@ def model_toml(result: CalibrationResult, meta: Mapping[str, Any] | None = None,
 
 
 def write_model(result: CalibrationResult, path: str | Path, meta: Mapping[str, Any] | None = None,
-                support_yaw_deg: float | None = None) -> Path:
+                support_yaw_deg: float | None = None,
+                sensor_mounting: Mapping[str, Mapping[str, Sequence[float]]] | None = None) -> Path:
     """Write :func:`model_toml` atomically; the file is read back through the readers as a check."""
     from sensor_models.beam import load_sensor_model_toml
 
     p = Path(path)
-    text = model_toml(result, meta, support_yaw_deg)
+    text = model_toml(result, meta, support_yaw_deg, sensor_mounting)
     with atomic_path(p) as tmp:
         tmp.write_text(text, encoding="utf-8")
         RangeUncertainty.from_toml(tmp)

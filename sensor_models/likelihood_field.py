@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from sensor_models.base import BoundSensorModel, SensorModel
 from sensor_models.beam import _as_uncertainty, check_support_yaw, check_temper
+from sensor_models.mounting import check_sensor_mounting, correction_matrices
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
@@ -185,6 +186,8 @@ class LikelihoodFieldModel(SensorModel):
     support_yaw_deg : float
         Calibrated rotation of the sensor support about the tip's z axis (deg), as
         :class:`sensor_models.beam.BeamModel`'s.
+    sensor_mounting : dict
+        Calibrated per-sensor corrections, as :class:`sensor_models.beam.BeamModel`'s.
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -199,6 +202,7 @@ class LikelihoodFieldModel(SensorModel):
     cell: float = 0.01
     r_field: float = 0.05
     support_yaw_deg: float = 0.0
+    sensor_mounting: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_rand"):
@@ -210,6 +214,7 @@ class LikelihoodFieldModel(SensorModel):
         _as_uncertainty(self.uncertainty, "likelihood_field")
         check_temper("likelihood_field", self.temper)
         check_support_yaw("likelihood_field", self.support_yaw_deg)
+        check_sensor_mounting("likelihood_field", self.sensor_mounting)
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 1.0)):
             v = getattr(self, n)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not lo <= v <= hi:
@@ -236,9 +241,9 @@ class BoundLikelihoodField(BoundSensorModel):
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip  # (K, 4, 4)
         tip = rig.points_in_tip(z_true)  # (K, S, Z, 3)
-        if model.support_yaw_deg != 0.0:  # the calibrated support rotation about the tip's z axis
-            c0, s0 = math.cos(math.radians(model.support_yaw_deg)), math.sin(math.radians(model.support_yaw_deg))
-            tip = np.stack([c0 * tip[..., 0] - s0 * tip[..., 1], s0 * tip[..., 0] + c0 * tip[..., 1], tip[..., 2]], axis=-1)
+        if model.support_yaw_deg != 0.0 or model.sensor_mounting:  # the calibrated mounting
+            C = correction_matrices(rig, model.support_yaw_deg, model.sensor_mounting)  # (S, 4, 4)
+            tip = np.einsum("sij,kszj->kszi", C[:, :3, :3], tip) + C[None, :, None, :3, 3]
         self.points_tip = [tip[k][valid[k]] for k in range(self.n_steps)]  # per sample (P_k, 3)
         pts = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], tip) + self.T_lift_tip[:, None, None, :3, 3]
         self.points = [pts[k][valid[k]] for k in range(self.n_steps)]  # lifted

@@ -172,6 +172,7 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     assert doc["paper"]["mocap"] == {"e_x_m": [0.0305, 0.0076], "e_gamma_deg": [4.428, 0.182]}
     assert doc["trials"] == 2 and doc["seed"] == 3
     assert set(doc["results"]) == {"icp_pf"}
+    assert not (out / "sensor_model.toml").exists()  # the ICP score takes no range model: nothing to calibrate
     assert set(doc["results"]["icp_pf"]) == {"knn", "mocap"}
     for tip in ("knn", "mocap"):
         assert set(doc["results"]["icp_pf"][tip]) == {"paper", "offset"}

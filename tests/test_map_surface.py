@@ -15,16 +15,12 @@ import pytest
 from tofloc.cli import main
 from tofloc.errors import FormatError, ParameterError
 from tofloc.maps import Map, load_map
+from rays import interior_rays as shared_rays
 
 
 def interior_rays(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Rays from points well inside the paper's cuboid toward the walls, the floor and the open faces."""
-    rng = np.random.default_rng(seed)
-    o = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(0.02, 0.55, n)]
-    az = rng.uniform(-np.pi, np.pi, n)
-    el = np.radians(rng.uniform(-60.0, 60.0, n))
-    d = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-    return o, d
+    return shared_rays(n, seed, half_xy=0.3, z=(0.02, 0.55), elevation_deg=(-60.0, 60.0))
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rays import interior_rays
 
 from tofloc.errors import FormatError, ParameterError
 from tofloc.maps import (
@@ -34,16 +35,6 @@ def box_ray_distance(o: np.ndarray, d: np.ndarray) -> np.ndarray:
     t = np.min(t_exit, axis=-1)
     open_exit = side_hi & ((which == 1) | (which == 2))
     return np.where(open_exit, np.inf, t)
-
-
-def interior_rays(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rays from points well inside the cuboid toward the walls, the floor and the open faces."""
-    rng = np.random.default_rng(seed)
-    o = np.c_[rng.uniform(-0.1, 0.1, (n, 2)), rng.uniform(0.1, 0.45, n)]
-    az = rng.uniform(-np.pi, np.pi, n)
-    el = np.radians(rng.uniform(-40.0, 50.0, n))
-    d = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-    return o, d
 
 
 # --------------------------------------------------------------------------------------

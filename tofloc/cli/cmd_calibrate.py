@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -32,13 +31,16 @@ def calibrate(
         True, "--support-yaw/--no-support-yaw",
         help="Also fit the sensor support's rotation about the tip axis (maximum likelihood; written as [mounting])."),
     support_yaw_bound: float = typer.Option(20.0, "--support-yaw-bound", help="Search the support rotation within +- this (deg)."),
+    mounting: bool = typer.Option(
+        True, "--mounting/--no-mounting",
+        help="Also fit each sensor's mounting error (rotation, translation; robust least squares; written as [mounting.sensors])."),
 ) -> None:
     """Calibrate the per-zone range model and the beam mixture by EM (Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration import (
         ZoneSamples,
         collect_zones,
         fit_em,
-        fit_support_yaw,
+        calibrate_rig,
         plot_calibration,
         resolve_calibration_map,
         write_model,
@@ -74,36 +76,36 @@ def calibrate(
             loaded[mp] = Map.load(mp)
         pairs.append((log, loaded[mp]))
         used_maps.append(str(mp))
-    psi_deg = 0.0
-    if support_yaw:
-        with status(f"searching the support's rotation in +-{support_yaw_bound:g} deg (an EM fit per candidate)"):
-            fit = fit_support_yaw(pairs, footprint=footprint, valid_statuses=statuses, bound_deg=support_yaw_bound)
-        psi_deg = fit.support_yaw_deg
-        err_console.print(f"support rotation about the tip axis: {psi_deg:+.2f} deg (maximum likelihood on "
-                          f"{fit.samples_used} samples; the log's rig is the CAD one)", highlight=False)
-        if abs(psi_deg) > support_yaw_bound - 0.5:
-            err_console.print(f"note: the rotation lies at the search bound (+-{support_yaw_bound:g} deg): widen --support-yaw-bound",
-                              highlight=False)
-    parts: list[ZoneSamples] = []
     for lp, (log, m), mp in zip(logs, pairs, used_maps):
-        with status(f"ray casting {lp.name} against {Path(mp).name}"):
-            zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses, support_yaw=math.radians(psi_deg))
+        zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses)
         err_console.print(
             f"{lp}: {zs.counts['samples']} samples, {zs.n} zones with an expected distance (map {mp}, {m.kind}); "
             f"{zs.counts['no_expected_hit']} zones see no map, {zs.counts['partial_footprint']} only partly",
             highlight=False,
         )
-        parts.append(zs)
-    samples = ZoneSamples.concatenate(parts)
-    if min_distance > 0.0 or max_distance < 100.0:
-        samples = samples.subset((samples.expected_m >= min_distance) & (samples.expected_m <= max_distance))
-        err_console.print(f"{samples.n} zones expected within [{min_distance:g}, {max_distance:g}] m "
-                          f"({samples.counts['out_of_range']} left out)", highlight=False)
-    with status(f"EM on {samples.n} zones"):
-        result = fit_em(samples, max_iter=max_iter)
+
+    def in_range(zs: ZoneSamples) -> ZoneSamples:
+        if min_distance > 0.0 or max_distance < 100.0:
+            return zs.subset((zs.expected_m >= min_distance) & (zs.expected_m <= max_distance))
+        return zs
+
+    steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
+    with status(f"calibrating: {', then '.join(steps)}"):
+        cal = calibrate_rig(pairs, footprint=footprint, valid_statuses=statuses, support_yaw=support_yaw,
+                            support_yaw_bound_deg=support_yaw_bound, mounting=mounting, max_iter=max_iter, zone_filter=in_range)
+    result = cal.result
+    if cal.support_yaw is not None:
+        psi_deg = cal.support_yaw.support_yaw_deg
+        err_console.print(f"support rotation about the tip axis: {psi_deg:+.2f} deg (maximum likelihood on "
+                          f"{cal.support_yaw.samples_used} samples; the log's rig is the CAD one)", highlight=False)
+        if abs(psi_deg) > support_yaw_bound - 0.5:
+            err_console.print(f"note: the rotation lies at the search bound (+-{support_yaw_bound:g} deg): widen --support-yaw-bound",
+                              highlight=False)
+    if cal.mounting is not None:
+        _print_mounting(cal.mounting)
     meta = {"logs": [str(p) for p in logs], "maps": used_maps, "footprint": footprint,
             "valid_statuses": sorted(statuses), "distance_range_m": [min_distance, max_distance]}
-    write_model(result, out, meta, support_yaw_deg=psi_deg if support_yaw else None)
+    write_model(result, out, meta, support_yaw_deg=cal.support_yaw_deg, sensor_mounting=cal.sensor_mounting)
     _print(result)
     for note in result.notes:
         err_console.print(f"note: {note}", highlight=False)
@@ -111,6 +113,16 @@ def calibrate(
     if plot is not None:
         plot_calibration(result, plot)
         err_console.print(f"wrote {plot}", highlight=False)
+
+
+def _print_mounting(fit: Any) -> None:
+    t = Table(title=f"each sensor's mounting correction ({fit.zones} zones, {fit.evaluations} ray casts; "
+              f"median |residual| {1000 * fit.median_abs_residual_before_m:.1f} -> {1000 * fit.median_abs_residual_after_m:.1f} mm)")
+    for col in ("sensor", "rotation (deg)", "translation (mm)"):
+        t.add_column(col, justify="right")
+    for name, e in fit.sensor_mounting.items():
+        t.add_row(name, " ".join(f"{v:+.2f}" for v in e["rotation_deg"]), " ".join(f"{1000 * v:+.2f}" for v in e["translation_m"]))
+    console.print(t)
 
 
 def _print(result: Any) -> None:

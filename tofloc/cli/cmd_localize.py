@@ -132,7 +132,8 @@ def with_sensor_model_file(name: str, params: dict[str, Any], path: Optional[Pat
             used.append("uncertainty")
         target = "estimator"
     make_estimator(cls, out, name)  # validate the merged parameters now
-    tables_used = ", ".join(f"[{'beam' if k == 'mixture' else k}]" for k in used)
+    labels = {"mixture": "beam", "support_yaw_deg": "mounting", "sensor_mounting": "mounting.sensors"}
+    tables_used = ", ".join(f"[{labels.get(k, k)}]" for k in used)
     note = f"{name}: {target} takes {tables_used} from {path}" if used else f"{name}: {target} uses nothing from {path}"
     return out, note
 

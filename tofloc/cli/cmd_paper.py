@@ -125,6 +125,22 @@ CALIBRATION_SEED_OFFSET = 1000
 CALIBRATION_BASE_OFFSET = (-0.04, 0.04, -20.0)
 
 
+def uses_sensor_model(name: str, params: dict[str, Any]) -> bool:
+    """Whether estimator ``name`` (with ``params``) takes a calibrated range model: a
+    particle filter whose sensor model has an ``uncertainty`` parameter, or an estimator
+    that has one itself."""
+    import dataclasses
+
+    from estimators.particle_filter import ParticleFilter
+    from evaluation.protocol import make_estimator
+    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+
+    cls = ESTIMATORS.load(name)
+    est = make_estimator(cls, params, name)
+    target = SENSOR_MODELS.load(est.sensor_model) if isinstance(est, ParticleFilter) else cls
+    return dataclasses.is_dataclass(target) and "uncertainty" in {f.name for f in dataclasses.fields(target)}
+
+
 def _hardware_seed(source: str) -> int | None:
     """The hardware seed of a simulated log, from its ``source`` ("simulation:NAME seed=S
     [hardware_seed=H]"); None for a log the simulator did not write."""
@@ -138,8 +154,9 @@ def _hardware_seed(source: str) -> int | None:
 
 
 def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1) -> Path:
-    """Fit the sensor model (``tofloc calibrate``: the support's rotation, then EM of the
-    bias/sigma curves and the mixture) and write ``out/sensor_model.toml``.
+    """Fit the sensor model (``tofloc calibrate``: the support's rotation, each sensor's
+    mounting, then EM of the bias/sigma curves and the mixture) and write
+    ``out/sensor_model.toml``.
 
     A simulated log gets a *calibration session*: the same set-up (hardware seed: frame,
     CAD cloud, sensor mounting) recorded again with the base placed elsewhere
@@ -152,7 +169,7 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
     """
     import numpy as np
 
-    from sensor_models.calibration import collect_zones, fit_em, fit_support_yaw, write_model
+    from sensor_models.calibration import calibrate_rig, write_model
     from tofloc.logs import read_log
     from tofloc.simulation import load_scenario, simulate, write_simulation
 
@@ -176,17 +193,17 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
             raise ParameterError("--calibrate: the k-NN model was not fit on this log, so its training split is unknown")
         what = f"the k-NN training split ({rows.size} samples; the log is not simulated, so no calibration session)"
     cal_log_used = cal_log if rows is None else cal_log.subset(rows)
-    with status(f"calibrating the sensor model on {what}: the support's rotation, then EM"):
-        fit = fit_support_yaw([(cal_log_used, data.map)], footprint=sub_rays)
-        zones = collect_zones(cal_log_used, data.map, footprint=sub_rays, support_yaw=float(np.radians(fit.support_yaw_deg)))
-        result = fit_em(zones)
-        path = write_model(result, out / "sensor_model.toml",
+    with status(f"calibrating the sensor model on {what}: the support's rotation, each sensor's mounting, then EM"):
+        cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
+        path = write_model(cal.result, out / "sensor_model.toml",
                            {"log": str(cal_log.path), "samples": what, "map": str(data.map_path), "footprint": sub_rays},
-                           support_yaw_deg=fit.support_yaw_deg)
-    u = result.uncertainty
+                           support_yaw_deg=cal.support_yaw_deg, sensor_mounting=cal.sensor_mounting)
+    u = cal.result.uncertainty
+    worst = max(float(np.linalg.norm(e["rotation_deg"])) for e in (cal.sensor_mounting or {"-": {"rotation_deg": [0.0]}}).values())
     err_console.print(
-        f"calibrated {path.name} on {what}: support rotation {fit.support_yaw_deg:+.2f} deg, sigma {100 * u.sigma_slope:.2f} % d "
-        f"(edge x{u.edge_factor:.2f}), bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d", highlight=False,
+        f"calibrated {path.name} on {what}: support rotation {cal.support_yaw_deg:+.2f} deg, sensor mounting corrections "
+        f"up to {worst:.2f} deg, sigma {100 * u.sigma_slope:.2f} % d (edge x{u.edge_factor:.2f}), "
+        f"bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d", highlight=False,
     )
     return path
 
@@ -213,10 +230,12 @@ def paper(
         help="Give the ray-casting models (beam, likelihood field) the CAD mesh <stem>.cad.ply beside the map when it "
         "exists (the ICP score keeps the map's points); --no-surface casts against the points' surfels.",
     ),
-    calibrate: bool = typer.Option(
-        False, "--calibrate",
-        help="Calibrate the sensor model (support rotation, then EM) on a simulated calibration session of the same "
-        "set-up (a non-simulated log: its k-NN training split), write DIR/sensor_model.toml and give it to every estimator.",
+    calibrate: Optional[bool] = typer.Option(
+        None, "--calibrate/--no-calibrate",
+        help="Calibrate the sensor model (support rotation, each sensor's mounting, then EM) on a simulated calibration "
+        "session of the same set-up (a non-simulated log: its k-NN training split), write DIR/sensor_model.toml and give "
+        "it to every estimator that uses one. Default: on, unless --sensor-model-params is given or no estimator uses a "
+        "sensor model; --no-calibrate: the datasheet's model.",
     ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
@@ -256,9 +275,11 @@ def paper(
     data = prepare_data(out, scenario, seed, surface)
     for note in data.notes:
         err_console.print(note, highlight=False, markup=False)
+    if calibrate and sensor_model_params is not None:
+        raise ParameterError("give either --calibrate or --sensor-model-params, not both")
+    if calibrate is None:
+        calibrate = sensor_model_params is None and any(uses_sensor_model(n, params) for n in names)
     if calibrate:
-        if sensor_model_params is not None:
-            raise ParameterError("give either --calibrate or --sensor-model-params, not both")
         sensor_model_params = calibrate_for_paper(data, out, scenario, seed)
         for n in names:
             est_params[n], note = with_sensor_model_file(n, params, sensor_model_params)

@@ -1,0 +1,92 @@
+"""Calibrated mounting of the sensors: corrections to the log's (CAD) rig.
+
+A printed support is not mounted exactly as its CAD model says, and each sensor sits on
+it with its own small error. ``tofloc calibrate`` estimates both from logs with ground
+truth (:func:`sensor_models.calibration.fit_support_yaw`,
+:func:`sensor_models.calibration.fit_mounting`) and writes them in the ``[mounting]``
+table of the sensor-model TOML::
+
+    [mounting]
+    support_yaw_deg = 8.3              # the support's rotation about the tip's z axis
+    [mounting.sensors.tof0]            # one table per sensor (by name), optional
+    rotation_deg = [0.4, -0.9, 0.2]    # rotation vector of a tip-frame correction (deg)
+    translation_m = [0.0004, -0.0011, 0.0002]
+
+The corrected pose of sensor ``s`` in the tip frame is::
+
+    T_tip_sensor'[s] = se3(R(rotation_deg[s]), translation_m[s]) @ Rz(support_yaw_deg) @ T_tip_sensor[s]
+
+The beam and likelihood-field models take both (``support_yaw_deg``, ``sensor_mounting``)
+and cast (or place end points) from the corrected poses; nothing else changes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc import frames
+from tofloc.errors import ParameterError
+from tofloc.rig import Rig
+
+__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "check_sensor_mounting", "corrected_T_tip_sensor", "correction_matrices"]
+
+#: Largest per-sensor correction we accept: a mounting error, not a different rig.
+MAX_ROTATION_DEG = 30.0
+MAX_TRANSLATION_M = 0.05
+
+
+def check_sensor_mounting(owner: str, value: Any) -> dict[str, dict[str, list[float]]]:
+    """Validate ``{sensor name: {"rotation_deg": [3], "translation_m": [3]}}``; returns a plain copy."""
+    if not isinstance(value, Mapping):
+        raise ParameterError(f"{owner}.sensor_mounting must be a table of sensor names, got {type(value).__name__}")
+    out: dict[str, dict[str, list[float]]] = {}
+    for name, entry in value.items():
+        where = f"{owner}.sensor_mounting.{name}"
+        if not isinstance(name, str) or not name:
+            raise ParameterError(f"{owner}.sensor_mounting: sensor names must be non-empty strings, got {name!r}")
+        if not isinstance(entry, Mapping) or set(entry) != {"rotation_deg", "translation_m"}:
+            found = sorted(entry) if isinstance(entry, Mapping) else type(entry).__name__
+            raise ParameterError(f"{where} must have exactly rotation_deg and translation_m, got {found}")
+        vals = {}
+        for key, limit in (("rotation_deg", MAX_ROTATION_DEG), ("translation_m", MAX_TRANSLATION_M)):
+            v = entry[key]
+            ok = isinstance(v, (list, tuple)) and len(v) == 3 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+            if not ok or max(abs(float(x)) for x in v) > limit:
+                raise ParameterError(f"{where}.{key} must be 3 finite numbers within +-{limit:g}, got {v!r}")
+            vals[key] = [float(x) for x in v]
+        out[name] = vals
+    return out
+
+
+def correction_matrices(rig: Rig, support_yaw_deg: float = 0.0,
+                        sensor_mounting: Mapping[str, Mapping[str, Any]] | None = None) -> NDArray[np.float64]:
+    """Per-sensor tip-frame corrections ``C[s]`` ``(S, 4, 4)``: ``T_tip_sensor' = C[s] @ T_tip_sensor``.
+
+    Raises
+    ------
+    ParameterError
+        ``sensor_mounting`` names a sensor the rig does not have.
+    """
+    names = [s.name for s in rig.sensors]
+    unknown = sorted(set(sensor_mounting or {}) - set(names))
+    if unknown:
+        raise ParameterError(f"sensor_mounting names sensors {unknown} the rig does not have (it has {names})")
+    support = frames.se3(frames.rot_z(math.radians(float(support_yaw_deg))), np.zeros(3))
+    C = np.tile(support, (len(names), 1, 1))
+    for i, name in enumerate(names):
+        entry = (sensor_mounting or {}).get(name)
+        if entry is not None:
+            R = frames.matrix_from_rotvec(np.radians(np.asarray(entry["rotation_deg"], dtype=float)))
+            C[i] = frames.se3(R, np.asarray(entry["translation_m"], dtype=float)) @ support
+    return C
+
+
+def corrected_T_tip_sensor(rig: Rig, support_yaw_deg: float = 0.0,
+                           sensor_mounting: Mapping[str, Mapping[str, Any]] | None = None) -> NDArray[np.float64]:
+    """The sensors' calibrated poses in the tip frame ``(S, 4, 4)`` (see the module docstring)."""
+    return correction_matrices(rig, support_yaw_deg, sensor_mounting) @ rig.T_tip_sensor
