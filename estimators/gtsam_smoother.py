@@ -73,6 +73,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement, make_sample_factor
+from sensor_models.beam import check_support_yaw
+from sensor_models.mounting import check_sensor_mounting, rig_with_mounting
 from sensor_models.uncertainty import RangeUncertainty
 from tofloc import frames
 from tofloc.errors import ParameterError
@@ -114,6 +116,10 @@ class GTSAMSmoother(Estimator):
         Kernel threshold, in sigmas of the whitened residual.
     uncertainty : dict
         Fields of :class:`~sensor_models.uncertainty.RangeUncertainty` (bias and sigma curves).
+    support_yaw_deg, sensor_mounting
+        A calibrated mounting (:mod:`sensor_models.mounting`, the ``[mounting]`` table of
+        ``tofloc calibrate``'s output): the problem's rig is corrected before anything else;
+        the support variable ``D`` then estimates what remains.
     map_sigma : float
         Map and association error (m) added in quadrature to every zone's sigma.
     information_scale : float
@@ -158,6 +164,8 @@ class GTSAMSmoother(Estimator):
     robust: str = "cauchy"
     robust_k: float = 2.0
     uncertainty: Mapping[str, Any] = field(default_factory=dict)
+    support_yaw_deg: float = 0.0
+    sensor_mounting: Mapping[str, Any] = field(default_factory=dict)
     map_sigma: float = 0.003
     information_scale: float = 1.0
     gate_m: float = 0.05
@@ -198,6 +206,8 @@ class GTSAMSmoother(Estimator):
         if not isinstance(self.uncertainty, Mapping):
             raise ParameterError(f"uncertainty must be a mapping of RangeUncertainty fields, got {type(self.uncertainty).__name__}")
         self.range_uncertainty()  # validates its fields now
+        check_support_yaw("gtsam_smoother", self.support_yaw_deg)
+        check_sensor_mounting("gtsam_smoother", self.sensor_mounting)
 
     def range_uncertainty(self) -> RangeUncertainty:
         """The per-zone uncertainty model (:class:`RangeUncertainty` from ``uncertainty``)."""
@@ -502,6 +512,8 @@ class GTSAMSmoother(Estimator):
         import gtsam
         from gtsam.symbol_shorthand import D as Dk, X as Xk
 
+        if self.support_yaw_deg != 0.0 or self.sensor_mounting:
+            problem = dataclasses.replace(problem, rig=rig_with_mounting(problem.rig, self.support_yaw_deg, self.sensor_mounting))
         meas0 = self.measurements(problem)
         starts = self.starts(problem, meas0, rng)
         runs: list[dict[str, Any]] = []

@@ -32,7 +32,8 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
 
-__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "check_sensor_mounting", "corrected_T_tip_sensor", "correction_matrices"]
+__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "check_sensor_mounting", "corrected_T_tip_sensor", "correction_matrices",
+           "rig_with_mounting"]
 
 #: Largest per-sensor correction we accept: a mounting error, not a different rig.
 MAX_ROTATION_DEG = 30.0
@@ -90,3 +91,15 @@ def corrected_T_tip_sensor(rig: Rig, support_yaw_deg: float = 0.0,
                            sensor_mounting: Mapping[str, Mapping[str, Any]] | None = None) -> NDArray[np.float64]:
     """The sensors' calibrated poses in the tip frame ``(S, 4, 4)`` (see the module docstring)."""
     return correction_matrices(rig, support_yaw_deg, sensor_mounting) @ rig.T_tip_sensor
+
+
+def rig_with_mounting(rig: Rig, support_yaw_deg: float = 0.0,
+                      sensor_mounting: Mapping[str, Mapping[str, Any]] | None = None) -> Rig:
+    """The rig with its sensors moved to their calibrated poses (the same rig when there is
+    nothing to correct): for estimators that read the geometry from the problem's rig."""
+    import dataclasses
+
+    if support_yaw_deg == 0.0 and not sensor_mounting:
+        return rig
+    T = corrected_T_tip_sensor(rig, support_yaw_deg, sensor_mounting)
+    return dataclasses.replace(rig, sensors=tuple(dataclasses.replace(s, T_tip_sensor=t) for s, t in zip(rig.sensors, T)))

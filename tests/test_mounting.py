@@ -113,3 +113,30 @@ def test_range_scale_column_is_estimated() -> None:
         BeamPF(range_scale_sigma=0.9)
     with pytest.raises(ParameterError, match="range scale"):
         BeamPF(sensor_model="likelihood_field", range_scale_sigma=0.02)
+
+
+def test_a_calibrated_mounting_reaches_every_estimator_that_takes_one(tmp_path) -> None:
+    from sensor_models.calibration import ZoneSamples, fit_em, write_model
+    from tofloc.cli.cmd_localize import with_sensor_model_file
+
+    rng = np.random.default_rng(1)
+    d = rng.uniform(0.1, 0.6, 3000)
+    zs = ZoneSamples(measured_m=d + rng.normal(0, 0.01, d.size), expected_m=d, edge=np.zeros(d.size, bool),
+                     no_return=np.zeros(d.size, bool), max_range_m=np.full(d.size, 4.0))
+    path = write_model(fit_em(zs, max_iter=5), tmp_path / "m.toml", support_yaw_deg=4.0, sensor_mounting=MOUNT)
+    beam, note = with_sensor_model_file("beam_pf", {}, path)
+    assert beam["sensor_model_params"]["support_yaw_deg"] == 4.0 and beam["sensor_model_params"]["sensor_mounting"] == MOUNT
+    assert "[mounting], [mounting.sensors]" in note
+    gt, note = with_sensor_model_file("gtsam_smoother", {}, path)
+    assert gt["support_yaw_deg"] == 4.0 and gt["sensor_mounting"] == MOUNT and "[uncertainty]" in note
+    icp, note = with_sensor_model_file("icp_pf", {}, path)
+    assert "uses nothing" in note
+    # the smoother solves on the corrected rig: its measurements move with the mounting
+    from estimators.gtsam_smoother import GTSAMSmoother
+
+    p, _ = easy_problem(n_samples=1)
+    plain = GTSAMSmoother().measurements(p)
+    from sensor_models.mounting import rig_with_mounting
+
+    moved = GTSAMSmoother().measurements(dataclasses.replace(p, rig=rig_with_mounting(p.rig, 4.0, MOUNT)))
+    assert not np.allclose(plain[0].p_tip, moved[0].p_tip)

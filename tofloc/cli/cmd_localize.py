@@ -125,11 +125,12 @@ def with_sensor_model_file(name: str, params: dict[str, Any], path: Optional[Pat
     else:
         accepted = {f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else set()
         used = []
-        if "uncertainty" in accepted and "uncertainty" in tables:
-            if "uncertainty" in params:
-                raise ParameterError(f"{name}: uncertainty given both with --param and in {path}")
-            out["uncertainty"] = tables["uncertainty"]
-            used.append("uncertainty")
+        for key in ("uncertainty", "support_yaw_deg", "sensor_mounting"):
+            if key in accepted and key in tables:
+                if key in params:
+                    raise ParameterError(f"{name}: {key} given both with --param and in {path}")
+                out[key] = tables[key]
+                used.append(key)
         target = "estimator"
     make_estimator(cls, out, name)  # validate the merged parameters now
     labels = {"mixture": "beam", "support_yaw_deg": "mounting", "sensor_mounting": "mounting.sensors"}
