@@ -645,6 +645,8 @@ def fit_mounting(
         if [x.name for x in log.rig.sensors] != names:
             raise ParameterError("fit_mounting: every log must carry the same rig (sensor names differ)")
     statuses = frozenset(int(v) for v in valid_statuses)
+    if any(x.zone_directions is not None for x in rig.sensors):
+        footprint = 1  # explicit zone tables have no grid footprint: cast their rays (as collect_zones)
     data = []
     for log, the_map in logs_and_maps:
         T_tip = np.asarray(log.T_base_tip, dtype=float)
