@@ -296,3 +296,18 @@ def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Pa
     assert code == 0, err
     assert "k-NN training split" in " ".join(err.split())
     assert not (out / "calibration-session.h5").exists() and (out / "sensor_model.toml").exists()
+
+
+def test_a_calibration_session_of_another_set_up_is_simulated_again(tmp_path: Path) -> None:
+    from tofloc.cli.cmd_paper import _hardware_seed, calibration_session
+    from tofloc.logs import read_log
+
+    assert _hardware_seed("simulation:paper seed=3") == 3
+    assert _hardware_seed("simulation:paper seed=1003 hardware_seed=0") == 0
+    assert _hardware_seed("recorded by hand") is None and _hardware_seed("simulation:paper") is None
+    path = calibration_session(tmp_path, "paper", 2, 2)
+    assert read_log(path).source == "simulation:paper seed=1002 hardware_seed=2"
+    stamp = path.stat().st_mtime_ns
+    assert calibration_session(tmp_path, "paper", 2, 2).stat().st_mtime_ns == stamp  # reused
+    path = calibration_session(tmp_path, "paper", 2, 7)  # another set-up: simulated again
+    assert read_log(path).source == "simulation:paper seed=1002 hardware_seed=7"

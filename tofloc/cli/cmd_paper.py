@@ -153,6 +153,29 @@ def _hardware_seed(source: str) -> int | None:
         return None
 
 
+def calibration_session(out: Path, scenario: str, seed: int, hw: int) -> Path:
+    """``out/calibration-session.h5``: the set-up of hardware seed ``hw`` recorded again
+    (session seed ``seed +`` :data:`CALIBRATION_SEED_OFFSET`, the base moved by
+    :data:`CALIBRATION_BASE_OFFSET`); an existing file is reused only if it records that
+    set-up."""
+    from tofloc.logs import read_log
+    from tofloc.simulation import load_scenario, simulate, write_simulation
+
+    cal_path = out / CALIBRATION_LOG_NAME
+    sc = load_scenario(scenario)
+    b = sc.base
+    base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
+    if cal_path.exists() and _hardware_seed(read_log(cal_path).source) != hw:
+        err_console.print(f"{cal_path.name} records another set-up than {LOG_NAME} (hardware seed): simulating it again",
+                          highlight=False)
+        cal_path.unlink()
+    if not cal_path.exists():
+        with status(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
+                    f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
+            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base), cal_path)
+    return cal_path
+
+
 def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1) -> Path:
     """Fit the sensor model (``tofloc calibrate``: the support's rotation, each sensor's
     mounting, then EM of the bias/sigma curves and the mixture) and write
@@ -171,18 +194,10 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
 
     from sensor_models.calibration import calibrate_rig, write_model
     from tofloc.logs import read_log
-    from tofloc.simulation import load_scenario, simulate, write_simulation
 
     hw = _hardware_seed(data.log.source)
     if hw is not None:
-        cal_path = out / CALIBRATION_LOG_NAME
-        sc = load_scenario(scenario)
-        b = sc.base
-        base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
-        if not cal_path.exists():
-            with status(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
-                        f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
-                write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base), cal_path)
+        cal_path = calibration_session(out, scenario, seed, hw)
         cal_log = read_log(cal_path)
         rows = None
         what = f"calibration session {cal_path.name} ({cal_log.n_samples} samples)"
