@@ -207,11 +207,11 @@ def collect_zones(
         raise ParameterError(f"{name}: no sample has both a known configuration and a true base pose")
     if any(s.zone_directions is not None for s in rig.sensors) and footprint > 1:
         footprint = 1  # explicit zone tables have no grid footprint: cast their rays
-    from tofloc import frames
+    from sensor_models.mounting import correction_matrices
 
     T_ts = rig.T_tip_sensor if T_tip_sensor is None else np.asarray(T_tip_sensor, dtype=float)
     if support_yaw != 0.0:
-        T_ts = frames.se3(frames.rot_z(float(support_yaw)), np.zeros(3))[None] @ T_ts
+        T_ts = correction_matrices(rig, math.degrees(float(support_yaw))) @ T_ts
     T_map_sensor = T_base[rows][:, None] @ T_tip[rows][:, None] @ T_ts[None]
     expected, frac = cast_expected(the_map, rig, T_map_sensor, int(footprint))
     dist = np.asarray(log.distance_m)[rows]
@@ -508,6 +508,11 @@ class SupportYawFit:
     samples_used: int
 
 
+def _even_rows(n: int, at_most: int) -> NDArray[np.intp]:
+    """At most ``at_most`` indices of ``range(n)``, evenly spaced (the subsamples of the fits)."""
+    return np.unique(np.linspace(0, n - 1, min(n, at_most)).round().astype(np.intp))
+
+
 def fit_support_yaw(
     logs_and_maps: Sequence[tuple[Any, Any]],
     *,
@@ -550,7 +555,7 @@ def fit_support_yaw(
     subs = []
     for log, _ in logs_and_maps:
         n = int(np.asarray(log.distance_m).shape[0])
-        subs.append(np.unique(np.linspace(0, n - 1, min(n, max_samples)).round().astype(np.intp)))
+        subs.append(_even_rows(n, max_samples))
     cache: dict[float, float] = {}
 
     def mean_loglik(psi_deg: float) -> float:
@@ -633,8 +638,7 @@ def fit_mounting(
     """
     from scipy.optimize import least_squares
 
-    from sensor_models.mounting import correction_matrices
-    from tofloc import frames
+    from sensor_models.mounting import corrected_T_tip_sensor
 
     if not logs_and_maps:
         raise ParameterError("fit_mounting needs at least one (log, map)")
@@ -647,49 +651,54 @@ def fit_mounting(
     statuses = frozenset(int(v) for v in valid_statuses)
     if any(x.zone_directions is not None for x in rig.sensors):
         footprint = 1  # explicit zone tables have no grid footprint: cast their rays (as collect_zones)
-    data = []
+    data = []  # per log: the map, T_map_tip of the samples used (K, 4, 4), readings and validity (K, S, Z)
     for log, the_map in logs_and_maps:
         T_tip = np.asarray(log.T_base_tip, dtype=float)
         T_base = log.truth_per_sample()
         known = np.flatnonzero(np.all(np.isfinite(T_tip), axis=(1, 2)) & np.all(np.isfinite(T_base), axis=(1, 2)))
-        rows = known[np.unique(np.linspace(0, known.size - 1, min(known.size, max_samples)).round().astype(np.intp))]
+        rows = known[_even_rows(known.size, max_samples)]
         data.append((the_map, T_base[rows] @ T_tip[rows], np.asarray(log.distance_m)[rows], np.asarray(log.valid(statuses))[rows]))
-    support = correction_matrices(rig, support_yaw_deg)
     step = 0.02  # deg and mm
 
-    def expected(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        C = np.empty((S, 4, 4))
-        for i in range(S):
-            R = frames.matrix_from_rotvec(np.radians(x[6 * i : 6 * i + 3]))
-            C[i] = frames.se3(R, 1e-3 * x[6 * i + 3 : 6 * i + 6]) @ support[i]
-        T_ts = C @ rig.T_tip_sensor
-        return np.concatenate([cast_expected(m, rig, T_bt[:, None] @ T_ts[None], footprint)[0][u]
-                               for (m, T_bt, _, _), u in zip(data, use)])
+    def mounting_of(x: NDArray[np.float64]) -> dict[str, dict[str, list[float]]]:
+        """Parameters (per sensor: rotation vector in deg, translation in mm) as a sensor_mounting table."""
+        return {name: {"rotation_deg": [float(v) for v in x[6 * i : 6 * i + 3]],
+                       "translation_m": [float(v) for v in 1e-3 * x[6 * i + 3 : 6 * i + 6]]}
+                for i, name in enumerate(names)}
+
+    def expected(x: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+        """Expected distances ``(K, S, Z)`` of every log's samples with the mounting ``x``."""
+        T_ts = corrected_T_tip_sensor(rig, support_yaw_deg, mounting_of(x))
+        return [cast_expected(m, rig, T_mt[:, None] @ T_ts[None], footprint)[0] for m, T_mt, _, _ in data]
 
     x0 = np.zeros(6 * S)
-    use = [np.ones(v.shape, dtype=bool) for *_, v in data]
-    e_all = expected(x0)
-    use = [v & np.isfinite(e.reshape(v.shape))
-           for (*_, v), e in zip(data, np.split(e_all, np.cumsum([u.size for u in use])[:-1]))]
     e0 = expected(x0)
-    z = np.concatenate([zz[u] for (_, _, zz, _), u in zip(data, use)])
-    n_zones = int(z.size)
+    use = [v & np.isfinite(e) for (*_, v), e in zip(data, e0)]  # valid returns with an expected distance at the start
+    n_zones = int(sum(u.sum() for u in use))
     if n_zones < 50 * S:
         raise ParameterError(f"fit_mounting: only {n_zones} zones with a valid return and an expected distance")
-    edge = np.concatenate([np.broadcast_to(edge_zone_mask(rig), u.shape)[u] for u in use])
-    counter = {"casts": 2}
+    counter = {"casts": 1}
 
-    def zone_residuals(e: NDArray[np.float64]) -> NDArray[np.float64]:
-        e = np.where(np.isfinite(e), e, z)  # a zone that lost its hit: no residual
-        bias = np.where(edge, uncertainty.edge_bias_offset + uncertainty.edge_bias_slope * e,
-                        uncertainty.bias_offset + uncertainty.bias_slope * e)
-        sig = np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e) * np.where(edge, uncertainty.edge_factor, 1.0)
-        return (z - e - bias) / sig
+    def errors(es: list[NDArray[np.float64]]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Reading - expected - bias (m) and sigma (m) of the zones used; 0 error where a zone lost its hit."""
+        err, sig = [], []
+        for (_, _, z, _), e, u in zip(data, es, use):
+            ef = np.where(np.isfinite(e), e, z)
+            err.append((z - ef - uncertainty.bias(rig, ef))[u])
+            sig.append(uncertainty.sigma(rig, ef)[u])
+        return np.concatenate(err), np.concatenate(sig)
+
+    def zone_residuals(es: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+        err, sig = errors(es)
+        return err / sig
+
+    def flat(es: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+        return np.concatenate([e[u] for e, u in zip(es, use)])
 
     prior_scale = np.tile(np.r_[np.full(3, prior_rotation_deg), np.full(3, 1e3 * prior_translation_m)], S)
-    cache: dict[bytes, NDArray[np.float64]] = {}
+    cache: dict[bytes, list[NDArray[np.float64]]] = {}
 
-    def geometry(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    def geometry(x: NDArray[np.float64]) -> list[NDArray[np.float64]]:
         key = np.asarray(x, dtype=float).tobytes()
         if key not in cache:
             if len(cache) > 4 * x.size:
@@ -700,42 +709,32 @@ def fit_mounting(
 
     x = x0
     for _ in range(rounds):  # IRLS: Cauchy weights from the current residuals
-        r_now = zone_residuals(geometry(x))
-        sw = 1.0 / np.sqrt(1.0 + (r_now / 3.0) ** 2)
+        sw = 1.0 / np.sqrt(1.0 + (zone_residuals(geometry(x)) / 3.0) ** 2)
 
         def fun(xx: NDArray[np.float64]) -> NDArray[np.float64]:
             return np.concatenate([sw * zone_residuals(geometry(xx)), xx / prior_scale])
 
         def jac(xx: NDArray[np.float64]) -> NDArray[np.float64]:
             e_ref = geometry(xx)
-            r_ref = zone_residuals(e_ref)
+            r_ref, f_ref = zone_residuals(e_ref), flat(e_ref)
             J = np.zeros((n_zones + xx.size, xx.size))
-            for j in range(xx.size):
+            for j in range(xx.size):  # a loop over the 6 S parameters, each one batched ray cast
                 xj = xx.copy()
                 xj[j] += step
                 ej = geometry(xj)
                 col = (zone_residuals(ej) - r_ref) / step
-                jump = ~np.isfinite(ej) | ~np.isfinite(e_ref) | (np.abs(np.nan_to_num(ej - e_ref)) > 0.005)
+                f_j = flat(ej)
+                jump = ~np.isfinite(f_j) | ~np.isfinite(f_ref) | (np.abs(np.nan_to_num(f_j - f_ref)) > 0.005)
                 col[jump] = 0.0
                 J[:n_zones, j] = sw * col
                 J[n_zones + j, j] = 1.0 / prior_scale[j]
             return J
 
         x = least_squares(fun, x, jac=jac, method="trf", max_nfev=max_nfev).x
-    e1 = geometry(x)
-
-    def med_abs(e: NDArray[np.float64]) -> float:
-        return float(np.nanmedian(np.abs(zone_residuals(e) * uncertainty.sigma(rig, 0.35)[0, 0] / max(uncertainty.sigma_slope * 0.35, uncertainty.sigma_floor))))
-
-    mounting = {
-        name: {"rotation_deg": [float(v) for v in x[6 * i : 6 * i + 3]],
-               "translation_m": [float(v) for v in 1e-3 * x[6 * i + 3 : 6 * i + 6]]}
-        for i, name in enumerate(names)
-    }
     bias = (uncertainty.bias_offset, uncertainty.bias_slope, uncertainty.edge_bias_offset, uncertainty.edge_bias_slope)
-    before = float(np.nanmedian(np.abs(zone_residuals(e0) * np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e0))))
-    after = float(np.nanmedian(np.abs(zone_residuals(e1) * np.maximum(uncertainty.sigma_floor, uncertainty.sigma_slope * e1))))
-    return MountingFit(mounting, bias, before, after, n_zones, counter["casts"])
+    before = float(np.median(np.abs(errors(e0)[0])))
+    after = float(np.median(np.abs(errors(geometry(x))[0])))
+    return MountingFit(mounting_of(x), bias, before, after, n_zones, counter["casts"])
 
 
 @dataclass(eq=False)

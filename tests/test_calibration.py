@@ -149,13 +149,22 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert u.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.08)
     data = tomllib.loads(out.read_text())
     assert data["calibration"]["maps"] == [str(tmp_path / "sim.cad.ply")]
+    # the clean scenario's rig is the CAD one: the fitted mounting stays near zero (on these 204
+    # samples the fit scatters by ~0.5 deg, and by ~2 mm in translation, which a few walls
+    # barely constrain: measured 0.07 deg support, rotations <= 0.5 deg, translations <= 2.1 mm)
+    assert abs(data["mounting"]["support_yaw_deg"]) < 0.5
+    assert set(data["mounting"]["sensors"]) == {"tof0", "tof1", "tof2"}
+    for entry in data["mounting"]["sensors"].values():
+        assert np.linalg.norm(entry["rotation_deg"]) < 1.0 and np.linalg.norm(entry["translation_m"]) < 0.003
+    assert "each sensor's mounting correction" in cap.out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
 
     # the same log twice with an explicit map per log
     code = main(["calibrate", str(log_path), str(log_path), "--out", str(out), "--map", str(tmp_path / "sim.map.ply"),
-                 "--map", str(tmp_path / "sim.cad.ply"), "--footprint", "1"])
+                 "--map", str(tmp_path / "sim.cad.ply"), "--footprint", "1", "--no-support-yaw", "--no-mounting"])
     assert code == 0, capsys.readouterr().err
-    assert tomllib.loads(out.read_text())["calibration"]["footprint"] == 1
+    data = tomllib.loads(out.read_text())
+    assert data["calibration"]["footprint"] == 1 and "mounting" not in data  # nothing fitted, nothing written
 
     # refusals: a map count that matches neither 1 nor the logs, a log without ground truth
     capsys.readouterr()

@@ -12,18 +12,13 @@ import pytest
 from estimators.particle_filter import BeamPF
 from sensor_models.beam import BeamModel
 from sensor_models.likelihood_field import LikelihoodFieldModel
-from sensor_models.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor
+from sensor_models.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor, rig_with_mounting
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.testing import easy_problem
 
 MOUNT = {"tof0": {"rotation_deg": [1.0, -2.0, 0.5], "translation_m": [0.001, 0.0, -0.002]},
          "tof2": {"rotation_deg": [0.0, 0.0, -1.5], "translation_m": [0.0, 0.0015, 0.0]}}
-
-
-def _rig_with(rig, T_tip_sensor):
-    sensors = tuple(dataclasses.replace(s, T_tip_sensor=T) for s, T in zip(rig.sensors, T_tip_sensor))
-    return dataclasses.replace(rig, sensors=sensors)
 
 
 def test_corrections_compose_support_then_sensor() -> None:
@@ -53,7 +48,9 @@ def test_bad_sensor_mounting_is_refused(bad) -> None:
 def test_models_cast_from_the_corrected_rig() -> None:
     """A model given the mounting sees exactly what it sees on a rig that has it built in."""
     p, truth = easy_problem(n_samples=2)
-    moved = dataclasses.replace(p, rig=_rig_with(p.rig, corrected_T_tip_sensor(p.rig, 5.0, MOUNT)))
+    moved = dataclasses.replace(p, rig=rig_with_mounting(p.rig, 5.0, MOUNT))
+    np.testing.assert_array_equal(moved.rig.T_tip_sensor, corrected_T_tip_sensor(p.rig, 5.0, MOUNT))
+    assert rig_with_mounting(p.rig) is p.rig
     poses = truth + np.array([[0, 0, 0], [0.01, -0.02, 0.05]])
     a = BeamModel(support_yaw_deg=5.0, sensor_mounting=MOUNT).bind(p)
     b = BeamModel().bind(moved)
@@ -136,7 +133,5 @@ def test_a_calibrated_mounting_reaches_every_estimator_that_takes_one(tmp_path) 
 
     p, _ = easy_problem(n_samples=1)
     plain = GTSAMSmoother().measurements(p)
-    from sensor_models.mounting import rig_with_mounting
-
     moved = GTSAMSmoother().measurements(dataclasses.replace(p, rig=rig_with_mounting(p.rig, 4.0, MOUNT)))
     assert not np.allclose(plain[0].p_tip, moved[0].p_tip)
