@@ -1,0 +1,601 @@
+"""Map file formats: readers (PLY, STL, OBJ, PCD, XYZ, NPY) and writers (PLY, NPY, XYZ).
+
+Each reader returns ``(vertices, normals | None, triangles | None)`` as unvalidated arrays;
+:meth:`tofloc.maps.Map.load` validates them. Every reader is bounded
+(:mod:`tofloc.map_validation`), never unpickles, and raises
+:class:`tofloc.errors.FormatError` naming the file, the place in it and what was expected.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc.errors import FormatError
+from tofloc.map_validation import MAX_HEADER_BYTES, MAX_POINTS, MAX_TRIANGLES, Fail
+
+if TYPE_CHECKING:
+    from tofloc.maps import Map
+
+__all__ = ["READERS", "ply_bytes", "npy_bytes"]
+
+
+# --------------------------------------------------------------------------------------
+# Writers
+# --------------------------------------------------------------------------------------
+def ply_bytes(m: "Map") -> bytes:
+    n = m.points.shape[0]
+    head = ["ply", "format binary_little_endian 1.0", "comment written by tofloc"]
+    head += [f"element vertex {n}", "property double x", "property double y", "property double z"]
+    tris = m.triangles()
+    if tris is None:
+        assert m.normals is not None
+        head += ["property double nx", "property double ny", "property double nz"]
+        body = np.concatenate([m.points, m.normals], axis=1).astype("<f8").tobytes()
+    else:
+        head += [f"element face {tris.shape[0]}", "property list uchar int vertex_indices"]
+        faces = np.empty(tris.shape[0], dtype=[("n", "u1"), ("v", "<i4", (3,))])
+        faces["n"] = 3
+        faces["v"] = tris
+        body = m.points.astype("<f8").tobytes() + faces.tobytes()
+    head.append("end_header")
+    return ("\n".join(head) + "\n").encode("ascii") + body
+
+
+def npy_bytes(a: NDArray[np.float64]) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(a, dtype=np.float64), allow_pickle=False)
+    return buf.getvalue()
+
+
+# --------------------------------------------------------------------------------------
+# Readers: each returns (vertices, normals | None, triangles | None), unvalidated values
+# --------------------------------------------------------------------------------------
+Parsed = tuple[NDArray[np.float64], "NDArray[np.float64] | None", "NDArray[np.int64] | None"]
+
+
+def _read_bytes(path: Path, fail: Fail) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise fail("file", "a readable file", e.strerror or type(e).__name__) from None
+
+
+def _decode(data: bytes, fail: Fail, where: str = "file") -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise fail(where, "UTF-8/ASCII text", f"an undecodable byte at offset {e.start}") from None
+
+
+def _triangulate(polys: dict[int, list[NDArray[np.int64]]] | dict[int, NDArray[np.int64]]) -> NDArray[np.int64]:
+    """Fan-triangulate polygons grouped by vertex count: ``{L: (F, L) indices}``."""
+    out = []
+    for length in sorted(polys):
+        block = np.asarray(polys[length], dtype=np.int64).reshape(-1, length)
+        j = np.arange(1, length - 1)
+        tri = np.stack([np.repeat(block[:, :1], length - 2, axis=1), block[:, j], block[:, j + 1]], axis=2)
+        out.append(tri.reshape(-1, 3))
+    return np.concatenate(out, axis=0) if out else np.empty((0, 3), dtype=np.int64)
+
+
+def _check_poly_sizes(polys: dict[int, Any], fail: Fail, where: str) -> None:
+    small = [k for k in polys if k < 3]
+    if small:
+        raise fail(where, "polygons of at least 3 vertices", f"a polygon of {min(small)}")
+    n_tri = sum((k - 2) * len(v) for k, v in polys.items())
+    if n_tri > MAX_TRIANGLES:
+        raise fail(where, f"at most {MAX_TRIANGLES} triangles", n_tri)
+
+
+# ---- PLY --------------------------------------------------------------------------------
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
+@dataclass
+class _PlyProp:
+    name: str
+    dtype: str
+    count_dtype: str | None = None  # set for list properties
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    props: list[_PlyProp]
+
+
+def _split_header(data: bytes, end_marker: bytes, fail: Fail, what: str) -> tuple[str, int]:
+    end = data.find(end_marker, 0, MAX_HEADER_BYTES)
+    if end < 0:
+        marker = end_marker.decode().strip()
+        raise fail("header", f"a {what} header ending with {marker!r} within {MAX_HEADER_BYTES} bytes")
+    stop = end + len(end_marker)
+    if data[stop : stop + 1] == b"\r":
+        stop += 1
+    if data[stop : stop + 1] == b"\n":
+        stop += 1
+    return _decode(data[:end], fail, "header"), stop
+
+
+def _parse_ply_header(text: str, fail: Fail) -> tuple[str, list[_PlyElement]]:
+    lines = [ln.strip() for ln in text.replace("\r", "").split("\n")]
+    if not lines or lines[0] != "ply":
+        raise fail("header line 1", "'ply'", repr(lines[0][:40]) if lines else "nothing")
+    fmt = None
+    elements: list[_PlyElement] = []
+    for no, ln in enumerate(lines[1:], start=2):
+        tok = ln.split()
+        if not tok or tok[0] in ("comment", "obj_info"):
+            continue
+        where = f"header line {no}"
+        if tok[0] == "format":
+            if len(tok) != 3 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian") or tok[2] != "1.0":
+                raise fail(where, "'format ascii|binary_little_endian|binary_big_endian 1.0'", repr(ln[:60]))
+            fmt = tok[1]
+        elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit():
+                raise fail(where, "'element <name> <count>'", repr(ln[:60]))
+            count = int(tok[2])
+            limit = MAX_TRIANGLES if tok[1] == "face" else MAX_POINTS
+            if count > limit:
+                raise fail(where, f"at most {limit} {tok[1]} items", count)
+            elements.append(_PlyElement(tok[1], count, []))
+        elif tok[0] == "property":
+            if not elements:
+                raise fail(where, "a property after an 'element' line", repr(ln[:60]))
+            if len(tok) == 3 and tok[1] in _PLY_TYPES:
+                elements[-1].props.append(_PlyProp(tok[2], _PLY_TYPES[tok[1]]))
+            elif len(tok) == 5 and tok[1] == "list" and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES:
+                if _PLY_TYPES[tok[2]][0] == "f" or _PLY_TYPES[tok[3]][0] == "f":
+                    raise fail(where, "integer list count and index types", repr(ln[:60]))
+                elements[-1].props.append(_PlyProp(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]]))
+            else:
+                raise fail(where, "'property <type> <name>' or 'property list <type> <type> <name>'", repr(ln[:60]))
+        else:
+            raise fail(where, "format, element, property or comment", repr(ln[:60]))
+    if fmt is None:
+        raise fail("header", "a 'format' line")
+    return fmt, elements
+
+
+def _ply_vertex_and_faces(elements: list[_PlyElement], fail: Fail) -> tuple[_PlyElement, _PlyElement | None]:
+    vert = next((e for e in elements if e.name == "vertex"), None)
+    if vert is None:
+        raise fail("header", "an 'element vertex' line")
+    names = {p.name: p for p in vert.props}
+    if any(p.count_dtype is not None for p in vert.props):
+        raise fail("header: element vertex", "scalar properties only (no list)")
+    for c in ("x", "y", "z"):
+        if c not in names:
+            raise fail("header: element vertex", f"a property {c!r}")
+    face = next((e for e in elements if e.name == "face"), None)
+    if face is not None:
+        lists = [p for p in face.props if p.count_dtype is not None]
+        if len(lists) != 1 or lists[0].name not in ("vertex_indices", "vertex_index"):
+            raise fail("header: element face", "one list property 'vertex_indices' (or 'vertex_index')")
+    return vert, face
+
+
+def _ply_result(vert: dict[str, NDArray[Any]], polys: dict[int, Any] | None, fail: Fail) -> Parsed:
+    xyz = np.stack([np.asarray(vert[c], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
+    normals = None
+    if all(c in vert for c in ("nx", "ny", "nz")):
+        normals = np.stack([np.asarray(vert[c], dtype=np.float64) for c in ("nx", "ny", "nz")], axis=1)
+    if polys:
+        _check_poly_sizes(polys, fail, "face")
+        return xyz, None, _triangulate(polys)
+    return xyz, normals, None
+
+
+def _read_ply(path: Path, fail: Fail) -> Parsed:
+    data = _read_bytes(path, fail)
+    if not data.startswith(b"ply"):
+        raise fail("header line 1", "'ply'", repr(data[:8]))
+    text, start = _split_header(data, b"end_header", fail, "PLY")
+    fmt, elements = _parse_ply_header(text, fail)
+    vert_el, face_el = _ply_vertex_and_faces(elements, fail)
+    if fmt == "ascii":
+        return _read_ply_ascii(data[start:], elements, vert_el, face_el, fail)
+    endian = "<" if fmt == "binary_little_endian" else ">"
+    off = start
+    vert: dict[str, NDArray[Any]] = {}
+    polys: dict[int, Any] | None = None
+    for el in elements:
+        where = f"element {el.name}"
+        if all(p.count_dtype is None for p in el.props):
+            dt = np.dtype([(f"p{i}", endian + p.dtype) for i, p in enumerate(el.props)])
+            need = dt.itemsize * el.count
+            if off + need > len(data):
+                raise fail(where, f"{el.count} items ({need} bytes)", f"the file ends after {len(data) - off} bytes")
+            arr = np.frombuffer(data, dtype=dt, count=el.count, offset=off) if el.count else np.empty(0, dt)
+            off += need
+            if el is vert_el:
+                vert = {p.name: arr[f"p{i}"] for i, p in enumerate(el.props)}
+        else:
+            items, off = _ply_binary_list_element(data, off, el, endian, fail)
+            if el is face_el:
+                polys = items
+    if data[off:].strip(b" \t\r\n\x00"):
+        raise fail("end of file", f"nothing after the last element (byte {off})", f"{len(data) - off} more bytes")
+    return _ply_result(vert, polys, fail)
+
+
+def _ply_binary_list_element(
+    data: bytes, off: int, el: _PlyElement, endian: str, fail: Fail
+) -> tuple[dict[int, Any], int]:
+    """Read an element with list properties; returns ``{length: (F, length) first-list values}``."""
+    where = f"element {el.name}"
+    if el.count == 0:
+        return {}, off
+    # Fast path: every item has the lengths of the first one -> one structured read.
+    lengths = []
+    pos = off
+    for p in el.props:
+        if p.count_dtype is None:
+            pos += np.dtype(p.dtype).itemsize
+            continue
+        csz = np.dtype(p.count_dtype).itemsize
+        if pos + csz > len(data):
+            raise fail(where, f"{el.count} items", "the file ends inside item 0")
+        (cnt,) = struct.unpack_from(endian + _struct_code(p.count_dtype), data, pos)
+        lengths.append(int(cnt))
+        pos += csz + int(cnt) * np.dtype(p.dtype).itemsize
+    fields: list[tuple[Any, ...]] = []
+    li = 0
+    for i, p in enumerate(el.props):
+        if p.count_dtype is None:
+            fields.append((f"p{i}", endian + p.dtype))
+        else:
+            fields.append((f"c{i}", endian + p.count_dtype))
+            fields.append((f"p{i}", endian + p.dtype, (lengths[li],)))
+            li += 1
+    dt = np.dtype(fields)
+    first_list = next(i for i, p in enumerate(el.props) if p.count_dtype is not None)
+    if off + dt.itemsize * el.count <= len(data):
+        arr = np.frombuffer(data, dtype=dt, count=el.count, offset=off)
+        ok = True
+        li = 0
+        for i, p in enumerate(el.props):
+            if p.count_dtype is not None:
+                ok &= bool((arr[f"c{i}"] == lengths[li]).all())
+                li += 1
+        if ok:
+            return {lengths[0]: np.array(arr[f"p{first_list}"], dtype=np.int64)}, off + dt.itemsize * el.count
+    # Slow path (mixed polygon sizes): one item at a time.
+    groups: dict[int, list[tuple[int, ...]]] = {}
+    pos = off
+    for item in range(el.count):
+        for i, p in enumerate(el.props):
+            code = endian + _struct_code(p.dtype)
+            size = struct.calcsize(code)
+            if p.count_dtype is None:
+                pos += size
+                continue
+            ccode = endian + _struct_code(p.count_dtype)
+            if pos + struct.calcsize(ccode) > len(data):
+                raise fail(where, f"{el.count} items", f"the file ends inside item {item}")
+            (cnt,) = struct.unpack_from(ccode, data, pos)
+            pos += struct.calcsize(ccode)
+            if pos + cnt * size > len(data):
+                raise fail(where, f"{el.count} items", f"the file ends inside item {item}")
+            vals = struct.unpack_from(endian + f"{cnt}" + _struct_code(p.dtype), data, pos)
+            pos += cnt * size
+            if i == first_list:
+                groups.setdefault(int(cnt), []).append(vals)
+    if pos > len(data):
+        raise fail(where, f"{el.count} items", "the file ends early")
+    return {k: np.asarray(v, dtype=np.int64) for k, v in groups.items()}, pos
+
+
+def _struct_code(dtype: str) -> str:
+    return {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}[dtype]
+
+
+def _read_ply_ascii(
+    body: bytes, elements: list[_PlyElement], vert_el: _PlyElement, face_el: _PlyElement | None, fail: Fail
+) -> Parsed:
+    lines = [ln for ln in _decode(body, fail, "body").replace("\r", "").split("\n") if ln.strip()]
+    pos = 0
+    vert: dict[str, NDArray[Any]] = {}
+    polys: dict[int, Any] | None = None
+    for el in elements:
+        where = f"element {el.name}"
+        chunk = lines[pos : pos + el.count]
+        if len(chunk) < el.count:
+            raise fail(where, f"{el.count} lines", f"{len(chunk)}")
+        pos += el.count
+        if el.count == 0:
+            continue
+        if all(p.count_dtype is None for p in el.props):
+            if el is not vert_el:
+                continue
+            try:
+                arr = np.loadtxt(chunk, dtype=np.float64, ndmin=2, comments=None)
+            except ValueError as e:
+                raise fail(where, f"{len(el.props)} numbers per line", str(e)[:100]) from None
+            if arr.shape[1] != len(el.props):
+                raise fail(where, f"{len(el.props)} numbers per line", arr.shape[1])
+            vert = {p.name: arr[:, i] for i, p in enumerate(el.props)}
+        elif el is face_el:
+            polys = _ascii_faces(chunk, el, fail)
+    if pos != len(lines):
+        raise fail("end of file", "nothing after the last element", f"{len(lines) - pos} more lines")
+    return _ply_result(vert, polys, fail)
+
+
+def _ascii_faces(chunk: list[str], el: _PlyElement, fail: Fail) -> dict[int, Any]:
+    where = f"element {el.name}"
+    if len(el.props) != 1:  # scalar properties beside the list: parse token by token
+        raise fail(where, "only the vertex index list in an ascii face element")
+    groups: dict[int, list[list[int]]] = {}
+    for i, ln in enumerate(chunk):
+        tok = ln.split()
+        try:
+            vals = [int(t) for t in tok]
+        except ValueError:
+            raise fail(f"{where} {i}", "integers", repr(ln[:60])) from None
+        if not vals or vals[0] != len(vals) - 1:
+            raise fail(f"{where} {i}", "a count followed by that many indices", repr(ln[:60]))
+        groups.setdefault(vals[0], []).append(vals[1:])
+    return {k: np.asarray(v, dtype=np.int64) for k, v in groups.items()}
+
+
+# ---- STL --------------------------------------------------------------------------------
+_STL_VERTEX = re.compile(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)")
+
+
+def _read_stl(path: Path, fail: Fail) -> Parsed:
+    data = _read_bytes(path, fail)
+    corners: NDArray[np.float64]
+    if len(data) >= 84 and 84 + 50 * struct.unpack_from("<I", data, 80)[0] == len(data):
+        n = struct.unpack_from("<I", data, 80)[0]
+        if n == 0:
+            raise fail("triangle count", "at least one triangle", 0)
+        if n > MAX_TRIANGLES:
+            raise fail("triangle count", f"at most {MAX_TRIANGLES}", n)
+        dt = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+        corners = np.frombuffer(data, dtype=dt, count=n, offset=84)["v"].reshape(-1, 3).astype(np.float64)
+    elif data.lstrip()[:5].lower() == b"solid":
+        found = _STL_VERTEX.findall(data)
+        n_facets = len(re.findall(rb"\bendfacet\b", data))
+        if not found:
+            raise fail("ascii STL", "'facet ... vertex x y z ... endfacet' blocks", "no vertex")
+        if len(found) != 3 * n_facets:
+            raise fail("ascii STL", "3 vertices per facet", f"{len(found)} vertices in {n_facets} facets")
+        if n_facets > MAX_TRIANGLES:
+            raise fail("ascii STL", f"at most {MAX_TRIANGLES} facets", n_facets)
+        try:
+            corners = np.array(found, dtype=np.float64)
+        except ValueError:
+            raise fail("ascii STL", "numeric vertex coordinates") from None
+    else:
+        n = struct.unpack_from("<I", data, 80)[0] if len(data) >= 84 else None
+        raise fail(
+            "file", "a binary STL of 84 + 50 n bytes (n at byte 80) or an ascii STL starting with 'solid'",
+            f"{len(data)} bytes" + (f" with n = {n}" if n is not None else ""),
+        )
+    bad = ~np.isfinite(corners).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise fail(f"triangle {i // 3}", "finite coordinates", corners[i].tolist())
+    verts, inverse = _merge_equal_rows(corners)
+    return verts, None, inverse.reshape(-1, 3)
+
+
+def _merge_equal_rows(a: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """``np.unique(a, axis=0, return_inverse=True)`` (same order), 4x faster via ``lexsort``."""
+    a = a + 0.0  # -0.0 -> +0.0
+    order = np.lexsort(a.T[::-1])
+    s = a[order]
+    new = np.ones(s.shape[0], dtype=bool)
+    new[1:] = (s[1:] != s[:-1]).any(axis=1)
+    inverse = np.empty(a.shape[0], dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return s[new], inverse
+
+
+# ---- OBJ --------------------------------------------------------------------------------
+def _read_obj(path: Path, fail: Fail) -> Parsed:
+    text = _decode(_read_bytes(path, fail), fail)
+    verts: list[tuple[float, float, float]] = []
+    groups: dict[int, list[list[int]]] = {}
+    n_tri = 0
+    for no, ln in enumerate(text.split("\n"), start=1):
+        if not ln or ln[0] not in "vf":
+            continue
+        tok = ln.split()
+        if not tok:
+            continue
+        if tok[0] == "v":
+            try:
+                verts.append((float(tok[1]), float(tok[2]), float(tok[3])))
+            except (IndexError, ValueError):
+                raise fail(f"line {no}", "'v x y z'", repr(ln[:60])) from None
+            if len(verts) > MAX_POINTS:
+                raise fail(f"line {no}", f"at most {MAX_POINTS} vertices")
+        elif tok[0] == "f":
+            try:
+                idx = [int(t.split("/", 1)[0]) for t in tok[1:]]
+            except ValueError:
+                raise fail(f"line {no}", "'f i j k ...' with integer vertex indices", repr(ln[:60])) from None
+            if len(idx) < 3:
+                raise fail(f"line {no}", "a face of at least 3 vertices", repr(ln[:60]))
+            nv = len(verts)
+            if 0 in idx:
+                raise fail(f"line {no}", "vertex indices starting at 1 (or negative, relative)", repr(ln[:60]))
+            idx = [i - 1 if i > 0 else nv + i for i in idx]
+            if min(idx) < 0 or max(idx) >= nv:
+                raise fail(f"line {no}", f"vertex indices referring to the {nv} vertices defined so far", repr(ln[:60]))
+            groups.setdefault(len(idx), []).append(idx)
+            n_tri += len(idx) - 2
+            if n_tri > MAX_TRIANGLES:
+                raise fail(f"line {no}", f"at most {MAX_TRIANGLES} triangles")
+    if not verts:
+        raise fail("file", "at least one vertex ('v' line)", "none")
+    if not groups:
+        raise fail("file", "at least one face ('f' line): .obj maps are meshes", "none")
+    return np.asarray(verts, dtype=np.float64), None, _triangulate({k: np.asarray(v) for k, v in groups.items()})
+
+
+# ---- PCD --------------------------------------------------------------------------------
+def _read_pcd(path: Path, fail: Fail) -> Parsed:
+    data = _read_bytes(path, fail)
+    head_end = data.find(b"\nDATA", 0, MAX_HEADER_BYTES)
+    if head_end < 0 and not data.startswith(b"DATA"):
+        raise fail("header", f"a 'DATA ascii|binary|binary_compressed' line within {MAX_HEADER_BYTES} bytes")
+    line_end = data.find(b"\n", head_end + 1)
+    if line_end < 0:
+        line_end = len(data)
+    header = _decode(data[:line_end], fail, "header").replace("\r", "")
+    body_start = line_end + 1
+    fields: dict[str, list[str]] = {}
+    for ln in header.split("\n"):
+        s = ln.strip()
+        if not s or s.startswith("#"):
+            continue
+        tok = s.split()
+        fields[tok[0].upper()] = tok[1:]
+    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
+        if key not in fields:
+            raise fail("header", f"a {key} line")
+    # PCL names padding fields "_" (possibly several): make them distinct
+    names = [f"_pad{i}" if f == "_" else f for i, f in enumerate(fields["FIELDS"])]
+    nf = len(names)
+    sizes, types = fields["SIZE"], fields["TYPE"]
+    counts = fields.get("COUNT", ["1"] * nf)
+    if not (len(sizes) == len(types) == len(counts) == nf):
+        found = f"{len(sizes)}, {len(types)}, {len(counts)} for {nf}"
+        raise fail("header", "as many SIZE, TYPE and COUNT entries as FIELDS", found)
+    for c in ("x", "y", "z"):
+        if c not in names:
+            raise fail("header: FIELDS", "fields x, y and z", " ".join(names))
+        if counts[names.index(c)] != "1":
+            raise fail("header: COUNT", f"COUNT 1 for field {c}", counts[names.index(c)])
+    dt_fields = []
+    try:
+        for name, size, typ, cnt in zip(names, sizes, types, counts):
+            code = {"F": "f", "I": "i", "U": "u"}[typ.upper()] + size
+            dt = np.dtype("<" + code)
+            if (typ.upper() == "F" and size not in ("4", "8")) or size not in ("1", "2", "4", "8"):
+                raise KeyError
+            n_c = int(cnt)
+            if not 1 <= n_c <= 4096:
+                raise KeyError
+            dt_fields.append((name, dt) if n_c == 1 else (name, dt, (n_c,)))
+    except (KeyError, ValueError, TypeError):
+        expected = "TYPE F/I/U with SIZE 1/2/4/8 (F: 4/8) and COUNT >= 1"
+        raise fail("header", expected, f"{types} {sizes} {counts}") from None
+    try:
+        if "POINTS" in fields:
+            n_points = int(fields["POINTS"][0])
+        else:
+            n_points = int(fields["WIDTH"][0]) * int(fields.get("HEIGHT", ["1"])[0])
+    except (KeyError, IndexError, ValueError):
+        raise fail("header", "a POINTS (or WIDTH and HEIGHT) count") from None
+    if not 1 <= n_points <= MAX_POINTS:
+        raise fail("header: POINTS", f"1..{MAX_POINTS} points", n_points)
+    if len(set(names)) != nf:
+        raise fail("header: FIELDS", "distinct field names", " ".join(names))
+    dtype = np.dtype(dt_fields)
+    mode = fields["DATA"][0].lower() if fields["DATA"] else ""
+    if mode == "ascii":
+        lines = [ln for ln in _decode(data[body_start:], fail, "DATA").replace("\r", "").split("\n") if ln.strip()]
+        if len(lines) != n_points:
+            raise fail("DATA", f"{n_points} lines (POINTS)", len(lines))
+        ncols = sum(int(c) for c in counts)
+        try:
+            arr = np.loadtxt(lines, dtype=np.float64, ndmin=2, comments=None)
+        except ValueError as e:
+            raise fail("DATA", f"{ncols} numbers per line", str(e)[:100]) from None
+        if arr.shape[1] != ncols:
+            raise fail("DATA", f"{ncols} numbers per line", arr.shape[1])
+        col = np.cumsum([0] + [int(c) for c in counts])
+        get = {name: arr[:, col[i]] for i, name in enumerate(names)}
+    elif mode == "binary":
+        need = dtype.itemsize * n_points
+        if len(data) - body_start < need:
+            raise fail("DATA", f"{n_points} binary points ({need} bytes)", f"{len(data) - body_start} bytes")
+        rec = np.frombuffer(data, dtype=dtype, count=n_points, offset=body_start)
+        get = {name: rec[name] for name in names if rec[name].ndim == 1}
+    elif mode == "binary_compressed":
+        import open3d as o3d
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            pc = o3d.io.read_point_cloud(str(path), format="pcd", remove_nan_points=False, remove_infinite_points=False)
+        pts = np.asarray(pc.points, dtype=np.float64)
+        if pts.shape[0] != n_points:
+            raise fail("DATA", f"{n_points} compressed points (POINTS)", f"{pts.shape[0]} decoded")
+        nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
+        return pts, nrm, None
+    else:
+        raise fail("header: DATA", "ascii, binary or binary_compressed", repr(" ".join(fields["DATA"])))
+    xyz = np.stack([np.asarray(get[c], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
+    nrm = None
+    if all(c in get for c in ("normal_x", "normal_y", "normal_z")):
+        nrm = np.stack([np.asarray(get[c], dtype=np.float64) for c in ("normal_x", "normal_y", "normal_z")], axis=1)
+    return xyz, nrm, None
+
+
+# ---- XYZ and NPY ----------------------------------------------------------------------------
+def _read_xyz(path: Path, fail: Fail) -> Parsed:
+    text = _decode(_read_bytes(path, fail), fail)
+    try:
+        arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2, comments="#", max_rows=MAX_POINTS + 1)
+    except ValueError as e:
+        raise fail("content", "three numbers 'x y z' per line", str(e).split(";")[0][:120]) from None
+    if arr.size == 0:
+        raise fail("content", "at least one point", "none")
+    if arr.shape[1] != 3:
+        raise fail("content", "three columns 'x y z'", f"{arr.shape[1]} columns")
+    return arr, None, None
+
+
+def _read_npy(path: Path, fail: Fail) -> Parsed:
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+            else:
+                raise fail("header", "a .npy file of format version 1.0 or 2.0", f"version {version}")
+            if dtype.kind not in "fiu" or dtype.fields is not None or dtype.subdtype is not None:
+                raise fail("header", "a real numeric dtype (float or integer)", str(dtype))
+            if len(shape) != 2 or shape[1] != 3:
+                raise fail("header", "shape (N, 3)", f"shape {shape}")
+            if shape[0] == 0:
+                raise fail("header", "at least one point", "shape (0, 3)")
+            if shape[0] > MAX_POINTS:
+                raise fail("header", f"at most {MAX_POINTS} points", shape[0])
+            f.seek(0)
+            arr = np.lib.format.read_array(f, allow_pickle=False)
+    except FormatError:
+        raise
+    except (ValueError, OSError, EOFError) as e:
+        raise fail("content", "a complete .npy array", str(e)[:120]) from None
+    return np.asarray(arr, dtype=np.float64), None, None
+
+
+READERS: dict[str, Callable[[Path, Fail], Parsed]] = {
+    ".ply": _read_ply,
+    ".stl": _read_stl,
+    ".obj": _read_obj,
+    ".pcd": _read_pcd,
+    ".xyz": _read_xyz,
+    ".npy": _read_npy,
+}
