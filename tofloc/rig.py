@@ -34,6 +34,7 @@ __all__ = [
     "RawOrder",
     "Sensor",
     "Rig",
+    "RigTolerances",
     "default_zone_directions",
     "valid_mask",
     "edge_zone_mask",
@@ -325,19 +326,81 @@ class Sensor:
         )
 
 
+#: Keys of the rig's optional ``tolerances`` object and their largest accepted value.
+TOLERANCE_LIMITS = {"support_yaw_deg": 45.0, "range_scale": 0.5}
+
+
+@dataclass(frozen=True)
+class RigTolerances:
+    """What the builder knows about how far the real rig may differ from its description.
+
+    Declared in the rig file (``"tolerances": {...}``, optional; log-format v1 readers that
+    do not know the key ignore it). Each value is a one-sigma tolerance; 0 (the default)
+    says the description is exact in that respect. Estimators that can estimate the
+    matching nuisance (the support's rotation, a range scale) do so with this prior, and
+    only when it is declared (or a calibration file gives a fitted value with its
+    uncertainty, which then replaces it).
+
+    Parameters
+    ----------
+    support_yaw_deg : float
+        Rotation of the sensor support about the tip's z axis relative to its CAD model
+        (degrees, one sigma): e.g. a printed support clipped onto a bellows.
+    range_scale : float
+        Relative scale error of every reported distance (one sigma, dimensionless): a zone
+        at true distance d reads ``(1 + s) d``.
+    """
+
+    support_yaw_deg: float = 0.0
+    range_scale: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, hi in TOLERANCE_LIMITS.items():
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= hi:
+                raise ValueError(f"rig tolerance {name} must be a number in [0, {hi}], got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    @property
+    def declared(self) -> bool:
+        """True when any tolerance is non-zero."""
+        return any(getattr(self, n) > 0 for n in TOLERANCE_LIMITS)
+
+    def to_dict(self) -> dict[str, float]:
+        return {n: getattr(self, n) for n in TOLERANCE_LIMITS}
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "<rig>", where: str = "rig.tolerances") -> "RigTolerances":
+        """Validate a ``tolerances`` object; every error names ``source`` and the key."""
+        if not isinstance(d, Mapping):
+            raise _fail(source, where, f"an object with keys among {sorted(TOLERANCE_LIMITS)}", type(d).__name__)
+        unknown = sorted(set(d) - set(TOLERANCE_LIMITS))
+        if unknown:
+            raise _fail(source, f"{where}.{unknown[0]}", f"one of {sorted(TOLERANCE_LIMITS)}", "an unknown key")
+        for name, v in d.items():
+            hi = TOLERANCE_LIMITS[name]
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= hi:
+                raise _fail(source, f"{where}.{name}", f"a number in [0, {hi}]", repr(v)[:40])
+        return cls(**{k: float(v) for k, v in d.items()})
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
-    """The sensors mounted on the robot's tip, and the names of its actuators.
+    """The sensors mounted on the robot's tip, the names of its actuators, and the
+    builder's tolerances on the description (:class:`RigTolerances`).
 
     All sensors of a rig share the number of zones Z (the log stores ``(K, S, Z)``).
     """
 
     sensors: tuple[Sensor, ...]
     actuators: tuple[str, ...] = ()
+    tolerances: RigTolerances = field(default_factory=RigTolerances)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sensors", tuple(self.sensors))
         object.__setattr__(self, "actuators", tuple(self.actuators))
+        if not isinstance(self.tolerances, RigTolerances):
+            raise TypeError(f"tolerances must be a RigTolerances, got {type(self.tolerances).__name__}")
         if not self.sensors:
             raise ValueError("a rig needs at least one sensor")
         zs = {s.n_zones for s in self.sensors}
@@ -415,7 +478,10 @@ class Rig:
 
     # -- (de)serialization -------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {"sensors": [s.to_dict() for s in self.sensors], "actuators": list(self.actuators)}
+        out: dict[str, Any] = {"sensors": [s.to_dict() for s in self.sensors], "actuators": list(self.actuators)}
+        if self.tolerances.declared:
+            out["tolerances"] = self.tolerances.to_dict()
+        return out
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())
@@ -440,7 +506,8 @@ class Rig:
             raise _fail(source, "rig.actuators", "a list of actuator names (strings)", repr(acts)[:80])
         if len(set(acts)) != len(acts):
             raise _fail(source, "rig.actuators", "unique names", acts)
-        return cls(sensors=tuple(built), actuators=tuple(acts))
+        tol = RigTolerances.from_dict(d["tolerances"], source) if d.get("tolerances") is not None else RigTolerances()
+        return cls(sensors=tuple(built), actuators=tuple(acts), tolerances=tol)
 
     @classmethod
     def from_json(cls, text: str, source: str = "<rig>") -> "Rig":
