@@ -1,7 +1,7 @@
 """Cramér-Rao lower bound of the planar base pose (x, y, yaw) from ToF zone distances.
 
 With independent Gaussian zone errors of standard deviation ``sigma_i`` (the shared
-:class:`~sensor_models.uncertainty.RangeUncertainty` at the expected distance), the
+:class:`~tofloc.range_model.RangeUncertainty` at the expected distance), the
 Fisher information of the pose ``p = (x, y, yaw)`` is (Censi, ICRA 2007)::
 
     I(p) = sum_i J_i^T J_i / sigma_i^2,     J_i = d r_i / d p  (1 x 3)
@@ -37,10 +37,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sensor_models.uncertainty import RangeUncertainty
+from tofloc.range_model import RangeUncertainty
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
+from tofloc.zone_caster import ZoneCaster
 
 __all__ = ["CRLB", "expected_distances", "zone_jacobians", "fisher_information", "crlb_from_information", "crlb",
            "crlb_for_problem"]
@@ -81,13 +82,9 @@ class CRLB:
         }
 
 
-def _sensor_rays(T_map_base: NDArray[np.float64], T_base_tip: NDArray[np.float64], rig: Rig
-                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Origins ``(K, S, Z, 3)`` and unit directions ``(K, S, Z, 3)`` of every zone in the map."""
-    T_map_sensor = T_map_base[:, None] @ T_base_tip[:, None] @ rig.T_tip_sensor[None]  # (K, S, 4, 4)
-    dirs = np.einsum("ksij,szj->kszi", T_map_sensor[..., :3, :3], rig.unit_directions)
-    origins = np.broadcast_to(T_map_sensor[:, :, None, :3, 3], dirs.shape)
-    return origins, dirs
+def _sensor_poses(T_map_base: NDArray[np.float64], T_base_tip: NDArray[np.float64], rig: Rig) -> NDArray[np.float64]:
+    """``T_map_sensor`` ``(K, S, 4, 4)`` of every sensor of every sample."""
+    return T_map_base[:, None] @ T_base_tip[:, None] @ rig.T_tip_sensor[None]
 
 
 def _as_poses(T_map_base: ArrayLike, T_base_tip: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -107,13 +104,10 @@ def _as_poses(T_map_base: ArrayLike, T_base_tip: ArrayLike) -> tuple[NDArray[np.
 
 
 def expected_distances(T_map_base: ArrayLike, T_base_tip: ArrayLike, rig: Rig, the_map: Any) -> NDArray[np.float64]:
-    """Distance ``(K, S, Z)`` each zone's centre ray would report (NaN: no hit within range)."""
+    """Distance ``(K, S, Z)`` each zone's centre ray would report (NaN: no hit within range):
+    the shared zone caster (:class:`tofloc.zone_caster.ZoneCaster`, ``footprint=1``)."""
     Tb, Tt = _as_poses(T_map_base, T_base_tip)
-    o, u = _sensor_rays(Tb, Tt, rig)
-    hits = the_map.raycast(o, u, max_range=float(rig.max_range_m.max()))
-    t = np.where(np.isfinite(hits.t), hits.t, np.nan)
-    t = np.where(t <= rig.max_range_m[None, :, None], t, np.nan)
-    return t / rig.range_factor[None]
+    return ZoneCaster(rig).cast(the_map, _sensor_poses(Tb, Tt, rig)).reading
 
 
 def zone_jacobians(
@@ -169,11 +163,14 @@ def zone_jacobians(
         return r0, J
     if method != "analytic":
         raise ParameterError(f"method must be 'analytic' or 'numeric', got {method!r}")
-    o, u = _sensor_rays(Tb, Tt, rig)
-    hits = the_map.raycast(o, u, max_range=float(rig.max_range_m.max()))
-    t = np.where(np.isfinite(hits.t) & (hits.t <= rig.max_range_m[None, :, None]), hits.t, np.nan)
-    n = hits.normal
-    h = o + t[..., None] * u
+    caster = ZoneCaster(rig)
+    o, u = caster.rays(_sensor_poses(Tb, Tt, rig))
+    o, u = o[..., 0, :], u[..., 0, :]  # centre rays: (K, S, 1, 3) and (K, S, Z, 3)
+    cast = caster.cast_rays(the_map, o[..., None, :], u[..., None, :], geometry=True)
+    assert cast.normal is not None and cast.point is not None
+    r = cast.reading
+    n = cast.normal
+    h = cast.point
     c = Tb[:, None, None, :3, 3]
     cos = np.einsum("...i,...i->...", n, u)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -183,7 +180,7 @@ def zone_jacobians(
         dt = -np.stack([n[..., 0], n[..., 1], np.einsum("...i,...i->...", n, rot)], axis=-1) / cos[..., None]
         dt = np.where((np.abs(cos) > 1e-6)[..., None], dt, np.nan)
     f = rig.range_factor[None, :, :, None]
-    return t / rig.range_factor[None], dt / f
+    return r, dt / f
 
 
 def fisher_information(
@@ -268,9 +265,8 @@ def crlb(
     return crlb_from_information(info, n)
 
 
-def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, uncertainty: RangeUncertainty | None = None,
-                     *, method: str = "analytic") -> CRLB:
+def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, *, method: str = "analytic") -> CRLB:
     """The bound of a :class:`~tofloc.problem.Problem` at the true base pose: its configurations,
-    its rig and map, and only the zones it holds as valid."""
-    return crlb(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, uncertainty, problem.valid,
+    its rig (calibration applied) and map, its range model, and only the zones it holds as valid."""
+    return crlb(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, problem.range_model, problem.valid,
                 method=method)

@@ -1,58 +1,122 @@
-"""The sensor-model interface: how likely are a problem's frames for each of M base poses?
+"""The sensor-model interface: how likely are a problem's frames for each of M states?
 
 A :class:`SensorModel` holds validated parameters only. :meth:`SensorModel.bind` does the
-per-problem work once (clouds, caches) and returns a :class:`BoundSensorModel` whose
-:meth:`~BoundSensorModel.log_likelihood` is vectorized over the M candidate poses.
+per-problem work once (rays, clouds, caches) and returns a :class:`BoundSensorModel`
+whose :meth:`~BoundSensorModel.log_likelihood` is vectorized over M candidate states.
 
-Two kinds of model (``cumulative``):
+The state
+---------
+A state is the planar base pose ``(x, y, yaw)`` followed by the nuisance variables the
+bound model declares in :attr:`BoundSensorModel.state` (column 3, 4, ... in that order).
+A model lists the nuisances it *can* estimate (:attr:`SensorModel.nuisances`, e.g. the
+support's rotation and a range scale); it declares one only when the problem declares
+its prior (:attr:`tofloc.problem.Problem.nuisance`: the rig's tolerances or a
+calibration's uncertainty, :func:`declared_state`). A filter builds its particle columns
+from the declaration; nothing is positional by convention.
 
-* incremental (``False``, the textbook Bayes filter): step ``k`` returns the
-  log-likelihood of sample ``k`` alone; a filter adds it to its log-weights;
-* cumulative (``True``, the paper's ICP score): step ``k`` scores everything seen so far
-  (the merged cloud ``X_k``); a filter replaces its weights with it.
+How a step enters the weights (:attr:`SensorModel.weight_update`)
+-----------------------------------------------------------------
+* ``"bayes"`` (the textbook Bayes filter): step ``k`` returns the log-likelihood of
+  sample ``k`` alone; a filter adds it to its log-weights.
+* ``"replace"`` (the paper's ICP score): step ``k`` returns a log-score of everything seen
+  so far (the merged cloud ``X_k``); a filter replaces its log-weights with it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import tomllib
-from pathlib import Path
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar, Mapping, TypeVar
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem
 
-T = TypeVar("T")
+__all__ = ["NUISANCES", "WEIGHT_UPDATES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state"]
 
-__all__ = ["SensorModel", "BoundSensorModel", "read_model_toml", "params_from_table", "params_from_toml"]
+#: Nuisance variables a model may estimate, with their unit.
+NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
+WEIGHT_UPDATES = ("bayes", "replace")
+#: Roughening floor of a nuisance column, as a fraction of its prior sigma.
+JITTER_FLOOR_FRACTION = 0.01
 
-#: Largest sensor-model TOML file we read (bytes).
-MAX_TOML_BYTES = 1_000_000
+
+@dataclass(frozen=True)
+class StateVariable:
+    """A variable a bound model estimates beyond ``(x, y, yaw)``.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`NUISANCES`.
+    sigma : float
+        Prior standard deviation (the prior is centred on 0: the problem's rig and range
+        model are already the best description).
+    jitter_floor : float
+        Smallest roughening jitter a particle filter gives the column.
+    source : str
+        Where the prior came from (``"rig tolerance"``, ``"calibration"``).
+    """
+
+    name: str
+    sigma: float
+    jitter_floor: float
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if self.name not in NUISANCES:
+            raise ValueError(f"unknown state variable {self.name!r}: expected one of {sorted(NUISANCES)}")
+        if not (np.isfinite(self.sigma) and self.sigma > 0 and np.isfinite(self.jitter_floor) and self.jitter_floor >= 0):
+            raise ValueError(f"state variable {self.name}: sigma must be > 0 and jitter_floor >= 0")
+
+
+def declared_state(problem: Problem, supported: tuple[str, ...]) -> tuple[StateVariable, ...]:
+    """The nuisances a model supporting ``supported`` estimates on ``problem``: those the
+    problem declares (:attr:`tofloc.problem.NuisancePriors.declared`), in that order."""
+    out = []
+    for name in problem.nuisance.declared:
+        if name in supported:
+            sigma = problem.nuisance.sigma(name)
+            out.append(StateVariable(name, sigma, JITTER_FLOOR_FRACTION * sigma, getattr(problem.nuisance, f"{name}_source")))
+    return tuple(out)
 
 
 class BoundSensorModel(ABC):
     """A sensor model bound to one problem."""
 
-    #: number of steps (samples) the filter walks through
+    #: number of steps (samples) a filter walks through
     n_steps: int
+    #: the variables estimated beyond (x, y, yaw), in column order from 3
+    state: tuple[StateVariable, ...] = ()
 
     @abstractmethod
-    def log_likelihood(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        """Log-likelihood ``(M,)`` of step ``step`` for planar base poses ``(M, 3)``.
+    def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Log-likelihood ``(M,)`` of step ``step`` for states ``(M, 3 + len(state))``.
 
-        ``-inf`` is allowed (a pose the data excludes); NaN is not.
+        ``-inf`` is allowed (a state the data exclude); NaN is not.
         """
+
+    def column(self, states: NDArray[np.float64], name: str) -> NDArray[np.float64] | None:
+        """The ``(M,)`` column of nuisance ``name`` in ``states``, or None when not declared."""
+        for i, v in enumerate(self.state):
+            if v.name == name:
+                return states[:, 3 + i]
+        return None
 
 
 class SensorModel(ABC):
     """Interface of every sensor-model plug-in (a dataclass of parameters)."""
 
+    #: registry name
     name: ClassVar[str] = ""
-    cumulative: ClassVar[bool] = False
+    #: how a step's value enters a particle filter's weights (see the module doc)
+    weight_update: ClassVar[Literal["bayes", "replace"]] = "bayes"
+    #: nuisances this model can estimate (it declares those the problem declares)
+    nuisances: ClassVar[tuple[str, ...]] = ()
+    #: whether its scores depend on the problem's range model or calibrated mounting
+    uses_calibration: ClassVar[bool] = True
 
     @abstractmethod
     def bind(self, problem: Problem) -> BoundSensorModel:
@@ -60,40 +124,3 @@ class SensorModel(ABC):
 
     def get_params(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}
-
-
-def read_model_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a sensor-model TOML file (``tofloc calibrate``'s output), bounded in size;
-    every failure is a :class:`FormatError` naming the file."""
-    p = Path(path)
-    try:
-        size = p.stat().st_size
-        if size > MAX_TOML_BYTES:
-            raise FormatError(p, "file", f"at most {MAX_TOML_BYTES} bytes", f"{size} bytes")
-        return tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise FormatError(p, "file", "valid TOML", str(e)) from None
-
-
-def params_from_table(cls: type[T], d: Mapping[str, Any], source: str, table: str) -> T:
-    """Build the parameter dataclass ``cls`` from the TOML table ``[table]``: unknown keys
-    and out-of-domain values are :class:`FormatError` naming the file and key."""
-    known = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise FormatError(source, f"[{table}].{unknown[0]}", f"one of {sorted(known)}", "an unknown key")
-    try:
-        return cls(**dict(d))
-    except ParameterError as e:
-        raise FormatError(source, f"[{table}]", str(e)) from None
-
-
-def params_from_toml(cls: type[T], path: str | Path, table: str) -> T:
-    """``params_from_table`` on the ``[table]`` of a TOML file (defaults when absent)."""
-    p = Path(path)
-    data = read_model_toml(p).get(table, {})
-    if not isinstance(data, Mapping):
-        raise FormatError(p, f"[{table}]", "a table")
-    return params_from_table(cls, data, str(p), table)

@@ -1,15 +1,20 @@
 """Thrun's beam model (Probabilistic Robotics, 6.3) adapted to multizone ToF zones.
 
-For a candidate base pose, every zone's *expected* reading is found by ray casting the
-map (:meth:`tofloc.maps.Map.raycast`: triangles of a mesh map; surfels, small hexagons
+For a candidate state, every zone's *expected* reading comes from the shared zone caster
+(:class:`tofloc.zone_caster.ZoneCaster`: triangles of a mesh map; surfels, small hexagons
 around each point along its normal, of a point-cloud map) from the sensor poses
-``T_map_base @ T_base_tip[k] @ T_tip_sensor``. A zone is not a thin ray: with
-``sub_rays = n`` its angular footprint is split into ``n x n`` sub-rays as the simulator
-does (:func:`tofloc.simulation.tof.subray_directions`); the zone's expected distance is
-the mean of the hit sub-rays' readings (perpendicular depth or radial range, the
-sensor's convention) and its *hit fraction* ``f`` the fraction of sub-rays that hit
-within range. ``sub_rays = 1`` (the default) casts the zone's central ray only: 9x
-cheaper, and on the paper's scenario as accurate (docs/sensor-models.md).
+``T_map_base @ T_base_tip[k] @ T_tip_sensor`` (the problem's rig: a calibration is
+already applied). A zone is not a thin ray: with ``sub_rays = n`` its angular footprint is
+split into ``n x n`` sub-rays as the simulator does; the zone's expected distance is the
+caster's reading (signal-weighted mean of the returning sub-rays) and its *hit fraction*
+``f`` the fraction of sub-rays that return within range. ``sub_rays = 1`` (the default)
+casts the zone's central ray only: 9x cheaper, and on the paper's scenario as accurate
+(docs/sensor-models.md).
+
+State: the base pose, plus the nuisances the problem declares (its rig's tolerances or a
+calibration's uncertainty) among ``support_yaw`` (the zones are cast from a support
+rotated about the tip's z axis) and ``range_scale`` (a zone at expected distance ``d``
+reads ``(1 + s) d`` before its bias).
 
 Per zone, the reading ``z`` (valid status) or "no return" (status 255, information: not
 dropped) has probability, with ``d`` the expected distance and ``r`` the range::
@@ -23,21 +28,22 @@ dropped) has probability, with ``d`` the expected distance and ``r`` the range::
 
 so that each case sums to 1 over {readings in [0, r]} + {no return}; a zone with hit
 fraction ``f`` mixes the two cases with weights ``f`` and ``1 - f``. bias and sigma come
-from the shared :class:`sensor_models.uncertainty.RangeUncertainty` (edge zones, the
-sensor's own sigma when trusted). Zones with another status (invalid readings) are
-dropped. The zones' log-probabilities are summed in log space and the sum is multiplied
+from the shared :class:`tofloc.range_model.RangeUncertainty` (edge zones, the
+sensor's own sigma when trusted): the problem's range model. Zones with another status
+(invalid readings) are dropped. The zones' log-probabilities are summed in log space and the sum is multiplied
 by ``temper`` (zones are not independent: shared optics, multipath, map error;
 ``temper = 1`` is the textbook product, smaller values flatten the likelihood as the
 MIT racecar filter's ``1 / squash``).
 
-The ``[beam]`` table of a sensor-model TOML file (``tofloc calibrate``'s output) holds
-the mixture: :meth:`BeamMixture.from_toml`.
+The mixture: the ``mixture`` parameter when given, else the ``[beam]`` table of the
+problem's calibration (``tofloc calibrate``'s output), else :class:`BeamMixture`'s
+defaults.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
@@ -45,13 +51,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
 
-from sensor_models.base import BoundSensorModel, SensorModel, params_from_table, params_from_toml, read_model_toml
-from sensor_models.mounting import check_sensor_mounting, corrected_T_tip_sensor
-from sensor_models.uncertainty import RangeUncertainty
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_int
+from tofloc.toml_tables import params_from_table, params_from_toml
+from tofloc.zone_caster import PlanarZoneRays, ZoneCaster
 
-__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "ZoneGeometry", "load_sensor_model_toml", "check_support_yaw"]
+__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper"]
 
 #: VL53L5CX ``target_status`` of a zone that saw no target (log format v1).
 NO_TARGET_STATUS = 255
@@ -110,68 +116,15 @@ class BeamMixture:
         return params_from_toml(cls, path, "beam")
 
 
-def load_sensor_model_toml(path: str | Path) -> dict[str, Any]:
-    """Sensor-model parameters from a calibrated TOML file (``tofloc calibrate``'s output).
-
-    Returns ``{"uncertainty": {...}, "mixture": {...}, "support_yaw_deg": float,
-    "sensor_mounting": {...}}`` (validated; a missing table or key is left out, so the
-    model's defaults apply): keyword parameters for :class:`BeamModel` (all but
-    ``mixture`` also for the likelihood field).
-    """
-    p = Path(path)
-    data = read_model_toml(p)
-    out: dict[str, Any] = {}
-    if "uncertainty" in data:
-        out["uncertainty"] = RangeUncertainty.from_toml(p).to_dict()
-    if "beam" in data:
-        out["mixture"] = BeamMixture.from_toml(p).to_dict()
-    if "mounting" in data:
-        m = data["mounting"]
-        if not isinstance(m, Mapping) or not set(m) <= {"support_yaw_deg", "sensors"} or not m:
-            raise FormatError(p, "[mounting]", "support_yaw_deg and/or a [mounting.sensors] table",
-                              f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
-        if "support_yaw_deg" in m:
-            try:
-                check_support_yaw("mounting", m["support_yaw_deg"])
-            except ParameterError:
-                raise FormatError(p, "[mounting].support_yaw_deg", "a number of degrees in [-90, 90]", repr(m["support_yaw_deg"])) from None
-            out["support_yaw_deg"] = float(m["support_yaw_deg"])
-        if "sensors" in m:
-            try:
-                out["sensor_mounting"] = check_sensor_mounting("mounting", m["sensors"])
-            except ParameterError as e:
-                raise FormatError(p, "[mounting.sensors]", "per sensor: rotation_deg and translation_m, 3 numbers each", str(e)) from None
-    if not out:
-        raise FormatError(p, "file", "an [uncertainty] and/or a [beam] table", f"tables {sorted(data)}")
-    return out
-
-
-def _as_uncertainty(value: Any, owner: str) -> RangeUncertainty:
-    if isinstance(value, RangeUncertainty):
-        return value
-    if not isinstance(value, Mapping):
-        raise ParameterError(f"{owner}.uncertainty must be a table of RangeUncertainty parameters, got {type(value).__name__}")
-    try:
-        return RangeUncertainty.from_dict(value, f"{owner}.uncertainty")
-    except FormatError as e:
-        raise ParameterError(str(e)) from None
-
-
-def _as_mixture(value: Any) -> BeamMixture:
+def _as_mixture(value: Any, source: str = "beam.mixture") -> BeamMixture:
     if isinstance(value, BeamMixture):
         return value
     if not isinstance(value, Mapping):
-        raise ParameterError(f"beam.mixture must be a table of z_hit, z_short, z_max, z_rand, lambda_short, got {type(value).__name__}")
+        raise ParameterError(f"{source} must be a table of z_hit, z_short, z_max, z_rand, lambda_short, got {type(value).__name__}")
     try:
-        return BeamMixture.from_dict(value, "beam.mixture")
+        return BeamMixture.from_dict(value, source)
     except FormatError as e:
         raise ParameterError(str(e)) from None
-
-
-def check_support_yaw(owner: str, value: Any) -> None:
-    """A calibrated support rotation must be a finite angle in [-90, 90] degrees."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or not -90 <= value <= 90:
-        raise ParameterError(f"{owner}.support_yaw_deg must be in [-90, 90] degrees, got {value!r}")
 
 
 def check_temper(owner: str, temper: Any) -> None:
@@ -180,139 +133,35 @@ def check_temper(owner: str, temper: Any) -> None:
         raise ParameterError(f"{owner}.temper must be in (0, 1], got {temper!r}")
 
 
-class ZoneGeometry:
-    """Every step's zone rays with the known height, roll and pitch applied, so that a
-    planar pose ``(x, y, yaw)`` only rotates them about z and shifts them in x-y.
-
-    Parameters
-    ----------
-    problem : Problem
-    sub_rays : int
-        ``n``: each zone's footprint is cast as ``n x n`` sub-rays (1: its central ray).
-    T_tip_sensor : array (S, 4, 4), optional
-        Calibrated sensor poses in the tip frame (:mod:`sensor_models.mounting`) instead
-        of the rig's.
-    """
-
-    def __init__(self, problem: Problem, sub_rays: int = 1, T_tip_sensor: NDArray[np.float64] | None = None) -> None:
-        rig = problem.rig
-        S, Z = rig.n_sensors, rig.n_zones
-        if sub_rays == 1 or any(s.zone_directions is not None for s in rig.sensors):
-            dirs_s = rig.unit_directions[:, :, None, :]  # (S, Z, 1, 3)
-        else:
-            from tofloc.simulation.tof import subray_directions
-
-            dirs_s = np.stack([subray_directions(s, sub_rays) for s in rig.sensors])  # (S, Z, n, 3)
-        perpendicular = np.array([s.distance == "perpendicular" for s in rig.sensors])
-        #: (S, Z, n): reading per metre along each sub-ray (its depth, or 1 for radial)
-        self.along = np.where(perpendicular[:, None, None], dirs_s[..., 2], 1.0)
-        T_fixed = problem.prior.T_map_base(np.zeros(3))
-        #: (K, 4, 4): the base frame with the known height, roll and pitch applied, to the tip
-        self.T_lift_tip = T_fixed[None] @ problem.T_base_tip
-        T_tip_sensor = rig.T_tip_sensor if T_tip_sensor is None else np.asarray(T_tip_sensor, dtype=float)
-        #: rays in the tip frame: origins (S, 3) and directions (S, Z, n, 3)
-        self.origins_tip = T_tip_sensor[:, :3, 3].copy()
-        self.dirs_tip = np.einsum("sij,sznj->szni", T_tip_sensor[:, :3, :3], dirs_s)
-        #: (K, S, 3) and (K, S, Z, n, 3): the same, lifted
-        R, t = self.T_lift_tip[:, :3, :3], self.T_lift_tip[:, :3, 3]
-        self.origins = np.einsum("kij,sj->ksi", R, self.origins_tip) + t[:, None, :]
-        self.dirs = np.einsum("kij,sznj->kszni", R, self.dirs_tip)
-        self.max_range = rig.max_range_m  # (S,)
-        self.n_sub = dirs_s.shape[2]
-        self.shape = (S, Z)
-        #: longest ray worth casting (a reading of max_range along the most oblique sub-ray)
-        self.ray_range = float(np.max(self.max_range[:, None, None] / self.along))
-
-    def lifted_rays(self, poses: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Origins ``(1 or M, S, 3)`` and directions ``(1 or M, S, Z, n, 3)`` of step ``step``
-        in the lifted base frame; with a 4th pose column (the support's rotation about the
-        tip's z axis, :attr:`estimators.particle_filter.ParticleFilter.support_yaw_sigma_deg`),
-        one set per pose."""
-        if poses.shape[1] == 3:
-            return self.origins[step][None], self.dirs[step][None]
-        c, s = np.cos(poses[:, 3]), np.sin(poses[:, 3])
-        o, d = self.origins_tip, self.dirs_tip
-        o_rot = np.empty((poses.shape[0],) + o.shape)
-        o_rot[..., 0] = c[:, None] * o[None, :, 0] - s[:, None] * o[None, :, 1]
-        o_rot[..., 1] = s[:, None] * o[None, :, 0] + c[:, None] * o[None, :, 1]
-        o_rot[..., 2] = o[None, :, 2]
-        cc, ss = c[:, None, None, None], s[:, None, None, None]
-        d_rot = np.empty((poses.shape[0],) + d.shape)
-        d_rot[..., 0] = cc * d[None, ..., 0] - ss * d[None, ..., 1]
-        d_rot[..., 1] = ss * d[None, ..., 0] + cc * d[None, ..., 1]
-        d_rot[..., 2] = d[None, ..., 2]
-        R, t = self.T_lift_tip[step, :3, :3], self.T_lift_tip[step, :3, 3]
-        return o_rot @ R.T + t, d_rot @ R.T
-
-    def cast(self, the_map: Any, poses: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Expected readings ``(M, S, Z)`` (NaN where no sub-ray hits) and hit fractions
-        ``(M, S, Z)`` of step ``step`` for planar poses ``(M, 3)`` (or ``(M, 4)``, see
-        :meth:`lifted_rays`): one batched ray cast."""
-        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-        o, d = self.lifted_rays(poses, step)  # (1|M, S, 3), (1|M, S, Z, n, 3)
-        M = poses.shape[0]
-        org = np.empty((M, o.shape[1], 3))
-        org[..., 0] = c[:, None] * o[..., 0] - s[:, None] * o[..., 1] + poses[:, None, 0]
-        org[..., 1] = s[:, None] * o[..., 0] + c[:, None] * o[..., 1] + poses[:, None, 1]
-        org[..., 2] = o[..., 2]
-        dr = np.empty((M,) + d.shape[1:])
-        cc, ss = c[:, None, None, None], s[:, None, None, None]
-        dr[..., 0] = cc * d[..., 0] - ss * d[..., 1]
-        dr[..., 1] = ss * d[..., 0] + cc * d[..., 1]
-        dr[..., 2] = d[..., 2]
-        hits = the_map.raycast(org[:, :, None, None, :], dr, max_range=self.ray_range)
-        t = np.asarray(hits.t, dtype=float)  # (M, S, Z, n)
-        ok = np.isfinite(t)
-        reading = np.where(ok, t * self.along[None], 0.0)
-        hit = ok & (reading <= self.max_range[None, :, None, None])
-        n_hit = hit.sum(axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            expected = np.where(n_hit > 0, np.where(hit, reading, 0.0).sum(axis=-1) / n_hit, np.nan)
-        return expected, n_hit / self.n_sub
-
-
 @dataclass(frozen=True)
 class BeamModel(SensorModel):
-    """Beam model of ToF zones (see the module docstring).
+    """Beam model of ToF zones (see the module doc).
 
     Parameters
     ----------
-    mixture : dict or BeamMixture
-        ``z_hit, z_short, z_max, z_rand, lambda_short`` (the ``[beam]`` table).
-    uncertainty : dict or RangeUncertainty
-        Per-zone bias and sigma (the ``[uncertainty]`` table).
+    mixture : dict or BeamMixture, optional
+        ``z_hit, z_short, z_max, z_rand, lambda_short``; default: the problem's calibrated
+        ``[beam]`` table, else :class:`BeamMixture`'s defaults.
     temper : float
         Exponent in (0, 1] applied to the sum of the zones' log-likelihoods of a sample.
     sub_rays : int
         Footprint sub-rays per zone side (1..5).
-    support_yaw_deg : float
-        Calibrated rotation of the sensor support about the tip's z axis (deg; the
-        ``[mounting]`` table of ``tofloc calibrate``'s output): the zones are cast from
-        ``Rz(support_yaw_deg) @ T_tip_sensor``. A particle filter's online support-yaw
-        column (``support_yaw_sigma_deg``) adds to it.
     """
 
     name: ClassVar[str] = "beam"
-    cumulative: ClassVar[bool] = False
-    #: accepts a 4th pose column: the sensor support's rotation about the tip's z axis
-    support_yaw: ClassVar[bool] = True
-    #: accepts a 5th pose column: the sensors' relative range-scale error
-    range_scale: ClassVar[bool] = True
+    weight_update: ClassVar[str] = "bayes"
+    nuisances: ClassVar[tuple[str, ...]] = ("support_yaw", "range_scale")
+    uses_calibration: ClassVar[bool] = True
 
-    mixture: Mapping[str, Any] = field(default_factory=lambda: BeamMixture().to_dict())
-    uncertainty: Mapping[str, Any] = field(default_factory=lambda: RangeUncertainty().to_dict())
+    mixture: Mapping[str, Any] | None = None
     temper: float = 0.25
     sub_rays: int = 1
-    support_yaw_deg: float = 0.0
-    sensor_mounting: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        _as_mixture(self.mixture)
-        _as_uncertainty(self.uncertainty, "beam")
+        if self.mixture is not None:
+            _as_mixture(self.mixture)
         check_temper("beam", self.temper)
         check_int("beam.sub_rays", self.sub_rays, 1, 5)
-        check_support_yaw("beam", self.support_yaw_deg)
-        check_sensor_mounting("beam", self.sensor_mounting)
 
     def bind(self, problem: Problem) -> "BoundBeamModel":
         return BoundBeamModel(self, problem)
@@ -324,27 +173,39 @@ class BoundBeamModel(BoundSensorModel):
     def __init__(self, model: BeamModel, problem: Problem) -> None:
         self.model = model
         self.problem = problem
-        self.mixture = _as_mixture(model.mixture)
-        self.uncertainty = _as_uncertainty(model.uncertainty, "beam")
-        self.geometry = ZoneGeometry(
-            problem, int(model.sub_rays), corrected_T_tip_sensor(problem.rig, model.support_yaw_deg, model.sensor_mounting)
-        )
+        cal_table = None if problem.calibration is None else problem.calibration.table("beam")
+        if model.mixture is not None:
+            self.mixture, self.mixture_source = _as_mixture(model.mixture), "parameter"
+        elif cal_table is not None:
+            src = f"{problem.calibration.source} [beam]"
+            self.mixture, self.mixture_source = _as_mixture(cal_table, src), src
+        else:
+            self.mixture, self.mixture_source = BeamMixture(), "defaults"
+        self.state = declared_state(problem, model.nuisances)
+        caster = ZoneCaster(problem.rig, footprint=int(model.sub_rays))
+        T_lift_tip = problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip
+        self.rays = PlanarZoneRays(caster, problem.rig.T_tip_sensor, T_lift_tip)
         self.n_steps = problem.n_samples
         self.valid = problem.valid  # (K, S, Z)
         self.no_return = (problem.status == NO_TARGET_STATUS) & ~self.valid
         self.z = np.where(self.valid, problem.distance_m, 0.0)
         self.r = problem.rig.max_range_m[None, :, None]  # (1, S, 1)
 
-    def expected(self, poses: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Expected readings and hit fractions ``(M, S, Z)`` (see :meth:`ZoneGeometry.cast`)."""
-        return self.geometry.cast(self.problem.map, np.asarray(poses, dtype=float), step)
+    def expected(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Expected readings (NaN: no target) and hit fractions ``(M, S, Z)`` of step ``step``,
+        the range scale applied (:class:`tofloc.zone_caster.PlanarZoneRays`)."""
+        x = np.asarray(states, dtype=float)
+        cast = self.rays.cast(self.problem.map, x[:, :3], step, self.column(x, "support_yaw"))
+        expected = cast.reading
+        scale = self.column(x, "range_scale")
+        if scale is not None:  # readings scale with the distance
+            expected = expected * (1.0 + scale[:, None, None])
+        return expected, cast.hit_fraction
 
-    def zone_log_likelihood(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+    def zone_log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Untempered log-probability of every zone ``(M, S, Z)`` (0 for dropped zones)."""
-        mix, unc, rig = self.mixture, self.uncertainty, self.problem.rig
-        expected, frac = self.expected(poses, step)
-        if poses.shape[1] > 4:  # the range-scale column: readings scale with the distance
-            expected = expected * (1.0 + poses[:, 4, None, None])
+        mix, unc, rig = self.mixture, self.problem.range_model, self.problem.rig
+        expected, frac = self.expected(states, step)
         valid, no_ret, z, r = self.valid[step], self.no_return[step], self.z[step], self.r
         lam = mix.lambda_short
         d = np.where(np.isfinite(expected), expected, r)
@@ -366,6 +227,6 @@ class BoundBeamModel(BoundSensorModel):
         p = np.where(valid, p_valid, np.where(no_ret, p_none, 1.0))
         return np.log(np.maximum(p, _LOG_TINY))
 
-    def log_likelihood(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        ll = self.zone_log_likelihood(poses, step).sum(axis=(1, 2))
+    def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        ll = self.zone_log_likelihood(states, step).sum(axis=(1, 2))
         return self.model.temper * ll

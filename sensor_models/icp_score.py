@@ -139,7 +139,11 @@ class ICPScore(SensorModel):
     """
 
     name: ClassVar[str] = "icp_score"
-    cumulative: ClassVar[bool] = True
+    #: the score of the merged cloud X_k replaces the weights (paper II.A)
+    weight_update: ClassVar[str] = "replace"
+    nuisances: ClassVar[tuple[str, ...]] = ()
+    #: the paper's method uses the CAD rig and no range model
+    uses_calibration: ClassVar[bool] = False
 
     max_correspondence: float = 0.04
     voxel_size: float = 0.05
@@ -169,7 +173,7 @@ class BoundICPScore(BoundSensorModel):
         self.clouds = merged_clouds(problem, model.voxel_size, model.crop_margin)
         self.n_steps = len(self.clouds)
         # exact inlier test accelerated by a distance grid (cell = max_correspondence / 8)
-        self.tree = distance_grid_for(problem.map.points, model.max_correspondence / 8.0, model.max_correspondence)
+        self.tree = distance_grid_for(problem.map, model.max_correspondence / 8.0, model.max_correspondence)
         # the known height, roll and pitch applied once: a planar pose then moves the points
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         self.clouds_lifted = [frames.transform_points(T_fixed, c) for c in self.clouds]

@@ -7,7 +7,7 @@ into the map frame by the candidate pose; its probability is a Gaussian of the d
 
     p = z_hit * N(dist; 0, sigma(z)^2) + z_rand / r_field
 
-with ``sigma`` the shared :class:`sensor_models.uncertainty.RangeUncertainty` at the
+with ``sigma`` the shared :class:`tofloc.range_model.RangeUncertainty` at the
 reading. Zones with no return (status 255) and invalid readings are dropped, as in
 Thrun's model (no ray casting, so no notion of "expected nothing"). The log-probabilities
 are summed and the sum multiplied by ``temper`` (see :mod:`sensor_models.beam`).
@@ -27,21 +27,18 @@ distance to the surface.
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel
-from sensor_models.beam import _as_uncertainty, check_support_yaw, check_temper
-from sensor_models.mounting import check_sensor_mounting, correction_matrices
-from sensor_models.uncertainty import RangeUncertainty
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state
+from sensor_models.beam import check_temper
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
+from tofloc.zone_caster import rotate_z
 
 __all__ = ["SurfaceField", "surface_field_for", "LikelihoodFieldModel", "BoundLikelihoodField"]
 
@@ -126,45 +123,12 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
     return np.clip(out, -r_field, r_field)
 
 
-@functools.lru_cache(maxsize=8)
-def _cached_field(key: str, cell: float, r_field: float, the_map: Any) -> SurfaceField:
-    return SurfaceField(the_map, cell, r_field)
-
-
-def _map_key(the_map: Any) -> str:
-    h = hashlib.sha1(np.ascontiguousarray(the_map.points, dtype=np.float64).tobytes())
-    tri = the_map.triangles()
-    if tri is not None:
-        h.update(np.ascontiguousarray(tri).tobytes())
-    surface = getattr(the_map, "surface", None)
-    if surface is not None:
-        h.update(b"surface:" + _map_key(surface).encode())
-    if the_map.kind == "points":
-        h.update(np.ascontiguousarray(the_map.normals, dtype=np.float64).tobytes())
-        h.update(repr(float(the_map.surfel_radius)).encode())
-    return h.hexdigest()
-
-
 def surface_field_for(the_map: Any, cell: float, r_field: float) -> SurfaceField:
-    """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and process."""
-    key = _map_key(the_map)
-    return _cached_field(key, float(cell), float(r_field), _KeyedMap(key, the_map))
+    """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and
+    process (:func:`tofloc.map_cache.per_map`)."""
+    from tofloc.map_cache import per_map
 
-
-class _KeyedMap:
-    """Hashes by content key, so the LRU cache does not hold on to identity."""
-
-    def __init__(self, key: str, the_map: Any) -> None:
-        self.key, self.map = key, the_map
-
-    def __hash__(self) -> int:
-        return hash(self.key)
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, _KeyedMap) and other.key == self.key
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.map, name)
+    return per_map(the_map, "surface_field", (float(cell), float(r_field)), lambda: SurfaceField(the_map, cell, r_field))
 
 
 @dataclass(frozen=True)
@@ -175,34 +139,24 @@ class LikelihoodFieldModel(SensorModel):
     ----------
     z_hit, z_rand : float
         Mixture weights, > 0, summing to 1.
-    uncertainty : dict or RangeUncertainty
-        Per-zone bias and sigma (the ``[uncertainty]`` table).
     temper : float
         Exponent in (0, 1] applied to the summed log-likelihood of a sample.
     cell : float
         Grid step of the precomputed field (m).
     r_field : float
         Largest distance the field resolves (m); also the support of ``z_rand``.
-    support_yaw_deg : float
-        Calibrated rotation of the sensor support about the tip's z axis (deg), as
-        :class:`sensor_models.beam.BeamModel`'s.
-    sensor_mounting : dict
-        Calibrated per-sensor corrections, as :class:`sensor_models.beam.BeamModel`'s.
     """
 
     name: ClassVar[str] = "likelihood_field"
-    cumulative: ClassVar[bool] = False
-    #: accepts a 4th pose column: the sensor support's rotation about the tip's z axis
-    support_yaw: ClassVar[bool] = True
+    weight_update: ClassVar[str] = "bayes"
+    nuisances: ClassVar[tuple[str, ...]] = ("support_yaw", "range_scale")
+    uses_calibration: ClassVar[bool] = True
 
     z_hit: float = 0.9
     z_rand: float = 0.1
-    uncertainty: Mapping[str, Any] = field(default_factory=lambda: RangeUncertainty().to_dict())
     temper: float = 0.25
     cell: float = 0.01
     r_field: float = 0.05
-    support_yaw_deg: float = 0.0
-    sensor_mounting: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_rand"):
@@ -211,10 +165,7 @@ class LikelihoodFieldModel(SensorModel):
                 raise ParameterError(f"likelihood_field.{n} must be in (0, 1], got {v!r}")
         if abs(self.z_hit + self.z_rand - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_rand must sum to 1, got {self.z_hit + self.z_rand:.6g}")
-        _as_uncertainty(self.uncertainty, "likelihood_field")
         check_temper("likelihood_field", self.temper)
-        check_support_yaw("likelihood_field", self.support_yaw_deg)
-        check_sensor_mounting("likelihood_field", self.sensor_mounting)
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 1.0)):
             v = getattr(self, n)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not lo <= v <= hi:
@@ -231,49 +182,54 @@ class BoundLikelihoodField(BoundSensorModel):
         self.model = model
         self.problem = problem
         self.n_steps = problem.n_samples
-        unc = _as_uncertainty(model.uncertainty, "likelihood_field")
+        self.state = declared_state(problem, model.nuisances)
+        unc = problem.range_model
         rig = problem.rig
         valid = problem.valid
         z = np.where(valid, problem.distance_m, np.nan)
         z_true = z - unc.bias(rig, z)  # the reading's expected bias removed
-        sigma_rep = problem.sigma_m
-        sigma = unc.sigma(rig, z_true, sigma_rep)
+        sigma = unc.sigma(rig, z_true, problem.sigma_m)
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip  # (K, 4, 4)
         tip = rig.points_in_tip(z_true)  # (K, S, Z, 3)
-        if model.support_yaw_deg != 0.0 or model.sensor_mounting:  # the calibrated mounting
-            C = correction_matrices(rig, model.support_yaw_deg, model.sensor_mounting)  # (S, 4, 4)
-            tip = np.einsum("sij,kszj->kszi", C[:, :3, :3], tip) + C[None, :, None, :3, 3]
+        origins = np.broadcast_to(rig.T_tip_sensor[None, :, None, :3, 3], tip.shape)
         self.points_tip = [tip[k][valid[k]] for k in range(self.n_steps)]  # per sample (P_k, 3)
+        #: per sample, each end point's ray origin (its sensor) in the tip frame (P_k, 3)
+        self.origins_tip = [origins[k][valid[k]] for k in range(self.n_steps)]
         pts = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], tip) + self.T_lift_tip[:, None, None, :3, 3]
         self.points = [pts[k][valid[k]] for k in range(self.n_steps)]  # lifted
         self.sigma = [sigma[k][valid[k]] for k in range(self.n_steps)]
         self.field = surface_field_for(problem.map, model.cell, model.r_field)
 
-    def distances(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        """Distance ``(M, P)`` of the step's end points to the surface for planar poses
-        ``(M, 3)``, or ``(M, 4)`` with the sensor support's rotation about the tip's z axis."""
-        if poses.shape[1] == 3:
-            p = self.points[step][None]
-        else:
-            t = self.points_tip[step]
-            cy, sy = np.cos(poses[:, 3])[:, None], np.sin(poses[:, 3])[:, None]
-            rot = np.empty((poses.shape[0], t.shape[0], 3))
-            rot[..., 0] = cy * t[None, :, 0] - sy * t[None, :, 1]
-            rot[..., 1] = sy * t[None, :, 0] + cy * t[None, :, 1]
-            rot[..., 2] = t[None, :, 2]
-            T = self.T_lift_tip[step]
-            p = rot @ T[:3, :3].T + T[:3, 3]
-        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        q = np.empty((poses.shape[0], p.shape[1], 3))
-        q[..., 0] = c * p[..., 0] - s * p[..., 1] + poses[:, 0:1]
-        q[..., 1] = s * p[..., 0] + c * p[..., 1] + poses[:, 1:2]
-        q[..., 2] = p[..., 2]
+    def _lifted_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """End points ``(1|M, P, 3)`` of step ``step`` in the lifted base frame, with the
+        states' support rotation and range scale when declared."""
+        psi = self.column(states, "support_yaw")
+        scale = self.column(states, "range_scale")
+        if psi is None and scale is None:
+            return self.points[step][None]
+        t = self.points_tip[step][None]
+        if scale is not None:  # the end point slides along its ray: origin + (p - origin) / (1 + s)
+            o = self.origins_tip[step][None]
+            t = o + (t - o) / (1.0 + scale[:, None, None])
+        if psi is not None:
+            t = rotate_z(t, np.cos(psi)[:, None], np.sin(psi)[:, None])
+        T = self.T_lift_tip[step]
+        return t @ T[:3, :3].T + T[:3, 3]
+
+    def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Distance ``(M, P)`` of the step's end points to the surface for states ``(M, 3 + n)``."""
+        x = np.asarray(states, dtype=float)
+        p = self._lifted_points(x, step)
+        c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
+        q = rotate_z(p, c, s)
+        q[..., 0] += x[:, 0:1]
+        q[..., 1] += x[:, 1:2]
         return self.field.distance(q)
 
-    def log_likelihood(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+    def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
         sig = self.sigma[step][None, :]
-        d = self.distances(np.asarray(poses, dtype=float), step)
+        d = self.distances(np.asarray(states, dtype=float), step)
         p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + m.z_rand / m.r_field
         return m.temper * np.log(p).sum(axis=1)

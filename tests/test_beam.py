@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from sensor_models.beam import BeamMixture, BeamModel, NO_TARGET_STATUS, load_sensor_model_toml
-from sensor_models.uncertainty import RangeUncertainty
+from sensor_models.beam import BeamMixture, BeamModel, NO_TARGET_STATUS
+from tofloc.calibration_file import SensorCalibration
+from tofloc.range_model import RangeUncertainty
 from tofloc.errors import FormatError, ParameterError
 from tofloc.maps import Map
 from tofloc.problem import Prior, Problem
@@ -32,30 +33,26 @@ def test_mixture_weights_must_sum_to_one() -> None:
     assert BeamMixture.from_dict(m.to_dict()) == m
 
 
-def test_toml_is_validated_at_load_time(tmp_path: Path) -> None:
+def test_beam_table_of_a_calibration_is_validated_by_the_model(tmp_path: Path) -> None:
+    """A calibration's [beam] table reaches the model through the problem; a bad one is refused
+    naming the file and the table; the model's own parameter wins over the file."""
+    import dataclasses
+
     bad = tmp_path / "bad.toml"
-    bad.write_text("[beam]\nz_hit = 0.9\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n")
-    with pytest.raises(FormatError) as e:
-        load_sensor_model_toml(bad)
+    bad.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.9\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n")
+    cal = SensorCalibration.from_toml(bad)  # the file is valid: [beam] belongs to the beam model
+    p, _ = easy_problem(n_samples=1)
+    with pytest.raises(ParameterError) as e:
+        BeamModel().bind(dataclasses.replace(p, calibration=cal))
     assert "bad.toml" in str(e.value) and "[beam]" in str(e.value) and "sum to 1" in str(e.value)
-    unknown = tmp_path / "unknown.toml"
-    unknown.write_text("[beam]\nz_hits = 0.9\n")
-    with pytest.raises(FormatError, match=r"\[beam\]\.z_hits"):
-        load_sensor_model_toml(unknown)
-    empty = tmp_path / "empty.toml"
-    empty.write_text("[other]\na = 1\n")
-    with pytest.raises(FormatError, match="uncertainty"):
-        load_sensor_model_toml(empty)
     good = tmp_path / "good.toml"
-    good.write_text(
-        "[uncertainty]\nsigma_slope = 0.03\nbias_offset = 0.002\n"
-        "[beam]\nz_hit = 0.7\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n"
-    )
-    params = load_sensor_model_toml(good)
-    assert params["mixture"]["z_hit"] == 0.7 and params["mixture"]["lambda_short"] == 2.0
-    assert params["uncertainty"]["sigma_slope"] == 0.03 and params["uncertainty"]["bias_offset"] == 0.002
-    model = BeamModel(**params)  # the loaded tables build a model
-    assert model.mixture["z_rand"] == 0.1
+    good.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.7\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n")
+    p_cal = dataclasses.replace(p, calibration=SensorCalibration.from_toml(good))
+    bound = BeamModel().bind(p_cal)
+    assert bound.mixture.z_hit == 0.7 and bound.mixture.lambda_short == 2.0 and "good.toml" in bound.mixture_source
+    own = BeamMixture(z_hit=0.6, z_short=0.1, z_max=0.1, z_rand=0.2)
+    assert BeamModel(mixture=own.to_dict()).bind(p_cal).mixture == own
+    assert BeamModel().bind(p).mixture == BeamMixture()
 
 
 def test_model_parameters_are_validated() -> None:
@@ -65,15 +62,15 @@ def test_model_parameters_are_validated() -> None:
         BeamModel(sub_rays=7)
     with pytest.raises(ParameterError, match="sum to 1"):
         BeamModel(mixture={"z_hit": 0.5, "z_short": 0.1, "z_max": 0.1, "z_rand": 0.1, "lambda_short": 1.0})
-    with pytest.raises(ParameterError, match="unknown key"):
-        BeamModel(uncertainty={"sigma": 0.1})
+    with pytest.raises(TypeError):
+        BeamModel(uncertainty={"sigma": 0.1})  # the range model is the problem's, not a parameter
 
 
 # -- one wall, two zones: hand-computed probabilities ------------------------------------------
 WALL_Z = 0.40  # a wall at z = 0.4 m, facing down, under the sensor looking up along +z
 
 
-def _two_zone_problem(distance_m: list[float], status: list[int]) -> Problem:
+def _two_zone_problem(distance_m: list[float], status: list[int], range_model: RangeUncertainty | None = None) -> Problem:
     wall = Map.from_mesh(
         [[-1, -1, WALL_Z], [1, -1, WALL_Z], [1, 1, WALL_Z], [-1, 1, WALL_Z]], [[0, 2, 1], [0, 3, 2]], source="wall"
     )
@@ -88,6 +85,7 @@ def _two_zone_problem(distance_m: list[float], status: list[int]) -> Problem:
         T_base_tip=np.eye(4)[None],
         map=wall,
         prior=prior,
+        range_model=range_model or RangeUncertainty(),
     )
 
 
@@ -95,8 +93,8 @@ def test_zone_probabilities_match_the_formula() -> None:
     mix = BeamMixture(z_hit=0.7, z_short=0.1, z_max=0.05, z_rand=0.15, lambda_short=4.0)
     unc = RangeUncertainty(sigma_slope=0.0, sigma_floor=0.01, bias_offset=0.003)
     z = 0.415
-    p = _two_zone_problem([z, np.nan], [5, NO_TARGET_STATUS])
-    bound = BeamModel(mixture=mix.to_dict(), uncertainty=unc.to_dict(), temper=1.0).bind(p)
+    p = _two_zone_problem([z, np.nan], [5, NO_TARGET_STATUS], unc)
+    bound = BeamModel(mixture=mix.to_dict(), temper=1.0).bind(p)
     ll = bound.zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0]
     r = 4.0
     # zone 0 lies on the boresight: an inner zone (the off-axis zone 1 is the edge one)
@@ -173,23 +171,25 @@ def test_footprint_sub_rays_agree_on_walls() -> None:
     assert set(np.unique(f3)) <= {i / 9 for i in range(10)}
 
 
-def test_cli_merges_a_calibrated_file_into_the_estimators(tmp_path: Path) -> None:
-    from tofloc.cli.cmd_localize import with_sensor_model_file
+def test_declared_support_yaw_column_rotates_the_rays() -> None:
+    """The support-yaw state column casts from the support rotated about the tip's z axis:
+    the same readings as a rig whose sensors are rotated by that angle; undeclared, no column."""
+    import dataclasses
 
-    f = tmp_path / "model.toml"
-    f.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.6\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.2\nlambda_short = 2.0\n")
-    params, note = with_sensor_model_file("beam_pf", {"n_particles": 10}, f)
-    assert params["n_particles"] == 10
-    assert params["sensor_model_params"]["mixture"]["z_rand"] == 0.2
-    assert params["sensor_model_params"]["uncertainty"]["sigma_slope"] == 0.03
-    assert "[uncertainty], [beam]" in note
-    lf, _ = with_sensor_model_file("likelihood_field_pf", {}, f)
-    assert set(lf["sensor_model_params"]) == {"uncertainty"}
-    icp, note = with_sensor_model_file("icp_pf", {}, f)
-    assert icp["sensor_model_params"] == {} and "uses nothing" in note
-    with pytest.raises(ParameterError, match="both"):
-        with_sensor_model_file("beam_pf", {"sensor_model_params": {"mixture": BeamMixture().to_dict()}}, f)
-    bad = tmp_path / "bad.toml"
-    bad.write_text("[beam]\nz_hit = 0.6\n")
-    with pytest.raises(FormatError, match="sum to 1"):
-        with_sensor_model_file("beam_pf", {}, bad)
+    from tofloc.mounting import rig_with_mounting
+    from tofloc.problem import NuisancePriors
+
+    p, truth = easy_problem(n_samples=2)
+    assert BeamModel().bind(p).state == ()
+    declared = dataclasses.replace(p, nuisance=NuisancePriors(support_yaw_sigma=math.radians(3.0), support_yaw_source="test"))
+    bound = BeamModel().bind(declared)
+    assert [v.name for v in bound.state] == ["support_yaw"] and bound.state[0].sigma == pytest.approx(math.radians(3.0))
+    psi = math.radians(4.0)
+    e_state, _ = bound.expected(np.array([[*truth, psi]]), 1)
+    rotated = dataclasses.replace(p, rig=rig_with_mounting(p.rig, 4.0))
+    e_rig, _ = BeamModel().bind(rotated).expected(truth[None], 1)
+    both = np.isfinite(e_state) & np.isfinite(e_rig)
+    assert both.sum() > 100
+    np.testing.assert_allclose(e_state[both], e_rig[both], atol=1e-5)
+    e0, _ = bound.expected(np.array([[*truth, 0.0]]), 1)
+    assert np.nanmax(np.abs(e0 - e_state)) > 0.01  # the column matters

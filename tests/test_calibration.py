@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from sensor_models.beam import BeamMixture
-from sensor_models.calibration import ZoneSamples, collect_zones, fit_em, fit_support_yaw, model_toml, resolve_calibration_map, write_model
-from sensor_models.uncertainty import RangeUncertainty
+from sensor_models.calibration import RigCalibration, ZoneSamples, collect_zones, fit_em, fit_support_yaw, resolve_calibration_map
+from tofloc.calibration_file import SensorCalibration
+from tofloc.range_model import RangeUncertainty
 from tofloc.cli import main
 from tofloc.errors import FormatError
 
@@ -112,17 +113,34 @@ def test_calibration_recovers_the_simulator_noise_knobs(clean_sim) -> None:
     assert res.beam.z_max < 1e-3  # a zone whose whole footprint hits always returns a target in the simulator
 
 
-def test_model_toml_is_read_by_both_readers(tmp_path: Path) -> None:
+def test_calibration_file_round_trips(tmp_path: Path) -> None:
+    """What `tofloc calibrate` writes (tomli_w) reads back to the same calibration: the range
+    model, the [beam] table, the support rotation with its uncertainty, the mounting of
+    sensors whose names are not bare TOML keys, and the record."""
+    from sensor_models.calibration import SupportYawFit
+
     samples, _ = _synthetic(np.random.default_rng(1), n=5000)
     res = fit_em(samples, max_iter=30)
-    path = write_model(res, tmp_path / "model.toml", {"logs": ["a.h5"], "footprint": 3})
-    assert RangeUncertainty.from_toml(path) == res.uncertainty
-    beam = BeamMixture.from_toml(path)
-    assert beam == res.beam
-    assert beam.z_hit + beam.z_short + beam.z_max + beam.z_rand == pytest.approx(1.0, abs=1e-9)
+    fit = SupportYawFit(7.25, (0.0,), (0.0,), 10, 0.31)
+    rc = RigCalibration(res, fit, None)
+    cal = rc.sensor_calibration({"logs": ["a.h5"], "footprint": 3})
+    cal = SensorCalibration(cal.uncertainty, cal.support_yaw_deg, cal.support_yaw_sigma_deg,
+                            {"tof.0": {"rotation_deg": [0.5, -0.25, 0.125], "translation_m": [0.001, 0.0, -0.002]}},
+                            cal.tables, cal.meta)
+    path = cal.write(tmp_path / "model.toml", "a header\nline two")
+    back = SensorCalibration.from_toml(path)
+    assert back.uncertainty == res.uncertainty
+    assert BeamMixture.from_dict(back.table("beam")) == res.beam
+    assert back.support_yaw_deg == 7.25 and back.support_yaw_sigma_deg == 0.31
+    assert back.sensor_mounting == {"tof.0": {"rotation_deg": [0.5, -0.25, 0.125], "translation_m": [0.001, 0.0, -0.002]}}
     data = tomllib.loads(path.read_text())
     assert data["calibration"]["zones_used"] == 5000 and data["calibration"]["logs"] == ["a.h5"]
-    assert model_toml(res, {"logs": ["a.h5"], "footprint": 3}) == path.read_text()
+    assert path.read_text().startswith("# a header\n# line two\n")
+    # a file without the range model is refused, not read as the datasheet's
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[beam]\nz_hit = 0.8\n")
+    with pytest.raises(FormatError, match=r"\[uncertainty\]"):
+        SensorCalibration.from_toml(bare)
 
 
 def test_em_refuses_too_little_data() -> None:
@@ -190,6 +208,9 @@ def test_support_yaw_is_recovered_and_keeps_the_bias_fit_clean() -> None:
     mesh = Map.cuboid(size=sc.environment.size, origin=sc.environment.origin, open_faces=sc.environment.open_faces)
     fit = fit_support_yaw([(sim.log, mesh)], footprint=3, bound_deg=12.0, step_deg=3.0, max_samples=60)
     assert fit.support_yaw_deg == pytest.approx(6.0, abs=0.5)
+    # its block-jackknife uncertainty is honest: the truth lies within 3 sigma, and it is not absurdly wide
+    assert 0.1 <= fit.sigma_deg < 1.5, fit.sigma_deg
+    assert abs(fit.support_yaw_deg - 6.0) < 3.0 * fit.sigma_deg, (fit.support_yaw_deg, fit.sigma_deg)
     assert len(fit.grid_deg) == 9 and int(np.argmax(fit.grid_loglik)) == 6  # the 6 deg grid point wins
     rotated = fit_em(collect_zones(sim.log, mesh, footprint=3, support_yaw=math.radians(fit.support_yaw_deg)))
     cad = fit_em(collect_zones(sim.log, mesh, footprint=3))
@@ -198,18 +219,14 @@ def test_support_yaw_is_recovered_and_keeps_the_bias_fit_clean() -> None:
     assert rotated.log_likelihood / rotated.samples.n > cad.log_likelihood / cad.samples.n
 
 
-def test_mounting_table_round_trips_and_bad_ones_are_refused(tmp_path: Path) -> None:
-    from sensor_models.beam import load_sensor_model_toml
-
-    rng = np.random.default_rng(0)
-    zs, _ = _synthetic(rng, 5000)
-    res = fit_em(zs, max_iter=5)
-    path = write_model(res, tmp_path / "m.toml", support_yaw_deg=7.25)
-    assert load_sensor_model_toml(path)["support_yaw_deg"] == 7.25
-    text = path.read_text()
+def test_mounting_table_bad_values_are_refused(tmp_path: Path) -> None:
+    good = "[uncertainty]\nsigma_slope = 0.03\n[mounting]\nsupport_yaw_deg = 7.25\nsupport_yaw_sigma_deg = 0.2\n"
+    p = tmp_path / "ok.toml"
+    p.write_text(good)
+    assert SensorCalibration.from_toml(p).support_yaw_deg == 7.25
     for bad, what in (("support_yaw_deg = 7.25", "support_yaw_deg = 120.0"), ("support_yaw_deg = 7.25", "support_yaw = 7.25"),
-                      ("support_yaw_deg = 7.25", 'support_yaw_deg = "7"')):
+                      ("support_yaw_deg = 7.25", 'support_yaw_deg = "7"'), ("support_yaw_sigma_deg = 0.2", "support_yaw_sigma_deg = -1")):
         p = tmp_path / "bad.toml"
-        p.write_text(text.replace(bad, what))
+        p.write_text(good.replace(bad, what))
         with pytest.raises(FormatError, match="mounting"):
-            load_sensor_model_toml(p)
+            SensorCalibration.from_toml(p)

@@ -250,8 +250,7 @@ def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path
 
 def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A simulated log gets a calibration session of the same set-up (never the trial samples)."""
-    from sensor_models.beam import load_sensor_model_toml
-    from sensor_models.uncertainty import RangeUncertainty
+    from tofloc.calibration_file import SensorCalibration
     from tofloc.logs import read_log
 
     out = tmp_path / "cal"
@@ -269,14 +268,20 @@ def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_pat
     assert "hardware_seed=0" in session.source and "seed=1003" in session.source
     assert not np.allclose(session.T_map_base, main.T_map_base)
     assert (out / "calibration-session.map.ply").read_bytes() == (out / "paper.map.ply").read_bytes()
-    u = RangeUncertainty.from_toml(out / "sensor_model.toml")
+    cal = SensorCalibration.from_toml(out / "sensor_model.toml")
     # the paper scenario's range noise is 11 % / 2.7 = 4.1 % of d, plus unmodelled mounting errors
-    assert 0.035 < u.sigma_slope < 0.07
-    # the support is rotated by 8 deg (plus 1 deg per-sensor mounting scatter)
-    assert 5.0 < load_sensor_model_toml(out / "sensor_model.toml")["support_yaw_deg"] < 11.0
+    assert 0.035 < cal.uncertainty.sigma_slope < 0.07
+    # the support is rotated by 8 deg (plus 1 deg per-sensor mounting scatter), found with an uncertainty
+    assert 5.0 < cal.support_yaw_deg < 11.0 and 0.1 <= cal.support_yaw_sigma_deg < 2.0
     doc = json.loads((out / "results.json").read_text())
     assert set(doc["results"]) == {"likelihood_field_pf"}
-    code, _, err = _run(capsys, [*args, "--sensor-model-params", str(out / "sensor_model.toml")])
+    assert doc["calibration"] == str(out / "sensor_model.toml")
+    # a rerun with the same inputs reuses the calibration (it records their key)
+    stamp = (out / "sensor_model.toml").stat().st_mtime_ns
+    code, _, err = _run(capsys, args)
+    assert code == 0, err
+    assert "reused" in err and (out / "sensor_model.toml").stat().st_mtime_ns == stamp
+    code, _, err = _run(capsys, [*args, "--calibration", str(out / "sensor_model.toml")])
     assert code == 2 and "not both" in err
 
 
@@ -299,7 +304,7 @@ def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Pa
 
 
 def test_a_calibration_session_of_another_set_up_is_simulated_again(tmp_path: Path) -> None:
-    from tofloc.cli.cmd_paper import _hardware_seed, calibration_session
+    from evaluation.paper_data import _hardware_seed, calibration_session
     from tofloc.logs import read_log
 
     assert _hardware_seed("simulation:paper seed=3") == 3

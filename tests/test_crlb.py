@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from evaluation.crlb import crlb, crlb_for_problem, crlb_from_information, fisher_information, zone_jacobians
-from sensor_models.uncertainty import RangeUncertainty
+from tofloc.range_model import RangeUncertainty
 from tofloc import frames
 from tofloc.maps import Map
 from tofloc.rig import Rig, Sensor
@@ -145,13 +145,13 @@ def test_crlb_for_a_problem_uses_its_valid_zones() -> None:
     m = _mesh(_wall(0, 0.5), _wall(1, 0.7))
     status = np.full((1, 2, 3), 5, dtype=np.uint8)
     p = Problem(rig=rig, distance_m=np.full((1, 2, 3), 0.5), status=status, T_base_tip=np.eye(4)[None], map=m,
-                prior=Prior(mean=np.zeros(3), sigma=np.ones(3)))
-    full = crlb_for_problem(p, np.eye(4), FLAT)
+                prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
+    full = crlb_for_problem(p, np.eye(4))
     assert full.n_zones == 6 and math.isfinite(full.position_m)
     status[0, 1] = 255  # the +y sensor returns nothing: y becomes unobservable
     p2 = Problem(rig=rig, distance_m=np.full((1, 2, 3), 0.5), status=status, T_base_tip=np.eye(4)[None], map=m,
-                 prior=Prior(mean=np.zeros(3), sigma=np.ones(3)))
-    half = crlb_for_problem(p2, np.eye(4), FLAT)
+                 prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
+    half = crlb_for_problem(p2, np.eye(4))
     assert half.n_zones == 3 and math.isinf(half.position_m) and math.isfinite(half.yaw_deg)
 
 

@@ -157,7 +157,7 @@ def test_configuration_correction_absorbs_a_wrong_tip_pose(easy4) -> None:
     T[1, :3, 3] += np.array([0.03, 0.0, 0.0])
     cov = np.tile(np.diag([math.radians(0.1) ** 2] * 3 + [0.0005**2] * 3), (p.n_samples, 1, 1))
     cov[1] = np.diag([math.radians(2.0) ** 2] * 3 + [0.02**2] * 3)
-    est = GTSAMSmoother(n_starts=1, support_sigma_deg=0.0)
+    est = GTSAMSmoother(n_starts=1)
     loose = est.estimate(dataclasses.replace(p, T_base_tip=T, T_base_tip_cov=cov, tip_source="knn"), np.random.default_rng(0))
     exact = est.estimate(dataclasses.replace(p, T_base_tip=T), np.random.default_rng(0))
     e_loose, e_exact = _pose_err(loose.pose, truth)[0], _pose_err(exact.pose, truth)[0]
@@ -165,16 +165,39 @@ def test_configuration_correction_absorbs_a_wrong_tip_pose(easy4) -> None:
 
 
 def test_problem_covariance_is_used(easy4) -> None:
+    from estimators.gtsam_solvers import SmootherGraph
+
     p, _ = easy4
     est = GTSAMSmoother()
     cov = np.broadcast_to(np.diag([1e-4] * 3 + [4e-6] * 3), (p.n_samples, 6, 6))
     with_cov = dataclasses.replace(p, T_base_tip_cov=cov, tip_source="knn")
-    sig = est.config_noise(with_cov, 0).sigmas()
+    sig = SmootherGraph(est, with_cov).config_noise(0).sigmas()
     np.testing.assert_allclose(sig[:3], np.sqrt(1e-4 + math.radians(est.mocap_sigma_rot_deg) ** 2), rtol=1e-9)
-    np.testing.assert_allclose(est.config_noise(dataclasses.replace(p, tip_source="knn"), 0).sigmas()[3:], est.knn_sigma_m)
-    np.testing.assert_allclose(est.config_noise(p, 0).sigmas()[3:], est.mocap_sigma_m)
+    np.testing.assert_allclose(SmootherGraph(est, dataclasses.replace(p, tip_source="knn")).config_noise(0).sigmas()[3:],
+                               est.knn_sigma_m)
+    np.testing.assert_allclose(SmootherGraph(est, p).config_noise(0).sigmas()[3:], est.mocap_sigma_m)
     exact = GTSAMSmoother(exact_tip_poses=True)
-    np.testing.assert_allclose(exact.config_noise(with_cov, 0).sigmas()[3:], est.mocap_sigma_m)
+    np.testing.assert_allclose(SmootherGraph(exact, with_cov).config_noise(0).sigmas()[3:], est.mocap_sigma_m)
+
+
+def test_nuisance_variables_exist_only_when_declared(easy4) -> None:
+    """D (support yaw) and B (range scale) come from the problem's declared nuisances, with
+    their declared priors; an estimator default never adds them."""
+    from estimators.gtsam_solvers import SmootherGraph
+    from tofloc.problem import NuisancePriors
+
+    p, truth = easy4
+    g = SmootherGraph(GTSAMSmoother(), p)
+    assert not g.use_rig and not g.use_bias and g.priors().size() == 1 + p.n_samples
+    declared = dataclasses.replace(p, nuisance=NuisancePriors(support_yaw_sigma=math.radians(2.0), range_scale_sigma=0.03))
+    g2 = SmootherGraph(GTSAMSmoother(), declared)
+    assert g2.use_rig and g2.use_bias and g2.priors().size() == 3 + p.n_samples
+    r = GTSAMSmoother(n_starts=1).estimate(declared, np.random.default_rng(0))
+    assert set(r.diagnostics["state"]) == {"support_yaw", "range_scale"}
+    assert r.diagnostics["state"]["support_yaw"]["prior_sigma"] == pytest.approx(math.radians(2.0))
+    assert abs(r.diagnostics["state"]["support_yaw"]["mean"]) < math.radians(0.5)  # noise-free data: no rotation
+    assert _pose_err(r.pose, truth)[0] < 0.002
+    assert GTSAMSmoother(n_starts=1).estimate(p, np.random.default_rng(0)).diagnostics["state"] == {}
 
 
 def test_indeterminant_system_is_reported_not_raised(easy4, monkeypatch) -> None:
@@ -192,7 +215,7 @@ def test_indeterminant_system_is_reported_not_raised(easy4, monkeypatch) -> None
 @pytest.mark.parametrize(
     "kw",
     [{"residual": "icp"}, {"robust": "tukey"}, {"information_scale": 1.5}, {"n_starts": 0}, {"gate_m": 0.3},
-     {"uncertainty": {"sigma_floor": -1.0}}, {"uncertainty": {"nope": 1}}, {"incremental": "yes"}, {"exact_tip_poses": 1}],
+     {"incremental": "yes"}, {"exact_tip_poses": 1}, {"mocap_sigma_m": 0.0}],
 )
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):
@@ -218,8 +241,8 @@ def test_single_plane_in_view_keeps_the_prior_where_unobservable() -> None:
     prior = Prior(mean=np.zeros(3), sigma=np.array([0.05, 0.05, 0.1]), z=0.3)
     prob = Problem(rig=rig, distance_m=dist, status=np.full((1, 1, 64), 5, np.uint8), T_base_tip=np.eye(4)[None],
                    map=the_map, prior=prior)
-    # without the support and range-scale variables (one wall cannot tell a range scale from x)
-    est = GTSAMSmoother(n_starts=1, n_candidates=0, support_sigma_deg=0.0, range_scale_sigma=0.0)
+    # no nuisance declared: no support or range-scale variable (one wall cannot tell a range scale from x)
+    est = GTSAMSmoother(n_starts=1, n_candidates=0)
     r = est.estimate(prob, np.random.default_rng(0))
     sd = np.sqrt(np.diag(r.covariance))
     assert sd[0] < 0.005 and abs(r.pose[0]) < 0.002

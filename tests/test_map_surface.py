@@ -170,28 +170,32 @@ def test_load_map(maps: tuple[Map, Map, Map], tmp_path: Path) -> None:
 
 def test_context_fingerprint_sees_the_surface(maps: tuple[Map, Map, Map]) -> None:
     """Saved partial results of `tofloc paper` must not mix runs with and without a surface."""
-    from evaluation.protocol import context_fingerprint
+    from evaluation.result_cache import context_fingerprint
+    from tofloc.rig import Rig, Sensor
 
     _, cloud, both = maps
     log = SimpleNamespace(distance_mm=np.zeros((2, 3)), status=np.zeros((2, 3)), T_base_tip=None, pressure_kpa=None,
-                          T_map_base=np.eye(4))
+                          T_map_base=np.eye(4), rig=Rig((Sensor("a"),)))
 
     def ctx(m: Map) -> SimpleNamespace:
         return SimpleNamespace(log=log, kinematics=None, map=m, pool=SimpleNamespace(indices=np.arange(2)),
-                               valid_statuses=frozenset({5, 9}), uncertainty=None)
+                               valid_statuses=frozenset({5, 9}), calibration=None)
 
     assert context_fingerprint(ctx(cloud)) != context_fingerprint(ctx(both))
     assert context_fingerprint(ctx(both)) == context_fingerprint(ctx(pickle.loads(pickle.dumps(both))))
 
 
 def test_likelihood_field_uses_the_surface(maps: tuple[Map, Map, Map]) -> None:
-    from sensor_models.likelihood_field import SurfaceField, _map_key, surface_field_for
+    from sensor_models.likelihood_field import SurfaceField, surface_field_for
 
     mesh, cloud, both = maps
     np.testing.assert_array_equal(SurfaceField(both, 0.02, 0.05).values, SurfaceField(mesh, 0.02, 0.05).values)
-    # the per-process cache keys on the content: the same key twice, another with the surface
-    assert _map_key(both) == _map_key(both) != _map_key(cloud)
-    assert surface_field_for(both, 0.02, 0.05) is surface_field_for(both, 0.02, 0.05)
+    # the per-process cache keys on the content (Map.fingerprint): the same key twice, another with
+    # the surface, the same for a copy of the same content
+    assert both.fingerprint() == both.fingerprint() != cloud.fingerprint()
+    assert pickle.loads(pickle.dumps(both)).fingerprint() == both.fingerprint()
+    assert surface_field_for(both, 0.02, 0.05) is surface_field_for(pickle.loads(pickle.dumps(both)), 0.02, 0.05)
+    assert surface_field_for(both, 0.02, 0.05) is not surface_field_for(cloud, 0.02, 0.05)
 
 
 # -- tofloc localize --surface ------------------------------------------------------------------------

@@ -1,5 +1,5 @@
-"""Calibrated mounting: the corrections, their use by the models, their fit from logs, and
-the particle filter's range-scale column."""
+"""Calibrated mounting: the corrections, the calibration applied once by the problem builder,
+the nuisance priors it declares, their fit from logs, and the filters' nuisance columns."""
 
 from __future__ import annotations
 
@@ -12,9 +12,14 @@ import pytest
 from estimators.particle_filter import BeamPF
 from sensor_models.beam import BeamModel
 from sensor_models.likelihood_field import LikelihoodFieldModel
-from sensor_models.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor, rig_with_mounting
 from tofloc import frames
+from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import ParameterError
+from tofloc.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor, rig_with_mounting
+from tofloc.problem import NuisancePriors
+from tofloc.problem_builder import build_problem, nuisance_priors
+from tofloc.range_model import RangeUncertainty
+from tofloc.rig import RigTolerances
 from tofloc.testing import easy_problem
 
 MOUNT = {"tof0": {"rotation_deg": [1.0, -2.0, 0.5], "translation_m": [0.001, 0.0, -0.002]},
@@ -42,23 +47,54 @@ def test_bad_sensor_mounting_is_refused(bad) -> None:
     with pytest.raises(ParameterError, match="sensor_mounting"):
         check_sensor_mounting("beam", bad)
     with pytest.raises(ParameterError):
-        BeamModel(sensor_mounting=bad)
+        SensorCalibration(RangeUncertainty(), 0.0, 0.0, bad)
 
 
-def test_models_cast_from_the_corrected_rig() -> None:
-    """A model given the mounting sees exactly what it sees on a rig that has it built in."""
+def _rebuilt(p, calibration=None, rig=None):
+    """``p`` made again by the problem builder (a calibration applied, another rig)."""
+    return build_problem(rig=rig or p.rig, distance_m=p.distance_m, status=p.status, T_base_tip=p.T_base_tip, map=p.map,
+                         prior=p.prior, calibration=calibration)
+
+
+def test_the_builder_applies_a_calibration_once() -> None:
+    """The problem's rig is the corrected one and its range model the calibration's; every
+    model then sees exactly what it sees on a rig that has the mounting built in."""
     p, truth = easy_problem(n_samples=2)
-    moved = dataclasses.replace(p, rig=rig_with_mounting(p.rig, 5.0, MOUNT))
-    np.testing.assert_array_equal(moved.rig.T_tip_sensor, corrected_T_tip_sensor(p.rig, 5.0, MOUNT))
+    unc = RangeUncertainty(sigma_slope=0.03, bias_offset=0.001)
+    cal = SensorCalibration(unc, 5.0, 0.4, MOUNT)
+    calibrated = _rebuilt(p, cal)
+    np.testing.assert_array_equal(calibrated.rig.T_tip_sensor, corrected_T_tip_sensor(p.rig, 5.0, MOUNT))
+    assert calibrated.range_model == unc and calibrated.calibration is cal
     assert rig_with_mounting(p.rig) is p.rig
+    moved = dataclasses.replace(p, rig=rig_with_mounting(p.rig, 5.0, MOUNT), range_model=unc)
     poses = truth + np.array([[0, 0, 0], [0.01, -0.02, 0.05]])
-    a = BeamModel(support_yaw_deg=5.0, sensor_mounting=MOUNT).bind(p)
-    b = BeamModel().bind(moved)
-    np.testing.assert_allclose(a.log_likelihood(poses, 1), b.log_likelihood(poses, 1), rtol=1e-10)
-    assert not np.allclose(BeamModel().bind(p).log_likelihood(poses, 1), b.log_likelihood(poses, 1))
-    c = LikelihoodFieldModel(support_yaw_deg=5.0, sensor_mounting=MOUNT).bind(p)
-    d = LikelihoodFieldModel().bind(moved)
-    np.testing.assert_allclose(c.log_likelihood(poses, 1), d.log_likelihood(poses, 1), rtol=1e-10)
+    for model in (BeamModel(), LikelihoodFieldModel()):
+        a = model.bind(dataclasses.replace(calibrated, nuisance=NuisancePriors())).log_likelihood(poses, 1)
+        np.testing.assert_allclose(a, model.bind(moved).log_likelihood(poses, 1), rtol=1e-10)
+        assert not np.allclose(a, model.bind(p).log_likelihood(poses, 1))
+    # the smoother's measurements are the corrected rig's too
+    from estimators.gtsam_association import measurements
+
+    assert not np.allclose(measurements(p)[0].p_tip, measurements(calibrated)[0].p_tip)
+    np.testing.assert_allclose(measurements(calibrated)[0].p_tip, measurements(moved)[0].p_tip)
+
+
+def test_nuisance_priors_come_from_the_rig_and_the_calibration() -> None:
+    """Declared by the rig's tolerances; a calibration that fitted the support replaces its
+    tolerance with the fit's uncertainty and leaves no range scale; nothing declared, nothing estimated."""
+    p, _ = easy_problem(n_samples=1)
+    assert nuisance_priors(p.rig).declared == ()
+    tol = dataclasses.replace(p.rig, tolerances=RigTolerances(support_yaw_deg=3.0, range_scale=0.02))
+    n = nuisance_priors(tol)
+    assert n.declared == ("support_yaw", "range_scale")
+    assert n.support_yaw_sigma == pytest.approx(math.radians(3.0)) and n.range_scale_sigma == 0.02
+    assert n.support_yaw_source == "rig tolerance"
+    fitted = nuisance_priors(tol, SensorCalibration(RangeUncertainty(), 8.1, 0.25))
+    assert fitted.declared == ("support_yaw",) and fitted.support_yaw_sigma == pytest.approx(math.radians(0.25))
+    assert fitted.support_yaw_source == "calibration"
+    not_fitted = nuisance_priors(tol, SensorCalibration(RangeUncertainty()))  # the calibration did not fit the support
+    assert not_fitted.declared == ("support_yaw",) and not_fitted.support_yaw_source == "rig tolerance"
+    assert _rebuilt(p, rig=tol).nuisance == n
 
 
 def test_mounting_fit_recovers_each_sensor() -> None:
@@ -97,41 +133,17 @@ def test_mounting_fit_recovers_each_sensor() -> None:
     assert set(fit.sensor_mounting) == {"tof0", "tof1", "tof2"}
 
 
-def test_range_scale_column_is_estimated() -> None:
-    """Readings 4 % too long: the filter's range-scale column finds it, and the pose stays."""
+@pytest.mark.parametrize("model", ["beam", "likelihood_field"])
+def test_range_scale_column_is_estimated(model: str) -> None:
+    """Readings 4 % too long and a declared range-scale tolerance: the filter's range-scale
+    column finds it and the pose stays; without the declaration there is no column."""
     p, truth = easy_problem(n_samples=4)
-    scaled = dataclasses.replace(p, distance_m=p.distance_m * 1.04)
-    est = BeamPF(n_particles=600, range_scale_sigma=0.05, support_yaw_sigma_deg=0.0)
+    scaled = dataclasses.replace(p, distance_m=p.distance_m * 1.04, nuisance=NuisancePriors(range_scale_sigma=0.05))
+    est = BeamPF(n_particles=600, sensor_model=model)
     res = est.estimate(scaled, np.random.default_rng(0))
-    assert res.diagnostics["range_scale"]["mean"] == pytest.approx(0.04, abs=0.01)
+    assert res.diagnostics["state"]["range_scale"]["mean"] == pytest.approx(0.04, abs=0.01)
+    assert res.diagnostics["state"]["range_scale"]["prior_sigma"] == 0.05
     assert np.linalg.norm(res.pose[:2] - truth[:2]) < 0.01
-    assert "support_yaw_deg" not in res.diagnostics
-    with pytest.raises(ParameterError, match="range_scale_sigma"):
-        BeamPF(range_scale_sigma=0.9)
-    with pytest.raises(ParameterError, match="range scale"):
-        BeamPF(sensor_model="likelihood_field", range_scale_sigma=0.02)
-
-
-def test_a_calibrated_mounting_reaches_every_estimator_that_takes_one(tmp_path) -> None:
-    from sensor_models.calibration import ZoneSamples, fit_em, write_model
-    from tofloc.cli.cmd_localize import with_sensor_model_file
-
-    rng = np.random.default_rng(1)
-    d = rng.uniform(0.1, 0.6, 3000)
-    zs = ZoneSamples(measured_m=d + rng.normal(0, 0.01, d.size), expected_m=d, edge=np.zeros(d.size, bool),
-                     no_return=np.zeros(d.size, bool), max_range_m=np.full(d.size, 4.0))
-    path = write_model(fit_em(zs, max_iter=5), tmp_path / "m.toml", support_yaw_deg=4.0, sensor_mounting=MOUNT)
-    beam, note = with_sensor_model_file("beam_pf", {}, path)
-    assert beam["sensor_model_params"]["support_yaw_deg"] == 4.0 and beam["sensor_model_params"]["sensor_mounting"] == MOUNT
-    assert "[mounting], [mounting.sensors]" in note
-    gt, note = with_sensor_model_file("gtsam_smoother", {}, path)
-    assert gt["support_yaw_deg"] == 4.0 and gt["sensor_mounting"] == MOUNT and "[uncertainty]" in note
-    icp, note = with_sensor_model_file("icp_pf", {}, path)
-    assert "uses nothing" in note
-    # the smoother solves on the corrected rig: its measurements move with the mounting
-    from estimators.gtsam_smoother import GTSAMSmoother
-
-    p, _ = easy_problem(n_samples=1)
-    plain = GTSAMSmoother().measurements(p)
-    moved = GTSAMSmoother().measurements(dataclasses.replace(p, rig=rig_with_mounting(p.rig, 4.0, MOUNT)))
-    assert not np.allclose(plain[0].p_tip, moved[0].p_tip)
+    assert set(res.diagnostics["state"]) == {"range_scale"}
+    plain = est.estimate(dataclasses.replace(p, distance_m=p.distance_m * 1.04), np.random.default_rng(0))
+    assert plain.diagnostics["state"] == {} and plain.diagnostics["particles"].shape[1] == 3

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from sensor_models.beam import BeamModel
 from estimators.particle_filter import BeamPF, ICPScorePF, ParticleFilter, anneal_step, weighted_pose_stats
 from estimators.resampling import effective_sample_size, normalize_log_weights, systematic
 from tofloc import frames
@@ -79,13 +80,14 @@ def test_roughening_shrinks_with_the_posterior() -> None:
     wide = np.column_stack([rng.normal(0, 0.05, 1000), rng.normal(0, 0.05, 1000), rng.normal(0, 0.1, 1000)])
     narrow = wide * 0.01
     for cloud, lo, hi in ((wide, 5e-3, 1e-2), (narrow, 4.5e-4, 6e-4)):
-        moved = est._roughen(cloud, np.random.default_rng(1)) - cloud
+        floors = np.array([est.jitter_xy, est.jitter_xy, math.radians(est.jitter_yaw_deg)])
+        moved = est._roughen(cloud, floors, np.random.default_rng(1)) - cloud
         sd = moved[:, 0].std()
         assert lo < sd < hi, sd  # K * spread * M^(-1/3) (~0.2 * 0.33 * 0.1 = 6.6 mm), floored at 0.5 mm
 
 
 def test_parameters_are_validated() -> None:
-    with pytest.raises(ParameterError, match="cumulative"):
+    with pytest.raises(ParameterError, match="weight_update"):
         ParticleFilter(sensor_model="icp_score", anneal_ess=0.5)
     with pytest.raises(ParameterError, match="anneal_ess"):
         BeamPF(anneal_ess=1.0)
@@ -95,6 +97,10 @@ def test_parameters_are_validated() -> None:
         BeamPF(roughening=-1.0)
     with pytest.raises(ParameterError, match="sum to 1"):
         BeamPF(sensor_model_params={"mixture": {"z_hit": 1.0, "z_short": 0.1, "z_max": 0.0, "z_rand": 0.1, "lambda_short": 1.0}})
+    with pytest.raises(ParameterError, match="sensor_model must be"):
+        BeamPF(sensor_model=3)
+    with pytest.raises(ParameterError, match="sensor_model_params goes with a sensor-model name"):
+        BeamPF(sensor_model=BeamModel(), sensor_model_params={"temper": 0.5})
 
 
 def test_support_rotation_is_estimated() -> None:
@@ -105,17 +111,21 @@ def test_support_rotation_is_estimated() -> None:
 
     from tofloc.rig import Rig
 
+    from tofloc.problem import NuisancePriors
+
     p, truth = easy_problem(n_samples=4)
     R = frames.se3(frames.rot_z(math.radians(-6.0)), np.zeros(3))
     wrong = Rig(tuple(dataclasses.replace(s, T_tip_sensor=R @ s.T_tip_sensor) for s in p.rig.sensors), p.rig.actuators)
     p = dataclasses.replace(p, rig=wrong)
-    plain = BeamPF(n_particles=400, support_yaw_sigma_deg=0.0).estimate(p, np.random.default_rng(0))
-    nuisance = BeamPF(n_particles=400).estimate(p, np.random.default_rng(0))
+    plain = BeamPF(n_particles=400).estimate(p, np.random.default_rng(0))  # nothing declared: no nuisance column
+    declared = dataclasses.replace(p, nuisance=NuisancePriors(support_yaw_sigma=math.radians(10.0), support_yaw_source="test"))
+    nuisance = BeamPF(n_particles=400).estimate(declared, np.random.default_rng(0))
     e_plain = math.degrees(abs(frames.wrap_angle(plain.pose[2] - truth[2])))
     e_nuis = math.degrees(abs(frames.wrap_angle(nuisance.pose[2] - truth[2])))
     assert e_plain > 3.0, e_plain
     assert e_nuis < 1.5, e_nuis
-    psi = nuisance.diagnostics["support_yaw_deg"]
-    assert abs(psi["mean"] - 6.0) < 1.5 and psi["std"] > 0, psi
-    with pytest.raises(ParameterError, match="support"):
-        ParticleFilter(sensor_model="icp_score", support_yaw_sigma_deg=5.0)
+    psi = nuisance.diagnostics["state"]["support_yaw"]
+    assert abs(math.degrees(psi["mean"]) - 6.0) < 1.5 and psi["std"] > 0 and psi["source"] == "test", psi
+    # the ICP score estimates no nuisance: declared or not, its particles are poses
+    icp = ParticleFilter(sensor_model="icp_score", n_particles=50).estimate(declared, np.random.default_rng(0))
+    assert icp.diagnostics["particles"].shape[1] == 3 and icp.diagnostics["state"] == {}

@@ -1,4 +1,5 @@
-"""evaluation.protocol: problems from logs, priors, the sample pool, paired seeds, executors."""
+"""The evaluation protocol (evaluation.priors, .trials, .executors, .result_cache) and the problem
+builder (tofloc.problem_builder): problems from logs, priors, the sample pool, paired seeds, executors."""
 
 from __future__ import annotations
 
@@ -12,22 +13,11 @@ from typing import Any, ClassVar
 import numpy as np
 import pytest
 
-from evaluation.protocol import (
-    Batch,
-    PriorSpec,
-    TrialContext,
-    TrialError,
-    base_pose_parts,
-    draw_samples_and_prior,
-    knn_residual_covariance,
-    make_tasks,
-    problem_from_log,
-    run_batches,
-    run_tasks,
-    sample_pool,
-    trial_rngs,
-    trial_seed,
-)
+from evaluation.executors import run_tasks
+from evaluation.priors import PriorSpec, base_pose_parts
+from evaluation.result_cache import Batch, run_batches
+from evaluation.trials import TrialContext, TrialError, draw_samples_and_prior, make_tasks, sample_pool, trial_rngs, trial_seed
+from tofloc.problem_builder import problem_from_log
 from tofloc import frames
 from tofloc.errors import FormatError, ParameterError
 from tofloc.kinematics import KinematicsModel
@@ -93,6 +83,9 @@ def small_log(K: int = 40, seed: int = 0, truth: Any = None) -> Log:
 
 class FakeMap:
     points = np.zeros((4, 3))
+
+    def fingerprint(self) -> str:
+        return "fake-map"
 
 
 @pytest.fixture(scope="module")
@@ -188,9 +181,12 @@ def test_problem_from_log_mocap_and_knn() -> None:
     np.testing.assert_allclose(p.sigma_m, 0.01)
     np.testing.assert_array_equal(p.sample_indices, idx)
     assert p.tip_source == "mocap" and p.T_base_tip_cov is None
-    q = problem_from_log(log, idx, FakeMap(), prior, "knn", kin, valid_statuses={5, 6}, T_base_tip_cov=np.eye(6))
+    assert p.configuration_source is None  # the log does not say where its configurations come from
+    q = problem_from_log(log, idx, FakeMap(), prior, "knn", kin, valid_statuses={5, 6})
     np.testing.assert_allclose(q.T_base_tip, kin.predict(log.pressure_kpa[idx]))
     assert q.T_base_tip_cov.shape == (3, 6, 6) and q.valid_statuses == frozenset({5, 6})
+    np.testing.assert_array_equal(q.T_base_tip_cov[1], kin.configuration_covariance)
+    assert q.configuration_source == "knn"
 
 
 def test_problem_from_log_refusals() -> None:
@@ -199,7 +195,7 @@ def test_problem_from_log_refusals() -> None:
     T[4] = np.nan
     log_nan = dataclasses.replace(log, T_base_tip=T)
     prior = Prior(mean=np.zeros(3), sigma=np.ones(3))
-    with pytest.raises(ProblemError, match=r"samples \[4\] have no motion-capture pose"):
+    with pytest.raises(ProblemError, match=r"samples \[4\] have no measured tip pose"):
         problem_from_log(log_nan, [1, 4], FakeMap(), prior, "mocap")
     with pytest.raises(FormatError, match="/samples/T_base_tip"):
         problem_from_log(dataclasses.replace(log, T_base_tip=None), [1], FakeMap(), prior, "mocap")
@@ -214,10 +210,11 @@ def test_problem_from_log_refusals() -> None:
         problem_from_log(log, [40], FakeMap(), prior, "mocap")
 
 
-def test_knn_residual_covariance() -> None:
+def test_knn_configuration_covariance() -> None:
+    """The k-NN model's validation-error covariance: saved with the model, used for tip source knn."""
     log = small_log(K=60)
     kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
-    cov = knn_residual_covariance(kin, log)
+    cov = kin.configuration_covariance
     assert cov.shape == (6, 6)
     np.testing.assert_allclose(cov, cov.T)
     assert np.linalg.eigvalsh(cov).min() >= -1e-15
@@ -226,7 +223,7 @@ def test_knn_residual_covariance() -> None:
     T_err = frames.invert(kin.predict(log.pressure_kpa[val])) @ log.T_base_tip[val]
     assert cov[3, 3] == pytest.approx(np.mean(T_err[:, 0, 3] ** 2))
     few, _ = KinematicsModel.fit_log(small_log(K=20), np.random.default_rng(1), k_candidates=range(1, 3))
-    assert knn_residual_covariance(few, small_log(K=20)) is None  # 4 held-out samples: too few
+    assert few.configuration_covariance is None  # 4 held-out samples: too few
 
 
 # -- the pool -------------------------------------------------------------------------------------
@@ -347,7 +344,7 @@ def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     distributed = pytest.importorskip("distributed")
     log, the_map, kin = sim["log"], sim["map"], sim["kin"]
     pool = sample_pool(log, kin, 2)
-    ctx = TrialContext(log, the_map, pool, kin, knn_cov=knn_residual_covariance(kin, log))
+    ctx = TrialContext(log, the_map, pool, kin)
     cls = ESTIMATORS.load("icp_pf")
     tasks = make_tasks("g", "icp_pf", cls, {"n_particles": 100}, "knn", PriorSpec("offset"), [1, 2], 1, 5)
     tasks += make_tasks("h", "test_noisy_prior_mean", NoisyPriorMean, {"scale": 0.1}, "mocap", PriorSpec("paper"), [2], 2, 5)

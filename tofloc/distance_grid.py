@@ -22,9 +22,8 @@ only the points still undecided there get the exact distance test.
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -351,15 +350,10 @@ class DistanceGrid:
         return np.minimum(dc, self.r_max).reshape(shape)
 
 
-@functools.lru_cache(maxsize=16)
-def _cached(key: str, cell: float, r_max: float, points_bytes: bytes, n: int) -> DistanceGrid:
-    pts = np.frombuffer(points_bytes, dtype=np.float64).reshape(n, 3)
-    return DistanceGrid(pts, cell, r_max)
+def distance_grid_for(the_map: Any, cell: float, r_max: float) -> DistanceGrid:
+    """A :class:`DistanceGrid` of the map's points, built once per (map, cell, r_max) and
+    process (:func:`tofloc.map_cache.per_map`)."""
+    from tofloc.map_cache import per_map
 
-
-def distance_grid_for(points: NDArray[np.float64], cell: float, r_max: float) -> DistanceGrid:
-    """A :class:`DistanceGrid` of ``points``, built once per (points, cell, r_max) and process."""
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    b = pts.tobytes()
-    key = hashlib.sha1(b).hexdigest()
-    return _cached(key, float(cell), float(r_max), b, pts.shape[0])
+    return per_map(the_map, "distance_grid", (float(cell), float(r_max)),
+                   lambda: DistanceGrid(np.asarray(the_map.points, dtype=np.float64), float(cell), float(r_max)))

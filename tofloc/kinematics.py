@@ -345,6 +345,11 @@ class KinematicsModel:
         (one per training sample, in the order of ``pressure_kpa``) and the held-out part.
     log_fingerprint : str
         :func:`fingerprint` of the data the model was fit on.
+    configuration_covariance : array (6, 6), optional
+        Covariance of the model's error on its held-out validation split (rotation vector
+        in rad, then translation in m, tip frame: ``T_true = T_pred @ exp(delta)``), the
+        layout of :attr:`tofloc.problem.Problem.T_base_tip_cov`; None with fewer than 7
+        validation samples (too few for a full-rank 6x6 estimate).
     """
 
     k: int
@@ -364,8 +369,10 @@ class KinematicsModel:
         train_indices: ArrayLike | None = None,
         validation_indices: ArrayLike | None = None,
         log_fingerprint: str | None = None,
+        configuration_covariance: ArrayLike | None = None,
     ) -> None:
         self._init(k, pressure_kpa, T_base_tip, actuators, train_indices, validation_indices, log_fingerprint, _param_fail)
+        self.configuration_covariance = _check_covariance(configuration_covariance, _param_fail)
 
     def _init(self, k: Any, P: Any, T: Any, actuators: Any, tr: Any, va: Any, fp: Any, fail: _Fail) -> None:
         P_arr = np.asarray(P)
@@ -591,6 +598,7 @@ class KinematicsModel:
         T_fit = model.predict(P_tr)
         if n_val:
             T_val = model.predict(P[val])
+            model.configuration_covariance = configuration_error_covariance(T_val, T[val])
             val_mse = float(np.mean(position_sq_errors(T_val, T[val])))
             val_rot = float(np.mean(rotation_errors_deg(T_val, T[val])))
         else:
@@ -633,6 +641,8 @@ class KinematicsModel:
             "validation_indices": np.asarray(self.validation_indices, dtype=np.int64),
             "log_fingerprint": np.asarray(self.log_fingerprint),
         }
+        if self.configuration_covariance is not None:
+            arrays["configuration_covariance"] = np.asarray(self.configuration_covariance, dtype=np.float64)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
         return path
@@ -679,6 +689,12 @@ class KinematicsModel:
                         raw[name] = npz[name]
                     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
                         raise fail(name, "a plain (non-object) numpy array", str(e).splitlines()[0][:120]) from e
+                if "configuration_covariance" in names:  # optional: models saved before it existed have none
+                    try:
+                        raw["configuration_covariance"] = npz["configuration_covariance"]
+                    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+                        raise fail("configuration_covariance", "a plain (6, 6) float array",
+                                   str(e).splitlines()[0][:120]) from e
         except FormatError:
             raise
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
@@ -696,7 +712,35 @@ class KinematicsModel:
         model = cls.__new__(cls)
         model._init(raw["k"], raw["pressure_kpa"], raw["T_base_tip"], act, raw["train_indices"],
                     raw["validation_indices"], raw["log_fingerprint"], fail)
+        model.configuration_covariance = _check_covariance(raw.get("configuration_covariance"), fail)
         return model
+
+
+def configuration_error_covariance(T_pred: ArrayLike, T_true: ArrayLike) -> NDArray[np.float64] | None:
+    """Covariance ``(6, 6)`` of configuration errors ``T_pred^-1 T_true`` as (rotation
+    vector, translation) in the tip frame (second moment: a systematic part of the error
+    stays in); None with fewer than 7 pairs."""
+    Tp = np.asarray(T_pred, dtype=float)
+    Tt = np.asarray(T_true, dtype=float)
+    if Tp.shape[0] < 7:
+        return None
+    T_err = frames.invert(Tp) @ Tt
+    e = np.concatenate([frames.rotvec_from_matrix(T_err[:, :3, :3]), T_err[:, :3, 3]], axis=1)
+    cov = e.T @ e / e.shape[0]
+    return 0.5 * (cov + cov.T)
+
+
+def _check_covariance(cov: Any, fail: _Fail) -> NDArray[np.float64] | None:
+    if cov is None:
+        return None
+    c = np.asarray(cov)
+    if c.dtype.kind != "f" or c.shape != (6, 6) or not np.all(np.isfinite(c)):
+        raise fail("configuration_covariance", "a finite (6, 6) float array", f"dtype {c.dtype}, shape {c.shape}")
+    c = np.array(c, dtype=np.float64)
+    if not np.allclose(c, c.T, atol=1e-12) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-12:
+        raise fail("configuration_covariance", "a symmetric positive semi-definite matrix", "another matrix")
+    c.setflags(write=False)
+    return c
 
 
 def _fit_inputs(pressure_kpa: ArrayLike, T_base_tip: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -2,9 +2,12 @@
 
 Each complete sample (every sensor's frame plus the actuation) becomes one more sample
 of the problem: its configuration ``T_base_tip`` comes from the k-NN kinematics model fed
-with the sample's pressures, and the estimator is run on the latest ``window`` samples
-with a generator derived from (seed, sample index), so a replay of the same journal
-gives the same estimates. The capture keeps its journal as ``tofloc record`` does.
+with the sample's pressures (with the model's validation-error covariance), and the
+estimator is run on the latest ``window`` samples with a generator derived from (seed,
+sample index), so a replay of the same journal gives the same estimates. The Problem is
+made by the same builder as offline (:func:`tofloc.problem_builder.build_problem`: the
+calibration applied, the nuisances declared), so the same samples give the same Problem
+either way. The capture keeps its journal as ``tofloc record`` does.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
+from tofloc.problem_builder import build_problem, mm_to_m
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
 
 __all__ = ["LiveUpdate", "LiveLocalizer"]
@@ -49,6 +53,9 @@ class LiveLocalizer:
         Number of latest usable samples the estimator sees (the paper used up to 10).
     seed : int
         Seed of the per-update generators.
+    valid_statuses : frozenset of int
+    calibration : tofloc.calibration_file.SensorCalibration, optional
+        Applied by the problem builder (as offline).
     """
 
     estimator: Estimator
@@ -59,7 +66,9 @@ class LiveLocalizer:
     window: int = 10
     seed: int = 0
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
+    calibration: Any = None
     _distance_m: list[NDArray[np.float64]] = field(default_factory=list, repr=False)
+    _sigma_m: list[NDArray[np.float64] | None] = field(default_factory=list, repr=False)
     _status: list[NDArray[np.uint8]] = field(default_factory=list, repr=False)
     _T_base_tip: list[NDArray[np.float64]] = field(default_factory=list, repr=False)
     _indices: list[int] = field(default_factory=list, repr=False)
@@ -79,27 +88,50 @@ class LiveLocalizer:
         if p is None or not np.all(np.isfinite(p)):
             return self._answer(sample.index, "no complete pressure reading: configuration unknown")
         T = self.kinematics.predict(np.asarray(p, dtype=float)[None, :])[0]
-        self._distance_m.append(np.asarray(sample.distance_mm, dtype=float) / 1000.0)
+        self._distance_m.append(mm_to_m(sample.distance_mm))
+        sig = getattr(sample, "sigma_mm", None)
+        self._sigma_m.append(None if sig is None else mm_to_m(sig))
         self._status.append(np.asarray(sample.status, dtype=np.uint8))
         self._T_base_tip.append(T)
         self._indices.append(int(sample.index))
         return self._answer(sample.index, "")
 
-    def _answer(self, index: int, reason: str) -> LiveUpdate:
+    def problem(self) -> Problem:
+        """The Problem of the latest ``window`` samples (:func:`tofloc.problem_builder.build_problem`).
+
+        Raises
+        ------
+        ProblemError
+            No sample yet.
+        """
         if not self._indices:
-            return LiveUpdate(index, 0, None, reason or "no sample yet")
+            raise ProblemError("no sample with a known configuration yet")
         sl = slice(-self.window, None)
-        problem = Problem(
+        sigmas = self._sigma_m[sl]
+        sigma = None
+        if any(s is not None for s in sigmas):
+            shape = self._distance_m[-1].shape
+            sigma = np.stack([np.full(shape, np.nan) if s is None else s for s in sigmas])
+        return build_problem(
             rig=self.rig,
             distance_m=np.stack(self._distance_m[sl]),
             status=np.stack(self._status[sl]),
             T_base_tip=np.stack(self._T_base_tip[sl]),
             map=self.map,
             prior=self.prior,
+            sigma_m=sigma,
+            T_base_tip_cov=self.kinematics.configuration_covariance,
+            calibration=self.calibration,
             valid_statuses=self.valid_statuses,
             tip_source="knn",
+            configuration_source="knn",
             sample_indices=np.asarray(self._indices[sl]),
         )
+
+    def _answer(self, index: int, reason: str) -> LiveUpdate:
+        if not self._indices:
+            return LiveUpdate(index, 0, None, reason or "no sample yet")
+        problem = self.problem()
         rng = np.random.default_rng([self.seed, index])
         try:
             est = self.estimator.estimate(problem, rng)

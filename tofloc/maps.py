@@ -482,6 +482,32 @@ class Map:
         """``(T,)`` triangle areas (m^2) of a mesh; ``None`` for a cloud."""
         return self._face_areas
 
+    def fingerprint(self) -> str:
+        """SHA-256 (hex) of everything a query of this map depends on: the kind, the points,
+        the normals, the triangles, the surfel radius and an attached surface's fingerprint.
+
+        Every per-map cache (distance grids, likelihood fields, saved trial results) is
+        keyed by it: two maps with the same fingerprint answer every query the same.
+        Computed once per map object.
+        """
+        fp = self.__dict__.get("_fingerprint")
+        if fp is None:
+            import hashlib
+
+            h = hashlib.sha256(f"tofloc-map-v1 {self.kind}\0".encode())
+            for a in (self.points, self.normals, self._triangles):
+                if a is None:
+                    h.update(b"none\0")
+                    continue
+                arr = np.ascontiguousarray(a)
+                h.update(f"{arr.dtype.str}{arr.shape}\0".encode())
+                h.update(arr.tobytes())
+            h.update(repr(None if self.kind == "mesh" else float(self.surfel_radius)).encode())  # type: ignore[arg-type]
+            h.update(b"surface:" + (self._surface.fingerprint().encode() if self._surface is not None else b"none"))
+            fp = h.hexdigest()
+            self.__dict__["_fingerprint"] = fp
+        return fp
+
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Axis-aligned bounding box ``(min, max)`` of :attr:`points`, each shape (3,)."""
         return self.points.min(axis=0), self.points.max(axis=0)

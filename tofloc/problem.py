@@ -19,9 +19,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
+from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
 
-__all__ = ["Prior", "Problem", "Estimate", "Estimator", "ProblemError", "TipSource"]
+__all__ = ["Prior", "NuisancePriors", "Problem", "Estimate", "Estimator", "ProblemError", "TipSource",
+           "CONFIGURATION_SOURCES"]
+
+#: Where a problem's configurations ``T_base_tip`` may come from (log format v1's
+#: ``configuration_source``, plus ``"knn"`` for the k-NN kinematics model).
+CONFIGURATION_SOURCES = ("mocap", "kinematics", "knn", "odometry", "cad")
 
 TipSource = Literal["mocap", "knn"]
 
@@ -85,6 +91,54 @@ class Prior:
         return p
 
 
+@dataclass(frozen=True)
+class NuisancePriors:
+    """The nuisance variables the problem's data declare, with their priors.
+
+    A nuisance is estimated only when declared: by the rig's tolerances
+    (:class:`tofloc.rig.RigTolerances`) or by a calibration's fitted value and its
+    uncertainty (which then replaces the tolerance; the rig is already corrected by the
+    fitted value, so every prior is centred on 0). Never by an estimator default.
+
+    Parameters
+    ----------
+    support_yaw_sigma : float
+        One-sigma prior (rad) of the sensor support's rotation about the tip's z axis
+        relative to the problem's rig; 0: not estimated.
+    range_scale_sigma : float
+        One-sigma prior of a relative range-scale error shared by every zone (a zone at
+        expected distance d reads ``(1 + s) d``); 0: not estimated.
+    support_yaw_source, range_scale_source : str
+        Where each came from (``"rig tolerance"``, ``"calibration"``), for the record.
+    """
+
+    support_yaw_sigma: float = 0.0
+    range_scale_sigma: float = 0.0
+    support_yaw_source: str = ""
+    range_scale_source: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("support_yaw_sigma", "range_scale_sigma"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float, np.floating)) or isinstance(v, bool) or not np.isfinite(v) or v < 0:
+                raise ParameterError(f"nuisance {name} must be a finite number >= 0, got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    @property
+    def declared(self) -> tuple[str, ...]:
+        """Names of the declared nuisances, in a fixed order (``support_yaw``, ``range_scale``)."""
+        return tuple(n for n in ("support_yaw", "range_scale") if getattr(self, f"{n}_sigma") > 0)
+
+    def sigma(self, name: str) -> float:
+        """The prior sigma of nuisance ``name`` (0 when not declared)."""
+        if name not in ("support_yaw", "range_scale"):
+            raise ParameterError(f"unknown nuisance {name!r}: expected support_yaw or range_scale")
+        return float(getattr(self, f"{name}_sigma"))
+
+    def to_json(self) -> dict[str, Any]:
+        return {n: {"sigma": self.sigma(n), "source": getattr(self, f"{n}_source")} for n in self.declared}
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
     """The samples to use, the map and the prior: everything an estimator may look at.
@@ -105,13 +159,26 @@ class Problem:
         The sensor's own range sigma in metres.
     T_base_tip_cov : array (K, 6, 6), optional
         Covariance of each configuration (rotation vector then translation, tip frame),
-        when its source knows it (motion capture, the k-NN cross-validation residuals).
+        when its source knows it (motion capture, the k-NN cross-validation residuals,
+        odometry).
     valid_statuses : frozenset of int
         Statuses counted as valid (default {5, 9}).
     tip_source : str
         Where ``T_base_tip`` came from (``"mocap"``, ``"knn"``, ...), for the record.
     sample_indices : array (K,) of int
         Indices of the samples in their log, for the record.
+    range_model : RangeUncertainty
+        The zones' range bias and sigma (a calibration's, or the datasheet's).
+    nuisance : NuisancePriors
+        The nuisance variables the data declare (rig tolerances, calibration uncertainty).
+    calibration : tofloc.calibration_file.SensorCalibration, optional
+        The calibration already applied to ``rig`` and ``range_model`` (its sensor-model
+        tables, e.g. ``[beam]``, are read by the models).
+    configuration_source : str, optional
+        Where the configurations come from (:data:`CONFIGURATION_SOURCES`); None: unknown.
+
+    Build problems with :func:`tofloc.problem_builder.build_problem` (it applies a
+    calibration and the rig's tolerances once); the constructor takes the parts as given.
     """
 
     rig: Rig
@@ -125,6 +192,10 @@ class Problem:
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
     tip_source: str = "mocap"
     sample_indices: NDArray[np.int64] | None = None
+    range_model: RangeUncertainty = field(default_factory=RangeUncertainty)
+    nuisance: NuisancePriors = field(default_factory=NuisancePriors)
+    calibration: Any = None
+    configuration_source: str | None = None
 
     def __post_init__(self) -> None:
         d = _readonly(self.distance_m)
@@ -157,6 +228,13 @@ class Problem:
         idx = np.arange(K) if self.sample_indices is None else np.asarray(self.sample_indices)
         object.__setattr__(self, "sample_indices", _readonly(idx, np.int64))
         object.__setattr__(self, "valid_statuses", frozenset(int(v) for v in self.valid_statuses))
+        if not isinstance(self.range_model, RangeUncertainty):
+            raise ProblemError(f"range_model must be a RangeUncertainty, got {type(self.range_model).__name__}")
+        if not isinstance(self.nuisance, NuisancePriors):
+            raise ProblemError(f"nuisance must be a NuisancePriors, got {type(self.nuisance).__name__}")
+        if self.configuration_source is not None and self.configuration_source not in CONFIGURATION_SOURCES:
+            raise ProblemError(f"configuration_source must be one of {list(CONFIGURATION_SOURCES)} or None, "
+                               f"got {self.configuration_source!r}")
 
     # -- sizes and derived data ----------------------------------------------------------
     @property
@@ -235,6 +313,15 @@ class Estimator(ABC):
 
     #: registry name
     name: ClassVar[str] = ""
+    #: Checks of :mod:`tofloc.testing` this estimator is expected to fail, with the reason
+    #: (``{"check_converges_on_easy_problem": "a baseline that does not converge"}``):
+    #: the suite then marks them as expected failures (strict: an unexpected pass fails).
+    expected_check_failures: ClassVar[dict[str, str]] = {}
+
+    def uses_calibration(self) -> bool:
+        """Whether the result depends on the problem's range model or mounting calibration
+        (``tofloc paper`` calibrates only when some estimator says so). Default: True."""
+        return True
 
     def get_params(self) -> dict[str, Any]:
         """The parameters, as given to the constructor (JSON-friendly)."""

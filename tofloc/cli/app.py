@@ -8,11 +8,12 @@ discovered by :mod:`tofloc.cli` at start-up, so adding a command touches no othe
 from __future__ import annotations
 
 import os
-from typing import Iterator
 from contextlib import contextmanager
+from typing import Any, Iterator
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -72,3 +73,41 @@ def status(message: str) -> Iterator[None]:
     """A spinner for work of unknown length."""
     with err_console.status(message):
         yield
+
+
+class RichReporter:
+    """A :class:`tofloc.api.Reporter` that prints notes to stderr, shows a spinner per stage
+    and one progress bar per label (use as a context manager: the bars close with it)."""
+
+    def __init__(self) -> None:
+        self._progress: Progress | None = None
+        self._tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> "RichReporter":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def note(self, message: str) -> None:
+        target = self._progress.console if self._progress is not None else err_console
+        target.print(message, highlight=False, markup=False)
+
+    @contextmanager
+    def stage(self, message: str) -> Iterator[None]:
+        if self._progress is not None:  # one live display at a time: say it, no spinner
+            self.note(message)
+            yield
+            return
+        with err_console.status(escape(message)):
+            yield
+
+    def progress(self, done: int, total: int, label: str) -> None:
+        if self._progress is None:
+            self._progress = make_progress()
+            self._progress.start()
+        if label not in self._tasks:
+            self._tasks[label] = self._progress.add_task(escape(label), total=total)
+        self._progress.update(self._tasks[label], completed=done, total=total)

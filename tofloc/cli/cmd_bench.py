@@ -44,7 +44,8 @@ def paper_bench_problem(n_samples: int = 10, seed: int = 0):
     ``tofloc paper`` gives it: the 2000-point CAD cloud (the ICP score) with the CAD mesh
     attached for ray casts (beam, likelihood field)."""
     from tofloc import frames
-    from tofloc.problem import Prior, Problem
+    from tofloc.problem import Prior
+    from tofloc.problem_builder import build_problem
     from tofloc.simulation import simulate
 
     sim = simulate("paper", seed)
@@ -53,7 +54,7 @@ def paper_bench_problem(n_samples: int = 10, seed: int = 0):
     idx = np.random.default_rng(seed).choice(ok, n_samples, replace=False)
     truth = frames.xyyaw_from_se3(log.T_map_base)
     prior = Prior(truth, np.array([0.2, 0.2, math.radians(20.0)]), z=float(log.T_map_base[2, 3]))
-    return Problem(
+    return build_problem(
         rig=log.rig,
         distance_m=log.distance_m[idx],
         status=log.status[idx],
@@ -61,6 +62,7 @@ def paper_bench_problem(n_samples: int = 10, seed: int = 0):
         map=sim.map_cloud.with_surface(sim.cad_mesh),
         prior=prior,
         sigma_m=None if log.sigma_mm is None else log.sigma_mm[idx] / 1000.0,
+        configuration_source="mocap",
         sample_indices=idx,
     )
 
@@ -107,13 +109,15 @@ def run_bench(particles: int = 1000, repeat: int = 5) -> dict[str, Any]:
             model = est.make_sensor_model()
             bound = model.bind(problem)
             step = bound.n_steps - 1
+            r0 = np.random.default_rng(2)
+            states = np.column_stack([poses] + [r0.normal(0.0, v.sigma, particles) for v in bound.state]) if bound.state else poses
             resample = RESAMPLERS[est.resampling]
             r = np.random.default_rng(1)
 
             def update() -> None:
-                w = normalize_log_weights(bound.log_likelihood(poses, step))
+                w = normalize_log_weights(bound.log_likelihood(states, step))
                 idx = resample(w, r)
-                _ = poses[idx] + r.normal(size=(particles, 3)) * 0.01
+                _ = states[idx] + r.normal(size=states.shape) * 0.01
 
             update()
             doc["estimators"][name] = {

@@ -8,7 +8,7 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from tofloc.cli.app import app, console, err_console, status
+from tofloc.cli.app import RichReporter, app, console, err_console
 from tofloc.errors import ParameterError
 
 __all__ = ["calibrate"]
@@ -17,7 +17,7 @@ __all__ = ["calibrate"]
 @app.command()
 def calibrate(
     logs: list[Path] = typer.Argument(..., metavar="LOG...", help="Logs (format v1) with /truth/T_map_base and /samples/T_base_tip."),
-    out: Path = typer.Option(..., "--out", help="Sensor-model TOML to write ([uncertainty], [beam], [calibration])."),
+    out: Path = typer.Option(..., "--out", help="Calibration TOML to write ([uncertainty], [mounting], [beam], [calibration])."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Save a PNG of error vs distance per zone class here."),
     map_paths: Optional[list[Path]] = typer.Option(
         None, "--map", help="Map to ray cast: once for every log, or once per log in order. Default: the CAD mesh "
@@ -35,77 +35,41 @@ def calibrate(
         True, "--mounting/--no-mounting",
         help="Also fit each sensor's mounting error (rotation, translation; robust least squares; written as [mounting.sensors])."),
 ) -> None:
-    """Calibrate the per-zone range model and the beam mixture by EM (Probabilistic Robotics, Table 6.2)."""
-    from sensor_models.calibration import (
-        ZoneSamples,
-        collect_zones,
-        fit_em,
-        calibrate_rig,
-        plot_calibration,
-        resolve_calibration_map,
-        write_model,
-    )
-    from tofloc.cli.cmd_localize import parse_statuses
-    from tofloc.logs import read_log
-    from tofloc.maps import Map
+    """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
+    from sensor_models.calibration import plot_calibration
+    from tofloc import api
+    from tofloc.cli.options import parse_statuses
 
     statuses = parse_statuses(valid_statuses)
-    maps = list(map_paths or [])
-    if maps and len(maps) not in (1, len(logs)):
-        raise ParameterError(f"--map must be given once (for every log) or once per log ({len(logs)}), got {len(maps)}")
+    if map_paths and len(map_paths) not in (1, len(logs)):
+        raise ParameterError(f"--map must be given once (for every log) or once per log ({len(logs)}), got {len(map_paths)}")
     if not 1 <= footprint <= 9:
         raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
     if not 1 <= max_iter <= 10_000:
         raise ParameterError(f"--max-iter must be in [1, 10000], got {max_iter}")
-    if not 0.0 <= min_distance < max_distance:
-        raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
     if out.exists() and out.is_dir():
         raise ParameterError(f"--out {out} is a folder")
     if not 1.0 <= support_yaw_bound <= 90.0:
         raise ParameterError(f"--support-yaw-bound must be in [1, 90] degrees, got {support_yaw_bound}")
-
-    used_maps: list[str] = []
-    loaded: dict[Path, Any] = {}
-    pairs: list[tuple[Any, Any]] = []
-    for i, lp in enumerate(logs):
-        log = read_log(lp)
-        mp = maps[i if len(maps) > 1 else 0] if maps else resolve_calibration_map(log)
-        if mp is None:
-            raise ParameterError(f"{lp}: the log names no map (root attribute `map`): give one with --map")
-        if mp not in loaded:
-            loaded[mp] = Map.load(mp)
-        pairs.append((log, loaded[mp]))
-        used_maps.append(str(mp))
-    for lp, (log, m), mp in zip(logs, pairs, used_maps):
-        zs = collect_zones(log, m, footprint=footprint, valid_statuses=statuses)
-        err_console.print(
-            f"{lp}: {zs.counts['samples']} samples, {zs.n} zones with an expected distance (map {mp}, {m.kind}); "
-            f"{zs.counts['no_expected_hit']} zones see no map, {zs.counts['partial_footprint']} only partly",
-            highlight=False,
-        )
-
-    def in_range(zs: ZoneSamples) -> ZoneSamples:
-        if min_distance > 0.0 or max_distance < 100.0:
-            return zs.subset((zs.expected_m >= min_distance) & (zs.expected_m <= max_distance))
-        return zs
-
-    steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
-    with status(f"calibrating: {', then '.join(steps)}"):
-        cal = calibrate_rig(pairs, footprint=footprint, valid_statuses=statuses, support_yaw=support_yaw,
-                            support_yaw_bound_deg=support_yaw_bound, mounting=mounting, max_iter=max_iter, zone_filter=in_range)
-    result = cal.result
-    if cal.support_yaw is not None:
-        psi_deg = cal.support_yaw.support_yaw_deg
-        err_console.print(f"support rotation about the tip axis: {psi_deg:+.2f} deg (maximum likelihood on "
-                          f"{cal.support_yaw.samples_used} samples; the log's rig is the CAD one)", highlight=False)
-        if abs(psi_deg) > support_yaw_bound - 0.5:
+    with RichReporter() as reporter:
+        run = api.calibrate(logs, maps=map_paths, out=out, footprint=footprint, valid_statuses=statuses, max_iter=max_iter,
+                            distance_range=(min_distance, max_distance), support_yaw=support_yaw,
+                            support_yaw_bound_deg=support_yaw_bound, mounting=mounting, reporter=reporter)
+    for lp, mp, c in zip(logs, run.maps, run.zone_counts):
+        err_console.print(f"{lp}: {c['samples']} samples, {c['zones']} zones with an expected distance (map {mp}); "
+                          f"{c['no_expected_hit']} zones see no map, {c['partial_footprint']} only partly", highlight=False)
+    rc = run.rig_calibration
+    result = rc.result
+    if rc.support_yaw is not None:
+        fit = rc.support_yaw
+        err_console.print(f"support rotation about the tip axis: {fit.support_yaw_deg:+.2f} +- {fit.sigma_deg:.2f} deg "
+                          f"(maximum likelihood on {fit.samples_used} samples, block-jackknife sigma; relative to the "
+                          f"log's rig)", highlight=False)
+        if abs(fit.support_yaw_deg) > support_yaw_bound - 0.5:
             err_console.print(f"note: the rotation lies at the search bound (+-{support_yaw_bound:g} deg): widen --support-yaw-bound",
                               highlight=False)
-    if cal.mounting is not None:
-        _print_mounting(cal.mounting)
-    meta = {"logs": [str(p) for p in logs], "maps": used_maps, "footprint": footprint,
-            "valid_statuses": sorted(statuses), "distance_range_m": [min_distance, max_distance]}
-    write_model(result, out, meta, support_yaw_deg=cal.support_yaw_deg, sensor_mounting=cal.sensor_mounting)
+    if rc.mounting is not None:
+        _print_mounting(rc.mounting)
     _print(result)
     for note in result.notes:
         err_console.print(f"note: {note}", highlight=False)

@@ -1,181 +1,26 @@
 """``tofloc localize``: localize the base from a log with any registered estimator.
 
 Runs the paper's protocol on one log (``--trials`` trials of ``--samples`` samples drawn
-at random, each from its own prior), writes the JSON contract of issue 3 (``--json``)
-and prints a summary table. Without ground truth in the log it prints the estimates.
+at random, each from its own prior) through :func:`tofloc.api.localize`, writes the JSON
+contract of issue 3 (``--json``) and prints a summary table. Without ground truth in the
+log it prints the estimates. ``--port`` switches to live localization
+(:mod:`tofloc.cli.live_cmd`).
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import typer
 from rich.table import Table
 
-from tofloc.cli.app import app, console, err_console, make_progress
-from tofloc.errors import FormatError, ParameterError
+from tofloc.cli.app import RichReporter, app, console, err_console
+from tofloc.cli.options import parse_params, parse_samples, parse_statuses
+from tofloc.errors import ParameterError
 
-__all__ = [
-    "localize",
-    "parse_params",
-    "parse_statuses",
-    "resolve_workers",
-    "load_estimator",
-    "run_with_progress",
-    "with_sensor_model_file",
-    "crlb_uncertainty",
-]
-
-#: Largest number of trials or samples the command accepts (bounds the work a typo can ask for).
-MAX_TRIALS = 100_000
-
-
-def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
-    """``["key=value", ...]`` -> dict; values are JSON when they parse (``100``, ``0.5``,
-    ``true``, ``{"a": 1}``), strings otherwise."""
-    out: dict[str, Any] = {}
-    for item in items or ():
-        key, sep, raw = item.partition("=")
-        key = key.strip()
-        if not sep or not key.isidentifier():
-            raise ParameterError(f"--param expects key=value with a Python identifier as key, got {item!r}")
-        if key in out:
-            raise ParameterError(f"--param {key} given twice")
-        try:
-            value = json.loads(raw)
-        except ValueError:
-            value = raw
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ParameterError(f"--param {key}: expected a finite number, got {raw!r}")
-        out[key] = value
-    return out
-
-
-def parse_statuses(text: str) -> frozenset[int]:
-    """``"5,9"`` -> ``frozenset({5, 9})`` (each in [0, 255])."""
-    try:
-        values = frozenset(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise ParameterError(f"--valid-statuses expects comma-separated integers, got {text!r}") from None
-    if not values or any(not 0 <= v <= 255 for v in values):
-        raise ParameterError(f"--valid-statuses expects integers in [0, 255], got {text!r}")
-    return values
-
-
-def resolve_workers(workers: Optional[int], n_tasks: int) -> int:
-    """``None`` -> one process per core (at most one per task); 1 runs inline."""
-    if workers is None:
-        return max(1, min(os.cpu_count() or 1, n_tasks))
-    if workers < 1:
-        raise ParameterError(f"--workers must be >= 1, got {workers}")
-    return workers
-
-
-def load_estimator(name: str, params: dict[str, Any]) -> tuple[type, dict[str, Any]]:
-    """The estimator class and its full, JSON-ready parameters (validated by constructing it once)."""
-    from evaluation.protocol import jsonable, make_estimator
-    from tofloc.registry import ESTIMATORS
-
-    cls = ESTIMATORS.load(name)
-    est = make_estimator(cls, params, name)
-    return cls, jsonable(est.get_params())
-
-
-def with_sensor_model_file(name: str, params: dict[str, Any], path: Optional[Path]) -> tuple[dict[str, Any], str]:
-    """Merge a calibrated sensor-model TOML file (``tofloc calibrate``'s output:
-    ``[uncertainty]`` and ``[beam]`` tables) into an estimator's parameters.
-
-    A particle filter whose sensor model takes ``uncertainty`` / ``mixture`` gets them in
-    its ``sensor_model_params``; another estimator with an ``uncertainty`` parameter gets
-    that. Values given explicitly with ``--param`` are not overridden: giving the same
-    table both ways is an error. Returns the new parameters and a one-line note.
-    """
-    import dataclasses
-
-    if path is None:
-        return params, ""
-    from estimators.particle_filter import ParticleFilter
-    from evaluation.protocol import make_estimator
-    from sensor_models.beam import load_sensor_model_toml
-    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
-
-    tables = load_sensor_model_toml(path)
-    cls = ESTIMATORS.load(name)
-    est = make_estimator(cls, params, name)
-    out = dict(params)
-    if isinstance(est, ParticleFilter):
-        model_cls = SENSOR_MODELS.load(est.sensor_model)
-        accepted = {f.name for f in dataclasses.fields(model_cls)} if dataclasses.is_dataclass(model_cls) else set()
-        smp = dict(est.sensor_model_params)
-        explicit = dict(params.get("sensor_model_params", {}) or {})
-        used = []
-        for key, value in tables.items():
-            if key not in accepted:
-                continue
-            if key in explicit:
-                raise ParameterError(f"{name}: sensor_model_params.{key} given both with --param and in {path}")
-            smp[key] = value
-            used.append(key)
-        out["sensor_model_params"] = smp
-        target = f"sensor model {est.sensor_model!r}"
-    else:
-        accepted = {f.name for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else set()
-        used = []
-        for key in ("uncertainty", "support_yaw_deg", "sensor_mounting"):
-            if key in accepted and key in tables:
-                if key in params:
-                    raise ParameterError(f"{name}: {key} given both with --param and in {path}")
-                out[key] = tables[key]
-                used.append(key)
-        target = "estimator"
-    make_estimator(cls, out, name)  # validate the merged parameters now
-    labels = {"mixture": "beam", "support_yaw_deg": "mounting", "sensor_mounting": "mounting.sensors"}
-    tables_used = ", ".join(f"[{labels.get(k, k)}]" for k in used)
-    note = f"{name}: {target} takes {tables_used} from {path}" if used else f"{name}: {target} uses nothing from {path}"
-    return out, note
-
-
-def crlb_uncertainty(path: Optional[Path]) -> Any:
-    """The zone range model of the Cramér-Rao bound: the ``[uncertainty]`` table of a
-    sensor-model file when it has one, else the datasheet's."""
-    from sensor_models.uncertainty import RangeUncertainty
-
-    if path is not None:
-        import tomllib
-
-        try:
-            has = "uncertainty" in tomllib.loads(path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            has = True  # let the reader raise its FormatError
-        if has:
-            return RangeUncertainty.from_toml(path)
-    return RangeUncertainty()
-
-
-def run_with_progress(context: Any, tasks: Sequence[Any], workers: int, scheduler: Optional[str], label: str) -> list[dict[str, Any]]:
-    """:func:`evaluation.protocol.run_tasks` under the shared progress bar."""
-    from evaluation.protocol import run_tasks
-
-    with make_progress() as progress:
-        bar = progress.add_task(label, total=len(tasks))
-        return run_tasks(context, tasks, workers=workers, scheduler=scheduler,
-                         on_result=lambda i, rec: progress.advance(bar))
-
-
-def _samples_option(text: str) -> int | None:
-    if text.strip().lower() == "all":
-        return None
-    try:
-        k = int(text)
-    except ValueError:
-        raise ParameterError(f"--samples expects a positive integer or 'all', got {text!r}") from None
-    if not 1 <= k <= MAX_TRIALS:
-        raise ParameterError(f"--samples must be in [1, {MAX_TRIALS}] or 'all', got {k}")
-    return k
+__all__ = ["localize"]
 
 
 @app.command()
@@ -192,7 +37,7 @@ def localize(
     samples: str = typer.Option("10", "--samples", help="Samples per trial (K), or 'all' (every sample of the pool)."),
     trials: int = typer.Option(1, "--trials", help="Trials, each with its own random samples and prior."),
     seed: int = typer.Option(0, "--seed", help="Run seed (trial seeds derive from it; recorded in the JSON)."),
-    tip_source: str = typer.Option("mocap", "--tip-source", help="Where T_base_tip comes from: mocap or knn."),
+    tip_source: str = typer.Option("mocap", "--tip-source", help="Where T_base_tip comes from: mocap (the log's) or knn."),
     kinematics: Optional[Path] = typer.Option(None, "--kinematics", help="k-NN model (.npz from `tofloc kinematics fit`)."),
     prior_mode: Optional[str] = typer.Option(None, "--prior-mode", help="paper (centred on the truth) or offset (default)."),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
@@ -204,11 +49,13 @@ def localize(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON here."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="Estimator parameter key=value (repeatable)."),
+    param: Optional[list[str]] = typer.Option(
+        None, "--param", help="Estimator parameter key=value (repeatable); a sensor model's as sensor_model__key=value."),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
-    sensor_model_params: Optional[Path] = typer.Option(
-        None, "--sensor-model-params", metavar="MODEL.toml",
-        help="Calibrated sensor model (`tofloc calibrate` output: [uncertainty] and [beam] tables).",
+    calibration: Optional[Path] = typer.Option(
+        None, "--calibration", metavar="MODEL.toml",
+        help="A calibration (`tofloc calibrate` output): the rig's mounting, the range model and the model tables, "
+             "applied to every problem of the estimators that use one.",
     ),
     port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
     baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
@@ -221,45 +68,35 @@ def localize(
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
-    from evaluation.protocol import (
-        SEED_DERIVATION,
-        TIP_SOURCES,
-        PriorSpec,
-        TrialContext,
-        base_pose_parts,
-        knn_residual_covariance,
-        make_tasks,
-        sample_pool,
-    )
-    from evaluation.report import summarize_trials, write_json_atomic
+    from evaluation.priors import PriorSpec, base_pose_parts
+    from evaluation.report import write_json_atomic
+    from tofloc import api
     from tofloc.logs import read_log
-    from tofloc.maps import load_map
 
+    params = parse_params(param)
+    statuses = parse_statuses(valid_statuses)
     if port is not None:
         from tofloc.cli.live_cmd import run_live
 
-        live_params, _ = with_sensor_model_file(estimator, parse_params(param), sensor_model_params)
         run_live(
             port=port, baud=baud, fmt=fmt, rig_path=rig_path, map_path=map_path, surface_path=surface_path,
-            kinematics_path=kinematics,
-            estimator=estimator, params=live_params, prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg,
-            prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window,
-            duration=duration, journal=journal, out=out, seed=seed, timeout=timeout,
-            valid_statuses=parse_statuses(valid_statuses),
+            kinematics_path=kinematics, estimator=estimator, params=params, calibration=calibration,
+            prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg, prior_sigma_xy=prior_sigma_xy,
+            prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window, duration=duration, journal=journal,
+            out=out, seed=seed, timeout=timeout, valid_statuses=statuses,
         )
         return
     if log_path is None:
         raise ParameterError("give a LOG to localize from, or --port PORT for live localization")
-    # -- options that need no file --------------------------------------------------------------
-    if tip_source not in TIP_SOURCES:
-        raise ParameterError(f"--tip-source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
-    if not 1 <= trials <= MAX_TRIALS:
-        raise ParameterError(f"--trials must be in [1, {MAX_TRIALS}], got {trials}")
+    from tofloc.problem_builder import TIP_SOURCES
+
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
-    k_asked = _samples_option(samples)
-    statuses = parse_statuses(valid_statuses)
-    params = parse_params(param)
+    if tip_source not in TIP_SOURCES:
+        raise ParameterError(f"--tip-source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
+    if not 1 <= trials <= api.MAX_TRIALS:
+        raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
+    k_asked = parse_samples(samples, api.MAX_TRIALS)
     given = [v is not None for v in (prior_x, prior_y, prior_yaw_deg)]
     if any(given) and not all(given):
         raise ParameterError("give all of --prior-x, --prior-y and --prior-yaw-deg, or none")
@@ -267,29 +104,8 @@ def localize(
         raise ParameterError("--prior-mode draws the prior around the truth; it cannot be combined with --prior-x/-y/-yaw-deg")
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
-    params, note = with_sensor_model_file(estimator, params, sensor_model_params)
-    if note:
-        err_console.print(note, highlight=False, markup=False)
-    cls, full_params = load_estimator(estimator, params)
-
-    # -- files ------------------------------------------------------------------------------------
+    api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
     log = read_log(log_path)
-    if tip_source == "mocap" and log.T_base_tip is None:
-        raise FormatError(log_path, "/samples/T_base_tip", "motion-capture tip poses for --tip-source mocap "
-                          "(or use --tip-source knn --kinematics MODEL)", "no such dataset")
-    if tip_source == "knn" and log.pressure_kpa is None:
-        raise FormatError(log_path, "/samples/pressure_kpa", "actuator pressures for --tip-source knn", "no such dataset")
-    if map_path is None:
-        map_path = log.map_path()
-        if map_path is None:
-            raise ParameterError(f"{log_path}: the log names no map (root attribute `map`): give one with --map")
-    the_map = load_map(map_path, surface_path)
-    kin = None
-    if kinematics is not None:
-        from tofloc.kinematics import KinematicsModel
-
-        kin = KinematicsModel.load(kinematics)
-
     has_truth = log.T_map_base is not None
     if all(given):
         if has_truth:
@@ -299,45 +115,25 @@ def localize(
             if base_z is None:
                 raise ParameterError(f"{log_path} has no /truth/T_map_base: give the base height with --base-z (m)")
             z, roll, pitch = base_z, 0.0, 0.0
-        prior = PriorSpec("given", prior_sigma_xy, prior_sigma_yaw_deg, (prior_x, prior_y, math.radians(prior_yaw_deg)), z, roll, pitch)
+        prior = PriorSpec("given", prior_sigma_xy, prior_sigma_yaw_deg,
+                          (prior_x, prior_y, math.radians(prior_yaw_deg)), z, roll, pitch)  # type: ignore[arg-type]
     else:
         if not has_truth:
-            raise ParameterError(
-                f"{log_path} has no /truth/T_map_base: give the prior with --prior-x, --prior-y, --prior-yaw-deg "
-                "and the base height with --base-z"
-            )
+            raise ParameterError(f"{log_path} has no /truth/T_map_base: give the prior with --prior-x, --prior-y, "
+                                 "--prior-yaw-deg and the base height with --base-z")
         prior = PriorSpec(prior_mode or "offset", prior_sigma_xy, prior_sigma_yaw_deg)
-
-    pool = sample_pool(log, kin, 1 if k_asked is None else k_asked, statuses)
-    k = pool.indices.size if k_asked is None else k_asked
-    knn_cov = knn_residual_covariance(kin, log) if kin is not None and tip_source == "knn" else None
-    context = TrialContext(log, the_map, pool, kin, statuses, knn_cov, uncertainty=crlb_uncertainty(sensor_model_params))
-    tasks = make_tasks("localize", estimator, cls, params, tip_source, prior, [k], trials, seed)
-    err_console.print(f"samples: {pool.note}", highlight=False)
-    n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
-    records = run_with_progress(context, tasks, n_workers, scheduler, f"{estimator}: {trials} trial(s) of {k} sample(s)")
-
-    summary = summarize_trials(records)
-    doc = {
-        "log": str(log.path),
-        "map": str(map_path),
-        "surface": None if surface_path is None else str(surface_path),
-        "estimator": estimator,
-        "params": full_params,
-        "tip_source": tip_source,
-        "samples": int(k),
-        "prior": prior.to_json(),
-        "trials": records,
-        "summary": summary,
-        "seeds": {"seed": seed, "trial_seeds": [r["seed"] for r in records], "derivation": SEED_DERIVATION},
-        "pool": pool.to_json(),
-        "kinematics": None if kinematics is None else str(kinematics),
-        "valid_statuses": sorted(statuses),
-        "sensor_model_params": None if sensor_model_params is None else str(sensor_model_params),
-    }
+    with RichReporter() as reporter:
+        result = api.localize(
+            log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
+            trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
+            workers=workers, scheduler=scheduler, reporter=reporter,
+        )
+    doc = result.document
+    if calibration is not None and not doc["calibration_used"]:
+        err_console.print(f"note: {estimator} does not use a calibration; {calibration} was not applied", highlight=False)
     if json_out is not None:
         write_json_atomic(doc, json_out)
-    _print(doc, has_truth)
+    _print(doc, result.has_truth)
     if json_out is not None:
         err_console.print(f"wrote {json_out}", highlight=False)
 

@@ -31,6 +31,7 @@ def run_live(
     kinematics_path: Optional[Path],
     estimator: str,
     params: dict[str, Any],
+    calibration: Optional[Path] = None,
     prior_x: Optional[float],
     prior_y: Optional[float],
     prior_yaw_deg: Optional[float],
@@ -46,7 +47,7 @@ def run_live(
     valid_statuses: frozenset[int],
 ) -> None:
     """Capture from ``port`` and print an estimate with its uncertainty after every sample."""
-    from evaluation.protocol import make_estimator
+    from tofloc import api
     from tofloc.io.capture import SerialCapture
     from tofloc.io.journal import journal_path_for
     from tofloc.io.samples import samples_to_log
@@ -55,7 +56,6 @@ def run_live(
     from tofloc.logs import read_log, write_log
     from tofloc.maps import load_map
     from tofloc.problem import Prior
-    from tofloc.registry import ESTIMATORS
     from tofloc.rig import Rig
 
     missing = [n for n, v in (("--rig", rig_path), ("--map", map_path), ("--kinematics", kinematics_path),
@@ -67,13 +67,15 @@ def run_live(
     rig = read_log(rig_path).rig if rig_path.suffix.lower() in (".h5", ".hdf5") else Rig.from_file(rig_path)
     the_map = load_map(map_path, surface_path)
     kin = KinematicsModel.load(kinematics_path)
-    est = make_estimator(ESTIMATORS.load(estimator), params, estimator)
+    est = api.estimator(estimator, params)
+    cal = api.load_calibration(calibration) if est.uses_calibration() else None
     prior = Prior(
         np.array([prior_x, prior_y, math.radians(float(prior_yaw_deg))]),  # type: ignore[arg-type]
         np.array([prior_sigma_xy, prior_sigma_xy, math.radians(prior_sigma_yaw_deg)]),
         z=float(base_z),  # type: ignore[arg-type]
     )
-    live = LiveLocalizer(est, rig, the_map, prior, kin, window=window, seed=seed, valid_statuses=valid_statuses)
+    live = LiveLocalizer(est, rig, the_map, prior, kin, window=window, seed=seed, valid_statuses=valid_statuses,
+                         calibration=cal)
     if journal is None:
         journal = journal_path_for(out) if out is not None else Path(f"live-{port.replace('/', '_').strip('_')}.journal")
     cap = SerialCapture(port, fmt=fmt, rig=rig, journal=journal, baud=baud, timeout_s=timeout, duration_s=duration,

@@ -15,9 +15,10 @@ from numpy.typing import NDArray
 
 from tofloc import frames
 from tofloc.rig import Rig, Sensor, edge_zone_mask
+from tofloc.zone_caster import ZoneCaster, subray_directions
 from tofloc.simulation.scenario import RigDesign, ToFPhysics
 
-__all__ = ["build_rig", "subray_directions", "ZoneReturns", "cast_zones", "measure"]
+__all__ = ["build_rig", "subray_directions", "ZoneReturns", "zone_caster", "cast_zones", "measure"]
 
 NO_TARGET = 255
 
@@ -63,20 +64,6 @@ def _mounted(support: NDArray[np.float64], T_cad: NDArray[np.float64], design: R
     return support @ frames.se3(T_cad[:3, :3] @ dR, T_cad[:3, 3] + dt)
 
 
-def subray_directions(sensor: Sensor, n_sub: int) -> NDArray[np.float64]:
-    """Unit directions ``(Z, n_sub**2, 3)`` of sub-rays spread evenly over each zone's
-    angular footprint (the spec's uniform grid, split n_sub x n_sub)."""
-    R, C = sensor.resolution
-    f_rows, f_cols = math.radians(sensor.fov_deg[0]), math.radians(sensor.fov_deg[1])
-    rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
-    off = (np.arange(n_sub) + 0.5) / n_sub - 0.5
-    orow, ocol = np.meshgrid(off, off, indexing="ij")
-    a_col = ((cols.ravel()[:, None] - (C - 1) / 2.0) + ocol.ravel()[None, :]) * f_cols / C
-    a_row = ((rows.ravel()[:, None] - (R - 1) / 2.0) + orow.ravel()[None, :]) * f_rows / R
-    v = np.stack([np.tan(a_col), np.tan(a_row), np.ones_like(a_col)], axis=-1)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 @dataclass(frozen=True)
 class ZoneReturns:
     """Noise-free zone returns, all ``(K, S, Z)``: the reported-convention distance (NaN
@@ -89,38 +76,20 @@ class ZoneReturns:
     corner: NDArray[np.bool_]
 
 
+def zone_caster(rig: Rig, tof: ToFPhysics) -> ZoneCaster:
+    """The shared :class:`~tofloc.zone_caster.ZoneCaster` with the simulator's ToF physics:
+    ``sub_rays`` per side, signal-weighted readings, ``min_hit_fraction``, range limits."""
+    return ZoneCaster(rig, footprint=tof.sub_rays, weighting="signal", min_hit_fraction=tof.min_hit_fraction,
+                      min_range=tof.min_range, max_range=tof.max_range)
+
+
 def cast_zones(world, rig: Rig, T_map_sensor: NDArray[np.float64], tof: ToFPhysics) -> ZoneReturns:
-    """Ray-cast every sub-ray of every zone of every sensor pose ``T_map_sensor`` (K, S, 4, 4)
-    against the true ``world`` (a :class:`tofloc.maps.Map`)."""
-    n_sub = tof.sub_rays
-    d_sensor = np.stack([subray_directions(s, n_sub) for s in rig.sensors])  # (S, Z, M, 3)
-    R = T_map_sensor[..., :3, :3]  # (K, S, 3, 3)
-    dirs = np.einsum("ksij,szmj->kszmi", R, d_sensor)
-    origins = np.broadcast_to(T_map_sensor[:, :, None, None, :3, 3], dirs.shape)
-    hits = world.raycast(origins, dirs, max_range=tof.max_range)
-    t = np.asarray(hits.t, dtype=float)
-    normal = np.asarray(hits.normal, dtype=float)
-    hit = np.isfinite(t) & (t >= tof.min_range) & (t <= tof.max_range)
-    cos_inc = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), dirs))
-    # reported convention along each sub-ray: depth (z in the sensor frame) or range
-    perpendicular = np.array([s.distance == "perpendicular" for s in rig.sensors])
-    along = np.where(perpendicular[None, :, None, None], d_sensor[None, ..., 2], 1.0)
-    value = np.where(hit, t * along, 0.0)
-    # signal of a sub-ray ~ cos(incidence) / range^2 (Lambertian target)
-    w = np.where(hit, np.maximum(cos_inc, 0.05) / np.maximum(np.where(hit, t, 1.0), 0.05) ** 2, 0.0)
-    wsum = w.sum(axis=-1)
-    frac = hit.mean(axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dist = (w * value).sum(axis=-1) / wsum
-        mean_cos = np.where(hit, cos_inc, 0.0).sum(axis=-1) / np.maximum(hit.sum(axis=-1), 1)
-    has_target = frac >= tof.min_hit_fraction
-    dist = np.where(has_target, dist, np.nan)
-    # corner: two hit sub-rays whose surface normals differ by more than 30 deg
-    n_hit = np.where(hit[..., None], normal, 0.0)
-    gram = np.einsum("...ai,...bi->...ab", n_hit, n_hit)
-    both = hit[..., :, None] & hit[..., None, :]
-    corner = np.any(both & (np.abs(gram) < math.cos(math.radians(30.0))), axis=(-1, -2))
-    return ZoneReturns(dist, frac, mean_cos, corner & has_target)
+    """Noise-free returns of every zone of every sensor pose ``T_map_sensor`` (K, S, 4, 4)
+    against the true ``world`` (a :class:`tofloc.maps.Map`): the shared zone caster
+    (:mod:`tofloc.zone_caster`) with the scenario's physics (:func:`zone_caster`)."""
+    cast = zone_caster(rig, tof).cast(world, T_map_sensor, geometry=True)
+    assert cast.mean_cos is not None and cast.corner is not None
+    return ZoneReturns(cast.reading, cast.hit_fraction, cast.mean_cos, cast.corner)
 
 
 def noise_sigma(distance: NDArray[np.float64], tof: ToFPhysics, edge: NDArray[np.bool_]) -> NDArray[np.float64]:

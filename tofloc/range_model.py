@@ -1,4 +1,4 @@
-"""Per-zone range uncertainty of a multizone ToF sensor, shared by every estimator.
+"""The range model of a multizone ToF sensor: per-zone bias and sigma, shared by every estimator.
 
 For each sensor and zone, the reported distance ``d_rep`` of a target at true distance
 ``d`` (in the sensor's own convention) is modelled as::
@@ -107,13 +107,13 @@ class RangeUncertainty:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<uncertainty>") -> "RangeUncertainty":
         """From an ``[uncertainty]`` table; unknown keys and bad values raise :class:`FormatError`."""
-        from sensor_models.base import params_from_table
+        from tofloc.toml_tables import params_from_table
 
         return params_from_table(cls, d, source, "uncertainty")
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RangeUncertainty":
         """Read the ``[uncertainty]`` table of a sensor-model TOML file (``tofloc calibrate``'s output)."""
-        from sensor_models.base import params_from_toml
+        from tofloc.toml_tables import params_from_toml
 
         return params_from_toml(cls, path, "uncertainty")

@@ -1,0 +1,133 @@
+"""Data association of the GTSAM smoother: each valid zone with a plane of the map.
+
+:func:`measurements` turns a problem's valid zones into per-sample
+:class:`~estimators.gtsam_factors.SampleMeasurement` (points and rays in the tip frame of
+the problem's rig, calibration applied; range sigmas and bias from the problem's range
+model). :func:`associate` pairs every zone with a plane at the current estimate, in one
+batched query over all samples:
+
+* ``"point_to_plane"``: the nearest map point and its normal
+  (:meth:`tofloc.maps.Map.closest_surface_point`);
+* ``"range"``: the zone's ray cast by the shared zone caster
+  (:meth:`tofloc.zone_caster.ZoneCaster.cast_zone_rays`), the hit's plane.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimators.gtsam_factors import SampleMeasurement
+from tofloc.problem import Problem
+from tofloc.zone_caster import ZoneCaster
+
+__all__ = ["RESIDUALS", "measurements", "associate"]
+
+RESIDUALS = ("point_to_plane", "range")
+FloatArray = NDArray[np.float64]
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def measurements(problem: Problem) -> list[SampleMeasurement]:
+    """The valid zones of every sample: points and rays in the tip frame, range sigmas."""
+    unc = problem.range_model
+    rig = problem.rig
+    valid = problem.valid
+    d = np.where(valid, problem.distance_m, np.nan)
+    d_corr = d - unc.bias(rig, d)
+    sigma_d = unc.sigma(rig, d, problem.sigma_m)
+    rf = rig.range_factor  # (S, Z)
+    p_tip = rig.points_in_tip(d_corr)  # (K, S, Z, 3)
+    origins, dirs = rig.rays_in_tip()
+    S, Z = rig.n_sensors, rig.n_zones
+    o_sz = np.broadcast_to(origins[:, None, :], (S, Z, 3))
+    sigma_L = sigma_d * rf
+    flat = np.arange(S * Z).reshape(S, Z)
+    out = []
+    for k in range(problem.n_samples):  # per sample (K <= a few tens), vectorized over zones
+        m = valid[k] & np.isfinite(d_corr[k]) & (d_corr[k] > 0)
+        v = dirs[m] * rf[m][:, None]
+        out.append(SampleMeasurement(p_tip[k][m], o_sz[m].copy(), dirs[m].copy(), sigma_L[k][m], d[k][m], v,
+                                     flat[m].astype(np.int64)))
+    return out
+
+
+def associate(
+    problem: Problem,
+    meas: list[SampleMeasurement],
+    xyyaw: FloatArray,
+    C: list[FloatArray],
+    D: FloatArray,
+    gate: float,
+    bias: FloatArray | None = None,
+    *,
+    residual: str = "point_to_plane",
+    map_sigma: float = 0.003,
+    information_scale: float = 1.0,
+) -> tuple[list[SampleMeasurement], list[bool]]:
+    """New measurements associated at the given estimate, and per sample whether its
+    association changed.
+
+    Parameters
+    ----------
+    problem : Problem
+    meas : list of SampleMeasurement
+        One per sample.
+    xyyaw : array (3,)
+        The base pose.
+    C : list of array (4, 4)
+        The configurations ``T_base_tip`` of the samples.
+    D : array (4, 4)
+        The support correction ``T_tip_support``.
+    gate : float
+        Largest distance (m) to the associated plane's point (point-to-plane) or along the
+        ray (range) of an inlier.
+    bias : array (1,), optional
+        The relative range bias ``b`` (distances corrected by ``-b d``).
+    residual : {"point_to_plane", "range"}
+    map_sigma : float
+        Map and association error (m) added in quadrature to every zone's sigma.
+    information_scale : float
+        Every zone's information is multiplied by it.
+    """
+    T_mb = problem.prior.T_map_base(xyyaw)
+    sizes = [m.size for m in meas]
+    T_mt = [T_mb @ C[k] @ D for k in range(len(meas))]
+    p = np.concatenate([m.points(bias) @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
+    u = np.concatenate([m.u_tip @ T[:3, :3].T for m, T in zip(meas, T_mt)])
+    sig = np.concatenate([m.sigma_L for m in meas])
+    if residual == "point_to_plane":
+        q, n = problem.map.closest_surface_point(p)
+        if problem.map.kind == "points":
+            _, key = problem.map.nearest(p)
+        else:
+            key = np.round(q / 1e-4).astype(np.int64) @ np.array([1, 1 << 20, 1 << 40], dtype=np.int64)
+        dist = np.linalg.norm(p - q, axis=1)
+        inlier = np.isfinite(dist) & (dist <= gate)
+    else:
+        o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
+        zones = np.concatenate([m.zones for m in meas])
+        Z = problem.rig.n_zones
+        cast = ZoneCaster(problem.rig).cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
+        assert cast.point is not None and cast.normal is not None and cast.index is not None
+        hit = np.isfinite(cast.reading)
+        L = np.linalg.norm(p - o, axis=1)  # the measured point's distance along the ray
+        t = np.where(hit, np.linalg.norm(np.nan_to_num(cast.point) - o, axis=1), np.inf)
+        q = np.where(hit[:, None], cast.point, o)
+        n = np.where(hit[:, None], cast.normal, _UP)
+        key = cast.index
+        inlier = hit & (np.abs(L - t) <= gate)
+    n = np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
+    cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
+    s = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2) / math.sqrt(information_scale)
+    gate_e = gate / s
+    out, changed = [], []
+    for m, a, b in zip(meas, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
+        new = dataclasses.replace(m)
+        new.set_association(q[a:b], n[a:b], s[a:b], inlier[a:b], gate_e[a:b], key[a:b])
+        changed.append(not (np.array_equal(new.key, m.key) and np.array_equal(new.inlier, m.inlier)))
+        out.append(new)
+    return out, changed

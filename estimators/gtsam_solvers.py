@@ -1,0 +1,272 @@
+"""The GTSAM smoother's graph and its two solvers (batch Levenberg-Marquardt, ISAM2).
+
+:class:`SmootherGraph` holds what one problem's graph needs: which variables exist
+(``X`` the base, ``C_k`` the configurations, ``D`` the support correction and ``B`` the
+range bias, the last two only when the problem declares the matching nuisance), their
+priors, and the per-sample factors (:func:`estimators.gtsam_factors.make_sample_factor`).
+:meth:`SmootherGraph.solve_batch` and :meth:`SmootherGraph.solve_isam2` alternate data
+association (:mod:`estimators.gtsam_association`) and optimization from one start.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimators.gtsam_association import associate
+from estimators.gtsam_factors import SampleMeasurement, make_sample_factor
+from tofloc import frames
+from tofloc.problem import Problem
+
+if TYPE_CHECKING:
+    from estimators.gtsam_smoother import GTSAMSmoother
+
+__all__ = ["SmootherGraph", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M"]
+
+FloatArray = NDArray[np.float64]
+#: A round that moves the base by less than this (m, rad) ends the association loop even if
+#: some zones still swap between equidistant map points.
+_STILL = 1e-5
+#: Prior sigmas of the support correction's components no nuisance declares (tilt, translation):
+#: held (numerically) at zero, so ``D`` is the support's rotation about the tip's z axis.
+D_FIXED_SIGMA_RAD = 1e-5
+D_FIXED_SIGMA_M = 1e-6
+
+
+def is_indeterminate(e: BaseException) -> bool:
+    """Whether a GTSAM error is an ``IndeterminantLinearSystemException`` (an unconstrained direction)."""
+    return "ndetermina" in str(e)
+
+
+class SmootherGraph:
+    """The factor graph of one problem for one smoother configuration.
+
+    Parameters
+    ----------
+    est : GTSAMSmoother
+        The parameters (kernel, gates, rounds, configuration floors).
+    problem : Problem
+        Its nuisance priors decide whether ``D`` (support yaw) and ``B`` (range scale) exist.
+    """
+
+    def __init__(self, est: "GTSAMSmoother", problem: Problem) -> None:
+        self.est = est
+        self.problem = problem
+        self.support_sigma = problem.nuisance.support_yaw_sigma  # rad
+        self.scale_sigma = problem.nuisance.range_scale_sigma
+        self.use_rig = self.support_sigma > 0
+        self.use_bias = self.scale_sigma > 0
+        self.R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, problem.prior.roll, problem.prior.pitch)[:3, :3]
+
+    # -- pieces ----------------------------------------------------------------------------------
+    def config_noise(self, k: int) -> Any:
+        """GTSAM noise model of sample ``k``'s configuration prior."""
+        import gtsam
+
+        est, problem = self.est, self.problem
+        if problem.T_base_tip_cov is not None and not est.exact_tip_poses:
+            c = np.array(problem.T_base_tip_cov[k], dtype=float)
+            c = 0.5 * (c + c.T)
+            floor = np.diag([math.radians(est.mocap_sigma_rot_deg) ** 2] * 3 + [est.mocap_sigma_m**2] * 3)
+            return gtsam.noiseModel.Gaussian.Covariance(c + floor)
+        if problem.tip_source == "mocap" or est.exact_tip_poses:
+            r, t = math.radians(est.mocap_sigma_rot_deg), est.mocap_sigma_m
+        else:
+            r, t = math.radians(est.knn_sigma_rot_deg), est.knn_sigma_m
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
+
+    def priors(self) -> Any:
+        """The prior factors of ``X``, every ``C_k``, and ``D``/``B`` when they exist."""
+        import gtsam
+        from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
+
+        g = gtsam.NonlinearFactorGraph()
+        pr = self.problem.prior
+        g.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*pr.mean), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(pr.sigma))))
+        for k in range(self.problem.n_samples):
+            g.add(gtsam.PriorFactorPose3(Ck(k), gtsam.Pose3(np.asarray(self.problem.T_base_tip[k])), self.config_noise(k)))
+        if self.use_rig:
+            sig = np.array([D_FIXED_SIGMA_RAD, D_FIXED_SIGMA_RAD, self.support_sigma] + [D_FIXED_SIGMA_M] * 3)
+            g.add(gtsam.PriorFactorPose3(Dk(0), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(sig)))
+        if self.use_bias:
+            g.add(gtsam.PriorFactorVector(Bk(0), np.zeros(1), gtsam.noiseModel.Diagonal.Sigmas(np.array([self.scale_sigma]))))
+        return g
+
+    def factor(self, m: SampleMeasurement, k: int) -> Any:
+        """Sample ``k``'s stacked zone factor."""
+        from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
+
+        return make_sample_factor(m, Xk(0), Ck(k), Dk(0) if self.use_rig else None, Bk(0) if self.use_bias else None,
+                                  self.problem.prior.z, self.R_tilt, self.est.robust, self.est.robust_k)
+
+    def read(self, values: Any, K: int) -> tuple[FloatArray, list[FloatArray], FloatArray]:
+        """``(x, y, yaw)``, the ``K`` configurations and ``D`` from GTSAM values."""
+        from gtsam.symbol_shorthand import C as Ck, D as Dk, X as Xk
+
+        P = values.atPose2(Xk(0))
+        C = [values.atPose3(Ck(k)).matrix() for k in range(K)]
+        D = values.atPose3(Dk(0)).matrix() if self.use_rig else np.eye(4)
+        return np.array([P.x(), P.y(), P.theta()]), C, D
+
+    def bias(self, values: Any) -> FloatArray | None:
+        """The range bias ``b`` (1-vector) when ``B`` exists."""
+        from gtsam.symbol_shorthand import B as Bk
+
+        return np.asarray(values.atVector(Bk(0)), dtype=float) if self.use_bias else None
+
+    def gates(self) -> list[float]:
+        """The association gates of the rounds (shrinking geometrically, then ``gate_m``)."""
+        est = self.est
+        n = est.gate_rounds
+        if n == 0 or est.gate_start_m == est.gate_m:
+            return [est.gate_m]
+        r = (est.gate_m / est.gate_start_m) ** (1.0 / n)
+        return [est.gate_start_m * r**i for i in range(n)] + [est.gate_m]
+
+    def initial_values(self, start: FloatArray, n_samples: int | None = None) -> Any:
+        import gtsam
+        from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
+
+        v = gtsam.Values()
+        v.insert(Xk(0), gtsam.Pose2(*start))
+        for k in range(self.problem.n_samples if n_samples is None else n_samples):
+            v.insert(Ck(k), gtsam.Pose3(np.asarray(self.problem.T_base_tip[k])))
+        if self.use_rig:
+            v.insert(Dk(0), gtsam.Pose3())
+        if self.use_bias:
+            v.insert(Bk(0), np.zeros(1))
+        return v
+
+    def associate(self, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray], D: FloatArray, gate: float,
+                  bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
+        est = self.est
+        return associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
+                         information_scale=est.information_scale)
+
+    def pose_change(self, a: Any, b: Any, K: int) -> float:
+        """Largest change of any variable's matrix entries between two GTSAM value sets."""
+        xa, Ca, Da = self.read(a, K)
+        xb, Cb, Db = self.read(b, K)
+        d = float(np.max(np.abs(xa - xb)))
+        for u, v in zip(Ca + [Da], Cb + [Db]):
+            d = max(d, float(np.max(np.abs(u - v))))
+        return d
+
+    # -- batch solve ---------------------------------------------------------------------------
+    def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray) -> dict[str, Any]:
+        """Association rounds, each followed by Levenberg-Marquardt, from ``start``."""
+        import gtsam
+
+        est = self.est
+        K = self.problem.n_samples
+        priors = self.priors()
+        values = self.initial_values(start)
+        gates = self.gates()
+        iterations, rounds, converged = 0, 0, False
+        graph = priors
+        moved = np.inf
+        for rnd in range(max(est.max_rounds, len(gates))):
+            gate = gates[min(rnd, len(gates) - 1)]
+            xyyaw, C, D = self.read(values, K)
+            meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(values))
+            rounds += 1
+            if rnd >= len(gates) and (not any(changed) or moved < _STILL):
+                converged = True
+                break
+            graph = gtsam.NonlinearFactorGraph(priors)
+            for k, m in enumerate(meas):
+                graph.add(self.factor(m, k))
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(int(est.lm_max_iterations))
+            params.setRelativeErrorTol(1e-6)
+            params.setAbsoluteErrorTol(1e-9)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            new_values = opt.optimize()
+            iterations += int(opt.iterations())
+            moved = float(np.max(np.abs(self.read(new_values, K)[0] - xyyaw)))
+            values = new_values
+        return {"values": values, "graph": graph, "error": float(graph.error(values)), "iterations": iterations,
+                "rounds": rounds, "converged": converged, "meas": meas}
+
+    # -- incremental solve -----------------------------------------------------------------------
+    def solve_isam2(self, meas0: list[SampleMeasurement], start: FloatArray) -> dict[str, Any]:
+        """Samples added one at a time to ISAM2; after each, every sample's association is
+        refreshed (changed factors removed and re-added) until it settles."""
+        import gtsam
+        from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
+
+        est = self.est
+        problem = self.problem
+        K = problem.n_samples
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(1e-5)
+        params.relinearizeSkip = 1
+        isam = gtsam.ISAM2(params)
+        priors = self.priors()
+        pr_list = [priors.at(i) for i in range(priors.size())]
+        # priors of X, D and B first (the list's head and tail), each configuration's with its sample
+        g0 = gtsam.NonlinearFactorGraph()
+        g0.add(pr_list[0])
+        for f in pr_list[1 + K:]:
+            g0.add(f)
+        v0 = gtsam.Values()
+        v0.insert(Xk(0), gtsam.Pose2(*start))
+        if self.use_rig:
+            v0.insert(Dk(0), gtsam.Pose3())
+        if self.use_bias:
+            v0.insert(Bk(0), np.zeros(1))
+        isam.update(g0, v0)
+        gates = self.gates()
+        meas: list[SampleMeasurement] = []
+        slots: list[int] = []
+        iterations, rounds, converged = 0, 0, True
+        for k in range(K):
+            est_v = isam.calculateEstimate()
+            P = est_v.atPose2(Xk(0))
+            xyyaw = np.array([P.x(), P.y(), P.theta()])
+            C = [est_v.atPose3(Ck(j)).matrix() for j in range(k)] + [np.asarray(problem.T_base_tip[k])]
+            D = est_v.atPose3(Dk(0)).matrix() if self.use_rig else np.eye(4)
+            new_k, _ = self.associate([meas0[k]], xyyaw, C[k:], D, gates[0], self.bias(est_v))
+            g = gtsam.NonlinearFactorGraph()
+            g.add(pr_list[1 + k])
+            g.add(self.factor(new_k[0], k))
+            v = gtsam.Values()
+            v.insert(Ck(k), gtsam.Pose3(np.asarray(problem.T_base_tip[k])))
+            res = isam.update(g, v)
+            slots.append(int(res.getNewFactorsIndices()[1]))
+            meas.append(new_k[0])
+            iterations += 1
+            # refresh every sample's association until it settles (gates as in the batch solve)
+            ok = False
+            for rnd in range(max(est.max_rounds, len(gates))):
+                gate = gates[min(rnd, len(gates) - 1)]
+                for _ in range(est.lm_max_iterations):  # let ISAM2 settle on this association
+                    before = isam.calculateEstimate()
+                    isam.update()
+                    iterations += 1
+                    after = isam.calculateEstimate()
+                    if self.pose_change(before, after, k + 1) < 1e-9:
+                        break
+                est_v = isam.calculateEstimate()
+                xyyaw, C, D = self.read(est_v, k + 1)
+                meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(est_v))
+                rounds += 1
+                if rnd >= len(gates) - 1 and not any(changed):
+                    ok = True
+                    break
+                g = gtsam.NonlinearFactorGraph()
+                idx = [j for j in range(k + 1) if changed[j] or rnd < len(gates) - 1]
+                for j in idx:
+                    g.add(self.factor(meas[j], j))
+                res = isam.update(g, gtsam.Values(), [slots[j] for j in idx])
+                new_slots = list(res.getNewFactorsIndices())
+                for j, s in zip(idx, new_slots):
+                    slots[j] = int(s)
+            converged = converged and ok
+        values = isam.calculateEstimate()
+        graph = isam.getFactorsUnsafe()
+        return {"values": values, "graph": graph, "error": float(graph.error(values)), "iterations": iterations,
+                "rounds": rounds, "converged": converged, "meas": meas, "isam": isam}

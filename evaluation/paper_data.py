@@ -1,0 +1,219 @@
+"""The data of the paper's experiment run (``tofloc paper``): the log, its map, the k-NN
+kinematics and the calibration, made or reused in one output folder.
+
+* :func:`prepare_data`: simulate ``DIR/paper.h5`` (any scenario of the library) unless it
+  exists, attach the CAD mesh for ray casts, fit or reuse ``DIR/knn.npz``;
+* :func:`calibrate_for_paper`: a calibration of the same set-up (a simulated *calibration
+  session*, or a real log's k-NN training split), written to ``DIR/sensor_model.toml``
+  and reused by a rerun whose inputs are the same (the file records their key).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, ContextManager
+
+import numpy as np
+
+from tofloc.calibration_file import SensorCalibration
+from tofloc.errors import FormatError, ParameterError
+
+__all__ = ["PaperData", "prepare_data", "calibrate_for_paper", "calibration_session", "LOG_NAME", "KNN_NAME",
+           "CALIBRATION_NAME", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET", "KNN_STREAM"]
+
+LOG_NAME = "paper.h5"
+KNN_NAME = "knn.npz"
+CALIBRATION_NAME = "sensor_model.toml"
+#: Mixed into the run seed for the k-NN split, so the split and the trials use distinct streams.
+KNN_STREAM = 0x6B6E6E
+#: Name of the calibration session simulated beside the log.
+CALIBRATION_LOG_NAME = "calibration-session.h5"
+#: The calibration session's seed is the run's seed plus this (its own noise and postures).
+CALIBRATION_SEED_OFFSET = 1000
+#: Where the calibration session places the base relative to the experiment: (dx, dy) m, dyaw deg.
+CALIBRATION_BASE_OFFSET = (-0.04, 0.04, -20.0)
+
+Note = Callable[[str], None]
+Stage = Callable[[str], ContextManager[Any]]
+
+
+def _quiet(_: str) -> None:
+    return None
+
+
+def _no_stage(_: str) -> ContextManager[Any]:
+    from contextlib import nullcontext
+
+    return nullcontext()
+
+
+@dataclass
+class PaperData:
+    """The data of a ``tofloc paper`` run: the log, its map, the k-NN model and what was done."""
+
+    log: Any
+    map: Any
+    map_path: Path
+    kinematics: Any
+    notes: list[str]
+    fit_report: Any | None = None
+
+
+def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, stage: Stage = _no_stage) -> PaperData:
+    """Simulate ``out/paper.h5`` unless it exists, and fit (or reuse) ``out/knn.npz``.
+
+    An existing ``paper.h5`` is used as it is, whoever made it (a real log conforming to
+    log format v1 works too); one simulated from another scenario is refused. An existing
+    ``knn.npz`` is reused only if it was fit on this log. With ``surface`` and a CAD mesh
+    ``<stem>.cad.ply`` beside the map (the simulator writes one), the map gets it as its
+    surface (:meth:`tofloc.maps.Map.with_surface`): the ray-casting models cast against the
+    CAD mesh, the ICP score keeps the map's points.
+    """
+    from tofloc.kinematics import KinematicsModel
+    from tofloc.logs import read_log
+    from tofloc.maps import Map
+    from tofloc.simulation import load_scenario, simulate, write_simulation
+
+    notes: list[str] = []
+    log_path = out / LOG_NAME
+    sc = load_scenario(scenario)
+    if log_path.exists():
+        log = read_log(log_path)
+        src = log.source
+        if src.startswith("simulation:"):
+            made_from = src[len("simulation:"):].split(" ")[0]
+            if made_from != sc.scenario.name:
+                raise ParameterError(
+                    f"{log_path} was simulated from scenario {made_from!r}, not {sc.scenario.name!r}: "
+                    "use another --out or delete the file"
+                )
+        notes.append(f"reused {log_path} ({src})")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        with stage(f"simulating scenario {sc.scenario.name!r} (seed {seed}) into {log_path}"):
+            write_simulation(simulate(sc, seed), log_path)
+        log = read_log(log_path)
+        notes.append(f"simulated {log_path} (scenario {sc.scenario.name!r}, seed {seed})")
+    if log.T_map_base is None:
+        raise FormatError(log_path, "/truth/T_map_base", "the true base pose: the paper's protocol measures errors against it")
+    map_path = log.map_path()
+    if map_path is None:
+        raise FormatError(log_path, "map", "the map's file name in the root attribute `map`", "no such attribute")
+    the_map = Map.load(map_path)
+    stem = map_path.name[: -len(".map.ply")] if map_path.name.endswith(".map.ply") else map_path.stem
+    cad_path = map_path.parent / f"{stem}.cad.ply"
+    if surface and the_map.kind == "points" and cad_path.exists():
+        the_map = the_map.with_surface(Map.load(cad_path))
+        notes.append(f"ray casts against the CAD mesh {cad_path.name} (the ICP score keeps the {len(the_map.points)} map points)")
+
+    knn_path = out / KNN_NAME
+    kin, report = None, None
+    if knn_path.exists():
+        kin = KinematicsModel.load(knn_path)
+        if log.pressure_kpa is None or log.T_base_tip is None or not kin.matches(log.pressure_kpa, log.T_base_tip):
+            notes.append(f"{knn_path} was fit on other data: refit")
+            kin = None
+        else:
+            notes.append(f"reused {knn_path} (k = {kin.k}, {kin.validation_indices.size} held-out samples)")
+    if kin is None:
+        with stage("fitting the k-NN kinematics (80/20 split, 5-fold CV)"):
+            kin, report = KinematicsModel.fit_log(log, np.random.default_rng([seed, KNN_STREAM]))
+        kin.save(knn_path)
+        notes.append(
+            f"fit {knn_path}: k = {report.k}, validation MSE {report.validation_mse_m2:.2e} m^2, "
+            f"{report.validation_rot_err_deg:.2f} deg (paper: k = 6, 3e-4 m^2)"
+        )
+    return PaperData(log, the_map, map_path, kin, notes, report)
+
+
+def _hardware_seed(source: str) -> int | None:
+    """The hardware seed of a simulated log, from its ``source`` ("simulation:NAME seed=S
+    [hardware_seed=H]"); None for a log the simulator did not write."""
+    if not source.startswith("simulation:"):
+        return None
+    fields = dict(part.split("=", 1) for part in source.split()[1:] if "=" in part)
+    try:
+        return int(fields.get("hardware_seed", fields["seed"]))
+    except (KeyError, ValueError):
+        return None
+
+
+def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, note: Note = _quiet,
+                        stage: Stage = _no_stage) -> Path:
+    """``out/calibration-session.h5``: the set-up of hardware seed ``hw`` recorded again
+    (session seed ``seed +`` :data:`CALIBRATION_SEED_OFFSET`, the base moved by
+    :data:`CALIBRATION_BASE_OFFSET`); an existing file is reused only if it records that
+    set-up."""
+    from tofloc.logs import read_log
+    from tofloc.simulation import load_scenario, simulate, write_simulation
+
+    cal_path = out / CALIBRATION_LOG_NAME
+    sc = load_scenario(scenario)
+    b = sc.base
+    base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
+    if cal_path.exists() and _hardware_seed(read_log(cal_path).source) != hw:
+        note(f"{cal_path.name} records another set-up than {LOG_NAME} (hardware seed): simulating it again")
+        cal_path.unlink()
+    if not cal_path.exists():
+        with stage(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
+                   f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
+            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base), cal_path)
+    return cal_path
+
+
+def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1, *,
+                        note: Note = _quiet, stage: Stage = _no_stage) -> tuple[SensorCalibration, Path]:
+    """Fit the sensor model (``tofloc calibrate``: the support's rotation with its
+    uncertainty, each sensor's mounting, then EM of the bias/sigma curves and the mixture)
+    and write ``out/sensor_model.toml``; reuse that file when it records the same inputs.
+
+    A simulated log gets a *calibration session*: the same set-up (hardware seed: frame,
+    CAD cloud, sensor mounting) recorded again with the base placed elsewhere
+    (:data:`CALIBRATION_BASE_OFFSET`) and its own noise, as a lab calibrates its rig with a
+    motion-captured base before the experiment; the experiment's samples and its base
+    pose are never used. Any other log is calibrated on the k-NN training split (the
+    trials draw from the held-out split). The zones' expected distances are cast as the
+    beam model casts them (``sub_rays`` per side, against the estimators' map), so that
+    the fitted bias is the one the model needs.
+    """
+    from evaluation.result_cache import code_fingerprint, fingerprint_arrays
+    from sensor_models.calibration import calibrate_rig
+    from tofloc.logs import read_log
+
+    hw = _hardware_seed(data.log.source)
+    if hw is not None:
+        cal_path = calibration_session(out, scenario, seed, hw, note=note, stage=stage)
+        cal_log = read_log(cal_path)
+        rows = None
+        what = f"calibration session {cal_path.name} ({cal_log.n_samples} samples)"
+    else:
+        cal_log = data.log
+        rows = np.asarray(data.kinematics.train_indices)
+        if data.kinematics.log_fingerprint and not data.kinematics.matches(data.log.pressure_kpa, data.log.T_base_tip):
+            raise ParameterError("--calibrate: the k-NN model was not fit on this log, so its training split is unknown")
+        what = f"the k-NN training split ({rows.size} samples; the log is not simulated, so no calibration session)"
+    cal_log_used = cal_log if rows is None else cal_log.subset(rows)
+    key = fingerprint_arrays(cal_log_used.distance_mm, cal_log_used.status, cal_log_used.T_base_tip, cal_log_used.T_map_base,
+                             extra={"map": data.map.fingerprint(), "rig": cal_log_used.rig.to_dict(), "footprint": sub_rays,
+                                    "code": code_fingerprint()})
+    path = out / CALIBRATION_NAME
+    if path.exists():
+        try:
+            old = SensorCalibration.from_toml(path)
+        except FormatError:
+            old = None
+        if old is not None and old.meta.get("key") == key:
+            note(f"reused {path} (calibrated on {what}; same inputs)")
+            return old, path
+    with stage(f"calibrating the sensor model on {what}: the support's rotation, each sensor's mounting, then EM"):
+        cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
+    sc = cal.sensor_calibration({"log": str(cal_log.path), "samples": what, "map": str(data.map_path),
+                                 "footprint": sub_rays, "key": key}, source=str(path))
+    sc.write(path, "Sensor model fitted by `tofloc paper` (the calibration of `tofloc calibrate`).")
+    u = sc.uncertainty
+    worst = max([float(np.linalg.norm(e["rotation_deg"])) for e in sc.sensor_mounting.values()] or [0.0])
+    note(f"calibrated {path.name} on {what}: support rotation {sc.support_yaw_deg or 0.0:+.2f} +- "
+         f"{sc.support_yaw_sigma_deg:.2f} deg, sensor mounting corrections up to {worst:.2f} deg, sigma "
+         f"{100 * u.sigma_slope:.2f} % d (edge x{u.edge_factor:.2f}), bias {1000 * u.bias_offset:+.1f} mm {u.bias_slope:+.3f} d")
+    return sc, path

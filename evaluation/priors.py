@@ -1,0 +1,133 @@
+"""How a trial's prior is made (the paper's protocol, section III.C) and how a base pose
+splits into the planar unknowns and the known height and tilt."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from tofloc import frames
+from tofloc.errors import ParameterError
+from tofloc.problem import Prior
+
+__all__ = ["PRIOR_MODES", "PAPER_SIGMA_XY_M", "PAPER_SIGMA_YAW_DEG", "PriorSpec", "base_pose_parts"]
+
+PRIOR_MODES = ("paper", "offset")
+#: The paper's prior spread (section III.C): 0.2 m on x and y, 20 deg on yaw.
+PAPER_SIGMA_XY_M = 0.2
+PAPER_SIGMA_YAW_DEG = 20.0
+
+
+def base_pose_parts(T_map_base: ArrayLike) -> tuple[Any, Any, Any, Any]:
+    """Split base poses ``(..., 4, 4)`` into ``(x, y, yaw)``, ``z``, ``roll``, ``pitch``.
+
+    The exact inverse of :func:`tofloc.frames.se3_from_xyyaw`: the parameters it would
+    need to rebuild ``T_map_base`` (so that the yaw an estimator estimates and the true
+    yaw are the same quantity even for a tilted base). For a single pose the last three
+    are floats; for a stack, arrays.
+    """
+    T = np.asarray(T_map_base, dtype=float)
+    R = T[..., :3, :3].reshape(-1, 3, 3)
+    # se3_from_xyyaw composes Rz(yaw) with a fixed tilt; take the Euler order that rebuilds it
+    best = None
+    for seq, order in (("ZXY", (0, 1, 2)), ("ZYX", (0, 2, 1))):
+        ang = Rotation.from_matrix(R).as_euler(seq)
+        yaw, roll, pitch = ang[:, order[0]], ang[:, order[1]], ang[:, order[2]]
+        ok = all(
+            np.allclose(frames.se3_from_xyyaw(0.0, 0.0, yaw[i], 0.0, float(roll[i]), float(pitch[i]))[:3, :3], R[i], atol=1e-9)
+            for i in range(min(len(R), 3))
+        )
+        if ok or best is None:
+            best = (yaw, roll, pitch)
+        if ok:
+            break
+    assert best is not None
+    yaw, roll, pitch = best
+    lead = T.shape[:-2]
+    xyyaw = np.stack([T[..., 0, 3], T[..., 1, 3], frames.wrap_angle(yaw.reshape(lead))], axis=-1)
+    z, roll, pitch = T[..., 2, 3], roll.reshape(lead), pitch.reshape(lead)
+    if not lead:
+        return xyyaw, float(z), float(roll), float(pitch)
+    return xyyaw, z, roll, pitch
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """How a trial's prior is made.
+
+    Parameters
+    ----------
+    mode : {"paper", "offset", "given"}
+        ``paper``: a Gaussian centred on the true pose (the paper's set-up: the particles
+        are drawn around the truth). ``offset``: the prior *mean* is itself drawn from
+        that Gaussian around the truth, so the estimator must find the truth.
+        ``given``: a fixed prior (``mean``, ``z``, ``roll``, ``pitch``), e.g. for a log
+        without ground truth.
+    sigma_xy_m, sigma_yaw_deg : float
+        Standard deviations of the prior (and of the offset draw).
+    mean : tuple of 3 floats, optional
+        ``(x, y, yaw)`` in metres and radians, for mode ``given``.
+    z, roll, pitch : float
+        The known base height and tilt, for mode ``given`` (other modes take the truth's).
+    """
+
+    mode: str = "offset"
+    sigma_xy_m: float = PAPER_SIGMA_XY_M
+    sigma_yaw_deg: float = PAPER_SIGMA_YAW_DEG
+    mean: tuple[float, float, float] | None = None
+    z: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in PRIOR_MODES + ("given",):
+            raise ParameterError(f"prior mode must be one of {', '.join(PRIOR_MODES + ('given',))}, got {self.mode!r}")
+        for name in ("sigma_xy_m", "sigma_yaw_deg"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
+                raise ParameterError(f"prior {name} must be a finite number > 0, got {v!r}")
+        if self.mode == "given":
+            if self.mean is None or len(self.mean) != 3 or not all(math.isfinite(float(v)) for v in self.mean):
+                raise ParameterError(f"a given prior needs a mean of 3 finite numbers (x, y, yaw), got {self.mean!r}")
+            if not all(math.isfinite(float(v)) for v in (self.z, self.roll, self.pitch)):
+                raise ParameterError("a given prior needs finite z, roll and pitch")
+
+    @property
+    def sigma(self) -> NDArray[np.float64]:
+        """``(sigma_x, sigma_y, sigma_yaw)`` in metres and radians."""
+        return np.array([self.sigma_xy_m, self.sigma_xy_m, math.radians(self.sigma_yaw_deg)])
+
+    def make(self, truth: ArrayLike | None, offset_normals: ArrayLike) -> Prior:
+        """The prior of one trial.
+
+        Parameters
+        ----------
+        truth : array (4, 4) or None
+            The true base pose (needed unless the mode is ``given``).
+        offset_normals : array (3,)
+            Standard-normal draws; the ``offset`` mode moves the mean by
+            ``offset_normals * sigma`` (the other modes ignore them).
+        """
+        if self.mode == "given":
+            assert self.mean is not None
+            return Prior(mean=np.asarray(self.mean, dtype=float), sigma=self.sigma, z=self.z, roll=self.roll, pitch=self.pitch)
+        if truth is None:
+            raise ParameterError(f"prior mode {self.mode!r} needs the true base pose; without truth give the prior explicitly")
+        xyyaw, z, roll, pitch = base_pose_parts(truth)
+        mean = xyyaw.copy()
+        if self.mode == "offset":
+            mean = mean + np.asarray(offset_normals, dtype=float) * self.sigma
+        return Prior(mean=mean, sigma=self.sigma, z=z, roll=roll, pitch=pitch)
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"mode", "sigma_xy_m", "sigma_yaw_deg"}`` (plus ``mean``, ``z``, ``roll``, ``pitch`` for ``given``)."""
+        out: dict[str, Any] = {"mode": self.mode, "sigma_xy_m": float(self.sigma_xy_m), "sigma_yaw_deg": float(self.sigma_yaw_deg)}
+        if self.mode == "given":
+            assert self.mean is not None
+            out.update(mean=[float(v) for v in self.mean], z=float(self.z), roll=float(self.roll), pitch=float(self.pitch))
+        return out

@@ -1,0 +1,252 @@
+"""Batches of trials saved as they finish, keyed by everything that made them, so that a
+rerun reuses what it can and an interrupted run loses only unfinished batches.
+
+The key of a batch covers the data (:func:`context_fingerprint`: the log, the map's
+:meth:`~tofloc.maps.Map.fingerprint`, the kinematics model, the pool, the calibration),
+the code (:func:`code_fingerprint`: the toolkit's sources and every resolved plug-in's
+module or distribution), the estimator and its full parameters, the prior, the k values,
+the trial count and the seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from evaluation.executors import run_tasks
+from evaluation.priors import PriorSpec
+from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, make_tasks
+
+__all__ = ["fingerprint_arrays", "Batch", "context_fingerprint", "code_fingerprint", "plugin_objects", "run_batches"]
+
+
+def fingerprint_arrays(*arrays: ArrayLike | None, extra: Any = None) -> str:
+    """SHA-256 (hex, 16 digits) of arrays (dtype, shape and bytes) and a JSON-able ``extra``."""
+    h = hashlib.sha256()
+    for a in arrays:
+        if a is None:
+            h.update(b"none\0")
+            continue
+        arr = np.ascontiguousarray(a)
+        h.update(f"{arr.dtype.str}{arr.shape}".encode())
+        h.update(arr.tobytes())
+    if extra is not None:
+        h.update(json.dumps(jsonable(extra), sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+# -- batches with saved progress (the paper's protocol) -------------------------------------------
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Trials of one estimator with one tip source and one prior mode.
+
+    Parameters
+    ----------
+    estimator : str
+        Registry name.
+    estimator_cls : type
+    params : dict
+        Keyword parameters of the estimator.
+    tip_source : str
+    prior : PriorSpec
+    """
+
+    estimator: str
+    estimator_cls: type
+    params: Mapping[str, Any]
+    tip_source: str
+    prior: PriorSpec
+
+    @property
+    def group(self) -> str:
+        """``"estimator/tip_source/prior_mode"``."""
+        return f"{self.estimator}/{self.tip_source}/{self.prior.mode}"
+
+
+def context_fingerprint(context: TrialContext) -> str:
+    """Identifies the data a run used: the log's arrays, the map (:meth:`~tofloc.maps.Map.fingerprint`),
+    the k-NN model, the pool, the valid statuses and the calibration."""
+    log, kin = context.log, context.kinematics
+    cal = context.calibration
+    return fingerprint_arrays(
+        log.distance_mm, log.status, log.T_base_tip, log.pressure_kpa, log.T_map_base, getattr(log, "T_base_tip_cov", None),
+        None if kin is None else np.asarray(kin.pressure_kpa),
+        None if kin is None else np.asarray(kin.T_base_tip),
+        None if kin is None else np.asarray(kin.validation_indices),
+        None if kin is None else kin.configuration_covariance,
+        context.pool.indices,
+        extra={"map": context.map.fingerprint(), "rig": log.rig.to_dict(), "k": None if kin is None else int(kin.k),
+               "valid_statuses": sorted(context.valid_statuses),
+               "calibration": None if cal is None else cal.to_dict(),
+               "configuration_source": getattr(log, "configuration_source", None)},
+    )
+
+
+def plugin_objects(estimator: Any) -> list[Any]:
+    """The objects whose code makes an estimator's numbers: its class and, for an estimator
+    that composes a sensor model (``make_sensor_model``), the model's class."""
+    objs: list[Any] = [type(estimator)]
+    make = getattr(estimator, "make_sensor_model", None)
+    if callable(make):
+        objs.append(type(make()))
+    return objs
+
+
+def code_fingerprint(*objects: Any) -> str:
+    """SHA-256 (16 hex digits) of the toolkit's Python sources, of the modules defining
+    ``objects`` (e.g. :func:`plugin_objects`: a plug-in estimator and the sensor model it
+    resolves) and of the installed versions of the distributions providing them.
+
+    Saved partial results carry it, so that editing an estimator, a sensor model (a
+    plug-in's too) or the protocol invalidates them instead of silently mixing old and
+    new numbers.
+    """
+    import importlib
+    import inspect
+    from importlib import metadata
+    from pathlib import Path
+
+    files: set[Path] = set()
+    dists: set[str] = set()
+    for pkg in ("tofloc", "estimators", "sensor_models", "evaluation"):
+        try:
+            mod = importlib.import_module(pkg)
+        except ImportError:  # pragma: no cover - all four ship together
+            continue
+        for base in getattr(mod, "__path__", []):
+            files.update(Path(base).rglob("*.py"))
+    top_to_dists = metadata.packages_distributions()
+    for obj in objects:
+        try:
+            files.add(Path(inspect.getfile(obj)))
+        except (TypeError, OSError):
+            pass
+        top = (getattr(obj, "__module__", "") or "").split(".")[0]
+        for dist in top_to_dists.get(top, []):
+            try:
+                dists.add(f"{dist}=={metadata.version(dist)}")
+            except metadata.PackageNotFoundError:  # pragma: no cover
+                pass
+    h = hashlib.sha256()
+    for f in sorted(files):
+        try:
+            h.update(f.read_bytes())
+        except OSError:
+            continue
+    for d in sorted(dists):
+        h.update(d.encode())
+    return h.hexdigest()[:16]
+
+
+def _partial_path(folder: Any, group: str) -> Any:
+    from pathlib import Path
+
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in group.replace("/", "__"))
+    return Path(folder) / f"{safe}.json"
+
+
+def run_batches(
+    context: TrialContext,
+    batches: Sequence[Batch],
+    k_values: Sequence[int],
+    trials: int,
+    seed: int,
+    workers: int = 1,
+    scheduler: Any | None = None,
+    partial_dir: Any | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+    on_batch: Callable[[Batch, list[dict[str, Any]], bool], None] | None = None,
+) -> dict[str, list[dict[str, Any]]]:
+    """Run every batch (all their trials in one pool of workers), saving each as it ends.
+
+    Parameters
+    ----------
+    context : TrialContext
+    batches : sequence of Batch
+    k_values : sequence of int
+        Numbers of samples (the paper: 1..10).
+    trials : int
+        Trials per k (the paper: 50).
+    seed : int
+        Run seed; trial seeds follow :func:`trial_seed`, identical for every batch.
+    workers, scheduler
+        As :func:`run_tasks`.
+    partial_dir : path, optional
+        Each finished batch is written there (``<estimator>__<tip>__<mode>.json``, atomic)
+        with a key identifying the data, the estimator, its parameters, the prior, the
+        k values, the trial count and the seed; a rerun with the same key reuses the file
+        instead of running the batch again, so an interrupted run loses only unfinished
+        batches. The key also covers the estimator's full parameters (defaults included)
+        and the toolkit's source code (:func:`code_fingerprint`).
+    on_progress : callable, optional
+        ``on_progress(done, total)`` over the trials that actually run.
+    on_batch : callable, optional
+        ``on_batch(batch, records, reused)`` when a batch is complete.
+
+    Returns
+    -------
+    dict
+        ``group -> records`` (ordered by k, then trial).
+    """
+    from evaluation.report import write_json_atomic
+
+    data_key = context_fingerprint(context) if partial_dir is not None else ""
+    out: dict[str, list[dict[str, Any]]] = {}
+    todo: list[tuple[Batch, str]] = []
+    for b in batches:
+        full_params = make_estimator(b.estimator_cls, b.params, b.estimator).get_params()  # defaults included
+        key_fields = {
+            "data": data_key,
+            "code": code_fingerprint(*plugin_objects(make_estimator(b.estimator_cls, b.params, b.estimator)))
+            if partial_dir is not None else "",
+            "estimator": b.estimator, "params": jsonable(full_params), "tip_source": b.tip_source,
+            "prior": b.prior.to_json(), "k_values": [int(k) for k in k_values], "trials": int(trials), "seed": int(seed),
+        }
+        key = fingerprint_arrays(extra=key_fields)
+        if partial_dir is not None:
+            path = _partial_path(partial_dir, b.group)
+            try:
+                saved = json.loads(path.read_text())
+            except (OSError, ValueError):
+                saved = None
+            if isinstance(saved, dict) and saved.get("key") == key and isinstance(saved.get("records"), list):
+                out[b.group] = saved["records"]
+                if on_batch is not None:
+                    on_batch(b, saved["records"], True)
+                continue
+        todo.append((b, key))
+
+    tasks: list[TrialTask] = []
+    for b, _ in todo:
+        tasks += make_tasks(b.group, b.estimator, b.estimator_cls, b.params, b.tip_source, b.prior, k_values, trials, seed)
+    expected = len(k_values) * trials
+    collected: dict[str, dict[int, dict[str, Any]]] = {b.group: {} for b, _ in todo}
+    keys = {b.group: (b, key) for b, key in todo}
+    n_done = 0
+
+    def on_result(i: int, rec: dict[str, Any]) -> None:
+        nonlocal n_done
+        group = tasks[i].group
+        collected[group][i] = rec
+        n_done += 1
+        if on_progress is not None:
+            on_progress(n_done, len(tasks))
+        if len(collected[group]) == expected:
+            b, key = keys[group]
+            recs = [collected[group][j] for j in sorted(collected[group])]
+            out[group] = recs
+            if partial_dir is not None:
+                write_json_atomic({"key": key, "group": group, "records": recs}, _partial_path(partial_dir, group))
+            if on_batch is not None:
+                on_batch(b, recs, False)
+
+    if tasks:
+        run_tasks(context, tasks, workers=workers, scheduler=scheduler, on_result=on_result)
+    return {b.group: out[b.group] for b in batches}

@@ -1,0 +1,413 @@
+"""Trials of the paper's evaluation protocol: samples drawn at random, a random prior, paired seeds.
+
+One *trial* localizes the base from ``k`` samples of a log, drawn at random from a
+*pool*, starting from a prior drawn around the true pose. Trials are specified by
+:class:`TrialTask` and run by :func:`run_trial` against a :class:`TrialContext` (the
+log, the map, the kinematics model, the pool, the truth); :func:`run_tasks` runs many of
+them inline, in local processes or on a Dask cluster (:mod:`evaluation.executors`), with
+identical results; :mod:`evaluation.result_cache` saves finished batches.
+
+Pairing (common random numbers)
+-------------------------------
+Every trial has an integer seed that depends only on the run's seed, ``k`` and the trial
+number (:func:`trial_seed`)::
+
+    trial_seed = SeedSequence([seed, k, trial]).generate_state(1, uint32)[0]
+    draw_rng, estimator_rng = (default_rng(s) for s in SeedSequence(trial_seed).spawn(2))
+
+``draw_rng`` first picks the ``k`` sample indices (``choice(pool, k, replace=False)``)
+and then the three standard-normal prior offsets; ``estimator_rng`` is handed to the
+estimator. The seed does not depend on the estimator, the tip source or the prior mode,
+so two estimators (or ``mocap`` and ``knn``, or the two prior modes) see identical
+samples and, for a given mode, identical priors: their errors can be compared trial by
+trial.
+
+The pool
+--------
+Samples come from the k-NN model's held-out validation split when a kinematics model
+fit on this very log is given (the paper: the model is trained on 80 % of the samples;
+localization uses the other 20 %), **for both tip sources**, so that ``mocap`` and
+``knn`` use the same samples. Only samples every usable tip source can use enter the
+pool (a known motion-capture pose when the log has them, finite pressures when a model
+is given) and samples without any valid zone are left out (they carry no information and
+a problem made only of them has nothing to localize from). When that pool holds fewer
+than the largest ``k`` asked for, every usable sample of the log is used instead, and
+:attr:`SamplePool.note` says so; so it does when there is no model or the model was fit
+on another log.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from evaluation.metrics import json_float, nees, position_error, yaw_error_deg
+from evaluation.priors import PriorSpec, base_pose_parts
+from tofloc import frames
+from tofloc.errors import ParameterError, TofLocError
+from tofloc.problem import Estimator, ProblemError
+from tofloc.problem_builder import TIP_SOURCES, problem_from_log
+from tofloc.rig import DEFAULT_VALID_STATUSES
+
+__all__ = [
+    "TIP_SOURCES",
+    "STATIC_BASE_TOL_M",
+    "STATIC_BASE_TOL_RAD",
+    "SEED_DERIVATION",
+    "SamplePool",
+    "TrialTask",
+    "TrialContext",
+    "TrialError",
+    "sample_pool",
+    "trial_seed",
+    "trial_rngs",
+    "draw_samples_and_prior",
+    "make_estimator",
+    "run_trial",
+    "make_tasks",
+    "jsonable",
+]
+
+#: A log whose ``/truth/T_map_base`` moves more than this over the pool is refused: the
+#: protocol localizes a static base.
+STATIC_BASE_TOL_M = 0.01
+STATIC_BASE_TOL_RAD = math.radians(1.0)
+#: How trial seeds and generators are derived (recorded in every output).
+SEED_DERIVATION = (
+    "trial seed = SeedSequence([seed, k, trial]).generate_state(1, uint32)[0]; "
+    "draw_rng, estimator_rng = default_rng(SeedSequence(trial seed).spawn(2)); "
+    "draw_rng: choice(pool, k, replace=False) then normal(size=3) for the prior offset"
+)
+
+
+class TrialError(TofLocError):
+    """A trial failed on its input (carries the original message; picklable across processes)."""
+
+
+def _log_name(log: Any) -> str:
+    p = getattr(log, "path", None)
+    return str(p) if p is not None else "<log>"
+
+
+# -- the pool of samples -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SamplePool:
+    """The samples trials draw from.
+
+    Attributes
+    ----------
+    indices : int array
+        Rows of the log, sorted.
+    source : {"validation", "all"}
+        The k-NN model's held-out split, or every usable sample.
+    note : str
+        One sentence saying which, and why.
+    """
+
+    indices: NDArray[np.intp]
+    source: str
+    note: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"source": self.source, "size": int(self.indices.size), "note": self.note}
+
+
+def sample_pool(
+    log: Any,
+    kinematics: Any | None = None,
+    k_max: int = 1,
+    valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
+) -> SamplePool:
+    """Choose the samples trials draw from (see the module doc).
+
+    Parameters
+    ----------
+    log : tofloc.logs.Log
+    kinematics : KinematicsModel, optional
+        Its validation split is the pool when it was fit on ``log``.
+    k_max : int
+        The largest number of samples a trial will draw.
+    valid_statuses : iterable of int
+
+    Raises
+    ------
+    ProblemError
+        When fewer than ``k_max`` usable samples exist in the whole log.
+    """
+    name = _log_name(log)
+    usable = np.any(log.valid(valid_statuses), axis=(1, 2))
+    needs = ["a valid zone"]
+    if log.T_base_tip is not None:
+        usable &= np.all(np.isfinite(np.asarray(log.T_base_tip)), axis=(1, 2))
+        needs.append("a known motion-capture pose")
+    if kinematics is not None and log.pressure_kpa is not None:
+        usable &= np.all(np.isfinite(np.asarray(log.pressure_kpa)), axis=1)
+        needs.append("finite pressures")
+    all_rows = np.flatnonzero(usable).astype(np.intp)
+    what = ", ".join(needs)
+    if all_rows.size < k_max:
+        raise ProblemError(
+            f"{name}: {all_rows.size} of {log.n_samples} samples are usable (with {what}); {k_max} are needed per trial"
+        )
+    if kinematics is None:
+        return SamplePool(all_rows, "all", f"all {all_rows.size} usable samples (with {what}): no kinematics model given")
+    fits_log = (
+        log.pressure_kpa is not None and log.T_base_tip is not None and kinematics.matches(log.pressure_kpa, log.T_base_tip)
+    )
+    if not fits_log:
+        return SamplePool(
+            all_rows, "all", f"all {all_rows.size} usable samples (with {what}): the kinematics model was fit on another log, "
+            "so every sample of this one is held out"
+        )
+    val = np.intersect1d(np.asarray(kinematics.validation_indices, dtype=np.intp), all_rows)
+    if val.size < k_max:
+        return SamplePool(
+            all_rows, "all", f"all {all_rows.size} usable samples (with {what}): the k-NN model's held-out split has only "
+            f"{val.size} usable samples, fewer than the {k_max} a trial draws (some samples also trained the model)"
+        )
+    return SamplePool(
+        val.astype(np.intp), "validation",
+        f"the k-NN model's held-out validation split: {val.size} usable samples (with {what}), the same for both tip sources",
+    )
+
+
+# -- seeds and draws ---------------------------------------------------------------------------
+
+
+def trial_seed(seed: int, k: int, trial: int) -> int:
+    """The seed of trial ``trial`` with ``k`` samples in a run seeded ``seed`` (see the module doc)."""
+    for name, v in (("seed", seed), ("k", k), ("trial", trial)):
+        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
+            raise ParameterError(f"{name} must be a non-negative integer, got {v!r}")
+    return int(np.random.SeedSequence([int(seed), int(k), int(trial)]).generate_state(1, np.uint32)[0])
+
+
+def trial_rngs(seed: int) -> tuple[np.random.Generator, np.random.Generator]:
+    """``(draw_rng, estimator_rng)`` of a trial seed."""
+    a, b = np.random.SeedSequence(int(seed)).spawn(2)
+    return np.random.default_rng(a), np.random.default_rng(b)
+
+
+def draw_samples_and_prior(pool: ArrayLike, k: int, seed: int) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """The ``k`` sample indices and the 3 standard-normal prior offsets of a trial seed."""
+    draw_rng, _ = trial_rngs(seed)
+    pool = np.asarray(pool, dtype=np.intp)
+    if not 1 <= k <= pool.size:
+        raise ParameterError(f"cannot draw {k} samples from a pool of {pool.size}")
+    idx = draw_rng.choice(pool, size=k, replace=False).astype(np.intp)
+    return idx, draw_rng.normal(size=3)
+
+
+# -- trials ----------------------------------------------------------------------------------
+
+
+def jsonable(value: Any) -> Any:
+    """A JSON-ready copy: numpy scalars/arrays to Python, mappings to dicts, NaN to None."""
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return json_float(value)
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
+
+
+def make_estimator(cls: type, params: Mapping[str, Any], name: str = "") -> Estimator:
+    """``cls(**params)``, with an unknown parameter reported as a :class:`ParameterError`."""
+    try:
+        est = cls(**dict(params))
+    except TypeError as e:
+        import dataclasses
+
+        known = [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+        raise ParameterError(
+            f"estimator {name or cls.__name__!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")
+        ) from None
+    if not isinstance(est, Estimator):
+        raise ParameterError(f"estimator {name or cls.__name__!r} does not follow tofloc.problem.Estimator")
+    return est
+
+
+@dataclass(frozen=True)
+class TrialTask:
+    """One trial to run (small and picklable: sent to workers).
+
+    Parameters
+    ----------
+    group : str
+        Which batch it belongs to (e.g. ``"icp_pf/knn/paper"``).
+    estimator : str
+        The estimator's registry name (for the record).
+    estimator_cls : type
+        The class itself, so that workers need not share the parent's registry.
+    params : dict
+        Keyword parameters of the estimator.
+    tip_source : str
+    prior : PriorSpec
+    k, trial, seed : int
+        Number of samples, trial number, and the trial seed (:func:`trial_seed`).
+    """
+
+    group: str
+    estimator: str
+    estimator_cls: type
+    params: Mapping[str, Any]
+    tip_source: str
+    prior: PriorSpec
+    k: int
+    trial: int
+    seed: int
+
+
+@dataclass(eq=False)
+class TrialContext:
+    """What every trial shares (sent once to each worker).
+
+    Parameters
+    ----------
+    log : tofloc.logs.Log
+    map : tofloc.maps.Map
+    pool : SamplePool
+    kinematics : KinematicsModel, optional
+    valid_statuses : frozenset of int
+    calibration : tofloc.calibration_file.SensorCalibration, optional
+        Applied (by the problem builder) for every estimator whose
+        :meth:`~tofloc.problem.Estimator.uses_calibration` is true (the paper's ICP-score
+        filter uses the CAD rig, as the paper did); the Cramér-Rao bound of every trial is
+        computed with it.
+    """
+
+    log: Any
+    map: Any
+    pool: SamplePool
+    kinematics: Any | None = None
+    valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
+    calibration: Any | None = None
+    _truth_xyyaw: NDArray[np.float64] | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        truth = self.log.truth_per_sample()
+        if truth is None:
+            return
+        pool = self.pool.indices
+        xyyaw = base_pose_parts(truth)[0]
+        p = xyyaw[pool]
+        ref = p[0] if p.size else np.zeros(3)
+        dxy = float(np.max(np.hypot(p[:, 0] - ref[0], p[:, 1] - ref[1]))) if p.size else 0.0
+        dyaw = float(np.max(np.abs(frames.wrap_angle(p[:, 2] - ref[2])))) if p.size else 0.0
+        if dxy > STATIC_BASE_TOL_M or dyaw > STATIC_BASE_TOL_RAD:
+            raise ProblemError(
+                f"{_log_name(self.log)}: /truth/T_map_base moves by {dxy * 1000:.1f} mm / {math.degrees(dyaw):.2f} deg over "
+                f"the samples; the protocol localizes a static base (tolerance {STATIC_BASE_TOL_M * 1000:.0f} mm, "
+                f"{math.degrees(STATIC_BASE_TOL_RAD):.0f} deg)"
+            )
+        self._truth_xyyaw = xyyaw
+
+    @property
+    def has_truth(self) -> bool:
+        return self.log.T_map_base is not None
+
+    def truth(self, indices: NDArray[np.intp]) -> NDArray[np.float64] | None:
+        """The true base pose ``(4, 4)`` for these samples, None without truth.
+
+        A fixed ``(4, 4)`` truth is returned as is; a per-sample truth (static within
+        tolerance) is averaged: x, y and the circular-mean yaw of the samples', with the
+        z, roll and pitch of the first one.
+        """
+        if self._truth_xyyaw is None:
+            return None
+        T = np.asarray(self.log.T_map_base, dtype=float)
+        if T.ndim == 2:
+            return T.copy()
+        p = self._truth_xyyaw[indices]
+        _, z, roll, pitch = base_pose_parts(T[indices[0]])
+        yaw = float(frames.circular_mean(p[:, 2]))
+        return frames.se3_from_xyyaw(float(p[:, 0].mean()), float(p[:, 1].mean()), yaw, z, roll, pitch)
+
+
+def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
+    """Run one trial; returns its JSON record.
+
+    Returns
+    -------
+    dict
+        ``seed``, ``k``, ``trial``, ``sample_indices``, ``truth`` ([x, y, yaw] or None),
+        ``prior_mean``, ``estimate``, ``covariance`` (3x3), ``e_x_m``, ``e_gamma_deg``,
+        ``nees`` (None without truth or with a singular covariance), ``runtime_s`` and
+        ``crlb``: ``{"position_m", "yaw_deg"}``, sqrt of the Cramér-Rao bound at the true
+        pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
+        ``null`` for an unobservable direction; the whole entry None without truth).
+    """
+    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
+    truth_T = context.truth(idx)
+    prior = task.prior.make(truth_T, normals)
+    est = make_estimator(task.estimator_cls, task.params, task.estimator)
+    calibration = context.calibration if est.uses_calibration() else None
+    problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
+                               context.valid_statuses)
+    _, est_rng = trial_rngs(task.seed)
+    result = est.estimate(problem, est_rng)
+    record: dict[str, Any] = {
+        "seed": int(task.seed),
+        "k": int(task.k),
+        "trial": int(task.trial),
+        "sample_indices": [int(i) for i in idx],
+        "truth": None,
+        "prior_mean": jsonable(prior.mean),
+        "estimate": jsonable(result.pose),
+        "covariance": jsonable(result.covariance),
+        "e_x_m": None,
+        "e_gamma_deg": None,
+        "nees": None,
+        "runtime_s": float(result.runtime_s),
+        "crlb": None,
+    }
+    if truth_T is not None:
+        truth = base_pose_parts(truth_T)[0]
+        record["truth"] = jsonable(truth)
+        record["e_x_m"] = json_float(position_error(truth, result.pose))
+        record["e_gamma_deg"] = json_float(yaw_error_deg(truth, result.pose))
+        record["nees"] = json_float(nees(truth, result.pose, result.covariance))
+        if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
+            from evaluation.crlb import crlb_for_problem
+
+            bound_problem = problem if calibration is context.calibration else problem_from_log(
+                context.log, idx, context.map, prior, task.tip_source, context.kinematics, context.calibration,
+                context.valid_statuses)
+            record["crlb"] = crlb_for_problem(bound_problem, truth_T).to_json()
+    return record
+
+
+def make_tasks(
+    group: str,
+    estimator: str,
+    estimator_cls: type,
+    params: Mapping[str, Any],
+    tip_source: str,
+    prior: PriorSpec,
+    k_values: Iterable[int],
+    trials: int,
+    seed: int,
+) -> list[TrialTask]:
+    """The tasks of one batch: every ``k`` in ``k_values`` times ``trials`` trials."""
+    if not isinstance(trials, int) or trials < 1:
+        raise ParameterError(f"trials must be an integer >= 1, got {trials!r}")
+    return [
+        TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, int(k), t, trial_seed(seed, int(k), t))
+        for k in k_values
+        for t in range(trials)
+    ]

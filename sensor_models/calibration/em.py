@@ -1,0 +1,258 @@
+"""EM fit of the range model and the beam mixture (Probabilistic Robotics, Table 6.2).
+
+Maximum likelihood of the mixture ``p(z | z*) = z_hit p_hit + z_short p_short + z_max
+p_max + z_rand p_rand`` with ``p_hit = N(z; z* + bias(z*), sigma(z*)^2)`` truncated to
+``[0, z_max]``, ``p_short = lambda e^(-lambda z) / (1 - e^(-lambda z*))`` on ``[0, z*]``,
+``p_max`` a point mass on "no return" (status 255) and ``p_rand = 1 / z_max``. The M-step
+is Thrun's for the weights; ``lambda_short`` is the exact weighted MLE of the truncated
+exponential; the hit curves are what :class:`tofloc.range_model.RangeUncertainty`
+expresses per zone class: ``bias = offset + slope * z*`` (weighted least squares) and
+``sigma = max(floor, slope * z*) * (edge_factor on edge zones)`` (weighted Gaussian
+likelihood, L-BFGS-B with the analytic gradient). Vectorized over zones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+from scipy.special import ndtr
+
+from sensor_models.beam import BeamMixture
+from sensor_models.calibration.zones import ZoneSamples
+from tofloc.errors import ParameterError
+from tofloc.range_model import RangeUncertainty
+
+__all__ = ["CalibrationResult", "fit_em", "MIN_WEIGHT"]
+
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+#: Smallest z_rand and z_max written (the beam model needs z_rand > 0, and a zero z_max would
+#: make one unexpected "no target" reading impossible; a clean simulation drives both to ~0).
+MIN_WEIGHT = 1e-6
+
+
+@dataclass(eq=False)
+class CalibrationResult:
+    """What :func:`fit_em` found.
+
+    Attributes
+    ----------
+    uncertainty : RangeUncertainty
+        The fitted bias/sigma curves.
+    beam : BeamMixture
+        The fitted mixture weights and ``lambda_short``.
+    log_likelihood : float
+        Of the data under the fitted model (nats, total).
+    iterations : int
+    converged : bool
+    responsibilities : ndarray (N, 4)
+        Posterior of (hit, short, max, rand) for every zone.
+    samples : ZoneSamples
+    notes : list of str
+        Caveats (e.g. a floor the data cannot identify).
+    zone_loglik : ndarray (N,)
+        Each zone's log-likelihood under the fitted model (nats): per-sample sums of it
+        feed the block jackknife of :func:`sensor_models.calibration.mounting_fit.fit_support_yaw`.
+    """
+
+    uncertainty: RangeUncertainty
+    beam: BeamMixture
+    log_likelihood: float
+    iterations: int
+    converged: bool
+    responsibilities: NDArray[np.float64]
+    samples: ZoneSamples
+    notes: list[str] = field(default_factory=list)
+    zone_loglik: NDArray[np.float64] | None = None
+
+
+def _hit_density(r: NDArray[np.float64], mu: NDArray[np.float64], s: NDArray[np.float64], z: NDArray[np.float64],
+                 zmax: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Gaussian of residual ``r`` (= z - z*) around ``mu`` with sd ``s``, truncated so that z lies in [0, z_max]."""
+    zs = z - r  # expected distance
+    norm = ndtr((zmax - zs - mu) / s) - ndtr((-zs - mu) / s)
+    return np.exp(-0.5 * ((r - mu) / s) ** 2) / (s * _SQRT_2PI) / np.maximum(norm, 1e-12)
+
+
+def _sigma_parts(unc: RangeUncertainty, d: NDArray[np.float64], edge: NDArray[np.bool_]) -> NDArray[np.float64]:
+    base = np.maximum(unc.sigma_floor, unc.sigma_slope * d)
+    return base * np.where(edge, unc.edge_factor, 1.0)
+
+
+def _bias(unc: RangeUncertainty, d: NDArray[np.float64], edge: NDArray[np.bool_]) -> NDArray[np.float64]:
+    return np.where(edge, unc.edge_bias_offset + unc.edge_bias_slope * d, unc.bias_offset + unc.bias_slope * d)
+
+
+def _fit_bias(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.float64], edge: NDArray[np.bool_],
+              old: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """Weighted least squares of ``r ~ a + b d`` per class; a class with too little weight keeps ``old``."""
+    out = list(old)
+    for j, cls in enumerate((~edge, edge)):
+        ww, dd, rr = w[cls], d[cls], r[cls]
+        if dd.size == 0 or ww.sum() < 3 or np.ptp(dd) < 1e-6:
+            continue
+        A = np.stack([np.ones_like(dd), dd], axis=1) * np.sqrt(ww)[:, None]
+        coef, *_ = np.linalg.lstsq(A, rr * np.sqrt(ww), rcond=None)
+        a, b = float(np.clip(coef[0], -0.5, 0.5)), float(np.clip(coef[1], -0.5, 0.5))
+        out[2 * j], out[2 * j + 1] = a, b
+    return out[0], out[1], out[2], out[3]
+
+
+def _fit_sigma(q: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.float64], edge: NDArray[np.bool_],
+               x0: tuple[float, float, float]) -> tuple[float, float, float]:
+    """Maximize ``sum w (-log s - q / (2 s^2))`` over (slope, floor, edge_factor); ``q`` = squared residual."""
+    W = max(float(w.sum()), 1e-300)
+
+    def f(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        slope, floor, factor = theta
+        lin = slope * d
+        on_slope = lin > floor
+        base = np.where(on_slope, lin, floor)
+        fac = np.where(edge, factor, 1.0)
+        s = base * fac
+        nll = w * (np.log(s) + 0.5 * q / s**2)
+        g_s = w * (1.0 / s - q / s**3)
+        grad = np.array([
+            np.sum(g_s * np.where(on_slope, d * fac, 0.0)),
+            np.sum(g_s * np.where(on_slope, 0.0, fac)),
+            np.sum(g_s * np.where(edge, base, 0.0)),
+        ])
+        return float(nll.sum() / W), grad / W
+
+    res = minimize(f, np.asarray(x0, dtype=float), jac=True, method="L-BFGS-B",
+                   bounds=[(1e-5, 1.0), (1e-4, 1.0), (0.1, 10.0)], options={"maxiter": 200})
+    slope, floor, factor = (float(v) for v in res.x)
+    return slope, floor, factor
+
+
+def _fit_lambda(w: NDArray[np.float64], z: NDArray[np.float64], d: NDArray[np.float64], lam0: float) -> float:
+    """Weighted MLE of the rate of an exponential truncated to ``[0, d_i]`` (Thrun's update
+    ``sum w / sum w z`` ignores the truncation; it is the starting point here)."""
+    from scipy.optimize import minimize_scalar
+
+    W = float(w.sum())
+    sel = w > 1e-12
+    w, z, d = w[sel], z[sel], d[sel]
+
+    def nll(log_lam: float) -> float:
+        lam = math.exp(log_lam)
+        return float(-np.sum(w * (log_lam - lam * z - np.log(-np.expm1(-lam * d)))) / W)
+
+    res = minimize_scalar(nll, bounds=(math.log(1e-3), math.log(1e3)), method="bounded", options={"xatol": 1e-6})
+    return float(np.clip(math.exp(res.x), 1e-3, 1e3)) if res.success else lam0
+
+
+def fit_em(
+    samples: ZoneSamples,
+    init: RangeUncertainty | None = None,
+    init_beam: BeamMixture | None = None,
+    *,
+    max_iter: int = 200,
+    tol: float = 1e-7,
+) -> CalibrationResult:
+    """Fit the beam mixture and the bias/sigma curves by EM (Probabilistic Robotics, Table 6.2).
+
+    Parameters
+    ----------
+    samples : ZoneSamples
+        From :func:`collect_zones` (several logs: :meth:`ZoneSamples.concatenate`).
+    init : RangeUncertainty, optional
+        Starting curves (default: the datasheet's).
+    init_beam : BeamMixture, optional
+        Starting mixture.
+    max_iter : int
+        EM iterations at most.
+    tol : float
+        Stop when the mean log-likelihood per zone improves by less than this.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    if samples.n < 20:
+        raise ParameterError(f"calibration needs at least 20 zones with an expected distance, got {samples.n}")
+    if not isinstance(max_iter, int) or max_iter < 1:
+        raise ParameterError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    unc = init or RangeUncertainty()
+    d = samples.expected_m
+    edge = samples.edge
+    zmax = samples.max_range_m
+    nr = samples.no_return
+    z = np.where(nr, zmax, samples.measured_m)
+    r = z - d
+    ok = ~nr
+    N = samples.n
+    n_max = int(nr.sum())
+    if n_max == N:
+        raise ParameterError("every zone with an expected distance has no valid return: nothing to fit the curves on")
+    beam0 = init_beam or BeamMixture(
+        z_hit=0.8 * (1 - n_max / N), z_short=0.1 * (1 - n_max / N), z_max=n_max / N, z_rand=0.1 * (1 - n_max / N),
+        lambda_short=1.0 / max(float(np.mean(d)), 1e-3),
+    )
+    wts = np.array([beam0.z_hit, beam0.z_short, beam0.z_max, beam0.z_rand], dtype=float)
+    lam = beam0.lambda_short
+    bias_p = (unc.bias_offset, unc.bias_slope, unc.edge_bias_offset, unc.edge_bias_slope)
+    sig_p = (unc.sigma_slope, unc.sigma_floor, unc.edge_factor)
+    prev = -np.inf
+    converged = False
+    zone_ll = np.zeros(N)
+    resp = np.zeros((N, 4))
+    it = 0
+    ll = -np.inf
+    for it in range(1, max_iter + 1):
+        cur = RangeUncertainty(sig_p[0], sig_p[1], sig_p[2], *bias_p)
+        mu = _bias(cur, d, edge)
+        s = _sigma_parts(cur, d, edge)
+        p = np.zeros((N, 4))
+        p[ok, 0] = _hit_density(r[ok], mu[ok], s[ok], z[ok], zmax[ok])
+        zk, dk = z[ok], d[ok]
+        short = (zk <= dk) & (zk >= 0)
+        p_short = lam * np.exp(-lam * zk) / np.maximum(-np.expm1(-lam * dk), 1e-300)
+        p[ok, 1] = np.where(short, p_short, 0.0)
+        p[nr, 2] = 1.0
+        p[ok, 3] = 1.0 / zmax[ok]
+        mix = p * wts[None, :]
+        tot = mix.sum(axis=1)
+        zone_ll = np.log(np.maximum(tot, 1e-300))
+        ll = float(np.sum(zone_ll))
+        resp = mix / np.maximum(tot, 1e-300)[:, None]
+        # M-step (Thrun, Table 6.2) with the parametric hit curves
+        wts = resp.sum(axis=0) / N
+        e_short = resp[:, 1]
+        es = float(e_short[ok].sum())
+        if es > 1e-9:
+            lam = _fit_lambda(e_short[ok], zk, dk, lam)
+        w_hit = np.where(ok, resp[:, 0], 0.0)
+        for _ in range(2):
+            cur = RangeUncertainty(sig_p[0], sig_p[1], sig_p[2], *bias_p)
+            s = _sigma_parts(cur, d, edge)
+            bias_p = _fit_bias(np.where(ok, r, 0.0), d, w_hit / s**2, edge, bias_p)
+            cur = RangeUncertainty(sig_p[0], sig_p[1], sig_p[2], *bias_p)
+            q = np.where(ok, (r - _bias(cur, d, edge)) ** 2, 0.0)
+            sig_p = _fit_sigma(q, d, w_hit, edge, sig_p)
+        if abs(ll - prev) < tol * N:
+            converged = True
+            break
+        prev = ll
+    wts = np.clip(wts, 0.0, 1.0)
+    wts = wts / wts.sum()
+    unc_fit = RangeUncertainty(
+        sigma_slope=sig_p[0], sigma_floor=sig_p[1], edge_factor=sig_p[2],
+        bias_offset=bias_p[0], bias_slope=bias_p[1], edge_bias_offset=bias_p[2], edge_bias_slope=bias_p[3],
+    )
+    # the beam model needs z_rand > 0 (and z_max = 0 forbids a reading): floor both, renormalize
+    wts[2:] = np.maximum(wts[2:], MIN_WEIGHT)
+    wts = wts / wts.sum()
+    z_hit, z_short, z_max = (float(v) for v in wts[:3])
+    beam = BeamMixture(z_hit=z_hit, z_short=z_short, z_max=z_max, z_rand=1.0 - z_hit - z_short - z_max, lambda_short=lam)
+    notes: list[str] = []
+    below = float(np.mean(sig_p[0] * d[ok] < sig_p[1]))
+    if below < 0.02:
+        notes.append(f"sigma_floor is barely identifiable: {100 * below:.1f} % of the valid zones lie below "
+                     f"floor/slope = {sig_p[1] / sig_p[0]:.3f} m")
+    if not converged:
+        notes.append(f"EM stopped after {max_iter} iterations without meeting the tolerance")
+    return CalibrationResult(unc_fit, beam, ll, it, converged, resp, samples, notes, zone_ll)

@@ -1,0 +1,452 @@
+"""The Python API under the command line: every command is one call here plus printing.
+
+.. code-block:: python
+
+    from tofloc import api
+
+    sim = api.simulate("paper", seed=1, out="data/paper.h5")
+    cal = api.calibrate(["data/calibration.h5"], out="model.toml")
+    res = api.localize("data/paper.h5", "beam_pf", samples=10, trials=5, calibration="model.toml")
+    print(res.summary["e_x_m"]["mean"])
+    run = api.paper(["icp_pf", "beam_pf"], trials=5, out="paper-results")
+
+Long work reports through a :class:`Reporter` (notes, stages, progress); the default one
+is silent. Results are plain objects with the JSON document the CLI writes
+(``.document``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ContextManager, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from tofloc.calibration_file import SensorCalibration
+from tofloc.errors import FormatError, ParameterError
+from tofloc.problem import Estimator
+from tofloc.rig import DEFAULT_VALID_STATUSES
+
+__all__ = [
+    "Reporter",
+    "estimator",
+    "load_calibration",
+    "simulate",
+    "calibrate",
+    "CalibrationRun",
+    "localize",
+    "LocalizeResult",
+    "paper",
+    "PaperResult",
+    "resolve_workers",
+    "MAX_TRIALS",
+]
+
+#: Largest number of trials or samples a run accepts (bounds the work a typo can ask for).
+MAX_TRIALS = 100_000
+
+
+class Reporter:
+    """Where long work reports: one-line notes, named stages and progress counts.
+
+    Subclass it (the CLI prints with rich); the base class is silent.
+    """
+
+    def note(self, message: str) -> None:
+        """A one-line message (what was reused, fitted, written)."""
+
+    def stage(self, message: str) -> ContextManager[Any]:
+        """A context around a stage of unknown length (a spinner in the CLI)."""
+        return nullcontext()
+
+    def progress(self, done: int, total: int, label: str) -> None:
+        """``done`` of ``total`` units of the work named ``label``."""
+
+
+_SILENT = Reporter()
+
+
+def resolve_workers(workers: int | None, n_tasks: int) -> int:
+    """``None`` -> one process per core (at most one per task); 1 runs inline."""
+    if workers is None:
+        return max(1, min(os.cpu_count() or 1, n_tasks))
+    if not isinstance(workers, int) or workers < 1:
+        raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+    return workers
+
+
+def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
+    """The registered estimator ``name`` built with ``params`` (validated now)."""
+    from evaluation.trials import make_estimator
+    from tofloc.registry import ESTIMATORS
+
+    return make_estimator(ESTIMATORS.load(name), dict(params or {}), name)
+
+
+def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | None) -> SensorCalibration | None:
+    """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None."""
+    if calibration is None or isinstance(calibration, SensorCalibration):
+        return calibration
+    return SensorCalibration.from_toml(calibration)
+
+
+def _as_log(log: Any) -> Any:
+    from tofloc.logs import Log, read_log
+
+    return log if isinstance(log, Log) else read_log(log)
+
+
+# -- simulate -------------------------------------------------------------------------------------
+
+
+def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[str] | None = None,
+             hardware_seed: int | None = None, base: tuple[float, float, float] | None = None) -> Any:
+    """Simulate a scenario of the scene library (or a TOML file); write it when ``out`` is given.
+
+    Returns
+    -------
+    tofloc.simulation.SimulationResult
+        With ``paths`` (log, map, cad) set when written.
+    """
+    from tofloc.simulation import simulate as run, write_simulation
+
+    result = run(scenario, seed, hardware_seed=hardware_seed, base=base)
+    result.paths = write_simulation(result, out) if out is not None else {}
+    return result
+
+
+# -- calibrate ------------------------------------------------------------------------------------
+
+
+@dataclass
+class CalibrationRun:
+    """What :func:`calibrate` made: the full fit, the calibration the estimators receive,
+    the maps used and the per-log zone counts."""
+
+    rig_calibration: Any
+    calibration: SensorCalibration
+    maps: list[str]
+    zone_counts: list[dict[str, int]]
+    path: Path | None = None
+
+
+def calibrate(
+    logs: Sequence[Any],
+    *,
+    maps: Sequence[Any] | None = None,
+    out: str | os.PathLike[str] | None = None,
+    footprint: int = 3,
+    valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES,
+    max_iter: int = 200,
+    distance_range: tuple[float, float] = (0.0, 100.0),
+    support_yaw: bool = True,
+    support_yaw_bound_deg: float = 20.0,
+    mounting: bool = True,
+    reporter: Reporter = _SILENT,
+) -> CalibrationRun:
+    """Calibrate the rig's mounting and the range model from logs with ground truth.
+
+    Parameters
+    ----------
+    logs : sequence of Log or path
+    maps : sequence of Map or path, optional
+        One for every log, or one per log; default each log's (a CAD mesh beside it preferred).
+    out : path, optional
+        Write the calibration TOML here.
+    footprint, valid_statuses, max_iter, support_yaw, support_yaw_bound_deg, mounting
+        As ``tofloc calibrate``.
+    distance_range : (float, float)
+        Use only zones expected within this range (m) in the EM fits.
+    """
+    from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
+    from tofloc.maps import Map
+
+    if not logs:
+        raise ParameterError("calibrate needs at least one log")
+    given = list(maps or [])
+    if given and len(given) not in (1, len(logs)):
+        raise ParameterError(f"maps must be given once (for every log) or once per log ({len(logs)}), got {len(given)}")
+    lo, hi = (float(v) for v in distance_range)
+    if not 0.0 <= lo < hi:
+        raise ParameterError(f"expected 0 <= min distance < max distance, got {lo} and {hi}")
+    pairs: list[tuple[Any, Any]] = []
+    used: list[str] = []
+    loaded: dict[str, Any] = {}
+    for i, lg in enumerate(logs):
+        log = _as_log(lg)
+        mp = given[i if len(given) > 1 else 0] if given else resolve_calibration_map(log)
+        if mp is None:
+            raise FormatError(getattr(log, "path", "<log>"), "map", "the map's file name in the root attribute `map` (or give maps)",
+                              "no such attribute")
+        if isinstance(mp, Map):
+            m, name = mp, mp.source
+        else:
+            name = str(mp)
+            if name not in loaded:
+                loaded[name] = Map.load(mp)
+            m = loaded[name]
+        pairs.append((log, m))
+        used.append(name)
+    counts = []
+    for log, m in pairs:
+        zs = collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses)
+        counts.append({"samples": zs.counts["samples"], "zones": zs.n, "no_expected_hit": zs.counts["no_expected_hit"],
+                       "partial_footprint": zs.counts["partial_footprint"]})
+
+    def in_range(zs: ZoneSamples) -> ZoneSamples:
+        if lo > 0.0 or hi < 100.0:
+            return zs.subset((zs.expected_m >= lo) & (zs.expected_m <= hi))
+        return zs
+
+    steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
+    with reporter.stage(f"calibrating: {', then '.join(steps)}"):
+        rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
+                           support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range)
+    meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,
+            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi]}
+    path = None if out is None else Path(out)
+    cal = rc.sensor_calibration(meta, source=str(path) if path else "<memory>")
+    if path is not None:
+        cal.write(path, "Sensor model fitted by `tofloc calibrate` (EM, Probabilistic Robotics Table 6.2): the range\n"
+                  "model [uncertainty], the rig's [mounting] with the support rotation's uncertainty, the beam mixture [beam].")
+    return CalibrationRun(rc, cal, used, counts, path)
+
+
+# -- localize ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class LocalizeResult:
+    """What :func:`localize` made: the trial records, their summary and the JSON document."""
+
+    records: list[dict[str, Any]]
+    summary: dict[str, Any]
+    document: dict[str, Any]
+    has_truth: bool
+
+
+def localize(
+    log: Any,
+    estimator_name: str,
+    *,
+    params: Mapping[str, Any] | None = None,
+    map: Any = None,
+    surface: Any = None,
+    calibration: SensorCalibration | str | os.PathLike[str] | None = None,
+    samples: int | None = 10,
+    trials: int = 1,
+    seed: int = 0,
+    tip_source: str = "mocap",
+    kinematics: Any = None,
+    prior: Any = None,
+    valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES,
+    workers: int | None = 1,
+    scheduler: Any = None,
+    reporter: Reporter = _SILENT,
+) -> LocalizeResult:
+    """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
+
+    Parameters
+    ----------
+    log : Log or path
+    estimator_name : str
+    params : dict, optional
+        The estimator's parameters.
+    map, surface : Map or path, optional
+        Default: the log's ``map`` attribute; ``surface``: a mesh for ray casts.
+    calibration : SensorCalibration or path, optional
+        Applied to every problem (for estimators that use one).
+    samples : int or None
+        Samples per trial (None: every sample of the pool).
+    trials, seed : int
+    tip_source : {"mocap", "knn"}
+    kinematics : KinematicsModel or path, optional
+    prior : evaluation.priors.PriorSpec, optional
+        Default: ``offset`` with the paper's spread.
+    """
+    from evaluation.executors import run_tasks
+    from evaluation.priors import PriorSpec
+    from evaluation.report import summarize_trials
+    from evaluation.trials import SEED_DERIVATION, TIP_SOURCES, TrialContext, jsonable, make_tasks, sample_pool
+    from tofloc.kinematics import KinematicsModel
+    from tofloc.maps import Map, load_map
+
+    if tip_source not in TIP_SOURCES:
+        raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
+    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+        raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
+    if samples is not None and (not isinstance(samples, int) or not 1 <= samples <= MAX_TRIALS):
+        raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
+    est = estimator(estimator_name, params)
+    full_params = jsonable(est.get_params())
+    cal = load_calibration(calibration)
+    lg = _as_log(log)
+    if tip_source == "mocap" and lg.T_base_tip is None:
+        raise FormatError(lg.path, "/samples/T_base_tip", "measured tip poses for tip source mocap "
+                          "(or use tip source knn with a kinematics model)", "no such dataset")
+    if tip_source == "knn":
+        if kinematics is None:
+            raise ParameterError("tip source knn needs a kinematics model (fit one with `tofloc kinematics fit`)")
+        if lg.pressure_kpa is None:
+            raise FormatError(lg.path, "/samples/pressure_kpa", "actuator pressures for tip source knn", "no such dataset")
+    if map is None:
+        map = lg.map_path()
+        if map is None:
+            raise FormatError(lg.path, "map", "the map's file name in the root attribute `map` (or give a map)", "no such attribute")
+    map_path = getattr(map, "source", None) if isinstance(map, Map) else str(map)
+    the_map = map if isinstance(map, Map) else load_map(map, surface)
+    if isinstance(map, Map) and surface is not None:
+        the_map = map.with_surface(surface if isinstance(surface, Map) else Map.load(surface))
+    kin = KinematicsModel.load(kinematics) if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics
+    has_truth = lg.T_map_base is not None
+    if prior is None:
+        if not has_truth:
+            raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the prior (mean, base height) explicitly")
+        prior = PriorSpec("offset")
+    pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
+    k = pool.indices.size if samples is None else samples
+    context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
+    tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed)
+    reporter.note(f"samples: {pool.note}")
+    n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
+    done = [0]
+
+    def on_result(i: int, rec: dict[str, Any]) -> None:
+        done[0] += 1
+        reporter.progress(done[0], len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
+
+    records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
+    summary = summarize_trials(records)
+    doc = {
+        "log": str(lg.path),
+        "map": map_path,
+        "surface": None if surface is None else str(getattr(surface, "source", surface)),
+        "estimator": estimator_name,
+        "params": full_params,
+        "tip_source": tip_source,
+        "samples": int(k),
+        "prior": prior.to_json(),
+        "trials": records,
+        "summary": summary,
+        "seeds": {"seed": seed, "trial_seeds": [r["seed"] for r in records], "derivation": SEED_DERIVATION},
+        "pool": pool.to_json(),
+        "kinematics": None if kinematics is None else str(getattr(kinematics, "path", kinematics)) if not isinstance(kinematics, KinematicsModel) else "<model>",
+        "valid_statuses": sorted(valid_statuses),
+        "calibration": None if cal is None else cal.source,
+        "calibration_used": bool(cal is not None and est.uses_calibration()),
+    }
+    return LocalizeResult(records, summary, doc, has_truth)
+
+
+# -- paper ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class PaperResult:
+    """What :func:`paper` made: the ``results.json`` document and the files written."""
+
+    document: dict[str, Any]
+    paths: list[Path] = field(default_factory=list)
+
+
+def paper(
+    estimators: Sequence[str] = ("icp_pf",),
+    *,
+    out: str | os.PathLike[str] = "paper-results",
+    trials: int = 50,
+    k_max: int = 10,
+    seed: int = 0,
+    scenario: str = "paper",
+    params: Mapping[str, Any] | None = None,
+    prior_sigma_xy: float = 0.2,
+    prior_sigma_yaw_deg: float = 20.0,
+    calibration: SensorCalibration | str | os.PathLike[str] | None = None,
+    calibrate: bool | None = None,
+    surface: bool = True,
+    workers: int | None = None,
+    scheduler: Any = None,
+    reporter: Reporter = _SILENT,
+) -> PaperResult:
+    """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
+    prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
+
+    ``calibrate`` (default: when some estimator :meth:`~tofloc.problem.Estimator.uses_calibration`
+    and no ``calibration`` is given) fits the sensor model on a calibration session of the
+    same set-up (:func:`evaluation.paper_data.calibrate_for_paper`).
+    """
+    from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
+    from evaluation.priors import PRIOR_MODES, PriorSpec
+    from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
+    from evaluation.result_cache import Batch, run_batches
+    from evaluation.trials import SEED_DERIVATION, TrialContext, jsonable, sample_pool
+
+    names = list(estimators)
+    if not names or len(set(names)) != len(names):
+        raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
+    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+        raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
+    if not isinstance(k_max, int) or not 1 <= k_max <= 1000:
+        raise ParameterError(f"k_max must be in [1, 1000], got {k_max!r}")
+    if not isinstance(seed, int) or seed < 0:
+        raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
+    if calibrate and calibration is not None:
+        raise ParameterError("give either a calibration or calibrate=True, not both")
+    out_dir = Path(out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ParameterError(f"output folder {out_dir} exists and is not a folder")
+    ests = {n: estimator(n, params) for n in names}
+    priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in PRIOR_MODES]
+    t0 = time.perf_counter()
+    data = prepare_data(out_dir, scenario, seed, surface, stage=reporter.stage)
+    for n in data.notes:
+        reporter.note(n)
+    cal = load_calibration(calibration)
+    cal_path = None if cal is None else cal.source
+    if calibrate is None:
+        calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
+    if calibrate:
+        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage)
+        cal_path = str(p)
+    k_values = list(range(1, k_max + 1))
+    pool = sample_pool(data.log, data.kinematics, k_max)
+    reporter.note(f"samples: {pool.note}")
+    context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
+    batches = [Batch(n, type(ests[n]), dict(params or {}), tip, prior) for n in names for tip in ("knn", "mocap") for prior in priors]
+    n_tasks = len(batches) * k_max * trials
+    n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
+    label = f"{len(batches)} batches x {k_max} k x {trials} trials"
+    by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
+                           on_progress=lambda d, t: reporter.progress(d, t, label),
+                           on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
+                                                                          f"({len(recs)} trials)"))
+    records = {(b.estimator, b.tip_source, b.prior.mode): by_group[b.group] for b in batches}
+    doc = results_document(
+        records, k_values, trials, seed,
+        extra={
+            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
+                           for n in names},
+            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": list(PRIOR_MODES)},
+            "scenario": scenario,
+            "log": str(data.log.path),
+            "log_source": data.log.source,
+            "map": str(data.map_path),
+            "kinematics": {"path": str(out_dir / KNN_NAME), "k": int(data.kinematics.k),
+                           "n_validation": int(data.kinematics.validation_indices.size)},
+            "pool": pool.to_json(),
+            "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
+            "calibration": cal_path,
+            "wall_time_s": round(time.perf_counter() - t0, 3),
+        },
+    )
+    paths = [
+        write_json_atomic(doc, out_dir / "results.json"),
+        write_text_atomic(table_markdown(doc), out_dir / "table.md"),
+        plot_errors(doc, "knn", out_dir / "errors_knn.png"),
+        plot_errors(doc, "mocap", out_dir / "errors_mocap.png"),
+    ]
+    return PaperResult(doc, paths)

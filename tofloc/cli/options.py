@@ -1,0 +1,67 @@
+"""Parsing of the options several commands share (``--param``, ``--valid-statuses``, ``--samples``)."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Sequence
+
+from tofloc.errors import ParameterError
+
+__all__ = ["parse_params", "parse_statuses", "parse_samples"]
+
+
+def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
+    """``["key=value", ...]`` -> dict; values are JSON when they parse (``100``, ``0.5``,
+    ``true``, ``{"a": 1}``), strings otherwise. ``model__key=value`` (scikit-learn's nested
+    form) sets ``key`` inside the ``model_params`` mapping (``sensor_model__temper=0.5``
+    is ``sensor_model_params={"temper": 0.5}``)."""
+    out: dict[str, Any] = {}
+    for item in items or ():
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not all(part.isidentifier() for part in key.split("__")) or key.count("__") > 1:
+            raise ParameterError(f"--param expects key=value (or owner__key=value) with Python identifiers, got {item!r}")
+        try:
+            value = json.loads(raw)
+        except ValueError:
+            value = raw
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ParameterError(f"--param {key}: expected a finite number, got {raw!r}")
+        if "__" in key:
+            owner, sub = key.split("__")
+            nested = out.setdefault(f"{owner}_params", {})
+            if not isinstance(nested, dict):
+                raise ParameterError(f"--param {key}: {owner}_params is given as a whole too")
+            if sub in nested:
+                raise ParameterError(f"--param {key} given twice")
+            nested[sub] = value
+            continue
+        if key in out:
+            raise ParameterError(f"--param {key} given twice")
+        out[key] = value
+    return out
+
+
+def parse_statuses(text: str) -> frozenset[int]:
+    """``"5,9"`` -> ``frozenset({5, 9})`` (each in [0, 255])."""
+    try:
+        values = frozenset(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ParameterError(f"--valid-statuses expects comma-separated integers, got {text!r}") from None
+    if not values or any(not 0 <= v <= 255 for v in values):
+        raise ParameterError(f"--valid-statuses expects integers in [0, 255], got {text!r}")
+    return values
+
+
+def parse_samples(text: str, limit: int) -> int | None:
+    """``--samples``: a positive integer up to ``limit``, or ``all`` (None)."""
+    if text.strip().lower() == "all":
+        return None
+    try:
+        k = int(text)
+    except ValueError:
+        raise ParameterError(f"--samples expects a positive integer or 'all', got {text!r}") from None
+    if not 1 <= k <= limit:
+        raise ParameterError(f"--samples must be in [1, {limit}] or 'all', got {k}")
+    return k

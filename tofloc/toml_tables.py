@@ -1,0 +1,65 @@
+"""Reading TOML files a user hands us (bounded) and building parameter dataclasses from
+their tables, with errors that name the file and the key.
+
+Writing TOML goes through ``tomli_w`` (:func:`dumps`): keys that are not bare (a sensor
+named ``tof.0``) are quoted, so what we write reads back the same.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping, TypeVar
+
+from tofloc.errors import FormatError, ParameterError
+
+__all__ = ["MAX_TOML_BYTES", "read_toml", "params_from_table", "params_from_toml", "dumps"]
+
+T = TypeVar("T")
+
+#: Largest TOML file we read (bytes).
+MAX_TOML_BYTES = 1_000_000
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file, bounded in size; every failure is a :class:`FormatError` naming the file."""
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        if size > MAX_TOML_BYTES:
+            raise FormatError(p, "file", f"at most {MAX_TOML_BYTES} bytes", f"{size} bytes")
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise FormatError(p, "file", "valid TOML", str(e)) from None
+
+
+def params_from_table(cls: type[T], d: Mapping[str, Any], source: str, table: str) -> T:
+    """Build the parameter dataclass ``cls`` from the TOML table ``[table]``: unknown keys
+    and out-of-domain values are :class:`FormatError` naming the file and key."""
+    if not isinstance(d, Mapping):
+        raise FormatError(source, f"[{table}]", "a table", type(d).__name__)
+    known = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise FormatError(source, f"[{table}].{unknown[0]}", f"one of {sorted(known)}", "an unknown key")
+    try:
+        return cls(**dict(d))
+    except ParameterError as e:
+        raise FormatError(source, f"[{table}]", str(e)) from None
+
+
+def params_from_toml(cls: type[T], path: str | Path, table: str) -> T:
+    """``params_from_table`` on the ``[table]`` of a TOML file (defaults when absent)."""
+    p = Path(path)
+    data = read_toml(p).get(table, {})
+    return params_from_table(cls, data, str(p), table)
+
+
+def dumps(doc: Mapping[str, Any]) -> str:
+    """TOML text of ``doc`` (``tomli_w``; nested mappings become tables)."""
+    import tomli_w
+
+    return tomli_w.dumps(dict(doc))

@@ -1,0 +1,350 @@
+"""The zone caster: what every zone of a rig would read from given sensor poses in a map.
+
+This is the one place where "expected zone reading" is computed. The simulator adds its
+noise on top of it; the beam model, the calibration, the Cramér-Rao bound and the GTSAM
+smoother's range association all call it, so they agree by construction (a test feeds
+them the same inputs and compares).
+
+A zone is a bundle of rays
+--------------------------
+With ``footprint = n`` a zone's angular footprint (the spec's uniform grid cell) is split
+into ``n x n`` sub-rays (:func:`subray_directions`); ``n = 1`` casts its centre ray only.
+Sensors with an explicit ``zone_directions`` table have no grid footprint: their rays are
+cast as given (``n = 1`` for the whole rig).
+
+From hits to a reading
+----------------------
+Each sub-ray's hit at ray length ``t`` reads ``t * along`` in the sensor's convention
+(``along`` = the ray's z component in the sensor frame for the perpendicular convention,
+1 for radial, :attr:`ZoneCaster.along`). A sub-ray *returns* when it hits the map and its
+reading lies in ``[min_range, max_reading]``: the range cut is on the **reported
+distance**, the quantity the sensor bounds (``max_reading`` = the sensor's
+``max_range_m``, or the caster's ``max_range`` when smaller). A zone's hit fraction is the
+fraction of its sub-rays that return; it reports a target when that fraction is positive
+and at least ``min_hit_fraction``. Its reading is the weighted mean of the returning
+sub-rays' readings, with weights
+
+* ``"signal"`` (default): ``max(cos i, 0.05) / max(t, 0.05)^2`` (a Lambertian return:
+  closer and more perpendicular surfaces dominate a mixed zone, as the simulator models
+  the VL53L5CX);
+* ``"mean"``: equal weights.
+
+With one sub-ray both give the same reading.
+
+Geometry (``geometry=True``): per zone the mean ``|cos|`` of incidence of the returning
+sub-rays, the unit normal (the weighted mean of their normals, turned to face the
+sensor), the hit point (the weighted mean of their hit points), the map primitive hit by
+the first returning sub-ray, and ``corner`` (two returning sub-rays whose normals differ
+by more than 30 degrees).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc.errors import ParameterError
+from tofloc.rig import Rig, Sensor
+
+__all__ = ["WEIGHTINGS", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions"]
+
+WEIGHTINGS = ("signal", "mean")
+#: Largest footprint (sub-rays per side).
+MAX_FOOTPRINT = 9
+#: Two returning sub-rays whose normals differ by more than this make a zone a corner.
+CORNER_ANGLE_DEG = 30.0
+
+FloatArray = NDArray[np.float64]
+
+
+def subray_directions(sensor: Sensor, n_sub: int) -> FloatArray:
+    """Unit directions ``(Z, n_sub**2, 3)`` of sub-rays spread evenly over each zone's
+    angular footprint (the spec's uniform grid, each cell split ``n_sub x n_sub``).
+
+    ``n_sub = 1`` gives the zones' centre rays (:attr:`tofloc.rig.Sensor.unit_directions`).
+    """
+    R, C = sensor.resolution
+    f_rows, f_cols = math.radians(sensor.fov_deg[0]), math.radians(sensor.fov_deg[1])
+    rows, cols = np.meshgrid(np.arange(R), np.arange(C), indexing="ij")
+    off = (np.arange(n_sub) + 0.5) / n_sub - 0.5
+    orow, ocol = np.meshgrid(off, off, indexing="ij")
+    a_col = ((cols.ravel()[:, None] - (C - 1) / 2.0) + ocol.ravel()[None, :]) * f_cols / C
+    a_row = ((rows.ravel()[:, None] - (R - 1) / 2.0) + orow.ravel()[None, :]) * f_rows / R
+    v = np.stack([np.tan(a_col), np.tan(a_row), np.ones_like(a_col)], axis=-1)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class ZoneCast:
+    """What the zones would read, all shaped ``(..., S, Z)`` (vectors ``(..., S, Z, 3)``).
+
+    Attributes
+    ----------
+    reading : ndarray
+        Expected reported distance (m, the sensor's convention); NaN where the zone
+        reports no target.
+    hit_fraction : ndarray
+        Fraction of the zone's sub-rays that return (hit within the range cut).
+    mean_cos, normal, point, index, corner : ndarray or None
+        Only with ``geometry=True`` (see the module doc); ``index`` -1 and ``normal``,
+        ``point`` NaN where no sub-ray returns.
+    """
+
+    reading: FloatArray
+    hit_fraction: FloatArray
+    mean_cos: FloatArray | None = None
+    normal: FloatArray | None = None
+    point: FloatArray | None = None
+    index: NDArray[np.int64] | None = None
+    corner: NDArray[np.bool_] | None = None
+
+    @property
+    def has_target(self) -> NDArray[np.bool_]:
+        """Zones that report a target (finite reading)."""
+        return np.isfinite(self.reading)
+
+
+class ZoneCaster:
+    """Expected zone readings of a rig (see the module doc).
+
+    Parameters
+    ----------
+    rig : Rig
+        The sensors; their ``T_tip_sensor`` is not used here (poses are given per call).
+    footprint : int
+        Sub-rays per side of a zone's footprint (1: the centre ray).
+    weighting : {"signal", "mean"}
+        How the returning sub-rays' readings are averaged.
+    min_hit_fraction : float
+        A zone reports a target only if at least this fraction of its sub-rays return.
+    min_range : float
+        Smallest reading (m) a sub-ray may return.
+    max_range : float, optional
+        Largest reading (m); default each sensor's ``max_range_m`` (never above it).
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        footprint: int = 1,
+        weighting: Literal["signal", "mean"] = "signal",
+        min_hit_fraction: float = 0.0,
+        min_range: float = 0.0,
+        max_range: float | None = None,
+    ) -> None:
+        if not isinstance(footprint, (int, np.integer)) or isinstance(footprint, bool) or not 1 <= footprint <= MAX_FOOTPRINT:
+            raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
+        if weighting not in WEIGHTINGS:
+            raise ParameterError(f"weighting must be one of {list(WEIGHTINGS)}, got {weighting!r}")
+        if not 0.0 <= float(min_hit_fraction) <= 1.0:
+            raise ParameterError(f"min_hit_fraction must be in [0, 1], got {min_hit_fraction!r}")
+        if not 0.0 <= float(min_range) or (max_range is not None and not float(max_range) > float(min_range)):
+            raise ParameterError(f"expected 0 <= min_range < max_range, got {min_range!r} and {max_range!r}")
+        self.rig = rig
+        explicit = any(s.zone_directions is not None for s in rig.sensors)
+        #: sub-rays per side actually cast (1 when a sensor has an explicit zone table)
+        self.footprint = 1 if explicit else int(footprint)
+        self.weighting = weighting
+        self.min_hit_fraction = float(min_hit_fraction)
+        self.min_range = float(min_range)
+        if self.footprint == 1:
+            dirs = rig.unit_directions[:, :, None, :]
+        else:
+            dirs = np.stack([subray_directions(s, self.footprint) for s in rig.sensors])
+        #: (S, Z, n, 3): unit sub-ray directions in each sensor's frame
+        self.dirs_sensor: FloatArray = dirs
+        perpendicular = np.array([s.distance == "perpendicular" for s in rig.sensors])
+        #: (S, Z, n): reading per metre of ray length
+        self.along: FloatArray = np.where(perpendicular[:, None, None], dirs[..., 2], 1.0)
+        cap = rig.max_range_m if max_range is None else np.minimum(rig.max_range_m, float(max_range))
+        #: (S,): largest reading of each sensor
+        self.max_reading: FloatArray = np.asarray(cap, dtype=float)
+        #: longest ray worth casting (the largest reading along the most oblique sub-ray)
+        self.max_ray_length = float(np.max(self.max_reading[:, None, None] / np.maximum(self.along, 1e-9)))
+
+    @property
+    def n_sub(self) -> int:
+        """Sub-rays per zone."""
+        return int(self.dirs_sensor.shape[2])
+
+    # -- rays ---------------------------------------------------------------------------------
+    def rays(self, T_map_sensor: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Origins ``(..., S, 1, 1, 3)`` and unit directions ``(..., S, Z, n, 3)`` of every
+        sub-ray for sensor poses ``T_map_sensor`` ``(..., S, 4, 4)``."""
+        T = np.asarray(T_map_sensor, dtype=float)
+        if T.ndim < 3 or T.shape[-3:] != (self.rig.n_sensors, 4, 4):
+            raise ParameterError(f"T_map_sensor must be shaped (..., {self.rig.n_sensors}, 4, 4), got {T.shape}")
+        dirs = np.einsum("...sij,sznj->...szni", T[..., :3, :3], self.dirs_sensor)
+        return T[..., :, None, None, :3, 3], dirs
+
+    def cast(self, the_map: Any, T_map_sensor: ArrayLike, *, geometry: bool = False) -> ZoneCast:
+        """The zones' expected readings from sensor poses ``T_map_sensor`` ``(..., S, 4, 4)``."""
+        o, d = self.rays(T_map_sensor)
+        return self.cast_rays(the_map, o, d, geometry=geometry)
+
+    def cast_rays(self, the_map: Any, origins: ArrayLike, directions: ArrayLike, *, geometry: bool = False) -> ZoneCast:
+        """The zones' expected readings from their sub-rays already in the map frame.
+
+        Parameters
+        ----------
+        origins : array (..., S, 1|Z, 1|n, 3)
+            Ray origins (broadcast against ``directions``).
+        directions : array (..., S, Z, n, 3)
+            Unit directions of every sub-ray (as :meth:`rays` makes them).
+        """
+        d = np.asarray(directions, dtype=float)
+        if d.ndim < 4 or d.shape[-4:] != self.dirs_sensor.shape:
+            raise ParameterError(f"directions must be shaped (..., {', '.join(map(str, self.dirs_sensor.shape))}), got {d.shape}")
+        hits = the_map.raycast(origins, d, max_range=self.max_ray_length)
+        t = np.asarray(hits.t, dtype=float)  # (..., S, Z, n)
+        sub_reading = t * self.along
+        ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= self.max_reading[:, None, None])
+        n_ret = ret.sum(axis=-1)
+        frac = n_ret / self.n_sub
+        target = (n_ret > 0) & (frac >= self.min_hit_fraction - 1e-12)
+        normal = np.asarray(hits.normal, dtype=float) if (geometry or self.weighting == "signal") and self.n_sub > 1 else None
+        if self.n_sub == 1:
+            w = ret.astype(float)
+        elif self.weighting == "mean":
+            w = ret.astype(float)
+        else:
+            assert normal is not None
+            cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), d))
+            w = np.where(ret, np.maximum(cos_i, 0.05) / np.maximum(np.where(ret, t, 1.0), 0.05) ** 2, 0.0)
+        wsum = w.sum(axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            reading = np.where(target, (w * np.where(ret, sub_reading, 0.0)).sum(axis=-1) / wsum, np.nan)
+        if not geometry:
+            return ZoneCast(reading, frac)
+        nrm = np.asarray(hits.normal, dtype=float)
+        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(nrm), d))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_cos = np.where(ret, cos_i, 0.0).sum(axis=-1) / np.maximum(n_ret, 1)
+            # normals turned toward the sensor, weighted like the reading
+            facing = np.where((np.einsum("...i,...i->...", np.nan_to_num(nrm), d) > 0)[..., None], -nrm, nrm)
+            n_sum = np.where(ret[..., None], w[..., None] * np.nan_to_num(facing), 0.0).sum(axis=-2)
+            n_len = np.linalg.norm(n_sum, axis=-1, keepdims=True)
+            normal_z = np.where(target[..., None] & (n_len > 0), n_sum / n_len, np.nan)
+            o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
+            p_sub = o + np.where(ret, t, 0.0)[..., None] * d
+            point = np.where(target[..., None], (w[..., None] * p_sub).sum(axis=-2) / wsum[..., None], np.nan)
+        first = np.argmax(ret, axis=-1)
+        idx = np.take_along_axis(np.asarray(hits.index), first[..., None], axis=-1)[..., 0]
+        index = np.where(target, idx, -1).astype(np.int64)
+        if self.n_sub > 1:
+            n_hit = np.where(ret[..., None], np.nan_to_num(nrm), 0.0)
+            gram = np.einsum("...ai,...bi->...ab", n_hit, n_hit)
+            both = ret[..., :, None] & ret[..., None, :]
+            corner = np.any(both & (np.abs(gram) < math.cos(math.radians(CORNER_ANGLE_DEG))), axis=(-1, -2)) & target
+        else:
+            corner = np.zeros(target.shape, dtype=bool)
+        return ZoneCast(reading, frac, mean_cos, normal_z, point, index, corner)
+
+    def cast_zone_rays(self, the_map: Any, origins: ArrayLike, directions: ArrayLike, sensor: ArrayLike,
+                       zone: ArrayLike) -> ZoneCast:
+        """Centre rays of chosen zones, flattened: origins and unit directions ``(N, 3)`` in the
+        map frame, and each ray's ``sensor`` and ``zone`` indices ``(N,)`` (for its convention
+        and range). Needs ``footprint == 1``; returns readings and geometry shaped ``(N,)`` /
+        ``(N, 3)`` (:class:`ZoneCast` with ``geometry``)."""
+        if self.n_sub != 1:
+            raise ParameterError("cast_zone_rays casts centre rays: build the caster with footprint=1")
+        o = np.asarray(origins, dtype=float)
+        d = np.asarray(directions, dtype=float)
+        s = np.asarray(sensor, dtype=np.intp)
+        z = np.asarray(zone, dtype=np.intp)
+        hits = the_map.raycast(o, d, max_range=self.max_ray_length)
+        t = np.asarray(hits.t, dtype=float)
+        reading = t * self.along[s, z, 0]
+        ret = np.isfinite(t) & (reading >= self.min_range) & (reading <= self.max_reading[s])
+        nrm = np.asarray(hits.normal, dtype=float)
+        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(nrm), d))
+        facing = np.where((np.einsum("...i,...i->...", np.nan_to_num(nrm), d) > 0)[..., None], -nrm, nrm)
+        return ZoneCast(
+            reading=np.where(ret, reading, np.nan),
+            hit_fraction=ret.astype(float),
+            mean_cos=np.where(ret, cos_i, 0.0),
+            normal=np.where(ret[..., None], facing, np.nan),
+            point=np.where(ret[..., None], o + np.where(ret, t, 0.0)[..., None] * d, np.nan),
+            index=np.where(ret, np.asarray(hits.index), -1).astype(np.int64),
+            corner=np.zeros(ret.shape, dtype=bool),
+        )
+
+
+class PlanarZoneRays:
+    """The sub-rays of every sample of a problem, ready to be moved by planar base poses.
+
+    A planar pose ``(x, y, yaw)`` with the known height, roll and pitch only rotates the
+    lifted rays about the map's z axis and shifts them in x-y, so the rays are lifted
+    once per sample (``T_lift_tip = T_map_base(0, 0, 0) @ T_base_tip``) and each
+    candidate pose is then two rotations and a shift, vectorized over candidates. An
+    optional per-candidate rotation of the sensor support about the tip's z axis (a
+    nuisance state) is applied in the tip frame first.
+
+    Parameters
+    ----------
+    caster : ZoneCaster
+    T_tip_sensor : array (S, 4, 4)
+        The sensors' poses in the tip frame (the problem's rig, calibration applied).
+    T_lift_tip : array (K, 4, 4)
+        Per sample, the tip in the lifted base frame.
+    """
+
+    def __init__(self, caster: ZoneCaster, T_tip_sensor: ArrayLike, T_lift_tip: ArrayLike) -> None:
+        self.caster = caster
+        T_ts = np.asarray(T_tip_sensor, dtype=float)
+        self.T_lift_tip = np.asarray(T_lift_tip, dtype=float)
+        #: rays in the tip frame: origins (S, 3) and directions (S, Z, n, 3)
+        self.origins_tip = T_ts[:, :3, 3].copy()
+        self.dirs_tip = np.einsum("sij,sznj->szni", T_ts[:, :3, :3], caster.dirs_sensor)
+        R, t = self.T_lift_tip[:, :3, :3], self.T_lift_tip[:, :3, 3]
+        #: (K, S, 3) and (K, S, Z, n, 3): the same, lifted
+        self.origins = np.einsum("kij,sj->ksi", R, self.origins_tip) + t[:, None, :]
+        self.dirs = np.einsum("kij,sznj->kszni", R, self.dirs_tip)
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.T_lift_tip.shape[0])
+
+    def lifted(self, step: int, support_yaw: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        """Origins ``(1|M, S, 3)`` and directions ``(1|M, S, Z, n, 3)`` of sample ``step``
+        in the lifted base frame, with the support rotated by ``support_yaw`` ``(M,)``
+        (rad) about the tip's z axis when given."""
+        if support_yaw is None:
+            return self.origins[step][None], self.dirs[step][None]
+        c, s = np.cos(support_yaw), np.sin(support_yaw)
+        o = rotate_z(self.origins_tip[None], c[:, None], s[:, None])
+        d = rotate_z(self.dirs_tip[None], c[:, None, None, None], s[:, None, None, None])
+        R, t = self.T_lift_tip[step, :3, :3], self.T_lift_tip[step, :3, 3]
+        return o @ R.T + t, d @ R.T
+
+    def rays(self, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        """Origins ``(M, S, 1, 1, 3)`` and directions ``(M, S, Z, n, 3)`` in the map frame
+        for planar base poses ``(M, 3)``."""
+        p = np.asarray(poses, dtype=float)
+        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+        o, d = self.lifted(step, support_yaw)
+        org = rotate_z(o, c[:, None], s[:, None])
+        org[..., 0] += p[:, None, 0]
+        org[..., 1] += p[:, None, 1]
+        dr = rotate_z(d, c[:, None, None, None], s[:, None, None, None])
+        return org[:, :, None, None, :], dr
+
+    def cast(self, the_map: Any, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None,
+             *, geometry: bool = False) -> ZoneCast:
+        """Expected readings ``(M, S, Z)`` of sample ``step`` for planar poses ``(M, 3)``."""
+        o, d = self.rays(poses, step, support_yaw)
+        return self.caster.cast_rays(the_map, o, d, geometry=geometry)
+
+
+def rotate_z(v: FloatArray, c: ArrayLike, s: ArrayLike) -> FloatArray:
+    """Vectors ``v`` ``(..., 3)`` rotated about z by the angle of cosine ``c`` and sine ``s``
+    (broadcast against ``v[..., 0]``); a new array."""
+    out = np.empty(np.broadcast_shapes(v.shape, np.shape(c) + (1,)))
+    out[..., 0] = c * v[..., 0] - s * v[..., 1]
+    out[..., 1] = s * v[..., 0] + c * v[..., 1]
+    out[..., 2] = v[..., 2]
+    return out
