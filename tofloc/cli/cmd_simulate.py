@@ -1,4 +1,4 @@
-"""``tofloc simulate``: simulate the paper's experiment (or a user's scenario) into a log."""
+"""``tofloc simulate``: simulate the paper's experiment, a scene of the library or a user's scenario into a log."""
 
 from __future__ import annotations
 
@@ -17,16 +17,22 @@ from tofloc.errors import ParameterError
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Log to write (HDF5); the maps are written beside it."),
-    scenario: str = typer.Option("paper", "--scenario", help="Built-in scenario name or a scenario TOML file."),
+    scenario: str = typer.Option(
+        "paper", "--scenario",
+        help="Built-in scenario name (paper, pillars, l_room, clutter: see docs/simulator.md) or a scenario TOML file."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw (same seed, same bytes)."),
     hardware_seed: Optional[int] = typer.Option(
         None, "--hardware-seed",
         help="Seed of the set-up's draws (frame assembly error, CAD cloud, sensor mounting) instead of --seed: "
         "sessions with the same hardware seed record the same physical set-up."),
     base: Optional[str] = typer.Option(None, "--base", help="Place the base at X,Y,YAW_DEG (m, m, deg) instead of the scenario's."),
+    rig_variant: Optional[str] = typer.Option(
+        None, "--rig-variant",
+        help="exact: the log's rig is the true one (no support rotation, no mounting scatter, no declared tolerance); "
+        "perturbed: the scenario's support rotation and scatter, with its declared tolerance. Default: the rig as the scenario writes it."),
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
-    from tofloc.simulation import load_scenario, simulate as run, write_simulation
+    from tofloc.simulation import RIG_VARIANTS, load_scenario, simulate as run, write_simulation
 
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
@@ -40,20 +46,29 @@ def simulate(
             placement = ()
         if len(placement) != 3 or not all(np.isfinite(placement)) or not -180 <= placement[2] <= 180:
             raise ParameterError(f"--base expects X,Y,YAW_DEG (three finite numbers, yaw in [-180, 180]), got {base!r}")
+    if rig_variant is not None and rig_variant not in RIG_VARIANTS:
+        raise ParameterError(f"--rig-variant expects one of {', '.join(RIG_VARIANTS)}, got {rig_variant!r}")
     sc = load_scenario(scenario)
     t0 = time.perf_counter()
     with status(f"simulating scenario {sc.scenario.name!r} (seed {seed})"):
-        result = run(sc, seed, hardware_seed=hardware_seed, base=placement)
+        result = run(sc, seed, hardware_seed=hardware_seed, base=placement, rig_variant=rig_variant)
         paths = write_simulation(result, out)
     elapsed = time.perf_counter() - t0
     log = result.log
     valid = log.valid()
-    table = Table(title=f"simulated {sc.scenario.name!r}, seed {seed}, in {elapsed:.2f} s", show_header=False)
+    what = f"{sc.scenario.name!r}" + ("" if rig_variant is None else f" ({rig_variant} rig)")
+    table = Table(title=f"simulated {what}, seed {seed}, in {elapsed:.2f} s", show_header=False)
     table.add_row("log", str(paths["log"]))
-    table.add_row("map (CAD cloud)", f"{paths['map']} ({len(result.map_cloud.points)} points)")
+    the_map = result.map
+    if the_map.kind == "mesh":
+        table.add_row("map (CAD mesh)", f"{paths['map']} ({the_map.triangles().shape[0]} triangles)")
+    else:
+        table.add_row("map (CAD cloud)", f"{paths['map']} ({len(the_map.points)} points)")
     table.add_row("CAD mesh", str(paths["cad"]))
     table.add_row("samples x sensors x zones", f"{log.n_samples} x {log.n_sensors} x {log.n_zones}")
     table.add_row("valid zones (status 5/9)", f"{valid.mean():.1%}")
     table.add_row("no target (255)", f"{(log.status == 255).mean():.1%}")
+    tol = log.rig.tolerances
+    table.add_row("declared rig tolerances", f"support yaw {tol.support_yaw_deg:g} deg, range scale {tol.range_scale:g}" if tol.declared else "none (exact rig)")
     table.add_row("motion capture", f"{int(np.isfinite(log.T_base_tip[:, 0, 0]).sum())} of {log.n_samples} postures")
     console.print(table)

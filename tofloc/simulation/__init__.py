@@ -1,10 +1,18 @@
-"""A simulator of the paper's experiment (its data is not public).
+"""A simulator of the paper's experiment (its data is not public) and of a library of
+other scenes (``builtin_scenarios()``: ``paper``, ``pillars``, ``l_room``, ``clutter``).
 
 :func:`simulate` turns a :class:`~tofloc.simulation.scenario.Scenario` and a seed into a
-log (format v1) and the maps: the CAD map the estimators get (a point cloud sampled from
-the CAD cuboid, as the paper's 2000-point export), the CAD mesh, and the true world the
-rays were cast against (the CAD cuboid with each face shifted by the assembly error).
-Same seed, same bytes: every random draw comes from one ``numpy.random.SeedSequence``.
+log (format v1) and the maps: the map the estimators get (a point cloud sampled from the
+CAD model, as the paper's 2000-point export, or the CAD mesh itself), the CAD mesh, and
+the true world the rays were cast against (the CAD model with each face shifted by the
+assembly error, plus the objects the map does not hold); see
+:mod:`tofloc.simulation.world`. Same seed, same bytes: every random draw comes from one
+``numpy.random.SeedSequence``.
+
+Rig variants: ``simulate(sc, seed, rig_variant="exact")`` simulates the scene with a
+rig whose description (the one the log carries) is the true one; ``"perturbed"`` with
+the scenario's support rotation and mounting scatter and its declared tolerances
+(:func:`~tofloc.simulation.scenario.with_rig_variant`).
 
 Hardware and session: the draws of the *hardware* (the real frame's assembly error, the
 CAD cloud's sampling, the sensors' mounting) and of the *session* (the robot's postures,
@@ -22,34 +30,44 @@ from pathlib import Path
 import numpy as np
 
 from tofloc import frames
+from tofloc.errors import ParameterError
 from tofloc.simulation.robot import mocap_measure, nominal_state, protocol_pressures, reached_state, tip_poses
-from tofloc.simulation.scenario import Scenario, builtin_scenarios, load_scenario, n_postures
+from tofloc.simulation.scenario import (
+    RIG_VARIANTS,
+    Scenario,
+    base_clearance_problem,
+    builtin_scenarios,
+    load_scenario,
+    n_postures,
+    with_rig_variant,
+)
 from tofloc.simulation.tof import build_rig, cast_zones, measure
+from tofloc.simulation.world import cad_mesh as build_cad_mesh
+from tofloc.simulation.world import estimator_map, true_world
 
-__all__ = ["SimulationResult", "simulate", "write_simulation", "load_scenario", "builtin_scenarios", "Scenario"]
+__all__ = ["SimulationResult", "simulate", "write_simulation", "load_scenario", "builtin_scenarios", "Scenario",
+           "RIG_VARIANTS"]
 
 
 @dataclass(eq=False)
 class SimulationResult:
-    """What :func:`simulate` makes: the log, the CAD map cloud, the CAD mesh, the true world
-    and the true (noise-free) tip poses."""
+    """What :func:`simulate` makes: the log, the map the estimators get (a cloud sampled on
+    the CAD mesh, or the CAD mesh), the CAD mesh, the true world, the true (noise-free) tip
+    poses and the true rig (how the sensors are really mounted; the log carries the CAD one)."""
 
     log: "object"  # tofloc.logs.Log
-    map_cloud: "object"  # tofloc.maps.Map
+    map: "object"  # tofloc.maps.Map
     cad_mesh: "object"
     world: "object"
     T_base_tip_true: np.ndarray
     scenario: Scenario
     seed: int
+    rig_true: "object" = None  # tofloc.rig.Rig
 
-
-def _true_world(sc: Scenario, rng: np.random.Generator):
-    from tofloc.maps import Map
-
-    env = sc.environment
-    lo = np.asarray(env.origin, dtype=float) + rng.normal(0.0, env.cad_error_sigma, 3)
-    hi = np.asarray(env.origin, dtype=float) + np.asarray(env.size) + rng.normal(0.0, env.cad_error_sigma, 3)
-    return Map.cuboid(size=tuple(hi - lo), origin=tuple(lo), open_faces=env.open_faces)
+    @property
+    def map_cloud(self) -> "object":
+        """The map the estimators get (its name from when it was always a cloud)."""
+        return self.map
 
 
 def simulate(
@@ -58,6 +76,7 @@ def simulate(
     *,
     hardware_seed: int | None = None,
     base: tuple[float, float, float] | None = None,
+    rig_variant: str | None = None,
 ) -> SimulationResult:
     """Simulate a scenario: ``len(postures)`` samples of every sensor, with ground truth.
 
@@ -72,11 +91,20 @@ def simulate(
         instead of ``seed``: sessions with the same ``hardware_seed`` share the set-up.
     base : (x, y, yaw_deg), optional
         The base's placement instead of the scenario's (height unchanged).
+    rig_variant : {"exact", "perturbed"}, optional
+        The scene's rig variant (:func:`~tofloc.simulation.scenario.with_rig_variant`);
+        ``None``: the rig as the scenario writes it. The log's ``source`` records it.
+
+    Raises
+    ------
+    ParameterError
+        A rig variant the scenario cannot give, or a base that leaves the robot outside
+        free space (a wall, a box, the floor within its reach).
     """
     from tofloc.logs import Log
-    from tofloc.maps import Map
 
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    sc = with_rig_variant(sc, rig_variant)
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ValueError(f"seeds must be non-negative, got seed={seed}, hardware_seed={hardware_seed}")
     r_env, r_map, r_robot, r_mocap, r_tof, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
@@ -89,11 +117,14 @@ def simulate(
         if not all(np.isfinite([bx, by, byaw])) or not -180.0 <= byaw <= 180.0:
             raise ValueError(f"base must be finite (x, y, yaw_deg) with yaw in [-180, 180], got {base}")
         sc = dataclasses.replace(sc, base=dataclasses.replace(sc.base, x=bx, y=by, yaw_deg=byaw))
+    problem = base_clearance_problem(sc)
+    if problem is not None:
+        raise ParameterError(f"{sc.source}: base: expected {problem}")
 
     env = sc.environment
-    cad_mesh = Map.cuboid(size=env.size, origin=env.origin, open_faces=env.open_faces)
-    world = _true_world(sc, r_env)
-    map_cloud = cad_mesh.sample_surface(env.map_points, r_map)
+    cad_mesh = build_cad_mesh(env)
+    world = true_world(env, r_env)
+    the_map = estimator_map(env, cad_mesh, r_map)
 
     n_ch = len(sc.robot.chamber_angles_deg)
     pressures = protocol_pressures(sc.protocol, n_ch)
@@ -121,15 +152,17 @@ def simulate(
         pressure_kpa=pressures.astype(np.float32),
         T_base_tip=T_base_tip_mocap,
         T_map_base=T_map_base,
-        source=f"simulation:{sc.scenario.name} seed={seed}" + ("" if hardware_seed is None else f" hardware_seed={hardware_seed}"),
+        source=f"simulation:{sc.scenario.name} seed={seed}" + ("" if hardware_seed is None else f" hardware_seed={hardware_seed}")
+        + ("" if rig_variant is None else f" rig={rig_variant}"),
         created=sc.scenario.created,
     )
-    return SimulationResult(log, map_cloud, cad_mesh, world, T_base_tip_true, sc, seed)
+    return SimulationResult(log, the_map, cad_mesh, world, T_base_tip_true, sc, seed, rig_true)
 
 
 def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Path]:
-    """Write ``OUT`` (the log), ``<stem>.map.ply`` (the CAD cloud, named in the log's
-    ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. Atomic per file."""
+    """Write ``OUT`` (the log), ``<stem>.map.ply`` (the map the estimators get, named in
+    the log's ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. Atomic
+    per file. The true world (with any unmapped objects) is not written."""
     from tofloc.logs import write_log
 
     out = Path(out)
@@ -137,7 +170,7 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     stem = out.name[: -len(out.suffix)] if out.suffix else out.name
     map_path = out.parent / f"{stem}.map.ply"
     cad_path = out.parent / f"{stem}.cad.ply"
-    result.map_cloud.save(map_path)
+    result.map.save(map_path)
     result.cad_mesh.save(cad_path)
     result.log.map = map_path.name
     log_path = write_log(result.log, out)

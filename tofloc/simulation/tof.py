@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc import frames
-from tofloc.rig import Rig, Sensor, edge_zone_mask
+from tofloc.rig import Rig, RigTolerances, Sensor, edge_zone_mask
 from tofloc.zone_caster import ZoneCaster, subray_directions
 from tofloc.simulation.scenario import RigDesign, ToFPhysics
 
@@ -28,7 +28,8 @@ def build_rig(design: RigDesign, actuators: tuple[str, ...], rng: np.random.Gene
     the scene image, y down (optical convention).
 
     With ``rng``, the *true* rig: the support rotated about the tip axis by
-    ``support_yaw_error_deg`` and every sensor moved by the mounting scatter.
+    ``support_yaw_error_deg`` and every sensor moved by the mounting scatter. Both carry
+    the builder's declared tolerances (``support_yaw_tolerance_deg``, ``range_scale_tolerance``).
     """
     sensors = []
     support = frames.se3(frames.rot_z(math.radians(design.support_yaw_error_deg)), np.zeros(3)) if rng is not None else np.eye(4)
@@ -53,7 +54,8 @@ def build_rig(design: RigDesign, actuators: tuple[str, ...], rng: np.random.Gene
                 T_tip_sensor=_mounted(support, frames.se3(R, t), design, rng),
             )
         )
-    return Rig(tuple(sensors), actuators)
+    tolerances = RigTolerances(support_yaw_deg=design.support_yaw_tolerance_deg, range_scale=design.range_scale_tolerance)
+    return Rig(tuple(sensors), actuators, tolerances)
 
 
 def _mounted(support: NDArray[np.float64], T_cad: NDArray[np.float64], design: RigDesign, rng: np.random.Generator | None) -> NDArray[np.float64]:
