@@ -889,3 +889,35 @@ def test_highly_compressible_real_data_is_accepted(tmp_path: Path, rig: Rig) -> 
     path = write_log(log, tmp_path / "nan.h5")
     back = read_log(path)
     assert np.isnan(back.distance_mm).all() and back.checksums == "full"
+
+
+def _layout_message_version(path: Path, dataset: str) -> int:
+    """Version byte of a dataset's layout message (type 8), read from its version-2 object header."""
+    import struct
+
+    with h5py.File(path) as f:
+        addr = h5py.h5o.get_info(f[dataset].id).addr
+    raw = path.read_bytes()
+    assert raw[addr : addr + 4] == b"OHDR" and raw[addr + 4] == 2
+    flags = raw[addr + 5]
+    pos = addr + 6 + (16 if flags & 0x20 else 0) + (4 if flags & 0x10 else 0)
+    width = 1 << (flags & 0x03)
+    size = int.from_bytes(raw[pos : pos + width], "little")
+    pos += width
+    end = pos + size
+    while pos < end - 4:
+        mtype, msize, mflags = struct.unpack_from("<BHB", raw, pos)
+        pos += 4 + (2 if flags & 0x04 else 0)
+        if mtype == 8:
+            return raw[pos]
+        pos += msize
+    raise AssertionError("no layout message")
+
+
+def test_written_logs_stay_readable_by_hdf5_1_10_to_1_14(tmp_path: Path, full_log: Log) -> None:
+    """HDF5 2.0's `libver="latest"` writes layout message version 5, which HDF5 1.14 (h5py 3.11) cannot open."""
+    path = write_log(full_log, tmp_path / "compat.h5")
+    with open(path, "rb") as fh:
+        assert fh.read(9)[8] == 3  # superblock version 3 (HDF5 1.10): checksummed
+    for name in ("/samples/distance_mm", "/samples/T_base_tip_cov", "/truth/T_map_base"):
+        assert _layout_message_version(path, name) == 4, name  # HDF5 1.10's chunked layout (fixed-array index)

@@ -13,9 +13,9 @@ The contract is ``log-format-v1`` (documented for users in ``docs/log-format.md`
   (K, 4, 4) float64; the optional root attribute ``configuration_source``
   (``"mocap"``, ``"kinematics"``, ``"odometry"`` or ``"cad"``).
 
-:func:`write_log` writes the current HDF5 file format (``libver="latest"``: superblock
-and object headers carry checksums, string attributes are fixed-length so that they live
-in the checksummed object headers) and a Fletcher-32 checksum on every dataset chunk;
+:func:`write_log` writes HDF5's 1.10 file format (:data:`HDF5_LIBVER`: superblock, object
+headers and chunk indexes carry checksums, string attributes are fixed-length so that they
+live in the checksummed object headers) and a Fletcher-32 checksum on every dataset chunk;
 :func:`read_log` verifies them (HDF5 does, on every read) and reports in
 :attr:`Log.checksums` how much of the file was protected. Before reading a dataset it
 checks that the file can hold what the dataset declares (:func:`_check_storage`), so a
@@ -58,6 +58,7 @@ __all__ = [
     "MAX_RIG_JSON_BYTES",
     "MAX_TEXT_BYTES",
     "GZIP_LEVEL",
+    "HDF5_LIBVER",
     "POSE_ATOL",
     "COV_RTOL",
     "CONFIGURATION_SOURCES",
@@ -89,6 +90,11 @@ MAX_TEXT_BYTES = 4096
 POSE_ATOL = 1e-4
 #: gzip level of every dataset :func:`write_log` writes.
 GZIP_LEVEL = 4
+#: HDF5 format bounds of every file :func:`write_log` writes: the 1.10 format has every
+#: checksum (superblock v3, object headers v2, fixed-array chunk indexes) and is read by
+#: HDF5 >= 1.10. Not ``"latest"``: with HDF5 2.0 that writes a version-5 layout message
+#: that HDF5 1.14 (h5py 3.11, MATLAB, ...) cannot open.
+HDF5_LIBVER = ("v110", "v110")
 #: Relative tolerance of the covariance test: ``|C - C^T| <= COV_RTOL * max|C|`` and the
 #: smallest eigenvalue ``>= -COV_RTOL * max|C|``.
 COV_RTOL = 1e-6
@@ -898,9 +904,9 @@ def write_log(log: Log, path: str | Path) -> Path:
 
     The file is written to ``<name>.tmp-<random>`` in the destination folder, then renamed
     over ``path`` with :func:`os.replace`; on any error the temporary file is removed and
-    ``path`` is left as it was. The file uses HDF5's current format (``libver="latest"``:
-    checksummed superblock and object headers) with fixed-length string attributes (kept
-    in those headers). Datasets are chunked, gzip-compressed (level 4, with the shuffle
+    ``path`` is left as it was. The file uses HDF5's 1.10 format (:data:`HDF5_LIBVER`:
+    checksummed superblock, object headers and chunk indexes) with fixed-length string
+    attributes (kept in those headers). Datasets are chunked, gzip-compressed (level 4, with the shuffle
     filter) and carry a Fletcher-32 checksum per chunk; optional datasets and attributes
     are written only when present. An empty ``log.created`` is written as the current UTC
     time (``log`` itself is not modified). An extra root attribute ``writer`` names this
@@ -929,7 +935,7 @@ def write_log(log: Log, path: str | Path) -> Path:
 
     tmp = _fresh_temp(dest)
     try:
-        with h5py.File(tmp, "w", libver="latest") as f:
+        with h5py.File(tmp, "w", libver=HDF5_LIBVER) as f:
             write_text_attribute(f, "format", FORMAT_NAME)
             f.attrs["version"] = np.int64(FORMAT_VERSION)
             write_text_attribute(f, "rig", log.rig.to_json())
@@ -969,15 +975,15 @@ def write_log(log: Log, path: str | Path) -> Path:
 def open_for_extras(path: str | Path) -> h5py.File:
     """Open a log :func:`write_log` just wrote, to add importer extras (``/import``, ...).
 
-    Opened with ``libver="latest"`` so that new objects get checksummed headers too; use
+    Opened with :data:`HDF5_LIBVER` so that new objects get checksummed headers too; use
     :func:`write_text_attribute` and :func:`write_checksummed_dataset` for what you add.
     """
-    return h5py.File(path, "a", libver="latest")
+    return h5py.File(path, "a", libver=HDF5_LIBVER)
 
 
 def write_text_attribute(obj: h5py.HLObject, name: str, text: str) -> None:
     """Store ``text`` as a fixed-length UTF-8 string attribute (inside the object header,
-    which the current HDF5 format checksums; variable-length strings are not checksummed)."""
+    which the HDF5 1.10 format checksums; variable-length strings are not checksummed)."""
     data = text.encode("utf-8")
     obj.attrs.create(name, np.array(data, dtype=f"S{max(1, len(data))}"), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
 
