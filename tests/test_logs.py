@@ -46,6 +46,9 @@ def conforming() -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     status[2, 0, 3] = 9
     T_base_tip = frames.se3_from_xyyaw(rng.normal(size=K) * 0.1, rng.normal(size=K) * 0.1, rng.normal(size=K))
     T_base_tip[1] = np.nan  # configuration unknown for sample 1
+    A = rng.normal(size=(K, 6, 6)) * 0.01
+    cov = A @ np.swapaxes(A, 1, 2)  # symmetric positive semi-definite
+    cov[1] = np.nan
     attrs = {
         "format": FORMAT_NAME,
         "version": 1,
@@ -53,6 +56,7 @@ def conforming() -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         "source": "simulation",
         "created": "2024-05-01T12:00:00+00:00",
         "map": "maps/cuboid.ply",
+        "configuration_source": "mocap",
     }
     datasets = {
         "/samples/timestamp_s": np.arange(K, dtype=np.float64) * 0.066,
@@ -61,6 +65,7 @@ def conforming() -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         "/samples/sigma_mm": rng.uniform(1.0, 10.0, (K, S, Z)).astype(np.float32),
         "/samples/pressure_kpa": rng.uniform(0.0, 50.0, (K, C)).astype(np.float32),
         "/samples/T_base_tip": T_base_tip,
+        "/samples/T_base_tip_cov": cov,
         "/truth/T_map_base": frames.se3_from_xyyaw(0.3, -0.2, 0.5),
     }
     return attrs, datasets
@@ -119,6 +124,8 @@ def full_log(rig: Rig) -> Log:
         source="import:test",
         created="2024-05-01T12:00:00+00:00",
         map="../maps/cuboid.ply",
+        T_base_tip_cov=d["/samples/T_base_tip_cov"],
+        configuration_source="odometry",
     )
 
 
@@ -139,17 +146,19 @@ def test_plain_h5py_file_is_accepted(tmp_path: Path) -> None:
         assert got.dtype == arr.dtype, field
         np.testing.assert_array_equal(got, arr)  # NaN compare equal here
     assert log.source == "simulation" and log.created == "2024-05-01T12:00:00+00:00"
-    assert log.map == "maps/cuboid.ply"
+    assert log.map == "maps/cuboid.ply" and log.configuration_source == "mocap"
+    assert log.checksums == "none"  # h5py's default file format, no Fletcher-32
     assert log.path == path.absolute()
     assert log.map_path() == path.absolute().parent / "maps" / "cuboid.ply"
 
 
 def test_only_required_fields(tmp_path: Path) -> None:
     a, d = conforming()
-    del a["map"]
+    del a["map"], a["configuration_source"]
     d = {k: v for k, v in d.items() if k in ("/samples/timestamp_s", "/samples/distance_mm", "/samples/status")}
     log = read_log(write_plain(tmp_path / "min.h5", a, d))
     assert log.sigma_mm is None and log.pressure_kpa is None and log.T_base_tip is None and log.T_map_base is None
+    assert log.T_base_tip_cov is None and log.configuration_source is None
     assert log.map is None and log.map_path() is None and log.truth_per_sample() is None
 
 
@@ -420,19 +429,25 @@ def test_round_trip_identical_arrays(tmp_path: Path, full_log: Log) -> None:
     path = write_log(full_log, tmp_path / "rt.h5")
     assert path == tmp_path / "rt.h5"
     back = read_log(path)
-    for name in ("timestamp_s", "distance_mm", "status", "sigma_mm", "pressure_kpa", "T_base_tip", "T_map_base"):
+    for name in ("timestamp_s", "distance_mm", "status", "sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov", "T_map_base"):
         a, b = getattr(full_log, name), getattr(back, name)
         assert b.dtype == a.dtype and b.shape == a.shape, name
-        np.testing.assert_array_equal(b, a, err_msg=name)
-    assert np.isnan(back.distance_mm[0, 1, 10]) and np.isnan(back.T_base_tip[1]).all()
+        assert b.tobytes() == a.tobytes(), name  # bit-identical, NaN payloads included
+    assert np.isnan(back.distance_mm[0, 1, 10]) and np.isnan(back.T_base_tip[1]).all() and np.isnan(back.T_base_tip_cov[1]).all()
     assert (back.source, back.created, back.map) == (full_log.source, full_log.created, full_log.map)
+    assert back.configuration_source == "odometry" and back.checksums == "full"
     assert back.rig.to_dict() == full_log.rig.to_dict()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rt.h5"]
     with h5py.File(path) as f:
-        assert f.attrs["format"] == FORMAT_NAME and int(f.attrs["version"]) == FORMAT_VERSION
+        assert f.attrs["format"] == FORMAT_NAME.encode() and int(f.attrs["version"]) == FORMAT_VERSION
+        assert h5py.check_string_dtype(f.attrs.get_id("rig").dtype).length is not None  # fixed length: in the checksummed header
+        assert f.id.get_create_plist().get_version()[0] >= 2  # superblock with a checksum
         ds = f["/samples/distance_mm"]
         assert ds.compression == "gzip" and ds.compression_opts == 4 and ds.chunks is not None
         assert ds.dtype == np.dtype("<f4") and f["/samples/status"].dtype == np.dtype("u1")
+        for name in ("timestamp_s", "distance_mm", "status", "sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov"):
+            assert f["samples"][name].fletcher32, name
+        assert f["/truth/T_map_base"].fletcher32
 
 
 def test_writer_omits_absent_optional_fields_and_fills_created(tmp_path: Path, full_log: Log) -> None:
@@ -440,7 +455,7 @@ def test_writer_omits_absent_optional_fields_and_fills_created(tmp_path: Path, f
     path = write_log(log, tmp_path / "min.h5")
     with h5py.File(path) as f:
         assert set(f["samples"]) == {"timestamp_s", "distance_mm", "status"}
-        assert "truth" not in f and "map" not in f.attrs
+        assert "truth" not in f and "map" not in f.attrs and "configuration_source" not in f.attrs
     back = read_log(path)
     assert log.created == ""  # the input is not modified
     from datetime import datetime, timezone
@@ -559,8 +574,10 @@ def test_subset(full_log: Log) -> None:
     np.testing.assert_array_equal(sub.sigma_mm, full_log.sigma_mm[[3, 1]])
     np.testing.assert_array_equal(sub.pressure_kpa, full_log.pressure_kpa[[3, 1]])
     np.testing.assert_array_equal(sub.T_base_tip, full_log.T_base_tip[[3, 1]])
+    np.testing.assert_array_equal(sub.T_base_tip_cov, full_log.T_base_tip_cov[[3, 1]])
     np.testing.assert_array_equal(sub.T_map_base, full_log.T_map_base[[3, 1]])
     assert sub.rig is full_log.rig and sub.map == full_log.map and sub.source == full_log.source
+    assert sub.configuration_source == "odometry"
     sub.validate()
     sub.distance_mm[0] = 1.0  # a copy
     assert full_log.distance_mm[3, 0, 0] != 1.0
@@ -636,3 +653,271 @@ def test_documented_plain_h5py_example_is_accepted(tmp_path: Path, monkeypatch: 
     assert np.isnan(log.T_base_tip[0]).all() and log.T_base_tip[1, 2, 3] == 0.30
     assert log.map_path() == tmp_path / "maps" / "cuboid.ply"
     np.testing.assert_allclose(frames.xyyaw_from_se3(log.truth_per_sample()[0]), [0.12, -0.05, 0.25])
+
+
+# -- the configuration's covariance and source ---------------------------------------------
+
+
+def test_covariance_and_source_are_optional_and_validated(full_log: Log) -> None:
+    full_log.validate()
+    assert "T_base_tip_cov" in repr(full_log) and "configuration_source='odometry'" in repr(full_log)
+    no_cov = Log(full_log.rig, full_log.timestamp_s, full_log.distance_mm, full_log.status, T_base_tip=full_log.T_base_tip)
+    no_cov.validate()
+    zero = np.zeros((K, 6, 6))  # an exact configuration is a valid (zero) covariance
+    Log(full_log.rig, full_log.timestamp_s, full_log.distance_mm, full_log.status, T_base_tip=full_log.T_base_tip, T_base_tip_cov=zero).validate()
+
+
+def _cov_case(full_log: Log, **changes: Any) -> str:
+    from dataclasses import replace
+
+    with pytest.raises(LogFormatError) as info:
+        replace(full_log, **changes).validate("x.h5")
+    msg = str(info.value)
+    assert msg.startswith("x.h5: ") and "\n" not in msg
+    return msg
+
+
+def test_covariance_violations_are_named(full_log: Log) -> None:
+    cov = full_log.T_base_tip_cov
+    asym = cov.copy()
+    asym[2, 0, 1] += 1e-3
+    notpsd = cov.copy()
+    notpsd[3] = np.diag([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, -1e-5])
+    partly = cov.copy()
+    partly[0, 2, 2] = np.nan
+    inf = cov.copy()
+    inf[2, 5, 5] = np.inf
+    assert "/samples/T_base_tip_cov[2]: expected a symmetric matrix" in _cov_case(full_log, T_base_tip_cov=asym)
+    assert "/samples/T_base_tip_cov[3]: expected a positive semi-definite matrix" in _cov_case(full_log, T_base_tip_cov=notpsd)
+    assert "/samples/T_base_tip_cov[0]: expected a finite covariance, or all NaN where unknown, found a matrix that is partly NaN" in _cov_case(
+        full_log, T_base_tip_cov=partly
+    )
+    assert "found a matrix with infinite values" in _cov_case(full_log, T_base_tip_cov=inf)
+    assert "expected shape (K, 6, 6) = (4, 6, 6), found shape (4, 3, 3)" in _cov_case(full_log, T_base_tip_cov=cov[:, :3, :3].copy())
+    assert "/samples/T_base_tip_cov: expected dtype float64" in _cov_case(full_log, T_base_tip_cov=cov.astype(np.float32))
+    assert "expected a covariance only alongside /samples/T_base_tip" in _cov_case(full_log, T_base_tip=None)
+    msg = _cov_case(full_log, configuration_source="vicon")
+    assert "root attribute `configuration_source`: expected one of 'mocap', 'kinematics', 'odometry', 'cad', found 'vicon'" in msg
+
+
+def test_covariance_tolerance_is_relative() -> None:
+    """Rounding-level asymmetry and negative eigenvalues are accepted, at any scale."""
+    from tofloc.logs import COV_RTOL, _check_covariances
+
+    for scale in (1e-12, 1.0, 1e6):
+        C = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 0.0]) * scale
+        C[0, 1] = C[1, 0] = 0.5 * scale
+        ok = C.copy()
+        ok[0, 1] += 0.1 * COV_RTOL * 5 * scale
+        ok[5, 5] = -0.1 * COV_RTOL * 5 * scale
+        _check_covariances(ok[None], "x", "c")
+        bad = C.copy()
+        bad[5, 5] = -10 * COV_RTOL * 5 * scale
+        with pytest.raises(LogFormatError, match="positive semi-definite"):
+            _check_covariances(bad[None], "x", "c")
+
+
+@pytest.mark.parametrize(
+    "attrs, datasets, where, frags",
+    [
+        ({"configuration_source": "vicon"}, {}, "root attribute `configuration_source`", ("'mocap', 'kinematics', 'odometry', 'cad'", "found 'vicon'")),
+        ({"configuration_source": np.int64(1)}, {}, "root attribute `configuration_source`", ("string attribute", "int64")),
+        ({}, {"/samples/T_base_tip_cov": np.zeros((K, 6, 6), np.float32)}, "/samples/T_base_tip_cov", ("dtype float64", "float32")),
+        ({}, {"/samples/T_base_tip_cov": np.zeros((K, 6, 5))}, "/samples/T_base_tip_cov", ("(K, 6, 6) = (4, 6, 6)", "(4, 6, 5)")),
+        ({}, {"/samples/T_base_tip_cov": np.tile(-np.eye(6), (K, 1, 1))}, "/samples/T_base_tip_cov[0]", ("positive semi-definite",)),
+        ({}, {"/samples/T_base_tip": None}, "/samples/T_base_tip_cov", ("alongside /samples/T_base_tip",)),
+    ],
+)
+def test_covariance_and_source_violations_in_files(tmp_path: Path, attrs: dict[str, Any], datasets: dict[str, Any], where: str, frags: tuple[str, ...]) -> None:
+    assert_refused(bad_file(tmp_path, attrs=attrs, datasets=datasets), where, *frags)
+
+
+def test_from_arrays_takes_covariance_and_source(rig: Rig) -> None:
+    log = Log.from_arrays(
+        rig, [0.0], np.ones((1, S, Z)), np.full((1, S, Z), 5), T_base_tip=np.eye(4)[None], T_base_tip_cov=np.eye(6)[None].astype(np.float32), configuration_source="cad"
+    )
+    assert log.T_base_tip_cov.dtype == np.float64 and log.configuration_source == "cad"
+    with pytest.raises(LogFormatError, match="configuration_source"):
+        Log.from_arrays(rig, [0.0], np.ones((1, S, Z)), np.full((1, S, Z), 5), configuration_source="guess")
+
+
+# -- checksums: a damaged log is refused or reads back unchanged ----------------------------
+
+
+def _chunk_bytes(path: Path) -> np.ndarray:
+    """Mask of the file's bytes that hold dataset chunks (the rest is metadata or free space)."""
+    mask = np.zeros(path.stat().st_size, bool)
+    with h5py.File(path) as f:
+        def visit(_: str, obj: Any) -> None:
+            if isinstance(obj, h5py.Dataset):
+                for i in range(obj.id.get_num_chunks()):
+                    c = obj.id.get_chunk_info(i)
+                    mask[c.byte_offset : c.byte_offset + c.size] = True
+        f.visititems(visit)
+    return mask
+
+
+_FIELDS = ("timestamp_s", "distance_mm", "status", "sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov", "T_map_base")
+
+
+def _identical(a: Log, b: Log) -> bool:
+    for name in _FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        if (x is None) != (y is None) or (x is not None and (x.shape != y.shape or x.tobytes() != y.tobytes())):
+            return False
+    keep = ("source", "created", "map", "configuration_source")
+    return all(getattr(a, k) == getattr(b, k) for k in keep) and a.rig.to_json() == b.rig.to_json()
+
+
+def test_flipped_bytes_are_refused_or_harmless(tmp_path: Path, full_log: Log) -> None:
+    """Issue 14 items 10-11: one flipped metadata byte once made thousands of distances read as 0.0.
+
+    Seeded byte flips (1-3 bytes XOR a random non-zero value) in the metadata region
+    (superblock, object headers, chunk index, free space) and in the data chunks: every
+    altered file is refused with one line or reads back bit-identical data.
+    """
+    good_path = write_log(full_log, tmp_path / "good.h5")
+    good = np.frombuffer(good_path.read_bytes(), np.uint8)
+    ref = read_log(good_path)
+    chunks = _chunk_bytes(good_path)
+    rng = np.random.default_rng(14)
+    path = tmp_path / "flipped.h5"
+    counts = {}
+    for region, mask in (("metadata", ~chunks), ("data", chunks)):
+        where = np.flatnonzero(mask)
+        refused = identical = 0
+        for _ in range(150):
+            b = good.copy()
+            pos = rng.choice(where, size=rng.integers(1, 4), replace=False)
+            b[pos] ^= rng.integers(1, 256, size=pos.size).astype(np.uint8)
+            path.write_bytes(b.tobytes())
+            try:
+                back = read_log(path)
+            except LogFormatError as e:
+                refused += 1
+                assert str(e).startswith(f"{path}: ") and ": expected " in str(e) and "\n" not in str(e)
+                continue
+            assert _identical(back, ref), f"{region}: bytes {pos} altered the data silently"
+            identical += 1
+        counts[region] = (refused, identical)
+    assert counts["data"] == (150, 0)  # every chunk byte is covered by Fletcher-32
+    assert counts["metadata"][0] > 100  # most metadata bytes matter; the rest (free space, padding) is harmless
+
+
+def test_old_unchecksummed_logs_still_read_and_info_says_so(tmp_path: Path, full_log: Log, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.cli import main
+
+    a, d = conforming()
+    for name in ("configuration_source",):
+        del a[name]
+    del d["/samples/T_base_tip_cov"]
+    old = write_plain(tmp_path / "old.h5", a, d)  # the pre-checksum layout: h5py defaults
+    log = read_log(old)
+    assert log.checksums == "none" and log.T_base_tip_cov is None and log.configuration_source is None
+    assert main(["info", str(old)]) == 0
+    assert "unchecksummed" in capsys.readouterr().out
+    new = write_log(full_log, tmp_path / "new.h5")
+    assert main(["info", str(new)]) == 0
+    out = capsys.readouterr().out
+    assert "HDF5 metadata and every dataset (verified)" in out and "from odometry" in out
+    assert "configuration covariance" in out
+
+
+# -- declared sizes the file cannot hold ---------------------------------------------------
+
+
+def test_declared_size_beyond_the_file_is_refused_before_allocating(tmp_path: Path) -> None:
+    """Issue 14: a 7.6 KB file declaring 10^6 samples of fill values made `tofloc info` allocate 4.2 GB."""
+    import tracemalloc
+
+    from tofloc.cli import main
+
+    a, _ = conforming()
+    big = 10**6
+    path = tmp_path / "huge.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in a.items():
+            f.attrs[k] = v
+        f.create_dataset("samples/timestamp_s", data=np.zeros(big), chunks=(big // 4,), compression="gzip", shuffle=True)
+        f.create_dataset("samples/distance_mm", shape=(big, S, Z), dtype="<f4", chunks=(1024, S, Z), compression="gzip")  # nothing written
+        f.create_dataset("samples/status", shape=(big, S, Z), dtype="u1", chunks=(1024, S, Z), compression="gzip")
+    assert path.stat().st_size < 64 * 1024  # it declares 650 MB
+    tracemalloc.start()
+    try:
+        e = assert_refused(path, "/samples/distance_mm", "all 977 chunks stored", "missing chunk would read as fill values", "found 0 stored")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 32 * 2**20, peak  # the timestamps (8 MB) only
+    assert "\n" not in str(e)
+    assert main(["info", str(path)]) == 2
+
+
+def test_unwritten_contiguous_dataset_is_refused(tmp_path: Path) -> None:
+    a, d = conforming()
+    path = write_plain(tmp_path / "unwritten.h5", a, {k: v for k, v in d.items() if k != "/samples/sigma_mm"})
+    with h5py.File(path, "a") as f:
+        f.create_dataset("samples/sigma_mm", shape=(K, S, Z), dtype="<f4")  # never written: fill values
+    assert_refused(path, "/samples/sigma_mm", f"{K * S * Z * 4} bytes of stored data", "found 0 bytes")
+
+
+def test_compressed_dataset_claiming_too_much_is_refused(tmp_path: Path) -> None:
+    """A chunk whose stored bytes could never decompress to its declared size (deflate tops out at 1032:1)."""
+    import zlib
+
+    from tofloc.logs import MAX_COMPRESSION_RATIO
+
+    a, d = conforming()
+    k = 4096
+    path = tmp_path / "bomb.h5"
+    with h5py.File(path, "w") as f:
+        for name, v in a.items():
+            f.attrs[name] = v
+        f.create_dataset("samples/timestamp_s", data=np.zeros(k))
+        ds = f.create_dataset("samples/distance_mm", shape=(k, S, Z), dtype="<f4", chunks=(k, S, Z), compression="gzip")
+        payload = zlib.compress(b"\x00" * 64)  # a few bytes standing for a 2 MiB chunk
+        ds.id.write_direct_chunk((0, 0, 0), payload)
+    declared = k * S * Z * 4
+    assert declared > MAX_COMPRESSION_RATIO * len(payload)
+    assert_refused(path, "/samples/distance_mm", f"at most {MAX_COMPRESSION_RATIO} times its stored size", f"{declared} bytes declared, {len(payload)} stored")
+
+
+def test_highly_compressible_real_data_is_accepted(tmp_path: Path, rig: Rig) -> None:
+    """All-NaN distances (a sensor that saw nothing) compress about 200:1 with our writer; still read."""
+    k = 20000
+    log = Log.from_arrays(rig, np.zeros(k), np.full((k, S, Z), np.nan), np.full((k, S, Z), 255))
+    path = write_log(log, tmp_path / "nan.h5")
+    back = read_log(path)
+    assert np.isnan(back.distance_mm).all() and back.checksums == "full"
+
+
+def _layout_message_version(path: Path, dataset: str) -> int:
+    """Version byte of a dataset's layout message (type 8), read from its version-2 object header."""
+    import struct
+
+    with h5py.File(path) as f:
+        addr = h5py.h5o.get_info(f[dataset].id).addr
+    raw = path.read_bytes()
+    assert raw[addr : addr + 4] == b"OHDR" and raw[addr + 4] == 2
+    flags = raw[addr + 5]
+    pos = addr + 6 + (16 if flags & 0x20 else 0) + (4 if flags & 0x10 else 0)
+    width = 1 << (flags & 0x03)
+    size = int.from_bytes(raw[pos : pos + width], "little")
+    pos += width
+    end = pos + size
+    while pos < end - 4:
+        mtype, msize, mflags = struct.unpack_from("<BHB", raw, pos)
+        pos += 4 + (2 if flags & 0x04 else 0)
+        if mtype == 8:
+            return raw[pos]
+        pos += msize
+    raise AssertionError("no layout message")
+
+
+def test_written_logs_stay_readable_by_hdf5_1_10_to_1_14(tmp_path: Path, full_log: Log) -> None:
+    """HDF5 2.0's `libver="latest"` writes layout message version 5, which HDF5 1.14 (h5py 3.11) cannot open."""
+    path = write_log(full_log, tmp_path / "compat.h5")
+    with open(path, "rb") as fh:
+        assert fh.read(9)[8] == 3  # superblock version 3 (HDF5 1.10): checksummed
+    for name in ("/samples/distance_mm", "/samples/T_base_tip_cov", "/truth/T_map_base"):
+        assert _layout_message_version(path, name) == 4, name  # HDF5 1.10's chunked layout (fixed-array index)

@@ -8,8 +8,18 @@ The contract is ``log-format-v1`` (documented for users in ``docs/log-format.md`
 * datasets ``/samples/timestamp_s`` (K,) float64, ``/samples/distance_mm`` (K, S, Z)
   float32, ``/samples/status`` (K, S, Z) uint8 and the optional ``/samples/sigma_mm``
   (K, S, Z) float32, ``/samples/pressure_kpa`` (K, C) float32,
-  ``/samples/T_base_tip`` (K, 4, 4) float64 and ``/truth/T_map_base`` (4, 4) or
-  (K, 4, 4) float64.
+  ``/samples/T_base_tip`` (K, 4, 4) float64 with its covariance
+  ``/samples/T_base_tip_cov`` (K, 6, 6) float64 and ``/truth/T_map_base`` (4, 4) or
+  (K, 4, 4) float64; the optional root attribute ``configuration_source``
+  (``"mocap"``, ``"kinematics"``, ``"odometry"`` or ``"cad"``).
+
+:func:`write_log` writes HDF5's 1.10 file format (:data:`HDF5_LIBVER`: superblock, object
+headers and chunk indexes carry checksums, string attributes are fixed-length so that they
+live in the checksummed object headers) and a Fletcher-32 checksum on every dataset chunk;
+:func:`read_log` verifies them (HDF5 does, on every read) and reports in
+:attr:`Log.checksums` how much of the file was protected. Before reading a dataset it
+checks that the file can hold what the dataset declares (:func:`_check_storage`), so a
+small file cannot make the reader allocate gigabytes.
 
 :func:`read_log` accepts any file that follows the contract, whoever wrote it (extra
 attributes, datasets and groups are ignored; either byte order; strings stored as
@@ -48,11 +58,19 @@ __all__ = [
     "MAX_RIG_JSON_BYTES",
     "MAX_TEXT_BYTES",
     "GZIP_LEVEL",
+    "HDF5_LIBVER",
     "POSE_ATOL",
+    "COV_RTOL",
+    "CONFIGURATION_SOURCES",
+    "CHECKSUM_LEVELS",
+    "MAX_COMPRESSION_RATIO",
     "Log",
     "LogFormatError",
     "read_log",
     "write_log",
+    "open_for_extras",
+    "write_text_attribute",
+    "write_checksummed_dataset",
 ]
 
 FORMAT_NAME = "tofloc-log"
@@ -72,6 +90,23 @@ MAX_TEXT_BYTES = 4096
 POSE_ATOL = 1e-4
 #: gzip level of every dataset :func:`write_log` writes.
 GZIP_LEVEL = 4
+#: HDF5 format bounds of every file :func:`write_log` writes: the 1.10 format has every
+#: checksum (superblock v3, object headers v2, fixed-array chunk indexes) and is read by
+#: HDF5 >= 1.10. Not ``"latest"``: with HDF5 2.0 that writes a version-5 layout message
+#: that HDF5 1.14 (h5py 3.11, MATLAB, ...) cannot open.
+HDF5_LIBVER = ("v110", "v110")
+#: Relative tolerance of the covariance test: ``|C - C^T| <= COV_RTOL * max|C|`` and the
+#: smallest eigenvalue ``>= -COV_RTOL * max|C|``.
+COV_RTOL = 1e-6
+#: Allowed values of the root attribute ``configuration_source``.
+CONFIGURATION_SOURCES = ("mocap", "kinematics", "odometry", "cad")
+#: Values of :attr:`Log.checksums`: HDF5 metadata checksums and Fletcher-32 on every
+#: dataset read (``"full"``), only one of the two, or neither (``"none"``, e.g. a file
+#: written before checksums, or with h5py's default file format).
+CHECKSUM_LEVELS = ("full", "metadata", "data", "none")
+#: Largest ratio of a compressed dataset's declared size to its stored size. Deflate
+#: (gzip) cannot exceed 1032:1; a dataset claiming more is refused before it is read.
+MAX_COMPRESSION_RATIO = 1100
 
 _F32 = np.dtype(np.float32)
 _F64 = np.dtype(np.float64)
@@ -105,6 +140,10 @@ class Log:
         Actuation of every actuator (NaN where unknown).
     T_base_tip : ndarray of float64, shape (K, 4, 4), optional
         Measured configuration of every sample; a sample's matrix is all NaN where unknown.
+    T_base_tip_cov : ndarray of float64, shape (K, 6, 6), optional
+        Covariance of every configuration: rotation vector (rad) then translation (m), in
+        the tip frame, ``T_base_tip_true = T_base_tip @ exp(delta)``; all NaN where
+        unknown. Needs ``T_base_tip``.
     T_map_base : ndarray of float64, shape (4, 4) or (K, 4, 4), optional
         Ground-truth base pose (``/truth/T_map_base``).
     source : str
@@ -113,8 +152,15 @@ class Log:
         ISO 8601 time; :func:`write_log` writes the current UTC time when empty.
     map : str, optional
         Path of the map file relative to the log's folder (root attribute ``map``).
+    configuration_source : str, optional
+        Where ``T_base_tip`` comes from (root attribute ``configuration_source``): one of
+        :data:`CONFIGURATION_SOURCES`; None: nothing is assumed (in particular not that
+        the configuration is exact).
     path : Path, optional
         The file the samples came from (set by :func:`read_log`).
+    checksums : str, optional
+        Set by :func:`read_log`: one of :data:`CHECKSUM_LEVELS`, how much of the file was
+        protected by checksums (verified while reading); None for a log built in memory.
 
     Notes
     -----
@@ -135,6 +181,9 @@ class Log:
     created: str = ""
     map: str | None = None
     path: Path | None = None
+    T_base_tip_cov: NDArray[np.float64] | None = None
+    configuration_source: str | None = None
+    checksums: str | None = None
 
     # -- construction -----------------------------------------------------------------
     @classmethod
@@ -152,6 +201,8 @@ class Log:
         source: str = "unknown",
         created: str = "",
         map: str | None = None,
+        T_base_tip_cov: ArrayLike | None = None,
+        configuration_source: str | None = None,
     ) -> "Log":
         """Build and validate a log from array-likes, converting them to the spec's dtypes.
 
@@ -184,6 +235,8 @@ class Log:
             source=source,
             created=created,
             map=map,
+            T_base_tip_cov=f(T_base_tip_cov, _F64),
+            configuration_source=configuration_source,
         )
         log.validate(where)
         return log
@@ -284,6 +337,7 @@ class Log:
             sigma_mm=take(self.sigma_mm),
             pressure_kpa=take(self.pressure_kpa),
             T_base_tip=take(self.T_base_tip),
+            T_base_tip_cov=take(self.T_base_tip_cov),
             T_map_base=truth,
         )
 
@@ -298,8 +352,10 @@ class Log:
             shape, K = 0 or K > :data:`MAX_SAMPLES`, S/Z/C different from the rig,
             non-finite timestamps, distances or sigmas that are neither NaN nor finite
             >= 0, infinite pressures, a configuration that is neither all NaN nor a
-            finite rigid transform, a truth that is not finite rigid, or a bad
-            ``source``/``created``/``map``.
+            finite rigid transform, a configuration covariance without a configuration
+            or whose samples are neither all NaN nor finite, symmetric and positive
+            semi-definite (within :data:`COV_RTOL`), a truth that is not finite rigid,
+            or a bad ``source``/``created``/``map``/``configuration_source``.
         """
         if not isinstance(self.rig, Rig):
             raise LogFormatError(where, "root attribute `rig`", "a tofloc.rig.Rig", type(self.rig).__name__)
@@ -333,6 +389,11 @@ class Log:
                 raise LogFormatError(
                     where, f"/samples/T_base_tip[{k}]", "a finite rigid transform, or all NaN where unknown", _describe_pose(T[k])
                 )
+        if self.T_base_tip_cov is not None:
+            if self.T_base_tip is None:
+                raise LogFormatError(where, "/samples/T_base_tip_cov", "a covariance only alongside /samples/T_base_tip", "no /samples/T_base_tip")
+            cov = _check_array(self.T_base_tip_cov, where, "/samples/T_base_tip_cov", _F64, (K, 6, 6), "(K, 6, 6)")
+            _check_covariances(cov, where, "/samples/T_base_tip_cov")
         if self.T_map_base is not None:
             T = _check_array(self.T_map_base, where, "/truth/T_map_base", _F64)
             if T.shape != (4, 4) and T.shape != (K, 4, 4):
@@ -352,16 +413,22 @@ class Log:
             _check_text(self.map, where, "root attribute `map`", "a relative path")
             if not self.map or "\x00" in self.map or _is_absolute(self.map):
                 raise LogFormatError(where, "root attribute `map`", "a non-empty path relative to the log's folder", repr(self.map[:200]))
+        if self.configuration_source is not None and self.configuration_source not in CONFIGURATION_SOURCES:
+            found = repr(self.configuration_source[:80]) if isinstance(self.configuration_source, str) else type(self.configuration_source).__name__
+            raise LogFormatError(where, "root attribute `configuration_source`", f"one of {', '.join(map(repr, CONFIGURATION_SOURCES))}", found)
+        if self.checksums is not None and self.checksums not in CHECKSUM_LEVELS:
+            raise LogFormatError(where, "checksums", f"one of {CHECKSUM_LEVELS} or None", repr(self.checksums))
 
     def __repr__(self) -> str:
-        opt = [n for n in ("sigma_mm", "pressure_kpa", "T_base_tip", "T_map_base") if getattr(self, n) is not None]
+        opt = [n for n in ("sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov", "T_map_base") if getattr(self, n) is not None]
         try:
             k = str(self.n_samples)
         except (IndexError, TypeError):
             k = "?"
         return (
             f"Log(K={k}, S={self.rig.n_sensors}, Z={self.rig.n_zones}, C={self.rig.n_actuators}, "
-            f"optional={opt}, source={self.source!r}, created={self.created!r}, map={self.map!r}, path={self.path})"
+            f"optional={opt}, configuration_source={self.configuration_source!r}, source={self.source!r}, "
+            f"created={self.created!r}, map={self.map!r}, path={self.path}, checksums={self.checksums!r})"
         )
 
 
@@ -384,6 +451,38 @@ def _first_bad(bad: NDArray[np.bool_], values: NDArray[Any], where: str, loc: st
     if bad.any():
         i = tuple(int(v) for v in np.argwhere(bad)[0])
         raise LogFormatError(where, loc, expected, f"{values[i]!r} at index {i if len(i) > 1 else i[0]}")
+
+
+def _check_covariances(cov: NDArray[np.float64], where: str, loc: str) -> None:
+    """Each (n, n) sample: all NaN, or finite, symmetric and PSD within :data:`COV_RTOL` (vectorized)."""
+    flat = cov.reshape(cov.shape[0], -1)
+    unknown = np.all(np.isnan(flat), axis=1)
+    finite = np.all(np.isfinite(flat), axis=1)
+    bad = ~(unknown | finite)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        found = "a matrix that is partly NaN" if np.isnan(flat[k]).any() else "a matrix with infinite values"
+        raise LogFormatError(where, f"{loc}[{k}]", "a finite covariance, or all NaN where unknown", found)
+    idx = np.flatnonzero(finite)
+    if idx.size == 0:
+        return
+    C = cov[idx]
+    scale = np.max(np.abs(C), axis=(1, 2))
+    asym = np.max(np.abs(C - np.swapaxes(C, 1, 2)), axis=(1, 2))
+    bad_sym = asym > COV_RTOL * scale
+    if bad_sym.any():
+        j = int(np.flatnonzero(bad_sym)[0])
+        raise LogFormatError(
+            where, f"{loc}[{idx[j]}]", f"a symmetric matrix (within {COV_RTOL:g} of its largest entry)", f"asymmetry {asym[j]:.3g} for entries up to {scale[j]:.3g}"
+        )
+    with np.errstate(over="ignore", invalid="ignore"):
+        lam = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, 0]
+    bad_psd = ~(lam >= -COV_RTOL * scale)
+    if bad_psd.any():
+        j = int(np.flatnonzero(bad_psd)[0])
+        raise LogFormatError(
+            where, f"{loc}[{idx[j]}]", f"a positive semi-definite matrix (eigenvalues >= -{COV_RTOL:g} x its largest entry)", f"smallest eigenvalue {lam[j]:.3g}"
+        )
 
 
 def _describe_pose(T: NDArray[np.float64]) -> str:
@@ -482,9 +581,15 @@ def read_log(path: str | Path) -> Log:
         raise LogFormatError(file, "file", "a readable HDF5 log file", str(e)) from None
     if not is_hdf5:
         raise LogFormatError(file, "file", "an HDF5 file (tofloc log format v1)", "not an HDF5 file")
+    try:
+        file_size = p.stat().st_size
+    except OSError as e:
+        raise LogFormatError(file, "file", "a readable HDF5 log file", e.strerror) from None
     with _h5_guard(file, "file"):
         f = h5py.File(p, "r")
     with f:
+        with _h5_guard(file, "file"):
+            audit = _ChecksumAudit(f)
         fmt = _read_str_attr(f, "format", file, MAX_TEXT_BYTES, f"the string {FORMAT_NAME!r}")
         if fmt != FORMAT_NAME:
             raise LogFormatError(file, "root attribute `format`", f"the string {FORMAT_NAME!r}", repr(fmt[:80]))
@@ -506,11 +611,14 @@ def read_log(path: str | Path) -> Log:
         created = _read_str_attr(f, "created", file, MAX_TEXT_BYTES, "an ISO 8601 time")
         if not _is_iso8601(created):
             raise LogFormatError(file, "root attribute `created`", "an ISO 8601 time, e.g. 2024-05-01T12:00:00+00:00", repr(created[:80]))
-        map_rel = None
-        with _h5_guard(file, "root attribute `map`"):
-            has_map = "map" in f.attrs
-        if has_map:
-            map_rel = _read_str_attr(f, "map", file, MAX_TEXT_BYTES, "a path relative to the log's folder")
+        optional_text: dict[str, str | None] = {}
+        for name, expected in (("map", "a path relative to the log's folder"), ("configuration_source", f"one of {', '.join(CONFIGURATION_SOURCES)}")):
+            with _h5_guard(file, f"root attribute `{name}`"):
+                present = name in f.attrs
+            optional_text[name] = _read_str_attr(f, name, file, MAX_TEXT_BYTES, expected) if present else None
+        with _h5_guard(file, "root attributes"):
+            for name in ("format", "rig", "source", "created", *(n for n, v in optional_text.items() if v is not None)):
+                audit.attribute(f, name)
 
         S, Z, C = rig.n_sensors, rig.n_zones, rig.n_actuators
         with _h5_guard(file, "/samples/timestamp_s"):
@@ -522,7 +630,9 @@ def read_log(path: str | Path) -> Log:
             K = int(ts_ds.shape[0])
             if not 1 <= K <= MAX_SAMPLES:
                 raise LogFormatError(file, "/samples/timestamp_s", f"between 1 and {MAX_SAMPLES} samples", f"K = {K}")
+            _check_storage(ts_ds, file, file_size)
             timestamp = _read_dataset(ts_ds, file, _F64)
+            audit.dataset(ts_ds)
 
         def load(name: str, dtype: np.dtype, shape: tuple[int, ...] | None, shape_name: str, required: bool) -> Any:
             desc = f"a {dtype.name} dataset of shape {shape_name}" + (f" = {shape}" if shape else "")
@@ -531,13 +641,17 @@ def read_log(path: str | Path) -> Log:
                 if ds is None:
                     return None
                 _check_dataset_meta(ds, file, dtype, shape, shape_name)
-                return _read_dataset(ds, file, dtype)
+                _check_storage(ds, file, file_size)
+                out = _read_dataset(ds, file, dtype)
+                audit.dataset(ds)
+                return out
 
         distance = load("/samples/distance_mm", _F32, (K, S, Z), _KSZ, True)
         status = load("/samples/status", _U8, (K, S, Z), _KSZ, True)
         sigma = load("/samples/sigma_mm", _F32, (K, S, Z), _KSZ, False)
         pressure = load("/samples/pressure_kpa", _F32, (K, C), "(K, C)", False)
         T_base_tip = load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False)
+        T_base_tip_cov = load("/samples/T_base_tip_cov", _F64, (K, 6, 6), "(K, 6, 6)", False)
         truth = None
         with _h5_guard(file, "/truth/T_map_base"):
             truth_ds = _get_dataset(f, "/truth/T_map_base", file, required=False, expected="a float64 dataset of shape (4, 4) or (K, 4, 4)")
@@ -545,7 +659,11 @@ def read_log(path: str | Path) -> Log:
                 _check_dataset_meta(truth_ds, file, _F64, None, "")
                 if truth_ds.shape not in ((4, 4), (K, 4, 4)):
                     raise LogFormatError(file, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {truth_ds.shape}")
+                _check_storage(truth_ds, file, file_size)
                 truth = _read_dataset(truth_ds, file, _F64)
+                audit.dataset(truth_ds)
+        with _h5_guard(file, "file"):
+            checksums = audit.level()
 
     log = Log(
         rig=rig,
@@ -558,8 +676,11 @@ def read_log(path: str | Path) -> Log:
         T_map_base=truth,
         source=source,
         created=created,
-        map=map_rel,
+        map=optional_text["map"],
         path=p.absolute(),
+        T_base_tip_cov=T_base_tip_cov,
+        configuration_source=optional_text["configuration_source"],
+        checksums=checksums,
     )
     log.validate(file)
     return log
@@ -690,6 +811,81 @@ def _check_dataset_meta(ds: h5py.Dataset, file: str, dtype: np.dtype, shape: tup
         raise LogFormatError(file, name, "data stored inside this file (virtual and external datasets are refused)")
 
 
+class _ChecksumAudit:
+    """Collects whether everything read was protected by checksums HDF5 verifies.
+
+    Metadata: superblock version >= 2 and version-2 object headers (both checksummed) for
+    the root, every group on the way and every dataset read, and string attributes stored
+    in those headers (fixed-length; variable-length strings live in the unchecksummed
+    global heap). Data: the Fletcher-32 filter on every dataset read.
+    """
+
+    def __init__(self, f: h5py.File) -> None:
+        self.metadata = f.id.get_create_plist().get_version()[0] >= 2 and _header_version(f) >= 2
+        self.data = True
+        self._groups_seen: set[str] = {"/"}
+
+    def attribute(self, f: h5py.File, name: str) -> None:
+        info = h5py.check_string_dtype(f.attrs.get_id(name).dtype)
+        if info is not None and info.length is None:
+            self.metadata = False
+
+    def dataset(self, ds: h5py.Dataset) -> None:
+        parts = ds.name.strip("/").split("/")
+        for i in range(1, len(parts)):
+            g = "/" + "/".join(parts[:i])
+            if g not in self._groups_seen:
+                self._groups_seen.add(g)
+                self.metadata = self.metadata and _header_version(ds.file[g]) >= 2
+        self.metadata = self.metadata and _header_version(ds) >= 2
+        self.data = self.data and bool(ds.fletcher32)
+
+    def level(self) -> str:
+        return {(True, True): "full", (True, False): "metadata", (False, True): "data"}.get((self.metadata, self.data), "none")
+
+
+def _header_version(obj: h5py.HLObject) -> int:
+    return int(h5py.h5o.get_info(obj.id).hdr.version)
+
+
+#: HDF5 filters that do not shrink the data (shuffle, Fletcher-32).
+_NON_COMPRESSING_FILTERS = frozenset({h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_FLETCHER32})
+
+
+def _check_storage(ds: h5py.Dataset, file: str, file_size: int) -> None:
+    """Refuse a dataset whose declared size the file cannot hold, before anything is allocated.
+
+    Every chunk of a chunked dataset must be stored (an unstored chunk would read as fill
+    values); the stored bytes must not exceed the file; uncompressed data must be stored in
+    full; compressed data may not claim more than :data:`MAX_COMPRESSION_RATIO` times its
+    stored size.
+    """
+    name = ds.name
+    declared = math.prod(ds.shape) * ds.dtype.itemsize
+    if declared == 0:
+        return
+    stored = int(ds.id.get_storage_size())
+    if stored > file_size:
+        raise LogFormatError(file, name, f"stored data no larger than the file ({file_size} bytes)", f"{stored} bytes")
+    dcpl = ds.id.get_create_plist()
+    compressing = False
+    if dcpl.get_layout() == h5py.h5d.CHUNKED:
+        chunks = ds.chunks
+        assert chunks is not None
+        needed = math.prod(-(-n // c) for n, c in zip(ds.shape, chunks))
+        have = int(ds.id.get_num_chunks())
+        if have != needed:
+            raise LogFormatError(file, name, f"all {needed} chunks stored (a missing chunk would read as fill values)", f"{have} stored")
+        compressing = any(dcpl.get_filter(i)[0] not in _NON_COMPRESSING_FILTERS for i in range(dcpl.get_nfilters()))
+    if compressing:
+        if declared > MAX_COMPRESSION_RATIO * stored:
+            raise LogFormatError(
+                file, name, f"at most {MAX_COMPRESSION_RATIO} times its stored size once decompressed", f"{declared} bytes declared, {stored} stored"
+            )
+    elif stored < declared:
+        raise LogFormatError(file, name, f"{declared} bytes of stored data ({ds.dtype.str} x {ds.shape})", f"{stored} bytes")
+
+
 def _read_dataset(ds: h5py.Dataset, file: str, dtype: np.dtype) -> NDArray[Any]:
     out = np.empty(ds.shape, dtype=dtype)  # native byte order; HDF5 converts on read
     if out.size:
@@ -708,10 +904,13 @@ def write_log(log: Log, path: str | Path) -> Path:
 
     The file is written to ``<name>.tmp-<random>`` in the destination folder, then renamed
     over ``path`` with :func:`os.replace`; on any error the temporary file is removed and
-    ``path`` is left as it was. Datasets are chunked and gzip-compressed (level 4, with
-    the shuffle filter); optional datasets and the ``map`` attribute are written only
-    when present. An empty ``log.created`` is written as the current UTC time (``log``
-    itself is not modified). An extra root attribute ``writer`` names this toolkit.
+    ``path`` is left as it was. The file uses HDF5's 1.10 format (:data:`HDF5_LIBVER`:
+    checksummed superblock, object headers and chunk indexes) with fixed-length string
+    attributes (kept in those headers). Datasets are chunked, gzip-compressed (level 4, with the shuffle
+    filter) and carry a Fletcher-32 checksum per chunk; optional datasets and attributes
+    are written only when present. An empty ``log.created`` is written as the current UTC
+    time (``log`` itself is not modified). An extra root attribute ``writer`` names this
+    toolkit.
 
     Returns
     -------
@@ -736,27 +935,31 @@ def write_log(log: Log, path: str | Path) -> Path:
 
     tmp = _fresh_temp(dest)
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT_NAME
+        with h5py.File(tmp, "w", libver=HDF5_LIBVER) as f:
+            write_text_attribute(f, "format", FORMAT_NAME)
             f.attrs["version"] = np.int64(FORMAT_VERSION)
-            f.attrs["rig"] = log.rig.to_json()
-            f.attrs["source"] = log.source
-            f.attrs["created"] = created
+            write_text_attribute(f, "rig", log.rig.to_json())
+            write_text_attribute(f, "source", log.source)
+            write_text_attribute(f, "created", created)
             if log.map is not None:
-                f.attrs["map"] = log.map
-            f.attrs["writer"] = f"tofloc {_TOFLOC_VERSION}"
+                write_text_attribute(f, "map", log.map)
+            if log.configuration_source is not None:
+                write_text_attribute(f, "configuration_source", log.configuration_source)
+            write_text_attribute(f, "writer", f"tofloc {_TOFLOC_VERSION}")
             samples = f.create_group("samples")
-            _write_dataset(samples, "timestamp_s", log.timestamp_s, "<f8")
-            _write_dataset(samples, "distance_mm", log.distance_mm, "<f4")
-            _write_dataset(samples, "status", log.status, "u1")
+            write_checksummed_dataset(samples, "timestamp_s", log.timestamp_s, "<f8")
+            write_checksummed_dataset(samples, "distance_mm", log.distance_mm, "<f4")
+            write_checksummed_dataset(samples, "status", log.status, "u1")
             if log.sigma_mm is not None:
-                _write_dataset(samples, "sigma_mm", log.sigma_mm, "<f4")
+                write_checksummed_dataset(samples, "sigma_mm", log.sigma_mm, "<f4")
             if log.pressure_kpa is not None:
-                _write_dataset(samples, "pressure_kpa", log.pressure_kpa, "<f4")
+                write_checksummed_dataset(samples, "pressure_kpa", log.pressure_kpa, "<f4")
             if log.T_base_tip is not None:
-                _write_dataset(samples, "T_base_tip", log.T_base_tip, "<f8")
+                write_checksummed_dataset(samples, "T_base_tip", log.T_base_tip, "<f8")
+            if log.T_base_tip_cov is not None:
+                write_checksummed_dataset(samples, "T_base_tip_cov", log.T_base_tip_cov, "<f8")
             if log.T_map_base is not None:
-                _write_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
+                write_checksummed_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, dest)
@@ -767,6 +970,43 @@ def write_log(log: Log, path: str | Path) -> Path:
             pass
         raise
     return dest
+
+
+def open_for_extras(path: str | Path) -> h5py.File:
+    """Open a log :func:`write_log` just wrote, to add importer extras (``/import``, ...).
+
+    Opened with :data:`HDF5_LIBVER` so that new objects get checksummed headers too; use
+    :func:`write_text_attribute` and :func:`write_checksummed_dataset` for what you add.
+    """
+    return h5py.File(path, "a", libver=HDF5_LIBVER)
+
+
+def write_text_attribute(obj: h5py.HLObject, name: str, text: str) -> None:
+    """Store ``text`` as a fixed-length UTF-8 string attribute (inside the object header,
+    which the HDF5 1.10 format checksums; variable-length strings are not checksummed)."""
+    data = text.encode("utf-8")
+    obj.attrs.create(name, np.array(data, dtype=f"S{max(1, len(data))}"), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
+
+
+def write_checksummed_dataset(group: h5py.Group, name: str, data: ArrayLike, dtype: str | np.dtype | None = None) -> h5py.Dataset:
+    """Create ``group[name]`` from ``data``: chunked, shuffle + gzip (:data:`GZIP_LEVEL`), Fletcher-32.
+
+    Parameters
+    ----------
+    group : h5py.Group
+    name : str
+    data : array_like
+        At least one element.
+    dtype : str or numpy dtype, optional
+        Stored dtype (e.g. ``"<f4"``); default: ``data``'s own.
+    """
+    arr = np.asarray(data)
+    arr = np.ascontiguousarray(arr, dtype=np.dtype(dtype) if dtype is not None else arr.dtype)
+    if arr.size == 0 or arr.ndim == 0:
+        raise ParameterError(f"{group.name}/{name}: a checksummed dataset needs at least one element and one axis, found shape {arr.shape}")
+    return group.create_dataset(
+        name, data=arr, chunks=True, compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True, fletcher32=True
+    )
 
 
 def _fresh_temp(dest: Path) -> Path:
@@ -782,11 +1022,3 @@ def _fresh_temp(dest: Path) -> Path:
         os.close(fd)
         return tmp
     raise ParameterError(f"{dest}: cannot create a temporary file next to it")  # pragma: no cover
-
-
-def _write_dataset(group: h5py.Group, name: str, data: NDArray[Any], dtype: str) -> None:
-    arr = np.ascontiguousarray(data, dtype=np.dtype(dtype))
-    if arr.size == 0 or arr.ndim == 0:
-        group.create_dataset(name, data=arr)
-    else:
-        group.create_dataset(name, data=arr, chunks=True, compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True)

@@ -1,6 +1,7 @@
 """Point-cloud processing: normals by k-NN PCA and voxel down-sampling (pure numpy/SciPy).
 
-Used by :class:`tofloc.maps.Map` (clouds without normals, :meth:`~tofloc.maps.Map.voxel_down_sample`)
+Used by :class:`tofloc.maps.Map` (clouds without normals, :meth:`~tofloc.maps.Map.voxel_down_sample`),
+by the nano-swarm importer (2-D wall normals, :func:`estimate_normals_2d`)
 and by the ICP score (the merged ToF cloud, paper III.C).
 """
 
@@ -16,7 +17,7 @@ from scipy.spatial import cKDTree
 from tofloc.errors import ParameterError
 from tofloc.map_validation import check_xyz, param_fail
 
-__all__ = ["estimate_normals", "voxel_down_sample_points"]
+__all__ = ["estimate_normals", "estimate_normals_2d", "voxel_down_sample_points"]
 
 
 def estimate_normals(
@@ -141,3 +142,48 @@ def voxel_down_sample_points(
     sums = np.stack([np.bincount(inverse, weights=p[:, i], minlength=m) for i in range(3)], axis=1)
     centroids: NDArray[np.float64] = sums / count[:, None]
     return (centroids, inverse) if return_inverse else centroids
+
+
+def estimate_normals_2d(
+    points_xy: ArrayLike,
+    k: int = 10,
+    toward: ArrayLike | None = None,
+) -> NDArray[np.float64]:
+    """Unit normals of a 2-D point set (walls seen from above) by k-nearest-neighbour PCA.
+
+    Parameters
+    ----------
+    points_xy : array_like, shape (N, 2)
+        Finite points, ``N >= 2``.
+    k : int
+        Neighbourhood size, the point itself included (clipped to ``N``), >= 2.
+    toward : array_like, shape (N, 2), optional
+        A point each normal must face (e.g. the sensor that observed the point): the
+        normal is flipped when it points away from it. Without it the sign is arbitrary
+        (deterministic).
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+        The eigenvector of the smallest eigenvalue of each neighbourhood's 2 x 2 covariance.
+    """
+    p = np.asarray(points_xy, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 2 or not np.isfinite(p).all():
+        raise ParameterError(f"estimate_normals_2d: points_xy: expected finite points of shape (N >= 2, 2), found shape {p.shape}")
+    if int(k) < 2:
+        raise ParameterError(f"estimate_normals_2d: k: expected >= 2, found {k}")
+    kk = min(int(k), p.shape[0])
+    _, nb = cKDTree(p).query(p, k=kk)
+    nbh = p[nb.reshape(p.shape[0], kk)]
+    nbh = nbh - nbh.mean(axis=1, keepdims=True)
+    cov = np.matmul(nbh.transpose(0, 2, 1), nbh)
+    _, vec = np.linalg.eigh(cov)
+    out = vec[:, :, 0]
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    if toward is not None:
+        t = np.asarray(toward, dtype=np.float64)
+        if t.shape != p.shape or not np.isfinite(t).all():
+            raise ParameterError(f"estimate_normals_2d: toward: expected finite points of shape {p.shape}, found {t.shape}")
+        flip = np.einsum("ni,ni->n", out, t - p) < 0
+        out[flip] *= -1.0
+    return out

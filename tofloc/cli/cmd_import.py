@@ -37,3 +37,39 @@ def eth_matrix(
         highlight=False,
         soft_wrap=True,
     )
+
+
+@import_app.command("nanoswarm")
+def nanoswarm(
+    flight_dir: Path = typer.Argument(..., help="A flight folder of ETH's Nano_Swarm_Mapping data (scans.csv, vicon_poses.csv, poses.csv)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder to write: one log per scan node (droneD-nodeNNN.h5) and maps/without-droneD.ply."),
+    base: str = typer.Option("level", "--base", help="Base frame from the Vicon node pose: 'level' (its yaw and position) or 'mocap' (roll and pitch kept)."),
+    range_cut: float = typer.Option(1.2, "--range-cut", help="Longest distance (m) of the zones the maps are built from."),
+    voxel: float = typer.Option(0.02, "--voxel", help="Map grid (m): 2-D thinning and z extrusion step."),
+    force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
+) -> None:
+    """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
+    covariance, Vicon truth) and leave-one-drone-out wall maps (docs/real-data.md)."""
+    from tofloc.io.nanoswarm_maps import import_flight, write_flight
+
+    if base not in ("level", "mocap"):
+        raise ParameterError(f"--base: expected 'level' or 'mocap', found {base!r}")
+    if not (0 < range_cut <= 4.0):
+        raise ParameterError(f"--range-cut: expected a distance in (0, 4] m, found {range_cut}")
+    if not (0.001 <= voxel <= 0.5):
+        raise ParameterError(f"--voxel: expected a size in [0.001, 0.5] m, found {voxel}")
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
+    with status(f"importing {flight_dir}"):
+        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel)  # type: ignore[arg-type]
+        write_flight(imp, out)
+    s = imp.summary()
+    nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
+    console.print(
+        f"wrote {out}: {len(imp.flight.logs)} logs ({nodes}), valid zones {s['valid_zone_fraction']:.1%}, "
+        f"{len(imp.maps)} maps (range <= {range_cut:g} m, {voxel * 100:g} cm grid, base {base})",
+        highlight=False,
+        soft_wrap=True,
+    )

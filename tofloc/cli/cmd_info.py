@@ -11,9 +11,17 @@ from rich.table import Table
 from tofloc.cli.app import app, console
 
 
+_CHECKSUM_TEXT = {
+    "full": "HDF5 metadata and every dataset (verified)",
+    "metadata": "HDF5 metadata only (datasets unchecksummed)",
+    "data": "datasets only (HDF5 metadata unchecksummed)",
+    "none": "none: an unchecksummed file (older writer); damage may go undetected",
+}
+
+
 @app.command()
 def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (format v1).")) -> None:
-    """Summarize a log: samples, sensors, zones, valid fraction, actuation ranges, truth."""
+    """Summarize a log: samples, sensors, zones, valid fraction, actuation ranges, configuration, truth, checksums."""
     from tofloc.logs import read_log
     from tofloc.rig import DEFAULT_VALID_STATUSES
 
@@ -22,6 +30,7 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
     t.add_row("format", "tofloc-log v1")
     t.add_row("source", log.source)
     t.add_row("created", log.created)
+    t.add_row("checksums", _CHECKSUM_TEXT.get(log.checksums or "none", str(log.checksums)))
     t.add_row("samples", str(log.n_samples))
     if log.n_samples > 1:
         ts = log.timestamp_s
@@ -51,9 +60,20 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
         t.add_row("actuation", "absent")
     if log.T_base_tip is not None:
         known = int(np.isfinite(log.T_base_tip[:, 0, 0]).sum())
-        t.add_row("configuration T_base_tip", f"{known} of {log.n_samples} samples")
+        src = f", from {log.configuration_source}" if log.configuration_source else ", source not stated"
+        t.add_row("configuration T_base_tip", f"{known} of {log.n_samples} samples{src}")
     else:
         t.add_row("configuration T_base_tip", "absent")
+    if log.T_base_tip_cov is not None:
+        cov = log.T_base_tip_cov
+        ok = np.isfinite(cov[:, 0, 0])
+        if ok.any():
+            rot = np.degrees(np.sqrt(np.max(np.diagonal(cov[ok], axis1=1, axis2=2)[:, :3], axis=1)))
+            tr = np.sqrt(np.max(np.diagonal(cov[ok], axis1=1, axis2=2)[:, 3:], axis=1))
+            spread = f": 1-sigma up to {tr.max() * 1000:.1f} mm, {rot.max():.2f} deg"
+        else:
+            spread = ""
+        t.add_row("configuration covariance", f"{int(ok.sum())} of {log.n_samples} samples{spread}")
     if log.T_map_base is not None:
         from tofloc.frames import xyyaw_from_se3
 

@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -49,7 +48,7 @@ from scipy.spatial.transform import Rotation
 from tofloc import frames
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
-from tofloc.logs import Log, write_log
+from tofloc.logs import Log, open_for_extras, write_checksummed_dataset, write_log, write_text_attribute
 from tofloc.rig import RawOrder, Rig, Sensor
 
 __all__ = [
@@ -371,16 +370,16 @@ def write_import(imp: EthImport, out: str | Path) -> Path:
     dest = Path(out)
     with atomic_path(dest) as tmp:
         write_log(imp.log, tmp)
-        with h5py.File(tmp, "a") as f:
+        with open_for_extras(tmp) as f:
             g = f.create_group("import")
-            g.attrs["importer"] = "eth-matrix"
-            g.attrs["notes"] = json.dumps(imp.notes)
-            g.create_dataset("tof_stamp_ms", data=imp.tof_stamp_ms.astype("<i8"))
-            g.create_dataset("nb_target_detected", data=imp.nb_target_detected, compression="gzip")
+            write_text_attribute(g, "importer", "eth-matrix")
+            write_text_attribute(g, "notes", json.dumps(imp.notes))
+            write_checksummed_dataset(g, "tof_stamp_ms", imp.tof_stamp_ms, "<i8")
+            write_checksummed_dataset(g, "nb_target_detected", imp.nb_target_detected)
             if imp.T_map_panel is not None:
-                g.create_dataset("T_map_panel", data=imp.T_map_panel.astype("<f8"), compression="gzip")
+                write_checksummed_dataset(g, "T_map_panel", imp.T_map_panel, "<f8")
             if imp.T_map_panel_median is not None:
-                g.create_dataset("T_map_panel_median", data=imp.T_map_panel_median.astype("<f8"))
+                write_checksummed_dataset(g, "T_map_panel_median", imp.T_map_panel_median, "<f8")
     return dest
 
 

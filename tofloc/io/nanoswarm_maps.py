@@ -1,0 +1,303 @@
+"""Leave-one-drone-out wall maps for the nano-swarm flights, and writing a flight's logs and maps.
+
+For each drone ``h`` of a flight, the map the logs of ``h`` name is built from the OTHER
+drones' scans only:
+
+1. every valid zone of their nodes with a distance <= ``range_cut_m`` (1.2 m by default,
+   the paper's evaluation range) becomes a point in the map frame, placed at the node's
+   motion-capture pose (``T_map_base``) composed with the drone's odometry in-scan motion
+   (``T_base_tip``), as the log says;
+2. the points are thinned in 2-D (x, y) on a ``voxel_m`` grid (2 cm): one centroid per
+   occupied cell, which also remembers the mean position of the sensors that saw it;
+3. each centroid gets a horizontal normal by 2-D PCA of its ``normal_k`` (10) nearest
+   centroids, turned toward the sensors that observed it
+   (:func:`tofloc.point_clouds.estimate_normals_2d`);
+4. the 2-D wall points are extruded in z (the maze's walls are vertical) every
+   ``voxel_m`` over the band the zones can see: the mapping drones' node heights, widened
+   by ``range_cut_m * tan(ZONE_HEIGHT_DEG / 2)`` (0.24 m at 1.2 m) up and down.
+
+:func:`distances_at_truth` measures a node against its map (its points at the true node
+pose, the distance to the nearest map point): the figures of ``docs/real-data.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc import frames
+from tofloc.atomic import atomic_path
+from tofloc.errors import FormatError, ParameterError
+from tofloc.io.nanoswarm import FRAMES, ZONE_HEIGHT_DEG, Flight, OdometryErrorModel, ODOMETRY_ERROR, read_flight
+from tofloc.logs import open_for_extras, write_checksummed_dataset, write_log, write_text_attribute
+from tofloc.maps import Map
+from tofloc.point_clouds import estimate_normals_2d, voxel_down_sample_points
+
+__all__ = [
+    "DEFAULT_RANGE_CUT_M",
+    "DEFAULT_VOXEL_M",
+    "DEFAULT_NORMAL_K",
+    "node_points",
+    "wall_map",
+    "leave_one_out_maps",
+    "distances_at_truth",
+    "map_name",
+    "log_name",
+    "FlightImport",
+    "import_flight",
+    "write_flight",
+    "distance_report",
+]
+
+DEFAULT_RANGE_CUT_M = 1.2
+DEFAULT_VOXEL_M = 0.02
+DEFAULT_NORMAL_K = 10
+
+
+def node_points(flight: Flight, nodes: NDArray[np.intp] | list[int], range_cut_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """Points of the valid zones with a distance <= ``range_cut_m`` of some nodes, in the map frame.
+
+    Each node is placed at its ``T_map_base`` (truth) composed with its ``T_base_tip``
+    (odometry), as its log holds them.
+
+    Returns
+    -------
+    points : ndarray, shape (M, 3)
+    sensors : ndarray, shape (M, 3)
+        Position of the sensor that saw each point.
+    frame : ndarray of intp, shape (M,)
+        ``node_position * 15 + frame_index`` of each point (``node_position`` indexes ``nodes``).
+    """
+    idx = np.asarray(nodes, dtype=np.intp).reshape(-1)
+    if idx.size == 0:
+        return np.empty((0, 3)), np.empty((0, 3)), np.empty(0, dtype=np.intp)
+    logs = [flight.logs[i] for i in idx]
+    rig = logs[0].rig
+    d = np.stack([lg.distance_m for lg in logs]).reshape(-1, rig.n_sensors, rig.n_zones)
+    ok = np.stack([lg.valid() for lg in logs]).reshape(d.shape) & (d <= range_cut_m)
+    T_bt = np.stack([lg.T_base_tip for lg in logs]).reshape(-1, 4, 4)
+    T_mb = np.repeat(np.stack([lg.T_map_base for lg in logs]), FRAMES, axis=0)
+    pts = rig.points_in_map(np.where(ok, d, 0.0), T_bt, T_mb)
+    T_ms = frames.compose(T_mb[:, None], T_bt[:, None], rig.T_tip_sensor[None])  # (n*F, S, 4, 4)
+    sens = np.broadcast_to(T_ms[:, :, None, :3, 3], pts.shape)
+    frame = np.broadcast_to(np.arange(d.shape[0])[:, None, None], ok.shape)
+    return pts[ok], sens[ok], frame[ok].astype(np.intp)
+
+
+def wall_map(
+    points: NDArray[np.float64],
+    sensors: NDArray[np.float64],
+    z_band: tuple[float, float],
+    *,
+    voxel_m: float = DEFAULT_VOXEL_M,
+    normal_k: int = DEFAULT_NORMAL_K,
+    source: str = "nanoswarm walls",
+) -> Map:
+    """A point-cloud map of vertical walls from observed points (see the module docstring, steps 2-4).
+
+    Parameters
+    ----------
+    points, sensors : ndarray, shape (M, 3)
+        Observed points and the positions of the sensors that saw them (map frame).
+    z_band : (float, float)
+        Heights (m) between which the walls are extruded.
+    voxel_m : float
+        Grid of the 2-D thinning and of the extrusion (m).
+    normal_k : int
+        Neighbours of the 2-D PCA normals.
+    """
+    if not (math.isfinite(voxel_m) and voxel_m > 0):
+        raise ParameterError(f"voxel_m: expected a finite size > 0 (m), found {voxel_m}")
+    lo, hi = float(z_band[0]), float(z_band[1])
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ParameterError(f"z_band: expected finite heights lo <= hi, found {z_band}")
+    if points.shape[0] < 2:
+        raise ParameterError(f"{source}: at least 2 observed points are needed for a map, found {points.shape[0]}")
+    flat = np.column_stack([points[:, :2], np.zeros(points.shape[0])])
+    cells, inv = voxel_down_sample_points(flat, voxel_m, return_inverse=True)
+    m = cells.shape[0]
+    count = np.bincount(inv, minlength=m).astype(np.float64)
+    view = np.stack([np.bincount(inv, weights=sensors[:, j], minlength=m) for j in range(2)], axis=1) / count[:, None]
+    xy = cells[:, :2]
+    n2 = estimate_normals_2d(xy, k=normal_k, toward=view)
+    z = np.arange(math.floor(lo / voxel_m), math.ceil(hi / voxel_m) + 1) * voxel_m
+    L = z.size
+    pts = np.column_stack([np.repeat(xy, L, axis=0), np.tile(z, m)])
+    nrm = np.column_stack([np.repeat(n2, L, axis=0), np.zeros(m * L)])
+    return Map.from_points(pts, nrm, source=source)
+
+
+def _z_band(flight: Flight, nodes: NDArray[np.intp], range_cut_m: float) -> tuple[float, float]:
+    z = np.array([flight.logs[i].T_map_base[2, 3] for i in nodes])
+    margin = range_cut_m * math.tan(math.radians(ZONE_HEIGHT_DEG / 2))
+    return float(z.min() - margin), float(z.max() + margin)
+
+
+def leave_one_out_maps(
+    flight: Flight, *, range_cut_m: float = DEFAULT_RANGE_CUT_M, voxel_m: float = DEFAULT_VOXEL_M, normal_k: int = DEFAULT_NORMAL_K
+) -> dict[int, Map]:
+    """For every drone, the wall map of the OTHER drones' scans.
+
+    Raises
+    ------
+    FormatError
+        The flight has a single drone (no other drone to build its map from).
+    """
+    if not (math.isfinite(range_cut_m) and range_cut_m > 0):
+        raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
+    drones = flight.drones
+    if len(drones) < 2:
+        raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others')", f"only drone {drones[0]}")
+    out = {}
+    for h in drones:
+        others = np.flatnonzero(flight.drone != h)
+        p, s, _ = node_points(flight, others, range_cut_m)
+        src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})"
+        out[h] = wall_map(p, s, _z_band(flight, others, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, source=src)
+    return out
+
+
+def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
+    """Distance (m) from each point of node ``i`` (valid zones <= ``range_cut_m``, node at its
+    true pose with its odometry in-scan motion) to the nearest point of ``wall``."""
+    p, _, _ = node_points(flight, [i], range_cut_m)
+    return wall.nearest(p)[0] if p.shape[0] else np.empty(0)
+
+
+def map_name(drone: int) -> str:
+    """Relative path (from the output folder) of the map the logs of ``drone`` use."""
+    return f"maps/without-drone{drone}.ply"
+
+
+def log_name(drone: int, node: int) -> str:
+    return f"drone{drone}-node{node:03d}.h5"
+
+
+@dataclass(eq=False)
+class FlightImport:
+    """A flight's logs (with their ``map`` attribute set) and its leave-one-out maps."""
+
+    flight: Flight
+    maps: dict[int, Map]
+    range_cut_m: float
+    voxel_m: float
+    normal_k: int
+
+    def summary(self) -> dict[str, object]:
+        f = self.flight
+        valid = np.stack([lg.valid() for lg in f.logs])
+        return {
+            "nodes_per_drone": {int(d): int(np.sum(f.drone == d)) for d in f.drones},
+            "valid_zone_fraction": float(valid.mean()),
+            "map_points": {int(d): int(m.points.shape[0]) for d, m in self.maps.items()},
+        }
+
+
+def import_flight(
+    folder: str | Path,
+    *,
+    base: Literal["level", "mocap"] = "level",
+    range_cut_m: float = DEFAULT_RANGE_CUT_M,
+    voxel_m: float = DEFAULT_VOXEL_M,
+    normal_k: int = DEFAULT_NORMAL_K,
+    error_model: OdometryErrorModel = ODOMETRY_ERROR,
+    created: str | None = None,
+) -> FlightImport:
+    """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build its leave-one-out maps."""
+    flight = read_flight(folder, base=base, created=created, error_model=error_model)
+    maps = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k)
+    for i, d in enumerate(flight.drone.tolist()):
+        flight.logs[i].map = map_name(d)
+    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k)
+
+
+def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
+    """Write ``maps/without-droneD.ply`` and one ``droneD-nodeNNN.h5`` per node into ``out_dir``.
+
+    Each log carries an ``/import`` group: ``notes`` (JSON: flight, drone, node, base,
+    odometry pose, Vicon row, map parameters), ``in_scan_motion`` (15, 3) float32 as sent,
+    ``odometry_pose`` (3,), ``vicon_pose`` (7,) and, when the flight re-broadcast the node
+    after its optimisation, ``optimized_poses`` (L, 3). Files are written atomically.
+
+    Returns
+    -------
+    list of Path
+        The maps, then the logs.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for d, m in sorted(imp.maps.items()):
+        written.append(m.save(out / map_name(d)))
+    f = imp.flight
+    params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k}
+    for i, log in enumerate(f.logs):
+        dest = out / log_name(int(f.drone[i]), int(f.node[i]))
+        with atomic_path(dest) as tmp:
+            write_log(log, tmp)
+            with open_for_extras(tmp) as h:
+                g = h.create_group("import")
+                write_text_attribute(g, "importer", "nanoswarm")
+                write_text_attribute(g, "notes", json.dumps({**f.notes(i), "map": params}, sort_keys=True))
+                write_checksummed_dataset(g, "in_scan_motion", f.motion[i], "<f4")
+                write_checksummed_dataset(g, "odometry_pose", f.odometry_pose[i], "<f8")
+                write_checksummed_dataset(g, "vicon_pose", f.vicon[i], "<f8")
+                if f.optimized_poses[i].shape[0]:
+                    write_checksummed_dataset(g, "optimized_poses", f.optimized_poses[i], "<f8")
+        written.append(dest)
+    return written
+
+
+#: Settings compared in docs/real-data.md (each changes one thing from the defaults).
+REPORT_VARIANTS: dict[str, dict[str, object]] = {
+    "defaults (level base, 1.2 m, 2 cm)": {},
+    "base mocap (Vicon roll/pitch kept)": {"base": "mocap"},
+    "map range cut 0.8 m": {"range_cut_m": 0.8},
+    "map range cut 2.0 m": {"range_cut_m": 2.0},
+    "map range cut 4.0 m": {"range_cut_m": 4.0},
+    "voxel 1 cm": {"voxel_m": 0.01},
+    "voxel 4 cm": {"voxel_m": 0.04},
+}
+
+
+def distance_report(dataset: str | Path, flights: tuple[str, ...] = ("two-drones", "four-drones"), eval_range_m: float = DEFAULT_RANGE_CUT_M) -> dict[str, object]:
+    """Per flight and setting: nodes per drone, valid-zone fraction and the point-to-map
+    distance at the truth (median, 90th percentile, cm) of every node's zones <= ``eval_range_m``,
+    in 3-D against the saved map and in 2-D against its wall line (no extrusion step)."""
+    out: dict[str, object] = {}
+    for name in flights:
+        rows = {}
+        for label, kw in REPORT_VARIANTS.items():
+            imp = import_flight(Path(dataset) / name, **kw)  # type: ignore[arg-type]
+            f = imp.flight
+            d3, d2 = [], []
+            for j in range(len(f.logs)):
+                m = imp.maps[int(f.drone[j])]
+                p, _, _ = node_points(f, [j], eval_range_m)
+                d3.append(m.nearest(p)[0])
+                lo = m.points[:, 2].min()
+                wall = m.points[m.points[:, 2] == lo]
+                d2.append(Map.from_points(wall, m.normals[m.points[:, 2] == lo]).nearest(np.column_stack([p[:, :2], np.full(p.shape[0], lo)]))[0])
+            a3, a2 = np.concatenate(d3) * 100, np.concatenate(d2) * 100
+            rows[label] = {
+                "median_cm": round(float(np.median(a3)), 2),
+                "p90_cm": round(float(np.percentile(a3, 90)), 2),
+                "median_2d_cm": round(float(np.median(a2)), 2),
+                "p90_2d_cm": round(float(np.percentile(a2, 90)), 2),
+                "points": int(a3.size),
+                "map_points": imp.summary()["map_points"],
+            }
+        s = imp.summary()
+        out[name] = {"nodes_per_drone": s["nodes_per_drone"], "valid_zone_fraction": round(float(s["valid_zone_fraction"]), 4), "settings": rows}  # type: ignore[arg-type]
+    return out
+
+
+if __name__ == "__main__":  # pragma: no cover - documentation helper
+    print(json.dumps(distance_report(sys.argv[1] if len(sys.argv) > 1 else "../shared/datasets/eth_nano_swarm_mapping/exp2"), indent=1))
