@@ -1,0 +1,127 @@
+"""The one zone caster (tofloc/zone_caster.py): every consumer computes the same expected
+readings from the same inputs, the range cut is on the reported distance, and footprints
+and geometry behave."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from tofloc import frames
+from tofloc.maps import Map
+from tofloc.rig import Rig, Sensor
+from tofloc.testing import easy_problem
+from tofloc.zone_caster import PlanarZoneRays, ZoneCaster, subray_directions
+
+
+def _consumers(p, truth: np.ndarray, footprint: int) -> dict[str, np.ndarray]:
+    """Expected readings ``(K, S, Z)`` of problem ``p`` at ``truth`` from every consumer."""
+    from estimators.gtsam_association import associate, measurements
+    from evaluation.crlb import expected_distances, zone_jacobians
+    from sensor_models.beam import BeamModel
+    from sensor_models.calibration import cast_expected
+    from tofloc.simulation.scenario import ToFPhysics
+    from tofloc.simulation.tof import cast_zones
+
+    T_map_base = p.prior.T_map_base(truth)
+    T_map_sensor = T_map_base @ p.T_base_tip[:, None] @ p.rig.T_tip_sensor[None]
+    physics = ToFPhysics(sub_rays=footprint, min_range=0.0, min_hit_fraction=0.0, max_range=float(p.rig.max_range_m.max()))
+    out = {
+        "simulator": cast_zones(p.map, p.rig, T_map_sensor, physics).distance,
+        "calibration": cast_expected(p.map, p.rig, T_map_sensor, footprint)[0],
+        "beam": np.concatenate([BeamModel(sub_rays=footprint).bind(p).expected(truth[None], k)[0] for k in range(p.n_samples)]),
+    }
+    if footprint == 1:
+        out["crlb"] = expected_distances(T_map_base, p.T_base_tip, p.rig, p.map)
+        out["crlb_jacobians"] = zone_jacobians(T_map_base, p.T_base_tip, p.rig, p.map)[0]
+        # the smoother's range association: every zone valid, its expected reading from the hit
+        full = dataclasses.replace(p, distance_m=np.full(p.distance_m.shape, 0.3), status=np.full(p.status.shape, 5, np.uint8))
+        meas = measurements(full)
+        assoc, _ = associate(full, meas, truth, list(p.T_base_tip), np.eye(4), 10.0, residual="range")
+        smoother = np.full(p.distance_m.shape, np.nan)
+        rf = p.rig.range_factor.ravel()
+        for k, m in enumerate(assoc):
+            t = np.einsum("ni,ni->n", m.q - (m.o_tip @ (T_map_base @ p.T_base_tip[k])[:3, :3].T
+                                             + (T_map_base @ p.T_base_tip[k])[:3, 3]), m.u_tip @ (T_map_base @ p.T_base_tip[k])[:3, :3].T)
+            row = np.full(rf.size, np.nan)
+            row[m.zones[m.inlier]] = t[m.inlier] / rf[m.zones[m.inlier]]
+            smoother[k] = row.reshape(p.distance_m.shape[1:])
+        out["smoother"] = smoother
+    return out
+
+
+@pytest.mark.parametrize("footprint", [1, 3])
+def test_every_consumer_computes_the_same_expected_readings(footprint: int) -> None:
+    """Simulator, calibration, beam model, Cramér-Rao bound and smoother: one caster, one answer."""
+    p, truth = easy_problem(n_samples=3)
+    p = dataclasses.replace(p, map=Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y")))
+    got = _consumers(p, truth, footprint)
+    ref = got["simulator"]
+    assert np.isfinite(ref).sum() > 300 and np.isnan(ref).sum() > 20  # hits and open faces
+    for name, value in got.items():
+        assert value.shape == ref.shape, name
+        np.testing.assert_array_equal(np.isfinite(value), np.isfinite(ref), err_msg=name)
+        np.testing.assert_allclose(value[np.isfinite(ref)], ref[np.isfinite(ref)], atol=2e-6, err_msg=name)
+
+
+def _plane_rig(distance: str) -> tuple[Rig, Map]:
+    """One 8x8 sensor at the origin looking along +x at a wall 1 m away."""
+    R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # boresight +x, image x to -y, image y down
+    rig = Rig((Sensor("s", distance=distance, T_tip_sensor=frames.se3(R, np.zeros(3)), max_range_m=1.05),))
+    wall = Map.from_mesh([[1.0, -5, -5], [1.0, 5, -5], [1.0, 5, 5], [1.0, -5, 5]], [[0, 1, 2], [0, 2, 3]], source="wall")
+    return rig, wall
+
+
+def test_the_range_cut_is_on_the_reported_distance() -> None:
+    """A wall 1 m away, range 1.05 m: every perpendicular reading is 1.0 m (all returned),
+    while the radial readings of the oblique zones exceed 1.05 m (not returned)."""
+    for conv in ("perpendicular", "radial"):
+        rig, wall = _plane_rig(conv)
+        cast = ZoneCaster(rig).cast(wall, np.eye(4)[None, None])
+        r = cast.reading[0, 0]
+        u = rig.unit_directions[0]
+        ray = 1.0 / u[:, 2]  # ray length to the wall
+        if conv == "perpendicular":
+            np.testing.assert_allclose(r, 1.0, atol=1e-6)
+        else:
+            expect = np.where(ray <= 1.05, ray, np.nan)
+            np.testing.assert_array_equal(np.isnan(r), np.isnan(expect))
+            assert np.isnan(r).sum() > 10
+            np.testing.assert_allclose(r[~np.isnan(r)], expect[~np.isnan(expect)], atol=1e-6)
+
+
+def test_footprint_geometry_and_hit_fraction() -> None:
+    rig, wall = _plane_rig("perpendicular")
+    caster = ZoneCaster(rig, footprint=3, min_hit_fraction=0.34)
+    assert caster.dirs_sensor.shape == (1, 64, 9, 3) and caster.n_sub == 9
+    np.testing.assert_allclose(subray_directions(rig.sensors[0], 1)[:, 0], rig.unit_directions[0])
+    cast = caster.cast(wall, np.eye(4)[None, None], geometry=True)
+    assert np.all(cast.hit_fraction == 1.0) and not cast.corner.any()
+    np.testing.assert_allclose(cast.reading, 1.0, atol=1e-6)
+    np.testing.assert_allclose(cast.normal[0, 0], np.tile([-1.0, 0.0, 0.0], (64, 1)), atol=1e-6)  # faces the sensor
+    np.testing.assert_allclose(cast.point[0, 0, :, 0], 1.0, atol=1e-6)
+    # an explicit zone table has no footprint: its rays are cast as given
+    explicit = Rig((dataclasses.replace(rig.sensors[0], zone_directions=rig.unit_directions[0], resolution=(1, 64)),))
+    assert ZoneCaster(explicit, footprint=3).n_sub == 1
+    with pytest.raises(Exception, match="footprint"):
+        ZoneCaster(rig, footprint=0)
+
+
+def test_planar_rays_equal_the_sensor_pose_rays() -> None:
+    """Moving lifted rays by planar poses (and a support rotation) gives the rays of the full
+    sensor poses ``T_map_base @ T_base_tip @ Rz(psi) @ T_tip_sensor``."""
+    p, truth = easy_problem(n_samples=2)
+    caster = ZoneCaster(p.rig)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    poses = np.stack([truth, truth + [0.02, -0.01, 0.1]])
+    psi = np.array([0.0, math.radians(5.0)])
+    o, d = rays.rays(poses, 1, psi)
+    for i in range(2):
+        T = p.prior.T_map_base(poses[i]) @ p.T_base_tip[1] @ frames.se3(frames.rot_z(psi[i]), np.zeros(3))
+        o_ref, d_ref = caster.rays(T[None] @ p.rig.T_tip_sensor)
+        np.testing.assert_allclose(o[i], o_ref[0] if o_ref.ndim == o[i].ndim + 1 else o_ref, atol=1e-12)
+        np.testing.assert_allclose(d[i], d_ref, atol=1e-12)
