@@ -8,8 +8,11 @@ into a one-line message and exit code 2; ``--debug`` shows the traceback.
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
+import signal
 import sys
+import threading
 from typing import Sequence
 
 try:  # typer >= 0.16 vendors its own copy of click
@@ -32,7 +35,71 @@ def _load_commands() -> None:
             importlib.import_module(f"{__name__}.{info.name}")
 
 
-_load_commands()
+try:
+    _load_commands()
+except KeyboardInterrupt:  # Ctrl-C while the commands load: no traceback
+    sys.stderr.write("interrupted\n")
+    sys.exit(130)
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds like Ctrl-C, so that temporaries and journals are closed."""
+
+
+class _Signals:
+    """While the CLI runs: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated`,
+    and both are remembered, so that an error they cause (``ImportError: initialization
+    failed`` when Ctrl-C hits a C extension's import) is reported as the interruption."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in ((signal.SIGINT, self._on_int), (signal.SIGTERM, self._on_term)):
+                self._previous[sig] = signal.signal(sig, handler)
+        return self
+
+    def _on_int(self, signum: int, frame: object) -> None:
+        self.received = signum
+        raise KeyboardInterrupt
+
+    def _on_term(self, signum: int, frame: object) -> None:
+        self.received = signum
+        raise Terminated
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
+def _interrupted_by(e: BaseException, signals: _Signals) -> int | None:
+    """The exit code (130 Ctrl-C, 143 SIGTERM) when ``e`` is, or comes from, an interruption."""
+    seen = set()
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, KeyboardInterrupt):
+            return 130
+        if isinstance(cur, Terminated):
+            return 143
+        cur = cur.__cause__ or cur.__context__
+    if signals.received == signal.SIGINT:
+        return 130
+    if signals.received == signal.SIGTERM:
+        return 143
+    return None
+
+
+def _h5py_has_open_files() -> bool:
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return False
+    try:
+        return bool(h5py.h5f.get_obj_ids())
+    except Exception:  # pragma: no cover - defensive: never fail while reporting
+        return False
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -42,25 +109,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         from tofloc.cli.app import _state
 
         _state["debug"] = True
-    try:
-        rv = app(args=args, standalone_mode=False, prog_name="tofloc")
-        code = rv if isinstance(rv, int) else 0
-    except TofLocError as e:
-        if debug_enabled():
-            raise
-        err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
-        code = 2
-    except typer.Exit as e:
-        code = e.exit_code
-    except typer.Abort:
-        err_console.print("aborted")
-        code = 130
-    except _click_exc.ClickException as e:
-        e.show()
-        code = 2
-    except KeyboardInterrupt:
-        err_console.print("interrupted")
-        code = 130
+    hard_exit = False
+    with _Signals() as signals:
+        try:
+            try:
+                rv = app(args=args, standalone_mode=False, prog_name="tofloc")
+                code = rv if isinstance(rv, int) else 0
+            except TofLocError as e:
+                if debug_enabled():
+                    raise
+                err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
+                code = 2
+            except typer.Exit as e:
+                code = e.exit_code
+            except typer.Abort:
+                err_console.print("aborted")
+                code = 130
+            except _click_exc.ClickException as e:
+                e.show()
+                code = 2
+            except OSError as e:  # the system refused (disk full, I/O error, permissions)
+                if _interrupted_by(e, signals) is not None:
+                    raise
+                if debug_enabled():
+                    raise
+                where = f": {e.filename}" if getattr(e, "filename", None) else ""
+                err_console.print(f"[bold red]error:[/] {escape((e.strerror or str(e)).splitlines()[0])}{escape(where)}",
+                                  highlight=False, soft_wrap=True)
+                code = 1
+                # an HDF5 file whose close failed (disk full) crashes the interpreter's teardown
+                hard_exit = argv is None and _h5py_has_open_files()
+        except BaseException as e:  # Ctrl-C or SIGTERM anywhere, even inside an import
+            code = _interrupted_by(e, signals)  # type: ignore[assignment]
+            if code is None or (debug_enabled() and not isinstance(e, (KeyboardInterrupt, Terminated))):
+                raise
+            err_console.print("interrupted" if code == 130 else "terminated", highlight=False)
+    if hard_exit:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     if argv is None:
         sys.exit(code)
     return code

@@ -254,6 +254,9 @@ def paper(
     ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
+    from tofloc.atomic import check_output_path
+
+    check_output_path(out, kind="dir", option="--out")
     from evaluation.protocol import (
         PRIOR_MODES,
         SEED_DERIVATION,

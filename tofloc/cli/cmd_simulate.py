@@ -26,8 +26,11 @@ def simulate(
     base: Optional[str] = typer.Option(None, "--base", help="Place the base at X,Y,YAW_DEG (m, m, deg) instead of the scenario's."),
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
-    from tofloc.simulation import load_scenario, simulate as run, write_simulation
+    from tofloc.atomic import check_output_path
+    from tofloc.simulation import load_scenario, simulate as run, simulation_paths, write_simulation
 
+    for key, path in simulation_paths(out).items():
+        check_output_path(path, option="--out" if key == "log" else f"--out (its {key} file)")
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if hardware_seed is not None and hardware_seed < 0:

@@ -23,7 +23,7 @@ import serial
 
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.io.formats import FORMAT_HINTS, check_format
-from tofloc.io.journal import JournalWriter
+from tofloc.io.journal import JournalWriteError, JournalWriter
 from tofloc.io.lines import DEFAULT_MAX_LINE_BYTES, LineSplitter
 from tofloc.io.samples import Sample
 from tofloc.io.stream import CaptureStats, StreamProcessor
@@ -145,6 +145,10 @@ class SerialCapture:
         self._stop = threading.Event()
         self.started_at: float | None = None
         self.ended_by: str = ""
+        #: True once this capture has created its journal (so a caller knows it may remove it)
+        self.journal_created = False
+        #: frames decoded from lines the journal had handed to the system
+        self.frames_journaled = 0
 
     @property
     def stats(self) -> CaptureStats:
@@ -172,6 +176,7 @@ class SerialCapture:
         except BaseException:
             conn.port.close()  # type: ignore[union-attr]
             raise
+        self.journal_created = True
         splitter = LineSplitter(self.max_line_bytes)
         proc = self.processor
         t0 = self.started_at = self.clock()
@@ -207,6 +212,7 @@ class SerialCapture:
                         journal.line(line, now)
                         out += proc.feed(line, now)
                     journal.flush()
+                    self.frames_journaled = proc.stats.frames
                     yield from out
                     self._check_decoding(now - t0)
                     continue
@@ -225,24 +231,35 @@ class SerialCapture:
                 self.ended_by = self.ended_by or "stop"
         except KeyboardInterrupt:
             self.ended_by = "interrupted"
-            journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
+            if journal.failed is None:
+                journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
             raise
         except GeneratorExit:  # the caller stopped iterating (or was interrupted)
             self.ended_by = self.ended_by or "closed by the caller"
             raise
+        except JournalWriteError as e:  # disk full: stop, saying what is safe
+            self.ended_by = "journal error"
+            e.frames = self.frames_journaled
+            raise
         finally:
-            tail = splitter.flush_partial()
-            end = self.clock()
-            if tail is not None:
-                journal.line(tail, end)
-                self._final = proc.feed(tail, end)
-            else:
+            try:
+                tail = splitter.flush_partial()
+                end = self.clock()
                 self._final = []
-            self._final += proc.finish()
-            journal.event(end, f"end: {self.ended_by or 'error'}; {proc.stats.summary()}")
-            journal.close()
-            if conn.port is not None:
-                conn.port.close()
+                if journal.failed is None:
+                    for piece in tail:
+                        journal.line(piece, end)
+                        self._final += proc.feed(piece, end)
+                    self._final += proc.finish()
+                    journal.event(end, f"end: {self.ended_by or 'error'}; {proc.stats.summary()}")
+                    self.frames_journaled = proc.stats.frames
+            except JournalWriteError as e:
+                e.frames = self.frames_journaled
+                raise
+            finally:
+                journal.close()
+                if conn.port is not None:
+                    conn.port.close()
         yield from self._final
 
     def _check_decoding(self, elapsed: float) -> None:
@@ -263,11 +280,10 @@ class SerialCapture:
     def _lost(self, conn: _Conn, journal: JournalWriter, splitter: LineSplitter, now: float, why: str) -> Iterator[Sample]:
         """The port went away: journal it, close blocks, and reopen when asked to."""
         proc = self.processor
-        tail = splitter.flush_partial()
         out: list[Sample] = []
-        if tail is not None:
-            journal.line(tail, now)
-            out += proc.feed(tail, now)
+        for piece in splitter.flush_partial():
+            journal.line(piece, now)
+            out += proc.feed(piece, now)
         journal.event(now, f"disconnect: {why}")
         out += proc.connection_lost()
         try:
