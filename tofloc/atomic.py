@@ -13,6 +13,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+from tofloc.errors import ParameterError
+
 __all__ = ["atomic_path", "check_output_path", "check_free_space", "free_space_bytes"]
 
 

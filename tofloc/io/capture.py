@@ -29,7 +29,7 @@ from tofloc.io.samples import Sample
 from tofloc.io.stream import CaptureStats, StreamProcessor
 from tofloc.rig import Rig
 
-__all__ = ["CaptureError", "CaptureTimeout", "SerialCapture", "open_port"]
+__all__ = ["BackgroundCapture", "CaptureError", "CaptureTimeout", "SerialCapture", "open_port"]
 
 
 class CaptureError(TofLocError):
@@ -315,3 +315,76 @@ class SerialCapture:
             journal.event(self.clock(), "reconnected")
             self.on_notice(f"{self.port_name} reconnected")
             return
+
+
+class BackgroundCapture:
+    """Run a :class:`SerialCapture` in its own thread, so that a slow consumer (an
+    estimator) never keeps the port from being read: every line is read and journaled as
+    it arrives, whatever the consumer does.
+
+    Parameters
+    ----------
+    capture : SerialCapture
+        The capture to run (its journal, time-outs and reconnection apply).
+
+    Examples
+    --------
+    >>> bg = BackgroundCapture(cap).start()          # doctest: +SKIP
+    >>> while (batch := bg.take()) is not None:      # doctest: +SKIP
+    ...     estimate_on(batch[-1])
+    >>> bg.join()                                    # re-raises a capture error
+    """
+
+    def __init__(self, capture: SerialCapture) -> None:
+        self.capture = capture
+        #: every sample received, in order (for writing a log at the end)
+        self.received: list[Sample] = []
+        self.error: BaseException | None = None
+        self._pending: list[Sample] = []
+        self._done = False
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="tofloc-capture", daemon=True)
+
+    def start(self) -> "BackgroundCapture":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        try:
+            for s in self.capture.samples():
+                with self._cond:
+                    self._pending.append(s)
+                    self.received.append(s)
+                    self._cond.notify_all()
+        except BaseException as e:  # handed to the consumer's thread by join()
+            self.error = e
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    @property
+    def done(self) -> bool:
+        with self._cond:
+            return self._done
+
+    def take(self, timeout_s: float = 0.25) -> list[Sample] | None:
+        """The samples that arrived since the last call (waits up to ``timeout_s`` for one;
+        ``[]`` when none came); ``None`` once the capture has ended and all were taken."""
+        with self._cond:
+            if not self._pending and not self._done:
+                self._cond.wait(timeout_s)
+            batch, self._pending = self._pending, []
+            if not batch and self._done:
+                return None
+            return batch
+
+    def stop(self) -> None:
+        """Ask the capture to finish (thread-safe); it closes its journal on the way out."""
+        self.capture.stop()
+
+    def join(self, timeout_s: float | None = None) -> None:
+        """Wait for the capture thread; re-raise the error that ended it, if any."""
+        self._thread.join(timeout_s)
+        if self.error is not None:
+            raise self.error
