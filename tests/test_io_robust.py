@@ -263,15 +263,13 @@ def test_every_unwritable_output_is_refused_before_any_work(simulated: Path, tmp
         for case, path in _cases(tmp_path, readonly_dir, name).items():
             if name == "paper --out" and case == "a folder":
                 continue  # a folder is what paper writes into
-            t0 = time.monotonic()
             code = main(argv(path))
             msg = one_line(capsys.readouterr().err)
             assert code == 2, (name, case, msg)
             assert str(path) in msg or str(path.parent) in msg, (name, case, msg)
-            assert time.monotonic() - t0 < 30  # generous: a refusal is not a computation (not a speed assertion)
     after = sorted(p.name for p in tmp_path.iterdir())
     assert set(after) - set(before) <= {"cases"}, set(after) - set(before)
-    leftovers = [p for p in (tmp_path / "cases").rglob("*") if p.is_file() and p.name != "a-file"]
+    leftovers = [p for p in (tmp_path / "cases").rglob("*") if p.is_file() and not p.name.startswith("a-file")]
     assert leftovers == [], leftovers
     assert not list(readonly_dir.iterdir())
 
@@ -303,3 +301,151 @@ def test_check_output_path_accepts_what_can_be_written(tmp_path: Path) -> None:
     check_output_path(tmp_path / "results", kind="dir")
     with pytest.raises(ParameterError, match="is not a folder"):
         check_output_path(tmp_path / "old.json", kind="dir")
+
+
+# -- 7. all-or-nothing writes ---------------------------------------------------------------------------------
+
+CHILD = """
+import os, signal, sys, time
+from tofloc.cli import main
+mode = sys.argv[1]
+if mode == "no-space-check":  # as if the disk filled up after the free-space check
+    import tofloc.atomic
+    tofloc.atomic.check_free_space = lambda *a, **k: None
+elif mode == "sigterm-while-writing":
+    import tofloc.logs
+    real = tofloc.logs.write_log
+    def slow_write(log, path):
+        real(log, path)  # the log's temporary is complete, the maps' too; then the kill comes
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    tofloc.logs.write_log = slow_write
+sys.argv = ["tofloc", *sys.argv[2:]]
+main()  # as the `tofloc` script calls it
+"""
+
+
+def _child(mode: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", CHILD, mode, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+def test_simulate_on_a_full_disk_is_refused_before_writing(small_fs) -> None:
+    tiny = small_fs(256)
+    r = _child("plain", "simulate", "--out", str(tiny / "x.h5"))
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "not enough free space" in one_line(r.stderr)
+    assert list(tiny.iterdir()) == []
+
+
+def test_simulate_when_the_disk_fills_while_writing_leaves_nothing(small_fs) -> None:
+    tiny = small_fs(256)
+    r = _child("no-space-check", "simulate", "--out", str(tiny / "x.h5"))
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])  # not a segmentation fault (-11)
+    assert "No space left on device" in one_line(r.stderr)
+    assert list(tiny.iterdir()) == []
+
+
+def test_simulate_killed_while_writing_leaves_nothing(tmp_path: Path) -> None:
+    (tmp_path / "x.map.ply").write_text("the previous map")
+    r = _child("sigterm-while-writing", "simulate", "--out", str(tmp_path / "x.h5"))
+    assert r.returncode == 143, (r.returncode, r.stderr[-2000:])
+    assert one_line(r.stderr) == "terminated"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.map.ply"]  # no temporaries, no half set
+    assert (tmp_path / "x.map.ply").read_text() == "the previous map"
+
+
+def test_simulate_into_an_existing_folder_writes_nothing(tmp_path: Path, capsys) -> None:
+    (tmp_path / "x").mkdir()
+    assert main(["simulate", "--out", str(tmp_path / "x")]) == 2
+    assert "is a folder" in one_line(capsys.readouterr().err)
+    assert [p.name for p in tmp_path.iterdir()] == ["x"] and not list((tmp_path / "x").iterdir())
+
+
+# -- 8. built-in scenario names ---------------------------------------------------------------------------------
+
+
+def test_a_file_or_folder_named_like_a_builtin_scenario_does_not_replace_it(tmp_path: Path, monkeypatch) -> None:
+    from tofloc.simulation import load_scenario
+
+    monkeypatch.chdir(tmp_path)
+    builtin = load_scenario("paper")
+    Path("paper").write_text("[scenario]\nname = 'mine'\n")
+    assert load_scenario("paper") == builtin
+    Path("paper").unlink()
+    Path("paper").mkdir()
+    assert load_scenario("paper") == builtin
+    Path("paper.toml").write_text("not toml [")
+    with pytest.raises(Exception, match="paper.toml"):
+        load_scenario("paper.toml")  # a path ending in .toml is a file
+
+
+def test_paper_out_paper_runs_twice(tmp_path: Path, monkeypatch, capsys) -> None:
+    """`tofloc paper --out paper` used to fail on its second run: the folder replaced the scenario."""
+    monkeypatch.chdir(tmp_path)
+    import tofloc.simulation as simulation
+
+    seen = []
+    real = simulation.load_scenario
+
+    def spy(name):
+        sc = real(name)
+        seen.append(sc.scenario.name)
+        raise KeyboardInterrupt  # stop right after the scenario is chosen: the rest is tested elsewhere
+
+    monkeypatch.setattr(simulation, "load_scenario", spy)
+    Path("paper").mkdir()
+    assert main(["paper", "--trials", "1", "--out", "paper"]) == 130
+    assert seen == [real("paper").scenario.name]
+
+
+# -- 9. inputs and moments that used to end in a traceback ---------------------------------------------------------
+
+
+def test_a_rig_json_with_a_5001_digit_integer_is_one_line(simulated: Path, tmp_path: Path, capsys) -> None:
+    rig = json.loads(read_log(simulated).rig.to_json())
+    text = json.dumps(rig).replace('"actuators": [', '"huge": ' + "7" * 5001 + ', "actuators": [', 1)
+    assert "7" * 5001 in text
+    for suffix, body in ((".json", text), (".toml", "x = " + "7" * 5001 + "\n")):
+        path = tmp_path / f"rig{suffix}"
+        path.write_text(body)
+        code = main(["record", "--port", "loop://", "--rig", str(path), "--out", str(tmp_path / "r.h5")])
+        msg = one_line(capsys.readouterr().err)
+        assert code == 2 and str(path) in msg and "valid" in msg and "digits" in msg, msg
+
+
+def test_a_ply_with_a_header_and_no_vertex_is_one_line(simulated: Path, tmp_path: Path, capsys) -> None:
+    for fmt in ("ascii", "binary_little_endian"):
+        ply = tmp_path / f"empty-{fmt}.ply"
+        ply.write_text(f"ply\nformat {fmt} 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+        code = main(["localize", str(simulated), "--estimator", "icp_pf", "--map", str(ply)])
+        msg = one_line(capsys.readouterr().err)
+        assert code == 2 and str(ply) in msg and "at least one vertex" in msg, msg
+
+
+def test_ctrl_c_while_a_command_imports_its_libraries_is_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Ctrl-C inside a C extension's import surfaces as ``ImportError: initialization failed``."""
+    import tofloc.simulation as simulation
+
+    def importing(*a, **k):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)  # the user's Ctrl-C, delivered while "importing"
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None  # what pybind11 modules raise then
+        raise AssertionError("no SIGINT arrived")
+
+    monkeypatch.setattr(simulation, "load_scenario", importing)
+    code = main(["simulate", "--out", str(tmp_path / "x.h5")])
+    assert code == 130 and one_line(capsys.readouterr().err) == "interrupted"
+
+
+def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_path: Path) -> None:
+    entry = "from tofloc.cli import main; main()"  # what the `tofloc` script runs
+    for delay in (0.6, 1.2, 2.5):  # while the CLI, then open3d and the simulator load, then simulating
+        p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(tmp_path / "x.h5")],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130 and "Traceback" not in err, (delay, p.returncode, err[-1500:])
+    assert not [q for q in tmp_path.iterdir()]

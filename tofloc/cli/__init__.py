@@ -7,24 +7,14 @@ into a one-line message and exit code 2; ``--debug`` shows the traceback.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import pkgutil
 import signal
 import sys
 import threading
-from typing import Sequence
-
-try:  # typer >= 0.16 vendors its own copy of click
-    from typer._click import exceptions as _click_exc
-except ImportError:  # pragma: no cover - older typer on plain click
-    from click import exceptions as _click_exc
-
-import typer
-from rich.markup import escape
-
-from tofloc.cli.app import app, debug_enabled, err_console
-from tofloc.errors import TofLocError
+from typing import Any, Iterator, Sequence
 
 __all__ = ["app", "main"]
 
@@ -35,9 +25,20 @@ def _load_commands() -> None:
             importlib.import_module(f"{__name__}.{info.name}")
 
 
-try:
+try:  # Ctrl-C while the CLI's libraries and commands load: one line, no traceback
+    try:  # typer >= 0.16 vendors its own copy of click
+        from typer._click import exceptions as _click_exc
+    except ImportError:  # pragma: no cover - older typer on plain click
+        from click import exceptions as _click_exc
+
+    import typer
+    from rich.markup import escape
+
+    from tofloc.cli.app import app, debug_enabled, err_console
+    from tofloc.errors import TofLocError
+
     _load_commands()
-except KeyboardInterrupt:  # Ctrl-C while the commands load: no traceback
+except KeyboardInterrupt:
     sys.stderr.write("interrupted\n")
     sys.exit(130)
 
@@ -102,6 +103,22 @@ def _h5py_has_open_files() -> bool:
         return False
 
 
+def _quiet_h5py_cleanup(unraisable: Any) -> None:
+    """After a failed HDF5 write (disk full), h5py's object cleanup repeats the error many
+    times on stderr; the command reports it once."""
+    if "h5py" in repr(unraisable.object) and isinstance(unraisable.exc_value, (OSError, RuntimeError)):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+@contextlib.contextmanager
+def _restore_hook(previous: Any) -> Iterator[None]:
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns (and, as a script, exits with) the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -110,7 +127,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         _state["debug"] = True
     hard_exit = False
-    with _Signals() as signals:
+    previous_hook = sys.unraisablehook
+    if not debug_enabled():
+        sys.unraisablehook = _quiet_h5py_cleanup
+    with _Signals() as signals, _restore_hook(previous_hook):
         try:
             try:
                 rv = app(args=args, standalone_mode=False, prog_name="tofloc")
@@ -134,7 +154,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if debug_enabled():
                     raise
                 where = f": {e.filename}" if getattr(e, "filename", None) else ""
-                err_console.print(f"[bold red]error:[/] {escape((e.strerror or str(e)).splitlines()[0])}{escape(where)}",
+                text = e.strerror or (os.strerror(e.errno) if e.errno else str(e))
+                err_console.print(f"[bold red]error:[/] {escape(text.splitlines()[0])}{escape(where)}",
                                   highlight=False, soft_wrap=True)
                 code = 1
                 # an HDF5 file whose close failed (disk full) crashes the interpreter's teardown

@@ -146,6 +146,7 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
     )
     previous = signal.signal(signal.SIGTERM, lambda *_: cap.stop())
     interrupted = False
+    journal_failed = False
     t0 = time.monotonic()
     live = Live(Text(f"waiting for data on {port} ({fmt}, {baud} baud)"), console=err_console, refresh_per_second=4, transient=True)
     stream = cap.samples()
@@ -160,6 +161,7 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
     except KeyboardInterrupt:
         interrupted = True
     except JournalWriteError:
+        journal_failed = True  # its message says what is safe: nothing else is printed
         stream.close()
         raise
     except BaseException:
@@ -177,7 +179,7 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
     finally:
         stream.close()  # closes the journal now, before the log is rebuilt from it
         signal.signal(signal.SIGTERM, previous)
-        if cap.stats.lines:
+        if cap.stats.lines and not journal_failed:
             err_console.print(_progress(cap, port, time.monotonic() - t0))
     if interrupted:
         err_console.print("stopped (Ctrl-C); writing the log from the journal", highlight=False, soft_wrap=True)

@@ -16,6 +16,7 @@ from ``h``, so that two sessions with the same ``h`` record the same physical se
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -144,7 +145,8 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     byte when the free space is known to be short) or an interruption the temporaries
     are removed and existing files keep their content.
     """
-    from contextlib import ExitStack
+    import io
+    from contextlib import ExitStack, redirect_stderr
 
     from tofloc.atomic import atomic_path, check_free_space
     from tofloc.logs import write_log
@@ -158,9 +160,18 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     needed = sum(len(b) for b in data.values()) + sum(a.nbytes for a in arrays if a is not None) + 2**20
     check_free_space(paths["log"].parent, needed, f"{paths['log']} and its maps")
     log.map = paths["map"].name
-    with ExitStack() as stack:  # renames happen on the way out, once every file is complete
-        tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("map", "cad", "log")}
-        tmp["map"].write_bytes(data["map"])
-        tmp["cad"].write_bytes(data["cad"])
-        write_log(log, tmp["log"])
+    failed: OSError | None = None
+    # h5py prints a failed write's error again for every object it cleans up: keep it quiet
+    with redirect_stderr(io.StringIO()):
+        try:
+            with ExitStack() as stack:  # renames happen on the way out, once every file is complete
+                tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("map", "cad", "log")}
+                tmp["map"].write_bytes(data["map"])
+                tmp["cad"].write_bytes(data["cad"])
+                write_log(log, tmp["log"])
+        except OSError as e:  # a full disk, an I/O error: say what happened to the files
+            reason = os.strerror(e.errno) if e.errno else str(e).splitlines()[0]
+            failed = OSError(e.errno, f"cannot write {paths['log']} and its maps: {reason}; nothing was written")
+    if failed is not None:
+        raise failed
     return paths
