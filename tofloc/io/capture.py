@@ -1,7 +1,7 @@
 """Read a serial port (pyserial) and turn its lines into samples, journaling every byte.
 
-:class:`SerialCapture` is the one reader loop behind ``tofloc record`` (and, later, live
-localization): iterate over :meth:`SerialCapture.samples` to get each sample as soon as
+:class:`SerialCapture` is the one reader loop behind ``tofloc record`` and live
+localization (which runs it in a thread, :class:`BackgroundCapture`): iterate over :meth:`SerialCapture.samples` to get each sample as soon as
 it is complete. Every line is appended to the journal *before* it is decoded, so an
 interruption at any point leaves a journal from which :func:`tofloc.io.journal.recover`
 rebuilds the same samples.
