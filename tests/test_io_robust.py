@@ -320,6 +320,12 @@ elif mode == "sigterm-while-writing":
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(30)
     tofloc.logs.write_log = slow_write
+elif mode == "sigterm-while-writing-the-model":
+    import sensor_models.beam
+    def killed_while_checking(path):  # the model's temporary is written and being read back
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    sensor_models.beam.load_sensor_model_toml = killed_while_checking
 sys.argv = ["tofloc", *sys.argv[2:]]
 main()  # as the `tofloc` script calls it
 """
@@ -352,6 +358,17 @@ def test_simulate_killed_while_writing_leaves_nothing(tmp_path: Path) -> None:
     assert one_line(r.stderr) == "terminated"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.map.ply"]  # no temporaries, no half set
     assert (tmp_path / "x.map.ply").read_text() == "the previous map"
+
+
+def test_calibrate_killed_while_writing_leaves_nothing(simulated: Path, tmp_path: Path) -> None:
+    cad = simulated.parent / "paper.cad.ply"
+    out = tmp_path / "out"
+    out.mkdir()
+    r = _child("sigterm-while-writing-the-model", "calibrate", str(simulated), "--map", str(cad), "--footprint", "1",
+               "--no-support-yaw", "--no-mounting", "--out", str(out / "model.toml"), "--plot", str(out / "cal.png"))
+    assert r.returncode == 143, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.strip().splitlines()[-1] == "terminated" and "Traceback" not in r.stderr
+    assert list(out.iterdir()) == []
 
 
 def test_simulate_into_an_existing_folder_writes_nothing(tmp_path: Path, capsys) -> None:
