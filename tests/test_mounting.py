@@ -61,6 +61,7 @@ def test_models_cast_from_the_corrected_rig() -> None:
     np.testing.assert_allclose(c.log_likelihood(poses, 1), d.log_likelihood(poses, 1), rtol=1e-10)
 
 
+@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_mounting_fit_recovers_each_sensor() -> None:
     """On a clean simulation with a rotated support and per-sensor mounting errors, the fit
     brings every sensor's orientation closer to the truth than the support's rotation alone."""
