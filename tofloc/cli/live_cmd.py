@@ -60,6 +60,11 @@ def run_live(
     if out is not None:
         check_output_path(out, option="--out")
     check_output_path(journal, option="--journal")
+    if journal.exists():
+        raise ParameterError(
+            f"journal {journal} already exists (it may hold an unsaved capture): rebuild its log with "
+            f"'tofloc record --recover {journal} --out LOG.h5', then move or delete it, or give another --journal"
+        )
     if estimates_out is not None:
         check_output_path(estimates_out, option="--estimates-out")
     outputs = [(journal, "--journal")] + [(p, o) for p, o in ((out, "--out"), (estimates_out, "--estimates-out")) if p is not None]
