@@ -248,6 +248,7 @@ def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path
     assert code == 2 and "/samples/pressure_kpa" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A simulated log gets a calibration session of the same set-up (never the trial samples)."""
     from tofloc.calibration_file import SensorCalibration
@@ -285,6 +286,7 @@ def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_pat
     assert code == 2 and "not both" in err
 
 
+@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A log the simulator did not write has no calibration session: the k-NN training split."""
     from tofloc.logs import read_log, write_log

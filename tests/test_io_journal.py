@@ -100,14 +100,44 @@ def test_a_crash_mid_record_loses_only_that_record(tmp_path: Path) -> None:
         ("not a journal\n", "line 1"),
         ("#tofloc-journal 2 {}\n", "line 1"),
         ('#tofloc-journal 1 {"format": "morse", "rig": {}}\n', "line 1 (header)"),
-        ('#tofloc-journal 1 {"format": "tofloc", "rig": {"sensors": [{"name": "a"}]}}\nL 1.0 ok\nX 2.0 what\nL 3.0 ok\n', "line 3"),
-        ('#tofloc-journal 1 {"format": "tofloc", "rig": {"sensors": [{"name": "a"}]}}\nL nan-ish ok\nL 3.0 ok\n', "line 2"),
-        ('#tofloc-journal 1 {"format": "tofloc", "rig": {"sensors": [{"name": "a"}]}}\nL 1.0 \\u1234\nL 3.0 ok\n', "line 2"),
+        ('#tofloc-journal 1 {"format": "tofloc", "rig": {"sensors": [{"name": "a"}]}, "x": ' + "1" * 5001 + "}\n", "line 1 (header)"),
     ],
 )
-def test_bad_journals_are_refused_with_the_line(tmp_path: Path, content: str, where: str) -> None:
+def test_bad_journal_headers_are_refused_with_the_line(tmp_path: Path, content: str, where: str) -> None:
     j = tmp_path / "bad.journal"
     j.write_text(content)
     with pytest.raises(FormatError) as e:
         recover(j)
     assert e.value.where == where and str(j) in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        (b"X 2.0 what", "unknown record kind"),
+        (b"L nan-ish ok", "not a number"),
+        (b"L 1.0 \\u1234", "escaped byte string"),
+        (b"L 1.0 caf\xc3\xa9 \xff", "not ASCII"),
+        (b"L 1.0 " + b"x" * (4 * 65536 + 100), "longer than"),
+    ],
+)
+def test_a_damaged_record_loses_only_itself(tmp_path: Path, bad: bytes, why: str) -> None:
+    """One damaged record anywhere in a journal: every other record is recovered, and the
+    warning names the damaged record's real line number."""
+    log = small_log(K=60)
+    j = tmp_path / "run.journal"
+    write_stream(j, log, chunk=4096)
+    lines = j.read_bytes().split(b"\n")
+    assert lines[-1] == b""
+    # damage record number 5 (line 6) in the middle of the journal: a whole $F line is lost
+    target = next(i for i, ln in enumerate(lines) if i > 40 and ln.startswith(b"L ") and b"$F," in ln)
+    lines[target] = bad
+    j.write_bytes(b"\n".join(lines))
+    samples, stats, _, warnings = recover(j)
+    assert stats.frames == 2 * log.n_samples - 1  # only the damaged record's frame is gone
+    assert len(samples) == log.n_samples and stats.incomplete == 1
+    assert len(warnings) == 1 and f"line {target + 1}" in warnings[0] and why in warnings[0], warnings
+    rebuilt = samples_to_log(samples, log.rig)
+    ok = np.isfinite(rebuilt.distance_mm).all(axis=2)
+    assert ok.sum() == 2 * log.n_samples - 1
+    np.testing.assert_array_equal(rebuilt.distance_mm[ok], log.distance_mm[ok])

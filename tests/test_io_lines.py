@@ -18,18 +18,46 @@ def test_chunks_crlf_and_partial_tail() -> None:
     assert sp.push(b"ab") == []
     assert sp.push(b"c\r\nde\nf") == [RawLine(b"abc"), RawLine(b"de")]
     assert sp.pending == 1
-    assert sp.flush_partial() == RawLine(b"f", partial=True)
-    assert sp.flush_partial() is None
+    assert sp.flush_partial() == [RawLine(b"f", partial=True)]
+    assert sp.flush_partial() == []
 
 
 def test_overlong_lines_are_cut_and_flagged_with_bounded_memory() -> None:
     sp = LineSplitter(max_line_bytes=10)
-    out = sp.push(b"x" * 25)  # no newline yet: emitted in pieces, never buffered beyond the bound
-    assert [len(r.data) for r in out] == [10, 10] and all(r.overflow for r in out) and sp.pending == 5
+    out = sp.push(b"x" * 25)  # no newline yet: all but the last 10 bytes go on as overflow pieces
+    assert [len(r.data) for r in out] == [10, 5] and all(r.overflow for r in out) and sp.pending == 10
     out = sp.push(b"yy\nok\n" + b"z" * 12 + b"\n")
-    assert out[0] == RawLine(b"xxxxxyy", overflow=True)  # the rest of the long line
-    assert out[1] == RawLine(b"ok")
-    assert [r.overflow for r in out[2:]] == [True, True] and b"".join(r.data for r in out[2:]) == b"z" * 12
+    # the end of a long line: its front is overflow, its last 10 bytes an ordinary line
+    assert out[:2] == [RawLine(b"xx", overflow=True), RawLine(b"xxxxxxxxyy")]
+    assert out[2] == RawLine(b"ok")
+    assert out[3:] == [RawLine(b"zz", overflow=True), RawLine(b"z" * 10)]
+    for _ in range(100):  # memory stays bounded by twice the bound (plus one chunk)
+        sp.push(b"g" * 7)
+        assert sp.pending <= 20
+    pending = sp.pending
+    tail = sp.flush_partial()
+    assert all(r.partial == (i == len(tail) - 1) for i, r in enumerate(tail)) and tail[-1].overflow
+    assert sum(len(r.data) for r in tail) == pending and sp.pending == 0  # every byte handed on
+
+
+def test_a_good_line_glued_behind_64_kib_of_garbage_is_still_decoded() -> None:
+    """docs/serial-protocol.md: garbage before a line cannot hide it, however long (no newline in it)."""
+    log = small_log(2)
+    lines = [ln for _, ls, _ in encode_log(log, "tofloc") for ln in ls]
+    rng = np.random.default_rng(5)
+    junk = np.array([b for b in range(256) if b not in (0x24, 0x0A)], dtype=np.uint8)
+    for n_garbage in (65535, 65536, 65537, 3 * 65536 + 17):
+        for chunk in (4096, 65536, 10**6):
+            stream = lines[0] + junk[rng.integers(0, junk.size, n_garbage)].tobytes() + b"".join(lines[1:])
+            sp, proc = LineSplitter(), StreamProcessor("tofloc", log.rig)
+            samples = []
+            for i in range(0, len(stream), chunk):
+                for line in sp.push(stream[i : i + chunk]):
+                    samples += proc.feed(line, 0.0)
+            samples += proc.finish()
+            assert proc.stats.frames == 2 * log.n_samples, (n_garbage, chunk, proc.stats.first_rejections)
+            assert proc.stats.pressures == log.n_samples and len(samples) == log.n_samples
+            np.testing.assert_array_equal(np.stack([s.distance_mm for s in samples]), log.distance_mm)
 
 
 def test_overflow_line_is_counted_as_malformed_and_ends_a_block() -> None:

@@ -94,8 +94,111 @@ def test_cli_localize_port_end_to_end(paper, tmp_path, capsys) -> None:
     assert code == 0
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith("sample ")]
-    assert len(lines) == 5 and all("+-" in ln for ln in lines), out
-    assert "(5 used)" in lines[-1]
+    assert lines and all("+-" in ln for ln in lines), out
+    # samples that arrived while the estimator was busy join the window without an estimate of their own
+    skipped = [int(m) for ln in lines for m in __import__("re").findall(r"(\d+) skipped", ln)]
+    assert len(lines) + sum(skipped) == 5 and lines[-1].startswith("sample 4 (5 used")
     got = read_log(tmp_path / "live.h5")
     np.testing.assert_array_equal(got.distance_mm, small.distance_mm)
     assert (tmp_path / "live.h5.journal").exists()
+
+
+DEVICE = """
+import json, sys
+import numpy as np
+from tofloc.io.replay import Faults, PtyDevice, replay
+from tofloc.logs import read_log
+log_path, link, flow, vanish = sys.argv[1], sys.argv[2], sys.argv[3] == "1", int(sys.argv[4])
+dev = PtyDevice(link, flow_control=flow)
+rep = replay(read_log(log_path), "tofloc", dev, speed=1.0, faults=Faults(vanish_after=vanish, vanish_grace_s=0.5),
+             reader_timeout_s=60, on_ready=lambda p: print(p, flush=True))
+dev.remove_link()
+print(json.dumps({"lines_sent": rep.lines_sent, "dropped_lines": rep.dropped_lines, "dropped_bytes": dev.dropped_bytes,
+                  "vanished": rep.vanished}), flush=True)
+"""
+
+
+def _live_at_15_hz(paper, tmp_path, capsys, *, flow_control: bool, vanish_after: int, estimates: str):
+    """A 15 Hz device (60 samples, 240 lines) in a child process; `tofloc localize --port`
+    with an estimator much slower than the device. Returns (report, journal, sent lines, stdout)."""
+    import json
+    import subprocess
+    import sys
+
+    from test_io_cli import wait_for
+
+    from tofloc.cli import main
+    from tofloc.io.formats import encode_log
+    from tofloc.logs import Log, write_log
+
+    sim, model = paper
+    idx = model.validation_indices[:60] if len(model.validation_indices) >= 60 else np.arange(60)
+    sub = sim.log.subset(idx)
+    log = Log.from_arrays(sub.rig, np.arange(sub.n_samples) / 15.0, sub.distance_mm, sub.status, sigma_mm=sub.sigma_mm,
+                          pressure_kpa=sub.pressure_kpa)
+    log_path = write_log(log, tmp_path / "fifteen.h5")
+    sim.map_cloud.save(tmp_path / "map.ply")
+    model.save(tmp_path / "knn.npz")
+    link = tmp_path / "ttyLIVE"
+    dev = subprocess.Popen([sys.executable, "-c", DEVICE, str(log_path), str(link), "1" if flow_control else "0", str(vanish_after)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    truth = frames.xyyaw_from_se3(sim.log.T_map_base)
+    journal = tmp_path / "live.journal"
+    try:
+        wait_for(link, dev, timeout=60)
+        code = main([
+            "localize", "--port", str(link), "--rig", str(log_path), "--map", str(tmp_path / "map.ply"),
+            "--kinematics", str(tmp_path / "knn.npz"), "--estimator", "icp_pf", "--param", "n_particles=3000",
+            "--prior-x", f"{truth[0] + 0.02}", "--prior-y", f"{truth[1]}", "--prior-yaw-deg", f"{math.degrees(truth[2])}",
+            "--prior-sigma-xy", "0.05", "--prior-sigma-yaw-deg", "5", "--base-z", "0.5",
+            "--journal", str(journal), "--estimates-out", str(tmp_path / estimates), "--timeout", "30",
+        ])
+        out, err = dev.communicate(timeout=60)
+    finally:
+        dev.kill() if dev.poll() is None else None
+    assert code == 0 and dev.returncode == 0, err
+    report = json.loads(out.strip().splitlines()[-1])
+    sent = [line.rstrip(b"\r\n") for _, lines, _ in encode_log(log, "tofloc") for line in lines][: report["lines_sent"]]
+    return report, journal, sent, capsys.readouterr().out
+
+
+def _journaled_lines(journal) -> list[bytes]:
+    from tofloc.io.journal import read_journal
+
+    _, records, _ = read_journal(journal)
+    return [r.data for r in records if r.kind in ("line", "partial")]
+
+
+def test_live_at_15_hz_without_flow_control_loses_no_line(paper, tmp_path, capsys) -> None:
+    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, flow_control=False, vanish_after=0, estimates="est.csv")
+    assert report["lines_sent"] == 240
+    assert report["dropped_lines"] == [] and report["dropped_bytes"] == 0  # the reader never fell behind
+    assert _journaled_lines(journal) == sent  # the journal holds every line the device sent, as sent
+    updates = [ln for ln in out.splitlines() if ln.startswith("sample ")]
+    assert "skipped" in out and 0 < len(updates) < 60  # the estimator worked on the latest window
+    # the estimates, one flushed CSV row each, with the covariance of (x, y, yaw)
+    import csv
+
+    from tofloc.io.estimates import ESTIMATE_COLUMNS
+
+    rows = list(csv.DictReader((tmp_path / "est.csv").open()))
+    assert list(rows[0].keys()) == list(ESTIMATE_COLUMNS) and len(rows) == len([u for u in updates if "+-" in u])
+    cov = np.array([[float(rows[-1][f"cov_{a}_{b}"]) for b in ("x", "y", "yaw")] for a in ("x", "y", "yaw")])
+    np.testing.assert_allclose(cov, cov.T)
+    assert np.all(np.linalg.eigvalsh(cov) >= -1e-12)
+    assert int(rows[-1]["sample_index"]) == 59 and sum(int(r["skipped"]) for r in rows) + len(rows) <= 60
+    truth = frames.xyyaw_from_se3(paper[0].log.T_map_base)
+    assert np.hypot(float(rows[-1]["x_m"]) - truth[0], float(rows[-1]["y_m"]) - truth[1]) < 0.05
+    q = np.array([float(rows[-1][k]) for k in ("qx", "qy", "qz", "qw")])
+    assert abs(np.linalg.norm(q) - 1) < 1e-9 and abs(2 * math.atan2(q[2], q[3]) - float(rows[-1]["yaw_rad"])) < 1e-9
+
+
+def test_a_vanishing_port_leaves_every_line_sent_journaled(paper, tmp_path, capsys) -> None:
+    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, flow_control=True, vanish_after=120, estimates="est.tum")
+    assert report["vanished"] and report["lines_sent"] == 120
+    assert _journaled_lines(journal) == sent  # every line sent before the device vanished
+    rows = [ln.split() for ln in (tmp_path / "est.tum").read_text().splitlines()]
+    assert rows and all(len(r) == 8 for r in rows)  # TUM: timestamp x y z qx qy qz qw
+    t = np.array([float(r[0]) for r in rows])
+    assert np.all(np.diff(t) > 0) and t[-1] <= 120 / 4 / 15.0
+    assert all(float(r[3]) == 0.5 for r in rows)  # the base height

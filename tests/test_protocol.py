@@ -340,6 +340,7 @@ def _numbers(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{k: v for k, v in r.items() if k != "runtime_s"} for r in records]
 
 
+@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     distributed = pytest.importorskip("distributed")
     log, the_map, kin = sim["log"], sim["map"], sim["kin"]

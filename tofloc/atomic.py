@@ -13,7 +13,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_path"]
+from tofloc.errors import ParameterError
+
+__all__ = ["atomic_path", "check_output_path", "check_free_space", "free_space_bytes"]
 
 
 def _umask() -> int:
@@ -52,3 +54,111 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path`` itself or its closest ancestor that exists (as anything)."""
+    p = path
+    while not (p.exists() or p.is_symlink()):
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _writable_folder(folder: Path) -> str | None:
+    """None when a file can be created in ``folder``, else the reason (probes for real:
+    permissions, read-only mounts and ACLs all count)."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=".tofloc-probe.", dir=folder)
+    except OSError as e:
+        return e.strerror or type(e).__name__
+    os.close(fd)
+    os.unlink(name)
+    return None
+
+
+def check_output_path(
+    path: str | Path,
+    *,
+    kind: str = "file",
+    option: str = "--out",
+    overwrite: bool = True,
+    force_hint: str = "--force",
+) -> Path:
+    """Check, before any work, that ``path`` can be written; ParameterError (one line) if not.
+
+    Parameters
+    ----------
+    path : Path
+        The file (``kind="file"``) or folder (``kind="dir"``) a command will write.
+    kind : {"file", "dir"}
+        What will be written there.
+    option : str
+        The option that named it, for the message (``--out``, ``--json``, ...).
+    overwrite : bool
+        Whether an existing file may be replaced (``False``: refused, suggesting ``force_hint``).
+        Ignored for folders, which are written into.
+    force_hint : str
+        The option that allows overwriting, named in the refusal ("" for none).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    ParameterError
+        The path is a folder where a file is expected (or the reverse), lies under a
+        file, its folder cannot be created or written, or it exists and may not be
+        overwritten.
+    """
+    if kind not in ("file", "dir"):
+        raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
+    p = Path(path)
+    if str(p) in ("", "."):
+        if kind == "file":
+            raise ParameterError(f"{option} {path}: expected a file name")
+    if kind == "file":
+        if p.is_dir():
+            raise ParameterError(f"{option} {p}: is a folder, expected a file name")
+        if p.exists() and not p.is_file():
+            raise ParameterError(f"{option} {p}: exists and is not a regular file")
+        if p.exists() and not overwrite:
+            hint = f"; choose another name or pass {force_hint} to overwrite it" if force_hint else "; choose another name"
+            raise ParameterError(f"{option} {p}: exists{hint}")
+        folder = p.parent if str(p.parent) else Path(".")
+    else:
+        if p.exists() and not p.is_dir():
+            raise ParameterError(f"{option} {p}: exists and is not a folder")
+        folder = p
+    base = _nearest_existing(folder)
+    if not base.is_dir():
+        raise ParameterError(f"{option} {p}: {base} is a file, not a folder")
+    why = _writable_folder(base)
+    if why is not None:
+        if base == folder:
+            raise ParameterError(f"{option} {p}: cannot write in the folder {base}: {why}")
+        raise ParameterError(f"{option} {p}: cannot create the folder {folder}: cannot write in {base}: {why}")
+    return p
+
+
+def free_space_bytes(folder: str | Path) -> int:
+    """Bytes an unprivileged writer can still put in ``folder``'s file system."""
+    st = os.statvfs(_nearest_existing(Path(folder)))
+    return int(st.f_bavail) * int(st.f_frsize)
+
+
+def check_free_space(folder: str | Path, needed_bytes: int, what: str) -> None:
+    """ParameterError (one line) when ``folder``'s file system has less than ``needed_bytes`` free.
+
+    Call it before writing something whose size is known in advance (an upper bound), so
+    that a full disk is refused before any byte is written rather than half-way.
+    """
+    free = free_space_bytes(folder)
+    if free < needed_bytes:
+        raise ParameterError(
+            f"not enough free space in {folder} for {what}: about {needed_bytes / 1e6:.1f} MB needed, "
+            f"{free / 1e6:.1f} MB free"
+        )

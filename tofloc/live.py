@@ -4,16 +4,21 @@ Each complete sample (every sensor's frame plus the actuation) becomes one more 
 of the problem: its configuration ``T_base_tip`` comes from the k-NN kinematics model fed
 with the sample's pressures (with the model's validation-error covariance), and the
 estimator is run on the latest ``window`` samples with a generator derived from (seed,
-sample index), so a replay of the same journal gives the same estimates. The Problem is
-made by the same builder as offline (:func:`tofloc.problem_builder.build_problem`: the
-calibration applied, the nuisances declared), so the same samples give the same Problem
-either way. The capture keeps its journal as ``tofloc record`` does.
+sample index). The Problem is made by the same builder as offline
+(:func:`tofloc.problem_builder.build_problem`: the calibration applied, the nuisances
+declared), so the same samples give the same Problem either way. The capture keeps its
+journal as ``tofloc record`` does, in its own thread
+(:class:`tofloc.io.capture.BackgroundCapture`): when the estimator is slower than the
+device, :meth:`LiveLocalizer.update_latest` adds every sample that arrived meanwhile to
+the window and estimates once, on the latest, and the update says how many samples it did
+not estimate on their own (``skipped``). Fed one sample at a time
+(:meth:`LiveLocalizer.update`), the same journal gives the same estimates.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Iterable, Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +40,8 @@ class LiveUpdate:
     n_used: int
     estimate: Estimate | None
     reason: str = ""
+    #: samples added to the window since the previous update without an estimate of their own
+    skipped: int = 0
 
 
 @dataclass
@@ -82,11 +89,12 @@ class LiveLocalizer:
                 f"{self.rig.n_actuators} actuators ({', '.join(self.rig.actuators) or 'none'})"
             )
 
-    def update(self, sample: Any) -> LiveUpdate:
-        """Add one :class:`tofloc.io.samples.Sample` and re-estimate."""
+    def add(self, sample: Any) -> str:
+        """Add one :class:`tofloc.io.samples.Sample` to the window without estimating;
+        returns why it was not usable ("" when it was added)."""
         p = sample.pressure_kpa
         if p is None or not np.all(np.isfinite(p)):
-            return self._answer(sample.index, "no complete pressure reading: configuration unknown")
+            return "no complete pressure reading: configuration unknown"
         T = self.kinematics.predict(np.asarray(p, dtype=float)[None, :])[0]
         self._distance_m.append(mm_to_m(sample.distance_mm))
         sig = getattr(sample, "sigma_mm", None)
@@ -94,7 +102,24 @@ class LiveLocalizer:
         self._status.append(np.asarray(sample.status, dtype=np.uint8))
         self._T_base_tip.append(T)
         self._indices.append(int(sample.index))
-        return self._answer(sample.index, "")
+        if len(self._indices) > self.window:  # only the window is ever used: memory stays bounded
+            for buf in (self._distance_m, self._sigma_m, self._status, self._T_base_tip, self._indices):
+                del buf[: -self.window]
+        return ""
+
+    def update(self, sample: Any) -> LiveUpdate:
+        """Add one :class:`tofloc.io.samples.Sample` and re-estimate."""
+        return self._answer(sample.index, self.add(sample))
+
+    def update_latest(self, samples: Sequence[Any]) -> LiveUpdate:
+        """Add every sample that arrived since the last update, then estimate once, on the
+        latest window; the update's ``skipped`` counts the samples not estimated on their own."""
+        if not samples:
+            raise ParameterError("update_latest needs at least one sample")
+        reason = ""
+        for s in samples:
+            reason = self.add(s)
+        return replace(self._answer(samples[-1].index, reason), skipped=len(samples) - 1)
 
     def problem(self) -> Problem:
         """The Problem of the latest ``window`` samples (:func:`tofloc.problem_builder.build_problem`).

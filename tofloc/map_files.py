@@ -183,6 +183,8 @@ def _ply_vertex_and_faces(elements: list[_PlyElement], fail: Fail) -> tuple[_Ply
     for c in ("x", "y", "z"):
         if c not in names:
             raise fail("header: element vertex", f"a property {c!r}")
+    if vert.count == 0:
+        raise fail("header: element vertex", "at least one vertex", "element vertex 0")
     face = next((e for e in elements if e.name == "face"), None)
     if face is not None:
         lists = [p for p in face.props if p.count_dtype is not None]

@@ -513,8 +513,8 @@ class Rig:
     def from_json(cls, text: str, source: str = "<rig>") -> "Rig":
         try:
             d = json.loads(text)
-        except (json.JSONDecodeError, TypeError, RecursionError) as e:
-            raise _fail(source, "rig", "valid JSON", str(e)) from None
+        except (ValueError, TypeError, RecursionError) as e:  # ValueError: also Python's int-string limit
+            raise _fail(source, "rig", "valid JSON", str(e)[:200]) from None
         return cls.from_dict(d, source)
 
     @classmethod
@@ -530,8 +530,8 @@ class Rig:
         if p.suffix.lower() == ".toml":
             try:
                 d = tomllib.loads(raw.decode("utf-8"))
-            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-                raise FormatError(p, "rig", "valid TOML", str(e)) from None
+            except ValueError as e:  # TOMLDecodeError, UnicodeDecodeError, Python's int-string limit
+                raise FormatError(p, "rig", "valid TOML", str(e)[:200]) from None
             return cls.from_dict(d, str(p))
         if p.suffix.lower() == ".json":
             return cls.from_json(raw.decode("utf-8", errors="replace"), str(p))

@@ -7,21 +7,14 @@ into a one-line message and exit code 2; ``--debug`` shows the traceback.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import os
 import pkgutil
+import signal
 import sys
-from typing import Sequence
-
-try:  # typer >= 0.16 vendors its own copy of click
-    from typer._click import exceptions as _click_exc
-except ImportError:  # pragma: no cover - older typer on plain click
-    from click import exceptions as _click_exc
-
-import typer
-from rich.markup import escape
-
-from tofloc.cli.app import app, debug_enabled, err_console
-from tofloc.errors import TofLocError
+import threading
+from typing import Any, Iterator, Sequence
 
 __all__ = ["app", "main"]
 
@@ -32,7 +25,98 @@ def _load_commands() -> None:
             importlib.import_module(f"{__name__}.{info.name}")
 
 
-_load_commands()
+try:  # Ctrl-C while the CLI's libraries and commands load: one line, no traceback
+    try:  # typer >= 0.16 vendors its own copy of click
+        from typer._click import exceptions as _click_exc
+    except ImportError:  # pragma: no cover - older typer on plain click
+        from click import exceptions as _click_exc
+
+    import typer
+    from rich.markup import escape
+
+    from tofloc.cli.app import app, debug_enabled, err_console
+    from tofloc.errors import TofLocError
+
+    _load_commands()
+except KeyboardInterrupt:
+    sys.stderr.write("interrupted\n")
+    sys.exit(130)
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds like Ctrl-C, so that temporaries and journals are closed."""
+
+
+class _Signals:
+    """While the CLI runs: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated`,
+    and both are remembered, so that an error they cause (``ImportError: initialization
+    failed`` when Ctrl-C hits a C extension's import) is reported as the interruption."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in ((signal.SIGINT, self._on_int), (signal.SIGTERM, self._on_term)):
+                self._previous[sig] = signal.signal(sig, handler)
+        return self
+
+    def _on_int(self, signum: int, frame: object) -> None:
+        self.received = signum
+        raise KeyboardInterrupt
+
+    def _on_term(self, signum: int, frame: object) -> None:
+        self.received = signum
+        raise Terminated
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
+def _interrupted_by(e: BaseException, signals: _Signals) -> int | None:
+    """The exit code (130 Ctrl-C, 143 SIGTERM) when ``e`` is, or comes from, an interruption."""
+    seen = set()
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, KeyboardInterrupt):
+            return 130
+        if isinstance(cur, Terminated):
+            return 143
+        cur = cur.__cause__ or cur.__context__
+    if signals.received == signal.SIGINT:
+        return 130
+    if signals.received == signal.SIGTERM:
+        return 143
+    return None
+
+
+def _h5py_has_open_files() -> bool:
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return False
+    try:
+        return bool(h5py.h5f.get_obj_ids())
+    except Exception:  # pragma: no cover - defensive: never fail while reporting
+        return False
+
+
+def _quiet_h5py_cleanup(unraisable: Any) -> None:
+    """After a failed HDF5 write (disk full), h5py's object cleanup repeats the error many
+    times on stderr; the command reports it once."""
+    if "h5py" in repr(unraisable.object) and isinstance(unraisable.exc_value, (OSError, RuntimeError)):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+@contextlib.contextmanager
+def _restore_hook(previous: Any) -> Iterator[None]:
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -42,25 +126,49 @@ def main(argv: Sequence[str] | None = None) -> int:
         from tofloc.cli.app import _state
 
         _state["debug"] = True
-    try:
-        rv = app(args=args, standalone_mode=False, prog_name="tofloc")
-        code = rv if isinstance(rv, int) else 0
-    except TofLocError as e:
-        if debug_enabled():
-            raise
-        err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
-        code = 2
-    except typer.Exit as e:
-        code = e.exit_code
-    except typer.Abort:
-        err_console.print("aborted")
-        code = 130
-    except _click_exc.ClickException as e:
-        e.show()
-        code = 2
-    except KeyboardInterrupt:
-        err_console.print("interrupted")
-        code = 130
+    hard_exit = False
+    previous_hook = sys.unraisablehook
+    if not debug_enabled():
+        sys.unraisablehook = _quiet_h5py_cleanup
+    with _Signals() as signals, _restore_hook(previous_hook):
+        try:
+            try:
+                rv = app(args=args, standalone_mode=False, prog_name="tofloc")
+                code = rv if isinstance(rv, int) else 0
+            except TofLocError as e:
+                if debug_enabled():
+                    raise
+                err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
+                code = 2
+            except typer.Exit as e:
+                code = e.exit_code
+            except typer.Abort:
+                err_console.print("aborted")
+                code = 130
+            except _click_exc.ClickException as e:
+                e.show()
+                code = 2
+            except OSError as e:  # the system refused (disk full, I/O error, permissions)
+                if _interrupted_by(e, signals) is not None:
+                    raise
+                if debug_enabled():
+                    raise
+                where = f": {e.filename}" if getattr(e, "filename", None) else ""
+                text = e.strerror or (os.strerror(e.errno) if e.errno else str(e))
+                err_console.print(f"[bold red]error:[/] {escape(text.splitlines()[0])}{escape(where)}",
+                                  highlight=False, soft_wrap=True)
+                code = 1
+                # an HDF5 file whose close failed (disk full) crashes the interpreter's teardown
+                hard_exit = argv is None and _h5py_has_open_files()
+        except BaseException as e:  # Ctrl-C or SIGTERM anywhere, even inside an import
+            code = _interrupted_by(e, signals)  # type: ignore[assignment]
+            if code is None or (debug_enabled() and not isinstance(e, (KeyboardInterrupt, Terminated))):
+                raise
+            err_console.print("interrupted" if code == 130 else "terminated", highlight=False)
+    if hard_exit:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
     if argv is None:
         sys.exit(code)
     return code

@@ -161,6 +161,10 @@ def bench(
     repeat: int = typer.Option(5, "--repeat", min=1, max=100, help="Timed repetitions (the median is kept)."),
 ) -> None:
     """Benchmark the ICP score (vectorized vs Open3D loop) and one update of every estimator."""
+    from tofloc.atomic import check_output_path
+
+    if json_out is not None:
+        check_output_path(json_out, option="--json")
     with status("benchmarking (simulating the paper's data, then timing)"):
         doc = run_bench(particles, repeat)
     t = Table(title=f"ICP score, {particles} particles (the same fitness values: max diff {doc['icp_score']['max_abs_fitness_diff']:g})")

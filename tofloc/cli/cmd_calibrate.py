@@ -36,6 +36,11 @@ def calibrate(
         help="Also fit each sensor's mounting error (rotation, translation; robust least squares; written as [mounting.sensors])."),
 ) -> None:
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
+    from tofloc.atomic import check_output_path
+
+    check_output_path(out, option="--out")
+    if plot is not None:
+        check_output_path(plot, option="--plot")
     from sensor_models.calibration import plot_calibration
     from tofloc import api
     from tofloc.cli.options import parse_statuses
@@ -47,8 +52,8 @@ def calibrate(
         raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
     if not 1 <= max_iter <= 10_000:
         raise ParameterError(f"--max-iter must be in [1, 10000], got {max_iter}")
-    if out.exists() and out.is_dir():
-        raise ParameterError(f"--out {out} is a folder")
+    if not 0.0 <= min_distance < max_distance:
+        raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
     if not 1.0 <= support_yaw_bound <= 90.0:
         raise ParameterError(f"--support-yaw-bound must be in [1, 90] degrees, got {support_yaw_bound}")
     with RichReporter() as reporter:

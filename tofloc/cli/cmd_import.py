@@ -7,7 +7,6 @@ from pathlib import Path
 import typer
 
 from tofloc.cli.app import app, console, status
-from tofloc.errors import ParameterError
 
 import_app = typer.Typer(name="import", help="Import third-party recordings into the log format.", no_args_is_help=True)
 app.add_typer(import_app, name="import")
@@ -21,12 +20,10 @@ def eth_matrix(
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
 ) -> None:
     """Import one ETH Matrix_ToF_Drones run: the drone's Vicon pose as configuration, the panel kept under /import."""
+    from tofloc.atomic import check_output_path
     from tofloc.io.eth_matrix import import_run, write_import
 
-    if out.exists() and not force:
-        raise ParameterError(f"--out {out}: exists; pass --force to overwrite it")
-    if not out.parent.is_dir():
-        raise ParameterError(f"--out {out}: folder {out.parent} does not exist")
+    check_output_path(out, option="--out", overwrite=force)
     with status(f"importing {run_dir}"):
         imp = import_run(run_dir, latency_s=latency)
         write_import(imp, out)

@@ -46,14 +46,12 @@ def fit(
         PAPER_VALIDATION_MSE_M2,
         KinematicsModel,
     )
+    from tofloc.atomic import check_output_path
     from tofloc.logs import read_log
 
     if not validation_fraction < 1.0:
         raise ParameterError(f"--validation-fraction: expected a value in [0, 1), found {validation_fraction}")
-    if out.exists() and out.is_dir():
-        raise ParameterError(f"--out {out}: is a folder, expected a file name")
-    if not out.parent.is_dir():
-        raise ParameterError(f"--out {out}: folder {out.parent} does not exist")
+    check_output_path(out, option="--out")
 
     with status(f"reading {log}"):
         data = read_log(log)

@@ -65,9 +65,14 @@ def localize(
     duration: Optional[float] = typer.Option(None, "--duration", help="Live: stop after this many seconds."),
     journal: Optional[Path] = typer.Option(None, "--journal", help="Live: journal of every raw line (default: beside --out)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Live: also write the captured samples as a log."),
+    estimates_out: Optional[Path] = typer.Option(None, "--estimates-out", help="Live: save every estimate here (CSV with covariance; TUM for .tum/.txt)."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
+    from tofloc.atomic import check_output_path
+
+    if json_out is not None:
+        check_output_path(json_out, option="--json")
     from evaluation.priors import PriorSpec, base_pose_parts
     from evaluation.report import write_json_atomic
     from tofloc import api
@@ -83,7 +88,7 @@ def localize(
             kinematics_path=kinematics, estimator=estimator, params=params, calibration=calibration,
             prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg, prior_sigma_xy=prior_sigma_xy,
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window, duration=duration, journal=journal,
-            out=out, seed=seed, timeout=timeout, valid_statuses=statuses,
+            out=out, seed=seed, timeout=timeout, estimates_out=estimates_out, valid_statuses=statuses,
         )
         return
     if log_path is None:

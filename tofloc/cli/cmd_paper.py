@@ -57,6 +57,9 @@ def paper(
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
     from tofloc import api
+    from tofloc.atomic import check_output_path
+
+    check_output_path(out, kind="dir", option="--out")
 
     names = [n.strip() for n in estimators.split(",") if n.strip()]
     if not names or len(set(names)) != len(names):

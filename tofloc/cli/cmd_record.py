@@ -28,15 +28,6 @@ def _load_rig(path: Path) -> Any:
     return Rig.from_file(path)
 
 
-def _check_out(out: Path, force: bool) -> None:
-    if out.is_dir():
-        raise ParameterError(f"--out {out}: is a folder, expected a log file name")
-    if not out.parent.is_dir():
-        raise ParameterError(f"--out {out}: folder {out.parent} does not exist")
-    if out.exists() and not force:
-        raise ParameterError(f"--out {out}: exists; choose another name or pass --force to overwrite it")
-
-
 def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: float) -> int:
     """Rebuild the log from the journal and write it; returns the number of samples."""
     from tofloc.io.journal import recover
@@ -47,7 +38,13 @@ def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: floa
     for w in warnings:
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
     log = samples_to_log(samples, rig if rig is not None else _rig_from_header(header, journal), source=f"serial:{header['format']}")
-    write_log(log, out)
+    try:
+        write_log(log, out)
+    except OSError as e:
+        raise ParameterError(
+            f"cannot write {out}: {e.strerror or e}; nothing is lost: {journal} holds every line. Once there is room, "
+            f"rebuild the log with 'tofloc record --recover {journal} --out {out}'"
+        ) from None
     console.print(f"wrote {out}: {stats.summary()}", highlight=False, soft_wrap=True)
     if stats.first_rejections:
         err_console.print(f"first rejected line: {stats.first_rejections[0]} (all lines are kept in {journal})", highlight=False, soft_wrap=True)
@@ -81,26 +78,54 @@ def record(
     Stop with Ctrl-C (the log is still written), --duration, or a disconnect. If the
     recorder dies, 'tofloc record --recover OUT.journal --out OUT.h5' rebuilds the log.
     """
+    from tofloc.atomic import check_output_path
     from tofloc.io.capture import SerialCapture
     from tofloc.io.formats import check_format
-    from tofloc.io.journal import journal_path_for
+    from tofloc.io.journal import JournalWriteError, journal_path_for
+    from tofloc.locks import OutputLock
 
     if (port is None) == (recover_path is None):
         raise ParameterError("give exactly one of --port (record) and --recover JOURNAL (rebuild)")
-    _check_out(out, force)
+    check_output_path(out, option="--out", overwrite=force)
+    journal = journal_path or journal_path_for(out)
+    if recover_path is None:
+        check_output_path(journal, option="--journal", overwrite=True)
+        if journal.resolve() == out.resolve():
+            raise ParameterError(f"--journal {journal} is the --out file: give another name")
     rig = _load_rig(rig_path) if rig_path is not None else None
 
-    if recover_path is not None:
-        n = _write(recover_path, out, rig, window, no_target_mm)
-        return 0 if n else 1
+    locks = [OutputLock(out, "--out")]
+    try:
+        locks[0].acquire()  # nobody else may write --out (or remove its journal) until we are done
+        if recover_path is not None:
+            n = _write(recover_path, out, rig, window, no_target_mm)
+            return 0 if n else 1
+        check_format(fmt)
+        if rig is None:
+            raise ParameterError("--rig is required with --port (the sensors' order, resolution and mounting)")
+        assert port is not None
+        locks.append(OutputLock(journal, "--journal").acquire())
+        if journal.exists():
+            if not force:
+                raise ParameterError(
+                    f"journal {journal} already exists (it may hold an unsaved capture): rebuild its log with "
+                    f"'tofloc record --recover {journal} --out LOG.h5', then move or delete it (or pass --force)"
+                )
+            journal.unlink()  # --force, and no recorder holds it (we have its lock)
+        return _capture(out, port, baud, fmt, rig, journal, duration, reconnect, timeout, window, no_target_mm)
+    except JournalWriteError as e:
+        e.out = str(out)
+        raise
+    finally:
+        for lock in reversed(locks):
+            lock.release()
 
-    check_format(fmt)
-    if rig is None:
-        raise ParameterError("--rig is required with --port (the sensors' order, resolution and mounting)")
-    assert port is not None
-    journal = journal_path or journal_path_for(out)
-    if force and journal.exists():
-        journal.unlink()
+
+def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path, duration: Optional[float],
+             reconnect: bool, timeout: float, window: float, no_target_mm: float) -> int:
+    """Read ``port`` into ``journal`` until the end, then build ``out`` from it (locks held by the caller)."""
+    from tofloc.io.capture import SerialCapture
+    from tofloc.io.journal import JournalWriteError
 
     def notice(msg: str) -> None:
         live.console.print(f"[yellow]{msg}[/]", highlight=False, soft_wrap=True)
@@ -121,6 +146,7 @@ def record(
     )
     previous = signal.signal(signal.SIGTERM, lambda *_: cap.stop())
     interrupted = False
+    journal_failed = False
     t0 = time.monotonic()
     live = Live(Text(f"waiting for data on {port} ({fmt}, {baud} baud)"), console=err_console, refresh_per_second=4, transient=True)
     stream = cap.samples()
@@ -134,11 +160,15 @@ def record(
                     live.update(_progress(cap, port, now - t0))
     except KeyboardInterrupt:
         interrupted = True
+    except JournalWriteError:
+        journal_failed = True  # its message says what is safe: nothing else is printed
+        stream.close()
+        raise
     except BaseException:
         stream.close()
-        if journal.exists() and cap.stats.lines == 0:
-            journal.unlink()
-        elif journal.exists():
+        if cap.journal_created and journal.exists() and cap.stats.lines == 0:
+            journal.unlink()  # ours, and empty
+        elif cap.journal_created and journal.exists():
             err_console.print(
                 f"the journal {journal} holds everything received; rebuild the log with "
                 f"'tofloc record --recover {journal} --out {out}'",
@@ -149,7 +179,7 @@ def record(
     finally:
         stream.close()  # closes the journal now, before the log is rebuilt from it
         signal.signal(signal.SIGTERM, previous)
-        if cap.stats.lines:
+        if cap.stats.lines and not journal_failed:
             err_console.print(_progress(cap, port, time.monotonic() - t0))
     if interrupted:
         err_console.print("stopped (Ctrl-C); writing the log from the journal", highlight=False, soft_wrap=True)

@@ -32,8 +32,11 @@ def simulate(
         "perturbed: the scenario's support rotation and scatter, with its declared tolerance. Default: the rig as the scenario writes it."),
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
-    from tofloc.simulation import RIG_VARIANTS, load_scenario, simulate as run, write_simulation
+    from tofloc.atomic import check_output_path
+    from tofloc.simulation import RIG_VARIANTS, load_scenario, simulate as run, simulation_paths, write_simulation
 
+    for key, path in simulation_paths(out).items():
+        check_output_path(path, option="--out" if key == "log" else f"--out (its {key} file)")
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if hardware_seed is not None and hardware_seed < 0:

@@ -2,12 +2,15 @@
 
 Called by :func:`tofloc.cli.cmd_localize.localize` when ``--port`` is given (this module
 adds no command of its own). The capture path is ``tofloc record``'s (journal first,
-resynchronizing parsers); every complete sample is turned into a configuration by the
-k-NN model and the estimator runs on the latest ``--window`` samples.
+resynchronizing parsers) and runs in its own thread, so the port is read and every line
+journaled however long an estimate takes. The estimator then works on the latest
+``--window`` samples: each estimate covers every sample that arrived since the previous
+one, and says how many it skipped. ``--estimates-out`` saves each estimate as it comes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import threading
@@ -45,18 +48,29 @@ def run_live(
     seed: int,
     timeout: float,
     valid_statuses: frozenset[int],
+    estimates_out: Optional[Path] = None,
 ) -> None:
-    """Capture from ``port`` and print an estimate with its uncertainty after every sample."""
-    from tofloc import api
-    from tofloc.io.capture import SerialCapture
+    """Capture from ``port`` (in a thread) and print an estimate with its uncertainty as
+    often as the estimator can, on the latest samples."""
+    from tofloc.atomic import check_output_path
     from tofloc.io.journal import journal_path_for
-    from tofloc.io.samples import samples_to_log
-    from tofloc.kinematics import KinematicsModel
-    from tofloc.live import LiveLocalizer
-    from tofloc.logs import read_log, write_log
-    from tofloc.maps import load_map
-    from tofloc.problem import Prior
-    from tofloc.rig import Rig
+
+    if journal is None:
+        journal = journal_path_for(out) if out is not None else Path(f"live-{port.replace('/', '_').strip('_')}.journal")
+    # every output is checked before anything is loaded or opened
+    if out is not None:
+        check_output_path(out, option="--out")
+    check_output_path(journal, option="--journal")
+    if journal.exists():
+        raise ParameterError(
+            f"journal {journal} already exists (it may hold an unsaved capture): rebuild its log with "
+            f"'tofloc record --recover {journal} --out LOG.h5', then move or delete it, or give another --journal"
+        )
+    if estimates_out is not None:
+        check_output_path(estimates_out, option="--estimates-out")
+    outputs = [(journal, "--journal")] + [(p, o) for p, o in ((out, "--out"), (estimates_out, "--estimates-out")) if p is not None]
+    if len({p.resolve() for p, _ in outputs}) != len(outputs):
+        raise ParameterError(f"{', '.join(o for _, o in outputs)} must name different files")
 
     missing = [n for n, v in (("--rig", rig_path), ("--map", map_path), ("--kinematics", kinematics_path),
                               ("--prior-x", prior_x), ("--prior-y", prior_y), ("--prior-yaw-deg", prior_yaw_deg),
@@ -64,6 +78,16 @@ def run_live(
     if missing:
         raise ParameterError(f"live localization (--port) needs {', '.join(missing)}")
     assert rig_path is not None and map_path is not None and kinematics_path is not None
+    from tofloc import api
+    from tofloc.io.capture import SerialCapture
+    from tofloc.kinematics import KinematicsModel
+    from tofloc.live import LiveLocalizer
+    from tofloc.locks import OutputLock
+    from tofloc.logs import read_log
+    from tofloc.maps import load_map
+    from tofloc.problem import Prior
+    from tofloc.rig import Rig
+
     rig = read_log(rig_path).rig if rig_path.suffix.lower() in (".h5", ".hdf5") else Rig.from_file(rig_path)
     the_map = load_map(map_path, surface_path)
     kin = KinematicsModel.load(kinematics_path)
@@ -76,31 +100,72 @@ def run_live(
     )
     live = LiveLocalizer(est, rig, the_map, prior, kin, window=window, seed=seed, valid_statuses=valid_statuses,
                          calibration=cal)
-    if journal is None:
-        journal = journal_path_for(out) if out is not None else Path(f"live-{port.replace('/', '_').strip('_')}.journal")
     cap = SerialCapture(port, fmt=fmt, rig=rig, journal=journal, baud=baud, timeout_s=timeout, duration_s=duration,
                         on_notice=lambda m: err_console.print(f"[yellow]{m}[/]"))
+    with contextlib.ExitStack() as stack:
+        for path, option in outputs:
+            stack.enter_context(OutputLock(path, option))
+        writer = None
+        if estimates_out is not None:
+            from tofloc.io.estimates import EstimatesWriter
+
+            writer = stack.enter_context(EstimatesWriter(estimates_out, z=prior.z, roll=prior.roll, pitch=prior.pitch))
+        bg = _run_loop(live, cap, writer, port, fmt, baud, estimator, journal)
+        if out is not None and bg.received:
+            from tofloc.io.samples import samples_to_log
+            from tofloc.logs import write_log
+
+            path = write_log(samples_to_log(bg.received, rig, source=f"serial:{fmt}"), out)
+            err_console.print(f"wrote {path} ({len(bg.received)} samples)")
+        if writer is not None:
+            err_console.print(f"wrote {writer.rows} estimates to {estimates_out}")
+
+
+def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, estimator: str, journal: Path) -> Any:
+    """The consumer loop: estimate on the latest samples while the capture thread reads."""
+    from tofloc.io.capture import BackgroundCapture
+
     err_console.print(f"live localization with {estimator} on {port} ({fmt}, {baud} baud); journal {journal}; Ctrl-C to stop")
+    bg = BackgroundCapture(cap)
+    in_main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT)
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, lambda *_: cap.stop())
-    received = []
+    if in_main:
+        signal.signal(signal.SIGINT, lambda *_: bg.stop())
+    skipped_total = 0
+    bg.start()
     try:
-        for upd, sample in ((live.update(s), s) for s in cap.samples()):
-            received.append(sample)
+        while True:
+            batch = bg.take(0.25)
+            if batch is None:
+                break
+            if not batch:
+                continue
+            upd = live.update_latest(batch)
+            skipped_total += upd.skipped
+            more = f", {upd.skipped} skipped" if upd.skipped else ""
             if upd.estimate is None:
-                console.print(f"sample {upd.sample_index}: no estimate ({upd.reason})")
+                console.print(f"sample {upd.sample_index}: no estimate ({upd.reason}{more})")
                 continue
             x, y, yaw = upd.estimate.pose
             sd = np.sqrt(np.clip(np.diag(upd.estimate.covariance), 0, None))
             console.print(
-                f"sample {upd.sample_index} ({upd.n_used} used): x = {x:.4f} +- {sd[0]:.4f} m, "
+                f"sample {upd.sample_index} ({upd.n_used} used{more}): x = {x:.4f} +- {sd[0]:.4f} m, "
                 f"y = {y:.4f} +- {sd[1]:.4f} m, yaw = {math.degrees(yaw):.2f} +- {math.degrees(sd[2]):.2f} deg "
                 f"({upd.estimate.runtime_s:.2f} s)"
             )
+            if writer is not None:
+                writer.write(upd, batch[-1].t_s)
     finally:
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, previous)
-    if out is not None and received:
-        path = write_log(samples_to_log(received, rig, source=f"serial:{fmt}"), out)
-        err_console.print(f"wrote {path} ({len(received)} samples)")
+        bg.stop()
+        try:
+            bg.join()  # the journal is closed once this returns; re-raises a capture error
+        finally:
+            if in_main:
+                signal.signal(signal.SIGINT, previous)
+    st = cap.stats
+    err_console.print(
+        f"{port}: {st.summary()}; every line is in {journal}; {skipped_total} samples were added to the window "
+        "without an estimate of their own (the estimator was busy)",
+        highlight=False, soft_wrap=True,
+    )
+    return bg

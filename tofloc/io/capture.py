@@ -1,7 +1,7 @@
 """Read a serial port (pyserial) and turn its lines into samples, journaling every byte.
 
-:class:`SerialCapture` is the one reader loop behind ``tofloc record`` (and, later, live
-localization): iterate over :meth:`SerialCapture.samples` to get each sample as soon as
+:class:`SerialCapture` is the one reader loop behind ``tofloc record`` and live
+localization (which runs it in a thread, :class:`BackgroundCapture`): iterate over :meth:`SerialCapture.samples` to get each sample as soon as
 it is complete. Every line is appended to the journal *before* it is decoded, so an
 interruption at any point leaves a journal from which :func:`tofloc.io.journal.recover`
 rebuilds the same samples.
@@ -23,13 +23,13 @@ import serial
 
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.io.formats import FORMAT_HINTS, check_format
-from tofloc.io.journal import JournalWriter
+from tofloc.io.journal import JournalWriteError, JournalWriter
 from tofloc.io.lines import DEFAULT_MAX_LINE_BYTES, LineSplitter
 from tofloc.io.samples import Sample
 from tofloc.io.stream import CaptureStats, StreamProcessor
 from tofloc.rig import Rig
 
-__all__ = ["CaptureError", "CaptureTimeout", "SerialCapture", "open_port"]
+__all__ = ["BackgroundCapture", "CaptureError", "CaptureTimeout", "SerialCapture", "open_port"]
 
 
 class CaptureError(TofLocError):
@@ -145,6 +145,10 @@ class SerialCapture:
         self._stop = threading.Event()
         self.started_at: float | None = None
         self.ended_by: str = ""
+        #: True once this capture has created its journal (so a caller knows it may remove it)
+        self.journal_created = False
+        #: frames decoded from lines the journal had handed to the system
+        self.frames_journaled = 0
 
     @property
     def stats(self) -> CaptureStats:
@@ -172,6 +176,7 @@ class SerialCapture:
         except BaseException:
             conn.port.close()  # type: ignore[union-attr]
             raise
+        self.journal_created = True
         splitter = LineSplitter(self.max_line_bytes)
         proc = self.processor
         t0 = self.started_at = self.clock()
@@ -207,6 +212,7 @@ class SerialCapture:
                         journal.line(line, now)
                         out += proc.feed(line, now)
                     journal.flush()
+                    self.frames_journaled = proc.stats.frames
                     yield from out
                     self._check_decoding(now - t0)
                     continue
@@ -225,24 +231,35 @@ class SerialCapture:
                 self.ended_by = self.ended_by or "stop"
         except KeyboardInterrupt:
             self.ended_by = "interrupted"
-            journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
+            if journal.failed is None:
+                journal.event(self.clock(), "stop: interrupted (Ctrl-C)")
             raise
         except GeneratorExit:  # the caller stopped iterating (or was interrupted)
             self.ended_by = self.ended_by or "closed by the caller"
             raise
+        except JournalWriteError as e:  # disk full: stop, saying what is safe
+            self.ended_by = "journal error"
+            e.frames = self.frames_journaled
+            raise
         finally:
-            tail = splitter.flush_partial()
-            end = self.clock()
-            if tail is not None:
-                journal.line(tail, end)
-                self._final = proc.feed(tail, end)
-            else:
+            try:
+                tail = splitter.flush_partial()
+                end = self.clock()
                 self._final = []
-            self._final += proc.finish()
-            journal.event(end, f"end: {self.ended_by or 'error'}; {proc.stats.summary()}")
-            journal.close()
-            if conn.port is not None:
-                conn.port.close()
+                if journal.failed is None:
+                    for piece in tail:
+                        journal.line(piece, end)
+                        self._final += proc.feed(piece, end)
+                    self._final += proc.finish()
+                    journal.event(end, f"end: {self.ended_by or 'error'}; {proc.stats.summary()}")
+                    self.frames_journaled = proc.stats.frames
+            except JournalWriteError as e:
+                e.frames = self.frames_journaled
+                raise
+            finally:
+                journal.close()
+                if conn.port is not None:
+                    conn.port.close()
         yield from self._final
 
     def _check_decoding(self, elapsed: float) -> None:
@@ -263,11 +280,10 @@ class SerialCapture:
     def _lost(self, conn: _Conn, journal: JournalWriter, splitter: LineSplitter, now: float, why: str) -> Iterator[Sample]:
         """The port went away: journal it, close blocks, and reopen when asked to."""
         proc = self.processor
-        tail = splitter.flush_partial()
         out: list[Sample] = []
-        if tail is not None:
-            journal.line(tail, now)
-            out += proc.feed(tail, now)
+        for piece in splitter.flush_partial():
+            journal.line(piece, now)
+            out += proc.feed(piece, now)
         journal.event(now, f"disconnect: {why}")
         out += proc.connection_lost()
         try:
@@ -299,3 +315,76 @@ class SerialCapture:
             journal.event(self.clock(), "reconnected")
             self.on_notice(f"{self.port_name} reconnected")
             return
+
+
+class BackgroundCapture:
+    """Run a :class:`SerialCapture` in its own thread, so that a slow consumer (an
+    estimator) never keeps the port from being read: every line is read and journaled as
+    it arrives, whatever the consumer does.
+
+    Parameters
+    ----------
+    capture : SerialCapture
+        The capture to run (its journal, time-outs and reconnection apply).
+
+    Examples
+    --------
+    >>> bg = BackgroundCapture(cap).start()          # doctest: +SKIP
+    >>> while (batch := bg.take()) is not None:      # doctest: +SKIP
+    ...     estimate_on(batch[-1])
+    >>> bg.join()                                    # re-raises a capture error
+    """
+
+    def __init__(self, capture: SerialCapture) -> None:
+        self.capture = capture
+        #: every sample received, in order (for writing a log at the end)
+        self.received: list[Sample] = []
+        self.error: BaseException | None = None
+        self._pending: list[Sample] = []
+        self._done = False
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="tofloc-capture", daemon=True)
+
+    def start(self) -> "BackgroundCapture":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        try:
+            for s in self.capture.samples():
+                with self._cond:
+                    self._pending.append(s)
+                    self.received.append(s)
+                    self._cond.notify_all()
+        except BaseException as e:  # handed to the consumer's thread by join()
+            self.error = e
+        finally:
+            with self._cond:
+                self._done = True
+                self._cond.notify_all()
+
+    @property
+    def done(self) -> bool:
+        with self._cond:
+            return self._done
+
+    def take(self, timeout_s: float = 0.25) -> list[Sample] | None:
+        """The samples that arrived since the last call (waits up to ``timeout_s`` for one;
+        ``[]`` when none came); ``None`` once the capture has ended and all were taken."""
+        with self._cond:
+            if not self._pending and not self._done:
+                self._cond.wait(timeout_s)
+            batch, self._pending = self._pending, []
+            if not batch and self._done:
+                return None
+            return batch
+
+    def stop(self) -> None:
+        """Ask the capture to finish (thread-safe); it closes its journal on the way out."""
+        self.capture.stop()
+
+    def join(self, timeout_s: float | None = None) -> None:
+        """Wait for the capture thread; re-raise the error that ended it, if any."""
+        self._thread.join(timeout_s)
+        if self.error is not None:
+            raise self.error

@@ -30,14 +30,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Iterator
 
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import FormatError, ParameterError, TofLocError
 from tofloc.io.formats import FORMATS
 from tofloc.io.lines import DEFAULT_MAX_LINE_BYTES, RawLine
 from tofloc.io.samples import Sample
 from tofloc.io.stream import CaptureStats, StreamProcessor
 from tofloc.rig import Rig
 
-__all__ = ["JournalWriter", "JournalRecord", "read_journal", "recover", "journal_path_for", "JOURNAL_MAGIC"]
+__all__ = ["JournalWriter", "JournalWriteError", "JournalRecord", "read_journal", "recover", "journal_path_for", "JOURNAL_MAGIC"]
 
 JOURNAL_MAGIC = "#tofloc-journal"
 JOURNAL_VERSION = 1
@@ -59,6 +59,41 @@ def _escape(data: bytes) -> str:
 
 def _unescape(text: str) -> bytes:
     return text.encode("ascii").decode("unicode_escape").encode("latin-1")
+
+
+class JournalWriteError(TofLocError):
+    """The journal cannot be written (disk full, I/O error): the capture stops.
+
+    Attributes
+    ----------
+    path : Path
+        The journal.
+    reason : str
+        The system's reason (``No space left on device``).
+    lines : int
+        Lines (records of kind L/O/P) handed to the system before the failure: they are
+        in the journal.
+    frames : int or None
+        Frames decoded from those lines (filled in by the capture).
+    out : str
+        The log to name in the recovery command.
+    """
+
+    def __init__(self, path: Path, reason: str, lines: int) -> None:
+        self.path = path
+        self.reason = reason
+        self.lines = lines
+        self.frames: int | None = None
+        self.out = "LOG.h5"
+        super().__init__(reason)
+
+    def __str__(self) -> str:
+        frames = "" if self.frames is None else f" ({self.frames} frames)"
+        return (
+            f"cannot write the journal {self.path}: {self.reason}; capture stopped. Safe on disk: the first "
+            f"{self.lines} lines{frames} in {self.path}; once there is room, rebuild the log with "
+            f"'tofloc record --recover {self.path} --out {self.out}'"
+        )
 
 
 class JournalWriter:
@@ -93,35 +128,73 @@ class JournalWriter:
             ) from None
         except OSError as e:
             raise ParameterError(f"cannot create the journal {self.path}: {e.strerror}") from None
-        self._fh.write(f"{JOURNAL_MAGIC} {JOURNAL_VERSION} {json.dumps(header)}\n")
         self.records = 0
+        #: line records handed to the system (flushed): what a crash cannot take away
+        self.records_flushed = 0
+        self.failed: JournalWriteError | None = None
         self._fsync_interval = fsync_interval_s
         self._last_sync = time.monotonic()
-        self.flush(sync=True)
+        try:
+            self._guard(self._fh.write, f"{JOURNAL_MAGIC} {JOURNAL_VERSION} {json.dumps(header)}\n")
+            self.flush(sync=True)
+        except JournalWriteError:  # not even the header fits: leave nothing behind
+            self.close()
+            self.path.unlink(missing_ok=True)
+            raise
+
+    def _guard(self, fn: Any, *args: Any) -> Any:
+        """Run a write; an OSError turns the writer into a failed one and raises JournalWriteError."""
+        if self.failed is not None:
+            raise self.failed
+        try:
+            return fn(*args)
+        except OSError as e:
+            self.failed = JournalWriteError(self.path, e.strerror or str(e), self.records_flushed)
+            raise self.failed from None
 
     def line(self, line: RawLine, t_host_s: float) -> None:
         """Append one raw line (call :meth:`flush` after a batch)."""
         kind = "P" if line.partial else "O" if line.overflow else "L"
-        self._fh.write(f"{kind} {t_host_s:.6f} {_escape(line.data)}\n")
+        self._guard(self._fh.write, f"{kind} {t_host_s:.6f} {_escape(line.data)}\n")
         self.records += 1
 
     def event(self, t_host_s: float, text: str) -> None:
         """Append an event (connect, disconnect, stop, ...) and flush."""
-        self._fh.write(f"E {t_host_s:.6f} {_escape(text.encode('utf-8', 'replace'))}\n")
+        self._guard(self._fh.write, f"E {t_host_s:.6f} {_escape(text.encode('utf-8', 'replace'))}\n")
         self.flush()
 
     def flush(self, sync: bool = False) -> None:
-        """Hand everything to the OS; ``fsync`` when asked or when the interval has passed."""
-        self._fh.flush()
+        """Hand everything to the OS; ``fsync`` when asked or when the interval has passed.
+
+        Raises
+        ------
+        JournalWriteError
+            The system refused the data (disk full, I/O error); the writer stays failed.
+        """
+        self._guard(self._fh.flush)
+        self.records_flushed = self.records
         now = time.monotonic()
         if sync or now - self._last_sync >= self._fsync_interval:
-            os.fsync(self._fh.fileno())
+            self._guard(os.fsync, self._fh.fileno())
             self._last_sync = now
 
     def close(self) -> None:
-        if not self._fh.closed:
-            self.flush(sync=True)
+        """Flush, sync and close; after a write failure, only close (never raises again)."""
+        if self._fh.closed:
+            return
+        if self.failed is None:
+            try:
+                self.flush(sync=True)
+            finally:
+                try:
+                    self._fh.close()
+                except OSError:
+                    pass
+            return
+        try:
             self._fh.close()
+        except OSError:  # the buffered rest cannot be written either
+            pass
 
     def __enter__(self) -> "JournalWriter":
         return self
@@ -144,21 +217,28 @@ class JournalRecord:
 
 def read_journal(path: str | Path) -> tuple[dict[str, Any], Iterator[JournalRecord], list[str]]:
     """Open a journal: its header, an iterator over its records, and a list that collects
-    warnings while iterating (an unfinished last record, left by a crash, is skipped).
+    warnings while iterating.
+
+    A damaged record (not ASCII, an unknown kind, a bad time or escape, longer than the
+    bound) loses only itself: it is skipped and its line number reported in the warnings
+    (with the first few reasons), and every intact record around it is still read. An
+    unfinished last record, left by a crash, is skipped likewise.
 
     Raises
     ------
     FormatError
-        On a missing/unreadable file, a bad header or a malformed record (naming the line).
+        On a missing/unreadable file or a bad header (the records cannot be interpreted
+        without it).
     """
     p = Path(path)
     try:
-        fh = open(p, "r", encoding="ascii", newline="\n")
+        fh = open(p, "rb")
     except FileNotFoundError:
         raise FormatError(p, "file", "an existing journal", "no such file") from None
     except OSError as e:
         raise FormatError(p, "file", "a readable journal", e.strerror) from None
-    first = fh.readline(MAX_HEADER_CHARS + 1)
+    raw_first = fh.readline(MAX_HEADER_CHARS + 1)
+    first = raw_first.decode("ascii", "replace")
     try:
         magic, version, js = first.rstrip("\n").split(" ", 2)
     except ValueError:
@@ -172,36 +252,50 @@ def read_journal(path: str | Path) -> tuple[dict[str, Any], Iterator[JournalReco
         raise FormatError(p, "line 1", f"journal version {JOURNAL_VERSION}", version[:20])
     try:
         header = json.loads(js)
-    except json.JSONDecodeError as e:
+    except (ValueError, RecursionError) as e:  # ValueError: JSONDecodeError, or Python's int-string limit
         fh.close()
-        raise FormatError(p, "line 1 (header)", "a JSON object", str(e)) from None
+        raise FormatError(p, "line 1 (header)", "a JSON object", str(e)[:200]) from None
     if not isinstance(header, dict) or header.get("format") not in FORMATS or not isinstance(header.get("rig"), dict):
         fh.close()
         raise FormatError(p, "line 1 (header)", f"a JSON object with 'format' (one of {', '.join(FORMATS)}) and 'rig'")
     warnings: list[str] = []
 
     def records() -> Iterator[JournalRecord]:
-        with fh:
-            n = 1
-            while True:
-                try:
-                    text = fh.readline(MAX_RECORD_CHARS + 1)
-                except UnicodeDecodeError:
-                    raise FormatError(p, f"line {n + 1}", "ASCII text (a tofloc journal)") from None
-                if not text:
-                    return
-                n += 1
-                if not text.endswith("\n"):
-                    if len(text) > MAX_RECORD_CHARS:
-                        raise FormatError(p, f"line {n}", f"a record of at most {MAX_RECORD_CHARS} characters")
-                    # the last record, cut by a crash while it was being written
-                    warnings.append(f"{p}: line {n}: unfinished last record skipped (the recorder stopped while writing it)")
-                    return
-                try:
-                    rec = _parse_record(text[:-1])
-                except ValueError as e:
-                    raise FormatError(p, f"line {n}", "a record '<L|O|P|E> <unix time> <escaped bytes>'", str(e)) from None
-                yield rec
+        damaged: list[tuple[int, str]] = []
+        n = 1
+        try:
+            with fh:
+                while True:
+                    raw = fh.readline(MAX_RECORD_CHARS + 1)
+                    if not raw:
+                        return
+                    n += 1
+                    if not raw.endswith(b"\n"):
+                        if len(raw) > MAX_RECORD_CHARS:  # too long: skip to the end of this line
+                            while raw and not raw.endswith(b"\n"):
+                                raw = fh.readline(MAX_RECORD_CHARS + 1)
+                            damaged.append((n, f"longer than {MAX_RECORD_CHARS} characters"))
+                            continue
+                        # the last record, cut by a crash while it was being written
+                        warnings.append(f"{p}: line {n}: unfinished last record skipped (the recorder stopped while writing it)")
+                        return
+                    try:
+                        rec = _parse_record(raw[:-1].decode("ascii"))
+                    except UnicodeDecodeError:
+                        damaged.append((n, "not ASCII text"))
+                        continue
+                    except ValueError as e:
+                        damaged.append((n, str(e)))
+                        continue
+                    yield rec
+        finally:
+            if damaged:
+                lines = ", ".join(str(k) for k, _ in damaged[:20]) + (", ..." if len(damaged) > 20 else "")
+                why = "; ".join(f"line {k}: {r}" for k, r in damaged[:3])
+                warnings.append(
+                    f"{p}: {len(damaged)} damaged record{'s' if len(damaged) > 1 else ''} skipped (line{'s' if len(damaged) > 1 else ''} "
+                    f"{lines}; {why}); every other record was read"
+                )
 
     return header, records(), warnings
 
@@ -213,7 +307,10 @@ def _parse_record(text: str) -> JournalRecord:
     kind, t, payload = parts
     if kind not in _KINDS:
         raise ValueError(f"unknown record kind {kind[:4]!r}")
-    t_host = float(t)
+    try:
+        t_host = float(t)
+    except ValueError:
+        raise ValueError(f"host time {t[:20]!r} is not a number") from None
     if not t_host == t_host or abs(t_host) > 1e11:
         raise ValueError("host time out of range")
     try:

@@ -60,6 +60,12 @@ class Faults:
         back ``reconnect_after_s`` later as a new pty behind the same link path.
     reconnect_after_s : float
         Time the device stays away.
+    vanish_after : int
+        After this many lines (sent whole) the device disappears for good, as a board
+        unplugged: it gives the reader ``vanish_grace_s`` to take what was sent, then
+        closes (unread bytes are lost with it) and the stream ends.
+    vanish_grace_s : float
+        See ``vanish_after``.
     """
 
     garbage_every: int = 0
@@ -67,9 +73,11 @@ class Faults:
     bad_crc_every: int = 0
     disconnect_at: tuple[int, ...] = ()
     reconnect_after_s: float = 0.5
+    vanish_after: int = 0
+    vanish_grace_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("garbage_every", "truncate_every", "bad_crc_every"):
+        for name in ("garbage_every", "truncate_every", "bad_crc_every", "vanish_after"):
             if getattr(self, name) < 0:
                 raise ParameterError(f"Faults.{name} must be >= 0")
         if self.reconnect_after_s < 0:
@@ -96,6 +104,11 @@ class ReplayReport:
         Device paths used (one more after every disconnect).
     disconnects : int
         Disconnects performed.
+    dropped_lines : list of int
+        Lines the device could not send whole because the reader's buffer was full
+        (devices without flow control only); a reader cannot decode them either.
+    vanished : bool
+        The device disappeared for good (``Faults.vanish_after``).
     """
 
     lines_sent: int = 0
@@ -103,10 +116,12 @@ class ReplayReport:
     frames: dict[tuple[int, int], list[int]] = field(default_factory=dict)
     devices: list[str] = field(default_factory=list)
     disconnects: int = 0
+    dropped_lines: list[int] = field(default_factory=list)
+    vanished: bool = False
 
     def intact_frames(self) -> set[tuple[int, int]]:
         """``(k, i)`` of the frames (and pressure lines, i = -1) all of whose lines were intact."""
-        bad = set(self.damaged_lines)
+        bad = set(self.damaged_lines) | set(self.dropped_lines)
         return {key for key, lines in self.frames.items() if not bad.intersection(lines)}
 
 
@@ -130,11 +145,18 @@ class PtyDevice:
         ``/dev/serial/by-id/...`` for a real board.
     write_timeout_s : float
         Longest wait for the reader to make room before giving up.
+    flow_control : bool
+        True (a pty's own behaviour): a write waits while the reader's buffer is full.
+        False: like a UART without flow control, bytes that do not fit are lost (counted
+        in :attr:`dropped_bytes`), so a reader that falls behind loses lines.
     """
 
-    def __init__(self, link: str | Path | None = None, write_timeout_s: float = 30.0) -> None:
+    def __init__(self, link: str | Path | None = None, write_timeout_s: float = 30.0, flow_control: bool = True) -> None:
         self.link = None if link is None else Path(link)
         self.write_timeout_s = write_timeout_s
+        self.flow_control = flow_control
+        self.dropped_bytes = 0
+        self.dropped_writes = 0
         self._master: int | None = None
         self.path = ""
 
@@ -183,7 +205,10 @@ class PtyDevice:
                 view = view[n:]
                 continue
             except BlockingIOError:
-                pass
+                if not self.flow_control:  # the line is lost from here on, as on a UART
+                    self.dropped_bytes += len(view)
+                    self.dropped_writes += 1
+                    return
             except OSError as e:
                 if e.errno == errno.EIO:
                     raise ReaderGone(f"the reader of {self.path} went away") from None
@@ -372,11 +397,20 @@ def replay(
                     data = data.rstrip(b"\r\n")[: max(1, len(data.rstrip(b"\r\n")) // 2)]
                     damaged = True
                     prev_cut = True
+                dropped_before = getattr(device, "dropped_writes", 0)
                 device.write(prefix + data)
                 report.lines_sent += 1
                 if damaged:
                     report.damaged_lines.append(n)
-        device.drain(10.0)
+                if getattr(device, "dropped_writes", 0) != dropped_before:
+                    report.dropped_lines.append(n)
+                    prev_cut = True  # its newline may be lost too: the next line glues onto it
+                if faults.vanish_after and n >= faults.vanish_after:
+                    report.vanished = True
+                    break
+            if report.vanished:
+                break
+        device.drain(faults.vanish_grace_s if report.vanished else 10.0)
     finally:
         device.close()
     return report

@@ -24,6 +24,7 @@ from ``h``, so that two sessions with the same ``h`` record the same physical se
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,8 +46,8 @@ from tofloc.simulation.tof import build_rig, cast_zones, measure
 from tofloc.simulation.world import cad_mesh as build_cad_mesh
 from tofloc.simulation.world import estimator_map, true_world
 
-__all__ = ["SimulationResult", "simulate", "write_simulation", "load_scenario", "builtin_scenarios", "Scenario",
-           "RIG_VARIANTS"]
+__all__ = ["SimulationResult", "simulate", "write_simulation", "simulation_paths", "load_scenario", "builtin_scenarios",
+           "Scenario", "RIG_VARIANTS"]
 
 
 @dataclass(eq=False)
@@ -159,19 +160,51 @@ def simulate(
     return SimulationResult(log, the_map, cad_mesh, world, T_base_tip_true, sc, seed, rig_true)
 
 
+def simulation_paths(out: str | Path) -> dict[str, Path]:
+    """The files :func:`write_simulation` writes for ``out``: the log, ``<stem>.map.ply`` and
+    ``<stem>.cad.ply`` beside it (check them all before simulating)."""
+    out = Path(out)
+    stem = out.name[: -len(out.suffix)] if out.suffix else out.name
+    return {"log": out, "map": out.parent / f"{stem}.map.ply", "cad": out.parent / f"{stem}.cad.ply"}
+
+
 def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Path]:
     """Write ``OUT`` (the log), ``<stem>.map.ply`` (the map the estimators get, named in
-    the log's ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. Atomic
-    per file. The true world (with any unmapped objects) is not written."""
-    from tofloc.logs import write_log
+    the log's ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. The true
+    world (with any unmapped objects) is not written.
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stem = out.name[: -len(out.suffix)] if out.suffix else out.name
-    map_path = out.parent / f"{stem}.map.ply"
-    cad_path = out.parent / f"{stem}.cad.ply"
-    result.map.save(map_path)
-    result.cad_mesh.save(cad_path)
-    result.log.map = map_path.name
-    log_path = write_log(result.log, out)
-    return {"log": log_path, "map": map_path, "cad": cad_path}
+    All or nothing: the three files are written to temporaries and renamed only once all
+    of them are complete; on any error (a full disk included, refused before the first
+    byte when the free space is known to be short) or an interruption the temporaries
+    are removed and existing files keep their content.
+    """
+    import io
+    from contextlib import ExitStack, redirect_stderr
+
+    from tofloc.atomic import atomic_path, check_free_space
+    from tofloc.logs import write_log
+    from tofloc.map_files import ply_bytes
+
+    paths = simulation_paths(out)
+    paths["log"].parent.mkdir(parents=True, exist_ok=True)
+    data = {"map": ply_bytes(result.map), "cad": ply_bytes(result.cad_mesh)}
+    log = result.log
+    arrays = (log.timestamp_s, log.distance_mm, log.status, log.sigma_mm, log.pressure_kpa, log.T_base_tip, log.T_map_base)
+    needed = sum(len(b) for b in data.values()) + sum(a.nbytes for a in arrays if a is not None) + 2**20
+    check_free_space(paths["log"].parent, needed, f"{paths['log']} and its maps")
+    log.map = paths["map"].name
+    failed: OSError | None = None
+    # h5py prints a failed write's error again for every object it cleans up: keep it quiet
+    with redirect_stderr(io.StringIO()):
+        try:
+            with ExitStack() as stack:  # renames happen on the way out, once every file is complete
+                tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("map", "cad", "log")}
+                tmp["map"].write_bytes(data["map"])
+                tmp["cad"].write_bytes(data["cad"])
+                write_log(log, tmp["log"])
+        except OSError as e:  # a full disk, an I/O error: say what happened to the files
+            reason = os.strerror(e.errno) if e.errno else str(e).splitlines()[0]
+            failed = OSError(e.errno, f"cannot write {paths['log']} and its maps: {reason}; nothing was written")
+    if failed is not None:
+        raise failed
+    return paths

@@ -459,9 +459,14 @@ def builtin_scenarios() -> list[str]:
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a shipped scenario by name (``"paper"``, ``"pillars"``, ...) or a user's TOML
-    file by path."""
+    file by path.
+
+    A built-in name is always the built-in scenario, even when a file or folder of that
+    name exists in the current folder: give a path ending in ``.toml`` (``./paper.toml``)
+    to load a file instead.
+    """
     s = str(name_or_path)
-    if s in builtin_scenarios() and not Path(s).exists():
+    if s in builtin_scenarios():
         text, source = _builtin_text(s), f"<builtin scenario {s}>"
     else:
         path = Path(s)
@@ -474,6 +479,6 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         text, source = path.read_text(encoding="utf-8", errors="replace"), str(path)
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise FormatError(source, "file", "valid TOML", str(e)) from None
+    except ValueError as e:  # TOMLDecodeError, or Python's int-string limit
+        raise FormatError(source, "file", "valid TOML", str(e)[:200]) from None
     return scenario_from_dict(data, source)

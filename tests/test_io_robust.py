@@ -1,0 +1,468 @@
+"""Issue 14, "nothing lost, nothing confusing": two recorders on one output, a journal that
+cannot be written, outputs checked before any work, all-or-nothing writes, interruptions,
+and inputs that used to end in a traceback. Every case runs the real CLI."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_io_cli import assert_same_frames, cli_process, wait_for
+
+from tofloc.cli import main
+from tofloc.io.journal import recover
+from tofloc.logs import Log, read_log, write_log
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """60 samples of the simulator's paper scenario, at 10 Hz (6 s when replayed at speed 1)."""
+    d = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "--out", str(d / "paper.h5"), "--seed", "5"]) == 0
+    sim = read_log(d / "paper.h5").subset(slice(0, 60))
+    slow = Log.from_arrays(sim.rig, np.arange(60) / 10.0, sim.distance_mm, sim.status, sigma_mm=sim.sigma_mm,
+                           pressure_kpa=sim.pressure_kpa, T_base_tip=sim.T_base_tip, T_map_base=sim.T_map_base)
+    return write_log(slow, d / "slow60.h5")
+
+
+def one_line(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.fixture
+def small_fs(tmp_path: Path):
+    """A factory of tiny tmpfs file systems (needs root and mount rights; skipped otherwise)."""
+    mounted: list[Path] = []
+
+    def make(size_kib: int) -> Path:
+        d = tmp_path / f"tiny{len(mounted)}"
+        d.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs", str(d)], capture_output=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a small tmpfs here: {r.stderr.decode(errors='replace').strip()}")
+        mounted.append(d)
+        return d
+
+    yield make
+    for d in mounted:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)
+
+
+# -- 1. two recorders on one output ---------------------------------------------------------------------
+
+
+def test_a_second_recorder_is_refused_and_the_first_keeps_every_frame(simulated: Path, tmp_path: Path, capsys) -> None:
+    link = tmp_path / "ttyA"
+    dev = cli_process("replay", str(simulated), "--pty", "--link", str(link), "--wait", "60")
+    out = tmp_path / "rec.h5"
+    journal = out.with_name(out.name + ".journal")
+    first = None
+    try:
+        wait_for(link, dev)
+        first = cli_process("record", "--port", str(link), "--rig", str(simulated), "--out", str(out), "--timeout", "30")
+        deadline = time.monotonic() + 60
+        while not journal.exists() and first.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert journal.exists(), "the first recorder did not start"
+        other = tmp_path / "other.journal"
+        attempts = [
+            ["--out", str(out)],  # same output, same (default) journal
+            ["--out", str(out), "--force"],
+            ["--out", str(out), "--journal", str(other)],  # same output, its own journal
+            ["--out", str(tmp_path / "b.h5"), "--journal", str(journal), "--force"],  # the first's journal
+        ]
+        for args in attempts:
+            before = journal.stat().st_size
+            code = main(["record", "--port", "loop://", "--rig", str(simulated), "--timeout", "1", *args])
+            msg = one_line(capsys.readouterr().err)
+            assert code == 2, msg
+            assert f"in use by pid {first.pid}" in msg and "record" in msg and "started" in msg, msg
+            assert journal.exists() and journal.stat().st_size >= before
+            assert first.poll() is None, "the first recorder stopped while the second was refused"
+        assert not other.exists() and not (tmp_path / "b.h5").exists()
+        _, err = first.communicate(timeout=90)
+        dev.communicate(timeout=30)
+    finally:
+        for p in (first, dev):
+            if p is not None and p.poll() is None:
+                p.kill()
+    assert first.returncode == 0, err
+    assert_same_frames(read_log(out), read_log(simulated))  # bit for bit
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".lock")]
+
+
+def test_a_lock_is_released_by_a_killed_holder(tmp_path: Path) -> None:
+    from tofloc.locks import LockedError, OutputLock
+
+    target = tmp_path / "x.h5"
+    code = f"import time; from tofloc.locks import OutputLock; OutputLock({str(target)!r}).acquire(); print('ok', flush=True); time.sleep(60)"
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "ok"
+        with pytest.raises(LockedError, match=f"pid {holder.pid}"):
+            OutputLock(target).acquire()
+    finally:
+        holder.kill()
+        holder.wait()
+    with OutputLock(target, "--out") as lock:  # the kernel released it with its holder
+        assert lock.held
+    assert not any(p.name.endswith(".lock") for p in tmp_path.iterdir())
+
+
+# -- 5. a journal that cannot be written -------------------------------------------------------------------
+
+
+class _FullDisk(io.TextIOBase):
+    """A journal file whose disk fills after ``budget`` characters."""
+
+    def __init__(self, fh, budget: int) -> None:
+        self._fh, self._left = fh, budget
+
+    def write(self, text: str) -> int:
+        if len(text) > self._left:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self._left -= len(text)
+        return self._fh.write(text)
+
+    def flush(self) -> None:
+        self._fh.flush()
+
+    def fileno(self) -> int:
+        return self._fh.fileno()
+
+    def close(self) -> None:
+        self._fh.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._fh.closed
+
+
+def _record_into_failing_journal(simulated: Path, tmp_path: Path, capsys, journal_args: list[str], out: Path) -> tuple[int, str]:
+    link = tmp_path / "ttyJ"
+    dev = cli_process("replay", str(simulated), "--pty", "--speed", "0", "--link", str(link), "--wait", "60")
+    try:
+        wait_for(link, dev)
+        code = main(["record", "--port", str(link), "--rig", str(simulated), "--out", str(out), "--timeout", "20", *journal_args])
+    finally:
+        dev.kill()
+        dev.wait()
+    return code, one_line(capsys.readouterr().err)
+
+
+def _check_safe_on_disk(msg: str, journal: Path, out: Path, tmp_path: Path, want: Log) -> None:
+    assert "No space left on device" in msg and f"tofloc record --recover {journal} --out {out}" in msg, msg
+    m = re.search(r"the first (\d+) lines \((\d+) frames\)", msg)
+    assert m, msg
+    lines, frames = int(m.group(1)), int(m.group(2))
+    assert 0 < frames < 3 * want.n_samples and lines >= frames
+    assert not out.exists()
+    # what the message calls safe is in the journal, and rebuilds a log
+    samples, stats, _, _ = recover(journal)
+    assert stats.frames >= frames and stats.lines >= lines
+    rebuilt = tmp_path / "rebuilt.h5"
+    assert main(["record", "--recover", str(journal), "--out", str(rebuilt)]) == 0
+    got = read_log(rebuilt)
+    np.testing.assert_array_equal(got.distance_mm[: got.n_samples - 1], want.distance_mm[: got.n_samples - 1])
+
+
+def test_a_full_disk_under_the_journal_stops_with_one_line(simulated: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    import tofloc.io.journal as jmod
+
+    real_open = open
+
+    def failing_open(path, mode="r", *args, **kwargs):
+        fh = real_open(path, mode, *args, **kwargs)
+        return _FullDisk(fh, 40_000) if "x" in mode else fh
+
+    monkeypatch.setattr(jmod, "open", failing_open, raising=False)
+    out = tmp_path / "rec.h5"
+    code, msg = _record_into_failing_journal(simulated, tmp_path, capsys, [], out)
+    monkeypatch.undo()
+    assert code in (1, 2), msg
+    _check_safe_on_disk(msg, out.with_name(out.name + ".journal"), out, tmp_path, read_log(simulated))
+
+
+def test_a_really_full_file_system_under_the_journal(simulated: Path, tmp_path: Path, capsys, small_fs) -> None:
+    tiny = small_fs(64)
+    journal = tiny / "rec.journal"
+    out = tmp_path / "rec.h5"
+    code, msg = _record_into_failing_journal(simulated, tmp_path, capsys, ["--journal", str(journal)], out)
+    assert code in (1, 2), msg
+    _check_safe_on_disk(msg, journal, out, tmp_path, read_log(simulated))
+
+
+# -- 6. outputs checked before any work --------------------------------------------------------------------
+
+
+@pytest.fixture
+def readonly_dir(tmp_path: Path, small_fs) -> Path:
+    d = tmp_path / "ro"
+    d.mkdir()
+    d.chmod(0o555)
+    probe = d / "probe"
+    try:
+        probe.touch()
+    except OSError:
+        return d  # permissions suffice (not root)
+    probe.unlink()
+    ro = small_fs(64)
+    subprocess.run(["mount", "-o", "remount,ro", str(ro)], check=True)
+    return ro
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Every expensive first step of a command raises: the refusal must come before."""
+    import tofloc.cli.cmd_bench as bench
+    import tofloc.io.eth_matrix as eth
+    import tofloc.logs as logs
+    import tofloc.simulation as simulation
+
+    def boom(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+
+    for mod, name in ((logs, "read_log"), (simulation, "simulate"), (bench, "run_bench"), (eth, "import_run")):
+        monkeypatch.setattr(mod, name, boom)
+
+
+def test_every_unwritable_output_is_refused_before_any_work(simulated: Path, tmp_path: Path, readonly_dir: Path, capsys, no_work) -> None:
+    log = str(simulated)
+    commands = {
+        "localize --json": lambda p: ["localize", log, "--estimator", "icp_pf", "--json", str(p)],
+        "kinematics fit --out": lambda p: ["kinematics", "fit", log, "--out", str(p)],
+        "simulate --out": lambda p: ["simulate", "--out", str(p)],
+        "calibrate --out": lambda p: ["calibrate", log, "--out", str(p)],
+        "calibrate --plot": lambda p: ["calibrate", log, "--out", str(tmp_path / "m.toml"), "--plot", str(p)],
+        "paper --out": lambda p: ["paper", "--trials", "1", "--out", str(p)],
+        "bench --json": lambda p: ["bench", "--json", str(p)],
+        "record --out": lambda p: ["record", "--port", "loop://", "--rig", log, "--out", str(p)],
+        "record --journal": lambda p: ["record", "--port", "loop://", "--rig", log, "--out", str(tmp_path / "r.h5"), "--journal", str(p)],
+        "record --recover --out": lambda p: ["record", "--recover", str(tmp_path / "none.journal"), "--out", str(p)],
+        "import eth-matrix --out": lambda p: ["import", "eth-matrix", str(tmp_path), "--out", str(p)],
+        "localize --port --out": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--out", str(p)],
+        "localize --port --estimates-out": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--estimates-out", str(p)],
+        "localize --port --journal": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--journal", str(p)],
+    }
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for name, argv in commands.items():
+        for case, path in _cases(tmp_path, readonly_dir, name).items():
+            if name == "paper --out" and case == "a folder":
+                continue  # a folder is what paper writes into
+            code = main(argv(path))
+            msg = one_line(capsys.readouterr().err)
+            assert code == 2, (name, case, msg)
+            assert str(path) in msg or str(path.parent) in msg, (name, case, msg)
+    after = sorted(p.name for p in tmp_path.iterdir())
+    assert set(after) - set(before) <= {"cases"}, set(after) - set(before)
+    leftovers = [p for p in (tmp_path / "cases").rglob("*") if p.is_file() and not p.name.startswith("a-file")]
+    assert leftovers == [], leftovers
+    assert not list(readonly_dir.iterdir())
+
+
+def _cases(tmp_path: Path, readonly: Path, name: str) -> dict[str, Path]:
+    base = tmp_path / "cases"
+    base.mkdir(exist_ok=True)
+    folder = base / "a-folder"
+    folder.mkdir(exist_ok=True)
+    plain = base / "a-file"
+    plain.write_text("x")
+    paper_file = base / "a-file-for-paper"
+    paper_file.write_text("x")
+    if name.startswith("paper"):
+        return {"a file": paper_file, "a read-only folder": readonly / "results", "under a file": plain / "results"}
+    return {"a folder": folder, "a read-only folder": readonly / "x.out", "under a file": plain / "x.out"}
+
+
+def test_check_output_path_accepts_what_can_be_written(tmp_path: Path) -> None:
+    from tofloc.atomic import check_output_path
+    from tofloc.errors import ParameterError
+
+    assert check_output_path(tmp_path / "new" / "deeper" / "x.json", option="--json") == tmp_path / "new" / "deeper" / "x.json"
+    assert not (tmp_path / "new").exists()  # checking creates nothing
+    (tmp_path / "old.json").write_text("{}")
+    check_output_path(tmp_path / "old.json")
+    with pytest.raises(ParameterError, match="--out .*old.json: exists; choose another name or pass --force"):
+        check_output_path(tmp_path / "old.json", overwrite=False)
+    check_output_path(tmp_path / "results", kind="dir")
+    with pytest.raises(ParameterError, match="is not a folder"):
+        check_output_path(tmp_path / "old.json", kind="dir")
+
+
+# -- 7. all-or-nothing writes ---------------------------------------------------------------------------------
+
+CHILD = """
+import os, signal, sys, time
+from tofloc.cli import main
+mode = sys.argv[1]
+if mode == "no-space-check":  # as if the disk filled up after the free-space check
+    import tofloc.atomic
+    tofloc.atomic.check_free_space = lambda *a, **k: None
+elif mode == "sigterm-while-writing":
+    import tofloc.logs
+    real = tofloc.logs.write_log
+    def slow_write(log, path):
+        real(log, path)  # the log's temporary is complete, the maps' too; then the kill comes
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    tofloc.logs.write_log = slow_write
+elif mode == "sigterm-while-writing-the-model":
+    import sensor_models.beam
+    def killed_while_checking(path):  # the model's temporary is written and being read back
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    sensor_models.beam.load_sensor_model_toml = killed_while_checking
+sys.argv = ["tofloc", *sys.argv[2:]]
+main()  # as the `tofloc` script calls it
+"""
+
+
+def _child(mode: str, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", CHILD, mode, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+def test_simulate_on_a_full_disk_is_refused_before_writing(small_fs) -> None:
+    tiny = small_fs(256)
+    r = _child("plain", "simulate", "--out", str(tiny / "x.h5"))
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "not enough free space" in one_line(r.stderr)
+    assert list(tiny.iterdir()) == []
+
+
+def test_simulate_when_the_disk_fills_while_writing_leaves_nothing(small_fs) -> None:
+    tiny = small_fs(256)
+    r = _child("no-space-check", "simulate", "--out", str(tiny / "x.h5"))
+    assert r.returncode == 1, (r.returncode, r.stderr[-2000:])  # not a segmentation fault (-11)
+    assert "No space left on device" in one_line(r.stderr)
+    assert list(tiny.iterdir()) == []
+
+
+def test_simulate_killed_while_writing_leaves_nothing(tmp_path: Path) -> None:
+    (tmp_path / "x.map.ply").write_text("the previous map")
+    r = _child("sigterm-while-writing", "simulate", "--out", str(tmp_path / "x.h5"))
+    assert r.returncode == 143, (r.returncode, r.stderr[-2000:])
+    assert one_line(r.stderr) == "terminated"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.map.ply"]  # no temporaries, no half set
+    assert (tmp_path / "x.map.ply").read_text() == "the previous map"
+
+
+def test_calibrate_killed_while_writing_leaves_nothing(simulated: Path, tmp_path: Path) -> None:
+    cad = simulated.parent / "paper.cad.ply"
+    out = tmp_path / "out"
+    out.mkdir()
+    r = _child("sigterm-while-writing-the-model", "calibrate", str(simulated), "--map", str(cad), "--footprint", "1",
+               "--no-support-yaw", "--no-mounting", "--out", str(out / "model.toml"), "--plot", str(out / "cal.png"))
+    assert r.returncode == 143, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.strip().splitlines()[-1] == "terminated" and "Traceback" not in r.stderr
+    assert list(out.iterdir()) == []
+
+
+def test_simulate_into_an_existing_folder_writes_nothing(tmp_path: Path, capsys) -> None:
+    (tmp_path / "x").mkdir()
+    assert main(["simulate", "--out", str(tmp_path / "x")]) == 2
+    assert "is a folder" in one_line(capsys.readouterr().err)
+    assert [p.name for p in tmp_path.iterdir()] == ["x"] and not list((tmp_path / "x").iterdir())
+
+
+# -- 8. built-in scenario names ---------------------------------------------------------------------------------
+
+
+def test_a_file_or_folder_named_like_a_builtin_scenario_does_not_replace_it(tmp_path: Path, monkeypatch) -> None:
+    from tofloc.simulation import load_scenario
+
+    monkeypatch.chdir(tmp_path)
+    builtin = load_scenario("paper")
+    Path("paper").write_text("[scenario]\nname = 'mine'\n")
+    assert load_scenario("paper") == builtin
+    Path("paper").unlink()
+    Path("paper").mkdir()
+    assert load_scenario("paper") == builtin
+    Path("paper.toml").write_text("not toml [")
+    with pytest.raises(Exception, match="paper.toml"):
+        load_scenario("paper.toml")  # a path ending in .toml is a file
+
+
+def test_paper_out_paper_runs_twice(tmp_path: Path, monkeypatch, capsys) -> None:
+    """`tofloc paper --out paper` used to fail on its second run: the folder replaced the scenario."""
+    monkeypatch.chdir(tmp_path)
+    import tofloc.simulation as simulation
+
+    seen = []
+    real = simulation.load_scenario
+
+    def spy(name):
+        sc = real(name)
+        seen.append(sc.scenario.name)
+        raise KeyboardInterrupt  # stop right after the scenario is chosen: the rest is tested elsewhere
+
+    monkeypatch.setattr(simulation, "load_scenario", spy)
+    Path("paper").mkdir()
+    assert main(["paper", "--trials", "1", "--out", "paper"]) == 130
+    assert seen == [real("paper").scenario.name]
+
+
+# -- 9. inputs and moments that used to end in a traceback ---------------------------------------------------------
+
+
+def test_a_rig_json_with_a_5001_digit_integer_is_one_line(simulated: Path, tmp_path: Path, capsys) -> None:
+    rig = json.loads(read_log(simulated).rig.to_json())
+    text = json.dumps(rig).replace('"actuators": [', '"huge": ' + "7" * 5001 + ', "actuators": [', 1)
+    assert "7" * 5001 in text
+    for suffix, body in ((".json", text), (".toml", "x = " + "7" * 5001 + "\n")):
+        path = tmp_path / f"rig{suffix}"
+        path.write_text(body)
+        code = main(["record", "--port", "loop://", "--rig", str(path), "--out", str(tmp_path / "r.h5")])
+        msg = one_line(capsys.readouterr().err)
+        assert code == 2 and str(path) in msg and "valid" in msg and "digits" in msg, msg
+
+
+def test_a_ply_with_a_header_and_no_vertex_is_one_line(simulated: Path, tmp_path: Path, capsys) -> None:
+    for fmt in ("ascii", "binary_little_endian"):
+        ply = tmp_path / f"empty-{fmt}.ply"
+        ply.write_text(f"ply\nformat {fmt} 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+        code = main(["localize", str(simulated), "--estimator", "icp_pf", "--map", str(ply)])
+        msg = one_line(capsys.readouterr().err)
+        assert code == 2 and str(ply) in msg and "at least one vertex" in msg, msg
+
+
+def test_ctrl_c_while_a_command_imports_its_libraries_is_one_line(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Ctrl-C inside a C extension's import surfaces as ``ImportError: initialization failed``."""
+    import tofloc.simulation as simulation
+
+    def importing(*a, **k):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)  # the user's Ctrl-C, delivered while "importing"
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None  # what pybind11 modules raise then
+        raise AssertionError("no SIGINT arrived")
+
+    monkeypatch.setattr(simulation, "load_scenario", importing)
+    code = main(["simulate", "--out", str(tmp_path / "x.h5")])
+    assert code == 130 and one_line(capsys.readouterr().err) == "interrupted"
+
+
+def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_path: Path) -> None:
+    entry = "from tofloc.cli import main; main()"  # what the `tofloc` script runs
+    for delay in (0.6, 1.2, 2.5):  # while the CLI, then open3d and the simulator load, then simulating
+        p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(tmp_path / "x.h5")],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130 and "Traceback" not in err, (delay, p.returncode, err[-1500:])
+    assert not [q for q in tmp_path.iterdir()]
