@@ -80,7 +80,7 @@ def test_the_range_cut_is_on_the_reported_distance() -> None:
     while the radial readings of the oblique zones exceed 1.05 m (not returned)."""
     for conv in ("perpendicular", "radial"):
         rig, wall = _plane_rig(conv)
-        cast = ZoneCaster(rig).cast(wall, np.eye(4)[None, None])
+        cast = ZoneCaster(rig).cast(wall, rig.T_tip_sensor[None])
         r = cast.reading[0, 0]
         u = rig.unit_directions[0]
         ray = 1.0 / u[:, 2]  # ray length to the wall
@@ -98,7 +98,7 @@ def test_footprint_geometry_and_hit_fraction() -> None:
     caster = ZoneCaster(rig, footprint=3, min_hit_fraction=0.34)
     assert caster.dirs_sensor.shape == (1, 64, 9, 3) and caster.n_sub == 9
     np.testing.assert_allclose(subray_directions(rig.sensors[0], 1)[:, 0], rig.unit_directions[0])
-    cast = caster.cast(wall, np.eye(4)[None, None], geometry=True)
+    cast = caster.cast(wall, rig.T_tip_sensor[None], geometry=True)
     assert np.all(cast.hit_fraction == 1.0) and not cast.corner.any()
     np.testing.assert_allclose(cast.reading, 1.0, atol=1e-6)
     np.testing.assert_allclose(cast.normal[0, 0], np.tile([-1.0, 0.0, 0.0], (64, 1)), atol=1e-6)  # faces the sensor
