@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import warnings
+from typing import ClassVar
 
 from tofloc.registry import ESTIMATORS
-from tofloc.testing import parametrize_with_checks
+from tofloc.testing import parametrize_with_checks, parametrize_with_sensor_model_checks
 
 #: Smaller-than-default settings so that the suite stays fast; each estimator keeps its
 #: own algorithm. Estimators not listed run with their defaults.
@@ -33,3 +34,57 @@ def test_every_registered_estimator_is_checked() -> None:
     names = {e.name for e in _registered()}
     assert {"icp_pf"} <= names
     assert names == set(ESTIMATORS.names())
+
+
+def _registered_models():
+    from tofloc.registry import SENSOR_MODELS
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return [cls() for _, cls in SENSOR_MODELS.iter_loaded()]
+
+
+@parametrize_with_sensor_model_checks(_registered_models())
+def test_registered_sensor_models(model, check) -> None:
+    check(model)
+
+
+def test_expected_failures_are_strict() -> None:
+    """A plug-in that declares a check it fails: the check must fail (an unexpected pass is an
+    error), and a declared name that is no check is refused."""
+    import dataclasses
+
+    import numpy as np
+    import pytest
+
+    from tofloc.errors import ParameterError
+    from tofloc.problem import Estimate, Estimator
+    from tofloc.testing import check_estimator, expected_failures
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class PriorMean(Estimator):
+        """A baseline that returns the prior mean: it does not converge, and says so."""
+
+        name: ClassVar[str] = "prior_mean"
+        expected_check_failures: ClassVar[dict] = {"check_converges_on_easy_problem": "returns the prior"}
+
+        def _estimate(self, problem, rng):
+            return Estimate(pose=problem.prior.mean, covariance=problem.prior.covariance)
+
+    check_estimator(PriorMean())  # its declared failure fails: the suite passes
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class Liar(PriorMean):
+        name: ClassVar[str] = "liar"
+        expected_check_failures: ClassVar[dict] = {"check_params_round_trip": "claims to fail a check it passes"}
+
+    with pytest.raises(AssertionError, match="check_params_round_trip passed"):
+        check_estimator(Liar())
+
+    class Typo(PriorMean):
+        expected_check_failures: ClassVar[dict] = {"check_convergence": "no such check"}
+
+    with pytest.raises(ParameterError, match="unknown checks"):
+        expected_failures(Typo())
+    assert np.all(np.isfinite(PriorMean().estimate(__import__("tofloc.testing").testing.easy_problem()[0],
+                                                    np.random.default_rng(0)).pose))

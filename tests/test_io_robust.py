@@ -321,11 +321,11 @@ elif mode == "sigterm-while-writing":
         time.sleep(30)
     tofloc.logs.write_log = slow_write
 elif mode == "sigterm-while-writing-the-model":
-    import sensor_models.beam
-    def killed_while_checking(path):  # the model's temporary is written and being read back
+    import tofloc.calibration_file
+    def killed_while_checking(cls, path):  # the model's temporary is written and being read back
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(30)
-    sensor_models.beam.load_sensor_model_toml = killed_while_checking
+    tofloc.calibration_file.SensorCalibration.from_toml = classmethod(killed_while_checking)
 sys.argv = ["tofloc", *sys.argv[2:]]
 main()  # as the `tofloc` script calls it
 """

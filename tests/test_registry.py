@@ -69,3 +69,38 @@ def test_tofloc_list(capsys) -> None:
         assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "icp_pf" in out and "gtsam_smoother" in out and "likelihood_field" in out
+
+
+def test_a_plugin_must_subclass_the_interface_and_carry_its_name(monkeypatch) -> None:
+    """An entry point pointing at something that is not an Estimator, or at an estimator whose
+    ``name`` differs from the entry point's, is refused with a message naming both."""
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from tofloc.problem import Estimate, Estimator
+
+    @dataclass(frozen=True, eq=False)
+    class Named(Estimator):
+        name: ClassVar[str] = "named_right"
+
+        def _estimate(self, problem, rng):
+            return Estimate(pose=problem.prior.mean, covariance=problem.prior.covariance)
+
+    mod = types.ModuleType("tofloc_test_typed_mod")
+    mod.Named = Named
+    mod.NotAnEstimator = type("NotAnEstimator", (), {"name": "not_one"})
+    sys.modules["tofloc_test_typed_mod"] = mod
+    try:
+        r = Registry("tofloc.test_group_nothing", {"named_right": "tofloc_test_typed_mod:Named",
+                                                    "named_wrong": "tofloc_test_typed_mod:Named",
+                                                    "not_one": "tofloc_test_typed_mod:NotAnEstimator"},
+                     base="tofloc.problem:Estimator")
+        assert r.load("named_right") is Named
+        with pytest.raises(PluginError, match="declares name = 'named_right'"):
+            r.load("named_wrong")
+        with pytest.raises(PluginError, match="not a subclass of tofloc.problem.Estimator"):
+            r.load("not_one")
+        with pytest.raises(PluginError, match="declares name"):
+            r.register("other_name", Named)
+    finally:
+        del sys.modules["tofloc_test_typed_mod"]

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import calendar
 import math
+import io
 import os
 import re
 import secrets
@@ -933,34 +934,39 @@ def write_log(log: Log, path: str | Path) -> Path:
         raise ParameterError(f"{dest}: cannot write the log: a folder has that name")
     created = log.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
 
+    # the file is built in memory, then written with plain file I/O: HDF5 crashes the process
+    # when a close fails on a full disk; Python's write raises a clean OSError instead
+    buf = io.BytesIO()
+    with h5py.File(buf, "w", libver=HDF5_LIBVER) as f:
+        write_text_attribute(f, "format", FORMAT_NAME)
+        f.attrs["version"] = np.int64(FORMAT_VERSION)
+        write_text_attribute(f, "rig", log.rig.to_json())
+        write_text_attribute(f, "source", log.source)
+        write_text_attribute(f, "created", created)
+        if log.map is not None:
+            write_text_attribute(f, "map", log.map)
+        if log.configuration_source is not None:
+            write_text_attribute(f, "configuration_source", log.configuration_source)
+        write_text_attribute(f, "writer", f"tofloc {_TOFLOC_VERSION}")
+        samples = f.create_group("samples")
+        write_checksummed_dataset(samples, "timestamp_s", log.timestamp_s, "<f8")
+        write_checksummed_dataset(samples, "distance_mm", log.distance_mm, "<f4")
+        write_checksummed_dataset(samples, "status", log.status, "u1")
+        if log.sigma_mm is not None:
+            write_checksummed_dataset(samples, "sigma_mm", log.sigma_mm, "<f4")
+        if log.pressure_kpa is not None:
+            write_checksummed_dataset(samples, "pressure_kpa", log.pressure_kpa, "<f4")
+        if log.T_base_tip is not None:
+            write_checksummed_dataset(samples, "T_base_tip", log.T_base_tip, "<f8")
+        if log.T_base_tip_cov is not None:
+            write_checksummed_dataset(samples, "T_base_tip_cov", log.T_base_tip_cov, "<f8")
+        if log.T_map_base is not None:
+            write_checksummed_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
     tmp = _fresh_temp(dest)
     try:
-        with h5py.File(tmp, "w", libver=HDF5_LIBVER) as f:
-            write_text_attribute(f, "format", FORMAT_NAME)
-            f.attrs["version"] = np.int64(FORMAT_VERSION)
-            write_text_attribute(f, "rig", log.rig.to_json())
-            write_text_attribute(f, "source", log.source)
-            write_text_attribute(f, "created", created)
-            if log.map is not None:
-                write_text_attribute(f, "map", log.map)
-            if log.configuration_source is not None:
-                write_text_attribute(f, "configuration_source", log.configuration_source)
-            write_text_attribute(f, "writer", f"tofloc {_TOFLOC_VERSION}")
-            samples = f.create_group("samples")
-            write_checksummed_dataset(samples, "timestamp_s", log.timestamp_s, "<f8")
-            write_checksummed_dataset(samples, "distance_mm", log.distance_mm, "<f4")
-            write_checksummed_dataset(samples, "status", log.status, "u1")
-            if log.sigma_mm is not None:
-                write_checksummed_dataset(samples, "sigma_mm", log.sigma_mm, "<f4")
-            if log.pressure_kpa is not None:
-                write_checksummed_dataset(samples, "pressure_kpa", log.pressure_kpa, "<f4")
-            if log.T_base_tip is not None:
-                write_checksummed_dataset(samples, "T_base_tip", log.T_base_tip, "<f8")
-            if log.T_base_tip_cov is not None:
-                write_checksummed_dataset(samples, "T_base_tip_cov", log.T_base_tip_cov, "<f8")
-            if log.T_map_base is not None:
-                write_checksummed_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
-        with open(tmp, "rb+") as fh:
+        with open(tmp, "wb") as fh:
+            fh.write(buf.getbuffer())
+            fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, dest)
     except BaseException:

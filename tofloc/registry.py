@@ -19,7 +19,7 @@ import importlib
 import warnings
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 from tofloc.errors import PluginError
 
@@ -56,10 +56,14 @@ class Registry:
         Entry-point group scanned for third-party plug-ins.
     builtins : dict
         ``name -> "module:attribute"`` of the plug-ins shipped with tofloc.
+    base : str, optional
+        ``"module:Class"`` every plug-in must subclass; its ``name`` class attribute must
+        then equal the name it is registered under (checked when it is loaded).
     """
 
-    def __init__(self, group: str, builtins: dict[str, str]) -> None:
+    def __init__(self, group: str, builtins: dict[str, str], base: str | None = None) -> None:
         self.group = group
+        self._base = base
         self._specs: dict[str, PluginSpec] = {n: PluginSpec(n, t) for n, t in builtins.items()}
         self._entry_points_scanned = False
         self._cache: dict[str, Any] = {}
@@ -88,7 +92,9 @@ class Registry:
             self._specs[name] = PluginSpec(name, target, origin)
             self._cache.pop(name, None)
         else:
-            self._specs[name] = PluginSpec(name, f"{target.__module__}:{target.__qualname__}", origin)
+            spec = PluginSpec(name, f"{target.__module__}:{target.__qualname__}", origin)
+            self._check(name, spec, target)
+            self._specs[name] = spec
             self._cache[name] = target
 
     def unregister(self, name: str) -> None:
@@ -136,8 +142,23 @@ class Registry:
                 obj = getattr(obj, part)
         except AttributeError as e:
             raise PluginError(f"{self._kind} {name!r}: {spec.target} does not exist ({e})") from e
+        self._check(name, spec, obj)
         self._cache[name] = obj
         return obj
+
+    def _check(self, name: str, spec: PluginSpec, obj: Any) -> None:
+        """The loaded object must be a subclass of the registry's base, named ``name``."""
+        if self._base is None:
+            return
+        mod, _, attr = self._base.partition(":")
+        base = getattr(importlib.import_module(mod), attr)
+        if not (isinstance(obj, type) and issubclass(obj, base)):
+            raise PluginError(f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) is not a subclass of "
+                              f"{base.__module__}.{base.__qualname__}")
+        declared = getattr(obj, "name", None)
+        if declared != name:
+            raise PluginError(f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) declares name = {declared!r}: "
+                              f"the entry point and the class's name must agree")
 
     def iter_loaded(self) -> Iterator[tuple[str, Any]]:
         """Every plug-in that loads; a broken one warns and is skipped."""
@@ -168,6 +189,7 @@ ESTIMATORS = Registry(
         "beam_pf": "estimators.particle_filter:BeamPF",
         "likelihood_field_pf": "estimators.particle_filter:LikelihoodFieldPF",
     },
+    base="tofloc.problem:Estimator",
 )
 
 #: Built-in sensor models (name -> class). Each follows sensor_models.base.SensorModel.
@@ -178,6 +200,7 @@ SENSOR_MODELS = Registry(
         "beam": "sensor_models.beam:BeamModel",
         "likelihood_field": "sensor_models.likelihood_field:LikelihoodFieldModel",
     },
+    base="sensor_models.base:SensorModel",
 )
 
 

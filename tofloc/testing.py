@@ -1,19 +1,35 @@
-"""The common check suite every estimator passes (as scikit-learn's ``parametrize_with_checks``).
+"""The common check suites every estimator and every sensor model pass (as scikit-learn's
+``parametrize_with_checks``).
 
-Plug-in authors run it on their own estimator::
+Plug-in authors run them on their own plug-ins::
 
-    from tofloc.testing import parametrize_with_checks
+    from tofloc.testing import parametrize_with_checks, parametrize_with_sensor_model_checks
 
     @parametrize_with_checks([MyEstimator(n_particles=300)])
     def test_my_estimator(estimator, check):
         check(estimator)
 
-``tests/test_estimator_checks.py`` runs it over every registered estimator.
+    @parametrize_with_sensor_model_checks([MyModel()])
+    def test_my_model(model, check):
+        check(model)
 
-Checks: same seed -> same result; inputs not mutated; result contract (finite pose, yaw
-in (-pi, pi], symmetric PSD covariance, runtime recorded); convergence on an easy
-noise-free problem; a problem with no valid zone raises :class:`ProblemError`; the
+``tests/test_estimator_checks.py`` runs both over every registered plug-in.
+
+Estimator checks: same seed -> same result; inputs not mutated; result contract (finite
+pose, yaw in (-pi, pi], symmetric PSD covariance, runtime recorded); convergence on an
+easy noise-free problem; a problem with no valid zone raises :class:`ProblemError`; the
 parameters round-trip through ``get_params``; a non-Generator ``rng`` is refused.
+
+Sensor-model checks: the interface is declared (``weight_update``, ``nuisances``,
+``uses_calibration``); log-likelihoods have shape ``(M,)`` and no NaN; a batch equals one
+state at a time; the problem is not mutated; the declared state is honoured (no columns
+unless the problem declares a nuisance the model supports, then exactly those, in the
+declared order, and they change the score); the score peaks near the truth on noise-free
+data; the parameters round-trip.
+
+A plug-in that fails a check on purpose (a baseline that does not converge, say) says so:
+``expected_check_failures = {"check_converges_on_easy_problem": "why"}`` as a class
+attribute; the check then runs as a strict expected failure (passing it is an error).
 """
 
 from __future__ import annotations
@@ -29,7 +45,8 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 
-__all__ = ["easy_problem", "CHECKS", "check_estimator", "parametrize_with_checks"]
+__all__ = ["easy_problem", "CHECKS", "SENSOR_MODEL_CHECKS", "check_estimator", "check_sensor_model",
+           "parametrize_with_checks", "parametrize_with_sensor_model_checks", "expected_failures"]
 
 #: the easy problem's truth (x, y, yaw) and base height
 EASY_TRUTH = np.array([0.02, -0.015, math.radians(5.0)])
@@ -168,19 +185,171 @@ CHECKS: list[Callable[[Estimator], None]] = [
 ]
 
 
+def expected_failures(obj: Any) -> dict[str, str]:
+    """The checks ``obj`` declares it fails on purpose (``expected_check_failures``), validated."""
+    xf = getattr(obj, "expected_check_failures", {}) or {}
+    if not isinstance(xf, dict) or not all(isinstance(k, str) and isinstance(v, str) and v for k, v in xf.items()):
+        raise ParameterError(f"{type(obj).__name__}.expected_check_failures must map check names to reasons")
+    known = {c.__name__ for c in CHECKS + SENSOR_MODEL_CHECKS}
+    unknown = sorted(set(xf) - known)
+    if unknown:
+        raise ParameterError(f"{type(obj).__name__}.expected_check_failures names unknown checks {unknown}")
+    return dict(xf)
+
+
+def _run_checks(obj: Any, checks: Sequence[Callable[[Any], None]]) -> None:
+    xf = expected_failures(obj)
+    for check in checks:
+        if check.__name__ not in xf:
+            check(obj)
+            continue
+        try:
+            check(obj)
+        except Exception:  # the declared failure happened
+            continue
+        raise AssertionError(f"{check.__name__} passed but {type(obj).__name__} declares it fails: {xf[check.__name__]}")
+
+
 def check_estimator(est: Estimator) -> None:
-    """Run every check on one estimator (raises on the first failure)."""
-    for check in CHECKS:
-        check(est)
+    """Run every estimator check on one estimator (raises on the first failure; a declared
+    expected failure must fail)."""
+    _run_checks(est, CHECKS)
 
 
-def parametrize_with_checks(estimators: Sequence[Estimator]) -> Any:
-    """A ``pytest.mark.parametrize`` over ``(estimator, check)`` pairs, ids ``name-check``."""
+def check_sensor_model(model: Any) -> None:
+    """Run every sensor-model check on one sensor model (as :func:`check_estimator`)."""
+    _run_checks(model, SENSOR_MODEL_CHECKS)
+
+
+def _parametrize(objs: Sequence[Any], checks: Sequence[Callable[[Any], None]], argnames: str) -> Any:
     import pytest
 
     params, ids = [], []
-    for est in estimators:
-        for check in CHECKS:
-            params.append((est, check))
-            ids.append(f"{getattr(est, 'name', type(est).__name__)}-{check.__name__}")
-    return pytest.mark.parametrize("estimator, check", params, ids=ids)
+    for obj in objs:
+        xf = expected_failures(obj)
+        for check in checks:
+            marks = [pytest.mark.xfail(strict=True, reason=xf[check.__name__])] if check.__name__ in xf else []
+            params.append(pytest.param(obj, check, marks=marks))
+            ids.append(f"{getattr(obj, 'name', type(obj).__name__)}-{check.__name__}")
+    return pytest.mark.parametrize(argnames, params, ids=ids)
+
+
+def parametrize_with_checks(estimators: Sequence[Estimator]) -> Any:
+    """A ``pytest.mark.parametrize`` over ``(estimator, check)`` pairs, ids ``name-check``;
+    declared expected failures are strict ``xfail``."""
+    return _parametrize(estimators, CHECKS, "estimator, check")
+
+
+def parametrize_with_sensor_model_checks(models: Sequence[Any]) -> Any:
+    """A ``pytest.mark.parametrize`` over ``(model, check)`` pairs (see :func:`parametrize_with_checks`)."""
+    return _parametrize(models, SENSOR_MODEL_CHECKS, "model, check")
+
+
+# -- sensor-model checks ---------------------------------------------------------------------
+
+
+def _states(bound: Any, poses: np.ndarray) -> np.ndarray:
+    """``poses`` with zero nuisance columns for the bound model's declared state."""
+    return np.column_stack([poses, np.zeros((poses.shape[0], len(bound.state)))]) if bound.state else poses
+
+
+def _declaring(p: Problem) -> Problem:
+    """``p`` declaring every nuisance (support yaw 3 deg, range scale 3 %)."""
+    import dataclasses
+
+    from tofloc.problem import NuisancePriors
+
+    return dataclasses.replace(p, nuisance=NuisancePriors(math.radians(3.0), 0.03, "check", "check"))
+
+
+def check_model_interface(model: Any) -> None:
+    """``weight_update``, ``nuisances`` and ``uses_calibration`` are declared with valid values."""
+    from sensor_models.base import NUISANCES, WEIGHT_UPDATES, SensorModel
+
+    assert isinstance(model, SensorModel), f"{type(model).__name__} does not subclass sensor_models.base.SensorModel"
+    assert model.weight_update in WEIGHT_UPDATES, f"weight_update {model.weight_update!r} not in {WEIGHT_UPDATES}"
+    assert isinstance(model.nuisances, tuple) and set(model.nuisances) <= set(NUISANCES), model.nuisances
+    assert isinstance(model.uses_calibration, bool), model.uses_calibration
+    assert isinstance(model.name, str) and model.name, "a sensor model needs a registry name"
+
+
+def check_model_output_shape(model: Any) -> None:
+    """``log_likelihood`` returns ``(M,)`` floats, finite or ``-inf``, never NaN, for every step."""
+    p, truth = easy_problem(n_samples=2)
+    bound = model.bind(p)
+    assert bound.n_steps == p.n_samples, f"n_steps {bound.n_steps} for {p.n_samples} samples"
+    poses = truth + np.random.default_rng(0).normal(size=(7, 3)) * np.array([0.03, 0.03, 0.05])
+    for k in range(bound.n_steps):
+        ll = np.asarray(bound.log_likelihood(_states(bound, poses), k))
+        assert ll.shape == (7,), f"step {k}: shape {ll.shape}, expected (7,)"
+        assert not np.isnan(ll).any() and not np.isposinf(ll).any(), f"step {k}: {ll}"
+
+
+def check_model_batch_equals_one_at_a_time(model: Any) -> None:
+    """Scoring M states at once gives what scoring each alone gives (no cross-talk)."""
+    p, truth = easy_problem(n_samples=2)
+    bound = model.bind(_declaring(p))
+    rng = np.random.default_rng(1)
+    poses = truth + rng.normal(size=(5, 3)) * np.array([0.02, 0.02, 0.03])
+    states = np.column_stack([poses, rng.normal(size=(5, len(bound.state))) * 0.01]) if bound.state else poses
+    batch = bound.log_likelihood(states, 1)
+    single = np.array([bound.log_likelihood(states[i:i + 1], 1)[0] for i in range(5)])
+    np.testing.assert_allclose(batch, single, rtol=1e-9, atol=1e-9)
+
+
+def check_model_does_not_mutate_the_problem(model: Any) -> None:
+    """Binding and scoring leave the problem's arrays and map as they were."""
+    p, truth = easy_problem(n_samples=2)
+    before = {k: np.array(getattr(p, k), copy=True) for k in ("distance_m", "status", "T_base_tip")}
+    points = np.array(p.map.points, copy=True)
+    bound = model.bind(p)
+    bound.log_likelihood(_states(bound, truth[None]), 0)
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(p, k), v, err_msg=f"problem.{k} was mutated")
+    np.testing.assert_array_equal(p.map.points, points, err_msg="problem.map was mutated")
+
+
+def check_model_honours_the_declared_state(model: Any) -> None:
+    """No state column unless the problem declares a nuisance the model supports; then the
+    supported ones, in the problem's order, with the declared priors, and each column
+    changes the score."""
+    p, truth = easy_problem(n_samples=2)
+    assert tuple(model.bind(p).state) == (), "state columns although the problem declares no nuisance"
+    declaring = _declaring(p)
+    bound = model.bind(declaring)
+    names = [v.name for v in bound.state]
+    assert names == [n for n in declaring.nuisance.declared if n in model.nuisances], names
+    for i, v in enumerate(bound.state):
+        assert v.sigma == declaring.nuisance.sigma(v.name), (v.name, v.sigma)
+        a = _states(bound, truth[None])
+        b = a.copy()
+        b[0, 3 + i] = 2.0 * v.sigma
+        assert bound.log_likelihood(a, 1)[0] != bound.log_likelihood(b, 1)[0], f"column {v.name} does not change the score"
+
+
+def check_model_peaks_near_the_truth(model: Any) -> None:
+    """On noise-free data the truth scores higher than poses 3 cm or 3 deg away."""
+    p, truth = easy_problem(n_samples=2)
+    bound = model.bind(p)
+    offsets = np.array([[0, 0, 0], [0.03, 0, 0], [-0.03, 0, 0], [0, 0.03, 0], [0, -0.03, 0], [0, 0, 0.05], [0, 0, -0.05]])
+    ll = np.asarray(bound.log_likelihood(_states(bound, truth + offsets), bound.n_steps - 1))
+    assert np.all(ll[0] > ll[1:]), f"the truth scores {ll[0]}, its neighbours {ll[1:]}"
+
+
+def check_model_params_round_trip(model: Any) -> None:
+    """``type(model)(**model.get_params())`` scores the same."""
+    clone = type(model)(**model.get_params())
+    p, truth = easy_problem(n_samples=1)
+    a, b = model.bind(p), clone.bind(p)
+    np.testing.assert_array_equal(a.log_likelihood(_states(a, truth[None]), 0), b.log_likelihood(_states(b, truth[None]), 0))
+
+
+SENSOR_MODEL_CHECKS: list[Callable[[Any], None]] = [
+    check_model_interface,
+    check_model_output_shape,
+    check_model_batch_equals_one_at_a_time,
+    check_model_does_not_mutate_the_problem,
+    check_model_honours_the_declared_state,
+    check_model_peaks_near_the_truth,
+    check_model_params_round_trip,
+]
