@@ -60,7 +60,16 @@ class PaperData:
     fit_report: Any | None = None
 
 
-def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, stage: Stage = _no_stage) -> PaperData:
+def _rig_variant(source: str) -> str | None:
+    """The rig variant a simulated log records in its ``source`` (``... rig=exact``), or None."""
+    for part in source.split()[1:]:
+        if part.startswith("rig="):
+            return part[len("rig="):]
+    return None
+
+
+def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, rig_variant: str | None = None,
+                 stage: Stage = _no_stage) -> PaperData:
     """Simulate ``out/paper.h5`` unless it exists, and fit (or reuse) ``out/knn.npz``.
 
     An existing ``paper.h5`` is used as it is, whoever made it (a real log conforming to
@@ -68,7 +77,9 @@ def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, s
     ``knn.npz`` is reused only if it was fit on this log. With ``surface`` and a CAD mesh
     ``<stem>.cad.ply`` beside the map (the simulator writes one), the map gets it as its
     surface (:meth:`tofloc.maps.Map.with_surface`): the ray-casting models cast against the
-    CAD mesh, the ICP score keeps the map's points.
+    CAD mesh, the ICP score keeps the map's points. ``rig_variant`` (``"exact"`` or
+    ``"perturbed"``) simulates the scene with that rig; an existing log simulated with
+    another variant is refused.
     """
     from tofloc.kinematics import KinematicsModel
     from tofloc.logs import read_log
@@ -88,11 +99,16 @@ def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, s
                     f"{log_path} was simulated from scenario {made_from!r}, not {sc.scenario.name!r}: "
                     "use another --out or delete the file"
                 )
+            if _rig_variant(src) != rig_variant:
+                raise ParameterError(
+                    f"{log_path} was simulated with rig variant {_rig_variant(src) or 'as written'!r}, not "
+                    f"{rig_variant or 'as written'!r}: use another --out or delete the file"
+                )
         notes.append(f"reused {log_path} ({src})")
     else:
         out.mkdir(parents=True, exist_ok=True)
         with stage(f"simulating scenario {sc.scenario.name!r} (seed {seed}) into {log_path}"):
-            write_simulation(simulate(sc, seed), log_path)
+            write_simulation(simulate(sc, seed, rig_variant=rig_variant), log_path)
         log = read_log(log_path)
         notes.append(f"simulated {log_path} (scenario {sc.scenario.name!r}, seed {seed})")
     if log.T_map_base is None:
@@ -139,8 +155,8 @@ def _hardware_seed(source: str) -> int | None:
         return None
 
 
-def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, note: Note = _quiet,
-                        stage: Stage = _no_stage) -> Path:
+def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_variant: str | None = None,
+                        note: Note = _quiet, stage: Stage = _no_stage) -> Path:
     """``out/calibration-session.h5``: the set-up of hardware seed ``hw`` recorded again
     (session seed ``seed +`` :data:`CALIBRATION_SEED_OFFSET`, the base moved by
     :data:`CALIBRATION_BASE_OFFSET`); an existing file is reused only if it records that
@@ -152,13 +168,16 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, note: N
     sc = load_scenario(scenario)
     b = sc.base
     base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
-    if cal_path.exists() and _hardware_seed(read_log(cal_path).source) != hw:
-        note(f"{cal_path.name} records another set-up than {LOG_NAME} (hardware seed): simulating it again")
-        cal_path.unlink()
+    if cal_path.exists():
+        src = read_log(cal_path).source
+        if _hardware_seed(src) != hw or _rig_variant(src) != rig_variant:
+            note(f"{cal_path.name} records another set-up than {LOG_NAME} (hardware seed, rig variant): simulating it again")
+            cal_path.unlink()
     if not cal_path.exists():
         with stage(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
                    f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
-            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base), cal_path)
+            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base,
+                                      rig_variant=rig_variant), cal_path)
     return cal_path
 
 
@@ -183,7 +202,8 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
 
     hw = _hardware_seed(data.log.source)
     if hw is not None:
-        cal_path = calibration_session(out, scenario, seed, hw, note=note, stage=stage)
+        cal_path = calibration_session(out, scenario, seed, hw, rig_variant=_rig_variant(data.log.source), note=note,
+                                       stage=stage)
         cal_log = read_log(cal_path)
         rows = None
         what = f"calibration session {cal_path.name} ({cal_log.n_samples} samples)"

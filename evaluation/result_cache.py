@@ -20,21 +20,21 @@ from numpy.typing import ArrayLike
 
 from evaluation.executors import run_tasks
 from evaluation.priors import PriorSpec
-from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, make_tasks
+from evaluation.trials import (
+    TrialContext,
+    TrialTask,
+    jsonable,
+    make_estimator,
+    make_tasks,
+)
+from tofloc.fingerprints import sha256_arrays
 
 __all__ = ["fingerprint_arrays", "Batch", "context_fingerprint", "code_fingerprint", "plugin_objects", "run_batches"]
 
 
 def fingerprint_arrays(*arrays: ArrayLike | None, extra: Any = None) -> str:
     """SHA-256 (hex, 16 digits) of arrays (dtype, shape and bytes) and a JSON-able ``extra``."""
-    h = hashlib.sha256()
-    for a in arrays:
-        if a is None:
-            h.update(b"none\0")
-            continue
-        arr = np.ascontiguousarray(a)
-        h.update(f"{arr.dtype.str}{arr.shape}".encode())
-        h.update(arr.tobytes())
+    h = sha256_arrays(*arrays)
     if extra is not None:
         h.update(json.dumps(jsonable(extra), sort_keys=True).encode())
     return h.hexdigest()[:16]

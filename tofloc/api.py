@@ -17,15 +17,13 @@ is silent. Results are plain objects with the JSON document the CLI writes
 
 from __future__ import annotations
 
-import math
 import os
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ContextManager, Iterator, Mapping, Sequence
+from typing import Any, ContextManager, Mapping, Sequence
 
-import numpy as np
 
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
@@ -43,6 +41,8 @@ __all__ = [
     "LocalizeResult",
     "paper",
     "PaperResult",
+    "scenes",
+    "ScenesResult",
     "resolve_workers",
     "MAX_TRIALS",
 ]
@@ -368,6 +368,10 @@ def paper(
     calibration: SensorCalibration | str | os.PathLike[str] | None = None,
     calibrate: bool | None = None,
     surface: bool = True,
+    rig_variant: str | None = None,
+    k_values: Sequence[int] | None = None,
+    tip_sources: Sequence[str] = ("knn", "mocap"),
+    prior_modes: Sequence[str] | None = None,
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
@@ -377,10 +381,13 @@ def paper(
 
     ``calibrate`` (default: when some estimator :meth:`~tofloc.problem.Estimator.uses_calibration`
     and no ``calibration`` is given) fits the sensor model on a calibration session of the
-    same set-up (:func:`evaluation.paper_data.calibrate_for_paper`).
+    same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
+    scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
+    ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
+    both tip sources, both prior modes).
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
-    from evaluation.priors import PRIOR_MODES, PriorSpec
+    from evaluation.priors import PriorSpec
     from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
     from evaluation.result_cache import Batch, run_batches
     from evaluation.trials import SEED_DERIVATION, TrialContext, jsonable, sample_pool
@@ -392,6 +399,22 @@ def paper(
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
     if not isinstance(k_max, int) or not 1 <= k_max <= 1000:
         raise ParameterError(f"k_max must be in [1, 1000], got {k_max!r}")
+    ks = list(range(1, k_max + 1)) if k_values is None else sorted({int(k) for k in k_values})
+    if not ks or ks[0] < 1 or ks[-1] > 1000:
+        raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
+    from evaluation.priors import PRIOR_MODES as _MODES
+    from evaluation.trials import TIP_SOURCES as _TIPS
+
+    modes = list(_MODES if prior_modes is None else prior_modes)
+    if not modes or any(m not in _MODES for m in modes) or len(set(modes)) != len(modes):
+        raise ParameterError(f"prior modes must be distinct among {list(_MODES)}, got {modes!r}")
+    tips = list(tip_sources)
+    if not tips or any(t not in _TIPS for t in tips) or len(set(tips)) != len(tips):
+        raise ParameterError(f"tip sources must be distinct among {list(_TIPS)}, got {tips!r}")
+    from tofloc.simulation import RIG_VARIANTS
+
+    if rig_variant is not None and rig_variant not in RIG_VARIANTS:
+        raise ParameterError(f"rig variant must be one of {list(RIG_VARIANTS)}, got {rig_variant!r}")
     if not isinstance(seed, int) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if calibrate and calibration is not None:
@@ -400,9 +423,9 @@ def paper(
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
     ests = {n: estimator(n, params) for n in names}
-    priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in PRIOR_MODES]
+    priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in modes]
     t0 = time.perf_counter()
-    data = prepare_data(out_dir, scenario, seed, surface, stage=reporter.stage)
+    data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
     for n in data.notes:
         reporter.note(n)
     cal = load_calibration(calibration)
@@ -412,14 +435,14 @@ def paper(
     if calibrate:
         cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage)
         cal_path = str(p)
-    k_values = list(range(1, k_max + 1))
-    pool = sample_pool(data.log, data.kinematics, k_max)
+    k_values = ks
+    pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), dict(params or {}), tip, prior) for n in names for tip in ("knn", "mocap") for prior in priors]
-    n_tasks = len(batches) * k_max * trials
+    batches = [Batch(n, type(ests[n]), dict(params or {}), tip, prior) for n in names for tip in tips for prior in priors]
+    n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
-    label = f"{len(batches)} batches x {k_max} k x {trials} trials"
+    label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
     by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
                            on_progress=lambda d, t: reporter.progress(d, t, label),
                            on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
@@ -430,8 +453,11 @@ def paper(
         extra={
             "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
                            for n in names},
-            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": list(PRIOR_MODES)},
+            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes},
+            "tip_sources": tips,
+            "k_values": k_values,
             "scenario": scenario,
+            "rig_variant": rig_variant,
             "log": str(data.log.path),
             "log_source": data.log.source,
             "map": str(data.map_path),
@@ -446,7 +472,92 @@ def paper(
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),
-        plot_errors(doc, "knn", out_dir / "errors_knn.png"),
-        plot_errors(doc, "mocap", out_dir / "errors_mocap.png"),
+        *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
     ]
     return PaperResult(doc, paths)
+
+
+# -- the scene library -----------------------------------------------------------------------------
+
+
+@dataclass
+class ScenesResult:
+    """What :func:`scenes` made: one row per (scene, estimator) and the files written."""
+
+    rows: list[dict[str, Any]]
+    document: dict[str, Any]
+    paths: list[Path] = field(default_factory=list)
+
+
+def scenes(
+    estimators: Sequence[str],
+    *,
+    out: str | os.PathLike[str],
+    scene_names: Sequence[str] | None = None,
+    rig_variant: str = "exact",
+    k: int = 10,
+    trials: int = 20,
+    seed: int = 0,
+    tip_source: str = "mocap",
+    prior_mode: str = "offset",
+    params: Mapping[str, Any] | None = None,
+    calibrate: bool | None = None,
+    workers: int | None = None,
+    scheduler: Any = None,
+    reporter: Reporter = _SILENT,
+) -> ScenesResult:
+    """Every estimator on every scene of the library (one :func:`paper` run per scene, in
+    ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
+    the table of mean errors against the mean sqrt(CRLB) of the same trials.
+
+    The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
+    tips, offset prior, 20 trials; every estimator with its default parameters.
+    """
+    from evaluation.report import write_json_atomic, write_text_atomic
+    from tofloc.simulation import builtin_scenarios
+
+    names = list(scene_names or builtin_scenarios())
+    unknown = sorted(set(names) - set(builtin_scenarios()))
+    if unknown:
+        raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
+    out_dir = Path(out)
+    rows: list[dict[str, Any]] = []
+    for scene in names:
+        reporter.note(f"scene {scene} ({rig_variant} rig)")
+        run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
+                    params=params, calibrate=calibrate, rig_variant=rig_variant, k_values=[k], tip_sources=[tip_source],
+                    prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter)
+        for est in estimators:
+            g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
+            crlb = g.get("crlb") or {}
+            row: dict[str, Any] = {"scene": scene, "estimator": est, "n": g["n"]}
+            for key, bound in (("e_x_m", "position_m"), ("e_gamma_deg", "yaw_deg")):
+                mean = g[key]["mean"]
+                b = crlb.get(bound)
+                row[key] = mean
+                row[f"crlb_{bound}"] = b
+                row[f"ratio_{key}"] = None if (mean is None or not b) else mean / b
+            row["nees_mean"] = (g.get("nees") or {}).get("mean")
+            rows.append(row)
+    doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
+           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows}
+    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
+    return ScenesResult(rows, doc, paths)
+
+
+def scenes_markdown(doc: Mapping[str, Any]) -> str:
+    """The scene table: per scene and estimator, mean e_x and e_gamma, the mean sqrt(CRLB) of
+    the same trials and their ratio (within 2 is the model core's bar), mean NEES."""
+    def f(v: Any, fmt: str) -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    lines = [f"# Scene library: {doc['rig_variant']} rigs, k = {doc['k']}, {doc['tip_source']} tips, "
+             f"{doc['prior_mode']} prior, {doc['trials']} trials (seed {doc['seed']})", "",
+             "| scene | estimator | e_x (mm) | sqrt CRLB (mm) | ratio | e_gamma (deg) | sqrt CRLB (deg) | ratio | NEES |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["rows"]:
+        lines.append(f"| {r['scene']} | {r['estimator']} | {f(r['e_x_m'] and 1000 * r['e_x_m'], '.2f')} | "
+                     f"{f(r['crlb_position_m'] and 1000 * r['crlb_position_m'], '.2f')} | {f(r['ratio_e_x_m'], '.2f')} | "
+                     f"{f(r['e_gamma_deg'], '.3f')} | {f(r['crlb_yaw_deg'], '.3f')} | {f(r['ratio_e_gamma_deg'], '.2f')} | "
+                     f"{f(r['nees_mean'], '.1f')} |")
+    return "\n".join(lines) + "\n"

@@ -492,16 +492,9 @@ class Map:
         """
         fp = self.__dict__.get("_fingerprint")
         if fp is None:
-            import hashlib
+            from tofloc.fingerprints import sha256_arrays
 
-            h = hashlib.sha256(f"tofloc-map-v1 {self.kind}\0".encode())
-            for a in (self.points, self.normals, self._triangles):
-                if a is None:
-                    h.update(b"none\0")
-                    continue
-                arr = np.ascontiguousarray(a)
-                h.update(f"{arr.dtype.str}{arr.shape}\0".encode())
-                h.update(arr.tobytes())
+            h = sha256_arrays(self.points, self.normals, self._triangles, prefix=f"tofloc-map-v1 {self.kind}\0".encode())
             h.update(repr(None if self.kind == "mesh" else float(self.surfel_radius)).encode())  # type: ignore[arg-type]
             h.update(b"surface:" + (self._surface.fingerprint().encode() if self._surface is not None else b"none"))
             fp = h.hexdigest()

@@ -47,6 +47,12 @@ def paper(
         help="Give the ray-casting models (beam, likelihood field) the CAD mesh <stem>.cad.ply beside the map when it "
         "exists (the ICP score keeps the map's points); --no-surface casts against the points' surfels.",
     ),
+    rig_variant: Optional[str] = typer.Option(
+        None, "--rig-variant", help="Simulate the scene with its exact rig (the log's rig is the true one) or its perturbed one "
+        "(a support rotation and mounting scatter within the declared tolerance). Default: as the scene file writes it."),
+    k_values: Optional[str] = typer.Option(None, "--k-values", help="Comma-separated numbers of samples (default 1..--k-max)."),
+    tip_sources: str = typer.Option("knn,mocap", "--tip-sources", help="Comma-separated tip sources (knn, mocap)."),
+    prior_modes: str = typer.Option("paper,offset", "--prior-modes", help="Comma-separated prior modes (paper, offset)."),
     calibrate: Optional[bool] = typer.Option(
         None, "--calibrate/--no-calibrate",
         help="Calibrate the sensor model (support rotation with its uncertainty, each sensor's mounting, then EM) on a "
@@ -72,13 +78,30 @@ def paper(
         raise ParameterError(f"--k-max must be in [1, 1000], got {k_max}")
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
+    ks = None
+    if k_values is not None:
+        try:
+            ks = [int(v) for v in k_values.split(",") if v.strip()]
+        except ValueError:
+            raise ParameterError(f"--k-values expects comma-separated integers, got {k_values!r}") from None
+        if not ks or min(ks) < 1 or max(ks) > 1000:
+            raise ParameterError(f"--k-values expects integers in [1, 1000], got {k_values!r}")
+    tips = [t.strip() for t in tip_sources.split(",") if t.strip()]
+    if not tips or any(t not in ("knn", "mocap") for t in tips) or len(set(tips)) != len(tips):
+        raise ParameterError(f"--tip-sources expects distinct names among knn, mocap; got {tip_sources!r}")
+    modes = [m.strip() for m in prior_modes.split(",") if m.strip()]
+    if not modes or any(m not in ("paper", "offset") for m in modes) or len(set(modes)) != len(modes):
+        raise ParameterError(f"--prior-modes expects distinct names among paper, offset; got {prior_modes!r}")
+    if rig_variant is not None and rig_variant not in ("exact", "perturbed"):
+        raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out} exists and is not a folder")
     with RichReporter() as reporter:
         run = api.paper(
             names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, params=parse_params(param),
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
-            calibrate=calibrate, surface=surface, workers=workers, scheduler=scheduler, reporter=reporter,
+            calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
+            prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter,
         )
     _print(run.document)
     for p in run.paths:
@@ -86,7 +109,9 @@ def paper(
 
 
 def _print(doc: dict[str, Any]) -> None:
-    t = Table(title=f"mean ± std over k = 1..{doc['k_max']}, {doc['trials']} trials per k")
+    ks = doc.get("k_values") or list(range(1, doc["k_max"] + 1))
+    span = f"k = {ks[0]}..{ks[-1]}" if ks == list(range(ks[0], ks[-1] + 1)) else f"k in {ks}"
+    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k")
     for col in ("estimator", "prior", "k-NN e_x (m)", "k-NN e_γ (deg)", "mocap e_x (m)", "mocap e_γ (deg)"):
         t.add_column(col)
     p = doc["paper"]

@@ -1,0 +1,69 @@
+"""``tofloc scenes``: every estimator on every scene of the simulator's library, against the
+Cramér-Rao bound (:func:`tofloc.api.scenes`): defaults are judged on more than one scene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.table import Table
+
+from tofloc.cli.app import RichReporter, app, console, err_console
+from tofloc.cli.options import parse_params
+from tofloc.errors import ParameterError
+
+__all__ = ["scenes"]
+
+
+@app.command()
+def scenes(
+    estimators: str = typer.Option("beam_pf,likelihood_field_pf,gtsam_smoother", "--estimators",
+                                   help="Comma-separated registered estimators."),
+    scene: Optional[list[str]] = typer.Option(None, "--scene", help="A scene of the library (repeatable; default: all)."),
+    rig_variant: str = typer.Option("exact", "--rig-variant", help="exact or perturbed rigs."),
+    k: int = typer.Option(10, "--k", help="Samples per trial."),
+    trials: int = typer.Option(20, "--trials", help="Trials per scene."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the simulations and the trials."),
+    tip_source: str = typer.Option("mocap", "--tip-source", help="mocap or knn."),
+    prior_mode: str = typer.Option("offset", "--prior-mode", help="offset or paper."),
+    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator."),
+    calibrate: Optional[bool] = typer.Option(None, "--calibrate/--no-calibrate", help="As `tofloc paper`."),
+    out: Path = typer.Option(Path("scenes-results"), "--out", help="Output folder (one sub-folder per scene)."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
+) -> None:
+    """Run estimators on every scene of the library and compare their errors with the Cramér-Rao bound."""
+    from tofloc import api
+    from tofloc.atomic import check_output_path
+
+    check_output_path(out, kind="dir", option="--out")
+    names = [n.strip() for n in estimators.split(",") if n.strip()]
+    if not names or len(set(names)) != len(names):
+        raise ParameterError(f"--estimators expects distinct comma-separated names, got {estimators!r}")
+    if rig_variant not in ("exact", "perturbed"):
+        raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
+    if not 1 <= k <= 1000:
+        raise ParameterError(f"--k must be in [1, 1000], got {k}")
+    if not 1 <= trials <= api.MAX_TRIALS:
+        raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
+    if tip_source not in ("mocap", "knn"):
+        raise ParameterError(f"--tip-source must be mocap or knn, got {tip_source!r}")
+    if prior_mode not in ("offset", "paper"):
+        raise ParameterError(f"--prior-mode must be offset or paper, got {prior_mode!r}")
+    with RichReporter() as reporter:
+        res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
+                         tip_source=tip_source, prior_mode=prior_mode, params=parse_params(param), calibrate=calibrate,
+                         workers=workers, scheduler=scheduler, reporter=reporter)
+    t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
+    for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):
+        t.add_column(col, justify="right")
+    for r in res.rows:
+        def f(v, fmt):  # noqa: ANN001, ANN202
+            return "n/a" if v is None else format(v, fmt)
+
+        t.add_row(r["scene"], r["estimator"], f(r["e_x_m"] and 1000 * r["e_x_m"], ".2f"), f(r["ratio_e_x_m"], ".2f"),
+                  f(r["e_gamma_deg"], ".3f"), f(r["ratio_e_gamma_deg"], ".2f"), f(r["nees_mean"], ".1f"))
+    console.print(t)
+    for p in res.paths:
+        err_console.print(f"wrote {p}", highlight=False)
