@@ -67,6 +67,7 @@ def associate(
     residual: str = "point_to_plane",
     map_sigma: float = 0.003,
     information_scale: float = 1.0,
+    gate_sigmas: float = 0.0,
 ) -> tuple[list[SampleMeasurement], list[bool]]:
     """New measurements associated at the given estimate, and per sample whether its
     association changed.
@@ -84,7 +85,9 @@ def associate(
         The support correction ``T_tip_support``.
     gate : float
         Largest distance (m) to the associated plane's point (point-to-plane) or along the
-        ray (range) of an inlier.
+        ray (range) of an inlier; a zone's own gate is ``max(gate, gate_sigmas * s)`` with
+        ``s`` its sigma (range sigma across the plane and the map error): a noisy far zone is
+        not an outlier for being noisy.
     bias : array (1,), optional
         The relative range bias ``b`` (distances corrected by ``-b d``).
     residual : {"point_to_plane", "range"}
@@ -106,7 +109,6 @@ def associate(
         else:
             key = np.round(q / 1e-4).astype(np.int64) @ np.array([1, 1 << 20, 1 << 40], dtype=np.int64)
         dist = np.linalg.norm(p - q, axis=1)
-        inlier = np.isfinite(dist) & (dist <= gate)
     else:
         o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
         zones = np.concatenate([m.zones for m in meas])
@@ -119,11 +121,14 @@ def associate(
         q = np.where(hit[:, None], cast.point, o)
         n = np.where(hit[:, None], cast.normal, _UP)
         key = cast.index
-        inlier = hit & (np.abs(L - t) <= gate)
+        dist = np.where(hit, np.abs(L - t), np.inf)
     n = np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
     cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
-    s = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2) / math.sqrt(information_scale)
-    gate_e = gate / s
+    s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2)
+    zone_gate = np.maximum(gate, gate_sigmas * (s0 if residual == "point_to_plane" else np.hypot(sig, map_sigma)))
+    inlier = np.isfinite(dist) & (dist <= zone_gate)
+    s = s0 / math.sqrt(information_scale)
+    gate_e = zone_gate / s
     out, changed = [], []
     for m, a, b in zip(meas, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
         new = dataclasses.replace(m)

@@ -144,7 +144,7 @@ class SmootherGraph:
                   bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
         est = self.est
         return associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
-                         information_scale=est.information_scale)
+                         information_scale=est.information_scale, gate_sigmas=est.gate_sigmas)
 
     def pose_change(self, a: Any, b: Any, K: int) -> float:
         """Largest change of any variable's matrix entries between two GTSAM value sets."""

@@ -159,13 +159,18 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
                         note: Note = _quiet, stage: Stage = _no_stage) -> Path:
     """``out/calibration-session.h5``: the set-up of hardware seed ``hw`` recorded again
     (session seed ``seed +`` :data:`CALIBRATION_SEED_OFFSET`, the base moved by
-    :data:`CALIBRATION_BASE_OFFSET`); an existing file is reused only if it records that
-    set-up."""
+    :data:`CALIBRATION_BASE_OFFSET`) in the environment as mapped: objects the map does not
+    hold (a scene's ``unmapped_boxes``) are not there, as a lab calibrates where its map holds
+    everything (the frame's assembly error, the CAD cloud and the mounting are the same). An
+    existing file is reused only if it records that set-up."""
+    import dataclasses
+
     from tofloc.logs import read_log
     from tofloc.simulation import load_scenario, simulate, write_simulation
 
     cal_path = out / CALIBRATION_LOG_NAME
     sc = load_scenario(scenario)
+    sc = dataclasses.replace(sc, environment=dataclasses.replace(sc.environment, unmapped_boxes=()))
     b = sc.base
     base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
     if cal_path.exists():

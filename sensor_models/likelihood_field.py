@@ -2,20 +2,27 @@
 variant of the beam model.
 
 Each valid zone's end point (its reading minus the expected bias, along its ray) is moved
-into the map frame by the candidate pose; its probability is a Gaussian of the distance
-``dist`` from the end point to the map's surface, plus a uniform floor::
+into the map frame by the candidate state; its probability is a Gaussian of its *signed*
+distance ``s`` to the map's surface (positive on the free side, where the surface's normal
+points), plus a uniform floor, plus, in front of a surface only, a "short" term::
 
-    p = z_hit * N(dist; 0, sigma(z)^2) + z_rand / r_field
+    p = z_hit * N(s; 0, sigma(z)^2) + z_short * [s > 0] / L + z_rand / r_field
 
-with ``sigma`` the shared :class:`tofloc.range_model.RangeUncertainty` at the
-reading. Zones with no return (status 255) and invalid readings are dropped, as in
-Thrun's model (no ray casting, so no notion of "expected nothing"). The log-probabilities
-are summed and the sum multiplied by ``temper`` (see :mod:`sensor_models.beam`).
+with ``sigma`` the problem's range model (:class:`tofloc.range_model.RangeUncertainty`)
+at the reading and ``L`` the reading's length along its ray. The short term is Thrun's
+beam-model reasoning carried to end points: a reading that stops in free space in front
+of a mapped surface may be an object the map does not hold (a chair, a person), which
+says nothing against the pose (its density, uniform over the ray up to where the reading
+stopped, is the beam model's ``p_short`` with a flat profile); one that stops behind a
+surface cannot be explained so and keeps its full weight against the pose.
+Zones with no return (status 255) and invalid readings are dropped, as in Thrun's model
+(no ray casting, so no notion of "expected nothing"). The log-probabilities are summed
+and the sum multiplied by ``temper`` (see :mod:`sensor_models.beam`).
 
 The field is precomputed once per map (and cached per process) on a regular grid of
 ``cell`` metres: at every cell centre the *signed* distance to the surface, positive on
 the side the surface normal points to, clipped to ``+-r_field``; a query is trilinearly
-interpolated and its absolute value taken. A signed field interpolates a plane exactly
+interpolated. A signed field interpolates a plane exactly
 (an unsigned one would round off the V at the surface). The surface is the triangles of
 a mesh map, or for a point-cloud map the same surfels :meth:`tofloc.maps.Map.raycast`
 casts against (discs of radius ``surfel_radius`` around each point, perpendicular to
@@ -40,10 +47,17 @@ from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 from tofloc.zone_caster import rotate_z
 
-__all__ = ["SurfaceField", "surface_field_for", "LikelihoodFieldModel", "BoundLikelihoodField"]
+__all__ = ["SurfaceField", "surface_field_for", "auto_r_field", "LikelihoodFieldModel", "BoundLikelihoodField"]
 
-#: Largest field grid (cells); the cell grows beyond it.
-MAX_FIELD_CELLS = 6_000_000
+#: Largest field grid (cells, int16 each); the cell grows beyond it.
+MAX_FIELD_CELLS = 16_000_000
+#: Field nodes computed per batch (bounds the memory of a build).
+_FIELD_CHUNK = 1_000_000
+#: The automatic ``r_field`` is the smallest of these (m) at least :data:`R_FIELD_SIGMAS` times
+#: the 99th percentile of the problem's zone sigmas (a few levels, so that the per-map cache
+#: is shared across problems).
+R_FIELD_LEVELS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
+R_FIELD_SIGMAS = 4.0
 
 
 class SurfaceField:
@@ -69,11 +83,25 @@ class SurfaceField:
         self.lo = lo
         self.shape = tuple(int(n) for n in np.ceil((hi - lo) / cell).astype(int) + 1)
         axes = [lo[i] + np.arange(self.shape[i]) * cell for i in range(3)]
-        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        self.values = _signed_distance(the_map, nodes, self.r_field).astype(np.float32).reshape(self.shape)
+        #: int16 codes of the signed distance: ``code * r_field / 32767`` metres
+        self.scale = self.r_field / 32767.0
+        values = np.empty(int(np.prod(self.shape)), dtype=np.int16)
+        ny, nz = self.shape[1], self.shape[2]
+        for start in range(0, values.size, _FIELD_CHUNK):  # batches of nodes (memory), not a loop per node
+            flat = np.arange(start, min(start + _FIELD_CHUNK, values.size))
+            ix, rest = np.divmod(flat, ny * nz)
+            iy, iz = np.divmod(rest, nz)
+            nodes = np.stack([axes[0][ix], axes[1][iy], axes[2][iz]], axis=-1)
+            values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field) / self.scale).astype(np.int16)
+        self.values = values.reshape(self.shape)
 
     def distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unsigned distance ``(...)`` of points ``(..., 3)`` (trilinear; ``r_field`` outside the grid)."""
+        return np.abs(self.signed_distance(query))
+
+    def signed_distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Signed distance ``(...)`` of points ``(..., 3)``, positive on the free side of the
+        surface (trilinear, clipped to ``+-r_field``; ``+r_field`` outside the grid)."""
         q = np.asarray(query, dtype=float)
         shape = q.shape[:-1]
         u = ((q.reshape(-1, 3) - self.lo) * (1.0 / self.cell)).astype(np.float32)
@@ -86,17 +114,19 @@ class SurfaceField:
         base = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
         v = self.values.ravel()
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        # trilinear: along z, then y, then x (the 8 corners as 8 gathers)
+
+        # trilinear on the int16 codes (linear: scaled to metres once at the end); along z,
+        # then y, then x (the 8 corners as 8 gathers)
         def along_z(off: int) -> NDArray[np.float32]:
-            a = v[base + off]
-            return a + fz * (v[base + off + 1] - a)
+            a = v[base + off].astype(np.float32)
+            return a + fz * (v[base + off + 1].astype(np.float32) - a)
 
         c0 = along_z(0)
         c0 += fy * (along_z(nz) - c0)
         c1 = along_z(ny * nz)
         c1 += fy * (along_z(ny * nz + nz) - c1)
         c0 += fx * (c1 - c0)
-        return np.where(inside, np.abs(c0), np.float32(self.r_field)).astype(float).reshape(shape)
+        return np.where(inside, c0 * np.float32(self.scale), np.float32(self.r_field)).astype(float).reshape(shape)
 
 
 def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
@@ -123,6 +153,15 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
     return np.clip(out, -r_field, r_field)
 
 
+def auto_r_field(sigma: NDArray[np.float64]) -> float:
+    """The smallest of :data:`R_FIELD_LEVELS` at least :data:`R_FIELD_SIGMAS` times the 99th
+    percentile of the zone sigmas ``sigma`` (m); the largest level beyond it."""
+    s = np.asarray(sigma, dtype=float)
+    s = s[np.isfinite(s)]
+    need = R_FIELD_SIGMAS * (float(np.quantile(s, 0.99)) if s.size else 0.0)
+    return next((lv for lv in R_FIELD_LEVELS if lv >= need), R_FIELD_LEVELS[-1])
+
+
 def surface_field_for(the_map: Any, cell: float, r_field: float) -> SurfaceField:
     """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and
     process (:func:`tofloc.map_cache.per_map`)."""
@@ -137,14 +176,19 @@ class LikelihoodFieldModel(SensorModel):
 
     Parameters
     ----------
-    z_hit, z_rand : float
-        Mixture weights, > 0, summing to 1.
+    z_hit, z_short, z_rand : float
+        Mixture weights (``z_hit``, ``z_rand`` > 0, ``z_short`` >= 0) summing to 1.
     temper : float
         Exponent in (0, 1] applied to the summed log-likelihood of a sample.
     cell : float
-        Grid step of the precomputed field (m).
-    r_field : float
-        Largest distance the field resolves (m); also the support of ``z_rand``.
+        Finest grid step of the precomputed field (m); coarsened (25 % steps) while the grid
+        would exceed :data:`MAX_FIELD_CELLS`.
+    r_field : float, optional
+        Largest distance the field resolves (m); also the support of ``z_rand``. Default
+        (None): from the data, the smallest of :data:`R_FIELD_LEVELS` at least
+        :data:`R_FIELD_SIGMAS` times the 99th percentile of the problem's zone sigmas (a
+        field clipped inside the noise is flat: the 5 cm the paper's 0.3 m readings need
+        are 0.6 sigma of a 1.7 m reading).
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -152,22 +196,27 @@ class LikelihoodFieldModel(SensorModel):
     nuisances: ClassVar[tuple[str, ...]] = ("support_yaw", "range_scale")
     uses_calibration: ClassVar[bool] = True
 
-    z_hit: float = 0.9
+    z_hit: float = 0.8
+    z_short: float = 0.1
     z_rand: float = 0.1
     temper: float = 0.25
     cell: float = 0.01
-    r_field: float = 0.05
+    r_field: float | None = None
 
     def __post_init__(self) -> None:
-        for n in ("z_hit", "z_rand"):
+        for n in ("z_hit", "z_short", "z_rand"):
             v = getattr(self, n)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 < v <= 1:
-                raise ParameterError(f"likelihood_field.{n} must be in (0, 1], got {v!r}")
-        if abs(self.z_hit + self.z_rand - 1.0) > 1e-6:
-            raise ParameterError(f"likelihood_field.z_hit + z_rand must sum to 1, got {self.z_hit + self.z_rand:.6g}")
+            lo_ok = v >= 0 if n == "z_short" else v > 0
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not (lo_ok and v <= 1):
+                raise ParameterError(f"likelihood_field.{n} must be in {'[0' if n == 'z_short' else '(0'}, 1], got {v!r}")
+        total = self.z_hit + self.z_short + self.z_rand
+        if abs(total - 1.0) > 1e-6:
+            raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
-        for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 1.0)):
+        for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 2.0)):
             v = getattr(self, n)
+            if v is None and n == "r_field":
+                continue
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not lo <= v <= hi:
                 raise ParameterError(f"likelihood_field.{n} must be in [{lo}, {hi}] m, got {v!r}")
 
@@ -199,7 +248,12 @@ class BoundLikelihoodField(BoundSensorModel):
         pts = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], tip) + self.T_lift_tip[:, None, None, :3, 3]
         self.points = [pts[k][valid[k]] for k in range(self.n_steps)]  # lifted
         self.sigma = [sigma[k][valid[k]] for k in range(self.n_steps)]
-        self.field = surface_field_for(problem.map, model.cell, model.r_field)
+        ray_length = z * rig.range_factor[None]  # (K, S, Z) metres along each zone's ray
+        #: per sample, the short term's density ``z_short / L`` of each end point (1/m)
+        self.short_density = [model.z_short / np.maximum(ray_length[k][valid[k]], 0.01) for k in range(self.n_steps)]
+        #: the field's clipping distance (m): the parameter, or chosen from the zone sigmas
+        self.r_field = model.r_field if model.r_field is not None else auto_r_field(sigma[valid])
+        self.field = surface_field_for(problem.map, model.cell, self.r_field)
 
     def _lifted_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """End points ``(1|M, P, 3)`` of step ``step`` in the lifted base frame, with the
@@ -218,18 +272,20 @@ class BoundLikelihoodField(BoundSensorModel):
         return t @ T[:3, :3].T + T[:3, 3]
 
     def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        """Distance ``(M, P)`` of the step's end points to the surface for states ``(M, 3 + n)``."""
+        """Signed distance ``(M, P)`` of the step's end points to the surface (positive on
+        the free side) for states ``(M, 3 + n)``."""
         x = np.asarray(states, dtype=float)
         p = self._lifted_points(x, step)
         c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
         q = rotate_z(p, c, s)
         q[..., 0] += x[:, 0:1]
         q[..., 1] += x[:, 1:2]
-        return self.field.distance(q)
+        return self.field.signed_distance(q)
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
         sig = self.sigma[step][None, :]
         d = self.distances(np.asarray(states, dtype=float), step)
-        p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + m.z_rand / m.r_field
+        short = np.where(d > 0, self.short_density[step][None, :], 0.0)
+        p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + short + m.z_rand / self.r_field
         return m.temper * np.log(p).sum(axis=1)

@@ -60,6 +60,64 @@ def test_likelihood_peaks_at_the_truth_and_matches_the_formula() -> None:
     d = bound.distances(poses, 1)
     sig = bound.sigma[1]
     assert d.shape == (7, int(p.valid[1].sum()))
-    assert np.median(d[0]) < 1e-3  # noise-free end points lie on the walls at the truth
-    by_hand = 0.5 * np.log(0.9 * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2 * math.pi)) + 0.1 / 0.05).sum(axis=1)
+    assert np.median(np.abs(d[0])) < 1e-3  # noise-free end points lie on the walls at the truth
+    L = (p.distance_m[1] * p.rig.range_factor)[p.valid[1]]  # each reading's length along its ray
+    floor = 0.1 / bound.r_field + np.where(d > 0, 0.1 / L, 0.0)  # z_rand, and z_short in front of a surface
+    by_hand = 0.5 * np.log(0.8 * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2 * math.pi)) + floor).sum(axis=1)
     np.testing.assert_allclose(ll, by_hand, rtol=1e-12)
+
+
+def _room_problem(seed: int = 0):
+    """The easy problem's rig in a 4 x 4 x 3 m room: readings of 1.5-3 m, with the range
+    model's noise (sigma 6-12 cm): a field clipped at 5 cm would be flat there."""
+    import dataclasses
+
+    from tofloc.maps import Map
+    from tofloc.testing import easy_problem
+    from tofloc.zone_caster import ZoneCaster
+
+    p, truth = easy_problem(n_samples=3)
+    room = Map.cuboid(size=(4.0, 4.0, 3.0), origin=(-2.0, -2.0, -1.0), open_faces=())
+    T_map_sensor = p.prior.T_map_base(truth) @ p.T_base_tip[:, None] @ p.rig.T_tip_sensor[None]
+    d = ZoneCaster(p.rig).cast(room, T_map_sensor).reading
+    rng = np.random.default_rng(seed)
+    sigma = p.range_model.sigma(p.rig, np.nan_to_num(d, nan=1.0))
+    z = d + rng.normal(size=d.shape) * sigma
+    status = np.where(np.isfinite(z), 5, 255).astype(np.uint8)
+    return dataclasses.replace(p, map=room, distance_m=z, status=status), truth
+
+
+def test_r_field_follows_the_zone_noise() -> None:
+    from sensor_models.likelihood_field import R_FIELD_LEVELS, auto_r_field
+
+    assert auto_r_field(np.array([0.004, 0.01])) == 0.05  # the paper's 0.3 m readings
+    assert auto_r_field(np.full(100, 0.08)) == 0.4  # 4 x 8 cm
+    assert auto_r_field(np.full(10, 5.0)) == R_FIELD_LEVELS[-1]
+    p, truth = _room_problem()
+    auto = LikelihoodFieldModel(temper=1.0).bind(p)
+    assert auto.r_field >= 4 * np.quantile(np.concatenate(auto.sigma), 0.99) * 0.99
+    fixed = LikelihoodFieldModel(temper=1.0, r_field=0.05).bind(p)
+    off = truth + np.array([[0, 0, 0], [0.10, 0, 0], [0, -0.10, 0], [0, 0, 0.05]])
+
+    def total(b) -> np.ndarray:
+        return sum(b.log_likelihood(off, k) for k in range(b.n_steps))
+
+    ll_auto, ll_fixed = total(auto), total(fixed)
+    # with the data's field the truth clearly wins; a field clipped inside the noise barely tells
+    assert np.all(ll_auto[0] - ll_auto[1:] > 20.0), ll_auto[0] - ll_auto[1:]
+    assert np.all(ll_auto[0] - ll_auto[1:] > 3 * np.abs(ll_fixed[0] - ll_fixed[1:])), (ll_auto, ll_fixed)
+
+
+def test_short_readings_in_front_of_a_surface_do_not_pull() -> None:
+    """An end point in free space in front of a wall (an object the map lacks) keeps the
+    short term; one behind a wall does not: the sign of the field decides."""
+    p, truth = easy_problem(n_samples=1)
+    bound = LikelihoodFieldModel(temper=1.0).bind(p)
+    field = bound.field
+    # a point 10 cm inside the cuboid from the -x wall (free side) and one 10 cm behind it
+    inside, behind = np.array([[-0.25, 0.0, 0.3]]), np.array([[-0.45, 0.0, 0.3]])
+    assert field.signed_distance(inside)[0] == pytest.approx(0.10, abs=2e-3)
+    assert field.signed_distance(behind)[0] == pytest.approx(-0.10, abs=2e-3)
+    assert field.distance(behind)[0] == pytest.approx(0.10, abs=2e-3)
+    with pytest.raises(ParameterError, match="sum to 1"):
+        LikelihoodFieldModel(z_hit=0.8, z_short=0.2, z_rand=0.1)

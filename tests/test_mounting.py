@@ -148,3 +148,42 @@ def test_range_scale_column_is_estimated(model: str) -> None:
     assert set(res.diagnostics["state"]) == {"range_scale"}
     plain = est.estimate(dataclasses.replace(p, distance_m=p.distance_m * 1.04), np.random.default_rng(0))
     assert plain.diagnostics["state"] == {} and plain.diagnostics["particles"].shape[1] == 3
+
+
+@pytest.mark.slow
+def test_mounting_fit_is_not_bent_by_clutter() -> None:
+    """A third of one sensor's readings come from objects the map lacks (much shorter than
+    expected): weighted by the EM mixture's hit responsibility the fit leaves the (exact)
+    mounting near zero; with Cauchy weights alone it bends it."""
+    from sensor_models.calibration import collect_zones, fit_em, fit_mounting
+    from tofloc.maps import Map
+    from tofloc.simulation import load_scenario, simulate
+
+    sc = load_scenario("paper")
+    sc = dataclasses.replace(
+        sc,
+        rig=dataclasses.replace(sc.rig, support_yaw_error_deg=0.0, mounting_sigma_deg=0.0, mounting_sigma=0.0),
+        environment=dataclasses.replace(sc.environment, cad_error_sigma=0.0),
+        tof=dataclasses.replace(sc.tof, multipath_probability=0.0, ghost_probability=0.0),
+        protocol=dataclasses.replace(sc.protocol, pressure_step=3.0),
+    )
+    sim = simulate(sc, seed=6)
+    rng = np.random.default_rng(0)
+    d = sim.log.distance_mm.copy()
+    clutter = (rng.random(d.shape) < 0.35) & np.isfinite(d)
+    clutter[:, 1:] = False  # only tof0 sees the unmapped objects
+    d[clutter] *= rng.uniform(0.4, 0.8, clutter.sum())
+    log = dataclasses.replace(sim.log, distance_mm=d)
+    mesh = Map.cuboid(size=sc.environment.size, origin=sc.environment.origin, open_faces=sc.environment.open_faces)
+    em = fit_em(collect_zones(log, mesh, footprint=1))
+    assert em.beam.z_short > 0.05  # the mixture sees the short readings
+    robust = fit_mounting([(log, mesh)], em.uncertainty, footprint=1, max_samples=80, mixture=em.beam)
+    cauchy = fit_mounting([(log, mesh)], em.uncertainty, footprint=1, max_samples=80)
+
+    def worst(fit) -> tuple[float, float]:
+        e = fit.sensor_mounting["tof0"]
+        return float(np.linalg.norm(e["rotation_deg"])), float(1000 * np.linalg.norm(e["translation_m"]))
+
+    rot, trans = worst(robust)
+    assert rot < 0.6 and trans < 2.5, (rot, trans)
+    assert worst(cauchy)[0] > 2 * rot or worst(cauchy)[1] > 2 * trans, (worst(cauchy), (rot, trans))

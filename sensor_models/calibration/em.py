@@ -26,7 +26,7 @@ from sensor_models.calibration.zones import ZoneSamples
 from tofloc.errors import ParameterError
 from tofloc.range_model import RangeUncertainty
 
-__all__ = ["CalibrationResult", "fit_em", "MIN_WEIGHT"]
+__all__ = ["CalibrationResult", "fit_em", "component_densities", "hit_responsibility", "MIN_WEIGHT"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 #: Smallest z_rand and z_max written (the beam model needs z_rand > 0, and a zero z_max would
@@ -75,6 +75,34 @@ def _hit_density(r: NDArray[np.float64], mu: NDArray[np.float64], s: NDArray[np.
     zs = z - r  # expected distance
     norm = ndtr((zmax - zs - mu) / s) - ndtr((-zs - mu) / s)
     return np.exp(-0.5 * ((r - mu) / s) ** 2) / (s * _SQRT_2PI) / np.maximum(norm, 1e-12)
+
+
+def component_densities(unc: RangeUncertainty, lambda_short: float, z: NDArray[np.float64], d: NDArray[np.float64],
+                        edge: NDArray[np.bool_], zmax: NDArray[np.float64], no_return: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Densities ``(N, 4)`` of (hit, short, max, rand) for readings ``z`` (``zmax`` where there
+    was no return) of zones expected at ``d`` (the mixture's components, unweighted)."""
+    ok = ~no_return
+    r = z - d
+    p = np.zeros((z.size, 4))
+    p[ok, 0] = _hit_density(r[ok], _bias(unc, d, edge)[ok], _sigma_parts(unc, d, edge)[ok], z[ok], zmax[ok])
+    zk, dk = z[ok], d[ok]
+    short = (zk <= dk) & (zk >= 0)
+    p_short = lambda_short * np.exp(-lambda_short * zk) / np.maximum(-np.expm1(-lambda_short * dk), 1e-300)
+    p[ok, 1] = np.where(short, p_short, 0.0)
+    p[no_return, 2] = 1.0
+    p[ok, 3] = 1.0 / zmax[ok]
+    return p
+
+
+def hit_responsibility(unc: RangeUncertainty, beam: BeamMixture, z: NDArray[np.float64], d: NDArray[np.float64],
+                       edge: NDArray[np.bool_], zmax: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Posterior probability ``(N,)`` that valid readings ``z`` of zones expected at ``d`` are
+    hits (not short readings from an object the map lacks, nor random): the E-step of
+    :func:`fit_em` under a fitted model, the weights of a fit that must not be pulled by
+    clutter (:func:`sensor_models.calibration.mounting_fit.fit_mounting`)."""
+    w = np.array([beam.z_hit, beam.z_short, beam.z_max, beam.z_rand])
+    mix = component_densities(unc, beam.lambda_short, z, d, edge, zmax, np.zeros(z.shape, dtype=bool)) * w[None, :]
+    return mix[:, 0] / np.maximum(mix.sum(axis=1), 1e-300)
 
 
 def _sigma_parts(unc: RangeUncertainty, d: NDArray[np.float64], edge: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -202,19 +230,10 @@ def fit_em(
     resp = np.zeros((N, 4))
     it = 0
     ll = -np.inf
+    zk, dk = z[ok], d[ok]
     for it in range(1, max_iter + 1):
         cur = RangeUncertainty(sig_p[0], sig_p[1], sig_p[2], *bias_p)
-        mu = _bias(cur, d, edge)
-        s = _sigma_parts(cur, d, edge)
-        p = np.zeros((N, 4))
-        p[ok, 0] = _hit_density(r[ok], mu[ok], s[ok], z[ok], zmax[ok])
-        zk, dk = z[ok], d[ok]
-        short = (zk <= dk) & (zk >= 0)
-        p_short = lam * np.exp(-lam * zk) / np.maximum(-np.expm1(-lam * dk), 1e-300)
-        p[ok, 1] = np.where(short, p_short, 0.0)
-        p[nr, 2] = 1.0
-        p[ok, 3] = 1.0 / zmax[ok]
-        mix = p * wts[None, :]
+        mix = component_densities(cur, lam, z, d, edge, zmax, nr) * wts[None, :]
         tot = mix.sum(axis=1)
         zone_ll = np.log(np.maximum(tot, 1e-300))
         ll = float(np.sum(zone_ll))

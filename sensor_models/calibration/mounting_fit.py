@@ -17,13 +17,14 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.calibration.em import CalibrationResult, fit_em
+from sensor_models.beam import BeamMixture
+from sensor_models.calibration.em import CalibrationResult, fit_em, hit_responsibility
 from sensor_models.calibration.zones import ZoneSamples, cast_expected, collect_zones
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import ParameterError
 from tofloc.mounting import corrected_T_tip_sensor
 from tofloc.range_model import RangeUncertainty
-from tofloc.rig import DEFAULT_VALID_STATUSES
+from tofloc.rig import DEFAULT_VALID_STATUSES, edge_zone_mask
 
 __all__ = ["SupportYawFit", "MountingFit", "RigCalibration", "fit_support_yaw", "fit_mounting", "calibrate_rig",
            "JACKKNIFE_BLOCKS", "MIN_SUPPORT_YAW_SIGMA_DEG"]
@@ -211,6 +212,7 @@ def fit_mounting(
     prior_translation_m: float = 0.002,
     rounds: int = 3,
     max_nfev: int = 15,
+    mixture: BeamMixture | None = None,
 ) -> MountingFit:
     """Each sensor's mounting error (a rotation and a translation in the tip frame, after
     the support's rotation) by robust nonlinear least squares against the ground truth.
@@ -220,9 +222,13 @@ def fit_mounting(
     (a first EM fit), plus a Gaussian prior on every correction (``prior_rotation_deg``,
     ``prior_translation_m``: a sensor's translation along its boresight and the range
     bias are nearly interchangeable, and the prior keeps the correction small where the
-    data cannot tell). Robust by iteratively reweighted least squares (``rounds`` rounds,
-    Cauchy weights ``1 / (1 + (r / 3)^2)``: multipath, ghosts and map error are not
-    Gaussian); each round is a Levenberg-Marquardt-type solve (SciPy ``least_squares``)
+    data cannot tell). Robust by iteratively reweighted least squares (``rounds`` rounds):
+    with a fitted ``mixture`` (the first EM fit's), a zone's weight is the posterior
+    probability that its reading is a hit (:func:`sensor_models.calibration.em.hit_responsibility`:
+    a reading much shorter than expected is an object the map lacks, a ghost, and gets
+    almost none: clutter in the calibration session must not bend the mounting), times
+    Cauchy's ``1 / (1 + (r / 3)^2)``; without it Cauchy's alone (multipath, ghosts and map
+    error are not Gaussian). Each round is a Levenberg-Marquardt-type solve (SciPy ``least_squares``)
     with a forward-difference Jacobian of the ray casts (0.02 deg, 0.02 mm), where a zone
     whose expected distance jumps by more than 5 mm over a step (its ray crossed an edge)
     gets no derivative. At most ``max_samples`` samples per log, evenly spaced.
@@ -281,6 +287,18 @@ def fit_mounting(
         err, sig = errors(es)
         return err / sig
 
+    edge_z = edge_zone_mask(rig)
+
+    def hit_weights(es: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+        """Per zone used, the posterior probability of a hit under ``mixture`` (1 without one)."""
+        if mixture is None:
+            return np.ones(n_zones)
+        z = np.concatenate([zz[u] for (_, _, zz, _), u in zip(data, use)])
+        d = np.concatenate([np.where(np.isfinite(e), e, zz)[u] for (_, _, zz, _), e, u in zip(data, es, use)])
+        edge = np.concatenate([np.broadcast_to(edge_z, u.shape)[u] for u in use])
+        zmax = np.concatenate([np.broadcast_to(rig.max_range_m[None, :, None], u.shape)[u] for u in use])
+        return hit_responsibility(uncertainty, mixture, z, d, edge, zmax)
+
     def flat(es: list[NDArray[np.float64]]) -> NDArray[np.float64]:
         return np.concatenate([e[u] for e, u in zip(es, use)])
 
@@ -297,8 +315,9 @@ def fit_mounting(
         return cache[key]
 
     x = x0
-    for _ in range(rounds):  # IRLS: Cauchy weights from the current residuals
-        sw = 1.0 / np.sqrt(1.0 + (zone_residuals(geometry(x)) / 3.0) ** 2)
+    for _ in range(rounds):  # IRLS: hit responsibilities times Cauchy weights from the current residuals
+        g = geometry(x)
+        sw = np.sqrt(hit_weights(g) / (1.0 + (zone_residuals(g) / 3.0) ** 2))
 
         def fun(xx: NDArray[np.float64]) -> NDArray[np.float64]:
             return np.concatenate([sw * zone_residuals(geometry(xx)), xx / prior_scale])
@@ -401,6 +420,6 @@ def calibrate_rig(
     fit = None
     if mounting:
         fit = fit_mounting(logs_and_maps, result.uncertainty, support_yaw_deg=psi_deg, footprint=footprint,
-                           valid_statuses=valid_statuses)
+                           valid_statuses=valid_statuses, mixture=result.beam)
         result = em(fit.sensor_mounting)
     return RigCalibration(result, psi, fit)
