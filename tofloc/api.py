@@ -303,6 +303,8 @@ def localize(
     if isinstance(map, Map) and surface is not None:
         the_map = map.with_surface(surface if isinstance(surface, Map) else Map.load(surface))
     kin = KinematicsModel.load(kinematics) if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics
+    if kin is not None:  # a model of another robot is refused before any trial runs
+        kin.check_actuators(lg.rig.actuators, str(lg.path))
     has_truth = lg.T_map_base is not None
     if prior is None:
         if not has_truth:

@@ -17,7 +17,7 @@ import typer
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params, parse_samples, parse_statuses
+from tofloc.cli.options import parse_params, parse_samples, parse_statuses, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["localize"]
@@ -78,6 +78,8 @@ def localize(
     from tofloc import api
     from tofloc.logs import read_log
 
+    require_finite({"--base-z": base_z, "--prior-x": prior_x, "--prior-y": prior_y, "--prior-yaw-deg": prior_yaw_deg,
+                    "--prior-sigma-xy": prior_sigma_xy, "--prior-sigma-yaw-deg": prior_sigma_yaw_deg})
     params = parse_params(param)
     statuses = parse_statuses(valid_statuses)
     if port is not None:

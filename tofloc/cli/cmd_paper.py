@@ -19,7 +19,7 @@ import typer
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params
+from tofloc.cli.options import parse_params, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["paper"]
@@ -66,6 +66,7 @@ def paper(
     from tofloc.atomic import check_output_path
 
     check_output_path(out, kind="dir", option="--out")
+    require_finite({"--prior-sigma-xy": prior_sigma_xy, "--prior-sigma-yaw-deg": prior_sigma_yaw_deg})
 
     names = [n.strip() for n in estimators.split(",") if n.strip()]
     if not names or len(set(names)) != len(names):

@@ -1,4 +1,5 @@
-"""Parsing of the options several commands share (``--param``, ``--valid-statuses``, ``--samples``)."""
+"""Parsing of the options several commands share (``--param``, ``--valid-statuses``, ``--samples``,
+finite numbers)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Any, Sequence
 
 from tofloc.errors import ParameterError
 
-__all__ = ["parse_params", "parse_statuses", "parse_samples"]
+__all__ = ["parse_params", "parse_statuses", "parse_samples", "require_finite"]
 
 
 def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
@@ -65,3 +66,21 @@ def parse_samples(text: str, limit: int) -> int | None:
     if not 1 <= k <= limit:
         raise ParameterError(f"--samples must be in [1, {limit}] or 'all', got {k}")
     return k
+
+
+def require_finite(options: dict[str, float | None]) -> None:
+    """Refuse a NaN or infinite number option (``--base-z nan`` parses as a float).
+
+    Parameters
+    ----------
+    options : dict
+        ``{"--base-z": value, ...}``; None (not given) is skipped.
+
+    Raises
+    ------
+    ParameterError
+        One line naming the first non-finite option.
+    """
+    for name, value in options.items():
+        if value is not None and not math.isfinite(float(value)):
+            raise ParameterError(f"{name} expects a finite number, got {value}")
