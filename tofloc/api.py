@@ -133,6 +133,8 @@ class CalibrationRun:
     maps: list[str]
     zone_counts: list[dict[str, int]]
     path: Path | None = None
+    #: The rig of the (first) log, as described: per-zone plots lay its zones out.
+    rig: Any = None
 
 
 def calibrate(
@@ -162,6 +164,9 @@ def calibrate(
         As ``tofloc calibrate``.
     distance_range : (float, float)
         Use only zones expected within this range (m) in the EM fits.
+    reporter : Reporter
+        Gets every stage's progress (zones cast per log, the support-rotation candidates,
+        the mounting fit's solver evaluations, the EM iterations).
     """
     from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
     from tofloc.maps import Map
@@ -193,10 +198,12 @@ def calibrate(
         pairs.append((log, m))
         used.append(name)
     counts = []
-    for log, m in pairs:
+    reporter.progress(0, len(pairs), "casting every zone of the logs")
+    for i, (log, m) in enumerate(pairs):
         zs = collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses)
         counts.append({"samples": zs.counts["samples"], "zones": zs.n, "no_expected_hit": zs.counts["no_expected_hit"],
                        "partial_footprint": zs.counts["partial_footprint"]})
+        reporter.progress(i + 1, len(pairs), "casting every zone of the logs")
 
     def in_range(zs: ZoneSamples) -> ZoneSamples:
         if lo > 0.0 or hi < 100.0:
@@ -204,17 +211,20 @@ def calibrate(
         return zs
 
     steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
-    with reporter.stage(f"calibrating: {', then '.join(steps)}"):
-        rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
-                           support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range)
+    reporter.note(f"calibrating: {', then '.join(steps)}")
+    rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
+                       support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range,
+                       progress=reporter.progress)
+    from tofloc.provenance import provenance
+
     meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,
-            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi]}
+            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi], "provenance": provenance()}
     path = None if out is None else Path(out)
     cal = rc.sensor_calibration(meta, source=str(path) if path else "<memory>")
     if path is not None:
         cal.write(path, "Sensor model fitted by `tofloc calibrate` (EM, Probabilistic Robotics Table 6.2): the range\n"
                   "model [uncertainty], the rig's [mounting] with the support rotation's uncertainty, the beam mixture [beam].")
-    return CalibrationRun(rc, cal, used, counts, path)
+    return CalibrationRun(rc, cal, used, counts, path, pairs[0][0].rig)
 
 
 # -- localize ---------------------------------------------------------------------------------------
@@ -275,6 +285,7 @@ def localize(
     from evaluation.trials import SEED_DERIVATION, TIP_SOURCES, TrialContext, jsonable, make_tasks, sample_pool
     from tofloc.kinematics import KinematicsModel
     from tofloc.maps import Map, load_map
+    from tofloc.provenance import provenance
 
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
@@ -322,6 +333,7 @@ def localize(
         done[0] += 1
         reporter.progress(done[0], len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
 
+    reporter.progress(0, len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
     records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
     summary = summarize_trials(records)
     doc = {
@@ -341,6 +353,7 @@ def localize(
         "valid_statuses": sorted(valid_statuses),
         "calibration": None if cal is None else cal.source,
         "calibration_used": bool(cal is not None and est.uses_calibration()),
+        "provenance": provenance(),
     }
     return LocalizeResult(records, summary, doc, has_truth)
 
@@ -435,7 +448,8 @@ def paper(
     if calibrate is None:
         calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
     if calibrate:
-        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage)
+        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
+                                     progress=reporter.progress)
         cal_path = str(p)
     k_values = ks
     pool = sample_pool(data.log, data.kinematics, max(ks))

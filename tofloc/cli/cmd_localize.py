@@ -65,7 +65,10 @@ def localize(
     duration: Optional[float] = typer.Option(None, "--duration", help="Live: stop after this many seconds."),
     journal: Optional[Path] = typer.Option(None, "--journal", help="Live: journal of every raw line (default: beside --out)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Live: also write the captured samples as a log."),
-    estimates_out: Optional[Path] = typer.Option(None, "--estimates-out", help="Live: save every estimate here (CSV with covariance; TUM for .tum/.txt)."),
+    estimates_out: Optional[Path] = typer.Option(
+        None, "--estimates-out", metavar="FILE",
+        help="Save the estimates here: CSV with the (x, y, yaw) covariance, or TUM for .tum/.txt. Live: one row per "
+             "estimate as it comes; offline: one row per trial (its latest sample's index and time)."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
@@ -160,7 +163,7 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
             row = [str(r["trial"]), f"{x:.4f}", f"{y:.4f}", f"{math.degrees(yaw):.2f}", f"{sd[0]:.4f}", f"{sd[1]:.4f}",
                    f"{math.degrees(sd[2]):.2f}"]
             if has_truth:
-                row += [f"{r['e_x_m']:.4f}", f"{r['e_gamma_deg']:.2f}"]
+                row += [f"{1000 * r['e_x_m']:.1f}", f"{r['e_gamma_deg']:.2f}"]
             t.add_row(*row)
         console.print(t)
     if not has_truth:
@@ -170,13 +173,16 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
     t.add_column("error")
     for col in ("mean", "std", "median", "rmse"):
         t.add_column(col, justify="right")
-    for key, label, digits in (("e_x_m", "e_x (m)", 4), ("e_gamma_deg", "e_gamma (deg)", 3)):
-        t.add_row(label, *(f"{s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
+    for key, label, scale, digits in (("e_x_m", "e_x (mm)", 1000.0, 1), ("e_gamma_deg", "e_γ (deg)", 1.0, 3)):
+        t.add_row(label, *(f"{scale * s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
     console.print(t)
-    extra = f"median runtime {s['runtime_s']['median']:.3f} s per trial"
+    rt = s["runtime_s"]
+    extra = f"median runtime {rt['median']:.3f} s per trial"
+    if s.get("setup_s") and s["setup_s"].get("total"):
+        extra += f" (and {s['setup_s']['total']:.2f} s of one-off set-up: imports, per-map caches)"
     if s.get("crlb"):
         c = s["crlb"]
-        pos = "unobservable" if c["position_m"] is None else f"{c['position_m']:.4f} m"
+        pos = "unobservable" if c["position_m"] is None else f"{1000 * c['position_m']:.2f} mm"
         yaw = "unobservable" if c["yaw_deg"] is None else f"{c['yaw_deg']:.3f} deg"
         console.print(f"mean sqrt(CRLB) over {c['n']} trial(s): position {pos}, yaw {yaw} "
                       "(the best an unbiased estimator can do with these zones)", highlight=False)

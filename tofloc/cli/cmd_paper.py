@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich import box
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
@@ -110,21 +111,37 @@ def paper(
 
 
 def _print(doc: dict[str, Any]) -> None:
+    """Table I in the console: one row per estimator, prior mode and tip source (fits 80
+    columns), e_x in millimetres, e_γ in degrees, and the mean sqrt(CRLB) of the same trials."""
     ks = doc.get("k_values") or list(range(1, doc["k_max"] + 1))
     span = f"k = {ks[0]}..{ks[-1]}" if ks == list(range(ks[0], ks[-1] + 1)) else f"k in {ks}"
-    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k")
-    for col in ("estimator", "prior", "k-NN e_x (m)", "k-NN e_γ (deg)", "mocap e_x (m)", "mocap e_γ (deg)"):
-        t.add_column(col)
+    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k",
+              caption="√CRLB: the mean sqrt(Cramér-Rao bound) of the same trials, position mm / yaw deg",
+              box=box.SIMPLE_HEAD)
+    widest = max([len("paper, Table I"), *(len(e) for e in doc["results"])])
+    for col, justify in (("estimator", "left"), ("prior", "left"), ("tips", "left"), ("e_x (mm)", "right"),
+                         ("e_γ (deg)", "right"), ("√CRLB", "right")):
+        t.add_column(col, justify=justify, min_width=widest if col == "estimator" else None)  # type: ignore[arg-type]
     p = doc["paper"]
-    t.add_row("paper, Table I", "paper",
-              *(f"{p[tip][key][0]:.{d}f} ± {p[tip][key][1]:.{d}f}" for tip in ("knn", "mocap") for key, d in (("e_x_m", 4), ("e_gamma_deg", 3))))
+    tips = [tip for tip in ("knn", "mocap") if any(tip in by_tip for by_tip in doc["results"].values())] or ["knn", "mocap"]
+    for i, tip in enumerate(tips):
+        t.add_row("paper, Table I" if i == 0 else "", "paper" if i == 0 else "", tip,
+                  f"{1000 * p[tip]['e_x_m'][0]:.1f} ± {1000 * p[tip]['e_x_m'][1]:.1f}",
+                  f"{p[tip]['e_gamma_deg'][0]:.2f} ± {p[tip]['e_gamma_deg'][1]:.2f}", "n/a")
     for est, by_tip in doc["results"].items():
-        for mode in sorted(by_tip.get("knn", {}) or by_tip.get("mocap", {}), key=lambda m: (m != "paper", m)):
-            cells = []
-            for tip in ("knn", "mocap"):
+        modes = sorted({m for tip in by_tip.values() for m in tip}, key=lambda m: (m != "paper", m))
+        first = True
+        for mode in modes:
+            for j, tip in enumerate(tips):
                 ov = by_tip.get(tip, {}).get(mode, {}).get("overall")
-                for key, d in (("e_x_m", 4), ("e_gamma_deg", 3)):
-                    s = ov[key] if ov else None
-                    cells.append("n/a" if not s or s["mean"] is None else f"{s['mean']:.{d}f} ± {s['std']:.{d}f}")
-            t.add_row(est, mode, *cells)
+                ex, eg = (ov or {}).get("e_x_m"), (ov or {}).get("e_gamma_deg")
+                c = (ov or {}).get("crlb") or {}
+                bound = ("n/a" if not c else
+                         f"{'-' if c.get('position_m') is None else format(1000 * c['position_m'], '.2f')}"
+                         f"/{'-' if c.get('yaw_deg') is None else format(c['yaw_deg'], '.2f')}")
+                t.add_row(est if first else "", mode if j == 0 else "", tip,
+                          "n/a" if not ex or ex["mean"] is None else f"{1000 * ex['mean']:.1f} ± {1000 * ex['std']:.1f}",
+                          "n/a" if not eg or eg["mean"] is None else f"{eg['mean']:.2f} ± {eg['std']:.2f}", bound,
+                          end_section=(mode == modes[-1] and j == len(tips) - 1))
+                first = False
     console.print(t)
