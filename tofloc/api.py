@@ -378,6 +378,7 @@ def paper(
     seed: int = 0,
     scenario: str = "paper",
     params: Mapping[str, Any] | None = None,
+    estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     prior_sigma_xy: float = 0.2,
     prior_sigma_yaw_deg: float = 20.0,
     calibration: SensorCalibration | str | os.PathLike[str] | None = None,
@@ -399,13 +400,17 @@ def paper(
     same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
     scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
     ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
-    both tip sources, both prior modes).
+    both tip sources, both prior modes). ``params`` go to every estimator;
+    ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
+    :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
+    written to ``out/config.toml`` (``--config`` reads it back).
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
     from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
     from evaluation.result_cache import Batch, run_batches
     from evaluation.trials import SEED_DERIVATION, TrialContext, jsonable, sample_pool
+    from tofloc.provenance import provenance
 
     names = list(estimators)
     if not names or len(set(names)) != len(names):
@@ -437,7 +442,13 @@ def paper(
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
-    ests = {n: estimator(n, params) for n in names}
+    from tofloc.estimator_config import config_toml, merge_params
+
+    per_est = {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+    unknown_names = sorted(set(estimator_params or {}) - set(names))
+    if unknown_names:
+        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
+    ests = {n: estimator(n, per_est[n]) for n in names}
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in modes]
     t0 = time.perf_counter()
     data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
@@ -455,7 +466,7 @@ def paper(
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), dict(params or {}), tip, prior) for n in names for tip in tips for prior in priors]
+    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior) for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
@@ -483,13 +494,32 @@ def paper(
             "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
             "calibration": cal_path,
             "wall_time_s": round(time.perf_counter() - t0, 3),
+            "provenance": provenance(),
         },
     )
+    from evaluation.compare import series_of
+    from evaluation.error_plots import plot_errors_vs_k, plot_nees
+    from evaluation.report import PAPER_TABLE_I
+
+    nees_panels = [(f"{tip} tip poses", [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
+                                                                    if r.get("nees") is not None],
+                                          {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
+                                         for i, n in enumerate(names) for m in priors]) for tip in tips]
+    config_text = config_toml({n: jsonable(ests[n].get_params()) for n in names}, header=[
+        "The parameters every estimator of this run used (defaults included); `--config` reads this file.",
+        f"Made by: {doc['provenance']['command']}"])
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
+        write_text_atomic(config_text, out_dir / "config.toml"),
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),
         *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
+        plot_errors_vs_k([("this run", series_of(doc, out_dir / "results.json")[1])], out_dir / "errors_vs_k.png",
+                         paper=PAPER_TABLE_I if scenario == "paper" else None,
+                         title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)"),
     ]
+    if any(entry[1] for _, panel in nees_panels for entry in panel):
+        paths.append(plot_nees(nees_panels, out_dir / "nees.png",
+                               title="NEES of every trial against chi2(3): a consistent estimator follows the black curve"))
     return PaperResult(doc, paths)
 
 
@@ -517,6 +547,7 @@ def scenes(
     tip_source: str = "mocap",
     prior_mode: str = "offset",
     params: Mapping[str, Any] | None = None,
+    estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     calibrate: bool | None = None,
     workers: int | None = None,
     scheduler: Any = None,
@@ -527,9 +558,12 @@ def scenes(
     the table of mean errors against the mean sqrt(CRLB) of the same trials.
 
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
-    tips, offset prior, 20 trials; every estimator with its default parameters.
+    tips, offset prior, 20 trials; every estimator with its default parameters
+    (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
     """
     from evaluation.report import write_json_atomic, write_text_atomic
+    from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
     names = list(scene_names or builtin_scenarios())
@@ -541,7 +575,8 @@ def scenes(
     for scene in names:
         reporter.note(f"scene {scene} ({rig_variant} rig)")
         run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
-                    params=params, calibrate=calibrate, rig_variant=rig_variant, k_values=[k], tip_sources=[tip_source],
+                    params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
+                    k_values=[k], tip_sources=[tip_source],
                     prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter)
         for est in estimators:
             g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
@@ -556,8 +591,14 @@ def scenes(
             row["nees_mean"] = (g.get("nees") or {}).get("mean")
             rows.append(row)
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows}
-    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
+           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows, "provenance": provenance()}
+    from tofloc.estimator_config import config_toml
+
+    config_text = config_toml({n: e["params"] for n, e in run.document["estimators"].items()}, header=[
+        "The parameters every estimator of this run used on every scene (defaults included); `--config` reads it.",
+        f"Made by: {doc['provenance']['command']}"])
+    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
+             write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
     return ScenesResult(rows, doc, paths)
 
 

@@ -14,10 +14,11 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params, parse_samples, parse_statuses, require_finite
+from tofloc.cli.options import estimator_params, parse_samples, parse_statuses, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["localize"]
@@ -47,15 +48,23 @@ def localize(
     prior_yaw_deg: Optional[float] = typer.Option(None, "--prior-yaw-deg", help="Prior mean yaw (deg)."),
     base_z: Optional[float] = typer.Option(None, "--base-z", help="Base height (m); needed when the log has no truth."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON here."),
+    plot_nees: Optional[Path] = typer.Option(
+        None, "--plot-nees", metavar="PNG",
+        help="Plot the trials' NEES (ECDF) against chi2(3) with its 95 % interval here (needs ground truth)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     param: Optional[list[str]] = typer.Option(
-        None, "--param", help="Estimator parameter key=value (repeatable); a sensor model's as sensor_model__key=value."),
+        None, "--param", help="Estimator parameter key=value (repeatable); a sensor model's as sensor_model__key=value. "
+        "Overrides the same key of --config (a note says so)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file: [estimator] and [estimators.NAME] tables with --param's keys "
+                    "(docs/evaluation.md); the resolved parameters are saved in the --json document.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
-        help="A calibration (`tofloc calibrate` output): the rig's mounting, the range model and the model tables, "
-             "applied to every problem of the estimators that use one.",
+        help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
+                    "the sensor models' tables ([beam]), applied to every problem of the estimators that use one."),
     ),
     port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
     baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
@@ -76,6 +85,14 @@ def localize(
 
     if json_out is not None:
         check_output_path(json_out, option="--json")
+    if plot_nees is not None:
+        if port is not None:
+            raise ParameterError("--plot-nees needs trials against ground truth: it is for offline runs (not --port)")
+        check_output_path(plot_nees, option="--plot-nees")
+    if estimates_out is not None and port is None:
+        check_output_path(estimates_out, option="--estimates-out")
+        if json_out is not None and estimates_out.resolve() == json_out.resolve():
+            raise ParameterError("--json and --estimates-out must name different files")
     from evaluation.priors import PriorSpec, base_pose_parts
     from evaluation.report import write_json_atomic
     from tofloc import api
@@ -83,7 +100,10 @@ def localize(
 
     require_finite({"--base-z": base_z, "--prior-x": prior_x, "--prior-y": prior_y, "--prior-yaw-deg": prior_yaw_deg,
                     "--prior-sigma-xy": prior_sigma_xy, "--prior-sigma-yaw-deg": prior_sigma_yaw_deg})
-    params = parse_params(param)
+    resolved, notes = estimator_params(config, [estimator], param)
+    params = resolved[estimator]
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     statuses = parse_statuses(valid_statuses)
     if port is not None:
         from tofloc.cli.live_cmd import run_live
@@ -117,6 +137,8 @@ def localize(
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
     log = read_log(log_path)
     has_truth = log.T_map_base is not None
+    if plot_nees is not None and not has_truth:
+        raise ParameterError(f"--plot-nees: {log_path} has no /truth/T_map_base, so the trials have no NEES")
     if all(given):
         if has_truth:
             _, z_truth, roll, pitch = base_pose_parts(log.truth_per_sample()[0])
@@ -139,22 +161,48 @@ def localize(
             workers=workers, scheduler=scheduler, reporter=reporter,
         )
     doc = result.document
+    from evaluation.trials import jsonable
+
+    doc["config"] = {"file": None if config is None else str(config), "param_overrides": notes,
+                     "estimators": {estimator: jsonable(doc["params"])}}
     if calibration is not None and not doc["calibration_used"]:
         err_console.print(f"note: {estimator} does not use a calibration; {calibration} was not applied", highlight=False)
     if json_out is not None:
         write_json_atomic(doc, json_out)
+    if estimates_out is not None:
+        from tofloc.io.estimates import write_trial_estimates
+
+        if prior.mode == "given":
+            z, roll, pitch = prior.z, prior.roll, prior.pitch
+        else:  # the static base's known height and tilt (the truth's, as the priors take them)
+            first = int(doc["trials"][0]["sample_indices"][0])
+            _, z, roll, pitch = base_pose_parts(log.truth_per_sample()[first])
+        rows = write_trial_estimates(estimates_out, doc["trials"], log.timestamp_s, z=z, roll=roll, pitch=pitch)
+    if plot_nees is not None:
+        from evaluation.error_plots import plot_nees as draw_nees
+
+        values = [r["nees"] for r in doc["trials"] if r.get("nees") is not None]
+        label = f"{estimator}, {doc['tip_source']} tips, prior {doc['prior']['mode']}, k = {doc['samples']}"
+        draw_nees([(f"{Path(doc['log']).name}: {len(doc['trials'])} trial(s)", [(label, values)])], plot_nees)
     _print(doc, result.has_truth)
     if json_out is not None:
         err_console.print(f"wrote {json_out}", highlight=False)
+    if plot_nees is not None:
+        err_console.print(f"wrote {plot_nees}", highlight=False)
+    if estimates_out is not None:
+        err_console.print(f"wrote {rows} estimates to {estimates_out}", highlight=False)
 
 
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
+    """The trials (up to 10, or every estimate without truth) and the error summary; errors
+    in millimetres and degrees, poses in metres and degrees; fits 80 columns."""
     recs = doc["trials"]
     title = (f"{doc['estimator']} on {Path(doc['log']).name}: {len(recs)} trial(s) of {doc['samples']} sample(s), "
              f"tip source {doc['tip_source']}, prior {doc['prior']['mode']}")
     if not has_truth or len(recs) <= 10:
-        t = Table(title=(f"estimates ({title})" if not has_truth else "trials") + "; metres and degrees")
-        cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x", "e_gamma"] if has_truth else [])
+        t = Table(title=(f"estimates ({title})" if not has_truth else "trials") + "; x, y, sd in m, angles in deg",
+                  padding=(0, 1))
+        cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x mm", "e_γ deg"] if has_truth else [])
         for col in cols:
             t.add_column(col, justify="right")
         for r in recs:

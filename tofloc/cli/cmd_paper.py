@@ -5,7 +5,8 @@ simulate (unless ``DIR/paper.h5`` exists; ``--scenario`` picks any scene of the 
 calibration session of the same set-up (``DIR/sensor_model.toml``, reused when its inputs
 are unchanged) -> the trial protocol for every estimator, both tip sources and both prior
 modes -> ``DIR/results.json``, ``DIR/table.md``, ``DIR/errors_knn.png``,
-``DIR/errors_mocap.png``. Finished batches are kept in ``DIR/partial/`` and reused by a
+``DIR/errors_mocap.png``, ``DIR/errors_vs_k.png`` (log scale), ``DIR/nees.png``,
+``DIR/config.toml`` (the parameters used). Finished batches are kept in ``DIR/partial/`` and reused by a
 rerun with the same arguments, so an interrupted run resumes where it stopped. The work
 is :func:`tofloc.api.paper`; this module parses and prints.
 """
@@ -17,10 +18,11 @@ from typing import Any, Optional
 
 import typer
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params, require_finite
+from tofloc.cli.options import estimator_params, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["paper"]
@@ -36,7 +38,12 @@ def paper(
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     scenario: str = typer.Option("paper", "--scenario", help="Scene to simulate when DIR has no data (see `tofloc simulate --help`)."),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
+    param: Optional[list[str]] = typer.Option(
+        None, "--param", help="Parameter key=value given to every estimator (repeatable); overrides the same key of --config."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file ([estimator] for every estimator, [estimators.NAME] for one; "
+                    "docs/evaluation.md). The parameters used are saved as DIR/config.toml.")),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
     prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
     calibration: Optional[Path] = typer.Option(
@@ -98,9 +105,12 @@ def paper(
         raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out} exists and is not a folder")
+    per_estimator, notes = estimator_params(config, names, param)
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
         run = api.paper(
-            names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, params=parse_params(param),
+            names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
             prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter,
