@@ -28,7 +28,7 @@ def list_plugins(
     for title, registry in (("Estimators", ESTIMATORS), ("Sensor models", SENSOR_MODELS)):
         table = Table(title=f"{title} (entry-point group {registry.group})")
         table.add_column("name", style="bold")
-        table.add_column("target")
+        table.add_column("target", overflow="fold")
         table.add_column("from")
         table.add_column("status")
         with warnings.catch_warnings():
