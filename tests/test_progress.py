@@ -77,7 +77,7 @@ def test_em_reports_every_iteration_and_fits_the_same(small) -> None:
 
 def test_support_yaw_reports_candidates_refinement_and_jackknife(small) -> None:
     log, mesh = small
-    kw = dict(footprint=1, bound_deg=8.0, step_deg=4.0, max_samples=25, max_iter=30)
+    kw = dict(footprint=1, bound_deg=8.0, step_deg=4.0, max_samples=20, max_iter=20)
     rec = Recorder()
     quiet = fit_support_yaw([(log, mesh)], **kw)
     loud = fit_support_yaw([(log, mesh)], progress=rec.progress, **kw)
