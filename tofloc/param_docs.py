@@ -13,7 +13,6 @@ import dataclasses
 import inspect
 import re
 from dataclasses import dataclass
-from typing import Any
 
 __all__ = ["ParamDoc", "parameter_docs", "numpydoc_parameters"]
 
