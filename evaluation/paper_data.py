@@ -187,7 +187,8 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
 
 
 def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1, *,
-                        note: Note = _quiet, stage: Stage = _no_stage) -> tuple[SensorCalibration, Path]:
+                        note: Note = _quiet, stage: Stage = _no_stage,
+                        progress: Callable[[int, int, str], None] | None = None) -> tuple[SensorCalibration, Path]:
     """Fit the sensor model (``tofloc calibrate``: the support's rotation with its
     uncertainty, each sensor's mounting, then EM of the bias/sigma curves and the mixture)
     and write ``out/sensor_model.toml``; reuse that file when it records the same inputs.
@@ -199,7 +200,8 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
     pose are never used. Any other log is calibrated on the k-NN training split (the
     trials draw from the held-out split). The zones' expected distances are cast as the
     beam model casts them (``sub_rays`` per side, against the estimators' map), so that
-    the fitted bias is the one the model needs.
+    the fitted bias is the one the model needs. ``progress(done, total, label)`` gets the
+    calibration's stages (:func:`sensor_models.calibration.calibrate_rig`).
     """
     from evaluation.result_cache import code_fingerprint, fingerprint_arrays
     from sensor_models.calibration import calibrate_rig
@@ -231,10 +233,17 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
         if old is not None and old.meta.get("key") == key:
             note(f"reused {path} (calibrated on {what}; same inputs)")
             return old, path
-    with stage(f"calibrating the sensor model on {what}: the support's rotation, each sensor's mounting, then EM"):
-        cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
+    message = f"calibrating the sensor model on {what}: the support's rotation, each sensor's mounting, then EM"
+    if progress is not None:  # stage by stage, with counts
+        note(message)
+        cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays, progress=progress)
+    else:
+        with stage(message):
+            cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
+    from tofloc.provenance import provenance
+
     sc = cal.sensor_calibration({"log": str(cal_log.path), "samples": what, "map": str(data.map_path),
-                                 "footprint": sub_rays, "key": key}, source=str(path))
+                                 "footprint": sub_rays, "key": key, "provenance": provenance()}, source=str(path))
     sc.write(path, "Sensor model fitted by `tofloc paper` (the calibration of `tofloc calibrate`).")
     u = sc.uncertainty
     worst = max([float(np.linalg.norm(e["rotation_deg"])) for e in sc.sensor_mounting.values()] or [0.0])

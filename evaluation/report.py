@@ -25,6 +25,7 @@ __all__ = [
     "write_text_atomic",
     "summarize_trials",
     "crlb_summary",
+    "setup_summary",
     "group_summary",
     "paired_comparison",
     "table_markdown",
@@ -95,7 +96,8 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``{"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "runtime_s": {"median"}}``
+        ``{"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "runtime_s": {"median"},
+        "setup_s": {"total", "n"}}`` (:func:`setup_summary`)
         plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES and
         ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound. The
         error entries are ``None`` when no trial has a truth.
@@ -105,8 +107,17 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         v = _values(records, key)
         out[key] = summarize(v) if np.isfinite(v).any() else None
     out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    out["setup_s"] = setup_summary(records)
     _add_nees_and_crlb(out, records)
     return out
+
+
+def setup_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``{"total", "n"}``: the one-off set-up the trials paid (s, summed) and how many paid
+    some (``setup_s`` of a record; records written before it existed count as 0)."""
+    v = _values(records, "setup_s")
+    v = np.where(np.isfinite(v), v, 0.0)
+    return {"total": json_float(float(v.sum())), "n": int((v > 0).sum())}
 
 
 def _add_nees_and_crlb(
@@ -147,6 +158,7 @@ def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int])
         overall[key]["std_of_per_k_means"] = json_float(np.std(means[key])) if means[key] else None
     _add_nees_and_crlb(overall, records, nees_keys=("mean", "median", "n"))
     overall["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    overall["setup_s"] = setup_summary(records)
     return {"per_k": per_k, "overall": overall}
 
 

@@ -248,5 +248,7 @@ def run_batches(
                 on_batch(b, recs, False)
 
     if tasks:
+        if on_progress is not None:
+            on_progress(0, len(tasks))
         run_tasks(context, tasks, workers=workers, scheduler=scheduler, on_result=on_result)
     return {b.group: out[b.group] for b in batches}

@@ -177,6 +177,9 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         assert np.linalg.norm(entry["rotation_deg"]) < 1.0 and np.linalg.norm(entry["translation_m"]) < 0.003
     assert "each sensor's mounting correction" in cap.out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
+    zones = tmp_path / "cal_zones.png"  # the per-zone maps beside it (issue 14 item 14)
+    assert zones.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {zones}" in cap.err
+    assert "support rotation: candidates: 21/21" in cap.err and "mounting fit: 3 rounds" in cap.err  # stage by stage
 
     # the same log twice with an explicit map per log
     code = main(["calibrate", str(log_path), str(log_path), "--out", str(out), "--map", str(tmp_path / "sim.map.ply"),

@@ -74,8 +74,11 @@ def test_localize_writes_the_issue_json(data: dict[str, Path], tmp_path: Path, c
         assert s[key]["mean"] == pytest.approx(np.mean([t[key] for t in doc["trials"]]))
     assert set(s["runtime_s"]) == {"median"}
     assert isinstance(s["nees"]["mean"], float)
-    assert "e_x (m)" in stdout and "mean" in stdout
+    assert "e_x (mm)" in stdout and "mean" in stdout
     assert "samples: all" in err  # no kinematics model: the pool is every usable sample
+    prov = doc["provenance"]  # issue 14 item 15: where the result came from
+    assert prov["command"].startswith("tofloc localize ") and f"--json {out}" in prov["command"]
+    assert prov["tofloc_version"] and prov["utc"].endswith("Z")
 
 
 def test_localize_tip_sources_are_paired(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -171,6 +174,7 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     assert doc["paper"]["knn"] == {"e_x_m": [0.0300, 0.0076], "e_gamma_deg": [4.438, 0.181]}
     assert doc["paper"]["mocap"] == {"e_x_m": [0.0305, 0.0076], "e_gamma_deg": [4.428, 0.182]}
     assert doc["trials"] == 2 and doc["seed"] == 3
+    assert doc["provenance"]["command"].startswith("tofloc paper --trials 2")
     assert set(doc["results"]) == {"icp_pf"}
     assert not (out / "sensor_model.toml").exists()  # the ICP score takes no range model: nothing to calibrate
     assert set(doc["results"]["icp_pf"]) == {"knn", "mocap"}
@@ -194,9 +198,15 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     ours = [i for i, line in enumerate(lines) if line.startswith("| icp_pf |")]
     assert ours and min(ours) == paper_row + 1  # our rows right under the paper's
     assert "0.0300 ± 0.0076" in lines[paper_row]
-    for png in ("errors_knn.png", "errors_mocap.png"):
+    for png in ("errors_knn.png", "errors_mocap.png", "errors_vs_k.png", "nees.png"):
         blob = (out / png).read_bytes()
         assert blob[:8] == b"\x89PNG\r\n\x1a\n" and len(blob) > 10_000
+    # the parameters used, as a config file that --config reads back (issue 14 item 16)
+    from tofloc.estimator_config import read_config, resolve_params
+
+    cfg = read_config(out / "config.toml")
+    assert resolve_params(cfg, "icp_pf")[0]["n_particles"] == 100 == doc["estimators"]["icp_pf"]["params"]["n_particles"]
+    assert "e_x (mm)" in stdout and "30.0 ± 7.6" in stdout  # the console in millimetres
     assert (out / "knn.npz").is_file()
     assert "Table I" in stdout and "icp_pf" in stdout
 
@@ -226,7 +236,7 @@ def test_localize_on_a_dask_scheduler_matches_inline(data: dict[str, Path], tmp_
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
         code, _, err = _run(capsys, [*common, "--scheduler", cluster.scheduler_address, "--json", str(tmp_path / "dask.json")])
     assert code == 0, err
-    strip = lambda doc: [{k: v for k, v in t.items() if k != "runtime_s"} for t in doc["trials"]]  # noqa: E731
+    strip = lambda doc: [{k: v for k, v in t.items() if k not in ("runtime_s", "setup_s")} for t in doc["trials"]]  # noqa: E731
     inline = json.loads((tmp_path / "inline.json").read_text())
     dask = json.loads((tmp_path / "dask.json").read_text())
     assert strip(inline) == strip(dask)
@@ -318,3 +328,81 @@ def test_a_calibration_session_of_another_set_up_is_simulated_again(tmp_path: Pa
     assert calibration_session(tmp_path, "paper", 2, 2).stat().st_mtime_ns == stamp  # reused
     path = calibration_session(tmp_path, "paper", 2, 7)  # another set-up: simulated again
     assert read_log(path).source == "simulation:paper seed=1002 hardware_seed=7"
+
+
+# -- issue 14, items 14-16: estimates, NEES plot, set-up time, config ---------------------------------
+
+
+def test_localize_offline_estimates_out_and_nees_plot(data: dict[str, Path], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.logs import read_log
+
+    out, tum, csv, png = tmp_path / "l.json", tmp_path / "e.tum", tmp_path / "e.csv", tmp_path / "nees.png"
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "3", "--samples", "2",
+                                 "--json", str(out), "--estimates-out", str(tum), "--plot-nees", str(png), *FEW])
+    assert code == 0, err
+    doc = json.loads(out.read_text())
+    log = read_log(data["log"])
+    rows = [ln.split() for ln in tum.read_text().splitlines()]
+    assert len(rows) == 3 and all(len(r) == 8 for r in rows)  # TUM: one row per trial
+    for r, t in zip(rows, doc["trials"]):
+        assert float(r[0]) == pytest.approx(float(log.timestamp_s[max(t["sample_indices"])]), abs=1e-9)
+        assert [float(r[1]), float(r[2])] == pytest.approx(t["estimate"][:2], abs=1e-12)
+        assert float(r[3]) == pytest.approx(float(log.T_map_base[2, 3]))  # the base height
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"wrote {png}" in err
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "2", "--samples", "2",
+                                 "--estimates-out", str(csv), *FEW])
+    assert code == 0, err
+    lines = csv.read_text().splitlines()
+    assert lines[0].startswith("sample_index,timestamp_s,n_used,skipped,x_m") and len(lines) == 3
+    assert [int(v) for v in lines[1].split(",")[2:4]] == [2, 0]  # n_used = the trial's k, nothing skipped
+    # refused before any work: the same file twice, a NEES plot without truth, or live
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--json", str(csv),
+                                 "--estimates-out", str(csv), *FEW])
+    assert code == 2 and "different files" in err
+
+
+def test_runtime_leaves_out_the_one_off_set_up(data: dict[str, Path]) -> None:
+    """The first trial of an estimator in a process pays imports and per-map caches: they are
+    timed apart (setup_s, a warm-up on one sample) and change no number."""
+    from evaluation import trials as tr
+    from evaluation.priors import PriorSpec
+    from tofloc.logs import read_log
+    from tofloc.maps import Map
+    from tofloc.registry import ESTIMATORS
+
+    log = read_log(data["log"])
+    ctx = tr.TrialContext(log, Map.load(log.map_path()), tr.sample_pool(log, None, 2))
+    tasks = tr.make_tasks("g", "icp_pf", ESTIMATORS.load("icp_pf"), {"n_particles": 50}, "mocap", PriorSpec("offset"),
+                          [2], 2, 3)
+    tr._WARMED.clear()
+    first, second = (tr.run_trial(ctx, t) for t in tasks)
+    assert first["setup_s"] > 0 and second["setup_s"] == 0.0
+    tr._WARMED.clear()
+    again = tr.run_trial(ctx, tasks[0])  # warmed up again: the same numbers
+    strip = lambda r: {k: v for k, v in r.items() if k not in ("runtime_s", "setup_s")}  # noqa: E731
+    assert strip(again) == strip(first)
+    from evaluation.report import summarize_trials
+
+    s = summarize_trials([first, second])
+    assert s["setup_s"] == {"total": pytest.approx(first["setup_s"]), "n": 1}
+
+
+def test_localize_config_file_and_param_override(data: dict[str, Path], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text('[estimator]\nn_particles = 80\njitter_xy = 0.02\n\n[estimators.icp_pf.sensor_model_params]\n'
+                   'max_correspondence = 0.03\n\n[estimators.beam_pf]\nroughening = 0.3\n')
+    out = tmp_path / "l.json"
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--samples", "2", "--workers", "1",
+                                 "--config", str(cfg), "--param", "n_particles=60", "--json", str(out)])
+    assert code == 0, err
+    doc = json.loads(out.read_text())
+    p = doc["params"]
+    assert p["n_particles"] == 60 and p["jitter_xy"] == 0.02 and p["sensor_model_params"] == {"max_correspondence": 0.03}
+    assert "--param icp_pf: n_particles=60 overrides 80 of" in err and "[estimators.beam_pf] not used" in err
+    assert doc["config"]["file"] == str(cfg) and doc["config"]["estimators"]["icp_pf"]["n_particles"] == 60
+    # a key that is no parameter: one line naming the file and the key, before any work
+    cfg.write_text("[estimators.icp_pf]\nn_particle = 80\n")
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--config", str(cfg)])
+    assert code == 2 and str(cfg) in err and "[estimators.icp_pf].n_particle" in err and len(err.strip().splitlines()) == 1

@@ -337,7 +337,7 @@ def test_trial_errors_cross_process_boundaries() -> None:
 
 
 def _numbers(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{k: v for k, v in r.items() if k != "runtime_s"} for r in records]
+    return [{k: v for k, v in r.items() if k not in ("runtime_s", "setup_s")} for r in records]
 
 
 @pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`

@@ -133,6 +133,8 @@ class CalibrationRun:
     maps: list[str]
     zone_counts: list[dict[str, int]]
     path: Path | None = None
+    #: The rig of the (first) log, as described: per-zone plots lay its zones out.
+    rig: Any = None
 
 
 def calibrate(
@@ -162,6 +164,9 @@ def calibrate(
         As ``tofloc calibrate``.
     distance_range : (float, float)
         Use only zones expected within this range (m) in the EM fits.
+    reporter : Reporter
+        Gets every stage's progress (zones cast per log, the support-rotation candidates,
+        the mounting fit's solver evaluations, the EM iterations).
     """
     from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
     from tofloc.maps import Map
@@ -193,10 +198,12 @@ def calibrate(
         pairs.append((log, m))
         used.append(name)
     counts = []
-    for log, m in pairs:
+    reporter.progress(0, len(pairs), "casting every zone of the logs")
+    for i, (log, m) in enumerate(pairs):
         zs = collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses)
         counts.append({"samples": zs.counts["samples"], "zones": zs.n, "no_expected_hit": zs.counts["no_expected_hit"],
                        "partial_footprint": zs.counts["partial_footprint"]})
+        reporter.progress(i + 1, len(pairs), "casting every zone of the logs")
 
     def in_range(zs: ZoneSamples) -> ZoneSamples:
         if lo > 0.0 or hi < 100.0:
@@ -204,17 +211,20 @@ def calibrate(
         return zs
 
     steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
-    with reporter.stage(f"calibrating: {', then '.join(steps)}"):
-        rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
-                           support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range)
+    reporter.note(f"calibrating: {', then '.join(steps)}")
+    rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
+                       support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range,
+                       progress=reporter.progress)
+    from tofloc.provenance import provenance
+
     meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,
-            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi]}
+            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi], "provenance": provenance()}
     path = None if out is None else Path(out)
     cal = rc.sensor_calibration(meta, source=str(path) if path else "<memory>")
     if path is not None:
         cal.write(path, "Sensor model fitted by `tofloc calibrate` (EM, Probabilistic Robotics Table 6.2): the range\n"
                   "model [uncertainty], the rig's [mounting] with the support rotation's uncertainty, the beam mixture [beam].")
-    return CalibrationRun(rc, cal, used, counts, path)
+    return CalibrationRun(rc, cal, used, counts, path, pairs[0][0].rig)
 
 
 # -- localize ---------------------------------------------------------------------------------------
@@ -275,6 +285,7 @@ def localize(
     from evaluation.trials import SEED_DERIVATION, TIP_SOURCES, TrialContext, jsonable, make_tasks, sample_pool
     from tofloc.kinematics import KinematicsModel
     from tofloc.maps import Map, load_map
+    from tofloc.provenance import provenance
 
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
@@ -303,6 +314,8 @@ def localize(
     if isinstance(map, Map) and surface is not None:
         the_map = map.with_surface(surface if isinstance(surface, Map) else Map.load(surface))
     kin = KinematicsModel.load(kinematics) if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics
+    if kin is not None:  # a model of another robot is refused before any trial runs
+        kin.check_actuators(lg.rig.actuators, str(lg.path))
     has_truth = lg.T_map_base is not None
     if prior is None:
         if not has_truth:
@@ -320,6 +333,7 @@ def localize(
         done[0] += 1
         reporter.progress(done[0], len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
 
+    reporter.progress(0, len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
     records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
     summary = summarize_trials(records)
     doc = {
@@ -339,6 +353,7 @@ def localize(
         "valid_statuses": sorted(valid_statuses),
         "calibration": None if cal is None else cal.source,
         "calibration_used": bool(cal is not None and est.uses_calibration()),
+        "provenance": provenance(),
     }
     return LocalizeResult(records, summary, doc, has_truth)
 
@@ -363,6 +378,7 @@ def paper(
     seed: int = 0,
     scenario: str = "paper",
     params: Mapping[str, Any] | None = None,
+    estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     prior_sigma_xy: float = 0.2,
     prior_sigma_yaw_deg: float = 20.0,
     calibration: SensorCalibration | str | os.PathLike[str] | None = None,
@@ -384,13 +400,17 @@ def paper(
     same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
     scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
     ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
-    both tip sources, both prior modes).
+    both tip sources, both prior modes). ``params`` go to every estimator;
+    ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
+    :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
+    written to ``out/config.toml`` (``--config`` reads it back).
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
     from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
     from evaluation.result_cache import Batch, run_batches
     from evaluation.trials import SEED_DERIVATION, TrialContext, jsonable, sample_pool
+    from tofloc.provenance import provenance
 
     names = list(estimators)
     if not names or len(set(names)) != len(names):
@@ -422,7 +442,13 @@ def paper(
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
-    ests = {n: estimator(n, params) for n in names}
+    from tofloc.estimator_config import config_toml, merge_params
+
+    per_est = {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+    unknown_names = sorted(set(estimator_params or {}) - set(names))
+    if unknown_names:
+        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
+    ests = {n: estimator(n, per_est[n]) for n in names}
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in modes]
     t0 = time.perf_counter()
     data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
@@ -433,13 +459,14 @@ def paper(
     if calibrate is None:
         calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
     if calibrate:
-        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage)
+        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
+                                     progress=reporter.progress)
         cal_path = str(p)
     k_values = ks
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), dict(params or {}), tip, prior) for n in names for tip in tips for prior in priors]
+    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior) for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
@@ -467,13 +494,32 @@ def paper(
             "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
             "calibration": cal_path,
             "wall_time_s": round(time.perf_counter() - t0, 3),
+            "provenance": provenance(),
         },
     )
+    from evaluation.compare import series_of
+    from evaluation.error_plots import plot_errors_vs_k, plot_nees
+    from evaluation.report import PAPER_TABLE_I
+
+    nees_panels = [(f"{tip} tip poses", [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
+                                                                    if r.get("nees") is not None],
+                                          {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
+                                         for i, n in enumerate(names) for m in priors]) for tip in tips]
+    config_text = config_toml({n: jsonable(ests[n].get_params()) for n in names}, header=[
+        "The parameters every estimator of this run used (defaults included); `--config` reads this file.",
+        f"Made by: {doc['provenance']['command']}"])
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
+        write_text_atomic(config_text, out_dir / "config.toml"),
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),
         *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
+        plot_errors_vs_k([("this run", series_of(doc, out_dir / "results.json")[1])], out_dir / "errors_vs_k.png",
+                         paper=PAPER_TABLE_I if scenario == "paper" else None,
+                         title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)"),
     ]
+    if any(entry[1] for _, panel in nees_panels for entry in panel):
+        paths.append(plot_nees(nees_panels, out_dir / "nees.png",
+                               title="NEES of every trial against chi2(3): a consistent estimator follows the black curve"))
     return PaperResult(doc, paths)
 
 
@@ -501,6 +547,7 @@ def scenes(
     tip_source: str = "mocap",
     prior_mode: str = "offset",
     params: Mapping[str, Any] | None = None,
+    estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     calibrate: bool | None = None,
     workers: int | None = None,
     scheduler: Any = None,
@@ -511,9 +558,12 @@ def scenes(
     the table of mean errors against the mean sqrt(CRLB) of the same trials.
 
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
-    tips, offset prior, 20 trials; every estimator with its default parameters.
+    tips, offset prior, 20 trials; every estimator with its default parameters
+    (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
     """
     from evaluation.report import write_json_atomic, write_text_atomic
+    from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
     names = list(scene_names or builtin_scenarios())
@@ -525,7 +575,8 @@ def scenes(
     for scene in names:
         reporter.note(f"scene {scene} ({rig_variant} rig)")
         run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
-                    params=params, calibrate=calibrate, rig_variant=rig_variant, k_values=[k], tip_sources=[tip_source],
+                    params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
+                    k_values=[k], tip_sources=[tip_source],
                     prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter)
         for est in estimators:
             g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
@@ -540,8 +591,14 @@ def scenes(
             row["nees_mean"] = (g.get("nees") or {}).get("mean")
             rows.append(row)
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows}
-    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
+           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows, "provenance": provenance()}
+    from tofloc.estimator_config import config_toml
+
+    config_text = config_toml({n: e["params"] for n, e in run.document["estimators"].items()}, header=[
+        "The parameters every estimator of this run used on every scene (defaults included); `--config` reads it.",
+        f"Made by: {doc['provenance']['command']}"])
+    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
+             write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
     return ScenesResult(rows, doc, paths)
 
 

@@ -34,14 +34,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.mounting import check_sensor_mounting, rig_with_mounting
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import Rig
 from tofloc.toml_tables import dumps, params_from_table, read_toml
+from tofloc.toml_tables import toml_safe as _toml_safe
 
 __all__ = ["SensorCalibration", "MAX_SUPPORT_YAW_DEG"]
 
@@ -194,19 +193,3 @@ class SensorCalibration:
         """Read a calibration file (``tofloc calibrate``'s output)."""
         p = Path(path)
         return cls.from_dict(read_toml(p), str(p))
-
-
-def _toml_safe(value: Any) -> Any:
-    """A copy TOML can hold: numpy scalars to Python, None dropped, non-finite floats as strings."""
-    if isinstance(value, Mapping):
-        return {str(k): _toml_safe(v) for k, v in value.items() if v is not None}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_toml_safe(v) for v in list(value) if v is not None]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        f = float(value)
-        return f if math.isfinite(f) else str(f)
-    return value if isinstance(value, str) else str(value)

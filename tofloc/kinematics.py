@@ -435,6 +435,36 @@ class KinematicsModel:
             return np.zeros(lead + (4, 4))
         return _poses_from_outputs(self._knn.predict(flat)).reshape(lead + (4, 4))
 
+    def check_actuators(self, actuators: Sequence[str], where: str) -> None:
+        """Refuse to serve pressures of other actuators than the model's.
+
+        The model's columns are pressures of named actuators in a fixed order; a log (or a
+        rig) whose actuators differ, in number, name or order, feeds it other chambers'
+        pressures. Names are compared when both sides have them (a model fitted on bare
+        arrays has none: then only the count is checked).
+
+        Parameters
+        ----------
+        actuators : sequence of str
+            The actuators of the log's (or the live rig's) pressure columns, in order.
+        where : str
+            What they belong to, for the message (a log's path, ``"the rig"``).
+
+        Raises
+        ------
+        ParameterError
+            One line naming both lists.
+        """
+        theirs = tuple(str(a) for a in actuators)
+        ours = tuple(self.actuators)
+        if ours and theirs:
+            if ours != theirs:
+                raise ParameterError(f"the kinematics model's actuators {list(ours)} differ from {where}'s {list(theirs)}: "
+                                     "it was fitted on another robot (or another column order)")
+        elif theirs and len(theirs) != self.n_actuators:
+            raise ParameterError(f"the kinematics model takes {self.n_actuators} pressures, {where} has "
+                                 f"{len(theirs)} actuators {list(theirs)}")
+
     def matches(self, pressure_kpa: ArrayLike, T_base_tip: ArrayLike) -> bool:
         """True when these are the arrays (e.g. of a log) the model was fit on."""
         return fingerprint(pressure_kpa, T_base_tip) == self.log_fingerprint

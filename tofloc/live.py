@@ -55,7 +55,7 @@ class LiveLocalizer:
     map : tofloc.maps.Map
     prior : Prior
     kinematics : tofloc.kinematics.KinematicsModel
-        Pressures -> ``T_base_tip``.
+        Pressures -> ``T_base_tip``; its actuators must be the rig's (refused otherwise).
     window : int
         Number of latest usable samples the estimator sees (the paper used up to 10).
     seed : int
@@ -88,6 +88,7 @@ class LiveLocalizer:
                 f"the kinematics model takes {self.kinematics.n_actuators} pressures, the rig has "
                 f"{self.rig.n_actuators} actuators ({', '.join(self.rig.actuators) or 'none'})"
             )
+        self.kinematics.check_actuators(self.rig.actuators, "the rig")
 
     def add(self, sample: Any) -> str:
         """Add one :class:`tofloc.io.samples.Sample` to the window without estimating;

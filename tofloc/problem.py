@@ -71,6 +71,8 @@ class Prior:
             raise ParameterError(f"prior mean must be 3 finite numbers (x, y, yaw), got {mean!r}")
         if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
             raise ParameterError(f"prior sigma must be 3 positive numbers, got {sigma!r}")
+        if not all(np.isfinite(float(v)) for v in (self.z, self.roll, self.pitch)):
+            raise ParameterError(f"prior z, roll and pitch must be finite, got {self.z!r}, {self.roll!r}, {self.pitch!r}")
         mean[2] = frames.wrap_angle(mean[2])
         object.__setattr__(self, "mean", _readonly(mean))
         object.__setattr__(self, "sigma", _readonly(sigma))

@@ -169,7 +169,8 @@ def problem_from_log(
     ProblemError
         A selected sample has no usable configuration (unknown pose, NaN pressure).
     ParameterError
-        Bad indices, tip source, or a missing kinematics model.
+        Bad indices, tip source, a missing kinematics model, or one whose actuators
+        differ from the log's (:meth:`~tofloc.kinematics.KinematicsModel.check_actuators`).
     """
     name = _log_name(log)
     idx = np.asarray(indices)
@@ -203,6 +204,7 @@ def problem_from_log(
             raise ParameterError("tip source knn needs a kinematics model (--kinematics MODEL)")
         if log.pressure_kpa is None:
             raise FormatError(name, "/samples/pressure_kpa", "actuator pressures for --tip-source knn", "no such dataset")
+        kinematics.check_actuators(getattr(getattr(log, "rig", None), "actuators", ()) or (), name)
         p = np.asarray(log.pressure_kpa[idx], dtype=float)
         if p.shape[1] != kinematics.n_actuators:
             raise FormatError(name, "/samples/pressure_kpa", f"{kinematics.n_actuators} actuators (the kinematics model's)",

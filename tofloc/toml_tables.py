@@ -8,13 +8,14 @@ named ``tof.0``) are quoted, so what we write reads back the same.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from pathlib import Path
 from typing import Any, Mapping, TypeVar
 
 from tofloc.errors import FormatError, ParameterError
 
-__all__ = ["MAX_TOML_BYTES", "read_toml", "params_from_table", "params_from_toml", "dumps"]
+__all__ = ["MAX_TOML_BYTES", "read_toml", "params_from_table", "params_from_toml", "dumps", "toml_safe"]
 
 T = TypeVar("T")
 
@@ -63,3 +64,21 @@ def dumps(doc: Mapping[str, Any]) -> str:
     import tomli_w
 
     return tomli_w.dumps(dict(doc))
+
+
+def toml_safe(value: Any) -> Any:
+    """A copy TOML can hold: numpy scalars to Python, None dropped, non-finite floats as strings."""
+    import numpy as np
+
+    if isinstance(value, Mapping):
+        return {str(k): toml_safe(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [toml_safe(v) for v in list(value) if v is not None]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        f = float(value)
+        return f if math.isfinite(f) else str(f)
+    return value if isinstance(value, str) else str(value)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,10 @@ from sensor_models.calibration.zones import ZoneSamples
 from tofloc.errors import ParameterError
 from tofloc.range_model import RangeUncertainty
 
-__all__ = ["CalibrationResult", "fit_em", "component_densities", "hit_responsibility", "MIN_WEIGHT"]
+__all__ = ["CalibrationResult", "fit_em", "component_densities", "hit_responsibility", "MIN_WEIGHT", "ProgressFn"]
+
+#: Where long fits report: ``progress(done, total, label)`` (:meth:`tofloc.api.Reporter.progress`).
+ProgressFn = Callable[[int, int, str], None]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 #: Smallest z_rand and z_max written (the beam model needs z_rand > 0, and a zero z_max would
@@ -180,6 +184,8 @@ def fit_em(
     *,
     max_iter: int = 200,
     tol: float = 1e-7,
+    progress: ProgressFn | None = None,
+    label: str = "EM iterations",
 ) -> CalibrationResult:
     """Fit the beam mixture and the bias/sigma curves by EM (Probabilistic Robotics, Table 6.2).
 
@@ -195,6 +201,11 @@ def fit_em(
         EM iterations at most.
     tol : float
         Stop when the mean log-likelihood per zone improves by less than this.
+    progress : callable, optional
+        ``progress(iteration, max_iter, label)`` after every iteration (``(n, n, label)``
+        once it has converged after ``n``); it only reports: the fit is the same without it.
+    label : str
+        The label of those reports.
 
     Returns
     -------
@@ -254,7 +265,11 @@ def fit_em(
             sig_p = _fit_sigma(q, d, w_hit, edge, sig_p)
         if abs(ll - prev) < tol * N:
             converged = True
+            if progress is not None:
+                progress(it, it, label)
             break
+        if progress is not None:
+            progress(it, max_iter, label)
         prev = ll
     wts = np.clip(wts, 0.0, 1.0)
     wts = wts / wts.sum()

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensor_models.beam import BeamMixture
-from sensor_models.calibration.em import CalibrationResult, fit_em, hit_responsibility
+from sensor_models.calibration.em import CalibrationResult, ProgressFn, fit_em, hit_responsibility
 from sensor_models.calibration.zones import ZoneSamples, cast_expected, collect_zones
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import ParameterError
@@ -77,6 +77,7 @@ def fit_support_yaw(
     step_deg: float = 2.0,
     max_samples: int = 150,
     max_iter: int = 60,
+    progress: ProgressFn | None = None,
 ) -> SupportYawFit:
     """Maximum-likelihood rotation of the sensor support about the tip's z axis.
 
@@ -102,6 +103,13 @@ def fit_support_yaw(
         Samples per log used by the search.
     max_iter : int
         EM iterations per candidate.
+    progress : callable, optional
+        ``progress(done, total, label)`` as the work goes: the grid's candidates
+        (``"support rotation: candidates"``), the bounded search's EM fits
+        (``"support rotation: refinement fits"``, against the usual count of a bounded
+        golden-section search) and the
+        jackknife's local grid (``"support rotation: jackknife points"``). It only
+        reports: the fit is the same without it.
     """
     from scipy.optimize import minimize_scalar
 
@@ -134,17 +142,40 @@ def fit_support_yaw(
     def mean_loglik(psi_deg: float) -> float:
         return evaluate(psi_deg)[0]
 
+    def report(done: int, total: int, label: str) -> None:
+        if progress is not None:
+            progress(done, total, label)
+
     grid = np.arange(-bound_deg, bound_deg + 1e-9, step_deg)
-    values = np.array([mean_loglik(g) for g in grid])
+    values = np.empty(grid.size)
+    report(0, grid.size, "support rotation: candidates")
+    for i, g in enumerate(grid):
+        values[i] = mean_loglik(g)
+        report(i + 1, grid.size, "support rotation: candidates")
     best = float(grid[int(np.argmax(values))])
     lo, hi = max(-bound_deg, best - step_deg), min(bound_deg, best + step_deg)
-    opt = minimize_scalar(lambda x: -mean_loglik(x), bounds=(lo, hi), method="bounded", options={"xatol": 0.02})
+    refine = {"fits": 0}
+    # golden-section steps to shrink (lo, hi) to the tolerance: Brent's usual count (a bar's
+    # length; the count grows if it needs more)
+    expected = max(3, math.ceil(math.log(max(hi - lo, 1e-9) / 0.04) / math.log(1.618)) + 2)
+
+    def refine_objective(x: float) -> float:
+        value = -mean_loglik(x)
+        refine["fits"] += 1
+        report(refine["fits"], max(expected, refine["fits"] + 1), "support rotation: refinement fits")
+        return value
+
+    opt = minimize_scalar(refine_objective, bounds=(lo, hi), method="bounded", options={"xatol": 0.02})
+    report(refine["fits"], refine["fits"], "support rotation: refinement fits")
     psi = float(opt.x) if -opt.fun >= values.max() else best
     # block jackknife: the maximum of each delete-one-block curve, from a parabola through a
     # local grid around psi (the curve is smooth there)
     local = psi + np.array([-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0]) * min(step_deg, 1.0)
     local = local[(local >= -bound_deg) & (local <= bound_deg)]
-    evals = [evaluate(x) for x in local]
+    evals = []
+    for j, x in enumerate(local):
+        evals.append(evaluate(x))
+        report(j + 1, local.size, "support rotation: jackknife points")
     ll = np.array([e[1] for e in evals])  # (G, B)
     nn = np.array([e[2] for e in evals])
     tot_ll, tot_n = ll.sum(axis=1, keepdims=True), nn.sum(axis=1, keepdims=True)
@@ -213,6 +244,7 @@ def fit_mounting(
     rounds: int = 3,
     max_nfev: int = 15,
     mixture: BeamMixture | None = None,
+    progress: ProgressFn | None = None,
 ) -> MountingFit:
     """Each sensor's mounting error (a rotation and a translation in the tip frame, after
     the support's rotation) by robust nonlinear least squares against the ground truth.
@@ -232,6 +264,10 @@ def fit_mounting(
     with a forward-difference Jacobian of the ray casts (0.02 deg, 0.02 mm), where a zone
     whose expected distance jumps by more than 5 mm over a step (its ray crossed an edge)
     gets no derivative. At most ``max_samples`` samples per log, evenly spaced.
+
+    ``progress(done, total, label)``, when given, counts the solver's evaluations of the
+    residuals against their bound ``rounds * max_nfev`` (label ``"mounting fit: N rounds,
+    solver evaluations"``; a round that stops early jumps to its end). It only reports.
     """
     from scipy.optimize import least_squares
 
@@ -314,12 +350,23 @@ def fit_mounting(
             counter["casts"] += 1
         return cache[key]
 
+    label = f"mounting fit: {rounds} rounds, solver evaluations"
+    total = rounds * max_nfev
+
+    def report(done: int) -> None:
+        if progress is not None:
+            progress(min(done, total), total, label)
+
+    report(0)
     x = x0
-    for _ in range(rounds):  # IRLS: hit responsibilities times Cauchy weights from the current residuals
+    for r in range(rounds):  # IRLS: hit responsibilities times Cauchy weights from the current residuals
         g = geometry(x)
         sw = np.sqrt(hit_weights(g) / (1.0 + (zone_residuals(g) / 3.0) ** 2))
+        nfev = [0]
 
         def fun(xx: NDArray[np.float64]) -> NDArray[np.float64]:
+            nfev[0] += 1
+            report(r * max_nfev + min(nfev[0], max_nfev))
             return np.concatenate([sw * zone_residuals(geometry(xx)), xx / prior_scale])
 
         def jac(xx: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -339,6 +386,7 @@ def fit_mounting(
             return J
 
         x = least_squares(fun, x, jac=jac, method="trf", max_nfev=max_nfev).x
+        report((r + 1) * max_nfev)
     bias = (uncertainty.bias_offset, uncertainty.bias_slope, uncertainty.edge_bias_offset, uncertainty.edge_bias_slope)
     before = float(np.median(np.abs(errors(e0)[0])))
     after = float(np.median(np.abs(errors(geometry(x))[0])))
@@ -399,27 +447,31 @@ def calibrate_rig(
     mounting: bool = True,
     max_iter: int = 200,
     zone_filter: Any = None,
+    progress: ProgressFn | None = None,
 ) -> RigCalibration:
     """The whole calibration of ``tofloc calibrate``: the support's rotation
     (:func:`fit_support_yaw`), a first EM fit on it, each sensor's mounting
     (:func:`fit_mounting`), then the final EM fit (:func:`fit_em`) of the bias/sigma
     curves and the mixture on the corrected rig. ``zone_filter(ZoneSamples) ->
-    ZoneSamples`` restricts the zones of the EM fits (e.g. a distance range)."""
+    ZoneSamples`` restricts the zones of the EM fits (e.g. a distance range).
+    ``progress(done, total, label)`` reports every stage as it goes (the support-yaw
+    candidates, the mounting fit's solver evaluations, the EM iterations of the first and
+    the final fit); the calibration is the same without it."""
     psi = fit_support_yaw(logs_and_maps, footprint=footprint, valid_statuses=valid_statuses,
-                          bound_deg=support_yaw_bound_deg) if support_yaw else None
+                          bound_deg=support_yaw_bound_deg, progress=progress) if support_yaw else None
     psi_deg = 0.0 if psi is None else psi.support_yaw_deg
 
-    def em(sensor_mounting: Mapping[str, Any] | None) -> CalibrationResult:
+    def em(sensor_mounting: Mapping[str, Any] | None, label: str) -> CalibrationResult:
         parts = [collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses,
                                T_tip_sensor=corrected_T_tip_sensor(log.rig, psi_deg, sensor_mounting))
                  for log, m in logs_and_maps]
         zs = ZoneSamples.concatenate(parts)
-        return fit_em(zone_filter(zs) if zone_filter is not None else zs, max_iter=max_iter)
+        return fit_em(zone_filter(zs) if zone_filter is not None else zs, max_iter=max_iter, progress=progress, label=label)
 
-    result = em(None)
+    result = em(None, "EM iterations" + (" (first fit, before the mounting)" if mounting else ""))
     fit = None
     if mounting:
         fit = fit_mounting(logs_and_maps, result.uncertainty, support_yaw_deg=psi_deg, footprint=footprint,
-                           valid_statuses=valid_statuses, mixture=result.beam)
-        result = em(fit.sensor_mounting)
+                           valid_statuses=valid_statuses, mixture=result.beam, progress=progress)
+        result = em(fit.sensor_mounting, "EM iterations (final fit, mounting corrected)")
     return RigCalibration(result, psi, fit)

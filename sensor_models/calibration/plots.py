@@ -1,15 +1,17 @@
-"""The calibration plot: error against expected distance per zone class, with the fitted curves."""
+"""The calibration plots: error against expected distance per zone class, with the fitted
+curves (:func:`plot_calibration`), and per-zone residual maps (:func:`plot_zone_residuals`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from sensor_models.calibration.em import CalibrationResult
 from tofloc.atomic import atomic_path
 
-__all__ = ["plot_calibration"]
+__all__ = ["plot_calibration", "plot_zone_residuals", "zone_statistics", "zone_plot_path", "MAD_TO_SIGMA"]
 
 
 def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "", max_points: int = 20000,
@@ -75,6 +77,135 @@ def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "
     fig.suptitle(title or f"Calibration: {sm.n} zones, z_hit {result.beam.z_hit:.3f}, z_short {result.beam.z_short:.3f}, "
                  f"z_max {result.beam.z_max:.3f}, z_rand {result.beam.z_rand:.3f}", fontsize=10)
     fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        with open(tmp, "wb") as fh:
+            fig.savefig(fh, format="png")
+    return p
+
+
+#: Normal-consistent scale of the median absolute deviation (the robust spread).
+MAD_TO_SIGMA = 1.4826
+
+
+def _grouped_median(groups: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
+    """Median of ``values`` per group ``0..n_groups-1`` (NaN for an empty group), vectorized."""
+    order = np.lexsort((values, groups))
+    g, v = groups[order], values[order]
+    counts = np.bincount(g, minlength=n_groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    out = np.full(n_groups, np.nan)
+    has = counts > 0
+    lo = starts[has] + (counts[has] - 1) // 2
+    hi = starts[has] + counts[has] // 2
+    out[has] = 0.5 * (v[lo] + v[hi])
+    return out
+
+
+def zone_statistics(result: CalibrationResult, n_zones_total: int) -> dict[str, np.ndarray]:
+    """Per zone of the rig, from the zones the calibration used: the median residual after
+    the fitted bias curve (reading - expected - bias(expected), m), its robust spread
+    (1.4826 x the median absolute deviation, m) and the number of readings.
+
+    Only valid returns whose most likely mixture component is "hit" count (short and random
+    readings are the mixture's business, not a zone's bias). Arrays are ``(n_zones_total,)``
+    indexed by :attr:`ZoneSamples.zone_id` (``sensor * Z + zone``); NaN where a zone has no
+    reading.
+    """
+    from sensor_models.calibration.em import _bias
+
+    sm = result.samples
+    zid = np.asarray(sm.zone_id)
+    hit = (~sm.no_return) & (np.argmax(result.responsibilities, axis=1) == 0) & (zid >= 0) & (zid < n_zones_total)
+    r = (sm.measured_m - sm.expected_m - _bias(result.uncertainty, sm.expected_m, sm.edge))[hit]
+    g = zid[hit]
+    median = _grouped_median(g, r, n_zones_total)
+    spread = MAD_TO_SIGMA * _grouped_median(g, np.abs(r - median[g]), n_zones_total)
+    return {"median_m": median, "spread_m": spread, "count": np.bincount(g, minlength=n_zones_total)}
+
+
+def zone_plot_path(plot_path: str | Path) -> Path:
+    """Where ``tofloc calibrate --plot PLOT.png`` writes its per-zone maps: ``PLOT_zones.png``."""
+    p = Path(plot_path)
+    return p.with_name(f"{p.stem}_zones{p.suffix or '.png'}")
+
+
+def _annotate(ax: Any, im: Any, img: np.ndarray) -> None:
+    """Each cell's value, in black or white against its colour."""
+    for (i, j), v in np.ndenumerate(img):
+        if np.isfinite(v):
+            shade = im.cmap(im.norm(v))
+            light = 0.299 * shade[0] + 0.587 * shade[1] + 0.114 * shade[2] > 0.55
+            ax.text(j, i, f"{v:.0f}" if abs(v) >= 10 else f"{v:.1f}", ha="center", va="center", fontsize=6.5,
+                    color="black" if light else "white")
+
+
+def plot_zone_residuals(result: CalibrationResult, rig: Any, path: str | Path, min_count: int = 5) -> Path:
+    """Heat maps of :func:`zone_statistics` per sensor: the median residual after the fitted
+    bias (mm, a diverging scale centred on 0, shared by every sensor) and its robust spread
+    (mm), each zone at its place in the sensor's grid (row-major, as the log orders zones;
+    row 0 at the top). Sensors with explicit zone tables (no grid) are drawn as one strip:
+    a row per sensor, a column per zone. Zones with fewer than ``min_count`` readings are
+    left blank. Written as PNG (Agg canvas, atomically).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.figure import Figure
+
+    S, Z = rig.n_sensors, rig.n_zones
+    st = zone_statistics(result, S * Z)
+    few = st["count"] < min_count
+    med = np.where(few, np.nan, 1000.0 * st["median_m"]).reshape(S, Z)
+    spr = np.where(few, np.nan, 1000.0 * st["spread_m"]).reshape(S, Z)
+    grid = all(s.zone_directions is None for s in rig.sensors)
+    lim = float(np.nanmax(np.abs(med))) if np.isfinite(med).any() else 1.0
+    lim = max(lim, 0.5)
+    top = float(np.nanmax(spr)) if np.isfinite(spr).any() else 1.0
+    panels = [(med, "median residual after the fitted bias (mm)", "RdBu_r", TwoSlopeNorm(0.0, -lim, lim)),
+              (spr, "robust spread, 1.4826 MAD (mm)", "viridis", None)]
+    if grid:
+        R, C = rig.sensors[0].resolution
+        fig = Figure(figsize=(max(7.0, 3.0 * S + 1.4), 6.2), dpi=110, layout="constrained")
+        axes = fig.subplots(2, S, squeeze=False)
+    else:
+        fig = Figure(figsize=(max(7.0, 0.5 * Z + 2.5), 1.2 + 2 * (0.45 * S + 1.0)), dpi=110, layout="constrained")
+        axes = fig.subplots(2, 1, squeeze=False)
+    FigureCanvasAgg(fig)
+    for row, (values, title, cmap, norm) in enumerate(panels):
+        kw: dict[str, Any] = {"cmap": cmap}
+        if norm is not None:
+            kw["norm"] = norm
+        else:
+            kw.update(vmin=0.0, vmax=max(top, 1e-3))
+        if grid:
+            for s, sensor in enumerate(rig.sensors):
+                ax = axes[row, s]
+                img = values[s].reshape(R, C)
+                im = ax.imshow(img, origin="upper", **kw)
+                if R * C <= 64:
+                    _annotate(ax, im, img)
+                ax.set_title(f"{sensor.name}" if row == 0 else "", fontsize=10)
+                ax.set_xticks(range(C))
+                ax.set_yticks(range(R))
+                ax.tick_params(labelsize=7)
+                if s == 0:
+                    ax.set_ylabel("zone row")
+                if row == 1:
+                    ax.set_xlabel("zone column")
+            fig.colorbar(im, ax=list(axes[row]), shrink=0.9).set_label(title, fontsize=9)
+        else:
+            ax = axes[row, 0]
+            im = ax.imshow(values, aspect="auto", origin="upper", **kw)
+            if Z <= 32:
+                _annotate(ax, im, values)
+            ax.set_yticks(range(S), [s.name for s in rig.sensors], fontsize=8)
+            ax.set_xticks(range(Z))
+            ax.tick_params(axis="x", labelsize=7)
+            ax.set_xlabel("zone (explicit zone table)" if row == 1 else "")
+            fig.colorbar(im, ax=ax, pad=0.02).set_label(title, fontsize=9)
+    used = int(st["count"].sum())
+    fig.suptitle(f"Per-zone residuals of the calibration: {used} hit readings, zones with fewer than {min_count} blank",
+                 fontsize=10)
     p = Path(path)
     with atomic_path(p) as tmp:
         with open(tmp, "wb") as fh:

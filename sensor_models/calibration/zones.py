@@ -48,6 +48,10 @@ class ZoneSamples:
         The sample each zone belongs to (its row in the log; after
         :meth:`concatenate`, offset by the log's position times :data:`SAMPLE_ID_STRIDE`):
         resampling by sample (a block jackknife) keeps a sample's zones together.
+    zone_id : ndarray of int (N,)
+        Which zone of the rig it is: ``sensor * Z + zone`` in the rig's (log's) zone order
+        (-1: unknown, e.g. zones made up by hand), for per-zone statistics
+        (:func:`sensor_models.calibration.plots.zone_statistics`).
     counts : dict
         ``zones`` (with a known pose), ``used`` (N), ``no_expected_hit`` (the footprint
         missed the map entirely) and ``no_expected_hit_but_valid`` (of those, how many
@@ -62,10 +66,13 @@ class ZoneSamples:
     max_range_m: NDArray[np.float64]
     counts: dict[str, int] = field(default_factory=dict)
     sample_id: NDArray[np.int64] | None = None
+    zone_id: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         if self.sample_id is None:
             self.sample_id = np.zeros(self.expected_m.shape, dtype=np.int64)
+        if self.zone_id is None:
+            self.zone_id = np.full(self.expected_m.shape, -1, dtype=np.int64)
 
     @property
     def n(self) -> int:
@@ -75,9 +82,9 @@ class ZoneSamples:
         """The zones where ``mask`` (N,) is True (counts gain ``out_of_range``: the zones left out)."""
         m = np.asarray(mask, dtype=bool)
         counts = dict(self.counts, used=int(m.sum()), out_of_range=int(self.counts.get("out_of_range", 0) + (~m).sum()))
-        assert self.sample_id is not None
+        assert self.sample_id is not None and self.zone_id is not None
         return ZoneSamples(self.measured_m[m], self.expected_m[m], self.edge[m], self.no_return[m], self.max_range_m[m], counts,
-                           self.sample_id[m])
+                           self.sample_id[m], self.zone_id[m])
 
     @staticmethod
     def concatenate(parts: Sequence["ZoneSamples"]) -> "ZoneSamples":
@@ -90,6 +97,7 @@ class ZoneSamples:
             np.concatenate([p.max_range_m for p in parts]),
             {k: int(sum(p.counts.get(k, 0) for p in parts)) for k in sorted(keys)},
             np.concatenate([np.asarray(p.sample_id) + i * SAMPLE_ID_STRIDE for i, p in enumerate(parts)]),
+            np.concatenate([np.asarray(p.zone_id) for p in parts]),
         )
 
 
@@ -185,6 +193,7 @@ def collect_zones(
     edge = np.broadcast_to(edge_zone_mask(rig), expected.shape)
     zmax = np.broadcast_to(rig.max_range_m[None, :, None], expected.shape)
     sid = np.broadcast_to(rows[:, None, None], expected.shape)
+    zid = np.broadcast_to(np.arange(S * Z, dtype=np.int64).reshape(S, Z)[None], expected.shape)
     counts = {
         "samples": int(rows.size),
         "zones": int(rows.size * S * Z),
@@ -202,6 +211,7 @@ def collect_zones(
         max_range_m=zmax[use].astype(float),
         counts=counts,
         sample_id=sid[use].astype(np.int64),
+        zone_id=zid[use].astype(np.int64),
     )
 
 

@@ -119,6 +119,18 @@ def _restore_hook(previous: Any) -> Iterator[None]:
         sys.unraisablehook = previous
 
 
+@contextlib.contextmanager
+def _recorded_command(argv: list[str]) -> Iterator[None]:
+    """The command line every result file records (:mod:`tofloc.provenance`), while it runs."""
+    from tofloc.provenance import set_command
+
+    set_command(argv)
+    try:
+        yield
+    finally:
+        set_command(None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns (and, as a script, exits with) the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -130,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous_hook = sys.unraisablehook
     if not debug_enabled():
         sys.unraisablehook = _quiet_h5py_cleanup
-    with _Signals() as signals, _restore_hook(previous_hook):
+    with _Signals() as signals, _restore_hook(previous_hook), _recorded_command(["tofloc", *args]):
         try:
             try:
                 rv = app(args=args, standalone_mode=False, prog_name="tofloc")

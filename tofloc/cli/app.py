@@ -45,9 +45,20 @@ def debug_enabled() -> bool:
     return bool(_state["debug"])
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from tofloc.provenance import git_commit, version_string
+
+        commit = git_commit()
+        console.print(f"tofloc {version_string()}" + (f" (git {commit})" if commit else ""), highlight=False)
+        raise typer.Exit(0)
+
+
 @app.callback()
 def _root(
     debug: bool = typer.Option(False, "--debug", help="Show full tracebacks instead of one-line errors."),
+    version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                                 help="Print the version (and the git commit of a checkout) and exit."),
 ) -> None:
     """tofloc: ToF-based localization toolkit."""
     if debug:
@@ -77,19 +88,34 @@ def status(message: str) -> Iterator[None]:
 
 class RichReporter:
     """A :class:`tofloc.api.Reporter` that prints notes to stderr, shows a spinner per stage
-    and one progress bar per label (use as a context manager: the bars close with it)."""
+    and one progress bar per label (use as a context manager: the bars close with it).
+
+    Progress that starts inside a stage replaces its spinner (one live display at a time):
+    the stage's message stays as a line above the bars. A bar that completes also prints
+    one line with its count and time, which stays when the bars go (with the reporter).
+    """
 
     def __init__(self) -> None:
         self._progress: Progress | None = None
         self._tasks: dict[str, Any] = {}
+        self._status: Any = None
+        self._status_message = ""
+        self._started: dict[str, float] = {}
+        self._finished: set[str] = set()
 
     def __enter__(self) -> "RichReporter":
         return self
 
     def __exit__(self, *exc: Any) -> None:
+        self._stop_status()
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
+
+    def _stop_status(self) -> None:
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
 
     def note(self, message: str) -> None:
         target = self._progress.console if self._progress is not None else err_console
@@ -97,15 +123,33 @@ class RichReporter:
 
     @contextmanager
     def stage(self, message: str) -> Iterator[None]:
-        if self._progress is not None:  # one live display at a time: say it, no spinner
+        if self._progress is not None or self._status is not None:  # one live display at a time: say it, no spinner
             self.note(message)
             yield
             return
-        with err_console.status(escape(message)):
+        self._status = err_console.status(escape(message))
+        self._status_message = message
+        self._status.start()
+        try:
             yield
+        finally:
+            self._stop_status()
 
     def progress(self, done: int, total: int, label: str) -> None:
+        """Update the bar of ``label``; when it completes, also a line ``label: done/total (time)``
+        that stays (the bars vanish with the reporter, and are not drawn when stderr is not a
+        terminal)."""
+        import time
+
+        now = time.monotonic()
+        started = self._started.setdefault(label, now)
+        if done >= total and label not in self._finished:
+            self._finished.add(label)
+            self.note(f"{label}: {done}/{total} ({now - started:.1f} s)")
         if self._progress is None:
+            if self._status is not None:  # the stage's spinner gives way to the bars; its message stays
+                self._stop_status()
+                err_console.print(self._status_message, highlight=False, markup=False)
             self._progress = make_progress()
             self._progress.start()
         if label not in self._tasks:

@@ -26,7 +26,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from tofloc.cli.app import app, console, status
+from tofloc.cli.app import RichReporter, app, console
 
 
 def _median_time(fn: Callable[[], Any], repeat: int) -> float:
@@ -67,14 +67,26 @@ def paper_bench_problem(n_samples: int = 10, seed: int = 0):
     )
 
 
-def run_bench(particles: int = 1000, repeat: int = 5) -> dict[str, Any]:
-    """Measure everything :mod:`tofloc.cli.cmd_bench` describes; returns the JSON document."""
+def run_bench(particles: int = 1000, repeat: int = 5, reporter: Any = None) -> dict[str, Any]:
+    """Measure everything :mod:`tofloc.cli.cmd_bench` describes; returns the JSON document.
+
+    ``reporter`` (a :class:`tofloc.api.Reporter`) gets a progress count of the measurements
+    and one note with each result as it is measured."""
+    from tofloc.api import Reporter
+
+    rep = reporter if reporter is not None else Reporter()
     from estimators.particle_filter import ParticleFilter
     from estimators.resampling import RESAMPLERS, normalize_log_weights
     from sensor_models.icp_score import ICPScore, open3d_fitness
+    from tofloc.provenance import provenance
     from tofloc.registry import ESTIMATORS
 
-    problem = paper_bench_problem()
+    names = ESTIMATORS.names()
+    total = 3 + len(names)
+    label = f"measurements ({particles} particles, median of {repeat})"
+    with rep.stage("simulating the paper's data (seed 0) for the benchmark problem"):
+        problem = paper_bench_problem()
+    rep.progress(0, total, label)
     rng = np.random.default_rng(0)
     poses = problem.prior.sample(particles, rng)
     T = problem.prior.T_map_base(poses)
@@ -96,13 +108,17 @@ def run_bench(particles: int = 1000, repeat: int = 5) -> dict[str, Any]:
             {"k": k, "points": int(icp.clouds[step].shape[0]), "vectorized_s": vec, "open3d_loop_s": loop,
              "speedup": loop / vec, "max_abs_fitness_diff": diff}
         )
+        rep.note(f"ICP score, k = {k} ({per_k[-1]['points']} points): vectorized {1e3 * vec:.1f} ms, "
+                 f"Open3D loop {1e3 * loop:.0f} ms ({loop / vec:.1f}x)")
+        rep.progress(len(per_k), total, label)
     main = per_k[-1]
     doc: dict[str, Any] = {
         "icp_score": {"particles": particles, **{k: v for k, v in main.items() if k != "k"}, "samples": 10, "per_k": per_k},
         "estimators": {},
         "machine": {"cpus": __import__("os").cpu_count()},
+        "provenance": provenance(),
     }
-    for name in ESTIMATORS.names():
+    for i, name in enumerate(names):
         cls = ESTIMATORS.load(name)
         est = cls()
         if isinstance(est, ParticleFilter):
@@ -131,6 +147,8 @@ def run_bench(particles: int = 1000, repeat: int = 5) -> dict[str, Any]:
         else:
             one = problem.subset(slice(0, 1))
             doc["estimators"][name] = {"update_s": _median_time(lambda: est.estimate(one, np.random.default_rng(0)), 1)}
+        rep.note(f"{name}: one update {1e3 * doc['estimators'][name]['update_s']:.1f} ms")
+        rep.progress(3 + i + 1, total, label)
     return doc
 
 
@@ -165,8 +183,8 @@ def bench(
 
     if json_out is not None:
         check_output_path(json_out, option="--json")
-    with status("benchmarking (simulating the paper's data, then timing)"):
-        doc = run_bench(particles, repeat)
+    with RichReporter() as reporter:
+        doc = run_bench(particles, repeat, reporter)
     t = Table(title=f"ICP score, {particles} particles (the same fitness values: max diff {doc['icp_score']['max_abs_fitness_diff']:g})")
     for col in ("k", "points", "vectorized (ms)", "Open3D loop (ms)", "speedup"):
         t.add_column(col, justify="right")

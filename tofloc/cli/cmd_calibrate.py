@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
@@ -17,8 +18,11 @@ __all__ = ["calibrate"]
 @app.command()
 def calibrate(
     logs: list[Path] = typer.Argument(..., metavar="LOG...", help="Logs (format v1) with /truth/T_map_base and /samples/T_base_tip."),
-    out: Path = typer.Option(..., "--out", help="Calibration TOML to write ([uncertainty], [mounting], [beam], [calibration])."),
-    plot: Optional[Path] = typer.Option(None, "--plot", help="Save a PNG of error vs distance per zone class here."),
+    out: Path = typer.Option(..., "--out", help=escape("Calibration TOML to write ([uncertainty] range model, [mounting], [beam] mixture, [calibration] record).")),
+    plot: Optional[Path] = typer.Option(
+        None, "--plot", metavar="PLOT.png",
+        help="Save a PNG of error vs distance per zone class here, and per-zone maps (median residual after the fitted "
+             "bias and its robust spread, per sensor) beside it as PLOT_zones.png."),
     map_paths: Optional[list[Path]] = typer.Option(
         None, "--map", help="Map to ray cast: once for every log, or once per log in order. Default: the CAD mesh "
         "<stem>.cad.ply beside a log's map when it exists, else the log's map."),
@@ -29,18 +33,21 @@ def calibrate(
     max_distance: float = typer.Option(100.0, "--max-distance", help="Use only zones expected at most this far (m)."),
     support_yaw: bool = typer.Option(
         True, "--support-yaw/--no-support-yaw",
-        help="Also fit the sensor support's rotation about the tip axis (maximum likelihood; written as [mounting])."),
+        help=escape("Also fit the sensor support's rotation about the tip axis (maximum likelihood; written as [mounting]).")),
     support_yaw_bound: float = typer.Option(20.0, "--support-yaw-bound", help="Search the support rotation within +- this (deg)."),
     mounting: bool = typer.Option(
         True, "--mounting/--no-mounting",
-        help="Also fit each sensor's mounting error (rotation, translation; robust least squares; written as [mounting.sensors])."),
+        help=escape("Also fit each sensor's mounting error (rotation, translation; robust least squares; written as "
+                    "[mounting.sensors]).")),
 ) -> None:
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
+    from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
     from tofloc.atomic import check_output_path
 
     check_output_path(out, option="--out")
     if plot is not None:
         check_output_path(plot, option="--plot")
+        check_output_path(zone_plot_path(plot), option="--plot")
     from sensor_models.calibration import plot_calibration
     from tofloc import api
     from tofloc.cli.options import parse_statuses
@@ -82,6 +89,8 @@ def calibrate(
     if plot is not None:
         plot_calibration(result, plot)
         err_console.print(f"wrote {plot}", highlight=False)
+        zones = plot_zone_residuals(result, run.rig, zone_plot_path(plot))
+        err_console.print(f"wrote {zones}", highlight=False)
 
 
 def _print_mounting(fit: Any) -> None:

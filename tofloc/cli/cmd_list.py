@@ -1,22 +1,34 @@
-"""``tofloc list``: the registered estimators and sensor models."""
+"""``tofloc list``: the registered estimators and sensor models; ``--params NAME``: one's
+parameters with their defaults and meaning."""
 
 from __future__ import annotations
 
 import warnings
+from typing import Optional
 
+import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import app, console
+from tofloc.errors import ParameterError
 from tofloc.registry import ESTIMATORS, SENSOR_MODELS
 
 
 @app.command("list")
-def list_plugins() -> None:
-    """List registered estimators and sensor models (built-ins and installed plug-ins)."""
+def list_plugins(
+    params: Optional[str] = typer.Option(
+        None, "--params", metavar="NAME",
+        help="Show the parameters of this estimator or sensor model: default, type and meaning (from its class)."),
+) -> None:
+    """List registered estimators and sensor models (built-ins and installed plug-ins), or one's parameters."""
+    if params is not None:
+        _print_params(params)
+        return
     for title, registry in (("Estimators", ESTIMATORS), ("Sensor models", SENSOR_MODELS)):
         table = Table(title=f"{title} (entry-point group {registry.group})")
         table.add_column("name", style="bold")
-        table.add_column("target")
+        table.add_column("target", overflow="fold")
         table.add_column("from")
         table.add_column("status")
         with warnings.catch_warnings():
@@ -27,3 +39,33 @@ def list_plugins() -> None:
         if not rows:
             table.add_row("-", "none registered", "", "")
         console.print(table)
+
+
+def _print_params(name: str) -> None:
+    from tofloc.param_docs import parameter_docs
+
+    found = [(kind, reg) for kind, reg in (("estimator", ESTIMATORS), ("sensor model", SENSOR_MODELS)) if name in reg.names()]
+    if not found:
+        raise ParameterError(f"--params: no estimator or sensor model named {name!r}; estimators: "
+                             f"{', '.join(ESTIMATORS.names())}; sensor models: {', '.join(SENSOR_MODELS.names())}")
+    for kind, reg in found:
+        cls = reg.load(name)
+        try:
+            rows = parameter_docs(cls)
+        except TypeError:
+            raise ParameterError(f"--params: the {kind} {name!r} ({cls.__qualname__}) is not a dataclass: its "
+                                 "parameters cannot be listed") from None
+        t = Table(title=f"{kind} {name} ({cls.__module__}.{cls.__qualname__})", show_lines=True)
+        t.add_column("parameter", style="bold", no_wrap=True)
+        t.add_column("default", overflow="fold")
+        t.add_column("meaning (type)", ratio=1)
+        for r in rows:
+            meaning = r.meaning.replace("``", "`")
+            shown = meaning if not r.type or meaning.startswith("one of ") else f"{meaning} ({r.type})"
+            t.add_row(r.name, escape(r.default), escape(shown))
+        console.print(t)
+        if kind == "estimator" and any(r.name == "sensor_model" for r in rows):
+            default_model = next(r.default for r in rows if r.name == "sensor_model").strip("'\"")
+            console.print(f"its sensor model's parameters: `tofloc list --params {default_model}` (set them with "
+                          f"--param sensor_model__KEY=VALUE or [estimators.{name}.sensor_model_params] in --config)",
+                          highlight=False, markup=False)

@@ -14,10 +14,11 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params, parse_samples, parse_statuses
+from tofloc.cli.options import estimator_params, parse_samples, parse_statuses, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["localize"]
@@ -47,15 +48,23 @@ def localize(
     prior_yaw_deg: Optional[float] = typer.Option(None, "--prior-yaw-deg", help="Prior mean yaw (deg)."),
     base_z: Optional[float] = typer.Option(None, "--base-z", help="Base height (m); needed when the log has no truth."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON here."),
+    plot_nees: Optional[Path] = typer.Option(
+        None, "--plot-nees", metavar="PNG",
+        help="Plot the trials' NEES (ECDF) against chi2(3) with its 95 % interval here (needs ground truth)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     param: Optional[list[str]] = typer.Option(
-        None, "--param", help="Estimator parameter key=value (repeatable); a sensor model's as sensor_model__key=value."),
+        None, "--param", help="Estimator parameter key=value (repeatable); a sensor model's as sensor_model__key=value. "
+        "Overrides the same key of --config (a note says so)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file: [estimator] and [estimators.NAME] tables with --param's keys "
+                    "(docs/evaluation.md); the resolved parameters are saved in the --json document.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
-        help="A calibration (`tofloc calibrate` output): the rig's mounting, the range model and the model tables, "
-             "applied to every problem of the estimators that use one.",
+        help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
+                    "the sensor models' tables ([beam]), applied to every problem of the estimators that use one."),
     ),
     port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
     baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
@@ -65,7 +74,10 @@ def localize(
     duration: Optional[float] = typer.Option(None, "--duration", help="Live: stop after this many seconds."),
     journal: Optional[Path] = typer.Option(None, "--journal", help="Live: journal of every raw line (default: beside --out)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Live: also write the captured samples as a log."),
-    estimates_out: Optional[Path] = typer.Option(None, "--estimates-out", help="Live: save every estimate here (CSV with covariance; TUM for .tum/.txt)."),
+    estimates_out: Optional[Path] = typer.Option(
+        None, "--estimates-out", metavar="FILE",
+        help="Save the estimates here: CSV with the (x, y, yaw) covariance, or TUM for .tum/.txt. Live: one row per "
+             "estimate as it comes; offline: one row per trial (its latest sample's index and time)."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
@@ -73,12 +85,25 @@ def localize(
 
     if json_out is not None:
         check_output_path(json_out, option="--json")
+    if plot_nees is not None:
+        if port is not None:
+            raise ParameterError("--plot-nees needs trials against ground truth: it is for offline runs (not --port)")
+        check_output_path(plot_nees, option="--plot-nees")
+    if estimates_out is not None and port is None:
+        check_output_path(estimates_out, option="--estimates-out")
+        if json_out is not None and estimates_out.resolve() == json_out.resolve():
+            raise ParameterError("--json and --estimates-out must name different files")
     from evaluation.priors import PriorSpec, base_pose_parts
     from evaluation.report import write_json_atomic
     from tofloc import api
     from tofloc.logs import read_log
 
-    params = parse_params(param)
+    require_finite({"--base-z": base_z, "--prior-x": prior_x, "--prior-y": prior_y, "--prior-yaw-deg": prior_yaw_deg,
+                    "--prior-sigma-xy": prior_sigma_xy, "--prior-sigma-yaw-deg": prior_sigma_yaw_deg})
+    resolved, notes = estimator_params(config, [estimator], param)
+    params = resolved[estimator]
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     statuses = parse_statuses(valid_statuses)
     if port is not None:
         from tofloc.cli.live_cmd import run_live
@@ -112,6 +137,8 @@ def localize(
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
     log = read_log(log_path)
     has_truth = log.T_map_base is not None
+    if plot_nees is not None and not has_truth:
+        raise ParameterError(f"--plot-nees: {log_path} has no /truth/T_map_base, so the trials have no NEES")
     if all(given):
         if has_truth:
             _, z_truth, roll, pitch = base_pose_parts(log.truth_per_sample()[0])
@@ -134,22 +161,48 @@ def localize(
             workers=workers, scheduler=scheduler, reporter=reporter,
         )
     doc = result.document
+    from evaluation.trials import jsonable
+
+    doc["config"] = {"file": None if config is None else str(config), "param_overrides": notes,
+                     "estimators": {estimator: jsonable(doc["params"])}}
     if calibration is not None and not doc["calibration_used"]:
         err_console.print(f"note: {estimator} does not use a calibration; {calibration} was not applied", highlight=False)
     if json_out is not None:
         write_json_atomic(doc, json_out)
+    if estimates_out is not None:
+        from tofloc.io.estimates import write_trial_estimates
+
+        if prior.mode == "given":
+            z, roll, pitch = prior.z, prior.roll, prior.pitch
+        else:  # the static base's known height and tilt (the truth's, as the priors take them)
+            first = int(doc["trials"][0]["sample_indices"][0])
+            _, z, roll, pitch = base_pose_parts(log.truth_per_sample()[first])
+        rows = write_trial_estimates(estimates_out, doc["trials"], log.timestamp_s, z=z, roll=roll, pitch=pitch)
+    if plot_nees is not None:
+        from evaluation.error_plots import plot_nees as draw_nees
+
+        values = [r["nees"] for r in doc["trials"] if r.get("nees") is not None]
+        label = f"{estimator}, {doc['tip_source']} tips, prior {doc['prior']['mode']}, k = {doc['samples']}"
+        draw_nees([(f"{Path(doc['log']).name}: {len(doc['trials'])} trial(s)", [(label, values)])], plot_nees)
     _print(doc, result.has_truth)
     if json_out is not None:
         err_console.print(f"wrote {json_out}", highlight=False)
+    if plot_nees is not None:
+        err_console.print(f"wrote {plot_nees}", highlight=False)
+    if estimates_out is not None:
+        err_console.print(f"wrote {rows} estimates to {estimates_out}", highlight=False)
 
 
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
+    """The trials (up to 10, or every estimate without truth) and the error summary; errors
+    in millimetres and degrees, poses in metres and degrees; fits 80 columns."""
     recs = doc["trials"]
     title = (f"{doc['estimator']} on {Path(doc['log']).name}: {len(recs)} trial(s) of {doc['samples']} sample(s), "
              f"tip source {doc['tip_source']}, prior {doc['prior']['mode']}")
     if not has_truth or len(recs) <= 10:
-        t = Table(title=(f"estimates ({title})" if not has_truth else "trials") + "; metres and degrees")
-        cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x", "e_gamma"] if has_truth else [])
+        t = Table(title=(f"estimates ({title})" if not has_truth else "trials") + "; x, y, sd in m, angles in deg",
+                  padding=(0, 1))
+        cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x mm", "e_γ deg"] if has_truth else [])
         for col in cols:
             t.add_column(col, justify="right")
         for r in recs:
@@ -158,7 +211,7 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
             row = [str(r["trial"]), f"{x:.4f}", f"{y:.4f}", f"{math.degrees(yaw):.2f}", f"{sd[0]:.4f}", f"{sd[1]:.4f}",
                    f"{math.degrees(sd[2]):.2f}"]
             if has_truth:
-                row += [f"{r['e_x_m']:.4f}", f"{r['e_gamma_deg']:.2f}"]
+                row += [f"{1000 * r['e_x_m']:.1f}", f"{r['e_gamma_deg']:.2f}"]
             t.add_row(*row)
         console.print(t)
     if not has_truth:
@@ -168,13 +221,16 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
     t.add_column("error")
     for col in ("mean", "std", "median", "rmse"):
         t.add_column(col, justify="right")
-    for key, label, digits in (("e_x_m", "e_x (m)", 4), ("e_gamma_deg", "e_gamma (deg)", 3)):
-        t.add_row(label, *(f"{s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
+    for key, label, scale, digits in (("e_x_m", "e_x (mm)", 1000.0, 1), ("e_gamma_deg", "e_γ (deg)", 1.0, 3)):
+        t.add_row(label, *(f"{scale * s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
     console.print(t)
-    extra = f"median runtime {s['runtime_s']['median']:.3f} s per trial"
+    rt = s["runtime_s"]
+    extra = f"median runtime {rt['median']:.3f} s per trial"
+    if s.get("setup_s") and s["setup_s"].get("total"):
+        extra += f" (and {s['setup_s']['total']:.2f} s of one-off set-up: imports, per-map caches)"
     if s.get("crlb"):
         c = s["crlb"]
-        pos = "unobservable" if c["position_m"] is None else f"{c['position_m']:.4f} m"
+        pos = "unobservable" if c["position_m"] is None else f"{1000 * c['position_m']:.2f} mm"
         yaw = "unobservable" if c["yaw_deg"] is None else f"{c['yaw_deg']:.3f} deg"
         console.print(f"mean sqrt(CRLB) over {c['n']} trial(s): position {pos}, yaw {yaw} "
                       "(the best an unbiased estimator can do with these zones)", highlight=False)

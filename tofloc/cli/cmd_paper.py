@@ -5,7 +5,8 @@ simulate (unless ``DIR/paper.h5`` exists; ``--scenario`` picks any scene of the 
 calibration session of the same set-up (``DIR/sensor_model.toml``, reused when its inputs
 are unchanged) -> the trial protocol for every estimator, both tip sources and both prior
 modes -> ``DIR/results.json``, ``DIR/table.md``, ``DIR/errors_knn.png``,
-``DIR/errors_mocap.png``. Finished batches are kept in ``DIR/partial/`` and reused by a
+``DIR/errors_mocap.png``, ``DIR/errors_vs_k.png`` (log scale), ``DIR/nees.png``,
+``DIR/config.toml`` (the parameters used). Finished batches are kept in ``DIR/partial/`` and reused by a
 rerun with the same arguments, so an interrupted run resumes where it stopped. The work
 is :func:`tofloc.api.paper`; this module parses and prints.
 """
@@ -16,10 +17,12 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
+from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params
+from tofloc.cli.options import estimator_params, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["paper"]
@@ -35,7 +38,12 @@ def paper(
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     scenario: str = typer.Option("paper", "--scenario", help="Scene to simulate when DIR has no data (see `tofloc simulate --help`)."),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
+    param: Optional[list[str]] = typer.Option(
+        None, "--param", help="Parameter key=value given to every estimator (repeatable); overrides the same key of --config."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file ([estimator] for every estimator, [estimators.NAME] for one; "
+                    "docs/evaluation.md). The parameters used are saved as DIR/config.toml.")),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
     prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
     calibration: Optional[Path] = typer.Option(
@@ -66,6 +74,7 @@ def paper(
     from tofloc.atomic import check_output_path
 
     check_output_path(out, kind="dir", option="--out")
+    require_finite({"--prior-sigma-xy": prior_sigma_xy, "--prior-sigma-yaw-deg": prior_sigma_yaw_deg})
 
     names = [n.strip() for n in estimators.split(",") if n.strip()]
     if not names or len(set(names)) != len(names):
@@ -96,9 +105,12 @@ def paper(
         raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out} exists and is not a folder")
+    per_estimator, notes = estimator_params(config, names, param)
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
         run = api.paper(
-            names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, params=parse_params(param),
+            names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
             prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter,
@@ -109,21 +121,37 @@ def paper(
 
 
 def _print(doc: dict[str, Any]) -> None:
+    """Table I in the console: one row per estimator, prior mode and tip source (fits 80
+    columns), e_x in millimetres, e_γ in degrees, and the mean sqrt(CRLB) of the same trials."""
     ks = doc.get("k_values") or list(range(1, doc["k_max"] + 1))
     span = f"k = {ks[0]}..{ks[-1]}" if ks == list(range(ks[0], ks[-1] + 1)) else f"k in {ks}"
-    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k")
-    for col in ("estimator", "prior", "k-NN e_x (m)", "k-NN e_γ (deg)", "mocap e_x (m)", "mocap e_γ (deg)"):
-        t.add_column(col)
+    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k",
+              caption="√CRLB: the mean sqrt(Cramér-Rao bound) of the same trials, position mm / yaw deg",
+              box=box.SIMPLE_HEAD)
+    widest = max([len("paper, Table I"), *(len(e) for e in doc["results"])])
+    for col, justify in (("estimator", "left"), ("prior", "left"), ("tips", "left"), ("e_x (mm)", "right"),
+                         ("e_γ (deg)", "right"), ("√CRLB", "right")):
+        t.add_column(col, justify=justify, min_width=widest if col == "estimator" else None)  # type: ignore[arg-type]
     p = doc["paper"]
-    t.add_row("paper, Table I", "paper",
-              *(f"{p[tip][key][0]:.{d}f} ± {p[tip][key][1]:.{d}f}" for tip in ("knn", "mocap") for key, d in (("e_x_m", 4), ("e_gamma_deg", 3))))
+    tips = [tip for tip in ("knn", "mocap") if any(tip in by_tip for by_tip in doc["results"].values())] or ["knn", "mocap"]
+    for i, tip in enumerate(tips):
+        t.add_row("paper, Table I" if i == 0 else "", "paper" if i == 0 else "", tip,
+                  f"{1000 * p[tip]['e_x_m'][0]:.1f} ± {1000 * p[tip]['e_x_m'][1]:.1f}",
+                  f"{p[tip]['e_gamma_deg'][0]:.2f} ± {p[tip]['e_gamma_deg'][1]:.2f}", "n/a")
     for est, by_tip in doc["results"].items():
-        for mode in sorted(by_tip.get("knn", {}) or by_tip.get("mocap", {}), key=lambda m: (m != "paper", m)):
-            cells = []
-            for tip in ("knn", "mocap"):
+        modes = sorted({m for tip in by_tip.values() for m in tip}, key=lambda m: (m != "paper", m))
+        first = True
+        for mode in modes:
+            for j, tip in enumerate(tips):
                 ov = by_tip.get(tip, {}).get(mode, {}).get("overall")
-                for key, d in (("e_x_m", 4), ("e_gamma_deg", 3)):
-                    s = ov[key] if ov else None
-                    cells.append("n/a" if not s or s["mean"] is None else f"{s['mean']:.{d}f} ± {s['std']:.{d}f}")
-            t.add_row(est, mode, *cells)
+                ex, eg = (ov or {}).get("e_x_m"), (ov or {}).get("e_gamma_deg")
+                c = (ov or {}).get("crlb") or {}
+                bound = ("n/a" if not c else
+                         f"{'-' if c.get('position_m') is None else format(1000 * c['position_m'], '.2f')}"
+                         f"/{'-' if c.get('yaw_deg') is None else format(c['yaw_deg'], '.2f')}")
+                t.add_row(est if first else "", mode if j == 0 else "", tip,
+                          "n/a" if not ex or ex["mean"] is None else f"{1000 * ex['mean']:.1f} ± {1000 * ex['std']:.1f}",
+                          "n/a" if not eg or eg["mean"] is None else f"{eg['mean']:.2f} ± {eg['std']:.2f}", bound,
+                          end_section=(mode == modes[-1] and j == len(tips) - 1))
+                first = False
     console.print(t)

@@ -7,10 +7,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params
+from tofloc.cli.options import estimator_params
 from tofloc.errors import ParameterError
 
 __all__ = ["scenes"]
@@ -27,7 +28,12 @@ def scenes(
     seed: int = typer.Option(0, "--seed", help="Seed of the simulations and the trials."),
     tip_source: str = typer.Option("mocap", "--tip-source", help="mocap or knn."),
     prior_mode: str = typer.Option("offset", "--prior-mode", help="offset or paper."),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator."),
+    param: Optional[list[str]] = typer.Option(
+        None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file ([estimator], [estimators.NAME]; as `tofloc paper`); "
+                    "saved as DIR/config.toml.")),
     calibrate: Optional[bool] = typer.Option(None, "--calibrate/--no-calibrate", help="As `tofloc paper`."),
     out: Path = typer.Option(Path("scenes-results"), "--out", help="Output folder (one sub-folder per scene)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core)."),
@@ -51,9 +57,12 @@ def scenes(
         raise ParameterError(f"--tip-source must be mocap or knn, got {tip_source!r}")
     if prior_mode not in ("offset", "paper"):
         raise ParameterError(f"--prior-mode must be offset or paper, got {prior_mode!r}")
+    per_estimator, notes = estimator_params(config, names, param)
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
-                         tip_source=tip_source, prior_mode=prior_mode, params=parse_params(param), calibrate=calibrate,
+                         tip_source=tip_source, prior_mode=prior_mode, estimator_params=per_estimator, calibrate=calibrate,
                          workers=workers, scheduler=scheduler, reporter=reporter)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):

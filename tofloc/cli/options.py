@@ -1,14 +1,16 @@
-"""Parsing of the options several commands share (``--param``, ``--valid-statuses``, ``--samples``)."""
+"""Parsing of the options several commands share (``--param``, ``--valid-statuses``, ``--samples``,
+finite numbers)."""
 
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any, Sequence
 
 from tofloc.errors import ParameterError
 
-__all__ = ["parse_params", "parse_statuses", "parse_samples"]
+__all__ = ["parse_params", "parse_statuses", "parse_samples", "require_finite", "estimator_params"]
 
 
 def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
@@ -65,3 +67,46 @@ def parse_samples(text: str, limit: int) -> int | None:
     if not 1 <= k <= limit:
         raise ParameterError(f"--samples must be in [1, {limit}] or 'all', got {k}")
     return k
+
+
+def require_finite(options: dict[str, float | None]) -> None:
+    """Refuse a NaN or infinite number option (``--base-z nan`` parses as a float).
+
+    Parameters
+    ----------
+    options : dict
+        ``{"--base-z": value, ...}``; None (not given) is skipped.
+
+    Raises
+    ------
+    ParameterError
+        One line naming the first non-finite option.
+    """
+    for name, value in options.items():
+        if value is not None and not math.isfinite(float(value)):
+            raise ParameterError(f"{name} expects a finite number, got {value}")
+
+
+def estimator_params(config: Path | None, names: Sequence[str], param: Sequence[str] | None
+                     ) -> tuple[dict[str, dict[str, Any]], list[str]]:
+    """Each estimator's parameters from ``--config FILE.toml`` and ``--param`` (which wins
+    over the file, key by key: :func:`tofloc.estimator_config.resolve_params`).
+
+    Returns
+    -------
+    (dict, list of str)
+        ``{name: params}`` and notes to print (overrides, tables of estimators not in the run).
+    """
+    from tofloc.estimator_config import read_config, resolve_params
+
+    cli = parse_params(param)
+    cfg = read_config(config) if config is not None else None
+    out: dict[str, dict[str, Any]] = {}
+    notes: list[str] = []
+    for name in names:
+        out[name], more = resolve_params(cfg, name, cli)
+        notes += more
+    if cfg is not None:
+        notes += [f"{cfg.source}: [estimators.{n}] not used (not an estimator of this run)"
+                  for n in cfg.per_estimator if n not in names]
+    return out, notes

@@ -2,7 +2,9 @@
 
 ``tofloc localize --port ... --estimates-out FILE`` appends one row per estimate and
 flushes it at once (``fsync`` at most every second), so a crash loses nothing already
-estimated. The suffix chooses the format:
+estimated. Offline, ``tofloc localize LOG --estimates-out FILE`` writes one row per trial
+(:func:`write_trial_estimates`, the file appears when complete). The suffix chooses the
+format:
 
 * ``.tum`` or ``.txt``: the TUM RGB-D trajectory format, one line per estimate,
   ``timestamp x y z qx qy qz qw`` (seconds, metres, unit quaternion of the base in the
@@ -12,7 +14,10 @@ estimated. The suffix chooses the format:
   (``cov_x_x, cov_x_y, cov_x_yaw, cov_y_x, ...``; m^2, m rad, rad^2).
 
 The timestamp is the sample's time as the log stores it (``/samples/timestamp_s``: the
-device clock for the tofloc protocol). Samples without an estimate write no row.
+device clock for the tofloc protocol). Samples without an estimate write no row. Offline,
+a row is a trial: ``sample_index`` and the timestamp are those of the trial's latest
+sample (its largest log row), ``n_used`` is its number of samples, ``skipped`` 0; rows
+follow the trials' order (``trial`` of the JSON), so several trials may share a timestamp.
 """
 
 from __future__ import annotations
@@ -20,15 +25,17 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import IO, Any
+from types import SimpleNamespace
+from typing import IO, Any, Mapping, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from tofloc import frames
 from tofloc.errors import ParameterError
 
-__all__ = ["EstimatesWriter", "ESTIMATE_COLUMNS", "TUM_SUFFIXES"]
+__all__ = ["EstimatesWriter", "ESTIMATE_COLUMNS", "TUM_SUFFIXES", "write_trial_estimates"]
 
 TUM_SUFFIXES = (".tum", ".txt")
 _AXES = ("x", "y", "yaw")
@@ -50,11 +57,14 @@ class EstimatesWriter:
         The base's known height and tilt (the prior's), to complete the 3-D pose.
     fsync_interval_s : float
         Longest time between two ``fsync`` calls.
+    tum : bool, optional
+        Force the format (default: from the suffix), e.g. for a temporary file.
     """
 
-    def __init__(self, path: str | Path, *, z: float, roll: float = 0.0, pitch: float = 0.0, fsync_interval_s: float = 1.0) -> None:
+    def __init__(self, path: str | Path, *, z: float, roll: float = 0.0, pitch: float = 0.0, fsync_interval_s: float = 1.0,
+                 tum: bool | None = None) -> None:
         self.path = Path(path)
-        self.tum = self.path.suffix.lower() in TUM_SUFFIXES
+        self.tum = self.path.suffix.lower() in TUM_SUFFIXES if tum is None else bool(tum)
         self.z, self.roll, self.pitch = float(z), float(roll), float(pitch)
         self.rows = 0
         self._fsync_interval = fsync_interval_s
@@ -110,3 +120,35 @@ class EstimatesWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def write_trial_estimates(path: str | Path, records: Sequence[Mapping[str, Any]], timestamp_s: ArrayLike, *, z: float,
+                          roll: float = 0.0, pitch: float = 0.0) -> int:
+    """Write the estimates of ``tofloc localize``'s trials (records of
+    :func:`evaluation.trials.run_trial`), one row per trial, atomically; returns the rows.
+
+    Parameters
+    ----------
+    path : Path
+        ``.tum``/``.txt`` for TUM, anything else for CSV (the live writer's formats).
+    records : sequence of dict
+        Trial records (``estimate``, ``covariance``, ``runtime_s``, ``sample_indices``).
+    timestamp_s : array (K,)
+        The log's ``/samples/timestamp_s``.
+    z, roll, pitch : float
+        The base's known height and tilt.
+    """
+    from tofloc.atomic import atomic_path
+
+    ts = np.asarray(timestamp_s, dtype=float)
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        with EstimatesWriter(tmp, z=z, roll=roll, pitch=pitch, fsync_interval_s=float("inf"),
+                             tum=p.suffix.lower() in TUM_SUFFIXES) as writer:
+            for r in records:
+                last = int(max(r["sample_indices"]))
+                est = SimpleNamespace(pose=r["estimate"], covariance=r["covariance"], runtime_s=r["runtime_s"])
+                writer.write(SimpleNamespace(estimate=est, sample_index=last, n_used=len(r["sample_indices"]), skipped=0),
+                             float(ts[last]))
+            rows = writer.rows
+    return rows

@@ -1,0 +1,254 @@
+"""Saved results as comparable series: ``results.json`` of ``tofloc paper`` and
+``tofloc localize --json`` files, read back (bounded, validated) for ``tofloc plot``.
+
+A *series* is one estimator, tip source and prior mode of one file, with its error
+statistics per number of samples k (a ``localize`` file: its one k) and over every trial.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from tofloc.errors import FormatError
+
+__all__ = ["Series", "ResultsFile", "load_results", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
+           "MAX_RESULTS_BYTES"]
+
+#: Largest results file read (bytes): a localize file of 100 000 trials is ~60 MB.
+MAX_RESULTS_BYTES = 256 * 2**20
+_STATS = ("mean", "std", "median", "rmse")
+
+
+@dataclass
+class Series:
+    """One estimator / tip source / prior mode of one results file.
+
+    Attributes
+    ----------
+    estimator, tip_source, prior_mode : str
+    per_k : dict
+        ``{k: {"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "crlb": {...} or None,
+        "n": int}}``.
+    overall : dict
+        The same over every trial (plus ``nees``: ``{"mean", ...}`` when defined).
+    nees : ndarray
+        Per-trial NEES values when the file holds trials (``localize``), else empty.
+    """
+
+    estimator: str
+    tip_source: str
+    prior_mode: str
+    per_k: dict[int, dict[str, Any]]
+    overall: dict[str, Any]
+    nees: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def ks(self) -> list[int]:
+        return sorted(self.per_k)
+
+
+@dataclass
+class ResultsFile:
+    """A results file read back: its kind (``"paper"`` or ``"localize"``), path and series."""
+
+    path: Path
+    kind: str
+    series: list[Series]
+    document: dict[str, Any]
+
+
+def _stat(d: Any, path: Path, where: str) -> dict[str, float | None]:
+    if d is None:
+        return {k: None for k in _STATS}
+    if not isinstance(d, Mapping):
+        raise FormatError(path, where, "an object with mean, std, median, rmse", type(d).__name__)
+    out: dict[str, float | None] = {}
+    for k in _STATS:
+        v = d.get(k)
+        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v)):
+            raise FormatError(path, f"{where}.{k}", "a finite number or null", repr(v)[:40])
+        out[k] = None if v is None else float(v)
+    return out
+
+
+def _crlb(d: Any, path: Path, where: str) -> dict[str, float | None] | None:
+    if d is None:
+        return None
+    if not isinstance(d, Mapping):
+        raise FormatError(path, where, "an object with position_m and yaw_deg", type(d).__name__)
+    out: dict[str, float | None] = {}
+    for k in ("position_m", "yaw_deg"):
+        v = d.get(k)
+        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0):
+            raise FormatError(path, f"{where}.{k}", "a finite number >= 0 or null", repr(v)[:40])
+        out[k] = None if v is None else float(v)
+    return out
+
+
+def _entry(d: Any, path: Path, where: str) -> dict[str, Any]:
+    if not isinstance(d, Mapping):
+        raise FormatError(path, where, "an object of error summaries", type(d).__name__)
+    n = d.get("n")
+    out = {"e_x_m": _stat(d.get("e_x_m"), path, f"{where}.e_x_m"),
+           "e_gamma_deg": _stat(d.get("e_gamma_deg"), path, f"{where}.e_gamma_deg"),
+           "crlb": _crlb(d.get("crlb"), path, f"{where}.crlb"),
+           "n": int(n) if isinstance(n, int) and not isinstance(n, bool) else None}
+    nees = d.get("nees")
+    if isinstance(nees, Mapping) and isinstance(nees.get("mean"), (int, float)):
+        out["nees_mean"] = float(nees["mean"])
+    return out
+
+
+def _name(v: Any, path: Path, where: str) -> str:
+    if not isinstance(v, str) or not v or len(v) > 200:
+        raise FormatError(path, where, "a name (a non-empty string)", repr(v)[:40])
+    return v
+
+
+def load_results(path: str | Path) -> ResultsFile:
+    """Read a ``results.json`` of ``tofloc paper`` or a ``tofloc localize --json`` file.
+
+    Raises
+    ------
+    FormatError
+        Unreadable, too large, not JSON, or neither kind of file (one line naming the file
+        and the key).
+    """
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        if size > MAX_RESULTS_BYTES:
+            raise FormatError(p, "file", f"at most {MAX_RESULTS_BYTES} bytes", f"{size} bytes")
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise FormatError(p, "file", "a readable results file", e.strerror) from None
+    except (ValueError, RecursionError) as e:
+        raise FormatError(p, "file", "JSON", str(e)[:120]) from None
+    if not isinstance(doc, dict):
+        raise FormatError(p, "file", "a JSON object", type(doc).__name__)
+    kind, series = series_of(doc, p)
+    return ResultsFile(p, kind, series, doc)
+
+
+def series_of(doc: Mapping[str, Any], source: str | Path = "<results>") -> tuple[str, list[Series]]:
+    """The kind (``"paper"`` or ``"localize"``) and the series of a results document
+    (read from a file or just made); errors name ``source``."""
+    p = Path(source)
+    if "results" in doc and "paper" in doc:
+        return "paper", _paper_series(doc, p)
+    if "trials" in doc and "summary" in doc and "estimator" in doc:
+        return "localize", [_localize_series(doc, p)]
+    raise FormatError(p, "file", "a results.json of `tofloc paper` (keys results, paper) or a `tofloc localize --json` "
+                      "file (keys estimator, trials, summary)", f"keys {sorted(doc)[:8]}")
+
+
+def _paper_series(doc: Mapping[str, Any], p: Path) -> list[Series]:
+    results = doc["results"]
+    if not isinstance(results, Mapping):
+        raise FormatError(p, "results", "an object {estimator: {tip source: {prior mode: ...}}}", type(results).__name__)
+    out = []
+    for est, by_tip in results.items():
+        if not isinstance(by_tip, Mapping):
+            raise FormatError(p, f"results.{est}", "an object {tip source: ...}", type(by_tip).__name__)
+        for tip, by_mode in by_tip.items():
+            if not isinstance(by_mode, Mapping):
+                raise FormatError(p, f"results.{est}.{tip}", "an object {prior mode: ...}", type(by_mode).__name__)
+            for mode, group in by_mode.items():
+                where = f"results.{est}.{tip}.{mode}"
+                if not isinstance(group, Mapping) or not isinstance(group.get("per_k"), Mapping):
+                    raise FormatError(p, where, "an object with per_k and overall", repr(group)[:40])
+                per_k = {}
+                for k, entry in group["per_k"].items():
+                    try:
+                        ki = int(k)
+                    except ValueError:
+                        raise FormatError(p, f"{where}.per_k", "keys that are numbers of samples", repr(k)[:20]) from None
+                    per_k[ki] = _entry(entry, p, f"{where}.per_k.{k}")
+                overall = _entry(group.get("overall") or {}, p, f"{where}.overall")
+                out.append(Series(_name(est, p, "results"), _name(tip, p, f"results.{est}"),
+                                  _name(mode, p, f"results.{est}.{tip}"), per_k, overall))
+    return out
+
+
+def _localize_series(doc: Mapping[str, Any], p: Path) -> Series:
+    k = doc.get("samples")
+    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+        raise FormatError(p, "samples", "the number of samples per trial (an integer >= 1)", repr(k)[:40])
+    trials = doc["trials"]
+    if not isinstance(trials, list):
+        raise FormatError(p, "trials", "a list of trial records", type(trials).__name__)
+    summary = doc["summary"]
+    if not isinstance(summary, Mapping):
+        raise FormatError(p, "summary", "an object", type(summary).__name__)
+    entry = _entry({**summary, "n": len(trials)}, p, "summary")
+    nees = np.array([float(t["nees"]) for t in trials
+                     if isinstance(t, Mapping) and isinstance(t.get("nees"), (int, float)) and not isinstance(t.get("nees"), bool)
+                     and math.isfinite(t["nees"])])
+    prior = doc.get("prior")
+    mode = prior.get("mode") if isinstance(prior, Mapping) else None
+    return Series(_name(doc["estimator"], p, "estimator"), _name(doc.get("tip_source"), p, "tip_source"),
+                  _name(mode, p, "prior.mode"), {int(k): entry}, entry, nees)
+
+
+def file_labels(paths: Sequence[Path]) -> list[str]:
+    """Short distinct labels of result files: the file's stem (its folder's name for a
+    ``results.json``, ``tofloc paper``'s), with parent folders added until they differ."""
+    def label(p: Path, depth: int) -> str:
+        q = Path(p).resolve()
+        folders = list(q.parent.parts[1:])
+        if q.name == "results.json":
+            return "/".join(folders[-depth:])
+        return "/".join(folders[len(folders) - (depth - 1):] + [q.stem] if depth > 1 else [q.stem])
+
+    for depth in range(1, 8):
+        labels = [label(p, depth) for p in paths]
+        if len(set(labels)) == len(labels):
+            return labels
+    return [str(p) for p in paths]
+
+
+def comparison_rows(files: Sequence[ResultsFile], labels: Sequence[str]) -> list[dict[str, Any]]:
+    """One row per series of every file: its overall statistics (over every trial and k)."""
+    rows = []
+    for f, lab in zip(files, labels):
+        for s in f.series:
+            ks = s.ks
+            o = s.overall
+            crlb = o.get("crlb") or {}
+            rows.append({
+                "file": lab, "estimator": s.estimator, "tip_source": s.tip_source, "prior_mode": s.prior_mode,
+                "k": f"{ks[0]}" if len(ks) == 1 else f"{ks[0]}-{ks[-1]}" if ks == list(range(ks[0], ks[-1] + 1)) else
+                ",".join(map(str, ks)),
+                "n": o.get("n"),
+                **{f"e_x_mm_{k}": None if o["e_x_m"][k] is None else 1000.0 * o["e_x_m"][k] for k in ("mean", "median", "rmse")},
+                **{f"e_gamma_deg_{k}": o["e_gamma_deg"][k] for k in ("mean", "median", "rmse")},
+                "crlb_mm": None if crlb.get("position_m") is None else 1000.0 * crlb["position_m"],
+                "crlb_deg": crlb.get("yaw_deg"),
+                "nees_mean": o.get("nees_mean"),
+            })
+    return rows
+
+
+def comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Sequence[tuple[str, Path]]) -> str:
+    """``comparison.md``: the files compared, then one row per series."""
+    def f(v: Any, fmt: str) -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    lines = ["# Comparison of saved results", "", "Over every trial of every k of each series; e_x in mm, e_gamma in deg;",
+             "sqrt(CRLB): the mean bound of the same trials (mm / deg).", "", "| label | file |", "|---|---|"]
+    lines += [f"| {lab} | `{p}` |" for lab, p in files]
+    lines += ["", "| file | estimator | tip source | prior | k | n | e_x mean | e_x median | e_x RMSE | e_gamma mean | "
+              "e_gamma median | e_gamma RMSE | sqrt(CRLB) | NEES |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        bound = "n/a" if r["crlb_mm"] is None and r["crlb_deg"] is None else f"{f(r['crlb_mm'], '.2f')} / {f(r['crlb_deg'], '.3f')}"
+        lines.append(f"| {r['file']} | {r['estimator']} | {r['tip_source']} | {r['prior_mode']} | {r['k']} | {f(r['n'], 'd')} | "
+                     f"{f(r['e_x_mm_mean'], '.2f')} | {f(r['e_x_mm_median'], '.2f')} | {f(r['e_x_mm_rmse'], '.2f')} | "
+                     f"{f(r['e_gamma_deg_mean'], '.3f')} | {f(r['e_gamma_deg_median'], '.3f')} | {f(r['e_gamma_deg_rmse'], '.3f')} | "
+                     f"{bound} | {f(r['nees_mean'], '.2f')} |")
+    return "\n".join(lines) + "\n"

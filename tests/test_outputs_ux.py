@@ -1,0 +1,260 @@
+"""Issue 14, items 14-16: log-scale error lines, NEES against chi2, per-zone calibration maps,
+`tofloc plot`, `tofloc list --params`, `--config` files, help texts, 80-column tables."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tofloc.cli import main
+from tofloc.errors import FormatError
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _record(k: int, trial: int, e_x: float, e_g: float, nees: float | None, crlb: float = 0.002) -> dict:
+    return {"k": k, "trial": trial, "e_x_m": e_x, "e_gamma_deg": e_g, "nees": nees, "runtime_s": 0.1, "setup_s": 0.0,
+            "crlb": {"position_m": crlb / k ** 0.5, "yaw_deg": 0.3 / k ** 0.5}, "sample_indices": list(range(k))}
+
+
+def _paper_doc() -> dict:
+    """A results.json as `tofloc paper` writes it, for two estimators far apart (metres vs millimetres)."""
+    from evaluation.report import results_document
+
+    rng = np.random.default_rng(0)
+    records = {}
+    for est, scale in (("icp_pf", 0.15), ("likelihood_field_pf", 0.004)):
+        for tip in ("knn", "mocap"):
+            for mode in ("paper", "offset"):
+                records[(est, tip, mode)] = [_record(k, t, scale * (1 + 0.1 * rng.random()) / k ** 0.3, 2.0 / k, 3 * rng.chisquare(3))
+                                             for k in (1, 2, 3) for t in range(4)]
+    return results_document(records, [1, 2, 3], 4, 0, extra={"scenario": "paper", "k_values": [1, 2, 3]})
+
+
+def _localize_doc(k: int = 2, n: int = 5) -> dict:
+    from evaluation.report import summarize_trials
+
+    recs = [_record(k, t, 0.003 + 0.001 * t, 1.0, 2.0 + t) for t in range(n)]
+    return {"log": "/x/paper.h5", "estimator": "beam_pf", "tip_source": "mocap", "samples": k,
+            "prior": {"mode": "offset", "sigma_xy_m": 0.2, "sigma_yaw_deg": 20.0}, "trials": recs,
+            "summary": summarize_trials(recs)}
+
+
+# -- plots ---------------------------------------------------------------------------------------------
+
+
+def test_error_lines_and_nees_plots(tmp_path: Path) -> None:
+    from evaluation.compare import series_of
+    from evaluation.error_plots import nees_band, plot_errors_vs_k, plot_nees
+    from evaluation.report import PAPER_TABLE_I
+
+    kind, series = series_of(_paper_doc())
+    assert kind == "paper" and len(series) == 8
+    one = [s for s in series if s.estimator == "likelihood_field_pf" and s.tip_source == "knn" and s.prior_mode == "offset"][0]
+    assert one.ks == [1, 2, 3] and one.per_k[2]["crlb"]["position_m"] == pytest.approx(0.002 / 2 ** 0.5)
+    p = plot_errors_vs_k([("run", series), ("loc", series_of(_localize_doc())[1])], tmp_path / "e.png", paper=PAPER_TABLE_I)
+    assert p.read_bytes()[:8] == PNG and p.stat().st_size > 30_000
+    lo, hi = nees_band(3)
+    assert (lo, hi) == pytest.approx((0.2158, 9.3484), abs=1e-4)
+    q = plot_nees([("a", [("x", np.random.default_rng(1).chisquare(3, 200), {"color": "C3", "ls": "--"}), ("y", [])])],
+                  tmp_path / "n.png")
+    assert q.read_bytes()[:8] == PNG and q.stat().st_size > 20_000
+
+
+def test_zone_statistics_find_each_zones_bias() -> None:
+    """Per-zone medians and robust spreads over the zones the calibration used (zone_id)."""
+    from sensor_models.calibration import ZoneSamples, fit_em
+    from sensor_models.calibration.plots import MAD_TO_SIGMA, zone_statistics
+
+    rng = np.random.default_rng(3)
+    n_zones, per = 6, 3000
+    zone = np.repeat(np.arange(n_zones), per)
+    offset = np.array([0.0, 0.01, -0.01, 0.02, 0.0, 0.0])  # per-zone bias the curves do not model (m)
+    spread = np.array([0.005, 0.005, 0.005, 0.005, 0.015, 0.005])
+    d = rng.uniform(0.3, 1.5, zone.size)
+    z = d + offset[zone] + spread[zone] * rng.normal(size=zone.size)
+    zs = ZoneSamples(z, d, np.zeros(zone.size, bool), np.zeros(zone.size, bool), np.full(zone.size, 4.0), {},
+                     zone_id=zone.astype(np.int64))
+    assert zs.subset(zone < 3).zone_id.max() == 2 and ZoneSamples.concatenate([zs, zs]).zone_id.size == 2 * zone.size
+    res = fit_em(zs, max_iter=30)
+    st = zone_statistics(res, n_zones + 2)  # two zones without readings
+    base = float(np.median(offset[zone]))  # the fitted bias curve absorbs the common part
+    assert st["median_m"][:n_zones] - st["median_m"][0] == pytest.approx(offset - offset[0], abs=1.5e-3)
+    assert st["spread_m"][4] == pytest.approx(0.015, rel=0.1) and st["spread_m"][0] == pytest.approx(0.005, rel=0.15)
+    assert np.isnan(st["median_m"][n_zones:]).all() and st["count"][n_zones:].tolist() == [0, 0]
+    assert MAD_TO_SIGMA == pytest.approx(1.4826) and abs(base) < 0.02
+
+
+def test_zone_maps_of_a_grid_rig_and_of_zone_tables(tmp_path: Path) -> None:
+    from sensor_models.calibration import ZoneSamples, fit_em
+    from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
+    from tofloc.rig import Rig, Sensor
+
+    rng = np.random.default_rng(4)
+    for name, rig in (("grid", Rig((Sensor("a"), Sensor("b")))),
+                      ("table", Rig(tuple(Sensor(f"s{i}", resolution=(1, 8), zone_directions=np.column_stack(
+                          [np.linspace(-0.3, 0.3, 8), np.zeros(8), np.ones(8)])) for i in range(4))))):
+        n = rig.n_sensors * rig.n_zones
+        zone = np.repeat(np.arange(n), 40)
+        d = rng.uniform(0.3, 1.5, zone.size)
+        zs = ZoneSamples(d + 0.002 * rng.normal(size=zone.size), d, np.zeros(zone.size, bool), np.zeros(zone.size, bool),
+                         np.full(zone.size, 4.0), {}, zone_id=zone.astype(np.int64))
+        p = plot_zone_residuals(fit_em(zs, max_iter=10), rig, zone_plot_path(tmp_path / f"{name}.png"))
+        assert p.name == f"{name}_zones.png" and p.read_bytes()[:8] == PNG
+
+
+# -- tofloc plot ---------------------------------------------------------------------------------------
+
+
+def test_cli_plot_compares_saved_results(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COLUMNS", "80")
+    for run in ("a", "b"):
+        (tmp_path / run).mkdir()
+        (tmp_path / run / "results.json").write_text(json.dumps(_paper_doc()))
+    (tmp_path / "loc.json").write_text(json.dumps(_localize_doc()))
+    out = tmp_path / "cmp"
+    code = main(["plot", str(tmp_path / "a" / "results.json"), str(tmp_path / "b" / "results.json"), str(tmp_path / "loc.json"),
+                 "--out", str(out)])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    for name in ("errors_vs_k.png", "nees.png"):
+        assert (out / name).read_bytes()[:8] == PNG
+    md = (out / "comparison.md").read_text()
+    assert "| a | `" in md and "| b | `" in md and "| loc | `" in md
+    assert "| loc | beam_pf | mocap | offset | 2 | 5 | 5.00 |" in md  # e_x mean 5.00 mm over the 5 trials
+    assert md.count("| a | likelihood_field_pf |") == 4 and "Made by `tofloc plot" in md
+    lines = cap.out.splitlines()
+    assert max(len(line) for line in lines) <= 80 and "…" not in cap.out and "likelihood_field_pf" in cap.out
+    # not a results file: one line naming the file and what it lacks
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"results": {"x": 1}, "paper": {}}')
+    assert main(["plot", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "results.x" in err and len(err.strip().splitlines()) == 1
+    bad.write_text("[1, 2]")
+    assert main(["plot", str(bad), "--out", str(out)]) == 2
+    assert "a JSON object" in capsys.readouterr().err
+
+
+def test_console_tables_fit_80_columns(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COLUMNS", "80")
+    from tofloc.cli.cmd_paper import _print as print_paper
+
+    print_paper(_paper_doc())
+    out = capsys.readouterr().out
+    assert max(len(line) for line in out.splitlines()) <= 80 and "…" not in out
+    assert "e_x (mm)" in out and "30.0 ± 7.6" in out and "likelihood_field_pf" in out
+
+
+# -- tofloc list --params, --config, help texts --------------------------------------------------------
+
+
+def test_list_params_shows_defaults_and_meaning(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("COLUMNS", "120")
+    assert main(["list", "--params", "beam_pf"]) == 0
+    out = capsys.readouterr().out
+    assert "n_particles" in out and "1000" in out and "Number of particles M" in out
+    assert "roughening" in out and "0.2" in out and "tofloc list --params beam" in out  # its sensor model's, next
+    assert main(["list", "--params", "beam"]) == 0
+    out = capsys.readouterr().out
+    assert "temper" in out and "0.25" in out and "[beam]" in out  # the docstring's table name survives rich markup
+    assert main(["list", "--params", "nope"]) == 2
+    assert "no estimator or sensor model named 'nope'" in capsys.readouterr().err
+
+
+def test_numpydoc_parameters() -> None:
+    from tofloc.param_docs import numpydoc_parameters
+
+    doc = """Title.
+
+    Parameters
+    ----------
+    a, b : float
+        Two things,
+        on two lines.
+    c : {"x", "y"}
+    d
+        Untyped.
+
+    Returns
+    -------
+    e : int
+        Not a parameter.
+    """
+    assert numpydoc_parameters(doc) == {"a": ("float", "Two things, on two lines."), "b": ("float", "Two things, on two lines."),
+                                        "c": ('{"x", "y"}', ""), "d": ("", "Untyped.")}
+
+
+@pytest.mark.parametrize(("text", "where"), [
+    ("[estimatr]\nn_particles = 1\n", "estimatr"),
+    ("[estimators.nope]\nn_particles = 1\n", "[estimators.nope]"),
+    ("[estimator]\nsensor_model_params = 3\n", "[estimator].sensor_model_params"),
+    ("estimator = 3\n", "estimator"),
+])
+def test_config_file_shape_errors(tmp_path: Path, text: str, where: str) -> None:
+    from tofloc.estimator_config import read_config
+
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    with pytest.raises(FormatError) as e:
+        read_config(p)
+    assert str(p) in str(e.value) and where in str(e.value)
+
+
+def test_config_resolution_order_and_unknown_keys(tmp_path: Path) -> None:
+    from tofloc.estimator_config import config_toml, read_config, resolve_params
+
+    p = tmp_path / "c.toml"
+    p.write_text("[estimator]\nn_particles = 500\nroughening = 0.1\n[estimators.beam_pf]\nroughening = 0.3\n"
+                 "[estimators.beam_pf.sensor_model_params]\ntemper = 0.5\nsub_rays = 2\n")
+    cfg = read_config(p)
+    params, notes = resolve_params(cfg, "beam_pf", {"sensor_model_params": {"temper": 0.4}})
+    assert params == {"n_particles": 500, "roughening": 0.3, "sensor_model_params": {"temper": 0.4, "sub_rays": 2}}
+    assert notes == [f"--param beam_pf: sensor_model__temper=0.4 overrides 0.5 of {p}"]
+    assert resolve_params(cfg, "icp_pf", {})[0] == {"n_particles": 500, "roughening": 0.1}
+    with pytest.raises(FormatError, match=r"\[estimator\]\.n_particles.*gtsam_smoother"):
+        resolve_params(cfg, "gtsam_smoother", {})  # [estimator] goes to every estimator: it must fit each
+    p.write_text("[estimators.beam_pf.sensor_model_params]\ntempr = 0.5\n")
+    with pytest.raises(FormatError, match=r"\[estimators.beam_pf.sensor_model_params\]\.tempr.*sensor model beam"):
+        resolve_params(read_config(p), "beam_pf", {})
+    # what a run saves reads back to the same parameters
+    from tofloc import api
+
+    full = api.estimator("beam_pf", {"roughening": 0.3}).get_params()
+    back = tmp_path / "back.toml"
+    back.write_text(config_toml({"beam_pf": full}, header=["x"]))
+    assert api.estimator("beam_pf", resolve_params(read_config(back), "beam_pf")[0]).get_params() == full
+
+
+def test_help_texts_keep_their_brackets(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rich markup swallowed "[uncertainty]" and "[beam]" in --help: no help text of any
+    command may lose text to markup, and the literal tables show where they are meant."""
+    import click
+    import typer.main
+    from rich.text import Text
+
+    from tofloc.cli import app
+
+    def walk(cmd: click.Command, path: tuple[str, ...]):
+        yield path, cmd
+        if isinstance(cmd, click.Group):
+            for name, sub in cmd.commands.items():
+                yield from walk(sub, path + (name,))
+
+    lost = []
+    for path, cmd in walk(typer.main.get_command(app), ()):
+        for name, text in [("(command)", cmd.help or "")] + [(p.name, getattr(p, "help", None) or "") for p in cmd.params]:
+            if Text.from_markup(text).plain != text.replace("\\[", "["):
+                lost.append((" ".join(path), name))
+    assert lost == []
+    monkeypatch.setenv("COLUMNS", "200")
+    for command, needles in ((["localize", "--help"], ("[uncertainty]", "[beam]", "[mounting]", "[estimators.NAME]")),
+                             (["calibrate", "--help"], ("[uncertainty]", "[beam]", "[mounting.sensors]"))):
+        assert main(command) == 0
+        out = capsys.readouterr().out
+        for needle in needles:
+            assert needle in out, (command, needle)

@@ -1,0 +1,46 @@
+"""Issue 14, item 17: what the package declares is what it uses; `make test-fast` skips the slow tests."""
+
+from __future__ import annotations
+
+import ast
+import re
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("tofloc", "estimators", "sensor_models", "evaluation")
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_filterpy_is_a_test_only_dependency() -> None:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert not any(d.startswith("filterpy") for d in project["dependencies"])
+    assert any(d.startswith("filterpy") for d in project["optional-dependencies"]["test"])
+    runtime = [p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py") if "filterpy" in _imports(p)]
+    assert runtime == []  # nothing at run time imports it ...
+    assert "filterpy" in _imports(ROOT / "tests" / "test_resampling.py")  # ... the cross-check does
+    readme = (ROOT / "README.md").read_text()
+    assert "filterpy" in readme and "filterpy#290" in readme and "test-only" in readme
+
+
+def test_make_test_fast_skips_the_slow_tests() -> None:
+    make = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^test-fast:.*\n((?:\t.*\n)+)", make, flags=re.M)
+    assert recipe and '-m "not slow"' in recipe.group(1)
+    markers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["markers"]
+    assert any(m.startswith("slow:") for m in markers)
+    slow = sum(len(re.findall(r"^@pytest\.mark\.slow\b", p.read_text(), flags=re.M)) for p in (ROOT / "tests").glob("test_*.py"))
+    assert slow >= 1
+    readme = (ROOT / "README.md").read_text()
+    sentence = re.search(r"`make test-fast` skips the (\d+) tests marked `slow`", readme)
+    assert sentence and int(sentence.group(1)) == slow, "the README's count of slow tests is out of date"

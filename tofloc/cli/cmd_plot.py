@@ -1,0 +1,78 @@
+"""``tofloc plot``: re-plot and compare saved results (``results.json`` of ``tofloc paper``,
+``tofloc localize --json`` files) without running anything again.
+
+Writes ``DIR/errors_vs_k.png`` (error against k on a log scale, one line style per file),
+``DIR/comparison.md`` (one row per estimator, tip source and prior mode of every file, as
+``evo_res`` compares trajectories' statistics) and, when a file holds per-trial NEES (a
+``localize`` file), ``DIR/nees.png``; prints the comparison table.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich import box
+from rich.table import Table
+
+from tofloc.cli.app import app, console, err_console
+from tofloc.errors import ParameterError
+
+__all__ = ["plot"]
+
+#: Files compared at most (line styles and the legend stay readable).
+MAX_FILES = 12
+
+
+@app.command("plot")
+def plot(
+    results: list[Path] = typer.Argument(..., metavar="RESULTS.json...",
+                                         help="results.json of `tofloc paper` or `tofloc localize --json` files (one or more)."),
+    out: Path = typer.Option(..., "--out", metavar="DIR", help="Output folder: errors_vs_k.png, comparison.md (and nees.png)."),
+) -> None:
+    """Re-plot and compare saved results: error against k (log scale, one line style per file) and a comparison table."""
+    from evaluation.compare import comparison_markdown, comparison_rows, file_labels, load_results
+    from evaluation.error_plots import plot_errors_vs_k, plot_nees
+    from evaluation.report import PAPER_TABLE_I, write_text_atomic
+    from tofloc.atomic import check_output_path
+    from tofloc.provenance import provenance
+
+    check_output_path(out, kind="dir", option="--out")
+    if len(results) > MAX_FILES:
+        raise ParameterError(f"tofloc plot compares at most {MAX_FILES} files, got {len(results)}")
+    if len({p.resolve() for p in results}) != len(results):
+        raise ParameterError("tofloc plot: a results file is given twice")
+    files = [load_results(p) for p in results]
+    labels = file_labels([f.path for f in files])
+    with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
+    written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / "errors_vs_k.png",
+                                paper=PAPER_TABLE_I if with_paper else None)]
+    nees = [(f"{lab}: {s.estimator}, {s.tip_source} tips, prior {s.prior_mode}", s.nees)
+            for lab, f in zip(labels, files) for s in f.series if s.nees.size]
+    if nees:
+        written.append(plot_nees([("per-trial NEES of the localize files", nees)], out / "nees.png"))
+    rows = comparison_rows(files, labels)
+    prov = provenance()
+    text = comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)])
+    text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
+             f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
+    written.append(write_text_atomic(text, out / "comparison.md"))
+    _print(rows)
+    for p in written:
+        err_console.print(f"wrote {p}", highlight=False)
+
+
+def _print(rows: list[dict]) -> None:
+    def f(v: object, fmt: str) -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    t = Table(title="over every trial of each series (means; medians in comparison.md)", box=box.SIMPLE_HEAD,
+              pad_edge=False, collapse_padding=True)
+    widest = max([len(r["estimator"]) for r in rows] or [9])
+    for col, justify in (("file", "left"), ("estimator", "left"), ("tip", "left"), ("prior", "left"), ("k", "right"),
+                         ("n", "right"), ("e_x mm", "right"), ("e_γ deg", "right"), ("NEES", "right")):
+        t.add_column(col, justify=justify, min_width=widest if col == "estimator" else None)  # type: ignore[arg-type]
+    for r in rows:
+        t.add_row(r["file"], r["estimator"], r["tip_source"], r["prior_mode"], r["k"], f(r["n"], "d"),
+                  f(r["e_x_mm_mean"], ".1f"), f(r["e_gamma_deg_mean"], ".2f"), f(r["nees_mean"], ".2f"))
+    console.print(t)

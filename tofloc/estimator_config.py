@@ -1,0 +1,159 @@
+"""Estimator parameters from a TOML file (``--config FILE.toml`` of ``localize``, ``paper``
+and ``scenes``), merged with ``--param`` and saved beside the results.
+
+The file holds two kinds of tables, with the keys ``--param`` takes:
+
+.. code-block:: toml
+
+    [estimator]                               # every estimator of the run
+    n_particles = 2000
+
+    [estimators.beam_pf]                      # this estimator only (wins over [estimator])
+    roughening = 0.3
+    [estimators.beam_pf.sensor_model_params]  # its sensor model's parameters
+    temper = 0.5
+
+Every key is checked against the estimator's parameters (and ``sensor_model_params``
+against its sensor model's) before anything runs; an unknown table or key is refused
+with one line naming the file and the key. ``--param key=value`` given on the command
+line overrides the file's value for that key (a note says so); the file is never
+overridden by a default. The resolved parameters of every estimator are written back as
+the same kind of file (``config.toml`` in a ``paper``/``scenes`` output folder; a
+``localize --json`` document's ``config``), which ``--config`` reads again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from tofloc.errors import FormatError
+
+__all__ = ["EstimatorConfig", "read_config", "resolve_params", "merge_params", "config_toml"]
+
+_NESTED = "sensor_model_params"
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """A parsed config file: ``common`` (``[estimator]``) and ``per_estimator``
+    (``[estimators.NAME]``) parameter tables, and where they came from."""
+
+    common: Mapping[str, Any] = field(default_factory=dict)
+    per_estimator: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    source: str = "<config>"
+
+
+def read_config(path: str | Path) -> EstimatorConfig:
+    """Read and shape-check a config file (its keys are checked against the estimators by
+    :func:`resolve_params`)."""
+    from tofloc.registry import ESTIMATORS
+    from tofloc.toml_tables import read_toml
+
+    p = Path(path)
+    data = read_toml(p)
+    unknown = sorted(set(data) - {"estimator", "estimators"})
+    if unknown:
+        raise FormatError(p, unknown[0], "only the tables [estimator] and [estimators.NAME]", "an unknown table or key")
+    common = data.get("estimator", {})
+    if not isinstance(common, Mapping):
+        raise FormatError(p, "estimator", "a table of estimator parameters ([estimator])", type(common).__name__)
+    per = data.get("estimators", {})
+    if not isinstance(per, Mapping):
+        raise FormatError(p, "estimators", "tables [estimators.NAME]", type(per).__name__)
+    for name, table in per.items():
+        if not isinstance(table, Mapping):
+            raise FormatError(p, f"estimators.{name}", "a table of that estimator's parameters", type(table).__name__)
+        if name not in ESTIMATORS.names():
+            raise FormatError(p, f"[estimators.{name}]", f"a registered estimator ({', '.join(ESTIMATORS.names())})",
+                              "an unknown name")
+    for where, table in [("estimator", common)] + [(f"estimators.{n}", t) for n, t in per.items()]:
+        nested = table.get(_NESTED)
+        if nested is not None and not isinstance(nested, Mapping):
+            raise FormatError(p, f"[{where}].{_NESTED}", f"a table [{where}.{_NESTED}]", type(nested).__name__)
+    return EstimatorConfig({k: v for k, v in common.items()}, {n: dict(t) for n, t in per.items()}, str(p))
+
+
+def _fields(cls: type) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+
+
+def merge_params(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` updated with ``over``; ``sensor_model_params`` tables merge key by key."""
+    out = dict(base)
+    for k, v in over.items():
+        if k == _NESTED and isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = {**out[k], **v}
+        else:
+            out[k] = v
+    return out
+
+
+def resolve_params(config: EstimatorConfig | None, name: str, cli_params: Mapping[str, Any] | None = None
+                   ) -> tuple[dict[str, Any], list[str]]:
+    """The parameters of estimator ``name``: ``[estimator]``, then ``[estimators.NAME]``,
+    then ``--param`` (each key given later wins; ``sensor_model_params`` merge key by key).
+
+    Returns
+    -------
+    (dict, list of str)
+        The parameters, and one note per config value a ``--param`` overrode.
+
+    Raises
+    ------
+    FormatError
+        A key of the file that is not a parameter of the estimator (or of its sensor
+        model), naming the file, the table and the key.
+    """
+    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+
+    cli = dict(cli_params or {})
+    if config is None:
+        return cli, []
+    cls = ESTIMATORS.load(name)
+    known = _fields(cls)
+    from_file: dict[str, Any] = {}
+    for where, table in (("estimator", config.common), (f"estimators.{name}", config.per_estimator.get(name, {}))):
+        for key in table:
+            if key not in known:
+                raise FormatError(config.source, f"[{where}].{key}",
+                                  f"a parameter of {name} ({', '.join(known)}; see `tofloc list --params {name}`)",
+                                  "an unknown key")
+        from_file = merge_params(from_file, table)
+    nested = from_file.get(_NESTED)
+    if nested:
+        model = cli.get("sensor_model", from_file.get("sensor_model"))
+        if model is None:
+            default = next((f.default for f in dataclasses.fields(cls) if f.name == "sensor_model"), None)
+            model = default if isinstance(default, str) else None
+        if isinstance(model, str) and model in SENSOR_MODELS.names():
+            mknown = _fields(SENSOR_MODELS.load(model))
+            for key in nested:
+                if key not in mknown:
+                    where = f"estimators.{name}" if _NESTED in config.per_estimator.get(name, {}) and key in \
+                        config.per_estimator[name][_NESTED] else "estimator"
+                    raise FormatError(config.source, f"[{where}.{_NESTED}].{key}",
+                                      f"a parameter of the sensor model {model} ({', '.join(mknown)})", "an unknown key")
+    notes = []
+    for key, value in cli.items():
+        if key == _NESTED and isinstance(value, Mapping) and isinstance(from_file.get(key), Mapping):
+            for sub, v in value.items():
+                if sub in from_file[key] and from_file[key][sub] != v:
+                    notes.append(f"--param {name}: sensor_model__{sub}={v!r} overrides {from_file[key][sub]!r} "
+                                 f"of {config.source}")
+        elif key in from_file and from_file[key] != value:
+            notes.append(f"--param {name}: {key}={value!r} overrides {from_file[key]!r} of {config.source}")
+    return merge_params(from_file, cli), notes
+
+
+def config_toml(params_by_estimator: Mapping[str, Mapping[str, Any]], header: Sequence[str] = ()) -> str:
+    """A config file of the resolved (full) parameters of each estimator: ``--config`` reads
+    it back. Parameters whose value TOML cannot hold (None) are left out (their default)."""
+    from tofloc.toml_tables import dumps, toml_safe
+
+    doc = {"estimators": {name: toml_safe(dict(p)) for name, p in params_by_estimator.items()}}
+    lines = "".join(f"# {h}\n" for h in header)
+    return lines + dumps(doc)
+
