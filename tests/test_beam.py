@@ -14,7 +14,7 @@ from scipy.stats import norm
 from sensor_models.beam import BeamMixture, BeamModel, NO_TARGET_STATUS
 from tofloc.calibration_file import SensorCalibration
 from tofloc.range_model import RangeUncertainty
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import ParameterError
 from tofloc.maps import Map
 from tofloc.problem import Prior, Problem
 from tofloc.rig import Rig, Sensor

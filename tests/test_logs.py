@@ -7,7 +7,6 @@ would never produce.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +17,7 @@ import pytest
 from tofloc import frames
 from tofloc.errors import FormatError, ParameterError, TofLocError
 from tofloc.logs import FORMAT_NAME, FORMAT_VERSION, Log, LogFormatError, read_log, write_log
-from tofloc.rig import Rig, Sensor
+from tofloc.rig import Rig
 
 K, S, Z, C = 4, 2, 64, 3
 EYE = np.eye(4).tolist()

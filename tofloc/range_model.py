@@ -25,7 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import ParameterError
 from tofloc.rig import Rig, edge_zone_mask
 
 __all__ = ["RangeUncertainty", "edge_zone_mask"]

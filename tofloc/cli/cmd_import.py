@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from tofloc.cli.app import app, console, status
+from tofloc.errors import ParameterError
 
 import_app = typer.Typer(name="import", help="Import third-party recordings into the log format.", no_args_is_help=True)
 app.add_typer(import_app, name="import")

@@ -79,7 +79,6 @@ def record(
     recorder dies, 'tofloc record --recover OUT.journal --out OUT.h5' rebuilds the log.
     """
     from tofloc.atomic import check_output_path
-    from tofloc.io.capture import SerialCapture
     from tofloc.io.formats import check_format
     from tofloc.io.journal import JournalWriteError, journal_path_for
     from tofloc.locks import OutputLock
