@@ -105,6 +105,17 @@ class BeamMixture:
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
 
+    def with_outlier_floor(self, floor: float) -> "BeamMixture":
+        """This mixture with ``z_short`` and ``z_rand`` raised to at least ``floor`` each,
+        ``z_hit`` and ``z_max`` scaled down to keep the sum 1 (unchanged when already above)."""
+        short, rand = max(self.z_short, floor), max(self.z_rand, floor)
+        rest = self.z_hit + self.z_max
+        scale = (1.0 - short - rand) / rest if rest > 0 else 0.0
+        if short == self.z_short and rand == self.z_rand:
+            return self
+        return BeamMixture(z_hit=self.z_hit * scale, z_short=short, z_max=1.0 - self.z_hit * scale - short - rand,
+                           z_rand=rand, lambda_short=self.lambda_short)
+
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<beam>") -> "BeamMixture":
         """From a ``[beam]`` table; unknown keys and bad values raise :class:`FormatError`."""
@@ -142,6 +153,12 @@ class BeamModel(SensorModel):
     mixture : dict or BeamMixture, optional
         ``z_hit, z_short, z_max, z_rand, lambda_short``; default: the problem's calibrated
         ``[beam]`` table, else :class:`BeamMixture`'s defaults.
+    outlier_floor : float
+        ``z_short`` and ``z_rand`` are at least this each (``z_hit`` and ``z_max`` scaled
+        down): a calibration describes the sensor in its calibration session, while the
+        objects the map does not hold belong to the environment being localized in (a
+        calibration in a clean room fits ``z_short`` ~0.02 and ``z_rand`` ~0, and a chair
+        then pulls the pose). 0 keeps the mixture as given.
     temper : float
         Exponent in (0, 1] applied to the sum of the zones' log-likelihoods of a sample.
     sub_rays : int
@@ -154,12 +171,16 @@ class BeamModel(SensorModel):
     uses_calibration: ClassVar[bool] = True
 
     mixture: Mapping[str, Any] | None = None
+    outlier_floor: float = 0.05
     temper: float = 0.25
     sub_rays: int = 1
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
+        v = self.outlier_floor
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= 0.3:
+            raise ParameterError(f"beam.outlier_floor must be in [0, 0.3], got {v!r}")
         check_temper("beam", self.temper)
         check_int("beam.sub_rays", self.sub_rays, 1, 5)
 
@@ -181,6 +202,7 @@ class BoundBeamModel(BoundSensorModel):
             self.mixture, self.mixture_source = _as_mixture(cal_table, src), src
         else:
             self.mixture, self.mixture_source = BeamMixture(), "defaults"
+        self.mixture = self.mixture.with_outlier_floor(model.outlier_floor)
         self.state = declared_state(problem, model.nuisances)
         caster = ZoneCaster(problem.rig, footprint=int(model.sub_rays))
         T_lift_tip = problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip
