@@ -3,24 +3,29 @@
 Local workers are spawned (never forked: Open3D and threads do not survive it) and get
 the shared :class:`~evaluation.trials.TrialContext` once, through the pool's initializer;
 each is limited to one BLAS thread. On Dask the context is scattered once to every worker.
+Trials of several logs share one pool when the context is a mapping from each task's
+``group`` to its context (``tofloc evaluate``): workers start, and warm their per-map
+caches, once per run instead of once per log.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import multiprocessing
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence, Union
 
 from evaluation.trials import TrialContext, TrialError, TrialTask, run_trial
 from tofloc.errors import ParameterError, TofLocError
 
-__all__ = ["run_tasks"]
+__all__ = ["run_tasks", "Contexts"]
+
+#: One context for every task, or one per task ``group``.
+Contexts = Union[TrialContext, Mapping[str, TrialContext]]
+
+_WORKER_CONTEXT: Contexts | None = None
 
 
-_WORKER_CONTEXT: TrialContext | None = None
-
-
-def _init_worker(context: TrialContext) -> None:
+def _init_worker(context: Contexts) -> None:
     """Process-pool initializer: keep the shared context; one BLAS thread per worker."""
     global _WORKER_CONTEXT
     _WORKER_CONTEXT = context
@@ -32,9 +37,20 @@ def _init_worker(context: TrialContext) -> None:
         pass
 
 
-def _guarded(context: TrialContext, task: TrialTask) -> dict[str, Any]:
+class _Shared:
+    """A context mapping as one object: Dask scatters a dict key by key (each context, and
+    the map they share, pickled apart); this is scattered whole."""
+
+    def __init__(self, contexts: Mapping[str, TrialContext]) -> None:
+        self.contexts = dict(contexts)
+
+    def __getitem__(self, group: str) -> TrialContext:
+        return self.contexts[group]
+
+
+def _guarded(context: Contexts, task: TrialTask) -> dict[str, Any]:
     try:
-        return run_trial(context, task)
+        return run_trial(context if isinstance(context, TrialContext) else context[task.group], task)
     except TofLocError as e:
         # re-raised as a plain one-argument exception: FormatError & co. do not unpickle
         raise TrialError(f"trial {task.group} k={task.k} #{task.trial} (seed {task.seed}): {e}") from None
@@ -45,12 +61,12 @@ def _run_in_process(task: TrialTask) -> dict[str, Any]:
     return _guarded(_WORKER_CONTEXT, task)
 
 
-def _run_with_context(task: TrialTask, context: TrialContext) -> dict[str, Any]:
+def _run_with_context(task: TrialTask, context: Contexts) -> dict[str, Any]:
     return _guarded(context, task)
 
 
 def run_tasks(
-    context: TrialContext,
+    context: Contexts,
     tasks: Sequence[TrialTask],
     workers: int = 1,
     scheduler: Any | None = None,
@@ -62,7 +78,9 @@ def run_tasks(
 
     Parameters
     ----------
-    context : TrialContext
+    context : TrialContext or mapping of str to TrialContext
+        What the trials share; a mapping gives each task the context of its ``group``
+        (sent once to each worker, shared objects such as a map once).
     tasks : sequence of TrialTask
     workers : int
         Local worker processes; 1 runs every trial inline in this process.
@@ -121,7 +139,7 @@ def run_tasks(
 
 
 def _run_dask(
-    context: TrialContext, tasks: Sequence[TrialTask], scheduler: Any, done: Callable[[int, dict[str, Any]], None], timeout_s: float
+    context: Contexts, tasks: Sequence[TrialTask], scheduler: Any, done: Callable[[int, dict[str, Any]], None], timeout_s: float
 ) -> None:
     try:
         from distributed import Client, as_completed
@@ -137,7 +155,8 @@ def _run_dask(
     else:
         client = scheduler
     try:
-        ctx_future = client.scatter(context, broadcast=True, hash=False)
+        payload = context if isinstance(context, TrialContext) else _Shared(context)
+        ctx_future = client.scatter(payload, broadcast=True, hash=False)
         futures = [client.submit(_run_with_context, t, ctx_future, pure=False) for t in tasks]
         index = {f.key: i for i, f in enumerate(futures)}
         try:

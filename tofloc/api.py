@@ -618,3 +618,143 @@ def scenes_markdown(doc: Mapping[str, Any]) -> str:
                      f"{f(r['e_gamma_deg'], '.3f')} | {f(r['crlb_yaw_deg'], '.3f')} | {f(r['ratio_e_gamma_deg'], '.2f')} | "
                      f"{f(r['nees_mean'], '.1f')} |")
     return "\n".join(lines) + "\n"
+
+
+# -- evaluate: many logs with ground truth -------------------------------------------------------
+
+__all__ += ["evaluate", "EvaluateResult"]
+
+
+@dataclass
+class EvaluateResult:
+    """What :func:`evaluate` made: the ``results.json`` document and the files written.
+
+    ``document["summary"][estimator]`` holds the errors over every trial of every log,
+    ``document["oracle_summary"]`` the oracle floor's, ``document["logs"][label]`` each log's.
+    """
+
+    document: dict[str, Any]
+    paths: list[Path] = field(default_factory=list)
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        return self.document["summary"]
+
+    @property
+    def oracle_summary(self) -> dict[str, Any]:
+        return self.document["oracle_summary"]
+
+
+def evaluate(
+    logs: Sequence[Any],
+    estimators: Sequence[str],
+    *,
+    out: str | os.PathLike[str],
+    trials: int = 10,
+    samples: int | None = None,
+    prior_mode: str = "offset",
+    prior_sigma_xy: float = 0.2,
+    prior_sigma_yaw_deg: float = 20.0,
+    calibration: SensorCalibration | str | os.PathLike[str] | None = None,
+    params: Mapping[str, Any] | None = None,
+    valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES,
+    seed: int = 0,
+    workers: int | None = None,
+    scheduler: Any = None,
+    reporter: Reporter = _SILENT,
+) -> EvaluateResult:
+    """Every estimator on every log with ground truth, the same trials for all, against each
+    trial's oracle floor; ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
+    in ``out`` (finished batches in ``out/partial``, reused by a rerun).
+
+    Parameters
+    ----------
+    logs : sequence of path or Log
+        Logs with ``/truth/T_map_base``; each is localized in the map its ``map``
+        attribute names, from its own configurations (``/samples/T_base_tip``).
+    estimators : sequence of str
+        Distinct registered estimators.
+    out : path
+        Output folder.
+    trials : int
+        Trials per log.
+    samples : int or None
+        Samples per trial; None: every usable sample of each log.
+    prior_mode : {"offset", "paper"}
+        ``offset``: the prior mean drawn around the truth; ``paper``: centred on it.
+    prior_sigma_xy, prior_sigma_yaw_deg : float
+        The prior's spread (m, deg): the paper's by default.
+    calibration : SensorCalibration or path, optional
+        Applied for every estimator that uses one, and to the oracle floor.
+    params : dict, optional
+        Parameters given to every estimator.
+    valid_statuses : frozenset of int
+    seed : int
+        The run's seed (see :mod:`evaluation.evaluate` for the pairing).
+    workers, scheduler
+        Local worker processes (default one per core) or a Dask scheduler address.
+    reporter : Reporter
+    """
+    from evaluation.evaluate import (
+        EstimatorSpec,
+        oracle_floor,
+        prepare_logs,
+        results_document,
+        run_estimators,
+    )
+    from evaluation.evaluate_report import plot_error_cdfs, plot_nees, table_markdown
+    from evaluation.priors import PRIOR_MODES, PriorSpec
+    from evaluation.report import write_json_atomic, write_text_atomic
+    from evaluation.trials import jsonable
+    from tofloc.atomic import check_output_path
+
+    t0 = time.perf_counter()
+    out_dir = check_output_path(Path(out), kind="dir", option="out")
+    names = list(estimators)
+    if not names or len(set(names)) != len(names):
+        raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
+    if not isinstance(trials, int) or isinstance(trials, bool) or not 1 <= trials <= MAX_TRIALS:
+        raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
+    if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool) or not 1 <= samples <= MAX_TRIALS):
+        raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
+    if prior_mode not in PRIOR_MODES:
+        raise ParameterError(f"prior mode must be one of {', '.join(PRIOR_MODES)}, got {prior_mode!r}")
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
+    if not logs:
+        raise ParameterError("evaluate needs at least one log")
+    prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg)
+    ests = {n: estimator(n, params) for n in names}
+    specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
+    cal = load_calibration(calibration)
+    entries = prepare_logs(logs, samples=samples, seed=seed, calibration=cal, valid_statuses=valid_statuses,
+                           on_map=lambda p: reporter.note(f"map {p}"))
+    ks = sorted({en.k for en in entries})
+    reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "
+                  f"{ks[0] if len(ks) == 1 else f'{ks[0]}..{ks[-1]}'} sample(s) per trial")
+    oracle = oracle_floor(entries, trials, on_progress=lambda d, t: reporter.progress(d, t, "oracle floor"))
+    n_tasks = len(entries) * len(names) * trials
+    n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
+    label = f"{len(entries)} log(s) x {len(names)} estimator(s) x {trials} trial(s)"
+    records = run_estimators(
+        entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
+        partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
+        on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
+    )
+    doc = results_document(
+        entries, specs, records, oracle, trials=trials, samples=samples, seed=seed, prior=prior,
+        extra={
+            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
+                           for n in names},
+            "calibration": None if cal is None else cal.source,
+            "valid_statuses": sorted(valid_statuses),
+            "wall_time_s": round(time.perf_counter() - t0, 3),
+        },
+    )
+    paths = [
+        write_json_atomic(doc, out_dir / "results.json"),
+        write_text_atomic(table_markdown(doc), out_dir / "table.md"),
+        plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
+        plot_nees(doc, out_dir / "nees.png"),
+    ]
+    return EvaluateResult(doc, paths)

@@ -1,0 +1,464 @@
+"""``tofloc evaluate``: the same trials of several estimators on many logs with ground
+truth, each log against its own map, with the oracle floor of every trial.
+
+A *trial* on a log draws ``k`` of its usable samples (all of them by default, in a random
+order) and a prior around the true base pose (:class:`evaluation.priors.PriorSpec`), builds
+the problem from the log's own configurations (``/samples/T_base_tip``, whatever its
+``configuration_source``; their covariance goes into the problem) and runs an estimator
+(:func:`evaluation.trials.run_trial`).
+
+Pairing
+-------
+Every log gets a seed from the run's seed and its *label* (:func:`log_labels`: the file
+name without ``.h5``, or as much of its path as tells it from the run's other logs)::
+
+    log seed   = SeedSequence([seed, label_key]).generate_state(1, uint32)[0]
+    label_key  = first 4 bytes of sha256(label) as a big-endian integer
+    trial seed = evaluation.trials.trial_seed(log seed, k, trial)
+
+The trial seed depends neither on the estimator nor on the other logs of the run, so every
+estimator sees the same samples in the same order and the same prior mean on a given log
+and trial, and adding logs to a run leaves the trials of the others unchanged.
+
+Work and saved progress
+-----------------------
+All trials of all logs run in one pool (:func:`evaluation.executors.run_tasks` with one
+context per ``label/estimator`` group: local processes or Dask). Each finished
+``(log, estimator)`` batch is written to ``partial/<label>__<estimator>.json`` with a key
+made as :mod:`evaluation.result_cache` makes it (the log's data and its map's
+:meth:`~tofloc.maps.Map.fingerprint`, the code, the estimator's full parameters, the
+prior, ``k``, the trial count and the log's seed); a rerun reuses every batch whose key
+matches, so an interrupted run loses only unfinished batches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from evaluation.metrics import json_float, summarize
+from evaluation.priors import PriorSpec
+from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
+from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, sample_pool, trial_seed
+from tofloc.errors import FormatError, ParameterError
+from tofloc.rig import DEFAULT_VALID_STATUSES
+
+__all__ = [
+    "FAILURE_E_X_M",
+    "FAILURE_E_GAMMA_DEG",
+    "SEED_DERIVATION",
+    "EvalLog",
+    "EstimatorSpec",
+    "log_labels",
+    "log_seed",
+    "prepare_logs",
+    "run_estimators",
+    "oracle_floor",
+    "is_failure",
+    "error_summary",
+    "results_document",
+]
+
+#: A trial fails when its position error exceeds this (m) ...
+FAILURE_E_X_M = 0.1
+#: ... or its yaw error this (deg).
+FAILURE_E_GAMMA_DEG = 10.0
+#: How the seeds of ``tofloc evaluate`` are derived (recorded in results.json).
+SEED_DERIVATION = (
+    "log seed = SeedSequence([seed, int.from_bytes(sha256(label)[:4], 'big')]).generate_state(1, uint32)[0]; "
+    "trial seed = SeedSequence([log seed, k, trial]).generate_state(1, uint32)[0]; "
+    "draw_rng, estimator_rng = default_rng(SeedSequence(trial seed).spawn(2)); "
+    "draw_rng: choice(pool, k, replace=False) then normal(size=3) for the prior offset"
+)
+#: The tip source of every trial: the log's own ``/samples/T_base_tip``.
+TIP_SOURCE = "mocap"
+
+
+@dataclass(eq=False)
+class EvalLog:
+    """One log of a run: its label, file, map, trial context, samples per trial and seed."""
+
+    label: str
+    path: Path
+    map_path: Path
+    context: TrialContext
+    k: int
+    seed: int
+
+    @property
+    def configuration_source(self) -> str | None:
+        return getattr(self.context.log, "configuration_source", None)
+
+    def trial_seeds(self, trials: int) -> list[int]:
+        """The seeds of trials ``0 .. trials-1`` (:func:`evaluation.trials.trial_seed`)."""
+        return [trial_seed(self.seed, self.k, t) for t in range(trials)]
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """An estimator of the run: registry name, class and the parameters given."""
+
+    name: str
+    cls: type
+    params: Mapping[str, Any]
+
+
+def log_labels(paths: Sequence[Path]) -> list[str]:
+    """Short unique names of log files: the file name without ``.h5``, with as many parent
+    folders as it takes to tell it from the run's other logs (``four/drone0-node000``).
+
+    Raises
+    ------
+    ParameterError
+        The same file is given twice.
+    """
+    resolved = [Path(p).resolve() for p in paths]
+    seen: dict[Path, int] = {}
+    for i, r in enumerate(resolved):
+        if r in seen:
+            raise ParameterError(f"log {paths[i]} is given twice (as argument {seen[r] + 1} and {i + 1})")
+        seen[r] = i
+
+    def name(r: Path, depth: int) -> str:
+        parts = list(r.parts[-depth:])
+        if parts[-1].endswith(".h5"):
+            parts[-1] = parts[-1][: -len(".h5")]
+        return "/".join(parts)
+
+    labels = [name(r, 1) for r in resolved]
+    depth = [1] * len(resolved)
+    while True:
+        counts: dict[str, int] = {}
+        for lb in labels:
+            counts[lb] = counts.get(lb, 0) + 1
+        clash = [i for i, lb in enumerate(labels) if counts[lb] > 1]
+        if not clash:
+            return labels
+        for i in clash:
+            depth[i] += 1
+            labels[i] = name(resolved[i], depth[i])
+
+
+def log_seed(seed: int, label: str) -> int:
+    """The seed of a log in a run seeded ``seed`` (see the module doc)."""
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise ParameterError(f"seed must be a non-negative integer, got {seed!r}")
+    key = int.from_bytes(hashlib.sha256(label.encode("utf-8")).digest()[:4], "big")
+    return int(np.random.SeedSequence([int(seed), key]).generate_state(1, np.uint32)[0])
+
+
+def prepare_logs(
+    logs: Sequence[Any],
+    *,
+    samples: int | None,
+    seed: int,
+    calibration: Any = None,
+    valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
+    on_map: Callable[[Path], None] | None = None,
+) -> list[EvalLog]:
+    """Read and check every log, load each map once, and make the trial contexts.
+
+    Parameters
+    ----------
+    logs : sequence of path or tofloc.logs.Log
+        Logs read from files (their ``path`` names them).
+    samples : int or None
+        Samples per trial; None: every usable sample of each log.
+    seed : int
+        The run's seed.
+    calibration : SensorCalibration, optional
+    valid_statuses : iterable of int
+    on_map : callable, optional
+        Called with each map's path before it is loaded.
+
+    Raises
+    ------
+    FormatError
+        A log has no ``/truth/T_map_base``, no ``/samples/T_base_tip`` or no ``map``
+        attribute (the message names the file).
+    ProblemError
+        A log has fewer usable samples than ``samples``.
+    """
+    from tofloc.logs import Log, read_log
+    from tofloc.maps import load_map
+
+    if not logs:
+        raise ParameterError("evaluate needs at least one log")
+    statuses = frozenset(int(v) for v in valid_statuses)
+    read = [lg if isinstance(lg, Log) else read_log(lg) for lg in logs]
+    for lg in read:
+        if lg.path is None:
+            raise ParameterError("evaluate takes logs read from files (their names label the results)")
+        if lg.T_map_base is None:
+            raise FormatError(lg.path, "/truth/T_map_base", "the true base pose (tofloc evaluate compares every estimate "
+                              "with it)", "no such dataset")
+        if lg.T_base_tip is None:
+            raise FormatError(lg.path, "/samples/T_base_tip", "the configuration of every sample (the trials use the "
+                              "log's own)", "no such dataset")
+        if lg.map is None:
+            raise FormatError(lg.path, "map", "the map's file name in the root attribute `map`", "no such attribute")
+    labels = log_labels([Path(lg.path) for lg in read])
+    pools = [sample_pool(lg, None, 1 if samples is None else samples, statuses) for lg in read]
+    maps: dict[Path, Any] = {}
+    out = []
+    for lg, label, pool in zip(read, labels, pools):
+        mp = Path(lg.map_path()).resolve()
+        if mp not in maps:
+            if on_map is not None:
+                on_map(mp)
+            maps[mp] = load_map(mp)
+        k = int(pool.indices.size) if samples is None else int(samples)
+        ctx = TrialContext(lg, maps[mp], pool, None, statuses, calibration)
+        out.append(EvalLog(label, Path(lg.path), mp, ctx, k, log_seed(seed, label)))
+    return out
+
+
+def _group(entry: EvalLog, est: str) -> str:
+    return f"{entry.label}/{est}"
+
+
+def run_estimators(
+    entries: Sequence[EvalLog],
+    estimators: Sequence[EstimatorSpec],
+    *,
+    trials: int,
+    prior: PriorSpec,
+    run_seed: int,
+    workers: int = 1,
+    scheduler: Any = None,
+    partial_dir: Path | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+    on_reused: Callable[[int, int], None] | None = None,
+) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """Every estimator's trials on every log, in one pool, saving each finished batch.
+
+    Parameters
+    ----------
+    entries : sequence of EvalLog
+    estimators : sequence of EstimatorSpec
+    trials : int
+        Trials per log.
+    prior : PriorSpec
+    run_seed : int
+        Recorded in the batch keys (each log's seed already depends on it).
+    workers, scheduler
+        As :func:`evaluation.executors.run_tasks`.
+    partial_dir : Path, optional
+        Where finished ``(log, estimator)`` batches are saved and reused.
+    on_progress : callable, optional
+        ``on_progress(done, total)`` over every trial of the run (reused ones count as done).
+    on_reused : callable, optional
+        ``on_reused(reused_batches, total_batches)`` once the saved batches are read.
+
+    Returns
+    -------
+    dict
+        ``label -> estimator -> records`` (ordered by trial).
+    """
+    from evaluation.executors import run_tasks
+    from evaluation.report import write_json_atomic
+
+    codes = {}
+    full_params = {}
+    for e in estimators:
+        est = make_estimator(e.cls, e.params, e.name)
+        full_params[e.name] = jsonable(est.get_params())
+        codes[e.name] = code_fingerprint(*plugin_objects(est)) if partial_dir is not None else ""
+    out: dict[str, dict[str, list[dict[str, Any]]]] = {en.label: {} for en in entries}
+    todo: list[tuple[EvalLog, EstimatorSpec, str]] = []
+    for en in entries:
+        data_key = context_fingerprint(en.context) if partial_dir is not None else ""
+        for e in estimators:
+            key = fingerprint_arrays(extra={
+                "data": data_key, "code": codes[e.name], "label": en.label, "estimator": e.name,
+                "params": full_params[e.name], "tip_source": "log", "prior": prior.to_json(), "k": en.k,
+                "trials": int(trials), "seed": int(run_seed), "log_seed": en.seed,
+            })
+            if partial_dir is not None:
+                try:
+                    saved = json.loads(_partial_path(partial_dir, _group(en, e.name)).read_text())
+                except (OSError, ValueError):
+                    saved = None
+                if isinstance(saved, dict) and saved.get("key") == key and isinstance(saved.get("records"), list) \
+                        and len(saved["records"]) == trials:
+                    out[en.label][e.name] = saved["records"]
+                    continue
+            todo.append((en, e, key))
+    n_batches = len(entries) * len(estimators)
+    if on_reused is not None:
+        on_reused(n_batches - len(todo), n_batches)
+    total = n_batches * trials
+    n_done = total - len(todo) * trials
+    if on_progress is not None:
+        on_progress(n_done, total)
+    tasks: list[TrialTask] = []
+    contexts: dict[str, TrialContext] = {}
+    keys: dict[str, tuple[EvalLog, EstimatorSpec, str]] = {}
+    for en, e, key in todo:
+        g = _group(en, e.name)
+        contexts[g] = en.context
+        keys[g] = (en, e, key)
+        seeds = en.trial_seeds(trials)
+        tasks += [TrialTask(g, e.name, e.cls, dict(e.params), TIP_SOURCE, prior, en.k, t, seeds[t]) for t in range(trials)]
+    collected: dict[str, dict[int, dict[str, Any]]] = {g: {} for g in keys}
+
+    def on_result(i: int, rec: dict[str, Any]) -> None:
+        nonlocal n_done
+        task = tasks[i]
+        collected[task.group][task.trial] = rec
+        n_done += 1
+        if on_progress is not None:
+            on_progress(n_done, total)
+        if len(collected[task.group]) == trials:
+            en, e, key = keys[task.group]
+            recs = [collected[task.group][t] for t in range(trials)]
+            out[en.label][e.name] = recs
+            if partial_dir is not None:
+                write_json_atomic({"key": key, "group": task.group, "records": recs},
+                                  _partial_path(partial_dir, task.group))
+
+    if tasks:
+        run_tasks(contexts, tasks, workers=workers, scheduler=scheduler, on_result=on_result)
+    return {en.label: {e.name: out[en.label][e.name] for e in estimators} for en in entries}
+
+
+def oracle_floor(
+    entries: Sequence[EvalLog], trials: int, on_progress: Callable[[int, int], None] | None = None
+) -> dict[str, list[dict[str, Any]]]:
+    """The oracle floor (:func:`evaluation.oracle.oracle_for_trial`) of every trial of every
+    log: ``label -> records`` (ordered by trial; each with ``trial``)."""
+    from evaluation.oracle import oracle_for_trial
+
+    out: dict[str, list[dict[str, Any]]] = {}
+    total, done = len(entries) * trials, 0
+    for en in entries:
+        recs = []
+        for t, s in enumerate(en.trial_seeds(trials)):
+            recs.append({"trial": t, **oracle_for_trial(en.context, en.k, s)})
+            done += 1
+            if on_progress is not None:
+                on_progress(done, total)
+        out[en.label] = recs
+    return out
+
+
+# -- summaries --------------------------------------------------------------------------------
+
+
+def _values(records: Iterable[Mapping[str, Any]], key: str) -> np.ndarray:
+    return np.array([np.nan if r.get(key) is None else float(r[key]) for r in records], dtype=float)
+
+
+def is_failure(record: Mapping[str, Any]) -> bool:
+    """``e_x > FAILURE_E_X_M`` or ``e_gamma > FAILURE_E_GAMMA_DEG`` (an undefined error fails too)."""
+    ex, eg = record.get("e_x_m"), record.get("e_gamma_deg")
+    return ex is None or eg is None or float(ex) > FAILURE_E_X_M or float(eg) > FAILURE_E_GAMMA_DEG
+
+
+def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``n``, median and mean of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
+    ``failure_rate`` (:func:`is_failure`), ``nees`` (mean, median, n: the trials with a
+    defined NEES) and the median ``runtime_s`` (those the records have)."""
+    n = len(records)
+    fails = sum(is_failure(r) for r in records)
+    out: dict[str, Any] = {
+        "n": n,
+        "e_x_m": summarize(_values(records, "e_x_m"), keys=("median", "mean")),
+        "e_gamma_deg": summarize(_values(records, "e_gamma_deg"), keys=("median", "mean")),
+        "failures": int(fails),
+        "failure_rate": json_float(fails / n) if n else None,
+    }
+    if any("nees" in r for r in records):
+        out["nees"] = summarize(_values(records, "nees"), keys=("mean", "median", "n"))
+    if any("runtime_s" in r for r in records):
+        out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    return out
+
+
+def _ratio(a: Any, b: Any) -> float | None:
+    if a is None or b is None or b == 0:
+        return None
+    return json_float(float(a) / float(b))
+
+
+def _ratios(est: Mapping[str, Any], oracle: Mapping[str, Any]) -> dict[str, Any]:
+    return {key: _ratio(est[key]["median"], oracle[key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
+
+
+def results_document(
+    entries: Sequence[EvalLog],
+    estimators: Sequence[EstimatorSpec],
+    records: Mapping[str, Mapping[str, Sequence[Mapping[str, Any]]]],
+    oracle: Mapping[str, Sequence[Mapping[str, Any]]],
+    *,
+    trials: int,
+    samples: int | None,
+    seed: int,
+    prior: PriorSpec,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``results.json`` of ``tofloc evaluate`` (see ``docs/evaluation.md``).
+
+    ``summary[estimator]``: :func:`error_summary` over every trial of every log, plus
+    ``ratio_to_oracle`` (its median e_x and e_gamma over the oracle's, over the same
+    trials) and ``median_log_ratio`` (the median over logs of the per-log ratios).
+    ``oracle_summary``: the same for the oracle floor, with ``not_converged``.
+    ``logs[label]``: the file, its map, ``k``, the seeds, the oracle's records and
+    summary, and per estimator its records, summary and ``ratio_to_oracle``.
+    """
+    logs: dict[str, Any] = {}
+    per_log_ratios: dict[str, dict[str, list[float]]] = {e.name: {"e_x_m": [], "e_gamma_deg": []} for e in estimators}
+    for en in entries:
+        orc = list(oracle[en.label])
+        orc_sum = error_summary(orc)
+        orc_sum["not_converged"] = sum(not r["converged"] for r in orc)
+        by_est = {}
+        for e in estimators:
+            recs = list(records[en.label][e.name])
+            s = error_summary(recs)
+            ratio = _ratios(s, orc_sum)
+            for key, v in ratio.items():
+                if v is not None:
+                    per_log_ratios[e.name][key].append(v)
+            by_est[e.name] = {"summary": s, "ratio_to_oracle": ratio, "records": recs}
+        logs[en.label] = {
+            "path": str(en.path),
+            "map": str(en.map_path),
+            "configuration_source": en.configuration_source,
+            "pool": en.context.pool.to_json(),
+            "k": en.k,
+            "seed": en.seed,
+            "trial_seeds": en.trial_seeds(trials),
+            "oracle": {"summary": orc_sum, "records": orc},
+            "estimators": by_est,
+        }
+    all_oracle = [r for en in entries for r in oracle[en.label]]
+    oracle_sum = error_summary(all_oracle)
+    oracle_sum["not_converged"] = sum(not r["converged"] for r in all_oracle)
+    summary: dict[str, Any] = {}
+    for e in estimators:
+        s = error_summary([r for en in entries for r in records[en.label][e.name]])
+        s["ratio_to_oracle"] = _ratios(s, oracle_sum)
+        s["median_log_ratio"] = {k: json_float(np.median(v)) if v else None for k, v in per_log_ratios[e.name].items()}
+        summary[e.name] = s
+    doc: dict[str, Any] = {
+        "command": "tofloc evaluate",
+        "trials": int(trials),
+        "samples": "all" if samples is None else int(samples),
+        "seed": int(seed),
+        "prior": prior.to_json(),
+        "configurations": "each log's own /samples/T_base_tip (its configuration_source), with its covariance",
+        "failure": {"e_x_m": FAILURE_E_X_M, "e_gamma_deg": FAILURE_E_GAMMA_DEG},
+        "seeds": {"seed": int(seed), "derivation": SEED_DERIVATION},
+        "summary": summary,
+        "oracle_summary": oracle_sum,
+        "logs": logs,
+    }
+    if extra:
+        doc.update(extra)
+    return doc

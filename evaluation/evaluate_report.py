@@ -1,0 +1,202 @@
+"""The files of ``tofloc evaluate`` besides ``results.json``: ``table.md``, ``errors_cdf.png``
+and ``nees.png`` (written atomically, PNGs with the Agg canvas)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+__all__ = ["table_markdown", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
+
+#: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
+#: estimator's NEES lies in it 95 % of the time).
+CHI2_3_BAND = (0.2158, 9.3484)
+
+
+def _f(v: Any, fmt: str, scale: float = 1.0) -> str:
+    return "n/a" if v is None else format(float(v) * scale, fmt)
+
+
+def _row(name: str, s: Mapping[str, Any]) -> str:
+    nees = s.get("nees") or {}
+    rt = (s.get("runtime_s") or {}).get("median")
+    fails = f"{s['failures']}/{s['n']} ({_f(s['failure_rate'], '.0%')})"
+    return (f"| {name} | {_f(s['e_x_m']['median'], '.1f', 1000)} | {_f(s['e_gamma_deg']['median'], '.2f')} | "
+            f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
+            f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(rt, '.2f')} |")
+
+
+def table_markdown(doc: Mapping[str, Any]) -> str:
+    """``table.md``: estimators by summary over every log, the oracle row, the ratios to the
+    oracle floor, then one row per log (medians over its trials)."""
+    ests = list(doc["summary"])
+    logs = doc["logs"]
+    prior = doc["prior"]
+    fail = doc["failure"]
+    samples = "every usable sample" if doc["samples"] == "all" else f"{doc['samples']} samples"
+    sources = sorted({str(v.get("configuration_source")) for v in logs.values()})
+    lines = [
+        f"# tofloc evaluate: {len(ests)} estimator(s) on {len(logs)} log(s), {doc['trials']} trial(s) per log (seed {doc['seed']})",
+        "",
+        f"Each trial: {samples} of the log in a random order, prior `{prior['mode']}` "
+        f"(sigma {prior['sigma_xy_m']} m, {prior['sigma_yaw_deg']} deg), the log's own configurations "
+        f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
+        f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
+        "NEES: 3 for a consistent estimator (chi2(3)); runtime: median seconds per trial.",
+        "",
+        "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "
+        "NEES mean | NEES median | runtime (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in ests:
+        lines.append(_row(e, doc["summary"][e]))
+    o = doc["oracle_summary"]
+    lines.append(_row("**oracle floor**", {**o, "nees": None, "runtime_s": None}))
+    lines += [
+        "",
+        f"Oracle floor: a robust registration of each trial's zones to the map started at the true pose "
+        f"(evaluation/oracle.py); {o['not_converged']} of {o['n']} fits did not converge.",
+        "",
+        "## Ratios to the oracle floor",
+        "",
+        "Median error over every trial divided by the oracle's median over the same trials, and the median over",
+        "logs of the same ratio per log.",
+        "",
+        "| estimator | e_x / oracle | e_gamma / oracle | per-log e_x ratio (median) | per-log e_gamma ratio (median) |",
+        "|---|---|---|---|---|",
+    ]
+    for e in ests:
+        s = doc["summary"][e]
+        r, m = s["ratio_to_oracle"], s["median_log_ratio"]
+        lines.append(f"| {e} | {_f(r['e_x_m'], '.2f')} | {_f(r['e_gamma_deg'], '.2f')} | {_f(m['e_x_m'], '.2f')} | "
+                     f"{_f(m['e_gamma_deg'], '.2f')} |")
+    lines += [
+        "",
+        "## Per log",
+        "",
+        "Median e_x (mm) / median e_gamma (deg) over the log's trials; failures in brackets when any.",
+        "",
+        "| log | oracle | " + " | ".join(ests) + " |",
+        "|---|---|" + "---|" * len(ests),
+    ]
+
+    def cell(s: Mapping[str, Any]) -> str:
+        c = f"{_f(s['e_x_m']['median'], '.1f', 1000)} / {_f(s['e_gamma_deg']['median'], '.2f')}"
+        return c + (f" ({s['failures']})" if s["failures"] else "")
+
+    for label, lg in logs.items():
+        cells = [cell(lg["oracle"]["summary"])] + [cell(lg["estimators"][e]["summary"]) for e in ests]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:
+    vals = []
+    for lg in doc["logs"].values():
+        recs = lg["oracle"]["records"] if est is None else lg["estimators"][est]["records"]
+        vals += [np.nan if r.get(key) is None else float(r[key]) for r in recs]
+    return np.array(vals, dtype=float)
+
+
+def _write_png(fig: Any, path: str | Path) -> Path:
+    from evaluation.report import _atomic
+
+    return _atomic(path, lambda fh: fig.savefig(fh, format="png"), "wb")
+
+
+def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path) -> Path:
+    """Empirical CDFs of e_x (mm) and e_gamma (deg) over every trial of every log: one line
+    per estimator, the oracle floor's as a black dashed reference, the failure thresholds
+    as dotted lines (log-scaled error axes)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ests = list(doc["summary"])
+    fig = Figure(figsize=(10.0, 4.6), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 2)
+    fail = doc["failure"]
+    for ax, key, scale, label, limit in (
+        (axes[0], "e_x_m", 1000.0, "position error $e_x$ (mm)", fail["e_x_m"] * 1000.0),
+        (axes[1], "e_gamma_deg", 1.0, r"yaw error $e_\gamma$ (deg)", fail["e_gamma_deg"]),
+    ):
+        series = [(e, _all(doc, e, key) * scale, {"color": f"C{i}", "linewidth": 1.6}) for i, e in enumerate(ests)]
+        series.append(("oracle floor", _all(doc, None, key) * scale, {"color": "black", "linestyle": "--", "linewidth": 1.4}))
+        finite = np.concatenate([v[np.isfinite(v)] for _, v, _ in series])
+        lo = max(float(np.min(finite[finite > 0])) if np.any(finite > 0) else 1e-3, 1e-3)
+        hi = max(float(np.max(finite)) if finite.size else 1.0, limit * 1.5)
+        for name, v, style in series:
+            v = np.sort(v[np.isfinite(v)])
+            if not v.size:
+                continue
+            x = np.maximum(np.concatenate([v[:1], v]), lo)
+            y = np.concatenate([[0.0], np.arange(1, v.size + 1) / v.size])
+            ax.step(x, y, where="post", label=f"{name} (n={v.size})", **style)
+        ax.axvline(limit, color="grey", linestyle=":", linewidth=1.0)
+        ax.text(limit, 0.02, " failure", color="grey", fontsize=8, rotation=90, va="bottom", ha="right")
+        ax.set_xscale("log")
+        ax.set_xlim(lo / 1.3, hi * 1.3)
+        decades = np.log10(hi / lo)
+        ax.xaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0) if decades <= 3.0 else (1.0,)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_ylim(0.0, 1.0)
+        ax.set_xlabel(label)
+        ax.set_ylabel("fraction of trials with error <= x")
+        ax.grid(alpha=0.3, which="both")
+    handles, labels = axes[0].get_legend_handles_labels()
+    n_logs = len(doc["logs"])
+    fig.suptitle(f"Error CDFs over {n_logs} log(s) x {doc['trials']} trial(s), prior {doc['prior']['mode']}", fontsize=11)
+    n_rows = -(-len(handles) // 3)
+    fig.tight_layout(rect=(0.0, 0.02 + 0.045 * n_rows, 1.0, 1.0))
+    fig.legend(handles, labels, fontsize=9, loc="lower center", ncol=min(3, len(handles)), frameon=False)
+    return _write_png(fig, path)
+
+
+def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
+    """Every trial's NEES per estimator (jittered points, log scale) against the central
+    95 % band of chi2(3) (shaded) and its mean 3 (line); a diamond marks each estimator's
+    mean NEES. Trials whose NEES is undefined (singular covariance) are counted under the
+    estimator's name."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+
+    ests = list(doc["summary"])
+    fig = Figure(figsize=(max(6.0, 1.7 * len(ests) + 2.0), 4.8), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    rng = np.random.default_rng(0)  # jitter only
+    ax.axhspan(*CHI2_3_BAND, color="tab:green", alpha=0.15, label="chi2(3) central 95 %")
+    ax.axhline(3.0, color="tab:green", linewidth=1.2, label="chi2(3) mean = 3")
+    ticks = []
+    all_vals = []
+    for i, e in enumerate(ests):
+        v = _all(doc, e, "nees")
+        ok = v[np.isfinite(v) & (v > 0)]
+        all_vals.append(ok)
+        x = i + rng.uniform(-0.18, 0.18, size=ok.size)
+        ax.scatter(x, ok, s=10, color=f"C{i}", alpha=0.6, linewidths=0)
+        if ok.size:
+            ax.scatter([i + 0.3], [ok.mean()], marker="D", s=40, color=f"C{i}", edgecolors="black", zorder=5)
+        inside = np.mean((ok >= CHI2_3_BAND[0]) & (ok <= CHI2_3_BAND[1])) if ok.size else float("nan")
+        undefined = int(v.size - ok.size)
+        ticks.append(f"{e}\n{inside:.0%} in band" + (f"\n{undefined} undefined" if undefined else ""))
+    ax.scatter([], [], marker="D", s=40, color="white", edgecolors="black", label="mean NEES")
+    vals = np.concatenate(all_vals) if all_vals else np.array([])
+    lo = min(float(vals.min()) if vals.size else 0.1, CHI2_3_BAND[0]) / 2.0
+    hi = max(float(vals.max()) if vals.size else 10.0, CHI2_3_BAND[1]) * 2.0
+    ax.set_yscale("log")
+    ax.set_ylim(lo, hi)
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.set_xlim(-0.6, len(ests) - 0.4)
+    ax.set_xticks(range(len(ests)), ticks, fontsize=8)
+    ax.set_ylabel("NEES (x, y, yaw)")
+    ax.grid(axis="y", alpha=0.3, which="major")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(f"NEES per trial ({len(doc['logs'])} log(s) x {doc['trials']} trial(s))", fontsize=11)
+    fig.tight_layout()
+    return _write_png(fig, path)

@@ -1,0 +1,380 @@
+"""`tofloc evaluate`: paired trials of several estimators on many logs, the oracle floor,
+saved batches, bad input; and one run on the real ETH nano-swarm flight when ../shared has it."""
+
+from __future__ import annotations
+
+import dataclasses as dc
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, is_failure, log_labels, log_seed
+from evaluation.oracle import _moved, oracle_fit, oracle_points
+from evaluation.priors import PriorSpec, base_pose_parts
+from tofloc import frames
+from tofloc.cli import main
+from tofloc.problem_builder import problem_from_log
+
+FEW = ["--param", "n_particles=100", "--workers", "1"]
+ESTS = "icp_pf,beam_pf"
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+FOUR = SHARED / "datasets" / "eth_nano_swarm_mapping" / "exp2" / "four-drones"
+
+
+def _coarse(name: str) -> object:
+    """A scene of the library with few postures (pressure steps of 15 kPa: 18 samples)."""
+    from tofloc.simulation.scenario import load_scenario
+
+    sc = load_scenario(name)
+    return dc.replace(sc, protocol=dc.replace(sc.protocol, pressure_step=15.0), robot=dc.replace(sc.robot, mocap_dropouts=1))
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two short simulated logs of different scenes (a cuboid with a cloud map, an L-shaped
+    room with a mesh map), each with its own map beside it."""
+    from tofloc.simulation import simulate, write_simulation
+
+    folder = tmp_path_factory.mktemp("sims")
+    out = []
+    for name in ("paper", "l_room"):
+        path = folder / f"{name}.h5"
+        write_simulation(simulate(_coarse(name), 3), path)
+        out.append(path)
+    return out
+
+
+@pytest.fixture(scope="module")
+def run(logs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One `tofloc evaluate` run: 2 estimators x 2 logs x 2 trials of 3 samples."""
+    out = tmp_path_factory.mktemp("eval") / "out"
+    code = main(["evaluate", *map(str, logs), "--estimators", ESTS, "--trials", "2", "--samples", "3", "--seed", "5",
+                 "--out", str(out), *FEW])
+    assert code == 0
+    return {"out": out, "doc": json.loads((out / "results.json").read_text())}
+
+
+def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str, str]:
+    code = main(args)
+    got = capsys.readouterr()
+    return code, got.out, got.err
+
+
+# -- outputs ---------------------------------------------------------------------------------------
+
+
+def test_outputs_and_summaries(run: dict) -> None:
+    out, doc = run["out"], run["doc"]
+    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert len(list((out / "partial").glob("*.json"))) == 4  # one per (log, estimator)
+    assert list(doc["logs"]) == ["paper", "l_room"]
+    assert doc["samples"] == 3 and doc["trials"] == 2 and doc["prior"]["mode"] == "offset"
+    assert doc["failure"] == {"e_x_m": FAILURE_E_X_M, "e_gamma_deg": FAILURE_E_GAMMA_DEG}
+    every = {e: [] for e in ("icp_pf", "beam_pf")}
+    for label, lg in doc["logs"].items():
+        assert lg["map"].endswith(f"{label}.map.ply") and lg["k"] == 3
+        assert lg["configuration_source"] is None  # a simulated log does not say; the problem builder records None
+        for e in every:
+            recs = lg["estimators"][e]["records"]
+            assert [r["trial"] for r in recs] == [0, 1] and all(len(r["sample_indices"]) == 3 for r in recs)
+            every[e] += recs
+            s = lg["estimators"][e]["summary"]
+            assert s["e_x_m"]["median"] == pytest.approx(np.median([r["e_x_m"] for r in recs]))
+            o = lg["oracle"]["summary"]
+            assert lg["estimators"][e]["ratio_to_oracle"]["e_x_m"] == pytest.approx(s["e_x_m"]["median"] / o["e_x_m"]["median"])
+        assert len(lg["oracle"]["records"]) == 2
+    for e, recs in every.items():
+        s = doc["summary"][e]
+        assert s["n"] == 4
+        for key in ("e_x_m", "e_gamma_deg"):
+            v = [r[key] for r in recs]
+            assert s[key] == {"median": pytest.approx(np.median(v)), "mean": pytest.approx(np.mean(v))}
+        fails = sum(r["e_x_m"] > 0.1 or r["e_gamma_deg"] > 10.0 for r in recs)
+        assert s["failures"] == fails and s["failure_rate"] == pytest.approx(fails / 4)
+        nees = [r["nees"] for r in recs if r["nees"] is not None]
+        assert s["nees"]["mean"] == pytest.approx(np.mean(nees)) and s["nees"]["median"] == pytest.approx(np.median(nees))
+        assert s["runtime_s"]["median"] == pytest.approx(np.median([r["runtime_s"] for r in recs]))
+    table = (out / "table.md").read_text()
+    assert "| icp_pf |" in table and "**oracle floor**" in table and "## Ratios to the oracle floor" in table
+    assert "| l_room |" in table
+
+
+def test_failure_rule() -> None:
+    assert not is_failure({"e_x_m": 0.1, "e_gamma_deg": 10.0})
+    assert is_failure({"e_x_m": 0.1001, "e_gamma_deg": 0.0})
+    assert is_failure({"e_x_m": 0.0, "e_gamma_deg": 10.01})
+    assert is_failure({"e_x_m": None, "e_gamma_deg": 0.0})
+
+
+def test_stdout_table_fits_80_columns_in_mm(logs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", "beam_pf", "--trials", "1", "--samples", "2",
+                                   "--out", str(tmp_path / "o"), *FEW])
+    assert code == 0, err
+    lines = out.splitlines()
+    assert max(len(line) for line in lines) <= 80
+    assert "e_x mm" in out and "oracle floor" in out and "beam_pf" in out
+
+
+# -- pairing ---------------------------------------------------------------------------------------
+
+
+def test_trials_are_paired_across_estimators(run: dict) -> None:
+    doc = run["doc"]
+    for label, lg in doc["logs"].items():
+        a, b = lg["estimators"]["icp_pf"]["records"], lg["estimators"]["beam_pf"]["records"]
+        o = lg["oracle"]["records"]
+        for ra, rb, ro in zip(a, b, o):
+            assert ra["seed"] == rb["seed"] == ro["seed"]
+            assert ra["sample_indices"] == rb["sample_indices"] == ro["sample_indices"]
+            assert ra["prior_mean"] == rb["prior_mean"]
+            assert ra["truth"] == rb["truth"] == pytest.approx(ro["truth"])
+        assert [r["seed"] for r in a] == lg["trial_seeds"]
+        assert lg["seed"] == log_seed(5, label)
+    seeds = [lg["trial_seeds"] for lg in doc["logs"].values()]
+    assert seeds[0] != seeds[1]  # each log its own trials
+    prior = [lg["estimators"]["icp_pf"]["records"][0]["prior_mean"] for lg in doc["logs"].values()]
+    truth = [lg["estimators"]["icp_pf"]["records"][0]["truth"] for lg in doc["logs"].values()]
+    offsets = [np.subtract(p, t) for p, t in zip(prior, truth)]
+    assert not np.allclose(offsets[0], offsets[1])  # and its own prior offsets
+
+
+def test_a_log_keeps_its_trials_whatever_else_runs(run: dict, logs: list[Path], tmp_path: Path) -> None:
+    """Another estimator list, one log instead of two: the same samples and priors."""
+    out = tmp_path / "one"
+    assert main(["evaluate", str(logs[1]), "--estimators", "beam_pf", "--trials", "2", "--samples", "3", "--seed", "5",
+                 "--out", str(out), *FEW]) == 0
+    one = json.loads((out / "results.json").read_text())["logs"]["l_room"]
+    both = run["doc"]["logs"]["l_room"]
+    assert one["trial_seeds"] == both["trial_seeds"]
+    for r1, r2 in zip(one["estimators"]["beam_pf"]["records"], both["estimators"]["icp_pf"]["records"]):
+        assert r1["sample_indices"] == r2["sample_indices"] and r1["prior_mean"] == r2["prior_mean"]
+
+
+def test_labels_are_file_names_or_as_much_path_as_needed(tmp_path: Path) -> None:
+    assert log_labels([tmp_path / "a" / "x.h5", tmp_path / "b" / "y.h5"]) == ["x", "y"]
+    assert log_labels([tmp_path / "a" / "x.h5", tmp_path / "b" / "x.h5", tmp_path / "b" / "z.h5"]) == ["a/x", "b/x", "z"]
+    from tofloc.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="given twice"):
+        log_labels([tmp_path / "x.h5", tmp_path / "." / "x.h5"])
+    assert log_seed(0, "a") != log_seed(0, "b") and log_seed(0, "a") != log_seed(1, "a")
+
+
+# -- saved batches -----------------------------------------------------------------------------------
+
+
+def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Path], tmp_path: Path) -> None:
+    import shutil
+
+    from tofloc import api
+
+    out = tmp_path / "again"
+    shutil.copytree(run["out"] / "partial", out / "partial")
+    missing = out / "partial" / "l_room__beam_pf.json"
+    missing.unlink()  # as if the run had stopped before this batch ended
+
+    class Notes(api.Reporter):
+        def __init__(self) -> None:
+            self.notes: list[str] = []
+
+        def note(self, message: str) -> None:
+            self.notes.append(message)
+
+    rep = Notes()
+    res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, trials=2, samples=3, seed=5, params={"n_particles": 100},
+                       workers=1, reporter=rep)
+    assert "reused 3 of 4 saved (log, estimator) batches" in rep.notes
+    assert missing.exists()
+    first = run["doc"]["logs"]
+    for label, lg in res.document["logs"].items():
+        for e, got in lg["estimators"].items():
+            old = first[label]["estimators"][e]["records"]
+            if (label, e) == ("l_room", "beam_pf"):  # run again: the same numbers, a new runtime
+                for a, b in zip(got["records"], old):
+                    assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}
+            else:  # reused as saved, runtimes included
+                assert got["records"] == old
+    # another trial count is another key: nothing reused
+    rep2 = Notes()
+    api.evaluate(logs[:1], ["beam_pf"], out=out, trials=1, samples=3, seed=5, params={"n_particles": 100}, workers=1,
+                 reporter=rep2)
+    assert not any(n.startswith("reused") for n in rep2.notes)
+
+
+def test_one_pool_for_several_logs_matches_inline(run: dict) -> None:
+    """The trials of several logs in one pool of worker processes (a context per group)."""
+    from evaluation.evaluate import EstimatorSpec, prepare_logs, run_estimators
+    from tofloc.registry import ESTIMATORS
+
+    doc = run["doc"]
+    entries = prepare_logs([Path(lg["path"]) for lg in doc["logs"].values()], samples=3, seed=5)
+    spec = [EstimatorSpec("beam_pf", ESTIMATORS.load("beam_pf"), {"n_particles": 100})]
+    got = run_estimators(entries, spec, trials=2, prior=PriorSpec("offset"), run_seed=5, workers=2)
+    for label, by_est in got.items():
+        for a, b in zip(by_est["beam_pf"], doc["logs"][label]["estimators"]["beam_pf"]["records"]):
+            assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}
+
+
+# -- the oracle floor ------------------------------------------------------------------------------
+
+
+def _noise_free(name: str, **environment: object) -> object:
+    """A scene with the exact rig, a mesh map, exact motion capture and noise-free zones
+    (one ray per zone; readings still rounded to whole millimetres)."""
+    from tofloc.simulation.scenario import with_rig_variant
+
+    sc = with_rig_variant(_coarse(name), "exact")
+    return dc.replace(
+        sc,
+        environment=dc.replace(sc.environment, map_kind="mesh", cad_error_sigma=0.0, **environment),
+        robot=dc.replace(sc.robot, mocap_position_sigma=0.0, mocap_rotation_sigma_deg=0.0, mocap_dropouts=0),
+        tof=dc.replace(sc.tof, sub_rays=1, accuracy_percent=0.0, sigma_floor=0.0, bias_offset=0.0, bias_slope=0.0,
+                       multipath_probability=0.0, ghost_probability=0.0, invalid_base_rate=0.0, invalid_weak_rate=0.0,
+                       status9_rate=0.0),
+    )
+
+
+def _problem(sim: object, T_base_tip: np.ndarray | None = None) -> tuple[object, np.ndarray]:
+    log = sim.log
+    if T_base_tip is not None:
+        log = dc.replace(log, T_base_tip=T_base_tip)
+    prior = PriorSpec("paper").make(log.T_map_base, np.zeros(3))
+    return problem_from_log(log, np.arange(log.n_samples), sim.map, prior, "mocap"), base_pose_parts(log.T_map_base)[0]
+
+
+@pytest.mark.parametrize("scene", ["paper", "l_room"])
+def test_oracle_returns_the_truth_on_noise_free_data(scene: str) -> None:
+    from tofloc.simulation import simulate
+
+    problem, truth = _problem(simulate(_noise_free(scene), 0))
+    fit = oracle_fit(problem, truth)
+    assert fit.converged and fit.note == "" and fit.n_points > 300
+    assert fit.e_x_m < 1e-3 and fit.e_gamma_deg < 0.05
+
+
+def test_oracle_fits_rather_than_echoing_its_start() -> None:
+    """Every configuration moved by the same planar offset D: the data then fit the map at
+    T_map_base D^-1, and the oracle goes there from the truth."""
+    from tofloc.simulation import simulate
+
+    sim = simulate(_noise_free("paper"), 0)
+    D = frames.se3_from_xyyaw(0.006, -0.004, math.radians(0.8))
+    problem, truth = _problem(sim, D[None] @ sim.log.T_base_tip)
+    fit = oracle_fit(problem, truth)
+    want = base_pose_parts(sim.log.T_map_base @ frames.invert(D))[0]
+    assert fit.converged
+    assert np.hypot(*(fit.pose[:2] - want[:2])) < 1e-3 and abs(math.degrees(fit.pose[2] - want[2])) < 0.05
+    assert fit.e_x_m > 5e-3  # it did move away from the truth it started at
+
+
+def test_oracle_stays_near_the_truth_with_a_wall_the_map_lacks() -> None:
+    """A wall across the paper frame's open side, absent from the map: about a quarter of
+    the zones see it; the Cauchy loss keeps the fit near the truth, plain least squares does not."""
+    from tofloc.simulation import simulate
+
+    sim = simulate(_noise_free("paper", unmapped_boxes=((-0.35, 0.2, 0.0, 0.35, 0.22, 0.6),)), 0)
+    problem, truth = _problem(sim)
+    pts, _ = oracle_points(problem)
+    c, n = problem.map.closest_surface_point(_moved(pts, truth))
+    off_map = np.abs(np.einsum("ij,ij->i", n, _moved(pts, truth) - c)) > 0.01
+    assert off_map.mean() > 0.2
+    fit = oracle_fit(problem, truth)
+    assert fit.converged and fit.e_x_m < 3e-3 and fit.e_gamma_deg < 1.0
+    plain = oracle_fit(problem, truth, loss="linear")
+    assert plain.e_x_m > 0.02 or plain.e_gamma_deg > 5.0
+
+
+# -- bad input -------------------------------------------------------------------------------------
+
+
+def _refused(capsys: pytest.CaptureFixture[str], args: list[str], *frags: str) -> str:
+    code, out, err = _run(capsys, ["evaluate", *args])
+    assert code == 2, (out, err)
+    text = " ".join(err.split())
+    assert text.startswith("error:") and len(err.strip().splitlines()) == 1, err
+    for f in frags:
+        assert f in text, text
+    return text
+
+
+def test_bad_input_is_one_line_before_any_work(logs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    log = str(logs[0])
+    _refused(capsys, [log, "--estimators", "icp_pf,no_such_pf", "--out", str(out)], "no_such_pf")
+    _refused(capsys, ["--estimators", "icp_pf", "--out", str(out)], "at least one LOG")
+    _refused(capsys, [log, "--out", str(out)], "--estimators")
+    _refused(capsys, [log, "--estimators", "icp_pf"], "--out")
+    _refused(capsys, [log, "--estimators", "icp_pf,icp_pf", "--out", str(out)], "distinct")
+    for bad in ("0", "abc", "-2"):
+        _refused(capsys, [log, "--estimators", "icp_pf", "--samples", bad, "--out", str(out)], "--samples")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--samples", "500", "--out", str(out)], str(logs[0]), "500 are needed")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--trials", "0", "--out", str(out)], "--trials")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--prior-mode", "near", "--out", str(out)], "--prior-mode")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--param", "no_such_param=1", "--out", str(out)], "no_such_param")
+    assert not out.exists()  # nothing was written
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--out", str(a_file)], "--out", "not a folder")
+    _refused(capsys, [log, "--estimators", "icp_pf", "--out", str(a_file / "sub")], "--out")
+    _refused(capsys, [log, log, "--estimators", "icp_pf", "--out", str(out)], "given twice")
+    _refused(capsys, [str(tmp_path / "missing.h5"), "--estimators", "icp_pf", "--out", str(out)], "missing.h5")
+
+
+def test_a_log_without_truth_is_refused_naming_it(logs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.logs import read_log, write_log
+
+    log = read_log(logs[0])
+    blind = write_log(dc.replace(log, T_map_base=None, map=log.map_path().name), logs[0].parent / "blind.h5")
+    text = _refused(capsys, [str(logs[1]), str(blind), "--estimators", "beam_pf", "--out", str(tmp_path / "o")],
+                    str(blind), "/truth/T_map_base")
+    assert not (tmp_path / "o").exists(), text
+
+
+# -- the real flight -------------------------------------------------------------------------------
+
+
+@pytest.mark.slow  # ~22 s: skipped by `make test-fast`
+@pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
+def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(capsys, ["import", "nanoswarm", str(FOUR), "--out", str(tmp_path / "four")])
+    assert code == 0, err
+    picked = ["drone1-node001", "drone1-node003", "drone3-node002", "drone3-node005"]  # two maps: two distance grids
+    out = tmp_path / "eval"
+    code, stdout, err = _run(capsys, ["evaluate", *(str(tmp_path / "four" / f"{n}.h5") for n in picked), "--estimators", "icp_pf",
+                                      "--trials", "2", "--param", "n_particles=200", "--workers", "1", "--out", str(out)])
+    assert code == 0, err
+    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png"):
+        assert (out / name).stat().st_size > 0
+    doc = json.loads((out / "results.json").read_text())
+    assert list(doc["logs"]) == picked
+    for lg in doc["logs"].values():
+        assert lg["k"] == 15 and lg["configuration_source"] == "odometry" and "without-drone" in lg["map"]
+    o = doc["oracle_summary"]
+    # measured: per log 10.1, 13.3, 50.1 and 37.2 mm (every trial uses all 15 samples, so a
+    # log's trials share one floor), median 25.2 mm and 0.72 deg: a few centimetres, as the
+    # maps' gaps, their 2 cm grid and the odometry's errors let expect (docs/real-data.md)
+    assert 0.020 < o["e_x_m"]["median"] < 0.030, o
+    assert 0.5 < o["e_gamma_deg"]["median"] < 1.0 and o["not_converged"] == 0
+    per_log = [lg["oracle"]["summary"]["e_x_m"]["median"] for lg in doc["logs"].values()]
+    assert min(per_log) > 0.005 and max(per_log) < 0.06, per_log
+
+
+def test_one_dask_scatter_for_several_logs_matches_inline(run: dict) -> None:
+    """The same on Dask: the mapping of contexts is scattered whole (not key by key)."""
+    distributed = pytest.importorskip("distributed")
+    from evaluation.evaluate import EstimatorSpec, prepare_logs, run_estimators
+    from tofloc.registry import ESTIMATORS
+
+    doc = run["doc"]
+    entries = prepare_logs([Path(lg["path"]) for lg in doc["logs"].values()], samples=3, seed=5)
+    spec = [EstimatorSpec("beam_pf", ESTIMATORS.load("beam_pf"), {"n_particles": 100})]
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with distributed.Client(cluster) as client:
+            got = run_estimators(entries, spec, trials=2, prior=PriorSpec("offset"), run_seed=5, scheduler=client)
+    for label, by_est in got.items():
+        for a, b in zip(by_est["beam_pf"], doc["logs"][label]["estimators"]["beam_pf"]["records"]):
+            assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}

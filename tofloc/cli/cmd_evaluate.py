@@ -1,0 +1,109 @@
+"""``tofloc evaluate``: several estimators on many logs with ground truth, the same trials
+for all, against each trial's oracle floor.
+
+``DIR/results.json`` (every trial, per log and estimator; summaries; the oracle floor and
+each estimator's ratio to it), ``DIR/table.md``, ``DIR/errors_cdf.png``, ``DIR/nees.png``;
+finished (log, estimator) batches in ``DIR/partial/``, reused by a rerun with the same
+arguments. The work is :func:`tofloc.api.evaluate`; this module parses and prints.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich import box
+from rich.table import Table
+
+from tofloc.cli.app import RichReporter, app, console, err_console
+from tofloc.cli.options import parse_params, parse_samples, parse_statuses
+from tofloc.errors import ParameterError
+
+__all__ = ["evaluate"]
+
+
+@app.command()
+def evaluate(
+    logs: Optional[list[Path]] = typer.Argument(None, metavar="LOG...", help="Logs with ground truth (/truth/T_map_base)."),
+    estimators: Optional[str] = typer.Option(None, "--estimators", help="Comma-separated registered estimators (required)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Output folder: results, table, plots, partial results (required)."),
+    trials: int = typer.Option(10, "--trials", help="Trials per log."),
+    samples: str = typer.Option("all", "--samples", help="Samples per trial, or 'all' (every usable sample of the log)."),
+    prior_mode: str = typer.Option("offset", "--prior-mode", help="offset: the prior mean drawn around the truth; "
+                                   "paper: centred on it."),
+    prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
+    prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
+    calibration: Optional[Path] = typer.Option(
+        None, "--calibration", metavar="MODEL.toml",
+        help="A calibration (`tofloc calibrate` output) for every estimator that uses one, and the oracle floor."),
+    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
+    valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),
+) -> None:
+    """Compare estimators on many logs with ground truth: paired trials, the oracle floor."""
+    from tofloc import api
+    from tofloc.atomic import check_output_path
+
+    if out is None:
+        raise ParameterError("tofloc evaluate needs --out DIR")
+    check_output_path(out, kind="dir", option="--out")
+    if not estimators:
+        raise ParameterError("tofloc evaluate needs --estimators NAME[,NAME...] (see `tofloc list`)")
+    if not logs:
+        raise ParameterError("tofloc evaluate needs at least one LOG")
+    names = [n.strip() for n in estimators.split(",") if n.strip()]
+    if not names or len(set(names)) != len(names):
+        raise ParameterError(f"--estimators expects distinct comma-separated names, got {estimators!r}")
+    k = parse_samples(samples, api.MAX_TRIALS)
+    if not 1 <= trials <= api.MAX_TRIALS:
+        raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
+    if prior_mode not in ("offset", "paper"):
+        raise ParameterError(f"--prior-mode must be offset or paper, got {prior_mode!r}")
+    if seed < 0:
+        raise ParameterError(f"--seed must be >= 0, got {seed}")
+    if workers is not None and workers < 1:
+        raise ParameterError(f"--workers must be >= 1, got {workers}")
+    statuses = parse_statuses(valid_statuses)
+    params = parse_params(param)
+    for n in names:  # unknown names and parameters: refused before any log is read
+        api.estimator(n, params)
+    with RichReporter() as reporter:
+        run = api.evaluate(
+            list(logs), names, out=out, trials=trials, samples=k, prior_mode=prior_mode, prior_sigma_xy=prior_sigma_xy,
+            prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration, params=params, valid_statuses=statuses,
+            seed=seed, workers=workers, scheduler=scheduler, reporter=reporter,
+        )
+    console.print(summary_table(run.document))
+    for p in run.paths:
+        err_console.print(f"wrote {p}", highlight=False)
+
+
+def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
+    if v is None:
+        return "n/a"
+    x = float(v) * scale
+    return format(x, ".0f" if abs(x) >= 1000 else fmt)
+
+
+def summary_table(doc: dict[str, Any]) -> Table:
+    """Per estimator over every trial of every log: median e_x (mm) and e_gamma (deg),
+    failure rate, NEES mean and median, median runtime; then the oracle floor (80 columns)."""
+    n_logs = len(doc["logs"])
+    t = Table(title=f"{n_logs} log(s) x {doc['trials']} trial(s), prior {doc['prior']['mode']}", box=box.SIMPLE_HEAD,
+              caption=f"fail: e_x > {doc['failure']['e_x_m'] * 1000:.0f} mm or e_γ > {doc['failure']['e_gamma_deg']:.0f} deg; "
+                      "NEES 3 if consistent", caption_justify="left", pad_edge=False)
+    t.add_column("estimator", no_wrap=True, max_width=20, overflow="ellipsis")
+    for col in ("e_x mm", "e_γ deg", "fail", "NEES mean", "NEES med", "t (s)"):
+        t.add_column(col, justify="right", no_wrap=True)
+    for name, s in doc["summary"].items():
+        nees = s.get("nees") or {}
+        t.add_row(name, _num(s["e_x_m"]["median"], ".1f", 1000), _num(s["e_gamma_deg"]["median"], ".2f"),
+                  _num(s["failure_rate"], ".0%"), _num(nees.get("mean"), ".2f"), _num(nees.get("median"), ".2f"),
+                  _num((s.get("runtime_s") or {}).get("median"), ".2f"))
+    o = doc["oracle_summary"]
+    t.add_row("oracle floor", _num(o["e_x_m"]["median"], ".1f", 1000), _num(o["e_gamma_deg"]["median"], ".2f"),
+              _num(o["failure_rate"], ".0%"), "", "", "", style="bold")
+    return t
