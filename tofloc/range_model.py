@@ -12,7 +12,7 @@ returns). Defaults come from ST's datasheet (DS13754, 8x8: +-11 % at 2.7 sigma f
 targets at 5 klux, the paper's own figure). With ``use_reported_sigma`` the sensor's
 own ``range_sigma_mm`` (when the log has it) replaces sigma(d). ``tofloc calibrate``
 fits these curves from logs with ground truth and saves them as TOML; estimators take
-that file with ``--sensor-model-params``.
+that file with ``--calibration``.
 """
 
 from __future__ import annotations
