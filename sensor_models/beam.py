@@ -49,11 +49,11 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
+from scipy.special import ndtr, stdtr
 
 from sensor_models.base import BoundSensorModel, SensorModel, declared_state
 from tofloc.errors import FormatError, ParameterError
-from tofloc.problem import Problem, check_int
+from tofloc.problem import Problem, check_in, check_int
 from tofloc.toml_tables import params_from_table, params_from_toml
 from tofloc.zone_caster import PlanarZoneRays, ZoneCaster
 
@@ -138,6 +138,21 @@ def _as_mixture(value: Any, source: str = "beam.mixture") -> BeamMixture:
         raise ParameterError(str(e)) from None
 
 
+def hit_density(z: NDArray[np.float64], mu: NDArray[np.float64], sigma: NDArray[np.float64], r: Any,
+                dof: float) -> NDArray[np.float64]:
+    """Density of readings ``z`` around ``mu`` with scale ``sigma``, truncated to ``[0, r]``:
+    a Gaussian (``dof = inf``) or a Student-t of ``dof`` degrees of freedom (heavier tails:
+    a zone a few sigmas off, from a footprint that grazes an object the map lacks, a map
+    error, an odometry error, pulls the pose far less than under a Gaussian)."""
+    t = (z - mu) / sigma
+    if not math.isfinite(dof):
+        mass = np.maximum(ndtr((r - mu) / sigma) - ndtr(-mu / sigma), 1e-12)
+        return np.exp(-0.5 * t * t) / (sigma * _SQRT_2PI * mass)
+    mass = np.maximum(stdtr(dof, (r - mu) / sigma) - stdtr(dof, -mu / sigma), 1e-12)
+    norm = math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2)) / math.sqrt(dof * math.pi)
+    return norm * (1.0 + t * t / dof) ** (-(dof + 1) / 2) / (sigma * mass)
+
+
 def check_temper(owner: str, temper: Any) -> None:
     """``temper`` must lie in (0, 1]."""
     if not isinstance(temper, (int, float)) or isinstance(temper, bool) or not math.isfinite(temper) or not 0 < temper <= 1:
@@ -163,6 +178,20 @@ class BeamModel(SensorModel):
         Exponent in (0, 1] applied to the sum of the zones' log-likelihoods of a sample.
     sub_rays : int
         Footprint sub-rays per zone side (1..5).
+    short_support : {"range", "expected"}
+        Where a short reading's density lives: ``"range"`` (default), the exponential
+        ``lambda e^(-lambda z)`` normalized over the sensor's whole range, the same for every
+        pose: a reading from an object the map lacks says nothing about the pose; or
+        ``"expected"``, Thrun's, normalized over ``[0, d]`` with ``d`` the pose's expected
+        distance, which makes every such reading pull the pose toward nearer surfaces (with a
+        calibrated ``lambda_short`` near 0 its density is ``1/d``: in the clutter scene, where
+        28 % of the zones see unmapped objects, it moved the estimate by 11 mm, 2.7 times the
+        Cramér-Rao bound, issue 11).
+    hit_dof : float
+        Degrees of freedom of the hit component: a Student-t of scale sigma(d) (``inf``:
+        Thrun's Gaussian). Heavy tails make the model robust to zones a few sigmas off
+        that the mixture's short and random components do not explain (see
+        :func:`hit_density`).
     """
 
     name: ClassVar[str] = "beam"
@@ -174,10 +203,15 @@ class BeamModel(SensorModel):
     outlier_floor: float = 0.05
     temper: float = 0.25
     sub_rays: int = 1
+    short_support: str = "range"
+    hit_dof: float = float("inf")
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
+        check_in("beam.short_support", self.short_support, ("range", "expected"))
+        if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
+            raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
         v = self.outlier_floor
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= 0.3:
             raise ParameterError(f"beam.outlier_floor must be in [0, 0.3], got {v!r}")
@@ -235,15 +269,19 @@ class BoundBeamModel(BoundSensorModel):
         sigma = unc.sigma(rig, d, sigma_rep)
         mu = d + unc.bias(rig, d)
         # truncated Gaussian on [0, r]
-        mass = np.maximum(ndtr((r - mu) / sigma) - ndtr(-mu / sigma), 1e-12)
-        p_hit = np.exp(-0.5 * ((z - mu) / sigma) ** 2) / (sigma * _SQRT_2PI * mass)
+        p_hit = hit_density(z, mu, sigma, r, self.model.hit_dof)
 
         def p_short(dexp: NDArray[np.float64]) -> NDArray[np.float64]:
             return np.where(z < dexp, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(dexp, 1e-6)), 0.0)
 
         p_rand = mix.z_rand / r
-        p_valid_hit = mix.z_hit * p_hit + mix.z_short * p_short(d) + p_rand
-        p_valid_miss = mix.z_short * p_short(np.broadcast_to(r, d.shape)) + p_rand
+        if self.model.short_support == "range":  # the same for every pose: an object the map lacks is not placed by it
+            short = mix.z_short * p_short(np.broadcast_to(r, d.shape))
+            p_valid_hit = mix.z_hit * p_hit + short + p_rand
+            p_valid_miss = short + p_rand
+        else:  # Thrun's: short readings spread over [0, d], d the pose's expected distance
+            p_valid_hit = mix.z_hit * p_hit + mix.z_short * p_short(d) + p_rand
+            p_valid_miss = mix.z_short * p_short(np.broadcast_to(r, d.shape)) + p_rand
         p_valid = frac * p_valid_hit + (1.0 - frac) * p_valid_miss
         p_none = mix.z_max + (1.0 - frac) * mix.z_hit
         p = np.where(valid, p_valid, np.where(no_ret, p_none, 1.0))

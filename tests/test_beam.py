@@ -89,12 +89,13 @@ def _two_zone_problem(distance_m: list[float], status: list[int], range_model: R
     )
 
 
-def test_zone_probabilities_match_the_formula() -> None:
+@pytest.mark.parametrize("short_support", ["range", "expected"])
+@pytest.mark.parametrize("z", [0.415, 0.25])
+def test_zone_probabilities_match_the_formula(short_support: str, z: float) -> None:
     mix = BeamMixture(z_hit=0.7, z_short=0.1, z_max=0.05, z_rand=0.15, lambda_short=4.0)
     unc = RangeUncertainty(sigma_slope=0.0, sigma_floor=0.01, bias_offset=0.003)
-    z = 0.415
     p = _two_zone_problem([z, np.nan], [5, NO_TARGET_STATUS], unc)
-    bound = BeamModel(mixture=mix.to_dict(), temper=1.0).bind(p)
+    bound = BeamModel(mixture=mix.to_dict(), temper=1.0, short_support=short_support).bind(p)
     ll = bound.zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0]
     r = 4.0
     # zone 0 lies on the boresight: an inner zone (the off-axis zone 1 is the edge one)
@@ -102,11 +103,50 @@ def test_zone_probabilities_match_the_formula() -> None:
     mu = WALL_Z + 0.003
     mass = norm.cdf((r - mu) / sigma) - norm.cdf(-mu / sigma)
     p_hit = norm.pdf(z, mu, sigma) / mass
-    p_short = 4.0 * math.exp(-4.0 * z) / (1 - math.exp(-4.0 * WALL_Z)) if z < WALL_Z else 0.0
+    # "expected": Thrun's short density over [0, d] (d the expected distance); "range": over
+    # the whole range [0, r], the same whatever the pose
+    support = WALL_Z if short_support == "expected" else r
+    p_short = 4.0 * math.exp(-4.0 * z) / (1 - math.exp(-4.0 * support)) if z < support else 0.0
     expected0 = mix.z_hit * p_hit + mix.z_short * p_short + mix.z_rand / r
     assert ll[0] == pytest.approx(math.log(expected0), abs=1e-5)  # float32 ray casting
     # zone 1 expects nothing and saw nothing: z_max + z_hit
     assert ll[1] == pytest.approx(math.log(mix.z_max + mix.z_hit), rel=1e-12)
+
+
+def test_student_t_hit_density() -> None:
+    """``hit_dof`` finite: the hit component is a Student-t of scale sigma, truncated to [0, r];
+    far in the tail it is much larger than the Gaussian."""
+    from scipy.stats import t as student_t
+
+    from sensor_models.beam import hit_density
+
+    mu, sigma, r, dof = np.array([0.5]), np.array([0.02]), 4.0, 4.0
+    for z in (0.49, 0.6):
+        want = student_t.pdf(z, dof, loc=mu[0], scale=sigma[0]) / (student_t.cdf(r, dof, mu[0], sigma[0]) - student_t.cdf(0, dof, mu[0], sigma[0]))
+        assert hit_density(np.array([z]), mu, sigma, r, dof)[0] == pytest.approx(want, rel=1e-9)
+    assert hit_density(np.array([0.5]), mu, sigma, r, math.inf)[0] == pytest.approx(norm.pdf(0, 0, 0.02), rel=1e-9)
+    assert hit_density(np.array([0.6]), mu, sigma, r, dof)[0] > 1e3 * hit_density(np.array([0.6]), mu, sigma, r, math.inf)[0]
+    with pytest.raises(ParameterError, match="hit_dof"):
+        BeamModel(hit_dof=0.5)
+    with pytest.raises(ParameterError, match="short_support"):
+        BeamModel(short_support="near")
+
+
+def test_range_short_support_does_not_pull_toward_nearer_walls() -> None:
+    """A reading far short of the wall (an object the map lacks) scores the same at two poses
+    whose expected distances differ under ``short_support="range"``; Thrun's ``"expected"``
+    prefers the pose whose wall is nearer."""
+    mix = BeamMixture(z_hit=0.7, z_short=0.1, z_max=0.05, z_rand=0.15, lambda_short=4.0)
+    poses = np.zeros((1, 3))
+
+    def ll(support: str, wall_shift: float) -> float:
+        q = _two_zone_problem([0.1, np.nan], [5, NO_TARGET_STATUS])
+        q = type(q)(**{**q.__dict__, "map": Map.from_mesh(
+            [[-1, -1, WALL_Z + wall_shift], [1, -1, WALL_Z + wall_shift], [1, 1, WALL_Z + wall_shift], [-1, 1, WALL_Z + wall_shift]],
+            [[0, 2, 1], [0, 3, 2]], source="wall")})
+        return float(BeamModel(mixture=mix.to_dict(), temper=1.0, short_support=support).bind(q).zone_log_likelihood(poses, 0)[0, 0, 0])
+    assert ll("range", 0.0) == pytest.approx(ll("range", 0.3), abs=1e-9)
+    assert ll("expected", 0.0) > ll("expected", 0.3) + 0.1
 
 
 def test_no_return_is_information() -> None:
