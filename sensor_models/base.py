@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from tofloc.problem import Problem
 
-__all__ = ["NUISANCES", "WEIGHT_UPDATES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state"]
+__all__ = ["NUISANCES", "WEIGHT_UPDATES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -81,6 +81,14 @@ def declared_state(problem: Problem, supported: tuple[str, ...]) -> tuple[StateV
             sigma = problem.nuisance.sigma(name)
             out.append(StateVariable(name, sigma, JITTER_FLOOR_FRACTION * sigma, getattr(problem.nuisance, f"{name}_source")))
     return tuple(out)
+
+
+def reference_pose(states: NDArray[np.float64]) -> NDArray[np.float64]:
+    """One planar pose ``(3,)`` standing for states ``(M, 3 + n)``: the median x and y and
+    the circular mean of the yaw (where per-zone quantities that vary slowly with the
+    pose, such as a configuration's effect on a reading, are evaluated once for all)."""
+    x = np.asarray(states, dtype=float)
+    return np.array([np.median(x[:, 0]), np.median(x[:, 1]), np.arctan2(np.mean(np.sin(x[:, 2])), np.mean(np.cos(x[:, 2])))])
 
 
 class BoundSensorModel(ABC):

@@ -51,7 +51,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, stdtr
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_in, check_int
 from tofloc.toml_tables import params_from_table, params_from_toml
@@ -192,6 +193,12 @@ class BeamModel(SensorModel):
         Thrun's Gaussian). Heavy tails make the model robust to zones a few sigmas off
         that the mixture's short and random components do not explain (see
         :func:`hit_density`).
+    configuration_cov : bool
+        Add each zone's reading variance caused by its sample's configuration uncertainty
+        (the problem's ``T_base_tip_cov``, e.g. odometry) to the zone's sensor variance
+        (:func:`tofloc.configuration_uncertainty.range_variance`, evaluated at
+        :func:`sensor_models.base.reference_pose` of the states, once per call). False: the
+        configurations are taken as exact.
     """
 
     name: ClassVar[str] = "beam"
@@ -205,11 +212,14 @@ class BeamModel(SensorModel):
     sub_rays: int = 1
     short_support: str = "range"
     hit_dof: float = float("inf")
+    configuration_cov: bool = True
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
+        if not isinstance(self.configuration_cov, bool):
+            raise ParameterError(f"beam.configuration_cov must be true or false, got {self.configuration_cov!r}")
         if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
             raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
         v = self.outlier_floor
@@ -246,6 +256,40 @@ class BoundBeamModel(BoundSensorModel):
         self.no_return = (problem.status == NO_TARGET_STATUS) & ~self.valid
         self.z = np.where(self.valid, problem.distance_m, 0.0)
         self.r = problem.rig.max_range_m[None, :, None]  # (1, S, 1)
+        cov = problem.T_base_tip_cov if model.configuration_cov else None
+        #: per sample, the configuration covariance (6, 6), or None when exact/unknown
+        self.configuration_cov = [None if cov is None or not np.all(np.isfinite(cov[k])) else cov[k]
+                                  for k in range(self.n_steps)]
+        #: end points of the valid readings in the tip frame (K, S, Z, 3), NaN elsewhere
+        self.points_tip = problem.rig.points_in_tip(np.where(self.valid, problem.distance_m, np.nan))
+        u = self.rays.dirs_tip.mean(axis=2)
+        #: unit mean direction of each zone's sub-rays in the tip frame (S, Z, 3)
+        self.zone_dirs_tip = u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+    def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
+        """Variance ``(S, Z)`` of each zone's expected reading caused by sample ``step``'s
+        configuration uncertainty, at :func:`~sensor_models.base.reference_pose` of
+        ``states`` (None when the configuration is exact or its covariance unknown).
+
+        A zone that sees no surface from the reference pose gets the largest variance of its
+        reading's end point in any direction (:func:`~tofloc.configuration_uncertainty.point_covariance`),
+        or 0 without a valid reading."""
+        C = self.configuration_cov[step]
+        if C is None:
+            return None
+        ref = reference_pose(states)
+        cast = self.rays.cast(self.problem.map, ref[None], step, geometry=True)
+        T = self.problem.prior.T_map_base(ref) @ self.problem.T_base_tip[step]
+        R, t = T[:3, :3], T[:3, 3]
+        assert cast.point is not None and cast.normal is not None
+        p_tip = (cast.point[0] - t) @ R  # R^T (p - t)
+        n_tip = cast.normal[0] @ R
+        along = self.rays.caster.along.mean(axis=2)
+        with np.errstate(invalid="ignore"):
+            v = range_variance(p_tip, n_tip, self.zone_dirs_tip, C, along)
+            worst = np.linalg.eigvalsh(np.nan_to_num(point_covariance(self.points_tip[step], C)))[..., -1] * along**2
+        fallback = np.where(np.isfinite(self.points_tip[step][..., 0]), worst, 0.0)
+        return np.where(np.isfinite(v), v, fallback)
 
     def expected(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Expected readings (NaN: no target) and hit fractions ``(M, S, Z)`` of step ``step``,
@@ -267,6 +311,9 @@ class BoundBeamModel(BoundSensorModel):
         d = np.where(np.isfinite(expected), expected, r)
         sigma_rep = None if self.problem.sigma_m is None else self.problem.sigma_m[step]
         sigma = unc.sigma(rig, d, sigma_rep)
+        v_cfg = self.configuration_variance(states, step)
+        if v_cfg is not None:
+            sigma = np.sqrt(sigma**2 + v_cfg)
         mu = d + unc.bias(rig, d)
         # truncated Gaussian on [0, r]
         p_hit = hit_density(z, mu, sigma, r, self.model.hit_dof)

@@ -41,7 +41,8 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
@@ -189,6 +190,12 @@ class LikelihoodFieldModel(SensorModel):
         :data:`R_FIELD_SIGMAS` times the 99th percentile of the problem's zone sigmas (a
         field clipped inside the noise is flat: the 5 cm the paper's 0.3 m readings need
         are 0.6 sigma of a 1.7 m reading).
+    configuration_cov : bool
+        Add each end point's distance variance caused by its sample's configuration
+        uncertainty (the problem's ``T_base_tip_cov``) to its sensor variance
+        (:func:`tofloc.configuration_uncertainty.normal_variance` along the field's
+        gradient at :func:`sensor_models.base.reference_pose` of the states). False: the
+        configurations are taken as exact.
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -202,6 +209,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float | None = None
+    configuration_cov: bool = True
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_short", "z_rand"):
@@ -213,6 +221,8 @@ class LikelihoodFieldModel(SensorModel):
         if abs(total - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
+        if not isinstance(self.configuration_cov, bool):
+            raise ParameterError(f"likelihood_field.configuration_cov must be true or false, got {self.configuration_cov!r}")
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 2.0)):
             v = getattr(self, n)
             if v is None and n == "r_field":
@@ -254,6 +264,34 @@ class BoundLikelihoodField(BoundSensorModel):
         #: the field's clipping distance (m): the parameter, or chosen from the zone sigmas
         self.r_field = model.r_field if model.r_field is not None else auto_r_field(sigma[valid])
         self.field = surface_field_for(problem.map, model.cell, self.r_field)
+        cov = problem.T_base_tip_cov if model.configuration_cov else None
+        #: per sample, the configuration covariance (6, 6), or None when exact/unknown
+        self.configuration_cov = [None if cov is None or not np.all(np.isfinite(cov[k])) else cov[k]
+                                  for k in range(self.n_steps)]
+
+    def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
+        """Variance ``(P,)`` of each end point's distance to the surface caused by sample
+        ``step``'s configuration uncertainty: along the field's gradient at the end point
+        seen from :func:`~sensor_models.base.reference_pose` of ``states`` (central
+        differences of one cell); where the field is flat (clipped, farther than
+        ``r_field`` from any surface) the end point's largest variance in any direction.
+        None when the configuration is exact or its covariance unknown."""
+        C = self.configuration_cov[step]
+        if C is None:
+            return None
+        ref = reference_pose(states)
+        T = self.problem.prior.T_map_base(ref) @ self.problem.T_base_tip[step]
+        R, t = T[:3, :3], T[:3, 3]
+        p_tip = self.points_tip[step]
+        q = p_tip @ R.T + t
+        h = self.field.cell
+        grad = np.stack([(self.field.signed_distance(q + h * e) - self.field.signed_distance(q - h * e)) / (2 * h)
+                         for e in np.eye(3)], axis=-1)  # three axes, each vectorized over the points
+        g = np.linalg.norm(grad, axis=-1, keepdims=True)
+        n_tip = np.where(g > 0.5, grad / np.maximum(g, 1e-12), 0.0) @ R
+        v = normal_variance(p_tip, n_tip, C)
+        worst = np.linalg.eigvalsh(point_covariance(p_tip, C))[..., -1]
+        return np.where(g[..., 0] > 0.5, v, worst)
 
     def _lifted_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """End points ``(1|M, P, 3)`` of step ``step`` in the lifted base frame, with the
@@ -285,6 +323,9 @@ class BoundLikelihoodField(BoundSensorModel):
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
         sig = self.sigma[step][None, :]
+        v_cfg = self.configuration_variance(states, step)
+        if v_cfg is not None:
+            sig = np.sqrt(sig**2 + v_cfg[None, :])
         d = self.distances(np.asarray(states, dtype=float), step)
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
         p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + short + m.z_rand / self.r_field
