@@ -34,7 +34,8 @@ import numpy as np
 
 from tofloc.fit_check import FALSE_ALARM_RATE, fit_statistics, zone_residuals
 
-__all__ = ["LIBRARY", "RIG_VARIANTS", "GOOD_SIGMA_XY", "GOOD_SIGMA_YAW", "good_estimate_statistics", "derive_thresholds"]
+__all__ = ["LIBRARY", "RIG_VARIANTS", "GOOD_SIGMA_XY", "GOOD_SIGMA_YAW", "good_estimate_statistics", "derive_thresholds",
+           "logs_at_truth"]
 
 LIBRARY = ("paper", "pillars", "l_room", "clutter")
 RIG_VARIANTS = ("exact", "perturbed")
@@ -133,3 +134,35 @@ def derive_thresholds(rows: Iterable[dict[str, Any]], false_alarm_rate: float = 
                         "statistic_max": float(stat[m].max()), "outlier_fraction_max": float(frac[m].max())}
     return {"statistic_threshold": t_stat, "outlier_fraction_threshold": t_frac, "n": len(rows),
             "quantile": q, "false_alarm_rate": float(flagged.mean()), "per_scene": per_scene}
+
+
+def logs_at_truth(paths: Iterable[Path], valid_statuses: Iterable[int] = (5, 9)) -> list[dict[str, Any]]:
+    """The fit check of every log at its truth, all its usable samples at once (e.g. the
+    real nano-drone node logs of ``tofloc import nanoswarm``, each against the map its
+    ``map`` attribute names): one row per log with ``log``, ``ok``, ``statistic``,
+    ``outlier_fraction``, ``n_zones``, ``n_misfits``, ``reason``. Nothing is tuned per log."""
+    from evaluation.priors import PriorSpec, base_pose_parts
+    from tofloc.fit_check import check_fit
+    from tofloc.logs import read_log
+    from tofloc.maps import load_map
+    from tofloc.problem import Estimate
+    from tofloc.problem_builder import problem_from_log
+
+    maps: dict[str, Any] = {}
+    rows: list[dict[str, Any]] = []
+    for path in paths:
+        log = read_log(path)
+        mp = log.map_path()
+        if mp is None or log.T_map_base is None:
+            raise ValueError(f"{path}: needs a map attribute and a truth")
+        if str(mp) not in maps:
+            maps[str(mp)] = load_map(mp)
+        statuses = frozenset(valid_statuses)
+        usable = np.any(log.valid(statuses), axis=(1, 2)) & np.all(np.isfinite(np.asarray(log.T_base_tip)), axis=(1, 2))
+        idx = np.flatnonzero(usable)
+        T = log.truth_per_sample()[idx[0]]
+        problem = problem_from_log(log, idx, maps[str(mp)], PriorSpec("paper").make(T, np.zeros(3)), "mocap",
+                                   valid_statuses=statuses)
+        fc = check_fit(problem, Estimate(pose=base_pose_parts(T)[0], covariance=np.eye(3)))
+        rows.append({"log": str(path), **fc.to_json()})
+    return rows

@@ -235,7 +235,7 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
             handles.append(h)
             labels.append(lab)
     fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8.5, frameon=False)
-    fig.tight_layout(rect=(0, 0.15, 1, 1))
+    fig.subplots_adjust(left=0.06, right=0.98, top=0.86, bottom=0.25, wspace=0.2)
     return _write_png(fig, path)
 
 

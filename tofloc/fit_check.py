@@ -79,9 +79,9 @@ STATISTIC_CAP = OUTLIER_SIGMA**2
 #: quantile over good estimates of simulated data; :func:`derive_thresholds`).
 FALSE_ALARM_RATE = 0.01
 #: Threshold of ``statistic`` (derived by ``scripts/fit_check_thresholds.py``).
-STATISTIC_THRESHOLD = 3.0
+STATISTIC_THRESHOLD = 3.8
 #: Threshold of ``outlier_fraction`` (derived by ``scripts/fit_check_thresholds.py``).
-OUTLIER_FRACTION_THRESHOLD = 0.3
+OUTLIER_FRACTION_THRESHOLD = 0.33
 
 
 @dataclass(frozen=True)
