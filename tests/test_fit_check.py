@@ -90,6 +90,11 @@ def test_check_fit_reports_and_explains() -> None:
     assert "misfits" in bad.warning()
     with pytest.raises(Exception):
         check_fit(good, Estimate(pose=np.zeros(3), covariance=np.eye(3)), threshold=0.0)
+    # a particle filter's ESS and an evidence are recorded when the diagnostics carry them
+    pf = Estimate(pose=np.zeros(3), covariance=np.eye(3),
+                  diagnostics={"ess": [900.0, 250.0], "weights": np.full(1000, 1e-3), "log_evidence": -12.5})
+    rec = check_fit(good, pf)
+    assert rec.ess_fraction == pytest.approx(0.25) and rec.log_evidence == -12.5 and rec.ok
 
 
 def test_configuration_variance_matches_finite_differences() -> None:

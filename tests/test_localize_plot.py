@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from evaluation.localize_plot import SLICE_HALF_HEIGHT_M, ellipse_scale, map_section, plot_localization
 from tofloc.maps import Map

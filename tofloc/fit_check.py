@@ -36,8 +36,10 @@ derived once, from simulated data, by :func:`derive_thresholds` (run by
 known to be good (the truth, and the truth moved by a good estimator's error) across the
 scene library, rounded up, so that a good estimate is flagged with probability at most
 1 % (the union of two 0.5 % tails). A particle filter's final effective sample size is
-recorded (``ess_fraction``) but does not decide: after resampling and annealing it says
-how the filter spent its particles, not whether the map explains the data.
+recorded (``ess_fraction``), and so is an evidence the diagnostics carry
+(``log_evidence``), but neither decides: after resampling and annealing the ESS says how
+the filter spent its particles, and the evidence's scale depends on the model's
+tempering; neither says on its own whether the map explains the data.
 """
 
 from __future__ import annotations
@@ -132,6 +134,9 @@ class FitCheck:
     ess_fraction : float or None
         A particle filter's final effective sample size over its particle count (recorded,
         not used to decide).
+    log_evidence : float or None
+        The estimate's ``diagnostics["log_evidence"]`` when it carries one (recorded, not
+        used to decide: its scale depends on the sensor model and its tempering).
     """
 
     ok: bool
@@ -143,6 +148,7 @@ class FitCheck:
     n_misfits: int
     reason: str = ""
     ess_fraction: float | None = None
+    log_evidence: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         """``{"ok", "statistic", "threshold", "outlier_fraction", "reason", ...}`` (JSON-ready)."""
@@ -160,6 +166,7 @@ class FitCheck:
             "n_misfits": int(self.n_misfits),
             "reason": self.reason,
             "ess_fraction": None if self.ess_fraction is None else float(self.ess_fraction),
+            "log_evidence": None if self.log_evidence is None or not math.isfinite(self.log_evidence) else float(self.log_evidence),
         }
 
     def warning(self) -> str:
@@ -309,13 +316,16 @@ def check_fit(problem: Any, estimate: Any, *, threshold: float = STATISTIC_THRES
     stat, frac, n, n_mis = fit_statistics(res)
     diag = estimate.diagnostics if isinstance(getattr(estimate, "diagnostics", None), Mapping) else {}
     ess = _ess_fraction(diag)
+    ev = diag.get("log_evidence")
+    evidence = float(ev) if isinstance(ev, (int, float, np.floating)) and not isinstance(ev, bool) else None
     if n == 0:
         return FitCheck(False, stat, float(threshold), frac, float(outlier_threshold), 0, 0,
-                        "no zone to check (no valid or no-target zone)", ess)
+                        "no zone to check (no valid or no-target zone)", ess, evidence)
     reasons = []
     if frac > outlier_threshold:
         reasons.append(f"{100 * frac:.0f} % of the zones are beyond 3 sigma or misfits (threshold "
                        f"{100 * outlier_threshold:.0f} %)")
     if stat > threshold:
         reasons.append(f"mean capped squared residual {stat:.2f} > {threshold:.2f}")
-    return FitCheck(not reasons, stat, float(threshold), frac, float(outlier_threshold), n, n_mis, "; ".join(reasons), ess)
+    return FitCheck(not reasons, stat, float(threshold), frac, float(outlier_threshold), n, n_mis, "; ".join(reasons), ess,
+                    evidence)
