@@ -382,7 +382,8 @@ class TrialOutcome:
     problem : tofloc.problem.Problem
         The problem the estimator saw.
     estimate : tofloc.problem.Estimate
-        Its answer, with ``fit`` filled (:func:`tofloc.fit_check.check_fit`).
+        Its answer, with ``fit`` filled (:func:`tofloc.fit_check.check_fit`) when the map
+        can be ray cast.
     truth : ndarray (4, 4) or None
     indices : int array
         The samples drawn.
@@ -415,7 +416,8 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     setup_s = warm_up(est, task, problem, context)
     _, est_rng = trial_rngs(task.seed)
     result = est.estimate(problem, est_rng)
-    result.fit = check_fit(problem, result)
+    if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
+        result.fit = check_fit(problem, result)
     return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration)
 
 
@@ -434,7 +436,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
         the true pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
         ``null`` plus a reason for an unobservable one; the whole entry None without truth),
-        ``fit``: the data-fit check at the estimate (:meth:`tofloc.fit_check.FitCheck.to_json`),
+        ``fit``: the data-fit check at the estimate (:meth:`tofloc.fit_check.FitCheck.to_json`;
+        None for a map that cannot be ray cast),
         ``modes``: the posterior's modes (:func:`tofloc.posterior_modes.modes_of_estimate`:
         ``[{"mean", "covariance", "weight"}, ...]``, heaviest first) and ``ambiguous``
         (a second mode holds more than :data:`tofloc.posterior_modes.AMBIGUOUS_SHARE`).
@@ -460,7 +463,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "runtime_s": float(result.runtime_s),
         "setup_s": float(out.setup_s),
         "crlb": None,
-        "fit": jsonable(result.fit.to_json()),
+        "fit": None if result.fit is None else jsonable(result.fit.to_json()),
         "modes": jsonable([m.to_json() for m in modes]),
         "ambiguous": is_ambiguous(modes),
     }
