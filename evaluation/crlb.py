@@ -25,7 +25,12 @@ and noisy where a perturbed ray crosses an edge; used to check the analytic form
 The bound treats zones as independent and the configurations ``T_base_tip`` as exact,
 and it ignores a zone's footprint: it is optimistic. Directions the measurements do
 not constrain (e.g. sliding along a single wall) make ``I`` singular: the bound of any
-parameter with a component in its null space is infinite (``inf``).
+parameter with a component in its null space is infinite (``inf``). A bound larger than
+anything the map can tell apart is no bound either: a position bound beyond the map's
+extent (the diagonal of its x-y bounding box) or a yaw bound beyond 180 degrees is
+reported as unobservable too (a nearly singular information gives 1e25 m otherwise).
+Every unobservable bound carries a reason (:attr:`CRLB.reason`; ``null`` plus
+``"reason"`` in JSON).
 """
 
 from __future__ import annotations
@@ -44,10 +49,12 @@ from tofloc.rig import Rig
 from tofloc.zone_caster import ZoneCaster
 
 __all__ = ["CRLB", "expected_distances", "zone_jacobians", "fisher_information", "crlb_from_information", "crlb",
-           "crlb_for_problem"]
+           "crlb_for_problem", "map_extent", "MAX_YAW_BOUND_DEG"]
 
 #: Relative eigenvalue (of the scale-normalized information) below which a direction is unobservable.
 SINGULAR_RTOL = 1e-9
+#: A yaw bound beyond this (deg) says nothing: the yaw is unobservable.
+MAX_YAW_BOUND_DEG = 180.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,8 @@ class CRLB:
         Its (pseudo-)inverse; rows/columns of unobservable parameters are inf.
     n_zones : int
         Zones that contributed.
+    reason : str
+        Why a bound is unobservable (empty when both are finite).
     """
 
     position_m: float
@@ -73,13 +82,31 @@ class CRLB:
     information: NDArray[np.float64]
     covariance: NDArray[np.float64]
     n_zones: int
+    reason: str = ""
 
-    def to_json(self) -> dict[str, float | None]:
-        """``{"position_m", "yaw_deg"}``; an infinite (unobservable) bound is ``None`` (JSON has no inf)."""
+    @property
+    def observable(self) -> bool:
+        """Both bounds are finite."""
+        return math.isfinite(self.position_m) and math.isfinite(self.yaw_deg)
+
+    def to_json(self) -> dict[str, float | str | None]:
+        """``{"position_m", "yaw_deg", "reason"}``: an unobservable bound is ``None`` (never a
+        huge number) and ``reason`` says why (``None`` when both are finite)."""
         return {
             "position_m": self.position_m if math.isfinite(self.position_m) else None,
             "yaw_deg": self.yaw_deg if math.isfinite(self.yaw_deg) else None,
+            "reason": None if self.observable else (self.reason or "unobservable"),
         }
+
+
+def map_extent(the_map: Any) -> float | None:
+    """The diagonal (m) of a map's x-y bounding box; None when the map has no bounds."""
+    bounds = getattr(the_map, "bounds", None)
+    if bounds is None:
+        return None
+    lo, hi = (np.asarray(v, dtype=float) for v in bounds())
+    ext = float(math.hypot(hi[0] - lo[0], hi[1] - lo[1]))
+    return ext if math.isfinite(ext) and ext > 0 else None
 
 
 def _sensor_poses(T_map_base: NDArray[np.float64], T_base_tip: NDArray[np.float64], rig: Rig) -> NDArray[np.float64]:
@@ -218,12 +245,16 @@ def fisher_information(
     return 0.5 * (info + info.T), int(use.sum())
 
 
-def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGULAR_RTOL) -> CRLB:
+def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGULAR_RTOL,
+                          max_position_m: float | None = None, max_yaw_deg: float = MAX_YAW_BOUND_DEG) -> CRLB:
     """The bound from an information matrix, with unobservable directions reported as inf.
 
     The information is first scaled to unit diagonal (x, y in metres and yaw in radians
     have different units); eigenvalues below ``rtol`` times the largest span the null
-    space. A parameter with a component in it (beyond ``1e-6``) has an infinite bound.
+    space. A parameter with a component in it (beyond ``1e-6``) has an infinite bound; so
+    has the position when its bound exceeds ``max_position_m`` (the map's extent: the
+    zones cannot tell such positions apart) and the yaw when its bound exceeds
+    ``max_yaw_deg``. :attr:`CRLB.reason` says which.
     """
     I = np.asarray(info, dtype=float)
     if I.shape != (3, 3) or not np.isfinite(I).all():
@@ -231,7 +262,8 @@ def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGU
     diag = np.diag(I)
     inf_cov = np.full((3, 3), np.inf)
     if np.all(diag <= 0):
-        return CRLB(math.inf, math.inf, I, inf_cov, n_zones)
+        why = "no zone with a surface in range" if n_zones == 0 else "the Fisher information is zero"
+        return CRLB(math.inf, math.inf, I, inf_cov, n_zones, why)
     scale = np.where(diag > 0, 1.0 / np.sqrt(np.maximum(diag, 1e-300)), 0.0)
     C = I * scale[:, None] * scale[None, :]
     w, V = np.linalg.eigh(C)
@@ -242,9 +274,20 @@ def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGU
     cov = Cinv * scale[:, None] * scale[None, :]
     cov[unobservable, :] = np.inf
     cov[:, unobservable] = np.inf
+    reasons = []
+    if unobservable.any():
+        names = [n for n, u in zip(("x", "y", "yaw"), unobservable) if u]
+        reasons.append(f"the Fisher information is singular: the zones do not constrain {', '.join(names)} "
+                       "(e.g. sliding along the only surface they see)")
     pos = math.inf if unobservable[:2].any() else math.sqrt(max(float(cov[0, 0] + cov[1, 1]), 0.0))
     yaw = math.inf if unobservable[2] else math.degrees(math.sqrt(max(float(cov[2, 2]), 0.0)))
-    return CRLB(pos, yaw, I, cov, n_zones)
+    if max_position_m is not None and math.isfinite(pos) and pos > max_position_m:
+        reasons.append(f"the position bound ({pos:.3g} m) exceeds the map's extent ({max_position_m:.3g} m)")
+        pos = math.inf
+    if math.isfinite(yaw) and yaw > max_yaw_deg:
+        reasons.append(f"the yaw bound ({yaw:.3g} deg) exceeds {max_yaw_deg:g} deg")
+        yaw = math.inf
+    return CRLB(pos, yaw, I, cov, n_zones, "; ".join(reasons))
 
 
 def crlb(
@@ -259,10 +302,11 @@ def crlb(
 ) -> CRLB:
     """sqrt(CRLB) of position and yaw for samples ``T_base_tip`` seen from the base pose ``T_map_base``.
 
-    See :func:`fisher_information` for the parameters.
+    See :func:`fisher_information` for the parameters; a position bound beyond the map's
+    extent (:func:`map_extent`) is unobservable.
     """
     info, n = fisher_information(T_map_base, T_base_tip, rig, the_map, uncertainty, valid, method=method)
-    return crlb_from_information(info, n)
+    return crlb_from_information(info, n, max_position_m=map_extent(the_map))
 
 
 def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, *, method: str = "analytic") -> CRLB:

@@ -25,6 +25,7 @@ __all__ = [
     "write_text_atomic",
     "summarize_trials",
     "crlb_summary",
+    "fit_summary",
     "setup_summary",
     "group_summary",
     "paired_comparison",
@@ -87,7 +88,20 @@ def crlb_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
     out["n"] = len(bounds)
     out["n_unobservable_position"] = sum(b.get("position_m") is None for b in bounds)
     out["n_unobservable_yaw"] = sum(b.get("yaw_deg") is None for b in bounds)
+    reasons = [b.get("reason") for b in bounds if b.get("reason")]
+    out["reason"] = reasons[0] if reasons else None
     return out
+
+
+def fit_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """``{"checked", "not_ok", "ambiguous"}``: trials with a data-fit check, how many it
+    flagged (:mod:`tofloc.fit_check`) and how many posteriors were ambiguous
+    (:mod:`tofloc.posterior_modes`); None when no trial has a check."""
+    recs = [r for r in records if isinstance(r.get("fit"), Mapping)]
+    if not recs:
+        return None
+    return {"checked": len(recs), "not_ok": sum(not r["fit"].get("ok", True) for r in recs),
+            "ambiguous": sum(bool(r.get("ambiguous")) for r in recs)}
 
 
 def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -98,9 +112,10 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     dict
         ``{"e_x_m": {mean, std, median, rmse}, "e_gamma_deg": {...}, "runtime_s": {"median"},
         "setup_s": {"total", "n"}}`` (:func:`setup_summary`)
-        plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES and
-        ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound. The
-        error entries are ``None`` when no trial has a truth.
+        plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES,
+        ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound and
+        ``"fit": {"checked", "not_ok", "ambiguous"}`` (:func:`fit_summary`) when the trials
+        carry a data-fit check. The error entries are ``None`` when no trial has a truth.
     """
     out: dict[str, Any] = {}
     for key in ERROR_KEYS:
@@ -123,13 +138,16 @@ def setup_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def _add_nees_and_crlb(
     out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
 ) -> None:
-    """Add ``nees`` and ``crlb`` summaries to ``out`` where the trials define them."""
+    """Add ``nees``, ``crlb`` and ``fit`` summaries to ``out`` where the trials define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=nees_keys)
     bound = crlb_summary(records)
     if bound is not None:
         out["crlb"] = bound
+    fit = fit_summary(records)
+    if fit is not None:
+        out["fit"] = fit
 
 
 def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:

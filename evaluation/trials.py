@@ -70,6 +70,8 @@ __all__ = [
     "draw_samples_and_prior",
     "make_estimator",
     "run_trial",
+    "solve_trial",
+    "TrialOutcome",
     "warm_up",
     "make_tasks",
     "jsonable",
@@ -371,6 +373,54 @@ def warm_up(est: Estimator, task: TrialTask, problem: Any, context: TrialContext
     return time.perf_counter() - t0
 
 
+@dataclass(eq=False)
+class TrialOutcome:
+    """What one trial computed, before it becomes a JSON record (:func:`solve_trial`).
+
+    Attributes
+    ----------
+    problem : tofloc.problem.Problem
+        The problem the estimator saw.
+    estimate : tofloc.problem.Estimate
+        Its answer, with ``fit`` filled (:func:`tofloc.fit_check.check_fit`) when the map
+        can be ray cast.
+    truth : ndarray (4, 4) or None
+    indices : int array
+        The samples drawn.
+    setup_s : float
+        One-off set-up paid before the trial (:func:`warm_up`).
+    has_context_calibration : bool
+        Whether the problem carries the context's calibration (the Cramér-Rao bound's).
+    """
+
+    problem: Any
+    estimate: Any
+    truth: NDArray[np.float64] | None
+    indices: NDArray[np.intp]
+    setup_s: float
+    has_context_calibration: bool
+
+
+def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
+    """Draw a trial's samples and prior, run its estimator and check the fit (the work of
+    :func:`run_trial`; also used to re-run one trial for a plot: same seed, same numbers)."""
+    from tofloc.fit_check import check_fit
+
+    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
+    truth_T = context.truth(idx)
+    prior = task.prior.make(truth_T, normals)
+    est = make_estimator(task.estimator_cls, task.params, task.estimator)
+    calibration = context.calibration if est.uses_calibration() else None
+    problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
+                               context.valid_statuses)
+    setup_s = warm_up(est, task, problem, context)
+    _, est_rng = trial_rngs(task.seed)
+    result = est.estimate(problem, est_rng)
+    if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
+        result.fit = check_fit(problem, result)
+    return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration)
+
+
 def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     """Run one trial; returns its JSON record.
 
@@ -382,21 +432,22 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         ``nees`` (None without truth or with a singular covariance), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up), ``setup_s`` (the
         one-off set-up this trial paid before it ran: :func:`warm_up`; 0 for every trial
-        but the first of its estimator, parameters and map in a process) and
-        ``crlb``: ``{"position_m", "yaw_deg"}``, sqrt of the Cramér-Rao bound at the true
-        pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
-        ``null`` for an unobservable direction; the whole entry None without truth).
+        but the first of its estimator, parameters and map in a process),
+        ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
+        the true pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
+        ``null`` plus a reason for an unobservable one; the whole entry None without truth),
+        ``fit``: the data-fit check at the estimate (:meth:`tofloc.fit_check.FitCheck.to_json`;
+        None for a map that cannot be ray cast),
+        ``modes``: the posterior's modes (:func:`tofloc.posterior_modes.modes_of_estimate`:
+        ``[{"mean", "covariance", "weight"}, ...]``, heaviest first) and ``ambiguous``
+        (a second mode holds more than :data:`tofloc.posterior_modes.AMBIGUOUS_SHARE`).
     """
-    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
-    truth_T = context.truth(idx)
-    prior = task.prior.make(truth_T, normals)
-    est = make_estimator(task.estimator_cls, task.params, task.estimator)
-    calibration = context.calibration if est.uses_calibration() else None
-    problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
-                               context.valid_statuses)
-    setup_s = warm_up(est, task, problem, context)
-    _, est_rng = trial_rngs(task.seed)
-    result = est.estimate(problem, est_rng)
+    from tofloc.posterior_modes import is_ambiguous, modes_of_estimate
+
+    out = solve_trial(context, task)
+    problem, result, truth_T, idx = out.problem, out.estimate, out.truth, out.indices
+    prior = problem.prior
+    modes = modes_of_estimate(result)
     record: dict[str, Any] = {
         "seed": int(task.seed),
         "k": int(task.k),
@@ -410,8 +461,11 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "e_gamma_deg": None,
         "nees": None,
         "runtime_s": float(result.runtime_s),
-        "setup_s": float(setup_s),
+        "setup_s": float(out.setup_s),
         "crlb": None,
+        "fit": None if result.fit is None else jsonable(result.fit.to_json()),
+        "modes": jsonable([m.to_json() for m in modes]),
+        "ambiguous": is_ambiguous(modes),
     }
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
@@ -422,7 +476,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
             from evaluation.crlb import crlb_for_problem
 
-            bound_problem = problem if calibration is context.calibration else problem_from_log(
+            bound_problem = problem if out.has_context_calibration else problem_from_log(
                 context.log, idx, context.map, prior, task.tip_source, context.kinematics, context.calibration,
                 context.valid_statuses)
             record["crlb"] = crlb_for_problem(bound_problem, truth_T).to_json()

@@ -73,7 +73,8 @@ def test_single_wall_leaves_the_in_plane_position_unobservable() -> None:
     # with the symmetric fan, I_x,yaw = 0 and the yaw bound is 1 / sqrt(I_yaw,yaw)
     I_yaw = 2 * (w * math.sin(ALPHA) / math.cos(ALPHA) ** 2) ** 2 / SIGMA**2
     assert b.yaw_deg == pytest.approx(math.degrees(1 / math.sqrt(I_yaw)), rel=1e-5)
-    assert b.to_json() == {"position_m": None, "yaw_deg": pytest.approx(b.yaw_deg)}
+    assert b.to_json() == {"position_m": None, "yaw_deg": pytest.approx(b.yaw_deg), "reason": b.reason}
+    assert "singular" in b.reason
 
 
 def test_a_floor_alone_leaves_x_y_and_yaw_unobservable() -> None:
@@ -205,3 +206,57 @@ def test_localize_json_table_and_plot_carry_the_bound(tmp_path, capsys) -> None:
     assert f"{summary['position_m']:.4f} / {summary['yaw_deg']:.3f}" in row
     png = plot_errors(res, "mocap", tmp_path / "errors.png")
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def _tilted_wall(at: float, tilt: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 20 x 20 m vertical square through ``(at, 0)`` whose normal is x turned by ``tilt``."""
+    n = np.array([math.cos(tilt), math.sin(tilt), 0.0])
+    u = np.array([-math.sin(tilt), math.cos(tilt), 0.0])
+    c = np.array([at, 0.0, 0.0])
+    v = np.array([c + a * u + np.array([0.0, 0.0, b]) for a, b in ((-10, -10), (10, -10), (10, 10), (-10, 10))])
+    assert np.allclose((v - c) @ n, 0.0)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_a_nearly_singular_bound_beyond_the_map_is_unobservable_with_a_reason() -> None:
+    """Issue 13 item 5: two walls 1e-7 rad from parallel constrain y in theory only; the bound
+    (kilometres) exceeds the map's extent: reported as unobservable with a reason, never as a
+    number (the localize CLI once printed a 1e25 m position bound)."""
+    rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi)))
+    m = _mesh(_wall(0, 0.5), _tilted_wall(-0.5, 1e-7))
+    info, _ = fisher_information(np.eye(4), np.eye(4)[None], rig, m, FLAT)
+    raw = crlb_from_information(info)  # no extent given: the finite, meaningless number
+    assert math.isfinite(raw.position_m) and raw.position_m > 1000.0
+    b = crlb(np.eye(4), np.eye(4)[None], rig, m, FLAT)
+    assert math.isinf(b.position_m) and math.isfinite(b.yaw_deg)
+    j = b.to_json()
+    assert j["position_m"] is None and "exceeds the map's extent" in j["reason"]
+    assert not b.observable
+    # a yaw bound beyond 180 deg says nothing either
+    weak = crlb_from_information(np.diag([1e4, 1e4, 1e-6]))
+    assert math.isinf(weak.yaw_deg) and "180" in weak.reason
+    # observable bounds carry no reason
+    assert crlb_from_information(np.diag([1e4, 1e4, 1e4])).to_json()["reason"] is None
+
+
+def test_localize_prints_unobservable_with_its_reason_not_a_huge_number(tmp_path, capsys) -> None:
+    """A map that contradicts the data (one wall): the CLI line says unobservable and why."""
+    import json
+
+    from tofloc.cli import main
+    from tofloc.simulation import simulate, write_simulation
+
+    log = write_simulation(simulate("paper", 3), tmp_path / "sim.h5")["log"]
+    wall = _mesh(_wall(0, 1.0)).save(tmp_path / "wall.ply")
+    out = tmp_path / "loc.json"
+    code = main(["localize", str(log), "--map", str(wall), "--estimator", "icp_pf", "--trials", "2", "--samples", "2",
+                 "--json", str(out), "--param", "n_particles=50", "--workers", "1"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    doc = json.loads(out.read_text())
+    for t in doc["trials"]:
+        assert t["crlb"]["position_m"] is None and t["crlb"]["reason"]
+    line = next(s for s in cap.out.splitlines() if "sqrt(CRLB)" in s)
+    assert "position unobservable" in line
+    assert not any(len(tok) > 12 and tok.replace(".", "").isdigit() for tok in cap.out.split())
+    assert doc["summary"]["crlb"]["reason"]

@@ -242,3 +242,51 @@ def test_live_and_offline_build_identical_problems(paper) -> None:
             assert a == b or a is b, f.name
     assert online.nuisance.declared == ("support_yaw",) and online.calibration is cal  # the calibration's, not the rig's
     assert not np.allclose(online.rig.T_tip_sensor, log.rig.T_tip_sensor)  # it was applied
+
+
+def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeypatch, capsys) -> None:
+    """Issue 13: every live estimate gets the data-fit check; one whose data contradict the
+    map (a single wall far away) prints a warning line."""
+    from tofloc.cli import live_cmd
+    from tofloc.fit_check import FitCheck
+    from tofloc.io.samples import Sample
+    from tofloc.maps import Map
+
+    sim, model = paper
+    log = sim.log.subset(model.validation_indices[:3])
+    truth = frames.xyyaw_from_se3(sim.log.T_map_base)
+    prior = Prior(truth, np.array([0.02, 0.02, math.radians(2)]), z=0.5)
+    samples = [Sample(index=i, t_s=float(i), t_host_s=float(i), distance_mm=log.distance_mm[i], status=log.status[i],
+                      sigma_mm=None, pressure_kpa=log.pressure_kpa[i], sample_id=i, sensors_present=(True,) * 3)
+               for i in range(3)]
+    good = LiveLocalizer(ICPScorePF(n_particles=100), log.rig, sim.map_cloud, prior, model, window=3).update_latest(samples)
+    assert isinstance(good.estimate.fit, FitCheck) and good.estimate.fit.ok, good.estimate.fit
+    wall = Map.from_mesh(np.array([[1.0, -2, -1], [1.0, 2, -1], [1.0, 2, 2], [1.0, -2, 2]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    live = LiveLocalizer(ICPScorePF(n_particles=100), log.rig, wall, prior, model, window=3)
+
+    class OneBatch:  # the capture thread, replaced by one batch of samples
+        received: list = []
+
+        def __init__(self, cap) -> None:
+            self.batches = [samples, None]
+
+        def start(self) -> None:
+            pass
+
+        def take(self, timeout: float):
+            return self.batches.pop(0)
+
+        def stop(self) -> None:
+            pass
+
+        def join(self) -> None:
+            pass
+
+    class Stats:
+        def summary(self) -> str:
+            return "3 samples"
+
+    monkeypatch.setattr("tofloc.io.capture.BackgroundCapture", OneBatch)
+    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
+    err = capsys.readouterr().err
+    assert "warning: sample 2: the data do not fit the map at this estimate" in err

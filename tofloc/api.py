@@ -258,6 +258,7 @@ def localize(
     workers: int | None = 1,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    plot: str | os.PathLike[str] | None = None,
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -278,6 +279,12 @@ def localize(
     kinematics : KinematicsModel or path, optional
     prior : evaluation.priors.PriorSpec, optional
         Default: ``offset`` with the paper's spread.
+    plot : path, optional
+        Draw the first trial (re-run in this process: same seed, same numbers) as a top
+        view here (:func:`evaluation.localize_plot.plot_localization`).
+
+    Every trial record carries the data-fit check (``fit``), the posterior's ``modes`` and
+    ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
     """
     from evaluation.executors import run_tasks
     from evaluation.priors import PriorSpec
@@ -336,6 +343,8 @@ def localize(
     reporter.progress(0, len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
     records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
     summary = summarize_trials(records)
+    if plot is not None:
+        _plot_first_trial(plot, context, tasks[0], estimator_name, lg)
     doc = {
         "log": str(lg.path),
         "map": map_path,
@@ -356,6 +365,22 @@ def localize(
         "provenance": provenance(),
     }
     return LocalizeResult(records, summary, doc, has_truth)
+
+
+def _plot_first_trial(path: str | os.PathLike[str], context: Any, task: Any, estimator_name: str, lg: Any) -> None:
+    """Re-run ``task`` here and draw it (:func:`evaluation.localize_plot.plot_localization`)."""
+    from evaluation.localize_plot import plot_localization
+    from evaluation.metrics import position_error, yaw_error_deg
+    from evaluation.priors import base_pose_parts
+    from evaluation.trials import solve_trial
+
+    out = solve_trial(context, task)
+    truth = None if out.truth is None else base_pose_parts(out.truth)[0]
+    title = f"{estimator_name} on {Path(str(lg.path)).name}: trial {task.trial}, k = {task.k}, {task.tip_source} tips"
+    if truth is not None:
+        title += (f"; e_x {1000 * float(position_error(truth, out.estimate.pose)):.1f} mm, "
+                  f"e_gamma {float(yaw_error_deg(truth, out.estimate.pose)):.2f} deg")
+    plot_localization(path, out.problem, out.estimate, truth, title=title)
 
 
 # -- paper ----------------------------------------------------------------------------------------

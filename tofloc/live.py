@@ -4,7 +4,8 @@ Each complete sample (every sensor's frame plus the actuation) becomes one more 
 of the problem: its configuration ``T_base_tip`` comes from the k-NN kinematics model fed
 with the sample's pressures (with the model's validation-error covariance), and the
 estimator is run on the latest ``window`` samples with a generator derived from (seed,
-sample index). The Problem is made by the same builder as offline
+sample index), and every estimate gets the data-fit check of :mod:`tofloc.fit_check`
+(``estimate.fit``). The Problem is made by the same builder as offline
 (:func:`tofloc.problem_builder.build_problem`: the calibration applied, the nuisances
 declared), so the same samples give the same Problem either way. The capture keeps its
 journal as ``tofloc record`` does, in its own thread
@@ -24,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
+from tofloc.fit_check import check_fit
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 from tofloc.problem_builder import build_problem, mm_to_m
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
@@ -163,6 +165,7 @@ class LiveLocalizer:
             est = self.estimator.estimate(problem, rng)
         except ProblemError as e:
             return LiveUpdate(index, problem.n_samples, None, str(e))
+        est.fit = check_fit(problem, est)  # does the window's data fit the map at the estimate?
         return LiveUpdate(index, problem.n_samples, est, reason)
 
     def run(self, samples: Iterable[Any]) -> Iterator[LiveUpdate]:

@@ -12,7 +12,7 @@ import dataclasses
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Iterable, Literal, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,6 +21,9 @@ from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
+
+if TYPE_CHECKING:
+    from tofloc.fit_check import FitCheck
 
 __all__ = ["Prior", "NuisancePriors", "Problem", "Estimate", "Estimator", "ProblemError", "TipSource",
            "CONFIGURATION_SOURCES"]
@@ -291,12 +294,16 @@ class Estimate:
         ``particles``/``weights``; for a smoother iterations and final error.
     runtime_s : float
         Wall time of :meth:`Estimator.estimate`.
+    fit : tofloc.fit_check.FitCheck, optional
+        Whether the data fit the map at this estimate; filled by the callers (trials, live
+        localization) with :func:`tofloc.fit_check.check_fit`, never by an estimator.
     """
 
     pose: NDArray[np.float64]
     covariance: NDArray[np.float64]
     diagnostics: dict[str, Any] = field(default_factory=dict)
     runtime_s: float = 0.0
+    fit: "FitCheck | None" = None
 
     def __post_init__(self) -> None:
         self.pose = np.asarray(self.pose, dtype=float).copy()

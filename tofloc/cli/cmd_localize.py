@@ -51,6 +51,10 @@ def localize(
     plot_nees: Optional[Path] = typer.Option(
         None, "--plot-nees", metavar="PNG",
         help="Plot the trials' NEES (ECDF) against chi2(3) with its 95 % interval here (needs ground truth)."),
+    plot: Optional[Path] = typer.Option(
+        None, "--plot", metavar="PNG",
+        help="Draw the first trial as a top view here: the map near the base height, truth, prior, particles or "
+             "smoother starts, the estimate with its (scaled-up) ellipse and the zones at the estimate."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     param: Optional[list[str]] = typer.Option(
@@ -89,6 +93,10 @@ def localize(
         if port is not None:
             raise ParameterError("--plot-nees needs trials against ground truth: it is for offline runs (not --port)")
         check_output_path(plot_nees, option="--plot-nees")
+    if plot is not None:
+        if port is not None:
+            raise ParameterError("--plot draws the first trial of an offline run (not --port)")
+        check_output_path(plot, option="--plot")
     if estimates_out is not None and port is None:
         check_output_path(estimates_out, option="--estimates-out")
         if json_out is not None and estimates_out.resolve() == json_out.resolve():
@@ -158,7 +166,7 @@ def localize(
         result = api.localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
             trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
-            workers=workers, scheduler=scheduler, reporter=reporter,
+            workers=workers, scheduler=scheduler, reporter=reporter, plot=plot,
         )
     doc = result.document
     from evaluation.trials import jsonable
@@ -185,12 +193,37 @@ def localize(
         label = f"{estimator}, {doc['tip_source']} tips, prior {doc['prior']['mode']}, k = {doc['samples']}"
         draw_nees([(f"{Path(doc['log']).name}: {len(doc['trials'])} trial(s)", [(label, values)])], plot_nees)
     _print(doc, result.has_truth)
+    _warn_fit(doc["trials"])
     if json_out is not None:
         err_console.print(f"wrote {json_out}", highlight=False)
     if plot_nees is not None:
         err_console.print(f"wrote {plot_nees}", highlight=False)
     if estimates_out is not None:
         err_console.print(f"wrote {rows} estimates to {estimates_out}", highlight=False)
+    if plot is not None:
+        err_console.print(f"wrote {plot}", highlight=False)
+
+
+#: Most warning lines about flagged trials; the rest are counted.
+MAX_FIT_WARNINGS = 10
+
+
+def _warn_fit(recs: list[dict[str, Any]]) -> None:
+    """One warning line per trial whose data do not fit the map at the estimate (at most
+    :data:`MAX_FIT_WARNINGS`, then a count), and a line per ambiguous posterior count."""
+    flagged = [r for r in recs if isinstance(r.get("fit"), dict) and not r["fit"].get("ok", True)]
+    for r in flagged[:MAX_FIT_WARNINGS]:
+        f = r["fit"]
+        err_console.print(f"warning: trial {r['trial']}: the data do not fit the map at the estimate: {f['reason']} "
+                          f"({f['n_misfits']} of {f['n_zones']} zones are misfits)", style="yellow", highlight=False,
+                          markup=False)
+    if len(flagged) > MAX_FIT_WARNINGS:
+        err_console.print(f"warning: {len(flagged) - MAX_FIT_WARNINGS} more trial(s) flagged ({len(flagged)} of {len(recs)} "
+                          "in all; see `fit` in --json)", style="yellow", highlight=False, markup=False)
+    n_amb = sum(bool(r.get("ambiguous")) for r in recs)
+    if n_amb:
+        err_console.print(f"note: {n_amb} of {len(recs)} trial(s) have an ambiguous posterior (a second mode holds more "
+                          "than 10 % of the weight; see `modes` in --json)", highlight=False, markup=False)
 
 
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
@@ -232,8 +265,9 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
         c = s["crlb"]
         pos = "unobservable" if c["position_m"] is None else f"{1000 * c['position_m']:.2f} mm"
         yaw = "unobservable" if c["yaw_deg"] is None else f"{c['yaw_deg']:.3f} deg"
+        why = f" ({c['reason']})" if c.get("reason") else ""
         console.print(f"mean sqrt(CRLB) over {c['n']} trial(s): position {pos}, yaw {yaw} "
-                      "(the best an unbiased estimator can do with these zones)", highlight=False)
+                      f"(the best an unbiased estimator can do with these zones){why}", highlight=False, markup=False)
     if "nees" in s:
         extra += f"; mean NEES {s['nees']['mean']:.2f} over {s['nees']['n']} trial(s) (3 if consistent)"
     console.print(extra, highlight=False)

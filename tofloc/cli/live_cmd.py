@@ -6,6 +6,7 @@ resynchronizing parsers) and runs in its own thread, so the port is read and eve
 journaled however long an estimate takes. The estimator then works on the latest
 ``--window`` samples: each estimate covers every sample that arrived since the previous
 one, and says how many it skipped. ``--estimates-out`` saves each estimate as it comes.
+An estimate whose data do not fit the map (:mod:`tofloc.fit_check`) gets a warning line.
 """
 
 from __future__ import annotations
@@ -153,6 +154,10 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
                 f"y = {y:.4f} +- {sd[1]:.4f} m, yaw = {math.degrees(yaw):.2f} +- {math.degrees(sd[2]):.2f} deg "
                 f"({upd.estimate.runtime_s:.2f} s)"
             )
+            fit = upd.estimate.fit
+            if fit is not None and not fit.ok:
+                err_console.print(f"warning: sample {upd.sample_index}: {fit.warning()}", style="yellow", highlight=False,
+                                  markup=False)
             if writer is not None:
                 writer.write(upd, batch[-1].t_s)
     finally:

@@ -1,0 +1,46 @@
+"""The localization plot (issue 13 item 6): map sections, the ellipse's scale, the PNG."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evaluation.localize_plot import SLICE_HALF_HEIGHT_M, ellipse_scale, map_section, plot_localization
+from tofloc.maps import Map
+from tofloc.problem import Estimate, Prior, Problem
+from tofloc.rig import Rig, Sensor
+
+
+def test_a_mesh_is_cut_at_the_base_height_and_a_cloud_sliced() -> None:
+    box = Map.cuboid(open_faces=())
+    seg, pts = map_section(box, 0.5)
+    assert pts is None and seg.shape[1:] == (2, 2) and len(seg) >= 4
+    xy = seg.reshape(-1, 2)
+    assert np.allclose(np.max(np.abs(xy), axis=1), 0.35, atol=1e-9)  # every crossing lies on a wall
+    cloud = Map.from_points(np.array([[0.0, 0.0, 0.5], [1.0, 0.0, 0.52], [2.0, 0.0, 0.9]]))
+    seg2, pts2 = map_section(cloud, 0.5)
+    assert seg2 is None and pts2.tolist() == [[0.0, 0.0], [1.0, 0.0]]
+    assert SLICE_HALF_HEIGHT_M < 0.4  # the far point is left out
+
+
+def test_the_ellipse_is_scaled_by_a_power_of_ten_until_visible() -> None:
+    assert ellipse_scale(np.diag([1e-6, 1e-6]), 1.0) == 10.0  # 2 mm across 1 m: x 10 gives 2 cm
+    assert ellipse_scale(np.diag([1e-2, 1e-2]), 1.0) == 1.0
+    assert ellipse_scale(np.zeros((2, 2)), 1.0) == 1.0
+
+
+def test_the_plot_is_written(tmp_path) -> None:
+    R = np.stack([[0, 1, 0], [0, 0, -1], [1, 0, 0]], axis=1).astype(float)
+    T = np.eye(4)
+    T[:3, :3] = R
+    rig = Rig((Sensor(name="a", resolution=(1, 3), distance="radial",
+                      zone_directions=np.array([[-0.2, 0, 1.0], [0, 0, 1.0], [0.2, 0, 1.0]]) / np.array([[1.0198], [1.0], [1.0198]]),
+                      T_tip_sensor=T),))
+    box = Map.cuboid(open_faces=())
+    p = Problem(rig=rig, distance_m=np.full((1, 1, 3), 0.35), status=np.full((1, 1, 3), 5, np.uint8),
+                T_base_tip=np.eye(4)[None], map=box, prior=Prior(np.zeros(3), np.array([0.1, 0.1, 0.2]), z=0.3))
+    rng = np.random.default_rng(0)
+    est = Estimate(pose=np.zeros(3), covariance=np.diag([1e-6, 1e-6, 1e-4]),
+                   diagnostics={"particles": rng.normal(0, 0.003, (200, 3)), "weights": np.full(200, 1 / 200)})
+    out = plot_localization(tmp_path / "p.png", p, est, truth=np.array([0.001, 0.0, 0.0]), title="test")
+    data = out.read_bytes()
+    assert data[:4] == b"\x89PNG" and 10_000 < len(data) < 400_000

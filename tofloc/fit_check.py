@@ -1,0 +1,331 @@
+"""Does the data fit the map at the estimate?  One check for every estimator (issue 13).
+
+An estimator always answers with a pose; :func:`check_fit` says whether the zones the
+sensors read are what the sensor model predicts from that pose. It is the one data-fit
+check of the toolkit: ``tofloc localize`` (offline trials), live localization and the
+Python API call it on every :class:`~tofloc.problem.Estimate` (the callers fill
+``Estimate.fit``; no estimator computes it itself).
+
+At the estimate (its pose and, when its ``diagnostics["state"]`` has them, the means of
+the nuisances ``support_yaw`` and ``range_scale``, applied as the beam model does), the
+shared zone caster (:class:`tofloc.zone_caster.ZoneCaster`, the zone's centre ray, the
+problem's rig with its calibration applied) gives every zone's expected reading
+``z_hat``; the problem's range model gives the bias and sigma at ``z_hat``. Each zone
+with a valid reading ``z``, or reporting "no target" (status 255), is *checked*:
+
+* a valid zone whose expected reading exists has the normalized residual
+  ``r = (z - z_hat - bias(z_hat)) / sigma(z_hat)``;
+* a valid zone where no surface is expected in range, and a "no target" zone where one
+  is expected, are *misfits* (``r`` undefined);
+* "no target" where nothing is expected agrees with the map (``r = 0``).
+
+Two statistics of the checked zones:
+
+``outlier_fraction``
+    the share of checked zones that are misfits or have ``|r| > 3``;
+``statistic``
+    a robust posterior-predictive statistic: the mean over checked zones of
+    ``min(r^2, 9)``, a misfit counting 9 (a plain chi-square per zone would let one
+    wall the map lacks dominate; the cap bounds each zone's influence).
+
+The estimate is flagged (``ok = False``) when either exceeds its threshold
+(:data:`STATISTIC_THRESHOLD`, :data:`OUTLIER_FRACTION_THRESHOLD`). Both constants were
+derived once, from simulated data, by :func:`derive_thresholds` (run by
+``scripts/fit_check_thresholds.py``, procedure and numbers in docs/evaluation.md,
+"Knowing when it is lost"): each is the 99.5 % quantile of its statistic over estimates
+known to be good (the truth, and the truth moved by a good estimator's error) across the
+scene library, rounded up, so that a good estimate is flagged with probability at most
+1 % (the union of two 0.5 % tails). A particle filter's final effective sample size is
+recorded (``ess_fraction``), and so is an evidence the diagnostics carry
+(``log_evidence``), but neither decides: after resampling and annealing the ESS says how
+the filter spent its particles, and the evidence's scale depends on the model's
+tempering; neither says on its own whether the map explains the data.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tofloc import frames
+from tofloc.errors import ParameterError
+from tofloc.zone_caster import ZoneCaster
+
+__all__ = [
+    "FitCheck",
+    "ZoneResiduals",
+    "NO_TARGET_STATUS",
+    "OUTLIER_SIGMA",
+    "STATISTIC_CAP",
+    "STATISTIC_THRESHOLD",
+    "OUTLIER_FRACTION_THRESHOLD",
+    "FALSE_ALARM_RATE",
+    "zone_residuals",
+    "fit_statistics",
+    "check_fit",
+    "nuisance_means",
+]
+
+#: VL53L5CX ``target_status`` of a zone that saw no target (log format v1).
+NO_TARGET_STATUS = 255
+#: A zone is an outlier beyond this many sigmas.
+OUTLIER_SIGMA = 3.0
+#: Each zone adds at most this to the statistic (``OUTLIER_SIGMA ** 2``; a misfit adds it).
+STATISTIC_CAP = OUTLIER_SIGMA**2
+#: The false-alarm rate the thresholds were set for: a good estimate is flagged with at
+#: most this probability (each threshold is its statistic's ``1 - FALSE_ALARM_RATE / 2``
+#: quantile over good estimates of simulated data; :func:`derive_thresholds`).
+FALSE_ALARM_RATE = 0.01
+#: Threshold of ``statistic`` (derived by ``scripts/fit_check_thresholds.py``).
+STATISTIC_THRESHOLD = 3.8
+#: Threshold of ``outlier_fraction`` (derived by ``scripts/fit_check_thresholds.py``).
+OUTLIER_FRACTION_THRESHOLD = 0.33
+
+
+@dataclass(frozen=True)
+class ZoneResiduals:
+    """Every zone's residual at a pose, shaped ``(K, S, Z)``.
+
+    Attributes
+    ----------
+    expected : ndarray
+        Expected reading ``z_hat`` (m; NaN: no surface in range), range scale applied.
+    r : ndarray
+        Normalized residual (NaN where the zone is not checked or is a misfit).
+    checked : ndarray of bool
+        Valid zones and "no target" zones.
+    misfit : ndarray of bool
+        A valid reading with no surface expected, or "no target" with one expected.
+    """
+
+    expected: NDArray[np.float64]
+    r: NDArray[np.float64]
+    checked: NDArray[np.bool_]
+    misfit: NDArray[np.bool_]
+
+    @property
+    def outlier(self) -> NDArray[np.bool_]:
+        """Checked zones beyond :data:`OUTLIER_SIGMA` or misfits."""
+        with np.errstate(invalid="ignore"):
+            return self.checked & (self.misfit | (np.abs(np.nan_to_num(self.r)) > OUTLIER_SIGMA))
+
+
+@dataclass(frozen=True)
+class FitCheck:
+    """The data-fit check of one estimate (:func:`check_fit`).
+
+    Attributes
+    ----------
+    ok : bool
+        False when the data contradict the map at the estimate (the estimator may be lost,
+        or the map wrong).
+    statistic, threshold : float
+        Mean of ``min(r^2, 9)`` over the checked zones (misfits: 9) and its threshold.
+    outlier_fraction, outlier_threshold : float
+        Share of checked zones beyond 3 sigma or misfits, and its threshold.
+    n_zones, n_misfits : int
+        Checked zones, and those that are misfits.
+    reason : str
+        Why it is not ok (empty when ok).
+    ess_fraction : float or None
+        A particle filter's final effective sample size over its particle count (recorded,
+        not used to decide).
+    log_evidence : float or None
+        The estimate's ``diagnostics["log_evidence"]`` when it carries one (recorded, not
+        used to decide: its scale depends on the sensor model and its tempering).
+    """
+
+    ok: bool
+    statistic: float
+    threshold: float
+    outlier_fraction: float
+    outlier_threshold: float
+    n_zones: int
+    n_misfits: int
+    reason: str = ""
+    ess_fraction: float | None = None
+    log_evidence: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"ok", "statistic", "threshold", "outlier_fraction", "reason", ...}`` (JSON-ready)."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "ok": bool(self.ok),
+            "statistic": num(self.statistic),
+            "threshold": float(self.threshold),
+            "outlier_fraction": num(self.outlier_fraction),
+            "outlier_threshold": float(self.outlier_threshold),
+            "n_zones": int(self.n_zones),
+            "n_misfits": int(self.n_misfits),
+            "reason": self.reason,
+            "ess_fraction": None if self.ess_fraction is None else float(self.ess_fraction),
+            "log_evidence": None if self.log_evidence is None or not math.isfinite(self.log_evidence) else float(self.log_evidence),
+        }
+
+    def warning(self) -> str:
+        """One line for a console: what is wrong, in words and numbers."""
+        return (f"the data do not fit the map at this estimate: {self.reason} "
+                f"({self.n_misfits} of {self.n_zones} zones are misfits)")
+
+
+def nuisance_means(estimate: Any) -> tuple[float, float]:
+    """``(support_yaw, range_scale)``: the means an estimate's ``diagnostics["state"]``
+    holds for the nuisances (0 for each it does not hold)."""
+    diag = getattr(estimate, "diagnostics", None) or {}
+    state = diag.get("state") if isinstance(diag, Mapping) else None
+    out = []
+    for name in ("support_yaw", "range_scale"):
+        v = state.get(name) if isinstance(state, Mapping) else None
+        m = v.get("mean") if isinstance(v, Mapping) else None
+        out.append(float(m) if isinstance(m, (int, float, np.floating)) and math.isfinite(float(m)) else 0.0)
+    return out[0], out[1]
+
+
+def _rot_z(angle: float) -> NDArray[np.float64]:
+    T = np.eye(4)
+    T[:3, :3] = frames.rot_z(angle)
+    return T
+
+
+def configuration_variance(caster: ZoneCaster, T_map_sensor: NDArray[np.float64], T_map_tip: NDArray[np.float64],
+                           cast: Any, T_base_tip_cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Variance ``(K, S, Z)`` of every zone's expected reading due to the configuration's
+    covariance (first order).
+
+    A configuration error ``(w, v)`` (rotation vector then translation, in the tip frame:
+    the problem's convention) moves a zone's ray hitting a surface of normal ``n`` at ``h``
+    so that its length changes by ``dt = -n . (w x (h - p_tip) + v) / (n . u)`` (the
+    Cramér-Rao bound's Jacobian, :mod:`evaluation.crlb`, for the tip instead of the base);
+    the reading changes by ``dt`` over the zone's range factor. NaN where no surface is hit.
+
+    Parameters
+    ----------
+    caster : ZoneCaster
+        Centre rays (``footprint == 1``).
+    T_map_sensor : array (K, S, 4, 4)
+    T_map_tip : array (K, 4, 4)
+    cast : ZoneCast
+        ``caster.cast(map, T_map_sensor, geometry=True)``.
+    T_base_tip_cov : array (K, 6, 6)
+    """
+    _, u = caster.rays(T_map_sensor)
+    u = u[..., 0, :]  # (K, S, Z, 3)
+    n, h = cast.normal, cast.point
+    R, p_tip = T_map_tip[:, :3, :3], T_map_tip[:, :3, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.einsum("...i,...i->...", n, u)
+        lever = h - p_tip[:, None, None, :]
+        # d t / d(w, v) in the tip frame: R^T (lever x n) and R^T n, over -(n . u)
+        J = np.concatenate([np.einsum("kij,kszi->kszj", R, np.cross(lever, n)), np.einsum("kij,kszi->kszj", R, n)],
+                           axis=-1) / -cos[..., None]
+        J = J / caster.rig.range_factor[None, :, :, None]
+        return np.einsum("kszi,kij,kszj->ksz", J, np.asarray(T_base_tip_cov, dtype=float), J)
+
+
+def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0) -> ZoneResiduals:
+    """Every zone's normalized residual at a planar base pose (see the module doc).
+
+    Parameters
+    ----------
+    problem : tofloc.problem.Problem
+        Its rig (calibration applied), map, range model, configurations and known base
+        height and tilt (``problem.prior``).
+    pose : array (3,)
+        ``(x, y, yaw)`` of the base.
+    support_yaw : float
+        Rotation (rad) of the sensor support about the tip's z axis (a nuisance estimate).
+    range_scale : float
+        Relative range-scale error: a zone at expected distance ``d`` reads ``(1 + s) d``.
+    """
+    p = np.asarray(pose, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ParameterError(f"pose must be 3 finite numbers (x, y, yaw), got {p!r}")
+    rig = problem.rig
+    T_map_base = problem.prior.T_map_base(p)
+    T_tip_sensor = rig.T_tip_sensor
+    if support_yaw:
+        T_tip_sensor = _rot_z(float(support_yaw))[None] @ T_tip_sensor
+    T_map_tip = T_map_base[None] @ problem.T_base_tip  # (K, 4, 4)
+    T_map_sensor = T_map_tip[:, None] @ T_tip_sensor[None]  # (K, S, 4, 4)
+    caster = ZoneCaster(rig)
+    cov = problem.T_base_tip_cov
+    cast = caster.cast(problem.map, T_map_sensor, geometry=cov is not None)
+    expected = cast.reading * (1.0 + float(range_scale))
+    config_var = None
+    if cov is not None:
+        config_var = configuration_variance(caster, T_map_sensor, T_map_tip, cast, cov) * (1.0 + float(range_scale)) ** 2
+    valid = problem.valid
+    no_target = (problem.status == NO_TARGET_STATUS) & ~valid
+    has = np.isfinite(expected)
+    d = np.where(has, expected, 1.0)
+    sigma = problem.range_model.sigma(rig, d, problem.sigma_m)
+    if config_var is not None:
+        sigma = np.sqrt(sigma**2 + np.where(has, config_var, 0.0))
+    mu = d + problem.range_model.bias(rig, d)
+    with np.errstate(invalid="ignore"):
+        r = np.where(valid & has, (problem.distance_m - mu) / sigma, np.nan)
+    r = np.where(no_target & ~has, 0.0, r)
+    misfit = (valid & ~has) | (no_target & has)
+    return ZoneResiduals(expected=expected, r=r, checked=valid | no_target, misfit=misfit)
+
+
+def fit_statistics(res: ZoneResiduals) -> tuple[float, float, int, int]:
+    """``(statistic, outlier_fraction, n_zones, n_misfits)`` of some zone residuals."""
+    n = int(res.checked.sum())
+    if n == 0:
+        return math.nan, math.nan, 0, 0
+    r2 = np.where(res.misfit, STATISTIC_CAP, np.minimum(np.nan_to_num(res.r) ** 2, STATISTIC_CAP))
+    stat = float(r2[res.checked].sum() / n)
+    frac = float(res.outlier.sum() / n)
+    return stat, frac, n, int((res.misfit & res.checked).sum())
+
+
+def _ess_fraction(diag: Mapping[str, Any]) -> float | None:
+    ess, w = diag.get("ess"), diag.get("weights")
+    if not isinstance(ess, (list, tuple, np.ndarray)) or len(ess) == 0 or w is None:
+        return None
+    n = int(np.size(w))
+    return float(ess[-1]) / n if n > 0 else None
+
+
+def check_fit(problem: Any, estimate: Any, *, threshold: float = STATISTIC_THRESHOLD,
+              outlier_threshold: float = OUTLIER_FRACTION_THRESHOLD) -> FitCheck:
+    """The data-fit check of an estimate (see the module doc).
+
+    Parameters
+    ----------
+    problem : tofloc.problem.Problem
+        The problem the estimate answers.
+    estimate : tofloc.problem.Estimate
+    threshold, outlier_threshold : float
+        Thresholds of the statistic and of the outlier fraction (default: the documented
+        constants derived from simulated data).
+    """
+    for name, v in (("threshold", threshold), ("outlier_threshold", outlier_threshold)):
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
+            raise ParameterError(f"{name} must be a finite number > 0, got {v!r}")
+    yaw, scale = nuisance_means(estimate)
+    res = zone_residuals(problem, estimate.pose, yaw, scale)
+    stat, frac, n, n_mis = fit_statistics(res)
+    diag = estimate.diagnostics if isinstance(getattr(estimate, "diagnostics", None), Mapping) else {}
+    ess = _ess_fraction(diag)
+    ev = diag.get("log_evidence")
+    evidence = float(ev) if isinstance(ev, (int, float, np.floating)) and not isinstance(ev, bool) else None
+    if n == 0:
+        return FitCheck(False, stat, float(threshold), frac, float(outlier_threshold), 0, 0,
+                        "no zone to check (no valid or no-target zone)", ess, evidence)
+    reasons = []
+    if frac > outlier_threshold:
+        reasons.append(f"{100 * frac:.0f} % of the zones are beyond 3 sigma or misfits (threshold "
+                       f"{100 * outlier_threshold:.0f} %)")
+    if stat > threshold:
+        reasons.append(f"mean capped squared residual {stat:.2f} > {threshold:.2f}")
+    return FitCheck(not reasons, stat, float(threshold), frac, float(outlier_threshold), n, n_mis, "; ".join(reasons), ess,
+                    evidence)
