@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
+from tofloc.configuration_uncertainty import range_variance
 from tofloc.errors import ParameterError
 from tofloc.zone_caster import ZoneCaster
 
@@ -201,9 +202,9 @@ def configuration_variance(caster: ZoneCaster, T_map_sensor: NDArray[np.float64]
 
     A configuration error ``(w, v)`` (rotation vector then translation, in the tip frame:
     the problem's convention) moves a zone's ray hitting a surface of normal ``n`` at ``h``
-    so that its length changes by ``dt = -n . (w x (h - p_tip) + v) / (n . u)`` (the
-    Cramér-Rao bound's Jacobian, :mod:`evaluation.crlb`, for the tip instead of the base);
-    the reading changes by ``dt`` over the zone's range factor. NaN where no surface is hit.
+    so that its length changes by ``dt = -n . (w x (h - p_tip) + v) / (n . u)``, the reading
+    by ``dt`` over the zone's range factor (:func:`tofloc.configuration_uncertainty.range_variance`,
+    the same as the beam model's; ``|n . u|`` floored). NaN where no surface is hit.
 
     Parameters
     ----------
@@ -217,16 +218,11 @@ def configuration_variance(caster: ZoneCaster, T_map_sensor: NDArray[np.float64]
     """
     _, u = caster.rays(T_map_sensor)
     u = u[..., 0, :]  # (K, S, Z, 3)
-    n, h = cast.normal, cast.point
     R, p_tip = T_map_tip[:, :3, :3], T_map_tip[:, :3, 3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.einsum("...i,...i->...", n, u)
-        lever = h - p_tip[:, None, None, :]
-        # d t / d(w, v) in the tip frame: R^T (lever x n) and R^T n, over -(n . u)
-        J = np.concatenate([np.einsum("kij,kszi->kszj", R, np.cross(lever, n)), np.einsum("kij,kszi->kszj", R, n)],
-                           axis=-1) / -cos[..., None]
-        J = J / caster.rig.range_factor[None, :, :, None]
-        return np.einsum("kszi,kij,kszj->ksz", J, np.asarray(T_base_tip_cov, dtype=float), J)
+    with np.errstate(invalid="ignore"):
+        to_tip = lambda v: np.einsum("kij,kszi->kszj", R, v)  # noqa: E731  (R^T v per sample)
+        return range_variance(to_tip(cast.point - p_tip[:, None, None, :]), to_tip(cast.normal), to_tip(u),
+                              np.asarray(T_base_tip_cov, dtype=float)[:, None, None], 1.0 / caster.rig.range_factor)
 
 
 def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0) -> ZoneResiduals:
