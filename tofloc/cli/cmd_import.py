@@ -44,11 +44,14 @@ def nanoswarm(
     base: str = typer.Option("level", "--base", help="Base frame from the Vicon node pose: 'level' (its yaw and position) or 'mocap' (roll and pitch kept)."),
     range_cut: float = typer.Option(1.2, "--range-cut", help="Longest distance (m) of the zones the maps are built from."),
     voxel: float = typer.Option(0.02, "--voxel", help="Map grid (m): 2-D thinning and z extrusion step."),
+    carve: bool = typer.Option(True, "--carve/--no-carve", help="Drop map cells that more readings' rays crossed than ended in (free-space carving)."),
+    fit_radius: float = typer.Option(0.12, "--fit-radius", help="Move each wall point onto the robust line through its neighbours within this radius (m; 0: no fit)."),
     force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
 ) -> None:
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
     covariance, Vicon truth) and leave-one-drone-out wall maps (docs/real-data.md)."""
     from tofloc.io.nanoswarm_maps import import_flight, write_flight
+    from tofloc.scan_maps import WallFitSettings
 
     if base not in ("level", "mocap"):
         raise ParameterError(f"--base: expected 'level' or 'mocap', found {base!r}")
@@ -56,18 +59,22 @@ def nanoswarm(
         raise ParameterError(f"--range-cut: expected a distance in (0, 4] m, found {range_cut}")
     if not (0.001 <= voxel <= 0.5):
         raise ParameterError(f"--voxel: expected a size in [0.001, 0.5] m, found {voxel}")
+    if not (0.0 <= fit_radius <= 2.0):
+        raise ParameterError(f"--fit-radius: expected a radius in [0, 2] m, found {fit_radius}")
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
     with status(f"importing {flight_dir}"):
-        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel)  # type: ignore[arg-type]
+        fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
+        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit)  # type: ignore[arg-type]
         write_flight(imp, out)
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
     console.print(
         f"wrote {out}: {len(imp.flight.logs)} logs ({nodes}), valid zones {s['valid_zone_fraction']:.1%}, "
-        f"{len(imp.maps)} maps (range <= {range_cut:g} m, {voxel * 100:g} cm grid, base {base})",
+        f"{len(imp.maps)} maps (range <= {range_cut:g} m, {voxel * 100:g} cm grid, "
+        f"{'carved, ' if carve else ''}{f'lines fitted within {fit_radius * 100:g} cm, ' if fit_radius > 0 else ''}base {base})",
         highlight=False,
         soft_wrap=True,
     )

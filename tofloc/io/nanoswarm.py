@@ -160,7 +160,7 @@ class OdometryErrorModel:
 
 
 #: Fitted once on exp2 (both flights, all nodes): see docs/real-data.md.
-ODOMETRY_ERROR = OdometryErrorModel(yaw_rad_per_sqrt_frame=0.0066, xy_m_per_sqrt_frame=0.0091, tilt_rad=0.0261, z_m=0.0143)
+ODOMETRY_ERROR = OdometryErrorModel(yaw_rad_per_sqrt_frame=0.0079, xy_m_per_sqrt_frame=0.0117, tilt_rad=0.0261, z_m=0.0143)
 
 
 # -- parsing ---------------------------------------------------------------------------------

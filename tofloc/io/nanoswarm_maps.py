@@ -7,10 +7,15 @@ drones' scans only:
    the paper's evaluation range) becomes a point in the map frame, placed at the node's
    motion-capture pose (``T_map_base``) composed with the drone's odometry in-scan motion
    (``T_base_tip``), as the log says;
-2. the points are thinned in 2-D (x, y) on a ``voxel_m`` grid (2 cm): one centroid per
-   occupied cell, which also remembers the mean position of the sensors that saw it;
-3. each centroid gets a horizontal normal by 2-D PCA of its ``normal_k`` (10) nearest
-   centroids, turned toward the sensors that observed it
+2. the wall line the scans agree on is built in 2-D (:func:`tofloc.scan_maps.wall_points_2d`,
+   ``wall_fit``): cells that more of the readings' rays crossed than ended in are carved
+   free; the rest is thinned on a ``voxel_m`` grid (2 cm) to one centroid per cell, each
+   reading weighted by ``1 / sigma^2`` (``sigma`` the datasheet range model at its
+   distance), remembering the mean position of the sensors that saw it; each centroid is
+   moved onto the robust line fitted through its neighbours within 12 cm (corners and
+   isolated cells stay where they are);
+3. each wall point gets a horizontal normal by 2-D PCA of its ``normal_k`` (10) nearest
+   points, turned toward the sensors that observed it
    (:func:`tofloc.point_clouds.estimate_normals_2d`);
 4. the 2-D wall points are extruded in z (the maze's walls are vertical) every
    ``voxel_m`` over the band the zones can see: the mapping drones' node heights, widened
@@ -25,7 +30,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -38,7 +43,9 @@ from tofloc.errors import FormatError, ParameterError
 from tofloc.io.nanoswarm import FRAMES, ZONE_HEIGHT_DEG, Flight, OdometryErrorModel, ODOMETRY_ERROR, read_flight
 from tofloc.logs import open_for_extras, write_checksummed_dataset, write_log, write_text_attribute
 from tofloc.maps import Map
-from tofloc.point_clouds import estimate_normals_2d, voxel_down_sample_points
+from tofloc.point_clouds import estimate_normals_2d
+from tofloc.range_model import RangeUncertainty
+from tofloc.scan_maps import WallFitSettings, wall_points_2d
 
 __all__ = [
     "DEFAULT_RANGE_CUT_M",
@@ -98,6 +105,7 @@ def wall_map(
     *,
     voxel_m: float = DEFAULT_VOXEL_M,
     normal_k: int = DEFAULT_NORMAL_K,
+    wall_fit: WallFitSettings | None = None,
     source: str = "nanoswarm walls",
 ) -> Map:
     """A point-cloud map of vertical walls from observed points (see the module docstring, steps 2-4).
@@ -112,6 +120,8 @@ def wall_map(
         Grid of the 2-D thinning and of the extrusion (m).
     normal_k : int
         Neighbours of the 2-D PCA normals.
+    wall_fit : WallFitSettings, optional
+        Carving and line fit (default: :class:`tofloc.scan_maps.WallFitSettings` with ``voxel_m``).
     """
     if not (math.isfinite(voxel_m) and voxel_m > 0):
         raise ParameterError(f"voxel_m: expected a finite size > 0 (m), found {voxel_m}")
@@ -120,13 +130,16 @@ def wall_map(
         raise ParameterError(f"z_band: expected finite heights lo <= hi, found {z_band}")
     if points.shape[0] < 2:
         raise ParameterError(f"{source}: at least 2 observed points are needed for a map, found {points.shape[0]}")
-    flat = np.column_stack([points[:, :2], np.zeros(points.shape[0])])
-    cells, inv = voxel_down_sample_points(flat, voxel_m, return_inverse=True)
-    m = cells.shape[0]
-    count = np.bincount(inv, minlength=m).astype(np.float64)
-    view = np.stack([np.bincount(inv, weights=sensors[:, j], minlength=m) for j in range(2)], axis=1) / count[:, None]
-    xy = cells[:, :2]
-    n2 = estimate_normals_2d(xy, k=normal_k, toward=view)
+    settings = WallFitSettings(voxel_m=voxel_m) if wall_fit is None else replace(wall_fit, voxel_m=voxel_m)
+    reading = np.linalg.norm(points[:, :2] - sensors[:, :2], axis=1)
+    unc = RangeUncertainty()
+    sigma = np.maximum(unc.sigma_floor, unc.sigma_slope * reading)
+    walls = wall_points_2d(points[:, :2], sensors[:, :2], sigma, settings)
+    if walls.xy.shape[0] < 2:
+        raise ParameterError(f"{source}: at least 2 wall cells are needed for a map, found {walls.xy.shape[0]}")
+    xy = walls.xy
+    m = xy.shape[0]
+    n2 = estimate_normals_2d(xy, k=normal_k, toward=walls.view)
     z = np.arange(math.floor(lo / voxel_m), math.ceil(hi / voxel_m) + 1) * voxel_m
     L = z.size
     pts = np.column_stack([np.repeat(xy, L, axis=0), np.tile(z, m)])
@@ -141,7 +154,8 @@ def _z_band(flight: Flight, nodes: NDArray[np.intp], range_cut_m: float) -> tupl
 
 
 def leave_one_out_maps(
-    flight: Flight, *, range_cut_m: float = DEFAULT_RANGE_CUT_M, voxel_m: float = DEFAULT_VOXEL_M, normal_k: int = DEFAULT_NORMAL_K
+    flight: Flight, *, range_cut_m: float = DEFAULT_RANGE_CUT_M, voxel_m: float = DEFAULT_VOXEL_M, normal_k: int = DEFAULT_NORMAL_K,
+    wall_fit: WallFitSettings | None = None,
 ) -> dict[int, Map]:
     """For every drone, the wall map of the OTHER drones' scans.
 
@@ -160,7 +174,7 @@ def leave_one_out_maps(
         others = np.flatnonzero(flight.drone != h)
         p, s, _ = node_points(flight, others, range_cut_m)
         src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})"
-        out[h] = wall_map(p, s, _z_band(flight, others, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, source=src)
+        out[h] = wall_map(p, s, _z_band(flight, others, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=src)
     return out
 
 
@@ -169,6 +183,21 @@ def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = D
     true pose with its odometry in-scan motion) to the nearest point of ``wall``."""
     p, _, _ = node_points(flight, [i], range_cut_m)
     return wall.nearest(p)[0] if p.shape[0] else np.empty(0)
+
+
+def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
+    """Reading minus the map's expected reading (m) of node ``i``'s valid zones <= ``range_cut_m``
+    at the true node pose (its odometry in-scan motion), where the ray hits the map
+    (:class:`tofloc.zone_caster.ZoneCaster`, centre rays): positive when the reading lies
+    behind the mapped wall."""
+    from tofloc.zone_caster import ZoneCaster
+
+    log = flight.logs[i]
+    T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
+    expected = ZoneCaster(log.rig).cast(wall, T).reading
+    d = log.distance_m
+    ok = log.valid() & (d <= range_cut_m) & np.isfinite(expected)
+    return (d - expected)[ok]
 
 
 def map_name(drone: int) -> str:
@@ -189,6 +218,7 @@ class FlightImport:
     range_cut_m: float
     voxel_m: float
     normal_k: int
+    wall_fit: WallFitSettings = WallFitSettings()
 
     def summary(self) -> dict[str, object]:
         f = self.flight
@@ -207,15 +237,17 @@ def import_flight(
     range_cut_m: float = DEFAULT_RANGE_CUT_M,
     voxel_m: float = DEFAULT_VOXEL_M,
     normal_k: int = DEFAULT_NORMAL_K,
+    wall_fit: WallFitSettings | None = None,
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
     created: str | None = None,
 ) -> FlightImport:
     """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build its leave-one-out maps."""
     flight = read_flight(folder, base=base, created=created, error_model=error_model)
-    maps = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k)
+    fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
+    maps = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
     for i, d in enumerate(flight.drone.tolist()):
         flight.logs[i].map = map_name(d)
-    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k)
+    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit)
 
 
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
@@ -237,7 +269,7 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
     for d, m in sorted(imp.maps.items()):
         written.append(m.save(out / map_name(d)))
     f = imp.flight
-    params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k}
+    params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict()}
     for i, log in enumerate(f.logs):
         dest = out / log_name(int(f.drone[i]), int(f.node[i]))
         with atomic_path(dest) as tmp:
@@ -264,34 +296,42 @@ REPORT_VARIANTS: dict[str, dict[str, object]] = {
     "map range cut 4.0 m": {"range_cut_m": 4.0},
     "voxel 1 cm": {"voxel_m": 0.01},
     "voxel 4 cm": {"voxel_m": 0.04},
+    "no carving": {"wall_fit": WallFitSettings(carve=False)},
+    "no line fit": {"wall_fit": WallFitSettings(fit_radius_m=0.0)},
+    "neither (plain thinning)": {"wall_fit": WallFitSettings(carve=False, fit_radius_m=0.0)},
 }
 
 
 def distance_report(dataset: str | Path, flights: tuple[str, ...] = ("two-drones", "four-drones"), eval_range_m: float = DEFAULT_RANGE_CUT_M) -> dict[str, object]:
     """Per flight and setting: nodes per drone, valid-zone fraction and the point-to-map
     distance at the truth (median, 90th percentile, cm) of every node's zones <= ``eval_range_m``,
-    in 3-D against the saved map and in 2-D against its wall line (no extrusion step)."""
+    in 3-D against the saved map and in 2-D against its wall line (no extrusion step), and
+    the ray-cast residuals at the truth (:func:`ray_residuals_at_truth`: their median in mm
+    and the share of zones reading more than 10 cm behind the mapped wall)."""
     out: dict[str, object] = {}
     for name in flights:
         rows = {}
         for label, kw in REPORT_VARIANTS.items():
             imp = import_flight(Path(dataset) / name, **kw)  # type: ignore[arg-type]
             f = imp.flight
-            d3, d2 = [], []
+            d3, d2, rr = [], [], []
             for j in range(len(f.logs)):
                 m = imp.maps[int(f.drone[j])]
+                rr.append(ray_residuals_at_truth(f, j, m, eval_range_m))
                 p, _, _ = node_points(f, [j], eval_range_m)
                 d3.append(m.nearest(p)[0])
                 lo = m.points[:, 2].min()
                 wall = m.points[m.points[:, 2] == lo]
                 d2.append(Map.from_points(wall, m.normals[m.points[:, 2] == lo]).nearest(np.column_stack([p[:, :2], np.full(p.shape[0], lo)]))[0])
-            a3, a2 = np.concatenate(d3) * 100, np.concatenate(d2) * 100
+            a3, a2, ray = np.concatenate(d3) * 100, np.concatenate(d2) * 100, np.concatenate(rr)
             rows[label] = {
                 "median_cm": round(float(np.median(a3)), 2),
                 "p90_cm": round(float(np.percentile(a3, 90)), 2),
                 "median_2d_cm": round(float(np.median(a2)), 2),
                 "p90_2d_cm": round(float(np.percentile(a2, 90)), 2),
                 "points": int(a3.size),
+                "ray_median_mm": round(float(np.median(ray)) * 1000, 1),
+                "ray_behind_10cm_pct": round(float(np.mean(ray > 0.1)) * 100, 2),
                 "map_points": imp.summary()["map_points"],
             }
         s = imp.summary()
