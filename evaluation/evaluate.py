@@ -29,6 +29,15 @@ made as :mod:`evaluation.result_cache` makes it (the log's data and its map's
 :meth:`~tofloc.maps.Map.fingerprint`, the code, the estimator's full parameters, the
 prior, ``k``, the trial count and the log's seed); a rerun reuses every batch whose key
 matches, so an interrupted run loses only unfinished batches.
+
+An uncertain truth
+------------------
+A log may declare its truth's own uncertainty (``/truth/T_map_base_cov``; the nano-swarm
+importer does: a Vicon node pose is about 2 cm and 2 deg from the pose its scans fit the
+map at). A trial's ``nees`` then uses the estimate's covariance plus the truth's
+(:meth:`evaluation.trials.TrialContext.truth_covariance`), and ``nees_exact_truth`` keeps
+the truth as exact; without the declaration both are the same number. The summaries carry
+both, and ``truth_uncertainty`` says which logs declare what.
 """
 
 from __future__ import annotations
@@ -61,6 +70,7 @@ __all__ = [
     "oracle_floor",
     "is_failure",
     "error_summary",
+    "truth_sigmas",
     "results_document",
 ]
 
@@ -362,8 +372,9 @@ def is_failure(record: Mapping[str, Any]) -> bool:
 
 def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """``n``, median and mean of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
-    ``failure_rate`` (:func:`is_failure`), ``nees`` (mean, median, n: the trials with a
-    defined NEES) and the median ``runtime_s`` (those the records have)."""
+    ``failure_rate`` (:func:`is_failure`), ``nees`` and ``nees_exact_truth`` (mean, median,
+    n: the trials with a defined NEES; see the module doc) and the median ``runtime_s``
+    (those the records have)."""
     n = len(records)
     fails = sum(is_failure(r) for r in records)
     out: dict[str, Any] = {
@@ -375,8 +386,30 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     }
     if any("nees" in r for r in records):
         out["nees"] = summarize(_values(records, "nees"), keys=("mean", "median", "n"))
+    if any("nees_exact_truth" in r for r in records):
+        out["nees_exact_truth"] = summarize(_values(records, "nees_exact_truth"), keys=("mean", "median", "n"))
     if any("runtime_s" in r for r in records):
         out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    return out
+
+
+def truth_sigmas(entry: EvalLog) -> dict[str, float] | None:
+    """The one-sigma ``x_mm``, ``y_mm`` and ``yaw_deg`` of the truth a log declares (its
+    planar covariance over the pool's samples), None when it declares none."""
+    P = entry.context.truth_covariance(entry.context.pool.indices)
+    if P is None:
+        return None
+    sd = np.sqrt(np.clip(np.diag(P), 0.0, None))
+    return {"x_mm": round(float(sd[0] * 1000), 2), "y_mm": round(float(sd[1] * 1000), 2),
+            "yaw_deg": round(float(np.degrees(sd[2])), 3)}
+
+
+def _truth_uncertainty(sigmas: Sequence[dict[str, float] | None]) -> dict[str, Any]:
+    declared = [s for s in sigmas if s is not None]
+    out: dict[str, Any] = {"declared_by": len(declared), "logs": len(sigmas)}
+    for key in ("x_mm", "y_mm", "yaw_deg"):
+        v = [s[key] for s in declared]
+        out[key] = [min(v), max(v)] if v else None
     return out
 
 
@@ -408,8 +441,10 @@ def results_document(
     ``ratio_to_oracle`` (its median e_x and e_gamma over the oracle's, over the same
     trials) and ``median_log_ratio`` (the median over logs of the per-log ratios).
     ``oracle_summary``: the same for the oracle floor, with ``not_converged``.
-    ``logs[label]``: the file, its map, ``k``, the seeds, the oracle's records and
-    summary, and per estimator its records, summary and ``ratio_to_oracle``.
+    ``logs[label]``: the file, its map, ``k``, the seeds, ``truth_sigma``
+    (:func:`truth_sigmas`), the oracle's records and summary, and per estimator its
+    records, summary and ``ratio_to_oracle``. ``truth_uncertainty``: how many logs declare
+    their truth's uncertainty and the range of their one-sigma x, y (mm) and yaw (deg).
     """
     logs: dict[str, Any] = {}
     per_log_ratios: dict[str, dict[str, list[float]]] = {e.name: {"e_x_m": [], "e_gamma_deg": []} for e in estimators}
@@ -430,6 +465,7 @@ def results_document(
             "path": str(en.path),
             "map": str(en.map_path),
             "configuration_source": en.configuration_source,
+            "truth_sigma": truth_sigmas(en),
             "pool": en.context.pool.to_json(),
             "k": en.k,
             "seed": en.seed,
@@ -454,6 +490,7 @@ def results_document(
         "prior": prior.to_json(),
         "configurations": "each log's own /samples/T_base_tip (its configuration_source), with its covariance",
         "failure": {"e_x_m": FAILURE_E_X_M, "e_gamma_deg": FAILURE_E_GAMMA_DEG},
+        "truth_uncertainty": _truth_uncertainty([lg["truth_sigma"] for lg in logs.values()]),
         "seeds": {"seed": int(seed), "derivation": SEED_DERIVATION},
         "summary": summary,
         "oracle_summary": oracle_sum,

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
+__all__ = ["table_markdown", "truth_sentence", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
 #: estimator's NEES lies in it 95 % of the time).
@@ -21,11 +21,30 @@ def _f(v: Any, fmt: str, scale: float = 1.0) -> str:
 
 def _row(name: str, s: Mapping[str, Any]) -> str:
     nees = s.get("nees") or {}
+    exact = s.get("nees_exact_truth") or {}
     rt = (s.get("runtime_s") or {}).get("median")
     fails = f"{s['failures']}/{s['n']} ({_f(s['failure_rate'], '.0%')})"
     return (f"| {name} | {_f(s['e_x_m']['median'], '.1f', 1000)} | {_f(s['e_gamma_deg']['median'], '.2f')} | "
             f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
-            f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(rt, '.2f')} |")
+            f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(exact.get('mean'), '.2f')} | "
+            f"{_f(rt, '.2f')} |")
+
+
+def _span(v: Any, fmt: str) -> str:
+    lo, hi = v
+    return format(lo, fmt) if lo == hi else f"{format(lo, fmt)}-{format(hi, fmt)}"
+
+
+def truth_sentence(doc: Mapping[str, Any]) -> str:
+    """What the truth's declared uncertainty is, and which NEES uses it (one sentence)."""
+    tu = doc.get("truth_uncertainty") or {"declared_by": 0, "logs": len(doc["logs"])}
+    if not tu["declared_by"]:
+        return ("No log declares its truth's uncertainty (`/truth/T_map_base_cov`): NEES takes the truth as exact "
+                "and equals NEES vs exact truth.")
+    return (f"The truth is uncertain: {tu['declared_by']} of {tu['logs']} log(s) declare it (`/truth/T_map_base_cov`), "
+            f"one sigma x {_span(tu['x_mm'], '.1f')} mm, y {_span(tu['y_mm'], '.1f')} mm, yaw {_span(tu['yaw_deg'], '.2f')} deg; "
+            "NEES uses the estimate's covariance plus the truth's (the error is measured against an uncertain truth), "
+            "NEES vs exact truth takes the truth as exact.")
 
 
 def table_markdown(doc: Mapping[str, Any]) -> str:
@@ -45,15 +64,16 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
         "NEES: 3 for a consistent estimator (chi2(3)); runtime: median seconds per trial.",
+        truth_sentence(doc),
         "",
         "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "
-        "NEES mean | NEES median | runtime (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "NEES mean | NEES median | NEES vs exact truth (mean) | runtime (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in ests:
         lines.append(_row(e, doc["summary"][e]))
     o = doc["oracle_summary"]
-    lines.append(_row("**oracle floor**", {**o, "nees": None, "runtime_s": None}))
+    lines.append(_row("**oracle floor**", {**o, "nees": None, "nees_exact_truth": None, "runtime_s": None}))
     lines += [
         "",
         f"Oracle floor: a robust registration of each trial's zones to the map started at the true pose "
@@ -160,7 +180,9 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
     """Every trial's NEES per estimator (jittered points, log scale) against the central
     95 % band of chi2(3) (shaded) and its mean 3 (line); a diamond marks each estimator's
     mean NEES. Trials whose NEES is undefined (singular covariance) are counted under the
-    estimator's name."""
+    estimator's name. When logs declare their truth's uncertainty the points are the NEES
+    that uses it, a hollow square marks the mean NEES against the truth taken as exact, and
+    the title says so."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter
@@ -174,6 +196,7 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
     ax.axhline(3.0, color="tab:green", linewidth=1.2, label="chi2(3) mean = 3")
     ticks = []
     all_vals = []
+    declared = int((doc.get("truth_uncertainty") or {}).get("declared_by", 0))
     for i, e in enumerate(ests):
         v = _all(doc, e, "nees")
         ok = v[np.isfinite(v) & (v > 0)]
@@ -182,10 +205,18 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
         ax.scatter(x, ok, s=10, color=f"C{i}", alpha=0.6, linewidths=0)
         if ok.size:
             ax.scatter([i + 0.3], [ok.mean()], marker="D", s=40, color=f"C{i}", edgecolors="black", zorder=5)
+        exact = _all(doc, e, "nees_exact_truth")
+        exact = exact[np.isfinite(exact) & (exact > 0)]
+        if declared and exact.size:
+            all_vals.append(exact.mean(keepdims=True))
+            ax.scatter([i + 0.3], [exact.mean()], marker="s", s=40, facecolors="none", edgecolors=f"C{i}", linewidths=1.5,
+                       zorder=5)
         inside = np.mean((ok >= CHI2_3_BAND[0]) & (ok <= CHI2_3_BAND[1])) if ok.size else float("nan")
         undefined = int(v.size - ok.size)
         ticks.append(f"{e}\n{inside:.0%} in band" + (f"\n{undefined} undefined" if undefined else ""))
     ax.scatter([], [], marker="D", s=40, color="white", edgecolors="black", label="mean NEES")
+    if declared:
+        ax.scatter([], [], marker="s", s=40, facecolors="none", edgecolors="black", label="mean NEES vs exact truth")
     vals = np.concatenate(all_vals) if all_vals else np.array([])
     lo = min(float(vals.min()) if vals.size else 0.1, CHI2_3_BAND[0]) / 2.0
     hi = max(float(vals.max()) if vals.size else 10.0, CHI2_3_BAND[1]) * 2.0
@@ -196,7 +227,10 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
     ax.set_xticks(range(len(ests)), ticks, fontsize=8)
     ax.set_ylabel("NEES (x, y, yaw)")
     ax.grid(axis="y", alpha=0.3, which="major")
-    ax.legend(fontsize=8, loc="upper left")
-    ax.set_title(f"NEES per trial ({len(doc['logs'])} log(s) x {doc['trials']} trial(s))", fontsize=11)
+    ax.legend(fontsize=8, loc="best", framealpha=0.8)
+    title = f"NEES per trial ({len(doc['logs'])} log(s) x {doc['trials']} trial(s))"
+    if declared:
+        title += f"\nwith the truth's declared uncertainty ({declared} of {len(doc['logs'])} log(s))"
+    ax.set_title(title, fontsize=11)
     fig.tight_layout()
     return _write_png(fig, path)

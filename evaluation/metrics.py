@@ -9,6 +9,9 @@ metres and radians (the layout of :attr:`tofloc.problem.Estimate.pose`).
 * ``NEES = e^T P^-1 e`` with ``e = (x_true - x_est, y_true - y_est, wrap(yaw_true - yaw_est))``
   and ``P`` the estimate's 3x3 covariance: chi-square with 3 degrees of freedom (mean 3)
   for a consistent estimator. It is undefined (NaN / ``None``) when ``P`` is singular.
+  When the truth declares its own uncertainty (``/truth/T_map_base_cov``), the error is
+  measured against an uncertain truth and ``P`` is the estimate's covariance plus the
+  truth's (:func:`planar_truth_covariance`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ __all__ = [
     "yaw_error_deg",
     "pose_errors",
     "nees",
+    "planar_truth_covariance",
     "summarize",
     "json_float",
 ]
@@ -117,6 +121,42 @@ def nees(truth: ArrayLike, estimate: ArrayLike, covariance: ArrayLike) -> NDArra
             vals[good] = np.einsum("ni,ni->n", z[good], sol)
         out[ok] = vals
     return out.reshape(shape)
+
+
+def planar_truth_covariance(truth_yaw: ArrayLike, covariance: ArrayLike) -> NDArray[np.float64]:
+    """The truth's 6 x 6 covariance (``/truth/T_map_base_cov``) as a covariance of ``(x, y, yaw)``.
+
+    The log's covariance is that of ``delta = (rotation vector, translation)`` in
+    ``T_actual = T_map_base @ exp(delta)``, in the base frame. To first order in ``delta``
+    and for a level base, the actual ``(x, y)`` is the truth's plus the base-frame
+    translation ``(delta_x, delta_y)`` rotated by the truth's yaw, and the actual yaw is
+    the truth's plus the rotation vector's z component ``delta_yaw``; so with
+    ``J = [[cos yaw, -sin yaw, 0], [sin yaw, cos yaw, 0], [0, 0, 1]]`` acting on
+    ``(delta_x, delta_y, delta_yaw)`` the result is ``J C J^T`` of that 3 x 3 block. Roll,
+    pitch and height do not enter. For a tilted base the neglected terms are of the order
+    of the tilt (a few percent at a few degrees).
+
+    Parameters
+    ----------
+    truth_yaw : float or array (...)
+        The truth's yaw (rad).
+    covariance : array (..., 6, 6)
+        Rotation vector (rad) then translation (m), base frame.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        In the layout of :attr:`tofloc.problem.Estimate.covariance` (m^2, rad^2).
+    """
+    C = np.asarray(covariance, dtype=float)
+    if C.shape[-2:] != (6, 6):
+        raise ParameterError(f"truth covariance must have shape (..., 6, 6), got {C.shape}")
+    sub = C[..., [3, 4, 2], :][..., :, [3, 4, 2]]  # (delta_x, delta_y, delta_yaw)
+    yaw = np.asarray(truth_yaw, dtype=float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    J = np.zeros(yaw.shape + (3, 3))
+    J[..., 0, 0], J[..., 0, 1], J[..., 1, 0], J[..., 1, 1], J[..., 2, 2] = c, -s, s, c, 1.0
+    return J @ sub @ np.swapaxes(J, -1, -2)
 
 
 def json_float(x: Any) -> float | None:

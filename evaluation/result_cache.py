@@ -77,6 +77,7 @@ def context_fingerprint(context: TrialContext) -> str:
     cal = context.calibration
     return fingerprint_arrays(
         log.distance_mm, log.status, log.T_base_tip, log.pressure_kpa, log.T_map_base, getattr(log, "T_base_tip_cov", None),
+        getattr(log, "T_map_base_cov", None),
         None if kin is None else np.asarray(kin.pressure_kpa),
         None if kin is None else np.asarray(kin.T_base_tip),
         None if kin is None else np.asarray(kin.validation_indices),

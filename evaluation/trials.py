@@ -47,7 +47,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from evaluation.metrics import json_float, nees, position_error, yaw_error_deg
+from evaluation.metrics import json_float, nees, planar_truth_covariance, position_error, yaw_error_deg
 from evaluation.priors import PriorSpec, base_pose_parts
 from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
@@ -343,6 +343,18 @@ class TrialContext:
         yaw = float(frames.circular_mean(p[:, 2]))
         return frames.se3_from_xyyaw(float(p[:, 0].mean()), float(p[:, 1].mean()), yaw, z, roll, pitch)
 
+    def truth_covariance(self, indices: NDArray[np.intp]) -> NDArray[np.float64] | None:
+        """The truth's declared uncertainty (``/truth/T_map_base_cov``) as a ``(3, 3)``
+        covariance of ``(x, y, yaw)`` (:func:`evaluation.metrics.planar_truth_covariance`),
+        None when the log declares none. A per-sample covariance is averaged over the
+        samples (a static base's truth errors taken as one shared error)."""
+        cov = getattr(self.log, "T_map_base_cov", None)
+        if cov is None or self._truth_xyyaw is None:
+            return None
+        C = np.asarray(cov, dtype=float)
+        C = C if C.ndim == 2 else C[indices].mean(axis=0)
+        return planar_truth_covariance(base_pose_parts(self.truth(indices))[0][2], C)
+
 
 #: What this process has warmed up: (estimator class, parameters, map fingerprint).
 _WARMED: set[tuple[Any, str, str]] = set()
@@ -429,7 +441,11 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     dict
         ``seed``, ``k``, ``trial``, ``sample_indices``, ``truth`` ([x, y, yaw] or None),
         ``prior_mean``, ``estimate``, ``covariance`` (3x3), ``e_x_m``, ``e_gamma_deg``,
-        ``nees`` (None without truth or with a singular covariance), ``runtime_s`` (the
+        ``nees`` (None without truth or with a singular covariance; computed with the
+        estimate's covariance plus the truth's declared one, ``truth_covariance`` (3x3,
+        :meth:`TrialContext.truth_covariance`), when the log declares it),
+        ``nees_exact_truth`` (the truth taken as exact: equal to ``nees`` when the log
+        declares no truth covariance), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up), ``setup_s`` (the
         one-off set-up this trial paid before it ran: :func:`warm_up`; 0 for every trial
         but the first of its estimator, parameters and map in a process),
@@ -460,6 +476,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "e_x_m": None,
         "e_gamma_deg": None,
         "nees": None,
+        "nees_exact_truth": None,
+        "truth_covariance": None,
         "runtime_s": float(result.runtime_s),
         "setup_s": float(out.setup_s),
         "crlb": None,
@@ -472,7 +490,11 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         record["truth"] = jsonable(truth)
         record["e_x_m"] = json_float(position_error(truth, result.pose))
         record["e_gamma_deg"] = json_float(yaw_error_deg(truth, result.pose))
-        record["nees"] = json_float(nees(truth, result.pose, result.covariance))
+        record["nees_exact_truth"] = record["nees"] = json_float(nees(truth, result.pose, result.covariance))
+        P_truth = context.truth_covariance(idx)
+        if P_truth is not None:
+            record["truth_covariance"] = jsonable(P_truth)
+            record["nees"] = json_float(nees(truth, result.pose, np.asarray(result.covariance, dtype=float) + P_truth))
         if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
             from evaluation.crlb import crlb_for_problem
 

@@ -57,6 +57,11 @@ def run(logs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"out": out, "doc": json.loads((out / "results.json").read_text())}
 
 
+def _untimed(record: dict) -> dict:
+    """A trial record without its timings (runtime_s; setup_s, which depends on what the process ran before)."""
+    return {k: v for k, v in record.items() if k not in ("runtime_s", "setup_s")}
+
+
 def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str, str]:
     code = main(args)
     got = capsys.readouterr()
@@ -101,6 +106,60 @@ def test_outputs_and_summaries(run: dict) -> None:
     table = (out / "table.md").read_text()
     assert "| icp_pf |" in table and "**oracle floor**" in table and "## Ratios to the oracle floor" in table
     assert "| l_room |" in table
+    # simulated logs declare no truth covariance: the truth is exact and both NEES agree
+    assert doc["truth_uncertainty"] == {"declared_by": 0, "logs": 2, "x_mm": None, "y_mm": None, "yaw_deg": None}
+    assert "NEES vs exact truth (mean)" in table and "No log declares its truth's uncertainty" in table
+    for e, recs in every.items():
+        assert all(r["nees"] == r["nees_exact_truth"] and r["truth_covariance"] is None for r in recs)
+        assert doc["summary"][e]["nees_exact_truth"] == doc["summary"][e]["nees"]
+
+
+def test_nees_uses_a_declared_truth_covariance(logs: list[Path], tmp_path: Path) -> None:
+    """A copy of a simulated log declaring its truth's uncertainty, evaluated with a plain one:
+    NEES = e^T (P_est + P_truth)^-1 e on the declared log, the truth taken as exact in
+    nees_exact_truth; table.md shows both and says what the truth's uncertainty is."""
+    from tofloc import api
+    from tofloc.logs import read_log, write_log
+
+    src = read_log(logs[0])
+    C = np.diag([0.02, 0.02, 0.0238, 0.0168, 0.0168, 0.0143]) ** 2
+    C[3, 2] = C[2, 3] = 0.5 * 0.0168 * 0.0238  # correlated x and yaw (base frame)
+    declared = write_log(dc.replace(src, T_map_base_cov=C), logs[0].with_name("paper-truthcov.h5"))  # beside its map
+    out = tmp_path / "o"
+    res = api.evaluate([declared, logs[1]], ["beam_pf"], out=out, trials=2, samples=3, seed=5,
+                       params={"n_particles": 100}, workers=1)
+    doc = res.document
+    yaw = frames.xyyaw_from_se3(src.T_map_base)[2]
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    J = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    P_truth = J @ C[np.ix_([3, 4, 2], [3, 4, 2])] @ J.T
+    recs = doc["logs"]["paper-truthcov"]["estimators"]["beam_pf"]["records"]
+    for r in recs:
+        e = np.subtract(r["truth"], r["estimate"])
+        e[2] = frames.wrap_angle(e[2])
+        P = np.array(r["covariance"])
+        np.testing.assert_allclose(r["truth_covariance"], P_truth, rtol=1e-9, atol=1e-15)
+        assert r["nees"] == pytest.approx(e @ np.linalg.solve(P + P_truth, e), rel=1e-9)
+        assert r["nees_exact_truth"] == pytest.approx(e @ np.linalg.solve(P, e), rel=1e-9)
+        assert r["nees"] < r["nees_exact_truth"]
+    plain = doc["logs"]["l_room"]["estimators"]["beam_pf"]["records"]
+    assert all(r["nees"] == r["nees_exact_truth"] for r in plain)
+    s = doc["summary"]["beam_pf"]
+    every = recs + plain
+    assert s["nees"]["mean"] == pytest.approx(np.mean([r["nees"] for r in every]))
+    assert s["nees_exact_truth"]["mean"] == pytest.approx(np.mean([r["nees_exact_truth"] for r in every]))
+    assert doc["logs"]["paper-truthcov"]["truth_sigma"] == {"x_mm": pytest.approx(np.sqrt(P_truth[0, 0]) * 1000, abs=0.01),
+                                                            "y_mm": pytest.approx(np.sqrt(P_truth[1, 1]) * 1000, abs=0.01),
+                                                            "yaw_deg": pytest.approx(1.364, abs=1e-3)}
+    assert doc["logs"]["l_room"]["truth_sigma"] is None
+    assert doc["truth_uncertainty"]["declared_by"] == 1 and doc["truth_uncertainty"]["logs"] == 2
+    table = (out / "table.md").read_text()
+    assert "The truth is uncertain: 1 of 2 log(s) declare it" in table and "yaw 1.36 deg" in table
+    row = next(line for line in table.splitlines() if line.startswith("| beam_pf |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert len(cells) == 10 and float(cells[6]) == pytest.approx(s["nees"]["mean"], abs=0.006)
+    assert float(cells[8]) == pytest.approx(s["nees_exact_truth"]["mean"], abs=0.006)
+    assert (out / "nees.png").stat().st_size > 0
 
 
 def test_failure_rule() -> None:
@@ -193,9 +252,9 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
     for label, lg in res.document["logs"].items():
         for e, got in lg["estimators"].items():
             old = first[label]["estimators"][e]["records"]
-            if (label, e) == ("l_room", "beam_pf"):  # run again: the same numbers, a new runtime
+            if (label, e) == ("l_room", "beam_pf"):  # run again: the same numbers, new timings
                 for a, b in zip(got["records"], old):
-                    assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}
+                    assert _untimed(a) == _untimed(b)
             else:  # reused as saved, runtimes included
                 assert got["records"] == old
     # another trial count is another key: nothing reused
@@ -216,7 +275,7 @@ def test_one_pool_for_several_logs_matches_inline(run: dict) -> None:
     got = run_estimators(entries, spec, trials=2, prior=PriorSpec("offset"), run_seed=5, workers=2)
     for label, by_est in got.items():
         for a, b in zip(by_est["beam_pf"], doc["logs"][label]["estimators"]["beam_pf"]["records"]):
-            assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}
+            assert _untimed(a) == _untimed(b)
 
 
 # -- the oracle floor ------------------------------------------------------------------------------
@@ -377,4 +436,4 @@ def test_one_dask_scatter_for_several_logs_matches_inline(run: dict) -> None:
             got = run_estimators(entries, spec, trials=2, prior=PriorSpec("offset"), run_seed=5, scheduler=client)
     for label, by_est in got.items():
         for a, b in zip(by_est["beam_pf"], doc["logs"][label]["estimators"]["beam_pf"]["records"]):
-            assert {k: v for k, v in a.items() if k != "runtime_s"} == {k: v for k, v in b.items() if k != "runtime_s"}
+            assert _untimed(a) == _untimed(b)

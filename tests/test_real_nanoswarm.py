@@ -22,6 +22,7 @@ from tofloc.io.nanoswarm import (
     FRAMES,
     ODOMETRY_ERROR,
     SCAN_BYTES,
+    TRUTH_ERROR,
     SENSOR_OFFSETS_M,
     in_scan_configurations,
     nanoswarm_rig,
@@ -89,6 +90,8 @@ def test_synthetic_flight_reads(tmp_path: Path) -> None:
     assert (log.status[:, 0] == 5).all()
     np.testing.assert_allclose(log.timestamp_s, np.arange(15) * 2 / 15)
     np.testing.assert_allclose(log.T_base_tip_cov, ODOMETRY_ERROR.covariance(np.arange(15)))
+    np.testing.assert_array_equal(log.T_map_base_cov, TRUTH_ERROR.covariance())  # the truth's declared uncertainty
+    assert read_flight(make_flight(tmp_path / "g"), truth_error=None).logs[0].T_map_base_cov is None
     np.testing.assert_allclose(fl.odometry_pose[0], [0.01, -0.02, 0.05])  # the first poses.csv row
     np.testing.assert_allclose(fl.optimized_poses[0], [[0.0, 0.0, 0.01]])  # later rows kept apart
 
@@ -267,6 +270,15 @@ def test_odometry_error_model() -> None:
         ns.OdometryErrorModel(0.1, 0.1, float("nan"), 0.0)
 
 
+def test_truth_error_model() -> None:
+    cov = TRUTH_ERROR.covariance()
+    np.testing.assert_array_equal(cov, np.diag(TRUTH_ERROR.sigmas() ** 2))
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), [0.0261, 0.0261, 0.0347, 0.0164, 0.0164, 0.0143])
+    assert (TRUTH_ERROR.tilt_rad, TRUTH_ERROR.z_m) == (ODOMETRY_ERROR.tilt_rad, ODOMETRY_ERROR.z_m)  # the same marker offset
+    with pytest.raises(ValueError):
+        ns.TruthErrorModel(0.02, -0.01, 0.0, 0.0)
+
+
 def test_two_d_normals_face_the_observer() -> None:
     x = np.linspace(0, 1, 30)
     pts = np.column_stack([x, 0.001 * np.sin(40 * x)])
@@ -314,9 +326,10 @@ def test_real_flights_import_round_trip(flights, tmp_path: Path, name: str, node
         assert (back.n_samples, back.n_sensors, back.n_zones) == (15, 4, 8)
         assert back.map == f"maps/without-drone{d}.ply" and back.map_path().exists()
         assert back.configuration_source == "odometry" and back.checksums == "full"
-        for field in ("distance_mm", "status", "T_base_tip", "T_base_tip_cov", "T_map_base"):
+        for field in ("distance_mm", "status", "T_base_tip", "T_base_tip_cov", "T_map_base", "T_map_base_cov"):
             assert getattr(back, field).tobytes() == getattr(log, field).tobytes(), field
         assert np.abs(back.T_base_tip[0, :3, 3]).max() < 0.01  # frame 0 is (nearly) the node itself
+        np.testing.assert_array_equal(back.T_map_base_cov, TRUTH_ERROR.covariance())
     assert Map.load(tmp_path / "maps" / "without-drone0.ply").points.shape[0] == s["map_points"][0]
 
 
@@ -376,6 +389,22 @@ def test_odometry_model_is_what_the_documented_procedure_gives(flights) -> None:
     for part in ("yaw", "xy"):  # a random walk explains the spreads better than a linear drift
         assert out["fits"][part]["random_walk"]["weighted_residual"] < out["fits"][part]["drift"]["weighted_residual"]
     assert out["sigma_xy_mm"][-1] > 3 * out["sigma_xy_mm"][1]  # the error grows along the scan
+
+
+@needs_data
+def test_truth_error_is_what_the_documented_procedure_gives(flights) -> None:
+    """docs/real-data.md: robust RMS about zero of the per-node reference corrections, pooled over both flights."""
+    from tofloc.io.nanoswarm_odometry import fit_truth_error
+
+    out = fit_truth_error([flights["two-drones"], flights["four-drones"]])
+    assert out["model"] == TRUTH_ERROR
+    two, four, p = out["per_flight"]["two-drones"], out["per_flight"]["four-drones"], out["pooled"]
+    assert (two["counted"], two["nodes"], four["counted"], four["nodes"], p["counted"]) == (11, 30, 12, 32, 23)
+    assert (two["sigma_yaw_deg"], two["median_yaw_deg"], two["rms_yaw_deg"], two["rms_xy_mm"]) == (1.87, 0.83, 2.05, 16.3)
+    assert (four["sigma_yaw_deg"], four["median_yaw_deg"], four["rms_yaw_deg"], four["rms_xy_mm"]) == (1.63, 1.86, 2.47, 13.8)
+    assert (p["sigma_yaw_deg"], p["median_yaw_deg"], p["sigma_xy_mm"], p["median_xy_mm"]) == (1.44, 1.37, 16.2, 2.4)
+    # the nodes share a yaw offset as large as their spread: the declared sigma covers both
+    assert math.isclose(math.degrees(TRUTH_ERROR.yaw_rad), math.hypot(1.44, 1.37), abs_tol=0.01)
 
 
 @needs_data

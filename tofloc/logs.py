@@ -11,7 +11,10 @@ The contract is ``log-format-v1`` (documented for users in ``docs/log-format.md`
   ``/samples/T_base_tip`` (K, 4, 4) float64 with its covariance
   ``/samples/T_base_tip_cov`` (K, 6, 6) float64 and ``/truth/T_map_base`` (4, 4) or
   (K, 4, 4) float64; the optional root attribute ``configuration_source``
-  (``"mocap"``, ``"kinematics"``, ``"odometry"`` or ``"cad"``).
+  (``"mocap"``, ``"kinematics"``, ``"odometry"`` or ``"cad"``);
+* tofloc's extension (extra datasets are allowed by the contract and ignored by readers
+  that do not know them): ``/truth/T_map_base_cov`` (6, 6) or (K, 6, 6) float64, the
+  truth's own uncertainty.
 
 :func:`write_log` writes HDF5's 1.10 file format (:data:`HDF5_LIBVER`: superblock, object
 headers and chunk indexes carry checksums, string attributes are fixed-length so that they
@@ -147,6 +150,12 @@ class Log:
         unknown. Needs ``T_base_tip``.
     T_map_base : ndarray of float64, shape (4, 4) or (K, 4, 4), optional
         Ground-truth base pose (``/truth/T_map_base``).
+    T_map_base_cov : ndarray of float64, shape (6, 6) or (K, 6, 6), optional
+        The truth's own uncertainty (``/truth/T_map_base_cov``, tofloc's extension of the
+        format): covariance of ``delta`` in ``T_actual = T_map_base @ exp(delta)``,
+        rotation vector (rad) then translation (m), in the base frame; (6, 6) for a fixed
+        truth, (K, 6, 6) for a per-sample one. Finite, symmetric, positive semi-definite.
+        Needs ``T_map_base``.
     source : str
         ``"simulation"``, ``"serial"``, ``"import:<what>"``, ...
     created : str
@@ -185,6 +194,7 @@ class Log:
     T_base_tip_cov: NDArray[np.float64] | None = None
     configuration_source: str | None = None
     checksums: str | None = None
+    T_map_base_cov: NDArray[np.float64] | None = None
 
     # -- construction -----------------------------------------------------------------
     @classmethod
@@ -204,6 +214,7 @@ class Log:
         map: str | None = None,
         T_base_tip_cov: ArrayLike | None = None,
         configuration_source: str | None = None,
+        T_map_base_cov: ArrayLike | None = None,
     ) -> "Log":
         """Build and validate a log from array-likes, converting them to the spec's dtypes.
 
@@ -238,6 +249,7 @@ class Log:
             map=map,
             T_base_tip_cov=f(T_base_tip_cov, _F64),
             configuration_source=configuration_source,
+            T_map_base_cov=f(T_map_base_cov, _F64),
         )
         log.validate(where)
         return log
@@ -298,8 +310,9 @@ class Log:
         Parameters
         ----------
         indices : slice, int array or bool mask of shape (K,)
-            The samples to keep (at least one). A per-sample truth is selected too;
-            a fixed ``(4, 4)`` truth is kept as is.
+            The samples to keep (at least one). A per-sample truth (and its
+            covariance) is selected too; a fixed ``(4, 4)`` truth (and its ``(6, 6)``
+            covariance) is kept as is.
 
         Raises
         ------
@@ -327,9 +340,11 @@ class Log:
         def take(a: NDArray[Any] | None) -> Any:
             return None if a is None else np.asarray(a)[idx]
 
-        truth = self.T_map_base
+        truth, truth_cov = self.T_map_base, self.T_map_base_cov
         if truth is not None:
             truth = np.array(truth) if np.ndim(truth) == 2 else take(truth)
+        if truth_cov is not None:
+            truth_cov = np.array(truth_cov) if np.ndim(truth_cov) == 2 else take(truth_cov)
         return replace(
             self,
             timestamp_s=take(self.timestamp_s),
@@ -340,6 +355,7 @@ class Log:
             T_base_tip=take(self.T_base_tip),
             T_base_tip_cov=take(self.T_base_tip_cov),
             T_map_base=truth,
+            T_map_base_cov=truth_cov,
         )
 
     # -- validation ---------------------------------------------------------------------
@@ -356,7 +372,9 @@ class Log:
             finite rigid transform, a configuration covariance without a configuration
             or whose samples are neither all NaN nor finite, symmetric and positive
             semi-definite (within :data:`COV_RTOL`), a truth that is not finite rigid,
-            or a bad ``source``/``created``/``map``/``configuration_source``.
+            a truth covariance without a truth, shaped unlike it, not finite, not
+            symmetric or not positive semi-definite, or a bad
+            ``source``/``created``/``map``/``configuration_source``.
         """
         if not isinstance(self.rig, Rig):
             raise LogFormatError(where, "root attribute `rig`", "a tofloc.rig.Rig", type(self.rig).__name__)
@@ -405,6 +423,8 @@ class Log:
                 k = int(np.flatnonzero(bad)[0])
                 loc = "/truth/T_map_base" if T.ndim == 2 else f"/truth/T_map_base[{k}]"
                 raise LogFormatError(where, loc, "a finite rigid transform", _describe_pose(T.reshape(-1, 4, 4)[k]))
+        if self.T_map_base_cov is not None:
+            _check_truth_covariance(self.T_map_base_cov, self.T_map_base, K, where)
 
         _check_text(self.source, where, "root attribute `source`", "a string")
         _check_text(self.created, where, "root attribute `created`", "an ISO 8601 time")
@@ -421,7 +441,8 @@ class Log:
             raise LogFormatError(where, "checksums", f"one of {CHECKSUM_LEVELS} or None", repr(self.checksums))
 
     def __repr__(self) -> str:
-        opt = [n for n in ("sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov", "T_map_base") if getattr(self, n) is not None]
+        opt = [n for n in ("sigma_mm", "pressure_kpa", "T_base_tip", "T_base_tip_cov", "T_map_base", "T_map_base_cov")
+               if getattr(self, n) is not None]
         try:
             k = str(self.n_samples)
         except (IndexError, TypeError):
@@ -454,8 +475,26 @@ def _first_bad(bad: NDArray[np.bool_], values: NDArray[Any], where: str, loc: st
         raise LogFormatError(where, loc, expected, f"{values[i]!r} at index {i if len(i) > 1 else i[0]}")
 
 
-def _check_covariances(cov: NDArray[np.float64], where: str, loc: str) -> None:
-    """Each (n, n) sample: all NaN, or finite, symmetric and PSD within :data:`COV_RTOL` (vectorized)."""
+def _check_truth_covariance(cov: Any, truth: Any, K: int, where: str) -> None:
+    """``/truth/T_map_base_cov``: alongside a truth, shaped like it ((6, 6) for (4, 4), (K, 6, 6) for
+    (K, 4, 4)), every entry finite (leave the dataset out when unknown), symmetric and PSD."""
+    loc = "/truth/T_map_base_cov"
+    if truth is None:
+        raise LogFormatError(where, loc, "a covariance only alongside /truth/T_map_base", "no /truth/T_map_base")
+    static = np.ndim(truth) == 2
+    shape, name = ((6, 6), "(6, 6), as /truth/T_map_base is (4, 4)") if static else ((K, 6, 6), "(K, 6, 6), as /truth/T_map_base is (K, 4, 4)")
+    C = _check_array(cov, where, loc, _F64, shape, name)
+    bad = ~np.isfinite(C)
+    if bad.any():
+        i = tuple(int(v) for v in np.argwhere(bad)[0])
+        raise LogFormatError(where, loc, "finite values (leave the dataset out when the truth's uncertainty is unknown)",
+                             f"{float(C[i])} at index {i}")
+    _check_covariances(C.reshape(-1, 6, 6), where, loc, indexed=not static)
+
+
+def _check_covariances(cov: NDArray[np.float64], where: str, loc: str, *, indexed: bool = True) -> None:
+    """Each (n, n) sample: all NaN, or finite, symmetric and PSD within :data:`COV_RTOL` (vectorized).
+    ``indexed``: name the sample in messages (``loc[k]``); False for a single matrix."""
     flat = cov.reshape(cov.shape[0], -1)
     unknown = np.all(np.isnan(flat), axis=1)
     finite = np.all(np.isfinite(flat), axis=1)
@@ -463,7 +502,7 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str) -> None:
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         found = "a matrix that is partly NaN" if np.isnan(flat[k]).any() else "a matrix with infinite values"
-        raise LogFormatError(where, f"{loc}[{k}]", "a finite covariance, or all NaN where unknown", found)
+        raise LogFormatError(where, f"{loc}[{k}]" if indexed else loc, "a finite covariance, or all NaN where unknown", found)
     idx = np.flatnonzero(finite)
     if idx.size == 0:
         return
@@ -474,7 +513,7 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str) -> None:
     if bad_sym.any():
         j = int(np.flatnonzero(bad_sym)[0])
         raise LogFormatError(
-            where, f"{loc}[{idx[j]}]", f"a symmetric matrix (within {COV_RTOL:g} of its largest entry)", f"asymmetry {asym[j]:.3g} for entries up to {scale[j]:.3g}"
+            where, f"{loc}[{idx[j]}]" if indexed else loc, f"a symmetric matrix (within {COV_RTOL:g} of its largest entry)", f"asymmetry {asym[j]:.3g} for entries up to {scale[j]:.3g}"
         )
     with np.errstate(over="ignore", invalid="ignore"):
         lam = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, 1, 2)))[:, 0]
@@ -482,7 +521,7 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str) -> None:
     if bad_psd.any():
         j = int(np.flatnonzero(bad_psd)[0])
         raise LogFormatError(
-            where, f"{loc}[{idx[j]}]", f"a positive semi-definite matrix (eigenvalues >= -{COV_RTOL:g} x its largest entry)", f"smallest eigenvalue {lam[j]:.3g}"
+            where, f"{loc}[{idx[j]}]" if indexed else loc, f"a positive semi-definite matrix (eigenvalues >= -{COV_RTOL:g} x its largest entry)", f"smallest eigenvalue {lam[j]:.3g}"
         )
 
 
@@ -653,16 +692,23 @@ def read_log(path: str | Path) -> Log:
         pressure = load("/samples/pressure_kpa", _F32, (K, C), "(K, C)", False)
         T_base_tip = load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False)
         T_base_tip_cov = load("/samples/T_base_tip_cov", _F64, (K, 6, 6), "(K, 6, 6)", False)
-        truth = None
-        with _h5_guard(file, "/truth/T_map_base"):
-            truth_ds = _get_dataset(f, "/truth/T_map_base", file, required=False, expected="a float64 dataset of shape (4, 4) or (K, 4, 4)")
-            if truth_ds is not None:
-                _check_dataset_meta(truth_ds, file, _F64, None, "")
-                if truth_ds.shape not in ((4, 4), (K, 4, 4)):
-                    raise LogFormatError(file, "/truth/T_map_base", f"shape (4, 4) or (K, 4, 4) = {(K, 4, 4)}", f"shape {truth_ds.shape}")
-                _check_storage(truth_ds, file, file_size)
-                truth = _read_dataset(truth_ds, file, _F64)
-                audit.dataset(truth_ds)
+        def load_truth(name: str, n: int) -> Any:
+            """An optional float64 dataset of shape (n, n) (a fixed truth) or (K, n, n) (per sample)."""
+            shapes = f"({n}, {n}) or (K, {n}, {n})"
+            with _h5_guard(file, name):
+                ds = _get_dataset(f, name, file, required=False, expected=f"a float64 dataset of shape {shapes}")
+                if ds is None:
+                    return None
+                _check_dataset_meta(ds, file, _F64, None, "")
+                if ds.shape not in ((n, n), (K, n, n)):
+                    raise LogFormatError(file, name, f"shape {shapes} = {(K, n, n)}", f"shape {ds.shape}")
+                _check_storage(ds, file, file_size)
+                out = _read_dataset(ds, file, _F64)
+                audit.dataset(ds)
+                return out
+
+        truth = load_truth("/truth/T_map_base", 4)
+        truth_cov = load_truth("/truth/T_map_base_cov", 6)
         with _h5_guard(file, "file"):
             checksums = audit.level()
 
@@ -682,6 +728,7 @@ def read_log(path: str | Path) -> Log:
         T_base_tip_cov=T_base_tip_cov,
         configuration_source=optional_text["configuration_source"],
         checksums=checksums,
+        T_map_base_cov=truth_cov,
     )
     log.validate(file)
     return log
@@ -961,7 +1008,10 @@ def write_log(log: Log, path: str | Path) -> Path:
         if log.T_base_tip_cov is not None:
             write_checksummed_dataset(samples, "T_base_tip_cov", log.T_base_tip_cov, "<f8")
         if log.T_map_base is not None:
-            write_checksummed_dataset(f.create_group("truth"), "T_map_base", log.T_map_base, "<f8")
+            truth_group = f.create_group("truth")
+            write_checksummed_dataset(truth_group, "T_map_base", log.T_map_base, "<f8")
+            if log.T_map_base_cov is not None:
+                write_checksummed_dataset(truth_group, "T_map_base_cov", log.T_map_base_cov, "<f8")
     tmp = _fresh_temp(dest)
     try:
         with open(tmp, "wb") as fh:

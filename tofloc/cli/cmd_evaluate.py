@@ -92,9 +92,12 @@ def summary_table(doc: dict[str, Any]) -> Table:
     """Per estimator over every trial of every log: median e_x (mm) and e_gamma (deg),
     failure rate, NEES mean and median, median runtime; then the oracle floor (80 columns)."""
     n_logs = len(doc["logs"])
+    declared = (doc.get("truth_uncertainty") or {}).get("declared_by", 0)
     t = Table(title=f"{n_logs} log(s) x {doc['trials']} trial(s), prior {doc['prior']['mode']}", box=box.SIMPLE_HEAD,
               caption=f"fail: e_x > {doc['failure']['e_x_m'] * 1000:.0f} mm or e_γ > {doc['failure']['e_gamma_deg']:.0f} deg; "
-                      "NEES 3 if consistent", caption_justify="left", pad_edge=False)
+                      "NEES 3 if consistent" + (f", with the truth's declared uncertainty ({declared} log(s); "
+                                                "table.md: also vs exact truth)" if declared else ""),
+              caption_justify="left", pad_edge=False)
     t.add_column("estimator", no_wrap=True, max_width=20, overflow="ellipsis")
     for col in ("e_x mm", "e_γ deg", "fail", "NEES mean", "NEES med", "t (s)"):
         t.add_column(col, justify="right", no_wrap=True)

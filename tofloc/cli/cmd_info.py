@@ -81,6 +81,14 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
         x, y, yaw = xyyaw_from_se3(T)
         kind = "static" if log.T_map_base.ndim == 2 else "per sample"
         t.add_row("truth T_map_base", f"present ({kind}): x={x:.4f} m, y={y:.4f} m, yaw={np.degrees(yaw):.2f} deg, z={T[2, 3]:.3f} m")
+        if log.T_map_base_cov is not None:
+            sd = np.sqrt(np.max(np.diagonal(log.T_map_base_cov.reshape(-1, 6, 6), axis1=1, axis2=2), axis=0))
+            most = "" if log.T_map_base_cov.ndim == 2 else "up to "
+            t.add_row("truth covariance", f"1-sigma {most}yaw {np.degrees(sd[2]):.2f} deg, x {sd[3] * 1000:.1f} mm, "
+                                          f"y {sd[4] * 1000:.1f} mm (roll/pitch {np.degrees(max(sd[0], sd[1])):.2f} deg, "
+                                          f"z {sd[5] * 1000:.1f} mm)")
+        else:
+            t.add_row("truth covariance", "not declared (the truth is taken as exact)")
     else:
         t.add_row("truth T_map_base", "absent")
     mp = log.map_path()

@@ -23,6 +23,10 @@ every choice):
   truth into the configuration. ``configuration_source = "odometry"`` and
   ``/samples/T_base_tip_cov`` from :data:`ODOMETRY_ERROR` (fitted once on this data set,
   see :mod:`tofloc.io.nanoswarm_odometry`);
+* **the truth's own uncertainty**: ``/truth/T_map_base_cov`` (tofloc's extension of the
+  log format) from :data:`TRUTH_ERROR`: how far a node's Vicon pose is from the pose its
+  scans fit the map at (the marker frame's offset, the map's own error near the node),
+  measured once on this data set by the same module;
 * **statuses**: the firmware sends no status: a valid column gets 5, an invalid one (-1)
   gets 255 and a NaN distance.
 
@@ -64,6 +68,8 @@ __all__ = [
     "ZONE_HEIGHT_DEG",
     "OdometryErrorModel",
     "ODOMETRY_ERROR",
+    "TruthErrorModel",
+    "TRUTH_ERROR",
     "Scans",
     "NodePoses",
     "read_scans_csv",
@@ -109,6 +115,13 @@ _NUMBER = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?")
 _HEX = re.compile(r"[0-9a-fA-F]*")
 
 
+def _check_sigmas(model: object, what: str, names: tuple[str, ...]) -> None:
+    for name in names:
+        v = getattr(model, name)
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v < 1):
+            raise ParameterError(f"{what}: {name} must be in [0, 1), got {v!r}")
+
+
 @dataclass(frozen=True)
 class OdometryErrorModel:
     """One-sigma error of the drone's in-scan odometry, growing with the frame index.
@@ -132,10 +145,7 @@ class OdometryErrorModel:
     z_m: float
 
     def __post_init__(self) -> None:
-        for name in ("yaw_rad_per_sqrt_frame", "xy_m_per_sqrt_frame", "tilt_rad", "z_m"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v < 1):
-                raise ParameterError(f"odometry error model: {name} must be in [0, 1), got {v!r}")
+        _check_sigmas(self, "odometry error model", ("yaw_rad_per_sqrt_frame", "xy_m_per_sqrt_frame", "tilt_rad", "z_m"))
 
     def sigmas(self, frame_index: ArrayLike) -> NDArray[np.float64]:
         """One-sigma (roll, pitch, yaw, x, y, z) per frame, ``(K, 6)`` (rad, m)."""
@@ -161,6 +171,43 @@ class OdometryErrorModel:
 
 #: Fitted once on exp2 (both flights, all nodes): see docs/real-data.md.
 ODOMETRY_ERROR = OdometryErrorModel(yaw_rad_per_sqrt_frame=0.0079, xy_m_per_sqrt_frame=0.0117, tilt_rad=0.0261, z_m=0.0143)
+
+
+@dataclass(frozen=True)
+class TruthErrorModel:
+    """One-sigma error of a node's motion-capture truth, as ``/truth/T_map_base_cov`` declares it.
+
+    The covariance (rotation vector, then translation, base frame,
+    ``T_actual = T_map_base @ exp(delta)``) is ``diag(t^2, t^2, yaw^2, xy^2, xy^2, z^2)``,
+    the same for every node. ``yaw_rad`` and ``xy_m`` are the robust root mean square
+    (about zero: spread and median) of the per-node reference corrections (a node's first
+    frames registered to its map at the truth), pooled over nodes and flights; ``tilt_rad`` and ``z_m`` are the Vicon
+    attitude and height spreads of :data:`ODOMETRY_ERROR` (the same marker offset).
+
+    The numbers of :data:`TRUTH_ERROR` come from
+    :func:`tofloc.io.nanoswarm_odometry.fit_truth_error`, run once on both exp2 flights
+    (docs/real-data.md).
+    """
+
+    yaw_rad: float
+    xy_m: float
+    tilt_rad: float
+    z_m: float
+
+    def __post_init__(self) -> None:
+        _check_sigmas(self, "truth error model", ("yaw_rad", "xy_m", "tilt_rad", "z_m"))
+
+    def sigmas(self) -> NDArray[np.float64]:
+        """One-sigma (roll, pitch, yaw, x, y, z), ``(6,)`` (rad, m)."""
+        return np.array([self.tilt_rad, self.tilt_rad, self.yaw_rad, self.xy_m, self.xy_m, self.z_m])
+
+    def covariance(self) -> NDArray[np.float64]:
+        """The ``(6, 6)`` diagonal covariance of a node's truth."""
+        return np.diag(self.sigmas() ** 2)
+
+
+#: Measured once on exp2 (both flights, all nodes whose reference registration counts): see docs/real-data.md.
+TRUTH_ERROR = TruthErrorModel(yaw_rad=0.0347, xy_m=0.0164, tilt_rad=0.0261, z_m=0.0143)
 
 
 # -- parsing ---------------------------------------------------------------------------------
@@ -531,6 +578,7 @@ def read_flight(
     base: Literal["level", "mocap"] = "level",
     created: str | None = None,
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
+    truth_error: TruthErrorModel | None = TRUTH_ERROR,
 ) -> Flight:
     """Parse a flight folder into one log per scan node (no map yet; see the module docstring).
 
@@ -545,6 +593,10 @@ def read_flight(
         files (UTC), so that the same input gives the same bytes.
     error_model : OdometryErrorModel
         Gives ``/samples/T_base_tip_cov``.
+    truth_error : TruthErrorModel or None
+        Gives ``/truth/T_map_base_cov`` (None: leave it out). Its roll and pitch describe the
+        level base; with ``base="mocap"`` the Vicon attitude's marker offset (a few degrees)
+        is not in it.
 
     Raises
     ------
@@ -578,6 +630,7 @@ def read_flight(
     T_base_tip = in_scan_configurations(scans.motion, odo_pose[:, 2])
     T_map_base = base_poses(vic, base)
     cov = error_model.covariance(np.arange(FRAMES))
+    truth_cov = None if truth_error is None else truth_error.covariance()
     valid = scans.distance_mm >= 0
     dist = np.where(valid, scans.distance_mm.astype(np.float32), np.float32(np.nan))
     status = np.where(valid, 5, 255).astype(np.uint8)
@@ -591,6 +644,7 @@ def read_flight(
             T_base_tip=T_base_tip[i],
             T_base_tip_cov=cov,
             T_map_base=T_map_base[i],
+            T_map_base_cov=truth_cov,
             source="import:nanoswarm",
             created=created,
             configuration_source="odometry",

@@ -1,7 +1,8 @@
-"""How wrong is the drones' in-scan odometry? The procedure behind :data:`tofloc.io.nanoswarm.ODOMETRY_ERROR`.
+"""How wrong is the drones' in-scan odometry, and how wrong is the truth? The procedures behind
+:data:`tofloc.io.nanoswarm.ODOMETRY_ERROR` and :data:`tofloc.io.nanoswarm.TRUTH_ERROR`.
 
 Run once on the development flights (``python -m tofloc.io.nanoswarm_odometry DATASET``);
-its output is what ``docs/real-data.md`` quotes and what :data:`ODOMETRY_ERROR` holds.
+its output is what ``docs/real-data.md`` quotes and what the two constants hold.
 
 1. **Per-frame registration.** Every node of every flight is placed at its true pose
    (``T_map_base``) and every frame's points (valid zones <= the range cut, 4 sensors x 8
@@ -31,6 +32,21 @@ Roll, pitch and height cannot be seen by a planar scan. The drone's actual attit
 height at a node are estimated from the motion capture instead: the within-drone
 standard deviation of the Vicon roll/pitch and height over its nodes (the per-drone mean
 is the marker frame's offset), pooled over drones and flights.
+
+The truth's own error (:func:`fit_truth_error`)
+-------------------------------------------------
+Step 2's reference correction of a node is the planar correction that puts the node's
+first frames on its map, starting from the truth: what separates the Vicon node pose from
+the pose the map agrees with. Over the nodes whose reference counts (step 1's rule),
+pooled over the flights, for yaw and for x and y pooled (the correction is in the tip
+frame of frames 0-2, which is the base frame within the few millimetres and degrees the
+drone has moved 0.27 s into the scan), the declared one-sigma is the robust root mean
+square about zero, ``sqrt(s^2 + m^2)`` with ``s = 1.4826 * MAD`` the robust spread and
+``m`` the median: the declared covariance is that of a zero-mean error, so an offset
+shared by the nodes (a median away from 0) belongs in it as much as the spread does.
+Roll, pitch and height reuse the Vicon spreads above (the same marker offset). The truth's
+error and the map's error near the node cannot be told apart here: both are in the
+correction.
 """
 
 from __future__ import annotations
@@ -45,10 +61,21 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from tofloc.io.nanoswarm import FRAMES, OdometryErrorModel
+from tofloc.io.nanoswarm import FRAMES, OdometryErrorModel, TruthErrorModel
 from tofloc.io.nanoswarm_maps import DEFAULT_RANGE_CUT_M, FlightImport, import_flight
 
-__all__ = ["INLIER_M", "MIN_INLIERS", "MIN_EIGENVALUE", "REFERENCE_FRAMES", "FrameCorrections", "register_frames", "register_reference", "fit_error_model", "report"]
+__all__ = [
+    "INLIER_M",
+    "MIN_INLIERS",
+    "MIN_EIGENVALUE",
+    "REFERENCE_FRAMES",
+    "FrameCorrections",
+    "register_frames",
+    "register_reference",
+    "fit_error_model",
+    "fit_truth_error",
+    "report",
+]
 
 #: Correspondences farther than this from the map are left out of the registration (m).
 INLIER_M = 0.05
@@ -202,16 +229,7 @@ def fit_error_model(imports: Sequence[FlightImport], range_cut_m: float = DEFAUL
             "drift": {"noise": float(np.sqrt(a_dr)), "per_frame": float(np.sqrt(k2)), "weighted_residual": res_dr},
         }
 
-    tilt, z = [], []
-    for imp in imports:
-        fl = imp.flight
-        eul = Rotation.from_quat(fl.vicon[:, [4, 5, 6, 3]]).as_euler("ZYX")  # yaw, pitch, roll
-        for d in fl.drones:
-            s_ = fl.drone == d
-            tilt.append(eul[s_, 1:] - eul[s_, 1:].mean(axis=0))
-            z.append(fl.vicon[s_, 2] - fl.vicon[s_, 2].mean())
-    tilt_rad = float(np.sqrt(np.mean(np.concatenate(tilt) ** 2)))
-    z_m = float(np.sqrt(np.mean(np.concatenate(z) ** 2)))
+    tilt_rad, z_m = _vicon_spread(imports)
     model = OdometryErrorModel(
         yaw_rad_per_sqrt_frame=round(fits["yaw"]["random_walk"]["per_sqrt_frame"], 4),
         xy_m_per_sqrt_frame=round(fits["xy"]["random_walk"]["per_sqrt_frame"], 4),
@@ -229,13 +247,87 @@ def fit_error_model(imports: Sequence[FlightImport], range_cut_m: float = DEFAUL
     }
 
 
+def _vicon_spread(imports: Sequence[FlightImport]) -> tuple[float, float]:
+    """Within-drone RMS spread of the Vicon roll/pitch (rad) and height (m), pooled over drones and flights."""
+    tilt, z = [], []
+    for imp in imports:
+        fl = imp.flight
+        eul = Rotation.from_quat(fl.vicon[:, [4, 5, 6, 3]]).as_euler("ZYX")  # yaw, pitch, roll
+        for d in fl.drones:
+            s_ = fl.drone == d
+            tilt.append(eul[s_, 1:] - eul[s_, 1:].mean(axis=0))
+            z.append(fl.vicon[s_, 2] - fl.vicon[s_, 2].mean())
+    return float(np.sqrt(np.mean(np.concatenate(tilt) ** 2))), float(np.sqrt(np.mean(np.concatenate(z) ** 2)))
+
+
+def _rms_about_zero(x: NDArray[np.float64]) -> float:
+    """Robust root mean square about zero: ``sqrt((1.4826 MAD)^2 + median^2)`` of the finite values."""
+    return float(np.hypot(_robust_sigma(x), np.nanmedian(x)))
+
+
+def _reference_spread(d: NDArray[np.float64]) -> dict[str, Any]:
+    """Counted nodes, robust sigma, median and robust RMS about zero of reference corrections ``(N, 3)``
+    (NaN rows: not counted)."""
+    ok = np.isfinite(d[:, 0])
+    xy = np.concatenate([d[:, 1], d[:, 2]])
+    return {
+        "nodes": int(d.shape[0]),
+        "counted": int(ok.sum()),
+        "sigma_yaw_deg": round(float(np.degrees(_robust_sigma(d[:, 0]))), 2),
+        "sigma_x_mm": round(float(1000 * _robust_sigma(d[:, 1])), 1),
+        "sigma_y_mm": round(float(1000 * _robust_sigma(d[:, 2])), 1),
+        "sigma_xy_mm": round(float(1000 * _robust_sigma(xy)), 1),
+        "median_yaw_deg": round(float(np.degrees(np.nanmedian(d[:, 0]))), 2),
+        "median_x_mm": round(float(1000 * np.nanmedian(d[:, 1])), 1),
+        "median_y_mm": round(float(1000 * np.nanmedian(d[:, 2])), 1),
+        "median_xy_mm": round(float(1000 * np.nanmedian(xy)), 1),
+        "rms_yaw_deg": round(float(np.degrees(_rms_about_zero(d[:, 0]))), 2),
+        "rms_xy_mm": round(1000 * _rms_about_zero(xy), 1),
+    }
+
+
+def fit_truth_error(imports: Sequence[FlightImport], range_cut_m: float = DEFAULT_RANGE_CUT_M) -> dict[str, Any]:
+    """The truth's declared uncertainty (module docstring, last section) over several flights.
+
+    Returns
+    -------
+    dict
+        ``model`` (:class:`TruthErrorModel`: the pooled robust RMS about zero, rounded to
+        1e-4 rad / 0.1 mm), ``per_flight`` (folder name -> counted nodes, robust sigmas,
+        medians and robust RMS about zero of the reference corrections) and ``pooled``
+        (the same over every flight).
+    """
+    refs = []
+    per_flight: dict[str, Any] = {}
+    for imp in imports:
+        ref = register_reference(imp, range_cut_m)
+        d = np.where(ref.counts[..., None], ref.delta, np.nan)[:, 0]  # (N, 3): yaw, x, y
+        if int(np.isfinite(d[:, 0]).sum()) < 5:
+            raise ValueError(f"{imp.flight.folder}: too few nodes with a counted reference correction to measure the truth's error")
+        refs.append(d)
+        per_flight[imp.flight.folder.name] = _reference_spread(d)
+    d = np.concatenate(refs)
+    tilt_rad, z_m = _vicon_spread(imports)
+    model = TruthErrorModel(
+        yaw_rad=round(_rms_about_zero(d[:, 0]), 4),
+        xy_m=round(_rms_about_zero(np.concatenate([d[:, 1], d[:, 2]])), 4),
+        tilt_rad=round(tilt_rad, 4),
+        z_m=round(z_m, 4),
+    )
+    return {"model": model, "per_flight": per_flight, "pooled": _reference_spread(d)}
+
+
 def report(dataset: str | Path, flights: Sequence[str] = FLIGHTS) -> dict[str, Any]:
-    """The numbers of docs/real-data.md's odometry section, from the exp2 folder of the dataset."""
+    """The numbers of docs/real-data.md's odometry and truth sections, from the exp2 folder of the dataset."""
     root = Path(dataset)
     imports = [import_flight(root / name) for name in flights]
     out = fit_error_model(imports)
     m = out["model"]
     out["model"] = {k: getattr(m, k) for k in ("yaw_rad_per_sqrt_frame", "xy_m_per_sqrt_frame", "tilt_rad", "z_m")}
+    truth = fit_truth_error(imports)
+    t = truth["model"]
+    truth["model"] = {k: getattr(t, k) for k in ("yaw_rad", "xy_m", "tilt_rad", "z_m")}
+    out["truth"] = truth
     return out
 
 
