@@ -190,6 +190,12 @@ class LikelihoodFieldModel(SensorModel):
         :data:`R_FIELD_SIGMAS` times the 99th percentile of the problem's zone sigmas (a
         field clipped inside the noise is flat: the 5 cm the paper's 0.3 m readings need
         are 0.6 sigma of a 1.7 m reading).
+    unknown_weight : float
+        On a map with a known space (:attr:`tofloc.maps.Map.known_space`, a map built from
+        scans): an end point in space the map knows nothing about may lie on a surface the
+        map cannot hold; its hit density becomes ``(1 - w) N(s; 0, sigma^2) + w / (2 r_field)``
+        (uniform over the field's span) instead of an outlier. 0: unknown space is treated
+        as mapped. Ignored on maps without a known space.
     configuration_cov : bool
         Add each end point's distance variance caused by its sample's configuration
         uncertainty (the problem's ``T_base_tip_cov``) to its sensor variance
@@ -209,6 +215,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float | None = None
+    unknown_weight: float = 0.5
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:
@@ -223,6 +230,9 @@ class LikelihoodFieldModel(SensorModel):
         check_temper("likelihood_field", self.temper)
         if not isinstance(self.configuration_cov, bool):
             raise ParameterError(f"likelihood_field.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        u = self.unknown_weight
+        if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
+            raise ParameterError(f"likelihood_field.unknown_weight must be in [0, 1], got {u!r}")
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 2.0)):
             v = getattr(self, n)
             if v is None and n == "r_field":
@@ -309,16 +319,20 @@ class BoundLikelihoodField(BoundSensorModel):
         T = self.T_lift_tip[step]
         return t @ T[:3, :3].T + T[:3, 3]
 
-    def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        """Signed distance ``(M, P)`` of the step's end points to the surface (positive on
-        the free side) for states ``(M, 3 + n)``."""
+    def end_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """End points ``(M, P, 3)`` of step ``step`` in the map frame for states ``(M, 3 + n)``."""
         x = np.asarray(states, dtype=float)
         p = self._lifted_points(x, step)
         c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
         q = rotate_z(p, c, s)
         q[..., 0] += x[:, 0:1]
         q[..., 1] += x[:, 1:2]
-        return self.field.signed_distance(q)
+        return q
+
+    def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Signed distance ``(M, P)`` of the step's end points to the surface (positive on
+        the free side) for states ``(M, 3 + n)``."""
+        return self.field.signed_distance(self.end_points(states, step))
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
@@ -326,7 +340,13 @@ class BoundLikelihoodField(BoundSensorModel):
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sig = np.sqrt(sig**2 + v_cfg[None, :])
-        d = self.distances(np.asarray(states, dtype=float), step)
+        q = self.end_points(np.asarray(states, dtype=float), step)
+        d = self.field.signed_distance(q)
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
-        p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + short + m.z_rand / self.r_field
+        p_hit = np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
+        ks = getattr(self.problem.map, "known_space", None)
+        if ks is not None and m.unknown_weight > 0:  # an end point where the map knows nothing
+            w = np.where(ks.is_known(q), 0.0, m.unknown_weight)
+            p_hit = (1.0 - w) * p_hit + w / (2.0 * self.r_field)
+        p = m.z_hit * p_hit + short + m.z_rand / self.r_field
         return m.temper * np.log(p).sum(axis=1)

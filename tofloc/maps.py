@@ -35,6 +35,7 @@ it and what was expected. Nothing is silently repaired.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -232,6 +233,7 @@ class Map:
         self._triangles = None if triangles is None else readonly(np.asarray(triangles, dtype=np.int64))
         self.source = str(source)
         self._surfel_radius_param = surfel_radius
+        self._known_space: Any = None
         self._tree: cKDTree | None = None
         self._scene: Any = None
         self._face_normals: NDArray[np.float64] | None = None
@@ -431,7 +433,11 @@ class Map:
             t = check_triangles(triangles, v.shape[0], "triangle", fail)
             return cls._make_mesh(v, t, str(p), fail)
         n = check_normals(normals, v.shape[0], "normal", fail) if normals is not None else None
-        return cls._make_cloud(v, n, str(p), normal_k=normal_k, orient=orient, surfel_radius=surfel_radius)
+        cloud = cls._make_cloud(v, n, str(p), normal_k=normal_k, orient=orient, surfel_radius=surfel_radius)
+        from tofloc.known_space import KnownSpace, sidecar_path
+
+        side = sidecar_path(p)
+        return cloud.with_known_space(KnownSpace.load(side)) if side.is_file() else cloud
 
     def save(self, path: str | Path) -> Path:
         """Write the map atomically (a temporary file in the same folder, then ``os.replace``).
@@ -440,7 +446,8 @@ class Map:
         ``x y z`` doubles and ``vertex_indices`` (uchar count, int32 indices). ``.npy``:
         the cloud's ``(N, 3)`` float64 points. ``.xyz``: the cloud's points as text.
         Normals survive only in ``.ply``. A cloud's attached :attr:`surface` is not
-        written (save it on its own and re-attach with :func:`load_map`).
+        written (save it on its own and re-attach with :func:`load_map`); a
+        :attr:`known_space` is written beside the map as ``<stem>.known.npz``.
 
         Returns
         -------
@@ -467,6 +474,10 @@ class Map:
         p.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(p) as tmp:
             tmp.write_bytes(data)
+        if self.known_space is not None:
+            from tofloc.known_space import sidecar_path
+
+            self.known_space.save(sidecar_path(p))
         return p
 
     # ---- simple queries ----------------------------------------------------------------
@@ -484,7 +495,8 @@ class Map:
 
     def fingerprint(self) -> str:
         """SHA-256 (hex) of everything a query of this map depends on: the kind, the points,
-        the normals, the triangles, the surfel radius and an attached surface's fingerprint.
+        the normals, the triangles, the surfel radius, an attached surface's fingerprint and
+        the known space (when there is one).
 
         Every per-map cache (distance grids, likelihood fields, saved trial results) is
         keyed by it: two maps with the same fingerprint answer every query the same.
@@ -497,6 +509,9 @@ class Map:
             h = sha256_arrays(self.points, self.normals, self._triangles, prefix=f"tofloc-map-v1 {self.kind}\0".encode())
             h.update(repr(None if self.kind == "mesh" else float(self.surfel_radius)).encode())  # type: ignore[arg-type]
             h.update(b"surface:" + (self._surface.fingerprint().encode() if self._surface is not None else b"none"))
+            ks = self.__dict__.get("_known_space")
+            if ks is not None:  # maps without a known space keep their fingerprint
+                h.update(b"known:" + ks.fingerprint_bytes())
             fp = h.hexdigest()
             self.__dict__["_fingerprint"] = fp
         return fp
@@ -560,6 +575,26 @@ class Map:
     def surface(self) -> Map | None:
         """The mesh a point-cloud map ray casts against (:meth:`with_surface`); ``None`` when absent."""
         return self._surface
+
+    @property
+    def known_space(self) -> Any:
+        """Where this map knows anything (:class:`tofloc.known_space.KnownSpace`), or None:
+        everywhere (a CAD model). A map built from scans carries the cells its scans crossed
+        or ended in; :meth:`load` attaches the sidecar ``<stem>.known.npz`` when it exists."""
+        return self.__dict__.get("_known_space")
+
+    def with_known_space(self, known: Any) -> Map:
+        """This map with ``known`` (a :class:`tofloc.known_space.KnownSpace`, or None to drop
+        it) attached; everything else shared. Other derived maps (:meth:`crop`, :meth:`with_surface`
+        of a new cloud) do not carry it."""
+        from tofloc.known_space import KnownSpace
+
+        if known is not None and not isinstance(known, KnownSpace):
+            raise ParameterError(f"{self.source}: with_known_space: expected a KnownSpace or None, found {type(known).__name__}")
+        out = copy.copy(self)
+        out.__dict__.pop("_fingerprint", None)
+        out.__dict__["_known_space"] = known
+        return out
 
     def with_surface(self, surface: Map) -> Map:
         """This cloud with a mesh of the same environment attached for the surface queries.
@@ -961,6 +996,7 @@ class Map:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
+        self.__dict__.setdefault("_known_space", None)
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
             a = getattr(self, name, None)
             if a is not None:
