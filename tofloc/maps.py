@@ -772,7 +772,8 @@ class Map:
             self._tree = cKDTree(self.points)
         return self._tree
 
-    def nearest(self, query: ArrayLike, *, workers: int = 1) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    def nearest(self, query: ArrayLike, *, workers: int = 1,
+                max_distance: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """Nearest map point (cloud point or mesh vertex) of each query point.
 
         Parameters
@@ -780,6 +781,9 @@ class Map:
         query : array_like, shape (..., 3)
         workers : int
             Threads of ``cKDTree.query`` (-1: all cores).
+        max_distance : float
+            Points with no map point closer than this get distance ``inf`` and index
+            ``len(points)`` (the KD-tree stops searching early: much faster for far points).
 
         Returns
         -------
@@ -788,7 +792,7 @@ class Map:
             Row of :attr:`points`.
         """
         q = as_query(query)
-        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers)
+        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers, distance_upper_bound=max_distance)
         return d.reshape(q.shape[:-1]), i.astype(np.int64).reshape(q.shape[:-1])
 
     def distance_to_surface(self, query: ArrayLike, *, nthreads: int | None = None) -> NDArray[np.float64]:
