@@ -300,7 +300,7 @@ def test_single_plane_in_view_keeps_the_prior_where_unobservable() -> None:
 
 
 def test_bench_times_k_1_5_10() -> None:
-    from tofloc.cli.cmd_bench import bench_gtsam_smoother
+    from tofloc.bench import bench_gtsam_smoother
 
     p, _ = easy_problem(n_samples=10)
     row = bench_gtsam_smoother(GTSAMSmoother(n_starts=1, n_candidates=20), p, 1)
