@@ -128,6 +128,42 @@ def _T_map_base(xyyaw: FloatArray, z: float, R_tilt: FloatArray) -> FloatArray:
     return T
 
 
+def _zone_rows(
+    p_tip: FloatArray, n: FloatArray, q: FloatArray, s_: FloatArray, inlier: NDArray[np.bool_], out_const: FloatArray,
+    d: FloatArray, v_tip: FloatArray, xyyaw: FloatArray, z: float, R_tilt: FloatArray, RC: FloatArray, tC: FloatArray,
+    rows: NDArray[np.intp] | None, D: FloatArray, kernel: str, k: float, jacobians: bool,
+) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
+    """Residuals and Jacobian rows of zones (see :meth:`SampleMeasurement.evaluate`); the
+    configuration is one rotation ``RC`` ``(3, 3)`` and translation ``tC`` ``(3,)``, or one
+    per sample ``(K, 3, 3)``, ``(K, 3)`` with each row's sample in ``rows``."""
+    T_mb = _T_map_base(xyyaw, z, R_tilt)
+    R_mb = T_mb[:3, :3]
+    p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
+    RCr, tCr = (RC, tC) if rows is None else (RC[rows], tC[rows])
+    p_b = np.einsum("...ij,...j->...i", RCr, p_d) + tCr  # base frame
+    p_m = p_b @ R_mb.T + T_mb[:3, 3]
+    e = np.einsum("ni,ni->n", n, p_m - q) / s_
+    e_rob, de = robust_transform(e, kernel, k)
+    res = np.where(inlier, e_rob, out_const)
+    if not jacobians:
+        return res, None, None, None, None
+    # rows n^T J of point_jacobians, without forming the (N, 3, 6) blocks:
+    # n^T R [-[p]x, I] = [p x (R^T n), R^T n]
+    w = np.where(inlier, de / s_, 0.0)[:, None]
+    c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
+    a = n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
+    pp = p_b @ R_tilt.T
+    Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
+    RmC = R_mb @ RC  # (R_mb R_C), per sample
+    b = np.einsum("...ji,...j->...i", RmC if rows is None else RmC[rows], n)  # (R_mb R_C)^T n
+    Hc = np.concatenate([cross(p_d, b), b], axis=1) * w
+    bd = b @ D[:3, :3]
+    Hd = np.concatenate([cross(p_tip, bd), bd], axis=1) * w
+    g = -np.einsum("ni,ni->n", bd, v_tip)[:, None] * w
+    Hbias = g * d[:, None]
+    return res, Hb, Hc, Hd, Hbias
+
+
 @dataclass(eq=False)
 class SampleMeasurement:
     """The valid zones of one sample and their current association.
@@ -205,32 +241,9 @@ class SampleMeasurement:
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
         """Robustified whitened residuals ``(N,)`` and Jacobians w.r.t. the base ``(N, 3)``,
         the configuration ``(N, 6)``, the support ``(N, 6)`` and the range bias ``(N, 1)``."""
-        p_tip = self.points(bias)
-        T_mb = _T_map_base(xyyaw, z, R_tilt)
-        R_mb = T_mb[:3, :3]
-        p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
-        p_b = p_d @ C[:3, :3].T + C[:3, 3]  # base frame
-        p_m = p_b @ R_mb.T + T_mb[:3, 3]
-        e = np.einsum("ni,ni->n", self.n, p_m - self.q) / self.s
-        e_rob, de = robust_transform(e, kernel, k)
         out_const = np.sqrt(2.0 * robust_loss(self.gate_e, kernel, k))
-        res = np.where(self.inlier, e_rob, out_const)
-        if not jacobians:
-            return res, None, None, None, None
-        # rows n^T J of point_jacobians, without forming the (N, 3, 6) blocks:
-        # n^T R [-[p]x, I] = [p x (R^T n), R^T n]
-        w = np.where(self.inlier, de / self.s, 0.0)[:, None]
-        c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
-        a = self.n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
-        pp = p_b @ R_tilt.T
-        Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
-        b = self.n @ (R_mb @ C[:3, :3])  # (R_mb R_C)^T n
-        Hc = np.concatenate([cross(p_d, b), b], axis=1) * w
-        bd = b @ D[:3, :3]
-        Hd = np.concatenate([cross(p_tip, bd), bd], axis=1) * w
-        g = -np.einsum("ni,ni->n", bd, self.v_tip)[:, None] * w
-        Hbias = g * self.d[:, None]
-        return res, Hb, Hc, Hd, Hbias
+        return _zone_rows(self.points(bias), self.n, self.q, self.s, self.inlier, out_const, self.d, self.v_tip, xyyaw, z,
+                          R_tilt, C[:3, :3], C[:3, 3], None, D, kernel, k, jacobians)
 
 
 def make_sample_factor(
@@ -324,32 +337,9 @@ class StackedMeasurements:
         of every sample, stacked.
 
         ``C`` is ``(K, 4, 4)``: the configurations of the samples."""
-        kernel, k = self.kernel, self.k
         p_tip = self.p_tip if bias is None else self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
-        T_mb = _T_map_base(xyyaw, z, R_tilt)
-        R_mb = T_mb[:3, :3]
-        p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
-        RC = C[:, :3, :3][self.sample]  # (N, 3, 3): each row's configuration
-        p_b = np.einsum("nij,nj->ni", RC, p_d) + C[:, :3, 3][self.sample]  # base frame
-        p_m = p_b @ R_mb.T + T_mb[:3, 3]
-        e = np.einsum("ni,ni->n", self.n, p_m - self.q) / self.s
-        e_rob, de = robust_transform(e, kernel, k)
-        res = np.where(self.inlier, e_rob, self.out_const)
-        if not jacobians:
-            return res, None, None, None, None
-        w = np.where(self.inlier, de / self.s, 0.0)[:, None]
-        c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
-        a = self.n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
-        pp = p_b @ R_tilt.T
-        Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
-        RmC = np.einsum("ij,kjl->kil", R_mb, C[:, :3, :3])  # (K, 3, 3): R_mb R_C per sample
-        b = np.einsum("nji,nj->ni", RmC[self.sample], self.n)  # (R_mb R_C)^T n per row
-        Hc = np.concatenate([cross(p_d, b), b], axis=1) * w
-        bd = b @ D[:3, :3]
-        Hd = np.concatenate([cross(p_tip, bd), bd], axis=1) * w
-        g = -np.einsum("ni,ni->n", bd, self.v_tip)[:, None] * w
-        Hbias = g * self.d[:, None]
-        return res, Hb, Hc, Hd, Hbias
+        return _zone_rows(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, z, R_tilt,
+                          C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians)
 
 
 def _same(a: FloatArray, b: FloatArray) -> bool:
