@@ -75,7 +75,9 @@ class DistanceGrid:
         axes = [lo[i] + (np.arange(self.shape[i]) + 0.5) * cell for i in range(3)]
         centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         slack = self.cell * math.sqrt(3.0) / 2.0
-        d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack)
+        from tofloc.threads import kdtree_workers
+
+        d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack, workers=kdtree_workers())
         self.d = d.astype(np.float32).reshape(self.shape)
         self.slack = slack
         # Cells whose test at radius r_max is not decided by d_c alone get a row: the list
@@ -98,7 +100,7 @@ class DistanceGrid:
         table = np.full((3, amb.size, width), far)
         if amb.size:
             # the `width` nearest points within the radius: every candidate of a row that is not crowded
-            dist, idx = self.tree.query(rc, k=width, distance_upper_bound=radius)
+            dist, idx = self.tree.query(rc, k=width, distance_upper_bound=radius, workers=kdtree_workers())
             dist = np.asarray(dist).reshape(amb.size, width)
             idx = np.asarray(idx).reshape(amb.size, width)
             ok = np.isfinite(dist) & ~self._crowded[:, None]
