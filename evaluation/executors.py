@@ -9,9 +9,10 @@ each task's ``group`` to its context (``tofloc evaluate``).
 
 Per-map caches are built once, in this process
 ------------------------------------------------
-Before workers start, :func:`warm_caches` runs every distinct estimator (class and
-parameters) once on one sample of its first task, here, with a throw-away generator:
-that builds the per-map caches its sensor model uses (the ICP score's distance grid, the
+Before workers start, :func:`warm_caches` prepares every distinct estimator (class and
+parameters) on one sample of its first task, here (a filter binds its sensor model; any
+other estimator runs once with a throw-away generator): that builds the per-map caches
+its sensor model uses (the ICP score's distance grid, the
 likelihood field's surface field; :mod:`tofloc.map_cache`). They travel to each worker
 once, with the context (:class:`tofloc.map_cache.MapCacheBundle`: the pool's initializer,
 or the Dask scatter), so no worker rebuilds them. A :class:`WorkerPool` keeps its warm
@@ -52,10 +53,11 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapC
     """Build, in this process, the per-map caches the tasks' estimators use, and return them
     as a bundle to ship to workers (see the module doc).
 
-    Each distinct (group's context, estimator class, parameters) runs once on one sample
-    of its first task with ``default_rng(0)`` (estimators are pure functions of the problem
-    and the generator: no trial's numbers change). A failure there is left to the trial
-    itself to report.
+    For each distinct (group's context, estimator class, parameters, tip source), on one
+    sample of its first task: an estimator with a sensor model (``make_sensor_model``, the
+    particle filters) binds it (what builds its caches); any other runs once with
+    ``default_rng(0)`` (estimators are pure functions of the problem and the generator: no
+    trial's numbers change). A failure there is left to the trial itself to report.
     """
     from tofloc.problem_builder import problem_from_log
     from evaluation.trials import draw_samples_and_prior
@@ -74,7 +76,10 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapC
             calibration = ctx.calibration if est.uses_calibration() else None
             problem = problem_from_log(ctx.log, idx, ctx.map, prior, task.tip_source, ctx.kinematics, calibration,
                                        ctx.valid_statuses)
-            est.estimate(problem, np.random.default_rng(0))
+            if hasattr(est, "make_sensor_model"):
+                est.make_sensor_model().bind(problem)
+            else:
+                est.estimate(problem, np.random.default_rng(0))
         except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
             continue
     return map_cache.bundle(*[c.map for c in _contexts_of(context) if hasattr(c.map, "fingerprint")])

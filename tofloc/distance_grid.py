@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from tofloc import numba_kernels
+from tofloc.threads import kdtree_workers
 
 __all__ = ["DistanceGrid", "distance_grid_for"]
 
@@ -75,8 +76,6 @@ class DistanceGrid:
         axes = [lo[i] + (np.arange(self.shape[i]) + 0.5) * cell for i in range(3)]
         centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         slack = self.cell * math.sqrt(3.0) / 2.0
-        from tofloc.threads import kdtree_workers
-
         d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack, workers=kdtree_workers())
         self.d = d.astype(np.float32).reshape(self.shape)
         self.slack = slack
