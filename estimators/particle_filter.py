@@ -213,7 +213,7 @@ class ParticleFilter(Estimator):
         stages: list[int] = []
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
-            ll = bound.log_likelihood(particles, k)
+            ll = bound.log_likelihood_chunked(particles, k)
             n_stages = 1
             if model.weight_update == "replace":
                 log_w = ll
@@ -230,7 +230,7 @@ class ParticleFilter(Estimator):
                     idx = resample(normalize_log_weights(log_w), rng)
                     particles = self._roughen(particles[idx], floors, rng)
                     log_w = np.zeros(M)
-                    ll = bound.log_likelihood(particles, k)
+                    ll = bound.log_likelihood_chunked(particles, k)
                     n_stages += 1
             else:
                 log_w = log_w + ll

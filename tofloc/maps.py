@@ -807,7 +807,8 @@ class Map:
             self._tree = cKDTree(self.points)
         return self._tree
 
-    def nearest(self, query: ArrayLike, *, workers: int = 1) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    def nearest(self, query: ArrayLike, *, workers: int = 1,
+                max_distance: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """Nearest map point (cloud point or mesh vertex) of each query point.
 
         Parameters
@@ -815,6 +816,9 @@ class Map:
         query : array_like, shape (..., 3)
         workers : int
             Threads of ``cKDTree.query`` (-1: all cores).
+        max_distance : float
+            Points with no map point closer than this get distance ``inf`` and index
+            ``len(points)`` (the KD-tree stops searching early: much faster for far points).
 
         Returns
         -------
@@ -823,15 +827,16 @@ class Map:
             Row of :attr:`points`.
         """
         q = as_query(query)
-        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers)
+        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers, distance_upper_bound=max_distance)
         return d.reshape(q.shape[:-1]), i.astype(np.int64).reshape(q.shape[:-1])
 
-    def distance_to_surface(self, query: ArrayLike, *, nthreads: int = 0) -> NDArray[np.float64]:
+    def distance_to_surface(self, query: ArrayLike, *, nthreads: int | None = None) -> NDArray[np.float64]:
         """Unsigned distance (m) from each query point to the map.
 
         Mesh: exact distance to the triangles (Open3D ``RaycastingScene.compute_distance``,
         float32 internally). Cloud: the distance to the nearest point; a cloud with a
-        :attr:`surface`: the surface's distance.
+        :attr:`surface`: the surface's distance. ``nthreads``: Open3D threads (None: the
+        process's setting, :func:`tofloc.threads.open3d_threads`; 0: all cores).
         """
         if self._surface is not None:
             return self._surface.distance_to_surface(query, nthreads=nthreads)
@@ -840,11 +845,11 @@ class Map:
             return self.nearest(q)[0]
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
-        d = self._scene_obj().compute_distance(o3d.core.Tensor(flat), nthreads=nthreads).numpy()
+        d = self._scene_obj().compute_distance(o3d.core.Tensor(flat), nthreads=_threads(nthreads)).numpy()
         return d.astype(np.float64).reshape(q.shape[:-1])
 
     def closest_surface_point(
-        self, query: ArrayLike, *, nthreads: int = 0
+        self, query: ArrayLike, *, nthreads: int | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Closest point of the map's surface and the normal there.
 
@@ -866,7 +871,7 @@ class Map:
             return self.points[i], self.normals[i]
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
-        ans = self._scene_obj().compute_closest_points(o3d.core.Tensor(flat), nthreads=nthreads)
+        ans = self._scene_obj().compute_closest_points(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
         pts = ans["points"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         assert self._face_normals is not None
@@ -906,7 +911,7 @@ class Map:
         max_range: float = np.inf,
         *,
         toward_origin: bool = False,
-        nthreads: int = 0,
+        nthreads: int | None = None,
     ) -> RayHits:
         """First hit of each ray with the map (vectorized, Open3D/Embree, float32 inside).
 
@@ -929,8 +934,9 @@ class Map:
             Hits farther than this are reported as misses.
         toward_origin : bool
             Flip each returned normal to face the ray's origin (``n . d <= 0``).
-        nthreads : int
-            Open3D threads (0: all cores).
+        nthreads : int, optional
+            Open3D threads (None: the process's setting, :func:`tofloc.threads.open3d_threads`;
+            0: all cores).
 
         Returns
         -------
@@ -963,7 +969,7 @@ class Map:
         rays[..., 3:] = d / norm
         o3d = _open3d()
         flat = rays.reshape(-1, 6)
-        ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=nthreads)
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
         t = ans["t_hit"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy()
         hit = (prim != _NO_HIT) & np.isfinite(t) & (t <= mr)
@@ -985,6 +991,37 @@ class Map:
             sub[back] *= -1.0
             normal[hit] = sub
         return RayHits(t=t.reshape(shape[:-1]), normal=normal.reshape(shape), index=index.reshape(shape[:-1]))
+
+    def raycast_distance(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
+                         nthreads: int | None = None) -> NDArray[np.float64]:
+        """Ray length to the first hit only (inf on a miss or beyond ``max_range``): the hot
+        path of :meth:`raycast` for callers that need neither normals nor hit indices.
+
+        Parameters
+        ----------
+        rays : array (..., 6), float32, C-contiguous
+            Origins and **unit** directions (not checked nor normalized here: the caller
+            builds them unit, e.g. by rotating unit vectors; :meth:`raycast` checks and
+            normalizes).
+        max_range : float
+            Hits farther than this are misses.
+        nthreads : int, optional
+            As in :meth:`raycast`.
+
+        Returns
+        -------
+        ndarray of float64, shape (...)
+            The same ``t`` as :meth:`raycast` on the same float32 rays.
+        """
+        if self._surface is not None:
+            return self._surface.raycast_distance(rays, max_range, nthreads=nthreads)
+        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
+            raise ParameterError(f"raycast_distance: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+        o3d = _open3d()
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=_threads(nthreads))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        t[~(t <= float(max_range))] = np.inf  # misses are inf already; beyond range too
+        return t.reshape(rays.shape[:-1])
 
     # ---- pickling and display ------------------------------------------------------------
     def __getstate__(self) -> dict[str, Any]:
@@ -1057,6 +1094,15 @@ def _fallback_normals(p: NDArray[np.float64], orient: Any) -> NDArray[np.float64
     norm = np.linalg.norm(n, axis=1)
     n[norm < 1e-12] = (0.0, 0.0, 1.0)
     return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _threads(nthreads: int | None) -> int:
+    """Open3D threads of a call: as given, else the process's setting."""
+    if nthreads is not None:
+        return int(nthreads)
+    from tofloc.threads import open3d_threads
+
+    return open3d_threads()
 
 
 def _open3d() -> Any:
