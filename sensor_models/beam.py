@@ -198,8 +198,9 @@ class BeamModel(SensorModel):
         map built from scans): the probability that a zone's ray, once it enters space the
         map knows nothing about before its mapped wall (or before its range ends), is
         stopped there by a surface the map cannot hold; such a reading is uniform over that
-        unknown stretch instead of an outlier (0: unknown space is free, as on a CAD map).
-        Ignored on maps without a known space.
+        unknown stretch instead of an outlier (0, the default: unknown space is free, as on
+        a CAD map; 0.5 on the nano-swarm recordings turned 7 into 8 failures of 96 with
+        yaw flips: docs/real-data.md, "Ablation"). Ignored on maps without a known space.
     configuration_cov : bool
         Add each zone's reading variance caused by its sample's configuration uncertainty
         (the problem's ``T_base_tip_cov``, e.g. odometry) to the zone's sensor variance
@@ -219,7 +220,7 @@ class BeamModel(SensorModel):
     sub_rays: int = 1
     short_support: str = "range"
     hit_dof: float = float("inf")
-    unknown_weight: float = 0.5
+    unknown_weight: float = 0.0
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:

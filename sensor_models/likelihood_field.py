@@ -83,8 +83,9 @@ class LikelihoodFieldModel(SensorModel):
         On a map with a known space (:attr:`tofloc.maps.Map.known_space`, a map built from
         scans): an end point in space the map knows nothing about may lie on a surface the
         map cannot hold; its hit density becomes ``(1 - w) N(s; 0, sigma^2) + w / (2 r_field)``
-        (uniform over the field's span) instead of an outlier. 0: unknown space is treated
-        as mapped. Ignored on maps without a known space.
+        (uniform over the field's span) instead of an outlier. 0 (the default): unknown
+        space is treated as mapped (0.5 on the nano-swarm recordings: 3 -> 6 failures of
+        96; docs/real-data.md, "Ablation"). Ignored on maps without a known space.
     configuration_cov : bool
         Add each end point's distance variance caused by its sample's configuration
         uncertainty (the problem's ``T_base_tip_cov``) to its sensor variance
@@ -104,7 +105,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float | None = None
-    unknown_weight: float = 0.5
+    unknown_weight: float = 0.0
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:

@@ -142,8 +142,8 @@ def test_beam_explains_a_reading_in_unknown_space_and_nothing_else_changes() -> 
     assert ll[0.5] == pytest.approx(math.log(want), abs=0.02)  # entry at x = 1 to half a cell
     # all known (or no known space): exactly the model without unknown space
     all_known = KnownSpace(np.array([-1.0, -3.0]), 0.05, np.array([0.0, 1.0]), np.ones((100, 120), bool))
-    a = BeamModel(**args).bind(_zone_problem(2.5, 1.5, all_known)).zone_log_likelihood(np.zeros((1, 3)), 0)
-    b = BeamModel(**args).bind(_zone_problem(2.5, 1.5, None)).zone_log_likelihood(np.zeros((1, 3)), 0)
+    a = BeamModel(unknown_weight=0.5, **args).bind(_zone_problem(2.5, 1.5, all_known)).zone_log_likelihood(np.zeros((1, 3)), 0)
+    b = BeamModel(unknown_weight=0.5, **args).bind(_zone_problem(2.5, 1.5, None)).zone_log_likelihood(np.zeros((1, 3)), 0)
     assert np.array_equal(a, b)
 
 
@@ -151,8 +151,8 @@ def test_likelihood_field_end_point_in_unknown_space() -> None:
     p_unknown = _zone_problem(2.5, 1.5, _half_known())
     p_plain = _zone_problem(2.5, 1.5, None)
     kw = dict(temper=1.0, configuration_cov=False, r_field=0.4, cell=0.05)
-    a = LikelihoodFieldModel(**kw).bind(p_unknown).log_likelihood(np.zeros((1, 3)), 0)[0]
-    b = LikelihoodFieldModel(**kw).bind(p_plain).log_likelihood(np.zeros((1, 3)), 0)[0]
+    a = LikelihoodFieldModel(unknown_weight=0.5, **kw).bind(p_unknown).log_likelihood(np.zeros((1, 3)), 0)[0]
+    b = LikelihoodFieldModel(unknown_weight=0.5, **kw).bind(p_plain).log_likelihood(np.zeros((1, 3)), 0)[0]
     c = LikelihoodFieldModel(unknown_weight=0.0, **kw).bind(p_unknown).log_likelihood(np.zeros((1, 3)), 0)[0]
     assert a > b + 0.5 and c == pytest.approx(b)
     with pytest.raises(ParameterError, match="unknown_weight"):
