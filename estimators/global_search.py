@@ -8,7 +8,7 @@ The cheap shared model: up to ``n_points`` valid zones' end points (the range mo
 bias removed, configurations as given, spread evenly over the samples), moved by a
 candidate pose, each scored by its squared distance to the map's surface truncated at
 ``tau``; a candidate's cost is the mean, ``mean(min(d^2, tau^2))``. Distances come from a
-precomputed signed-distance grid of the map (:func:`sensor_models.likelihood_field.surface_field_for`,
+precomputed signed-distance grid of the map (:func:`tofloc.surface_field.surface_field_for`,
 cell :data:`FIELD_CELL_M`, clipped at :data:`FIELD_R_M`; built once per map and process):
 one table lookup per point, ~15x cheaper than an exact distance query.
 
@@ -160,7 +160,7 @@ def coarse_modes(problem: Problem, rng: np.random.Generator, *, n_candidates: in
     list of CoarseMode
         Best first.
     """
-    from sensor_models.likelihood_field import surface_field_for
+    from tofloc.surface_field import surface_field_for
 
     field = surface_field_for(problem.map, FIELD_CELL_M, FIELD_R_M)
     tau = min(float(tau), FIELD_R_M)

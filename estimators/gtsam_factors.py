@@ -15,6 +15,13 @@ robustified residuals of every zone and their Jacobians with respect to
 * optionally a relative range bias ``b`` shared by all zones (a 1-vector): the reported
   distance ``d`` is corrected by ``-b d`` on top of the uncertainty model's bias.
 
+:class:`StackedMeasurements` concatenates every sample's zones and association once per
+association round, and :func:`make_stacked_factors` makes the samples' factors share ONE
+stacked evaluation per linearization (one vectorized pass over every zone instead of one
+per sample; the per-sample factor, :func:`make_sample_factor`, stays for ISAM2, which
+replaces single samples' factors, and for comparison: the two give the same residuals
+and Jacobians to rounding).
+
 Residual of a zone ``i`` with point ``p_i`` (map frame) and associated plane ``(q_i, n_i)``::
 
     r_i = n_i . (p_i - q_i)                     # point-to-plane (m)
@@ -38,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,8 +54,11 @@ __all__ = [
     "ROBUST_KERNELS",
     "robust_transform",
     "robust_loss",
+    "cross",
     "SampleMeasurement",
+    "StackedMeasurements",
     "make_sample_factor",
+    "make_stacked_factors",
 ]
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
@@ -99,12 +110,58 @@ def robust_transform(e: FloatArray, kernel: str, k: float) -> tuple[FloatArray, 
     raise ValueError(f"unknown robust kernel {kernel!r}")
 
 
+def cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross products of ``(N, 3)`` arrays, written out (the same products as
+    ``np.cross``, without its generic-axis overhead on small arrays)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _T_map_base(xyyaw: FloatArray, z: float, R_tilt: FloatArray) -> FloatArray:
     c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
     T = np.eye(4)
     T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
     T[:3, 3] = (xyyaw[0], xyyaw[1], z)
     return T
+
+
+def _zone_rows(
+    p_tip: FloatArray, n: FloatArray, q: FloatArray, s_: FloatArray, inlier: NDArray[np.bool_], out_const: FloatArray,
+    d: FloatArray, v_tip: FloatArray, xyyaw: FloatArray, z: float, R_tilt: FloatArray, RC: FloatArray, tC: FloatArray,
+    rows: NDArray[np.intp] | None, D: FloatArray, kernel: str, k: float, jacobians: bool,
+) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
+    """Residuals and Jacobian rows of zones (see :meth:`SampleMeasurement.evaluate`); the
+    configuration is one rotation ``RC`` ``(3, 3)`` and translation ``tC`` ``(3,)``, or one
+    per sample ``(K, 3, 3)``, ``(K, 3)`` with each row's sample in ``rows``."""
+    T_mb = _T_map_base(xyyaw, z, R_tilt)
+    R_mb = T_mb[:3, :3]
+    p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
+    RCr, tCr = (RC, tC) if rows is None else (RC[rows], tC[rows])
+    p_b = np.einsum("...ij,...j->...i", RCr, p_d) + tCr  # base frame
+    p_m = p_b @ R_mb.T + T_mb[:3, 3]
+    e = np.einsum("ni,ni->n", n, p_m - q) / s_
+    e_rob, de = robust_transform(e, kernel, k)
+    res = np.where(inlier, e_rob, out_const)
+    if not jacobians:
+        return res, None, None, None, None
+    # rows n^T J of point_jacobians, without forming the (N, 3, 6) blocks:
+    # n^T R [-[p]x, I] = [p x (R^T n), R^T n]
+    w = np.where(inlier, de / s_, 0.0)[:, None]
+    c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
+    a = n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
+    pp = p_b @ R_tilt.T
+    Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
+    RmC = R_mb @ RC  # (R_mb R_C), per sample
+    b = np.einsum("...ji,...j->...i", RmC if rows is None else RmC[rows], n)  # (R_mb R_C)^T n
+    Hc = np.concatenate([cross(p_d, b), b], axis=1) * w
+    bd = b @ D[:3, :3]
+    Hd = np.concatenate([cross(p_tip, bd), bd], axis=1) * w
+    g = -np.einsum("ni,ni->n", bd, v_tip)[:, None] * w
+    Hbias = g * d[:, None]
+    return res, Hb, Hc, Hd, Hbias
 
 
 @dataclass(eq=False)
@@ -184,32 +241,9 @@ class SampleMeasurement:
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
         """Robustified whitened residuals ``(N,)`` and Jacobians w.r.t. the base ``(N, 3)``,
         the configuration ``(N, 6)``, the support ``(N, 6)`` and the range bias ``(N, 1)``."""
-        p_tip = self.points(bias)
-        T_mb = _T_map_base(xyyaw, z, R_tilt)
-        R_mb = T_mb[:3, :3]
-        p_d = p_tip @ D[:3, :3].T + D[:3, 3]  # corrected tip frame
-        p_b = p_d @ C[:3, :3].T + C[:3, 3]  # base frame
-        p_m = p_b @ R_mb.T + T_mb[:3, 3]
-        e = np.einsum("ni,ni->n", self.n, p_m - self.q) / self.s
-        e_rob, de = robust_transform(e, kernel, k)
         out_const = np.sqrt(2.0 * robust_loss(self.gate_e, kernel, k))
-        res = np.where(self.inlier, e_rob, out_const)
-        if not jacobians:
-            return res, None, None, None, None
-        # rows n^T J of point_jacobians, without forming the (N, 3, 6) blocks:
-        # n^T R [-[p]x, I] = [p x (R^T n), R^T n]
-        w = np.where(self.inlier, de / self.s, 0.0)[:, None]
-        c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
-        a = self.n @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz^T n
-        pp = p_b @ R_tilt.T
-        Hb = np.stack([a[:, 0], a[:, 1], a[:, 1] * pp[:, 0] - a[:, 0] * pp[:, 1]], axis=1) * w
-        b = self.n @ (R_mb @ C[:3, :3])  # (R_mb R_C)^T n
-        Hc = np.concatenate([np.cross(p_d, b), b], axis=1) * w
-        bd = b @ D[:3, :3]
-        Hd = np.concatenate([np.cross(p_tip, bd), bd], axis=1) * w
-        g = -np.einsum("ni,ni->n", bd, self.v_tip)[:, None] * w
-        Hbias = g * self.d[:, None]
-        return res, Hb, Hc, Hd, Hbias
+        return _zone_rows(self.points(bias), self.n, self.q, self.s, self.inlier, out_const, self.d, self.v_tip, xyyaw, z,
+                          R_tilt, C[:3, :3], C[:3, 3], None, D, kernel, k, jacobians)
 
 
 def make_sample_factor(
@@ -248,3 +282,149 @@ def make_sample_factor(
         return res
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(meas.size), keys, error)
+
+
+class StackedMeasurements:
+    """Every sample's zones and current association, concatenated once (per association
+    round) for :func:`make_stacked_factor`; the constant cost of the gated zones is
+    computed here once, not at every linearization.
+
+    Parameters
+    ----------
+    meas : list of SampleMeasurement
+        One per sample, associated.
+    kernel : str
+    k : float
+        The robust kernel and its threshold.
+    """
+
+    def __init__(self, meas: list[SampleMeasurement], kernel: str, k: float) -> None:
+        self.meas = meas
+        self.kernel, self.k = kernel, float(k)
+        self.sizes = [m.size for m in meas]
+        self.bounds = np.concatenate([[0], np.cumsum(self.sizes)]).astype(np.intp)
+        #: (N,) the sample of every row
+        self.sample = np.repeat(np.arange(len(meas)), self.sizes)
+        cat = np.concatenate
+        self.p_tip = cat([m.p_tip for m in meas]) if meas else np.zeros((0, 3))
+        self.d = cat([m.d for m in meas]) if meas else np.zeros(0)
+        self.v_tip = cat([m.v_tip for m in meas]) if meas else np.zeros((0, 3))
+        self.q = cat([m.q for m in meas]) if meas else np.zeros((0, 3))
+        self.n = cat([m.n for m in meas]) if meas else np.zeros((0, 3))
+        self.s = cat([m.s for m in meas]) if meas else np.zeros(0)
+        self.inlier = cat([m.inlier for m in meas]) if meas else np.zeros(0, dtype=bool)
+        gate_e = cat([m.gate_e for m in meas]) if meas else np.zeros(0)
+        #: the transformed residual of a gated zone (a constant)
+        self.out_const = np.sqrt(2.0 * robust_loss(gate_e, kernel, k))
+
+    @property
+    def size(self) -> int:
+        return int(self.p_tip.shape[0])
+
+    def evaluate(
+        self,
+        xyyaw: FloatArray,
+        z: float,
+        R_tilt: FloatArray,
+        C: FloatArray,
+        D: FloatArray,
+        jacobians: bool = True,
+        bias: FloatArray | None = None,
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
+        """Robustified whitened residuals ``(N,)`` of every zone of every sample, and the
+        Jacobians w.r.t. the base ``(N, 3)``, the row's own sample's configuration ``(N, 6)``,
+        the support ``(N, 6)`` and the range bias ``(N, 1)``: :meth:`SampleMeasurement.evaluate`
+        of every sample, stacked.
+
+        ``C`` is ``(K, 4, 4)``: the configurations of the samples."""
+        p_tip = self.p_tip if bias is None else self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
+        return _zone_rows(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, z, R_tilt,
+                          C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians)
+
+
+def _same(a: FloatArray, b: FloatArray) -> bool:
+    """Bit-equal small arrays (cheaper than ``np.array_equal`` on 3 to 16 numbers)."""
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+class _SharedEvaluation:
+    """The last stacked evaluation, with the variable values it was made at."""
+
+    def __init__(self, stacked: StackedMeasurements) -> None:
+        self.stacked = stacked
+        self.at: tuple[FloatArray, FloatArray, FloatArray, FloatArray | None] | None = None
+        self.jacobians = False
+        self.out: tuple[Any, ...] = ()
+
+    def rows(self, k: int, xyyaw: FloatArray, C_k: FloatArray, D: FloatArray, bias: FloatArray | None, jacobians: bool,
+             read_all_C: Callable[[], FloatArray], z: float, R_tilt: FloatArray) -> tuple[Any, ...]:
+        """Sample ``k``'s residuals and Jacobian rows at (X, C_k, D, B): from the last stacked
+        evaluation when it was made at the same values of these variables (the sample's
+        rows depend on nothing else) and with Jacobians if asked, else from a new one."""
+        at = self.at
+        hit = (at is not None and (self.jacobians or not jacobians) and _same(at[0], xyyaw) and _same(at[1][k], C_k)
+               and _same(at[2], D) and (bias is None or (at[3] is not None and _same(at[3], np.asarray(bias)))))
+        if not hit:
+            C = read_all_C()
+            C[k] = C_k
+            res, Hb, Hc, Hd, Hbias = self.stacked.evaluate(xyyaw, z, R_tilt, C, D, jacobians=jacobians, bias=bias)
+            self.at = (xyyaw, C, D, None if bias is None else np.array(bias))
+            self.jacobians = jacobians
+            self.out = (res, Hb, Hc, Hd, Hbias)
+        lo, hi = self.stacked.bounds[k], self.stacked.bounds[k + 1]
+        res, Hb, Hc, Hd, Hbias = self.out
+        if not jacobians:
+            return res[lo:hi], None, None, None, None
+        return res[lo:hi], Hb[lo:hi], Hc[lo:hi], Hd[lo:hi], Hbias[lo:hi]
+
+
+def make_stacked_factors(
+    stacked: StackedMeasurements,
+    key_base: int,
+    keys_conf: list[int],
+    key_rig: int | None,
+    key_bias: int | None,
+    z: float,
+    R_tilt: FloatArray,
+) -> list[object]:
+    """The zone factors of every sample from ONE stacked evaluation per linearization.
+
+    One thin ``gtsam.CustomFactor`` per sample (keys: the base, its configuration, the
+    support and the bias, as :func:`make_sample_factor`, so that GTSAM's elimination keeps
+    the graph's sparsity), all sharing the last :meth:`StackedMeasurements.evaluate`: the
+    first factor linearized at new values evaluates every sample's zones at once, the
+    others slice their rows from it. (A single factor over all samples was tried: its
+    dense Jacobian, mostly zeros, cost GTSAM more than the callbacks it saved.)
+    """
+    import gtsam
+
+    eye = np.eye(4)
+    shared = _SharedEvaluation(stacked)
+    factors = []
+    for k, key_conf in enumerate(keys_conf):
+        keys = [key_base, key_conf] + [kk for kk in (key_rig, key_bias) if kk is not None]
+
+        def error(this: object, values: object, H: list | None, k: int = k, key_conf: int = key_conf) -> FloatArray:
+            P = values.atPose2(key_base)  # type: ignore[attr-defined]
+            xyyaw = np.array([P.x(), P.y(), P.theta()])
+            C_k = values.atPose3(key_conf).matrix()  # type: ignore[attr-defined]
+            D = values.atPose3(key_rig).matrix() if key_rig is not None else eye  # type: ignore[attr-defined]
+            bias = values.atVector(key_bias) if key_bias is not None else None  # type: ignore[attr-defined]
+
+            def read_all_C() -> FloatArray:
+                return np.stack([values.atPose3(kc).matrix() for kc in keys_conf])  # type: ignore[attr-defined]
+
+            res, Hb, Hc, Hd, Hbias = shared.rows(k, xyyaw, C_k, D, bias, H is not None, read_all_C, z, R_tilt)
+            if H is not None:
+                H[0] = Hb
+                H[1] = Hc
+                i = 2
+                if key_rig is not None:
+                    H[i] = Hd
+                    i += 1
+                if key_bias is not None:
+                    H[i] = Hbias
+            return res
+
+        factors.append(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(stacked.sizes[k]), keys, error))
+    return factors

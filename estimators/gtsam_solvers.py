@@ -3,7 +3,12 @@
 :class:`SmootherGraph` holds what one problem's graph needs: which variables exist
 (``X`` the base, ``C_k`` the configurations, ``D`` the support correction and ``B`` the
 range bias, the last two only when the problem declares the matching nuisance), their
-priors, and the per-sample factors (:func:`estimators.gtsam_factors.make_sample_factor`).
+priors, and the zone factors: in the batch solve one per sample sharing ONE stacked
+evaluation of every zone per linearization (:func:`estimators.gtsam_factors.make_stacked_factors`,
+the stacked arrays built once per association round), or with ``stacked_factor=False``
+each evaluating its own sample (:func:`estimators.gtsam_factors.make_sample_factor`: the
+same cost, kept for comparison; ISAM2 always uses these, as it replaces single samples'
+factors).
 :meth:`SmootherGraph.solve_batch` and :meth:`SmootherGraph.solve_isam2` alternate data
 association (:mod:`estimators.gtsam_association`) and optimization from one start.
 """
@@ -17,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_association import associate
-from estimators.gtsam_factors import SampleMeasurement, make_sample_factor
+from estimators.gtsam_factors import SampleMeasurement, StackedMeasurements, make_sample_factor, make_stacked_factors
 from tofloc import frames
 from tofloc.problem import Problem
 
@@ -60,6 +65,8 @@ class SmootherGraph:
         self.use_rig = self.support_sigma > 0
         self.use_bias = self.scale_sigma > 0
         self.R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, problem.prior.roll, problem.prior.pitch)[:3, :3]
+        #: one stacked zone factor for all samples in the batch solve (else one per sample)
+        self.stacked = bool(getattr(est, "stacked_factor", True))
 
     # -- pieces ----------------------------------------------------------------------------------
     def config_noise(self, k: int) -> Any:
@@ -102,6 +109,16 @@ class SmootherGraph:
 
         return make_sample_factor(m, Xk(0), Ck(k), Dk(0) if self.use_rig else None, Bk(0) if self.use_bias else None,
                                   self.problem.prior.z, self.R_tilt, self.est.robust, self.est.robust_k)
+
+    def zone_factors(self, meas: list[SampleMeasurement]) -> list[Any]:
+        """The zone factors of the associated samples: sharing one stacked evaluation, or each its own."""
+        from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
+
+        if not self.stacked:
+            return [self.factor(m, k) for k, m in enumerate(meas)]
+        st = StackedMeasurements(meas, self.est.robust, self.est.robust_k)
+        return make_stacked_factors(st, Xk(0), [Ck(k) for k in range(len(meas))], Dk(0) if self.use_rig else None,
+                                    Bk(0) if self.use_bias else None, self.problem.prior.z, self.R_tilt)
 
     def read(self, values: Any, K: int) -> tuple[FloatArray, list[FloatArray], FloatArray]:
         """``(x, y, yaw)``, the ``K`` configurations and ``D`` from GTSAM values."""
@@ -178,8 +195,8 @@ class SmootherGraph:
                 converged = True
                 break
             graph = gtsam.NonlinearFactorGraph(priors)
-            for k, m in enumerate(meas):
-                graph.add(self.factor(m, k))
+            for f in self.zone_factors(meas):
+                graph.add(f)
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(int(est.lm_max_iterations))
             params.setRelativeErrorTol(1e-6)

@@ -361,7 +361,7 @@ class ParticleFilter(Estimator):
         valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
-            ll = bound.log_likelihood(particles, k)
+            ll = bound.log_likelihood_chunked(particles, k)
             n_scored = particles.shape[0]
             if self.recovery and model.weight_update == "bayes":
                 # AMCL's w_avg per valid zone, from this sample's full likelihood under the current weights
@@ -388,7 +388,7 @@ class ParticleFilter(Estimator):
                     kept = self._roughen(particles[idx], floors, rng) if n_keep > 0 else particles[:0]
                     particles = np.vstack([kept, self._draw(global_prior, n_new, state, rng)])
                     log_w = np.zeros(particles.shape[0])
-                    ll = bound.log_likelihood(particles, k)
+                    ll = bound.log_likelihood_chunked(particles, k)
                     n_scored += particles.shape[0]
                     w_slow = w_fast = 0.0
             n_stages = 1
@@ -406,7 +406,7 @@ class ParticleFilter(Estimator):
                     # an intermediate stage: resample, roughen, re-score what remains
                     particles = self._resample(particles, normalize_log_weights(log_w), floors, adapt, rng)
                     log_w = np.zeros(particles.shape[0])
-                    ll = bound.log_likelihood(particles, k)
+                    ll = bound.log_likelihood_chunked(particles, k)
                     n_scored += particles.shape[0]
                     n_stages += 1
             else:

@@ -2,39 +2,116 @@
 
 Local workers are spawned (never forked: Open3D and threads do not survive it) and get
 the shared :class:`~evaluation.trials.TrialContext` once, through the pool's initializer;
-each is limited to one BLAS thread. On Dask the context is scattered once to every worker.
-Trials of several logs share one pool when the context is a mapping from each task's
-``group`` to its context (``tofloc evaluate``): workers start, and warm their per-map
-caches, once per run instead of once per log.
+each is limited to one Open3D and one BLAS thread (:func:`tofloc.threads.limit_to_one_thread`),
+so that N workers do not oversubscribe N cores. On Dask the context is scattered once to
+every worker. Trials of several logs share one pool when the context is a mapping from
+each task's ``group`` to its context (``tofloc evaluate``).
+
+Per-map caches are built once, in this process
+------------------------------------------------
+Before workers start, :func:`warm_caches` prepares every distinct estimator (class and
+parameters) on one sample of its first task, here (a filter binds its sensor model; any
+other estimator runs once with a throw-away generator): that builds the per-map caches
+its sensor model uses (the ICP score's distance grid, the
+likelihood field's surface field; :mod:`tofloc.map_cache`). They travel to each worker
+once, with the context (:class:`tofloc.map_cache.MapCacheBundle`: the pool's initializer,
+or the Dask scatter), so no worker rebuilds them. A :class:`WorkerPool` keeps its warm
+workers across calls of :func:`run_tasks` (all the batches of a run share one call:
+:func:`evaluation.result_cache.run_batches`).
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import json
 import multiprocessing
+import os
+import uuid
 from typing import Any, Callable, Mapping, Sequence, Union
 
-from evaluation.trials import TrialContext, TrialError, TrialTask, run_trial
+import numpy as np
+
+from evaluation.trials import TrialContext, TrialError, TrialTask, jsonable, make_estimator, run_trial
+from tofloc import map_cache
 from tofloc.errors import ParameterError, TofLocError
 
-__all__ = ["run_tasks", "Contexts"]
+__all__ = ["run_tasks", "warm_caches", "WorkerPool", "Contexts"]
 
 #: One context for every task, or one per task ``group``.
 Contexts = Union[TrialContext, Mapping[str, TrialContext]]
 
 _WORKER_CONTEXT: Contexts | None = None
+#: Bundles installed in this process (by token): a Dask worker installs a payload's once.
+_INSTALLED: set[str] = set()
 
 
-def _init_worker(context: Contexts) -> None:
-    """Process-pool initializer: keep the shared context; one BLAS thread per worker."""
+def _contexts_of(context: Contexts) -> list[TrialContext]:
+    return [context] if isinstance(context, TrialContext) else list(context.values())
+
+
+def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapCacheBundle:
+    """Build, in this process, the per-map caches the tasks' estimators use, and return them
+    as a bundle to ship to workers (see the module doc).
+
+    For each distinct (group's context, estimator class, parameters, tip source), on one
+    sample of its first task: an estimator with a sensor model (``make_sensor_model``, the
+    particle filters) binds it (what builds its caches); any other runs once with
+    ``default_rng(0)`` (estimators are pure functions of the problem and the generator: no
+    trial's numbers change). A failure there is left to the trial itself to report.
+    """
+    from tofloc.problem_builder import problem_from_log
+    from evaluation.trials import draw_samples_and_prior
+
+    seen: set[tuple[Any, ...]] = set()
+    for task in tasks:
+        ctx = context if isinstance(context, TrialContext) else context[task.group]
+        key = (id(ctx), task.estimator_cls, json.dumps(jsonable(task.params), sort_keys=True), task.tip_source)
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            est = make_estimator(task.estimator_cls, task.params, task.estimator)
+            idx, normals = draw_samples_and_prior(ctx.pool.indices, 1, task.seed)
+            prior = task.prior.make(ctx.truth(idx), normals)
+            calibration = ctx.calibration if est.uses_calibration() else None
+            problem = problem_from_log(ctx.log, idx, ctx.map, prior, task.tip_source, ctx.kinematics, calibration,
+                                       ctx.valid_statuses)
+            if hasattr(est, "make_sensor_model"):
+                est.make_sensor_model().bind(problem)
+            else:
+                est.estimate(problem, np.random.default_rng(0))
+        except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
+            continue
+    return map_cache.bundle(*[c.map for c in _contexts_of(context) if hasattr(c.map, "fingerprint")])
+
+
+class _Payload:
+    """What a worker gets once: the context(s) and the per-map caches built here."""
+
+    def __init__(self, context: Contexts, caches: map_cache.MapCacheBundle | None) -> None:
+        self.context = context
+        self.caches = caches
+        self.token = uuid.uuid4().hex
+        self.parent_pid = os.getpid()
+
+    def install(self) -> None:
+        """Install the caches in this process, once per payload."""
+        if self.token in _INSTALLED:
+            return
+        _INSTALLED.add(self.token)
+        if self.caches is not None:
+            self.caches.install()
+
+
+def _init_worker(payload: _Payload) -> None:
+    """Process-pool initializer: keep the shared context, install the shipped caches; one
+    Open3D and one BLAS thread per worker."""
     global _WORKER_CONTEXT
-    _WORKER_CONTEXT = context
-    try:
-        from threadpoolctl import threadpool_limits
+    _WORKER_CONTEXT = payload.context
+    payload.install()
+    from tofloc.threads import limit_to_one_thread
 
-        threadpool_limits(1)
-    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
-        pass
+    limit_to_one_thread()
 
 
 class _Shared:
@@ -61,8 +138,62 @@ def _run_in_process(task: TrialTask) -> dict[str, Any]:
     return _guarded(_WORKER_CONTEXT, task)
 
 
-def _run_with_context(task: TrialTask, context: Contexts) -> dict[str, Any]:
+def _run_with_context(task: TrialTask, payload: "_Payload | _Shared | TrialContext") -> dict[str, Any]:
+    """A Dask task: install the payload's caches (once per worker process) and run."""
+    if isinstance(payload, _Payload):
+        payload.install()
+        if os.getpid() != payload.parent_pid:  # a worker process of its own (not a thread of ours)
+            from tofloc.threads import limit_to_one_thread
+
+            limit_to_one_thread()
+        context = payload.context
+    else:
+        context = payload
     return _guarded(context, task)
+
+
+class WorkerPool:
+    """Warm local worker processes for one context, reusable across :func:`run_tasks` calls.
+
+    Parameters
+    ----------
+    context : TrialContext or mapping of str to TrialContext
+    workers : int
+        Worker processes (spawned once).
+    caches : MapCacheBundle, optional
+        Per-map caches shipped to every worker (:func:`warm_caches`).
+    start_method : {"spawn", "forkserver"}
+    """
+
+    def __init__(self, context: Contexts, workers: int, caches: map_cache.MapCacheBundle | None = None,
+                 start_method: str = "spawn") -> None:
+        if start_method not in ("spawn", "forkserver"):
+            raise ParameterError(f"start_method must be spawn or forkserver, got {start_method!r}")
+        self.context = context
+        self.workers = int(workers)
+        ctx = multiprocessing.get_context(start_method)
+        self._executor = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
+                                                initargs=(_Payload(context, caches),))
+
+    def run(self, tasks: Sequence[TrialTask], done: Callable[[int, dict[str, Any]], None]) -> None:
+        """Run ``tasks``, calling ``done(index, record)`` as each ends; the first failure is raised."""
+        futures = {self._executor.submit(_run_in_process, t): i for i, t in enumerate(tasks)}
+        try:
+            for fut in cf.as_completed(futures):
+                done(futures[fut], fut.result())
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> "WorkerPool":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
 def run_tasks(
@@ -73,6 +204,7 @@ def run_tasks(
     on_result: Callable[[int, dict[str, Any]], None] | None = None,
     start_method: str = "spawn",
     connect_timeout_s: float = 10.0,
+    pool: WorkerPool | None = None,
 ) -> list[dict[str, Any]]:
     """Run trials and return their records in the order of ``tasks``.
 
@@ -95,6 +227,9 @@ def run_tasks(
         How local workers start (never ``fork``: Open3D and threads do not survive it).
     connect_timeout_s : float
         How long to wait for the Dask scheduler named by an address.
+    pool : WorkerPool, optional
+        Warm workers to run on (made for the same ``context``); ``workers`` is then ignored
+        and the pool stays open for the next call.
 
     Returns
     -------
@@ -115,7 +250,11 @@ def run_tasks(
         if on_result is not None:
             on_result(i, rec)
 
-    if scheduler is not None:
+    if pool is not None:
+        if pool.context is not context:
+            raise ParameterError("run_tasks: the worker pool was made for another context")
+        pool.run(tasks, done)
+    elif scheduler is not None:
         _run_dask(context, tasks, scheduler, done, connect_timeout_s)
     elif workers <= 1 or n <= 1:
         for i, task in enumerate(tasks):
@@ -123,17 +262,9 @@ def run_tasks(
     else:
         if start_method not in ("spawn", "forkserver"):
             raise ParameterError(f"start_method must be spawn or forkserver, got {start_method!r}")
-        ctx = multiprocessing.get_context(start_method)
-        with cf.ProcessPoolExecutor(
-            max_workers=min(int(workers), n), mp_context=ctx, initializer=_init_worker, initargs=(context,)
-        ) as pool:
-            futures = {pool.submit(_run_in_process, t): i for i, t in enumerate(tasks)}
-            try:
-                for fut in cf.as_completed(futures):
-                    done(futures[fut], fut.result())
-            except BaseException:
-                pool.shutdown(wait=True, cancel_futures=True)
-                raise
+        caches = warm_caches(context, tasks)
+        with WorkerPool(context, min(int(workers), n), caches, start_method) as own:
+            own.run(tasks, done)
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]
 
@@ -155,7 +286,8 @@ def _run_dask(
     else:
         client = scheduler
     try:
-        payload = context if isinstance(context, TrialContext) else _Shared(context)
+        shared = context if isinstance(context, TrialContext) else _Shared(context)
+        payload = _Payload(shared, warm_caches(context, tasks))
         ctx_future = client.scatter(payload, broadcast=True, hash=False)
         futures = [client.submit(_run_with_context, t, ctx_future, pure=False) for t in tasks]
         index = {f.key: i for i, f in enumerate(futures)}

@@ -10,8 +10,12 @@ with the known height and tilt (:meth:`tofloc.problem.Prior.T_map_base`):
   the base frame by the sample's configuration **as given** (``problem.T_base_tip``);
 * association: the closest point of the map's surface and its normal
   (:meth:`tofloc.maps.Map.closest_surface_point`) at the current pose;
-* residual: the point-to-plane distance divided by the zone's range sigma, under a
-  Cauchy loss of scale 1 (:func:`scipy.optimize.least_squares`, ``loss="cauchy"``), so a
+* residual: the point-to-plane distance divided by the zone's sigma, under a
+  Cauchy loss of scale 1; the sigma is the range model's, combined with what the sample's
+  configuration uncertainty (``problem.T_base_tip_cov``, e.g. odometry) does to the
+  point's distance along the associated plane's normal
+  (:func:`tofloc.configuration_uncertainty.normal_variance`; the estimators weigh zones the
+  same way) (:func:`scipy.optimize.least_squares`, ``loss="cauchy"``), so a
   zone that sees something the map lacks (an unmapped wall, a person) weighs little;
 * association and solve alternate until the association (each zone's plane: normal and
   offset) stops changing. On a point-cloud map the nearest points can instead alternate
@@ -38,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from evaluation.metrics import json_float, position_error, yaw_error_deg
 from tofloc import frames
+from tofloc.configuration_uncertainty import normal_variance
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
@@ -107,8 +112,9 @@ class OracleFit:
         }
 
 
-def oracle_points(problem: Problem) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The valid zones' bias-corrected points in the *lifted* base frame and their range sigmas.
+def oracle_points(problem: Problem, *, with_tip: bool = False) -> Any:
+    """The valid zones' bias-corrected points in the *lifted* base frame and their range sigmas
+    (``with_tip``: also each point in its tip frame ``(P, 3)`` and its sample index ``(P,)``).
 
     The lifted frame is the base frame turned by the known tilt and raised by the known
     height (``problem.prior.T_map_base((0, 0, 0))``): a planar pose ``(x, y, yaw)`` then
@@ -131,7 +137,10 @@ def oracle_points(problem: Problem) -> tuple[NDArray[np.float64], NDArray[np.flo
     pts = frames.transform_points(T_lift_tip, p_tip.reshape(K, -1, 3)).reshape(-1, 3)
     sig = np.asarray(sigma, dtype=float).reshape(-1)
     ok = valid.reshape(-1) & np.all(np.isfinite(pts), axis=1) & (d_true.reshape(-1) > 0) & np.isfinite(sig) & (sig > 0)
-    return pts[ok], sig[ok]
+    if not with_tip:
+        return pts[ok], sig[ok]
+    sample = np.broadcast_to(np.arange(K)[:, None], (K, p_tip[0, ..., 0].size)).reshape(-1)
+    return pts[ok], sig[ok], p_tip.reshape(-1, 3)[ok], sample[ok]
 
 
 def _moved(points: NDArray[np.float64], pose: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -173,13 +182,25 @@ def oracle_fit(problem: Problem, truth: ArrayLike, *, max_iterations: int = MAX_
         raise ParameterError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
     if loss not in LOSSES:
         raise ParameterError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
-    pts, sigma = oracle_points(problem)
+    pts, sigma, p_tip, sample = oracle_points(problem, with_tip=True)
     n = pts.shape[0]
     if n < 3:
         return OracleFit(x0.copy(), 0.0, 0.0, False, 0, n, None, 0,
                          f"only {n} valid zone(s): too few to fit (x, y, yaw); the truth is reported")
     the_map = problem.map
-    w = 1.0 / sigma
+    cov = problem.T_base_tip_cov
+    known = None if cov is None else np.all(np.isfinite(cov.reshape(cov.shape[0], -1)), axis=1)
+    R_lift_tip = (problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip)[:, :3, :3]
+
+    def weights(normals_map: NDArray[np.float64], pose: NDArray[np.float64]) -> NDArray[np.float64]:
+        """1 / sigma of every zone: the range sigma and its configuration's variance along the plane's normal."""
+        if cov is None or not known.any():  # type: ignore[union-attr]
+            return 1.0 / sigma
+        R = frames.rot_z(float(pose[2])) @ R_lift_tip[sample]  # (P, 3, 3): map <- tip
+        n_tip = np.einsum("pij,pi->pj", R, normals_map)
+        v = normal_variance(p_tip, n_tip, np.where(known[sample, None, None], cov[sample], 0.0))  # type: ignore[index]
+        return 1.0 / np.sqrt(sigma**2 + v)
+
     x = x0.copy()
     seen: list[NDArray[np.float64]] = []  # the association of every round: (n, 4) normal, offset
     poses: list[NDArray[np.float64]] = []  # the pose each association was made at
@@ -198,6 +219,7 @@ def oracle_fit(problem: Problem, truth: ArrayLike, *, max_iterations: int = MAX_
             break
         seen.append(new)
         poses.append(x.copy())
+        w = weights(nrm, x)
         nx, ny, off = new[:, 0], new[:, 1], new[:, 3]
         nz_z = new[:, 2] * pts[:, 2]
 

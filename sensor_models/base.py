@@ -34,13 +34,18 @@ from numpy.typing import NDArray
 
 from tofloc.problem import Problem
 
-__all__ = ["NUISANCES", "WEIGHT_UPDATES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose"]
+__all__ = ["NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
 WEIGHT_UPDATES = ("bayes", "replace")
 #: Roughening floor of a nuisance column, as a fraction of its prior sigma.
 JITTER_FLOOR_FRACTION = 0.01
+#: Temporaries one :meth:`BoundSensorModel.log_likelihood_chunked` call may hold (bytes).
+CHUNK_BYTES = 128 * 2**20
+#: Default upper estimate of the temporaries a model makes per state and per zone (or
+#: sub-ray): ~32 float64 arrays of the zones' shape.
+TEMP_BYTES_PER_ZONE = 256
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,30 @@ class BoundSensorModel(ABC):
 
         ``-inf`` is allowed (a state the data exclude); NaN is not.
         """
+
+    def temporaries_per_state(self) -> int:
+        """Upper estimate of the bytes of temporaries :meth:`log_likelihood` makes per state.
+
+        Default: :data:`TEMP_BYTES_PER_ZONE` times the zones of the bound problem's rig
+        (attribute ``problem``), times the sub-rays per zone of its ray caster when the model
+        has one (attribute ``rays``, a :class:`tofloc.zone_caster.PlanarZoneRays`). Models
+        override it when they know better."""
+        problem = getattr(self, "problem", None)
+        zones = problem.rig.n_sensors * problem.rig.n_zones if problem is not None else 1
+        caster = getattr(getattr(self, "rays", None), "caster", None)
+        return TEMP_BYTES_PER_ZONE * zones * int(getattr(caster, "n_sub", 1))
+
+    def log_likelihood_chunked(self, states: NDArray[np.float64], step: int,
+                               max_bytes: int = CHUNK_BYTES) -> NDArray[np.float64]:
+        """:meth:`log_likelihood` of the states in chunks whose temporaries stay under
+        ``max_bytes`` (:meth:`temporaries_per_state`), whatever the number of states and
+        zones: the same numbers (each state's value is computed alone), bounded memory.
+        What a filter calls."""
+        M = states.shape[0]
+        chunk = max(1, int(max_bytes) // max(1, self.temporaries_per_state()))
+        if M <= chunk:
+            return self.log_likelihood(states, step)
+        return np.concatenate([self.log_likelihood(states[a : a + chunk], step) for a in range(0, M, chunk)])
 
     def column(self, states: NDArray[np.float64], name: str) -> NDArray[np.float64] | None:
         """The ``(M,)`` column of nuisance ``name`` in ``states``, or None when not declared."""

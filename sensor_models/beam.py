@@ -193,6 +193,13 @@ class BeamModel(SensorModel):
         Thrun's Gaussian). Heavy tails make the model robust to zones a few sigmas off
         that the mixture's short and random components do not explain (see
         :func:`hit_density`).
+    unknown_weight : float
+        On a map that knows where it knows anything (:attr:`tofloc.maps.Map.known_space`, a
+        map built from scans): the probability that a zone's ray, once it enters space the
+        map knows nothing about before its mapped wall (or before its range ends), is
+        stopped there by a surface the map cannot hold; such a reading is uniform over that
+        unknown stretch instead of an outlier (0: unknown space is free, as on a CAD map).
+        Ignored on maps without a known space.
     configuration_cov : bool
         Add each zone's reading variance caused by its sample's configuration uncertainty
         (the problem's ``T_base_tip_cov``, e.g. odometry) to the zone's sensor variance
@@ -212,6 +219,7 @@ class BeamModel(SensorModel):
     sub_rays: int = 1
     short_support: str = "range"
     hit_dof: float = float("inf")
+    unknown_weight: float = 0.5
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:
@@ -220,6 +228,9 @@ class BeamModel(SensorModel):
         check_in("beam.short_support", self.short_support, ("range", "expected"))
         if not isinstance(self.configuration_cov, bool):
             raise ParameterError(f"beam.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        u = self.unknown_weight
+        if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
+            raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
         if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
             raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
         v = self.outlier_floor
@@ -291,6 +302,21 @@ class BoundBeamModel(BoundSensorModel):
         fallback = np.where(np.isfinite(self.points_tip[step][..., 0]), worst, 0.0)
         return np.where(np.isfinite(v), v, fallback)
 
+    def unknown_entry(self, states: NDArray[np.float64], step: int, reach: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Reading ``(M, S, Z)`` at which each zone's centre ray first enters space the map
+        does not know (``inf``: known all the way to ``reach``, a reading ``(M, S, Z)``), or
+        None when the map has no known space or ``unknown_weight`` is 0."""
+        ks = getattr(self.problem.map, "known_space", None)
+        if ks is None or self.model.unknown_weight == 0:
+            return None
+        x = np.asarray(states, dtype=float)
+        o, d = self.rays.rays(x[:, :3], step, self.column(x, "support_yaw"))
+        u = d.mean(axis=3)
+        u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+        along = self.rays.caster.along.mean(axis=2)  # (S, Z) reading per metre of ray
+        t = ks.unknown_entry(o[:, :, 0, 0, None, :], u, reach / along)
+        return t * along
+
     def expected(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Expected readings (NaN: no target) and hit fractions ``(M, S, Z)`` of step ``step``,
         the range scale applied (:class:`tofloc.zone_caster.PlanarZoneRays`)."""
@@ -322,15 +348,29 @@ class BoundBeamModel(BoundSensorModel):
             return np.where(z < dexp, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(dexp, 1e-6)), 0.0)
 
         p_rand = mix.z_rand / r
+        # a surface the map cannot hold, in space it does not know (maps from scans): with
+        # probability q a ray that enters unknown space at reading u before its mapped wall
+        # (or its range end) d_end stops there, its reading uniform on [u, d_end]
+        d_end = np.where(np.isfinite(expected), d, np.broadcast_to(r, d.shape))
+        reach = np.where(valid, np.maximum(z, d_end), d_end)
+        u_entry = self.unknown_entry(states, step, reach) if (valid.any() or no_ret.any()) else None
+        if u_entry is None:
+            q = np.zeros(d.shape)
+            p_unknown = np.zeros(d.shape)
+        else:
+            q = np.where(u_entry < d_end, self.model.unknown_weight, 0.0)
+            span = np.maximum(d_end - u_entry, 1e-3)
+            p_unknown = np.where((z >= u_entry) & (z <= d_end), 1.0 / span, 0.0)
+        p_hit = (1.0 - q) * p_hit + q * p_unknown
         if self.model.short_support == "range":  # the same for every pose: an object the map lacks is not placed by it
             short = mix.z_short * p_short(np.broadcast_to(r, d.shape))
             p_valid_hit = mix.z_hit * p_hit + short + p_rand
-            p_valid_miss = short + p_rand
+            p_valid_miss = mix.z_hit * q * p_unknown + short + p_rand
         else:  # Thrun's: short readings spread over [0, d], d the pose's expected distance
             p_valid_hit = mix.z_hit * p_hit + mix.z_short * p_short(d) + p_rand
-            p_valid_miss = mix.z_short * p_short(np.broadcast_to(r, d.shape)) + p_rand
+            p_valid_miss = mix.z_hit * q * p_unknown + mix.z_short * p_short(np.broadcast_to(r, d.shape)) + p_rand
         p_valid = frac * p_valid_hit + (1.0 - frac) * p_valid_miss
-        p_none = mix.z_max + (1.0 - frac) * mix.z_hit
+        p_none = mix.z_max + (1.0 - frac) * mix.z_hit * (1.0 - q)
         p = np.where(valid, p_valid, np.where(no_ret, p_none, 1.0))
         return np.log(np.maximum(p, _LOG_TINY))
 

@@ -19,17 +19,10 @@ Zones with no return (status 255) and invalid readings are dropped, as in Thrun'
 (no ray casting, so no notion of "expected nothing"). The log-probabilities are summed
 and the sum multiplied by ``temper`` (see :mod:`sensor_models.beam`).
 
-The field is precomputed once per map (and cached per process) on a regular grid of
-``cell`` metres: at every cell centre the *signed* distance to the surface, positive on
-the side the surface normal points to, clipped to ``+-r_field``; a query is trilinearly
-interpolated. A signed field interpolates a plane exactly
-(an unsigned one would round off the V at the surface). The surface is the triangles of
-a mesh map, or for a point-cloud map the same surfels :meth:`tofloc.maps.Map.raycast`
-casts against (discs of radius ``surfel_radius`` around each point, perpendicular to
-its normal; the disc of the nearest point is used). Unlike
-:class:`tofloc.distance_grid.DistanceGrid` (distances to the nearest map *point*,
-which on the 2000-point cuboid map is up to ~2 cm off a wall), this field measures the
-distance to the surface.
+The field is :class:`tofloc.surface_field.SurfaceField` (the signed distance to the map's
+surface on a grid of ``cell`` metres, clipped to ``+-r_field``, trilinear), built once per
+map and shared by every problem and worker (:func:`tofloc.surface_field.surface_field_for`);
+it is re-exported here for older imports.
 """
 
 from __future__ import annotations
@@ -46,112 +39,16 @@ from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
+from tofloc.surface_field import MAX_FIELD_CELLS, SurfaceField, surface_field_for
 from tofloc.zone_caster import rotate_z
 
-__all__ = ["SurfaceField", "surface_field_for", "auto_r_field", "LikelihoodFieldModel", "BoundLikelihoodField"]
+__all__ = ["SurfaceField", "surface_field_for", "MAX_FIELD_CELLS", "auto_r_field", "LikelihoodFieldModel", "BoundLikelihoodField"]
 
-#: Largest field grid (cells, int16 each); the cell grows beyond it.
-MAX_FIELD_CELLS = 16_000_000
-#: Field nodes computed per batch (bounds the memory of a build).
-_FIELD_CHUNK = 1_000_000
 #: The automatic ``r_field`` is the smallest of these (m) at least :data:`R_FIELD_SIGMAS` times
 #: the 99th percentile of the problem's zone sigmas (a few levels, so that the per-map cache
 #: is shared across problems).
 R_FIELD_LEVELS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 R_FIELD_SIGMAS = 4.0
-
-
-class SurfaceField:
-    """Signed distance to a map's surface sampled on a grid, clipped to ``+-r_field``.
-
-    Parameters
-    ----------
-    the_map : tofloc.maps.Map
-    cell : float
-        Grid step (m); grown by 25 % steps while the grid exceeds :data:`MAX_FIELD_CELLS`.
-    r_field : float
-        Distances are clipped to this (m); the grid spans the map's bounds grown by it.
-    """
-
-    def __init__(self, the_map: Any, cell: float, r_field: float) -> None:
-        lo, hi = (np.asarray(b, dtype=float) for b in the_map.bounds())
-        lo = lo - r_field - cell
-        hi = hi + r_field + cell
-        while np.prod(np.ceil((hi - lo) / cell) + 1) > MAX_FIELD_CELLS:
-            cell *= 1.25
-        self.cell = float(cell)
-        self.r_field = float(r_field)
-        self.lo = lo
-        self.shape = tuple(int(n) for n in np.ceil((hi - lo) / cell).astype(int) + 1)
-        axes = [lo[i] + np.arange(self.shape[i]) * cell for i in range(3)]
-        #: int16 codes of the signed distance: ``code * r_field / 32767`` metres
-        self.scale = self.r_field / 32767.0
-        values = np.empty(int(np.prod(self.shape)), dtype=np.int16)
-        ny, nz = self.shape[1], self.shape[2]
-        for start in range(0, values.size, _FIELD_CHUNK):  # batches of nodes (memory), not a loop per node
-            flat = np.arange(start, min(start + _FIELD_CHUNK, values.size))
-            ix, rest = np.divmod(flat, ny * nz)
-            iy, iz = np.divmod(rest, nz)
-            nodes = np.stack([axes[0][ix], axes[1][iy], axes[2][iz]], axis=-1)
-            values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field) / self.scale).astype(np.int16)
-        self.values = values.reshape(self.shape)
-
-    def distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Unsigned distance ``(...)`` of points ``(..., 3)`` (trilinear; ``r_field`` outside the grid)."""
-        return np.abs(self.signed_distance(query))
-
-    def signed_distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Signed distance ``(...)`` of points ``(..., 3)``, positive on the free side of the
-        surface (trilinear, clipped to ``+-r_field``; ``+r_field`` outside the grid)."""
-        q = np.asarray(query, dtype=float)
-        shape = q.shape[:-1]
-        u = ((q.reshape(-1, 3) - self.lo) * (1.0 / self.cell)).astype(np.float32)
-        n = np.asarray(self.shape)
-        inside = np.all((u >= 0) & (u < (n - 1).astype(np.float32)), axis=1)
-        u[~inside] = 0.0
-        i = u.astype(np.int32)
-        f = u - i
-        ny, nz = self.shape[1], self.shape[2]
-        base = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
-        v = self.values.ravel()
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-
-        # trilinear on the int16 codes (linear: scaled to metres once at the end); along z,
-        # then y, then x (the 8 corners as 8 gathers)
-        def along_z(off: int) -> NDArray[np.float32]:
-            a = v[base + off].astype(np.float32)
-            return a + fz * (v[base + off + 1].astype(np.float32) - a)
-
-        c0 = along_z(0)
-        c0 += fy * (along_z(nz) - c0)
-        c1 = along_z(ny * nz)
-        c1 += fy * (along_z(ny * nz + nz) - c1)
-        c0 += fx * (c1 - c0)
-        return np.where(inside, c0 * np.float32(self.scale), np.float32(self.r_field)).astype(float).reshape(shape)
-
-
-def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
-    """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field`` (a
-    cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's)."""
-    if the_map.kind == "mesh" or getattr(the_map, "surface", None) is not None:
-        closest, normal = the_map.closest_surface_point(nodes)
-        diff = nodes - closest
-        dist = np.linalg.norm(diff, axis=1)
-        side = np.sign(np.einsum("ij,ij->i", np.nan_to_num(normal), diff))
-        side[side == 0] = 1.0
-        return np.clip(side * dist, -r_field, r_field)
-    R = float(the_map.surfel_radius)
-    tree = the_map._kdtree()
-    d, idx = tree.query(nodes, k=1, distance_upper_bound=r_field + R)
-    out = np.full(nodes.shape[0], r_field)
-    near = np.isfinite(d)
-    diff = nodes[near] - the_map.points[idx[near]]
-    nrm = the_map.normals[idx[near]]
-    s = np.einsum("ij,ij->i", diff, nrm)
-    tangential = np.linalg.norm(diff - s[:, None] * nrm, axis=1)
-    disc = np.sqrt(s * s + np.maximum(tangential - R, 0.0) ** 2)
-    out[near] = np.where(s >= 0, 1.0, -1.0) * disc
-    return np.clip(out, -r_field, r_field)
 
 
 def auto_r_field(sigma: NDArray[np.float64]) -> float:
@@ -161,14 +58,6 @@ def auto_r_field(sigma: NDArray[np.float64]) -> float:
     s = s[np.isfinite(s)]
     need = R_FIELD_SIGMAS * (float(np.quantile(s, 0.99)) if s.size else 0.0)
     return next((lv for lv in R_FIELD_LEVELS if lv >= need), R_FIELD_LEVELS[-1])
-
-
-def surface_field_for(the_map: Any, cell: float, r_field: float) -> SurfaceField:
-    """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and
-    process (:func:`tofloc.map_cache.per_map`)."""
-    from tofloc.map_cache import per_map
-
-    return per_map(the_map, "surface_field", (float(cell), float(r_field)), lambda: SurfaceField(the_map, cell, r_field))
 
 
 @dataclass(frozen=True)
@@ -190,6 +79,12 @@ class LikelihoodFieldModel(SensorModel):
         :data:`R_FIELD_SIGMAS` times the 99th percentile of the problem's zone sigmas (a
         field clipped inside the noise is flat: the 5 cm the paper's 0.3 m readings need
         are 0.6 sigma of a 1.7 m reading).
+    unknown_weight : float
+        On a map with a known space (:attr:`tofloc.maps.Map.known_space`, a map built from
+        scans): an end point in space the map knows nothing about may lie on a surface the
+        map cannot hold; its hit density becomes ``(1 - w) N(s; 0, sigma^2) + w / (2 r_field)``
+        (uniform over the field's span) instead of an outlier. 0: unknown space is treated
+        as mapped. Ignored on maps without a known space.
     configuration_cov : bool
         Add each end point's distance variance caused by its sample's configuration
         uncertainty (the problem's ``T_base_tip_cov``) to its sensor variance
@@ -209,6 +104,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float | None = None
+    unknown_weight: float = 0.5
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:
@@ -223,6 +119,9 @@ class LikelihoodFieldModel(SensorModel):
         check_temper("likelihood_field", self.temper)
         if not isinstance(self.configuration_cov, bool):
             raise ParameterError(f"likelihood_field.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        u = self.unknown_weight
+        if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
+            raise ParameterError(f"likelihood_field.unknown_weight must be in [0, 1], got {u!r}")
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 2.0)):
             v = getattr(self, n)
             if v is None and n == "r_field":
@@ -309,16 +208,20 @@ class BoundLikelihoodField(BoundSensorModel):
         T = self.T_lift_tip[step]
         return t @ T[:3, :3].T + T[:3, 3]
 
-    def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        """Signed distance ``(M, P)`` of the step's end points to the surface (positive on
-        the free side) for states ``(M, 3 + n)``."""
+    def end_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """End points ``(M, P, 3)`` of step ``step`` in the map frame for states ``(M, 3 + n)``."""
         x = np.asarray(states, dtype=float)
         p = self._lifted_points(x, step)
         c, s = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
         q = rotate_z(p, c, s)
         q[..., 0] += x[:, 0:1]
         q[..., 1] += x[:, 1:2]
-        return self.field.signed_distance(q)
+        return q
+
+    def distances(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Signed distance ``(M, P)`` of the step's end points to the surface (positive on
+        the free side) for states ``(M, 3 + n)``."""
+        return self.field.signed_distance(self.end_points(states, step))
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
@@ -326,7 +229,13 @@ class BoundLikelihoodField(BoundSensorModel):
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sig = np.sqrt(sig**2 + v_cfg[None, :])
-        d = self.distances(np.asarray(states, dtype=float), step)
+        q = self.end_points(np.asarray(states, dtype=float), step)
+        d = self.field.signed_distance(q)
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
-        p = m.z_hit * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi)) + short + m.z_rand / self.r_field
+        p_hit = np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
+        ks = getattr(self.problem.map, "known_space", None)
+        if ks is not None and m.unknown_weight > 0:  # an end point where the map knows nothing
+            w = np.where(ks.is_known(q), 0.0, m.unknown_weight)
+            p_hit = (1.0 - w) * p_hit + w / (2.0 * self.r_field)
+        p = m.z_hit * p_hit + short + m.z_rand / self.r_field
         return m.temper * np.log(p).sum(axis=1)

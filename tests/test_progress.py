@@ -135,18 +135,3 @@ def test_rich_reporter_bars_inside_a_stage_and_completion_lines(capsys) -> None:
         r.note("done")
     err = capsys.readouterr().err
     assert err.count("support rotation: candidates: 3/3 (") == 1 and "done" in err
-
-
-def test_bench_reports_each_measurement_as_it_runs() -> None:
-    from tofloc.cli.cmd_bench import run_bench
-    from tofloc.registry import ESTIMATORS
-
-    rec = Recorder()
-    doc = run_bench(particles=10, repeat=1, reporter=rec)
-    n = 3 + len(ESTIMATORS.names())
-    label = "measurements (10 particles, median of 1)"
-    assert [c for c in rec.calls if c[2] == label] == [(i, n, label) for i in range(n + 1)]
-    assert sum(m.startswith("ICP score, k = ") for m in rec.notes) == 3
-    assert all(any(m.startswith(f"{name}: one update") for m in rec.notes) for name in ESTIMATORS.names())
-    assert set(doc["estimators"]) == set(ESTIMATORS.names())
-    assert doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]

@@ -52,6 +52,22 @@ class MustNotRun(Estimator):
 
 
 
+@dataclass(frozen=True, eq=False)
+class CountsGridBuilds(Estimator):
+    """Uses a per-map distance grid; returns the prior mean shifted in x by the number of
+    grids this process has built so far (how a test sees a worker's builds)."""
+
+    name: ClassVar[str] = "test_counts_grid_builds"
+
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        from tofloc import map_cache
+        from tofloc.distance_grid import distance_grid_for
+
+        distance_grid_for(problem.map, 0.02, 0.05)
+        pose = problem.prior.mean + np.array([float(map_cache.build_count("distance_grid")), 0.0, 0.0])
+        return Estimate(pose=pose, covariance=np.diag(problem.prior.sigma**2))
+
+
 TRUTH = (0.021, -0.013, math.radians(6.5))
 TRUTH_Z = 0.25
 
@@ -360,6 +376,53 @@ def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     assert all(r["runtime_s"] >= 0 for r in procs + dask)
     # the particle filter did move away from its prior (the test is not vacuous)
     assert all(r["estimate"] != r["prior_mean"] for r in inline[:2])
+
+
+def _grid_builds_seen(records: list[dict[str, Any]]) -> list[float]:
+    return [round(r["estimate"][0] - r["prior_mean"][0], 9) for r in records]
+
+
+def test_workers_get_the_caches_built_once_here_and_keep_them_across_calls() -> None:
+    """The per-map caches are built in this process (warm_caches) and shipped once to each
+    worker: no worker builds a grid, on the first call of a pool or on the next."""
+    from evaluation.executors import WorkerPool, warm_caches
+    from tofloc import map_cache
+    from tofloc.maps import Map
+
+    log = small_log(K=12)
+    the_map = Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0))
+    ctx = TrialContext(log, the_map, sample_pool(log, None, 1))
+    tasks = make_tasks("g", "test_counts_grid_builds", CountsGridBuilds, {}, "mocap", PriorSpec("paper"), [1], 4, 0)
+    map_cache.clear()
+    before = map_cache.build_count("distance_grid")
+    caches = warm_caches(ctx, tasks)
+    assert map_cache.build_count("distance_grid") == before + 1 and caches.kinds() == ["distance_grid"]
+    with WorkerPool(ctx, 2, caches) as pool:
+        first = run_tasks(ctx, tasks, pool=pool)
+        second = run_tasks(ctx, tasks, pool=pool)
+    assert _grid_builds_seen(first) == _grid_builds_seen(second) == [0.0] * 4
+    # without the shipped caches each worker builds its own grid
+    with WorkerPool(ctx, 2) as pool:
+        assert all(n >= 1 for n in _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)))
+    # run_tasks with workers does the same warm-up itself
+    assert _grid_builds_seen(run_tasks(ctx, tasks, workers=2)) == [0.0] * 4
+    other = TrialContext(log, the_map, sample_pool(log, None, 1))
+    with WorkerPool(ctx, 1, caches) as pool, pytest.raises(ParameterError, match="another context"):
+        run_tasks(other, tasks, pool=pool)
+
+
+@pytest.mark.slow  # starts a Dask cluster of two worker processes
+def test_dask_workers_get_the_caches_once() -> None:
+    distributed = pytest.importorskip("distributed")
+    from tofloc.maps import Map
+
+    log = small_log(K=12)
+    ctx = TrialContext(log, Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0)), sample_pool(log, None, 1))
+    tasks = make_tasks("g", "test_counts_grid_builds", CountsGridBuilds, {}, "mocap", PriorSpec("paper"), [1], 4, 0)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        with distributed.Client(cluster, set_as_default=False) as client:
+            got = run_tasks(ctx, tasks, scheduler=client)
+    assert _grid_builds_seen(got) == [0.0] * 4
 
 
 def test_unreachable_scheduler_is_a_clear_error() -> None:

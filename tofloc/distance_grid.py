@@ -16,8 +16,13 @@ does not change a point's z, so each point's z layer is fixed: the per-cell deci
 are stored z-major and the points are processed in chunks, so that a chunk's lookups
 stay in one cache-resident slab of layers. Points landing in an undecided cell go to a
 second level: the cell split into ``SUB^3`` sub-cells, each with its own decision
-(built lazily from the cell's candidate map points, the first time a cell is hit), and
-only the points still undecided there get the exact distance test.
+(all built with the grid, vectorized), and only the points still undecided there get the
+exact distance test against the cell's candidate map points.
+
+The grid is built once per map and parameters (:func:`distance_grid_for`, through
+:func:`tofloc.map_cache.per_map`, which also ships it to worker processes); its sub-cell
+decisions are one compiled pass when numba is available (:mod:`tofloc.numba_kernels`),
+else numpy in chunks of rows, with the same arithmetic and the same decisions.
 """
 
 from __future__ import annotations
@@ -28,6 +33,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
+
+from tofloc import numba_kernels
+from tofloc.threads import kdtree_workers
 
 __all__ = ["DistanceGrid", "distance_grid_for"]
 
@@ -68,7 +76,7 @@ class DistanceGrid:
         axes = [lo[i] + (np.arange(self.shape[i]) + 0.5) * cell for i in range(3)]
         centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         slack = self.cell * math.sqrt(3.0) / 2.0
-        d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack)
+        d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack, workers=kdtree_workers())
         self.d = d.astype(np.float32).reshape(self.shape)
         self.slack = slack
         # Cells whose test at radius r_max is not decided by d_c alone get a row: the list
@@ -81,23 +89,25 @@ class DistanceGrid:
         amb = np.ravel_multi_index((xx, yy, zz), self.shape)
         self._cand_row = np.full(d.size, -1, dtype=np.int32)
         self._cand_row[amb] = np.arange(amb.size, dtype=np.int32)
-        lists = self.tree.query_ball_point(centres[amb], self.r_max + margin + 1e-9, return_sorted=False)
-        lens_all = np.fromiter((len(x) for x in lists), dtype=np.intp, count=amb.size)
-        # cap the width at the 99th percentile; the rare crowded row is answered by the KD-tree
+        radius = self.r_max + margin + 1e-9
+        rc = centres[amb]
+        lens_all = np.asarray(self.tree.query_ball_point(rc, radius, return_length=True), dtype=np.intp).reshape(-1)
+        # cap the width at the 99th percentile; the rare crowded row is answered apart
         width = int(max(1, np.percentile(lens_all, 99))) if amb.size else 1
         self._crowded = lens_all > width
-        lists = [x if len(x) <= width else [] for x in lists]
-        far = np.full(3, 1e9)
-        table = np.tile(far, (amb.size, width, 1))
+        far = 1e9
+        table = np.full((3, amb.size, width), far)
         if amb.size:
-            lens = np.fromiter((len(x) for x in lists), dtype=np.intp, count=amb.size)
-            flat_idx = np.fromiter((i for x in lists for i in x), dtype=np.intp, count=int(lens.sum()))
-            rows = np.repeat(np.arange(amb.size), lens)
-            cols = np.arange(flat_idx.size) - np.repeat(np.cumsum(lens) - lens, lens)
-            table[rows, cols] = self.points[flat_idx]
+            # the `width` nearest points within the radius: every candidate of a row that is not crowded
+            dist, idx = self.tree.query(rc, k=width, distance_upper_bound=radius, workers=kdtree_workers())
+            dist = np.asarray(dist).reshape(amb.size, width)
+            idx = np.asarray(idx).reshape(amb.size, width)
+            ok = np.isfinite(dist) & ~self._crowded[:, None]
+            for axis in range(3):
+                table[axis][ok] = self.points[idx[ok], axis]
         #: candidates, coordinate-major ``(3, rows, width)``: one contiguous (rows, width)
         #: table per axis, so that a gather of rows is three fast ``np.take`` calls
-        self._cand = np.ascontiguousarray(table.transpose(2, 0, 1))
+        self._cand = table
         # per-cell decision at radius r_max: 0 = no point within, 1 = surely within,
         # 2 = ambiguous (exact test needed); padded with a border of 0 cells
         state = np.where(d + margin < self.r_max, 1, np.where(d - margin < self.r_max, 2, 0)).astype(np.uint8)
@@ -106,10 +116,9 @@ class DistanceGrid:
         self._state_z = np.ascontiguousarray(np.transpose(self._state, (2, 0, 1))).ravel()
         rows_pad = np.pad(self._cand_row.reshape(self.shape), 1, constant_values=-1)
         self._row_z = np.ascontiguousarray(np.transpose(rows_pad, (2, 0, 1))).ravel()
-        #: second level: per row, the SUB^3 sub-cells' decisions (built lazily), flattened
-        self._sub = np.zeros(amb.size * SUB**3, dtype=np.uint8)
-        self._sub_built = np.zeros(amb.size, dtype=bool)
-        self._row_centre = centres[amb]  # (rows, 3)
+        #: second level: per row, the SUB^3 sub-cells' decisions (0, 1, 2 as above)
+        self._row_centre = rc  # (rows, 3)
+        self._sub = self._sub_states(np.arange(amb.size))
 
     def _cells(self, q: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
         """Flat cell index and inside-the-grid mask of points ``(N, 3)``."""
@@ -251,8 +260,7 @@ class DistanceGrid:
         sx = (np.concatenate(amb_ux) * SUB).astype(np.intp) & (SUB - 1)
         sy = (np.concatenate(amb_uy) * SUB).astype(np.intp) & (SUB - 1)
         # every undecided cell has a row (the border cells are decided)
-        self._build_sub(row)
-        sub_state = np.take(self._sub, row * SUB**3 + (sx * SUB + sy) * SUB + sub_z[p_idx])
+        sub_state = np.take(self._sub.reshape(-1), row * SUB**3 + (sx * SUB + sy) * SUB + sub_z[p_idx])
         count += np.bincount(m_idx[sub_state == 1], minlength=M)
         left = sub_state == 2
         if left.any():
@@ -267,44 +275,50 @@ class DistanceGrid:
             count += np.bincount(m_idx[inlier], minlength=M)
         return count
 
-    def _build_sub(self, rows: NDArray[np.intp]) -> None:
-        """Decide the sub-cells of the candidate rows ``rows`` not yet decided.
+    def _sub_states(self, rows: NDArray[np.intp]) -> NDArray[np.uint8]:
+        """The sub-cell decisions ``(len(rows), SUB^3)`` of candidate rows ``rows``.
 
         A sub-cell of centre ``f`` and half-diagonal ``s_f`` is decided from the distance
         ``d_f`` to its nearest candidate: the candidates hold every map point within
         ``r_max + slack + 1e-3 h`` of the cell centre, and ``|f - c| + s_f <= slack``, so
         they hold every map point within ``r_max + s_f`` of ``f`` (a nearer point outside
         them cannot exist; a farther one does not matter). The decision widens ``s_f`` by
-        ``1e-3 h``, as the first level does, for float32 cell coordinates.
+        ``1e-3 h``, as the first level does, for float32 cell coordinates. Crowded rows ask
+        the KD-tree; the others are one compiled pass (numba) or numpy in chunks of rows,
+        with the same arithmetic.
         """
-        need = rows[~self._sub_built[rows]]
-        if need.size == 0:
-            return
-        need = np.unique(need)
-        sub = self._sub.reshape(-1, SUB**3)
+        rows = np.asarray(rows, dtype=np.intp)
+        out = np.zeros((rows.size, SUB**3), dtype=np.uint8)
         h = self.cell
         offsets = (np.stack(np.meshgrid(*[np.arange(SUB)] * 3, indexing="ij"), axis=-1).reshape(-1, 3) + 0.5) / SUB - 0.5
         margin = h / SUB * math.sqrt(3.0) / 2.0 + 1e-3 * h
         r = self.r_max
-        crowded = self._crowded[need]
-        for a in range(0, need.size, 4096):
-            rr = need[a : a + 4096][~crowded[a : a + 4096]]
-            centres = self._row_centre[rr][:, None, :] + offsets[None] * h  # (n, SUB^3, 3)
-            cand = np.take(self._cand, rr, axis=1).transpose(1, 2, 0)  # (n, W, 3)
-            d2 = (
-                np.einsum("nsj,nsj->ns", centres, centres)[:, :, None]
-                - 2.0 * np.einsum("nsj,nkj->nsk", centres, cand)
-                + np.einsum("nkj,nkj->nk", cand, cand)[:, None, :]
-            ).min(axis=2)
-            d = np.sqrt(np.maximum(d2, 0.0))
-            sub[rr] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
-        rc = need[crowded]  # rows with too many candidates: the KD-tree
-        if rc.size:
-            centres = (self._row_centre[rc][:, None, :] + offsets[None] * h).reshape(-1, 3)
+        crowded = self._crowded[rows]
+        plain = np.flatnonzero(~crowded)
+        if plain.size and numba_kernels.enabled():
+            part = np.zeros((plain.size, SUB**3), dtype=np.uint8)
+            numba_kernels.sub_cell_states(np.ascontiguousarray(self._row_centre[rows[plain]]), offsets, h, self._cand,
+                                          rows[plain].astype(np.int64), r, margin, part)
+            out[plain] = part
+        else:
+            for a in range(0, plain.size, 4096):  # chunks of rows: (4096, SUB^3, width) temporaries
+                sel = plain[a : a + 4096]
+                rr = rows[sel]
+                centres = self._row_centre[rr][:, :, None] + offsets.T[None, :, :] * h  # (n, 3, SUB^3)
+                d2 = None
+                for axis in range(3):  # (f - c)^2 summed over x, y, z in that order, as the kernel
+                    diff = centres[:, axis, :, None] - self._cand[axis][rr][:, None, :]
+                    diff *= diff
+                    d2 = diff if d2 is None else np.add(d2, diff, out=d2)
+                d = np.sqrt(np.maximum(d2.min(axis=2), 0.0))
+                out[sel] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
+        busy = np.flatnonzero(crowded)  # rows with too many candidates: the KD-tree
+        if busy.size:
+            centres = (self._row_centre[rows[busy]][:, None, :] + offsets[None] * h).reshape(-1, 3)
             d, _ = self.tree.query(centres, k=1, distance_upper_bound=r + margin)
-            d = d.reshape(rc.size, -1)
-            sub[rc] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
-        self._sub_built[need] = True
+            d = d.reshape(busy.size, -1)
+            out[busy] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
+        return out
 
     def _exact_within_rows(self, q: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.bool_]:
         """Exact ``dist(q, map) < r_max`` for points ``(n, 3)`` whose cells have rows

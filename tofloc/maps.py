@@ -35,6 +35,7 @@ it and what was expected. Nothing is silently repaired.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -232,6 +233,7 @@ class Map:
         self._triangles = None if triangles is None else readonly(np.asarray(triangles, dtype=np.int64))
         self.source = str(source)
         self._surfel_radius_param = surfel_radius
+        self._known_space: Any = None
         self._tree: cKDTree | None = None
         self._scene: Any = None
         self._face_normals: NDArray[np.float64] | None = None
@@ -431,7 +433,11 @@ class Map:
             t = check_triangles(triangles, v.shape[0], "triangle", fail)
             return cls._make_mesh(v, t, str(p), fail)
         n = check_normals(normals, v.shape[0], "normal", fail) if normals is not None else None
-        return cls._make_cloud(v, n, str(p), normal_k=normal_k, orient=orient, surfel_radius=surfel_radius)
+        cloud = cls._make_cloud(v, n, str(p), normal_k=normal_k, orient=orient, surfel_radius=surfel_radius)
+        from tofloc.known_space import KnownSpace, sidecar_path
+
+        side = sidecar_path(p)
+        return cloud.with_known_space(KnownSpace.load(side)) if side.is_file() else cloud
 
     def save(self, path: str | Path) -> Path:
         """Write the map atomically (a temporary file in the same folder, then ``os.replace``).
@@ -440,7 +446,8 @@ class Map:
         ``x y z`` doubles and ``vertex_indices`` (uchar count, int32 indices). ``.npy``:
         the cloud's ``(N, 3)`` float64 points. ``.xyz``: the cloud's points as text.
         Normals survive only in ``.ply``. A cloud's attached :attr:`surface` is not
-        written (save it on its own and re-attach with :func:`load_map`).
+        written (save it on its own and re-attach with :func:`load_map`); a
+        :attr:`known_space` is written beside the map as ``<stem>.known.npz``.
 
         Returns
         -------
@@ -467,6 +474,10 @@ class Map:
         p.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(p) as tmp:
             tmp.write_bytes(data)
+        if self.known_space is not None:
+            from tofloc.known_space import sidecar_path
+
+            self.known_space.save(sidecar_path(p))
         return p
 
     # ---- simple queries ----------------------------------------------------------------
@@ -484,7 +495,8 @@ class Map:
 
     def fingerprint(self) -> str:
         """SHA-256 (hex) of everything a query of this map depends on: the kind, the points,
-        the normals, the triangles, the surfel radius and an attached surface's fingerprint.
+        the normals, the triangles, the surfel radius, an attached surface's fingerprint and
+        the known space (when there is one).
 
         Every per-map cache (distance grids, likelihood fields, saved trial results) is
         keyed by it: two maps with the same fingerprint answer every query the same.
@@ -497,6 +509,9 @@ class Map:
             h = sha256_arrays(self.points, self.normals, self._triangles, prefix=f"tofloc-map-v1 {self.kind}\0".encode())
             h.update(repr(None if self.kind == "mesh" else float(self.surfel_radius)).encode())  # type: ignore[arg-type]
             h.update(b"surface:" + (self._surface.fingerprint().encode() if self._surface is not None else b"none"))
+            ks = self.__dict__.get("_known_space")
+            if ks is not None:  # maps without a known space keep their fingerprint
+                h.update(b"known:" + ks.fingerprint_bytes())
             fp = h.hexdigest()
             self.__dict__["_fingerprint"] = fp
         return fp
@@ -560,6 +575,26 @@ class Map:
     def surface(self) -> Map | None:
         """The mesh a point-cloud map ray casts against (:meth:`with_surface`); ``None`` when absent."""
         return self._surface
+
+    @property
+    def known_space(self) -> Any:
+        """Where this map knows anything (:class:`tofloc.known_space.KnownSpace`), or None:
+        everywhere (a CAD model). A map built from scans carries the cells its scans crossed
+        or ended in; :meth:`load` attaches the sidecar ``<stem>.known.npz`` when it exists."""
+        return self.__dict__.get("_known_space")
+
+    def with_known_space(self, known: Any) -> Map:
+        """This map with ``known`` (a :class:`tofloc.known_space.KnownSpace`, or None to drop
+        it) attached; everything else shared. Other derived maps (:meth:`crop`, :meth:`with_surface`
+        of a new cloud) do not carry it."""
+        from tofloc.known_space import KnownSpace
+
+        if known is not None and not isinstance(known, KnownSpace):
+            raise ParameterError(f"{self.source}: with_known_space: expected a KnownSpace or None, found {type(known).__name__}")
+        out = copy.copy(self)
+        out.__dict__.pop("_fingerprint", None)
+        out.__dict__["_known_space"] = known
+        return out
 
     def with_surface(self, surface: Map) -> Map:
         """This cloud with a mesh of the same environment attached for the surface queries.
@@ -772,7 +807,8 @@ class Map:
             self._tree = cKDTree(self.points)
         return self._tree
 
-    def nearest(self, query: ArrayLike, *, workers: int = 1) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    def nearest(self, query: ArrayLike, *, workers: int = 1,
+                max_distance: float = np.inf) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """Nearest map point (cloud point or mesh vertex) of each query point.
 
         Parameters
@@ -780,6 +816,9 @@ class Map:
         query : array_like, shape (..., 3)
         workers : int
             Threads of ``cKDTree.query`` (-1: all cores).
+        max_distance : float
+            Points with no map point closer than this get distance ``inf`` and index
+            ``len(points)`` (the KD-tree stops searching early: much faster for far points).
 
         Returns
         -------
@@ -788,15 +827,16 @@ class Map:
             Row of :attr:`points`.
         """
         q = as_query(query)
-        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers)
+        d, i = self._kdtree().query(q.reshape(-1, 3), k=1, workers=workers, distance_upper_bound=max_distance)
         return d.reshape(q.shape[:-1]), i.astype(np.int64).reshape(q.shape[:-1])
 
-    def distance_to_surface(self, query: ArrayLike, *, nthreads: int = 0) -> NDArray[np.float64]:
+    def distance_to_surface(self, query: ArrayLike, *, nthreads: int | None = None) -> NDArray[np.float64]:
         """Unsigned distance (m) from each query point to the map.
 
         Mesh: exact distance to the triangles (Open3D ``RaycastingScene.compute_distance``,
         float32 internally). Cloud: the distance to the nearest point; a cloud with a
-        :attr:`surface`: the surface's distance.
+        :attr:`surface`: the surface's distance. ``nthreads``: Open3D threads (None: the
+        process's setting, :func:`tofloc.threads.open3d_threads`; 0: all cores).
         """
         if self._surface is not None:
             return self._surface.distance_to_surface(query, nthreads=nthreads)
@@ -805,11 +845,11 @@ class Map:
             return self.nearest(q)[0]
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
-        d = self._scene_obj().compute_distance(o3d.core.Tensor(flat), nthreads=nthreads).numpy()
+        d = self._scene_obj().compute_distance(o3d.core.Tensor(flat), nthreads=_threads(nthreads)).numpy()
         return d.astype(np.float64).reshape(q.shape[:-1])
 
     def closest_surface_point(
-        self, query: ArrayLike, *, nthreads: int = 0
+        self, query: ArrayLike, *, nthreads: int | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Closest point of the map's surface and the normal there.
 
@@ -831,7 +871,7 @@ class Map:
             return self.points[i], self.normals[i]
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
-        ans = self._scene_obj().compute_closest_points(o3d.core.Tensor(flat), nthreads=nthreads)
+        ans = self._scene_obj().compute_closest_points(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
         pts = ans["points"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         assert self._face_normals is not None
@@ -871,7 +911,7 @@ class Map:
         max_range: float = np.inf,
         *,
         toward_origin: bool = False,
-        nthreads: int = 0,
+        nthreads: int | None = None,
     ) -> RayHits:
         """First hit of each ray with the map (vectorized, Open3D/Embree, float32 inside).
 
@@ -894,8 +934,9 @@ class Map:
             Hits farther than this are reported as misses.
         toward_origin : bool
             Flip each returned normal to face the ray's origin (``n . d <= 0``).
-        nthreads : int
-            Open3D threads (0: all cores).
+        nthreads : int, optional
+            Open3D threads (None: the process's setting, :func:`tofloc.threads.open3d_threads`;
+            0: all cores).
 
         Returns
         -------
@@ -928,7 +969,7 @@ class Map:
         rays[..., 3:] = d / norm
         o3d = _open3d()
         flat = rays.reshape(-1, 6)
-        ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=nthreads)
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
         t = ans["t_hit"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy()
         hit = (prim != _NO_HIT) & np.isfinite(t) & (t <= mr)
@@ -951,6 +992,37 @@ class Map:
             normal[hit] = sub
         return RayHits(t=t.reshape(shape[:-1]), normal=normal.reshape(shape), index=index.reshape(shape[:-1]))
 
+    def raycast_distance(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
+                         nthreads: int | None = None) -> NDArray[np.float64]:
+        """Ray length to the first hit only (inf on a miss or beyond ``max_range``): the hot
+        path of :meth:`raycast` for callers that need neither normals nor hit indices.
+
+        Parameters
+        ----------
+        rays : array (..., 6), float32, C-contiguous
+            Origins and **unit** directions (not checked nor normalized here: the caller
+            builds them unit, e.g. by rotating unit vectors; :meth:`raycast` checks and
+            normalizes).
+        max_range : float
+            Hits farther than this are misses.
+        nthreads : int, optional
+            As in :meth:`raycast`.
+
+        Returns
+        -------
+        ndarray of float64, shape (...)
+            The same ``t`` as :meth:`raycast` on the same float32 rays.
+        """
+        if self._surface is not None:
+            return self._surface.raycast_distance(rays, max_range, nthreads=nthreads)
+        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
+            raise ParameterError(f"raycast_distance: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+        o3d = _open3d()
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=_threads(nthreads))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        t[~(t <= float(max_range))] = np.inf  # misses are inf already; beyond range too
+        return t.reshape(rays.shape[:-1])
+
     # ---- pickling and display ------------------------------------------------------------
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -961,6 +1033,7 @@ class Map:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
+        self.__dict__.setdefault("_known_space", None)
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
             a = getattr(self, name, None)
             if a is not None:
@@ -1021,6 +1094,15 @@ def _fallback_normals(p: NDArray[np.float64], orient: Any) -> NDArray[np.float64
     norm = np.linalg.norm(n, axis=1)
     n[norm < 1e-12] = (0.0, 0.0, 1.0)
     return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _threads(nthreads: int | None) -> int:
+    """Open3D threads of a call: as given, else the process's setting."""
+    if nthreads is not None:
+        return int(nthreads)
+    from tofloc.threads import open3d_threads
+
+    return open3d_threads()
 
 
 def _open3d() -> Any:

@@ -40,8 +40,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from tofloc.errors import ParameterError
+from tofloc.known_space import KnownSpace
 
-__all__ = ["WallFitSettings", "WallPoints", "carve", "thin", "fit_lines", "wall_points_2d"]
+__all__ = ["WallFitSettings", "WallPoints", "carve", "known_cells", "thin", "fit_lines", "wall_points_2d"]
 
 FloatArray = NDArray[np.float64]
 #: Free-space samples processed per batch (bounds the memory of :func:`carve`).
@@ -136,12 +137,34 @@ def carve(sensors_xy: ArrayLike, points_xy: ArrayLike, sigma: ArrayLike, voxel_m
     """Which points to keep (``(N,)`` bool): those whose cell more rays ended in than crossed
     (step 1 of the module docstring). ``sensors_xy``, ``points_xy`` ``(N, 2)``; ``sigma``
     ``(N,)`` each reading's standard deviation (m)."""
+    return _votes(sensors_xy, points_xy, sigma, voxel_m, carve_sigmas, carve_min_m)[0]
+
+
+def known_cells(sensors_xy: ArrayLike, points_xy: ArrayLike, voxel_m: float, z_range: tuple[float, float]) -> KnownSpace:
+    """The map's known space (:class:`tofloc.known_space.KnownSpace`): the ``voxel_m`` cells
+    the readings' rays crossed (from the sensor to the end point) or ended in, valid over
+    the heights ``z_range``."""
+    s = np.asarray(sensors_xy, dtype=float)
+    p = np.asarray(points_xy, dtype=float)
+    _, lo, ny, keys = _votes(s, p, np.zeros(p.shape[0]), voxel_m, 0.0, 0.0, crossed=True)
+    assert keys is not None
+    i, j = np.divmod(keys, ny)
+    nx = int(i.max()) + 1 if keys.size else 1
+    grid = np.zeros((nx, max(ny, 1)), dtype=bool)
+    grid[i, j] = True
+    return KnownSpace(lo.astype(float) * voxel_m, voxel_m, np.asarray(z_range, dtype=float), grid)
+
+
+def _votes(sensors_xy: ArrayLike, points_xy: ArrayLike, sigma: ArrayLike, voxel_m: float, carve_sigmas: float,
+           carve_min_m: float, crossed: bool = False) -> tuple[NDArray[np.bool_], NDArray[np.int64], int, NDArray[np.int64] | None]:
+    """Free and occupied votes: ``(keep per point, grid corner cell, cells along y, crossed or
+    hit cell keys when asked)``."""
     s = np.asarray(sensors_xy, dtype=float)
     p = np.asarray(points_xy, dtype=float)
     sig = np.asarray(sigma, dtype=float)
     n = p.shape[0]
     if n == 0:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0, dtype=bool), np.zeros(2, np.int64), 1, (np.zeros(0, np.int64) if crossed else None)
     v = p - s
     length = np.linalg.norm(v, axis=1)
     u = v / np.maximum(length, 1e-12)[:, None]
@@ -153,6 +176,7 @@ def carve(sensors_xy: ArrayLike, points_xy: ArrayLike, sigma: ArrayLike, voxel_m
     end_key = _cell_keys(ij_end, lo, ny)
     cells, hits = np.unique(end_key, return_counts=True)
     free = np.zeros(cells.size, dtype=np.int64)
+    seen = [cells] if crossed else []
     step = voxel_m / 2.0
     n_steps = int(np.ceil(max(float(stop.max()), 0.0) / step)) + 1
     t = np.arange(n_steps) * step + step / 2
@@ -165,11 +189,14 @@ def carve(sensors_xy: ArrayLike, points_xy: ArrayLike, sigma: ArrayLike, voxel_m
         key = _cell_keys(_cells(q, voxel_m), lo, ny)
         pair = np.unique(key * n + ray)  # each ray votes once per cell it crosses
         key = pair // n
+        if crossed:
+            seen.append(np.unique(key))
         pos = np.clip(np.searchsorted(cells, key), 0, cells.size - 1)
         known = cells[pos] == key
         free += np.bincount(pos[known], minlength=cells.size)
     keep_cell = hits > free
-    return keep_cell[np.searchsorted(cells, end_key)]
+    keys = np.unique(np.concatenate(seen)) if crossed else None
+    return keep_cell[np.searchsorted(cells, end_key)], lo, ny, keys
 
 
 def thin(points_xy: ArrayLike, sensors_xy: ArrayLike, weights: ArrayLike, voxel_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -171,6 +171,24 @@ class ZoneCaster:
         """Sub-rays per zone."""
         return int(self.dirs_sensor.shape[2])
 
+    @property
+    def needs_normals(self) -> bool:
+        """Whether readings need the hits' normals (the signal weighting of several sub-rays)."""
+        return self.weighting == "signal" and self.n_sub > 1
+
+    def cast_ray_buffer(self, the_map: Any, rays: NDArray[np.float32]) -> ZoneCast:
+        """Readings and hit fractions (no geometry) from sub-rays already packed for the ray
+        caster: ``rays`` ``(..., S, Z, n, 6)`` float32 C-contiguous, origins then **unit**
+        directions in the map frame (:meth:`PlanarZoneRays.ray_buffer`). Casts hit distances
+        only (:meth:`tofloc.maps.Map.raycast_distance`: no normals, no re-normalization);
+        needs a caster whose readings do not use normals (:attr:`needs_normals` false)."""
+        if self.needs_normals:
+            raise ParameterError("cast_ray_buffer casts distances only: the signal weighting of several sub-rays needs normals")
+        if rays.shape[-4:-1] != self.dirs_sensor.shape[:-1]:
+            raise ParameterError(f"rays must be shaped (..., {', '.join(map(str, self.dirs_sensor.shape[:-1]))}, 6), got {rays.shape}")
+        t = the_map.raycast_distance(rays, max_range=self.max_ray_length)
+        return self._reduce(t, None, None)
+
     # -- rays ---------------------------------------------------------------------------------
     def rays(self, T_map_sensor: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Origins ``(..., S, 1, 1, 3)`` and unit directions ``(..., S, Z, n, 3)`` of every
@@ -199,27 +217,17 @@ class ZoneCaster:
         d = np.asarray(directions, dtype=float)
         if d.ndim < 4 or d.shape[-4:] != self.dirs_sensor.shape:
             raise ParameterError(f"directions must be shaped (..., {', '.join(map(str, self.dirs_sensor.shape))}), got {d.shape}")
+        if not geometry and not self.needs_normals:
+            rays = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
+            rays[..., :3] = origins
+            rays[..., 3:] = d
+            return self.cast_ray_buffer(the_map, rays)
         hits = the_map.raycast(origins, d, max_range=self.max_ray_length)
         t = np.asarray(hits.t, dtype=float)  # (..., S, Z, n)
-        sub_reading = t * self.along
-        ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= self.max_reading[:, None, None])
-        n_ret = ret.sum(axis=-1)
-        frac = n_ret / self.n_sub
-        target = (n_ret > 0) & (frac >= self.min_hit_fraction - 1e-12)
         normal = np.asarray(hits.normal, dtype=float) if (geometry or self.weighting == "signal") and self.n_sub > 1 else None
-        if self.n_sub == 1:
-            w = ret.astype(float)
-        elif self.weighting == "mean":
-            w = ret.astype(float)
-        else:
-            assert normal is not None
-            cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), d))
-            w = np.where(ret, np.maximum(cos_i, 0.05) / np.maximum(np.where(ret, t, 1.0), 0.05) ** 2, 0.0)
-        wsum = w.sum(axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            reading = np.where(target, (w * np.where(ret, sub_reading, 0.0)).sum(axis=-1) / wsum, np.nan)
         if not geometry:
-            return ZoneCast(reading, frac)
+            return self._reduce(t, normal, d)
+        reading, frac, ret, n_ret, target, w, wsum = self._weighted(t, normal, d)
         nrm = np.asarray(hits.normal, dtype=float)
         cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(nrm), d))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -243,6 +251,38 @@ class ZoneCaster:
         else:
             corner = np.zeros(target.shape, dtype=bool)
         return ZoneCast(reading, frac, mean_cos, normal_z, point, index, corner)
+
+    def _weights(self, t: FloatArray, ret: NDArray[np.bool_], normal: FloatArray | None, d: FloatArray | None) -> FloatArray:
+        """Weights ``(..., n)`` of the returning sub-rays in a zone's reading (module doc)."""
+        if self.n_sub == 1 or self.weighting == "mean":
+            return ret.astype(float)
+        assert normal is not None and d is not None
+        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), d))
+        return np.where(ret, np.maximum(cos_i, 0.05) / np.maximum(np.where(ret, t, 1.0), 0.05) ** 2, 0.0)
+
+    def _reduce(self, t: FloatArray, normal: FloatArray | None, d: FloatArray | None) -> ZoneCast:
+        """Readings and hit fractions ``(..., S, Z)`` from sub-ray hit distances ``t`` ``(..., S, Z, n)``."""
+        if self.n_sub == 1:  # the same numbers as the weighted mean of one sub-ray, without the (..., 1) reductions
+            sub_reading = t * self.along
+            ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= self.max_reading[:, None, None])
+            target = ret[..., 0] & (1.0 >= self.min_hit_fraction - 1e-12)
+            return ZoneCast(np.where(target, sub_reading[..., 0], np.nan), ret[..., 0].astype(float))
+        reading, frac = self._weighted(t, normal, d)[:2]
+        return ZoneCast(reading, frac)
+
+    def _weighted(self, t: FloatArray, normal: FloatArray | None, d: FloatArray | None) -> tuple[Any, ...]:
+        """Reading, hit fraction, and the intermediates the geometry reuses (returning mask,
+        count, target, weights and their sum) from sub-ray hit distances ``t``."""
+        sub_reading = t * self.along
+        ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= self.max_reading[:, None, None])
+        n_ret = ret.sum(axis=-1)
+        frac = n_ret / self.n_sub
+        target = (n_ret > 0) & (frac >= self.min_hit_fraction - 1e-12)
+        w = self._weights(t, ret, normal, d)
+        wsum = w.sum(axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            reading = np.where(target, (w * np.where(ret, sub_reading, 0.0)).sum(axis=-1) / wsum, np.nan)
+        return reading, frac, ret, n_ret, target, w, wsum
 
     def cast_zone_rays(self, the_map: Any, origins: ArrayLike, directions: ArrayLike, sensor: ArrayLike,
                        zone: ArrayLike) -> ZoneCast:
@@ -300,6 +340,7 @@ class PlanarZoneRays:
         #: rays in the tip frame: origins (S, 3) and directions (S, Z, n, 3)
         self.origins_tip = T_ts[:, :3, 3].copy()
         self.dirs_tip = np.einsum("sij,sznj->szni", T_ts[:, :3, :3], caster.dirs_sensor)
+        self._dirs_tip_flat = np.ascontiguousarray(self.dirs_tip.reshape(-1, 3))  # (S*Z*n, 3)
         R, t = self.T_lift_tip[:, :3, :3], self.T_lift_tip[:, :3, 3]
         #: (K, S, 3) and (K, S, Z, n, 3): the same, lifted
         self.origins = np.einsum("kij,sj->ksi", R, self.origins_tip) + t[:, None, :]
@@ -333,9 +374,44 @@ class PlanarZoneRays:
         dr = rotate_z(d, c[:, None, None, None], s[:, None, None, None])
         return org[:, :, None, None, :], dr
 
+    def ray_buffer(self, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None) -> NDArray[np.float32]:
+        """The sub-rays of sample ``step`` for planar poses ``(M, 3)``, packed for the ray
+        caster: ``(M, S, Z, n, 6)`` float32, origins then unit directions in the map frame.
+
+        Each candidate's rotation ``A = Rz(yaw) R_lift [Rz(support_yaw)]`` is composed once
+        (``(M, 3, 3)``) and applied to the tip-frame rays, written straight into the buffer
+        (one stacked matrix product for the directions); no re-normalization (rotations keep unit vectors unit). The same
+        rays as :meth:`rays` to float64 rounding (another order of the same products).
+        """
+        p = np.asarray(poses, dtype=float)
+        M = p.shape[0]
+        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+        Rz = np.zeros((M, 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+        R, t = self.T_lift_tip[step, :3, :3], self.T_lift_tip[step, :3, 3]
+        A = Rz @ R
+        if support_yaw is not None:
+            cp, sp = np.cos(support_yaw), np.sin(support_yaw)
+            Rp = np.zeros((M, 3, 3))
+            Rp[:, 0, 0], Rp[:, 0, 1], Rp[:, 1, 0], Rp[:, 1, 1], Rp[:, 2, 2] = cp, -sp, sp, cp, 1.0
+            A = A @ Rp
+        out = np.empty((M,) + self.dirs_tip.shape[:-1] + (6,), dtype=np.float32)
+        # every candidate's rotation applied to every ray: one stacked matrix product
+        out.reshape(M, -1, 6)[:, :, 3:] = np.matmul(self._dirs_tip_flat[None], A.transpose(0, 2, 1))
+        org = np.einsum("mij,sj->msi", A, self.origins_tip) + np.einsum("mij,j->mi", Rz, t)[:, None, :]
+        org[..., 0] += p[:, None, 0]
+        org[..., 1] += p[:, None, 1]
+        out[..., :3] = org[:, :, None, None, :]
+        return out
+
     def cast(self, the_map: Any, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None,
              *, geometry: bool = False) -> ZoneCast:
-        """Expected readings ``(M, S, Z)`` of sample ``step`` for planar poses ``(M, 3)``."""
+        """Expected readings ``(M, S, Z)`` of sample ``step`` for planar poses ``(M, 3)``.
+
+        Without geometry (and when readings need no normals) the hot path: the rays packed
+        by :meth:`ray_buffer` and hit distances only (:meth:`ZoneCaster.cast_ray_buffer`)."""
+        if not geometry and not self.caster.needs_normals:
+            return self.caster.cast_ray_buffer(the_map, self.ray_buffer(poses, step, support_yaw))
         o, d = self.rays(poses, step, support_yaw)
         return self.caster.cast_rays(the_map, o, d, geometry=geometry)
 

@@ -19,7 +19,11 @@ drones' scans only:
    (:func:`tofloc.point_clouds.estimate_normals_2d`);
 4. the 2-D wall points are extruded in z (the maze's walls are vertical) every
    ``voxel_m`` over the band the zones can see: the mapping drones' node heights, widened
-   by ``range_cut_m * tan(ZONE_HEIGHT_DEG / 2)`` (0.24 m at 1.2 m) up and down.
+   by ``range_cut_m * tan(ZONE_HEIGHT_DEG / 2)`` (0.24 m at 1.2 m) up and down;
+5. the map's *known space* (:func:`tofloc.scan_maps.known_cells`): the ``voxel_m`` cells the
+   same readings' rays crossed or ended in, over the same heights, saved beside the map as
+   ``without-droneD.known.npz`` (:mod:`tofloc.known_space`): everywhere else the map does
+   not know whether there is a wall.
 
 :func:`distances_at_truth` measures a node against its map (its points at the true node
 pose, the distance to the nearest map point): the figures of ``docs/real-data.md``.
@@ -45,7 +49,7 @@ from tofloc.logs import open_for_extras, write_checksummed_dataset, write_log, w
 from tofloc.maps import Map
 from tofloc.point_clouds import estimate_normals_2d
 from tofloc.range_model import RangeUncertainty
-from tofloc.scan_maps import WallFitSettings, wall_points_2d
+from tofloc.scan_maps import WallFitSettings, known_cells, wall_points_2d
 
 __all__ = [
     "DEFAULT_RANGE_CUT_M",
@@ -144,7 +148,8 @@ def wall_map(
     L = z.size
     pts = np.column_stack([np.repeat(xy, L, axis=0), np.tile(z, m)])
     nrm = np.column_stack([np.repeat(n2, L, axis=0), np.zeros(m * L)])
-    return Map.from_points(pts, nrm, source=source)
+    known = known_cells(sensors[:, :2], points[:, :2], voxel_m, (float(z[0]), float(z[-1])))
+    return Map.from_points(pts, nrm, source=source).with_known_space(known)
 
 
 def _z_band(flight: Flight, nodes: NDArray[np.intp], range_cut_m: float) -> tuple[float, float]:

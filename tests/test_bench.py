@@ -1,0 +1,84 @@
+"""``tofloc bench`` at tiny sizes: every key of the JSON document, with its type, and the
+progress reported as it runs (never its timings: speed is not asserted in tests)."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+
+from test_progress import Recorder
+
+
+@pytest.fixture(scope="module")
+def bench() -> tuple[dict[str, Any], Recorder]:
+    from tofloc.bench import run_bench
+
+    rec = Recorder()
+    doc = run_bench(particles=10, repeat=1, reporter=rec, particles_big=20, parallel_estimators=["icp_pf"],
+                    parallel_trials=2, parallel_k=[1])
+    return doc, rec
+
+
+def _seconds(x: Any) -> bool:
+    return isinstance(x, float) and math.isfinite(x) and x > 0
+
+
+@pytest.mark.slow  # ~1-2 min: the paper's simulation, three subprocesses, two paper runs
+def test_bench_json_has_every_key_with_its_type(bench) -> None:
+    from tofloc.registry import ESTIMATORS
+
+    doc, _ = bench
+    json.dumps(doc)  # a JSON document
+    names = ESTIMATORS.names()
+    assert set(doc["estimators"]) == set(names)
+    pfs = {"icp_pf", "beam_pf", "likelihood_field_pf"} & set(names)
+    for name, row in doc["estimators"].items():
+        assert _seconds(row["update_s"]) and _seconds(row["setup_s"]), name
+        assert set(row["estimate_s"]) == {"1", "5", "10"} and all(_seconds(v) for v in row["estimate_s"].values())
+        if name in pfs:
+            assert _seconds(row["update_s_10000"]) and row["particles_big"] == 20
+        else:
+            assert row["update_s_10000"] is None
+    assert doc["estimators"]["beam_pf"]["state"] == ["support_yaw"]  # the columns the filter really carries
+    r = doc["raycast"]
+    assert r["rays"] == 10 * 3 * 64 and _seconds(r["raycast_s"]) and _seconds(r["beam_over_raycast"])
+    assert set(doc["peak_rss_mb"]) == pfs and all(v >= doc["peak_rss_baseline_mb"][n] > 50 for n, v in doc["peak_rss_mb"].items())
+    g = doc["gtsam"]
+    assert _seconds(g["per_sample_factor_s"]) and _seconds(g["stacked_factor_s"]) and _seconds(g["speedup"])
+    assert 0.0 <= g["max_abs_diff"] < 1e-9
+    p = doc["parallel"]
+    assert _seconds(p["workers_1_s"]) and _seconds(p["workers_2_s"]) and _seconds(p["speedup"])
+    assert p["estimators"] == ["icp_pf"] and p["k_values"] == [1]
+    icp = doc["icp_score"]
+    assert [row["k"] for row in icp["per_k"]] == [1, 5, 10] and icp["max_abs_fitness_diff"] == 0.0
+    assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
+
+
+@pytest.mark.slow
+def test_bench_reports_each_measurement_as_it_runs(bench) -> None:
+    from tofloc.registry import ESTIMATORS
+
+    _, rec = bench
+    n = 3 + len(ESTIMATORS.names()) + 4
+    label = "measurements (10 particles, median of 1)"
+    assert [c for c in rec.calls if c[2] == label] == [(i, n, label) for i in range(n + 1)]
+    assert sum(m.startswith("ICP score, k = ") for m in rec.notes) == 3
+    assert all(any(m.startswith(f"{name}: one update") for m in rec.notes) for name in ESTIMATORS.names())
+    assert any(m.startswith("paper run: 1 worker") for m in rec.notes)
+
+
+@pytest.mark.slow
+def test_bench_command_writes_the_json_and_shows_the_tables(bench, monkeypatch, tmp_path, capsys) -> None:
+    import tofloc.cli.cmd_bench as cmd
+    from tofloc.cli import main
+
+    doc, _ = bench
+    monkeypatch.setattr(cmd, "run_bench", lambda particles, repeat, reporter: doc)
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--json", str(out), "--particles", "10", "--repeat", "1"]) == 0
+    assert json.loads(out.read_text())["parallel"] == doc["parallel"]
+    shown = capsys.readouterr().out
+    assert "gtsam_smoother k = 10" in shown and "paper run" in shown and "ray cast" in shown

@@ -1,0 +1,121 @@
+"""Known space of maps built from scans (tofloc.known_space) and how the beam and
+likelihood-field models read it."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sensor_models.beam import BeamModel
+from sensor_models.likelihood_field import LikelihoodFieldModel
+from tofloc.errors import FormatError, ParameterError
+from tofloc.known_space import KnownSpace, sidecar_path
+from tofloc.maps import Map
+from tofloc.problem import Prior, Problem
+from tofloc.rig import Rig, Sensor
+from tofloc.scan_maps import known_cells
+
+
+def _half_known(cell: float = 0.02) -> KnownSpace:
+    """x in [-1, 3), y in [-1, 1): known for x < 1 only, heights 0..1."""
+    nx, ny = int(4 / cell), int(2 / cell)
+    known = np.zeros((nx, ny), dtype=bool)
+    known[: int(2 / cell)] = True
+    return KnownSpace(np.array([-1.0, -1.0]), cell, np.array([0.0, 1.0]), known)
+
+
+def test_queries_and_entry_distance() -> None:
+    ks = _half_known()
+    assert ks.is_known(np.array([[0.5, 0.0, 0.5], [1.5, 0.0, 0.5], [0.5, 0.0, 1.5], [-2.0, 0.0, 0.5]])).tolist() == [True, False, False, False]
+    t = ks.unknown_entry(np.array([[0.0, 0.0, 0.5]]), np.array([[1.0, 0.0, 0.0]]), np.array([3.0]))
+    assert t[0] == pytest.approx(1.0, abs=0.011)  # the boundary, to half a cell
+    # looking away from the unknown half, or not far enough: known all the way
+    assert np.isinf(ks.unknown_entry(np.array([0.0, 0.0, 0.5]), np.array([-1.0, 0.0, 0.0]), np.array(0.9)))
+    assert np.isinf(ks.unknown_entry(np.array([0.0, 0.0, 0.5]), np.array([1.0, 0.0, 0.0]), np.array(0.9)))
+
+
+def test_file_round_trip_map_sidecar_and_fingerprint(tmp_path: Path) -> None:
+    wall = Map.from_points(np.column_stack([np.full(50, 1.0), np.linspace(-0.5, 0.5, 50), np.full(50, 0.5)]),
+                           np.tile([-1.0, 0.0, 0.0], (50, 1)))
+    ks = _half_known()
+    m = wall.with_known_space(ks)
+    assert m.fingerprint() != wall.fingerprint() and wall.known_space is None
+    path = m.save(tmp_path / "walls.ply")
+    assert sidecar_path(path) == tmp_path / "walls.known.npz" and sidecar_path(path).is_file()
+    back = Map.load(path)
+    assert back.known_space is not None and np.array_equal(back.known_space.known, ks.known)
+    assert back.fingerprint() == Map.load(path).fingerprint()
+    sidecar_path(path).unlink()
+    assert Map.load(path).known_space is None
+
+
+def test_bad_sidecars_are_refused(tmp_path: Path) -> None:
+    f = tmp_path / "bad.known.npz"
+    np.savez(f, format=np.array("tofloc-known-space-v1"), origin=np.zeros(2), cell=np.array(0.02), z_range=np.array([0.0, 1.0]),
+             known=np.full((3, 3), 2, np.uint8))
+    with pytest.raises(FormatError, match="known: expected a 2-D uint8 grid of 0 and 1"):
+        KnownSpace.load(f)
+    np.savez(f, format=np.array("something else"), origin=np.zeros(2), cell=np.array(0.02), z_range=np.zeros(2), known=np.ones((3, 3), np.uint8))
+    with pytest.raises(FormatError, match="format"):
+        KnownSpace.load(f)
+    np.savez(f, format=np.array(["x", None], dtype=object), origin=np.zeros(2), cell=np.array(0.02), z_range=np.zeros(2), known=np.ones((3, 3), np.uint8))
+    with pytest.raises(FormatError):  # object arrays are never unpickled
+        KnownSpace.load(f)
+    f.write_bytes(b"not a zip")
+    with pytest.raises(FormatError, match="a .known.npz archive"):
+        KnownSpace.load(f)
+    with pytest.raises(ParameterError, match="cell"):
+        KnownSpace(np.zeros(2), 0.0, np.zeros(2), np.ones((2, 2), bool))
+
+
+def test_known_cells_are_the_cells_rays_crossed() -> None:
+    sensors = np.zeros((3, 2))
+    points = np.array([[1.0, 0.0], [0.0, 1.0], [-0.5, 0.0]])
+    ks = known_cells(sensors, points, 0.05, (0.0, 1.0))
+    assert ks.is_known(np.array([[0.5, 0.0, 0.5], [0.99, 0.0, 0.5], [0.0, 0.6, 0.5], [-0.4, 0.0, 0.5]])).all()
+    assert not ks.is_known(np.array([[0.5, 0.5, 0.5], [1.3, 0.0, 0.5], [0.0, -0.5, 0.5]])).any()
+
+
+def _zone_problem(wall_x: float, reading: float, known: KnownSpace | None) -> Problem:
+    """One zone looking along +x from the origin at height 0.5; a wall at x = wall_x."""
+    wall = Map.from_mesh([[wall_x, -1, 0], [wall_x, 1, 0], [wall_x, 1, 1], [wall_x, -1, 1]], [[0, 1, 2], [0, 2, 3]], source="wall")
+    if known is not None:
+        wall = wall.with_known_space(known)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # the sensor's z axis along the map's +x
+    sensor = Sensor(name="s", resolution=(1, 1), zone_directions=np.array([[0.0, 0.0, 1.0]]), distance="radial", T_tip_sensor=T)
+    return Problem(rig=Rig((sensor,)), distance_m=np.array([[[reading]]]), status=np.array([[[5]]], dtype=np.uint8),
+                   T_base_tip=np.eye(4)[None], map=wall, prior=Prior(mean=np.zeros(3), sigma=np.full(3, 0.1), z=0.5))
+
+
+def test_beam_explains_a_reading_in_unknown_space_and_nothing_else_changes() -> None:
+    # the wall at 2.5 m lies in unknown space (known only for x < 1); the zone reads 1.5 m:
+    # an unmapped surface in unknown space, not an outlier
+    args = dict(temper=1.0, outlier_floor=0.0, configuration_cov=False)
+    ll = {w: BeamModel(unknown_weight=w, **args).bind(_zone_problem(2.5, 1.5, _half_known())).zone_log_likelihood(np.zeros((1, 3)), 0)[0, 0, 0]
+          for w in (0.0, 0.5)}
+    assert ll[0.5] > ll[0.0] + 1.0
+    mix = BeamModel(**args).bind(_zone_problem(2.5, 1.5, None)).mixture
+    r = 4.0
+    want = mix.z_hit * 0.5 / (2.5 - 1.0) + mix.z_short * mix.lambda_short * math.exp(-mix.lambda_short * 1.5) / -math.expm1(-mix.lambda_short * r) + mix.z_rand / r
+    assert ll[0.5] == pytest.approx(math.log(want), abs=0.02)  # entry at x = 1 to half a cell
+    # all known (or no known space): exactly the model without unknown space
+    all_known = KnownSpace(np.array([-1.0, -3.0]), 0.05, np.array([0.0, 1.0]), np.ones((100, 120), bool))
+    a = BeamModel(**args).bind(_zone_problem(2.5, 1.5, all_known)).zone_log_likelihood(np.zeros((1, 3)), 0)
+    b = BeamModel(**args).bind(_zone_problem(2.5, 1.5, None)).zone_log_likelihood(np.zeros((1, 3)), 0)
+    assert np.array_equal(a, b)
+
+
+def test_likelihood_field_end_point_in_unknown_space() -> None:
+    p_unknown = _zone_problem(2.5, 1.5, _half_known())
+    p_plain = _zone_problem(2.5, 1.5, None)
+    kw = dict(temper=1.0, configuration_cov=False, r_field=0.4, cell=0.05)
+    a = LikelihoodFieldModel(**kw).bind(p_unknown).log_likelihood(np.zeros((1, 3)), 0)[0]
+    b = LikelihoodFieldModel(**kw).bind(p_plain).log_likelihood(np.zeros((1, 3)), 0)[0]
+    c = LikelihoodFieldModel(unknown_weight=0.0, **kw).bind(p_unknown).log_likelihood(np.zeros((1, 3)), 0)[0]
+    assert a > b + 0.5 and c == pytest.approx(b)
+    with pytest.raises(ParameterError, match="unknown_weight"):
+        LikelihoodFieldModel(unknown_weight=1.5)

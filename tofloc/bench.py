@@ -1,0 +1,380 @@
+"""Speed measured as ratios in one run (``tofloc bench``); never asserted by timing in tests.
+
+On the paper's simulated data (seed 0, 10 samples, the paper's prior around the truth,
+the 2000-point CAD cloud with the CAD mesh attached for ray casts), :func:`run_bench`
+returns one JSON document:
+
+``icp_score``
+    The ICP score of ``particles`` particles, vectorized (distance grid, exact) beside
+    the obvious per-particle loop over Open3D's ``evaluate_registration``, with the
+    largest fitness difference (0 when both agree exactly), for the merged clouds of
+    k = 1, 5 and 10 (``per_k``; medians of ``repeat`` runs, of at most 3 for the loop);
+    the headline ``speedup`` is the k = 10 cloud's.
+``estimators.NAME``
+    ``update_s``: one particle-filter update with ``particles`` particles carrying the
+    nuisance columns the estimator really declares (the sensor model's weighting of the
+    newest sample through :meth:`~sensor_models.base.BoundSensorModel.log_likelihood_chunked`,
+    normalization, resampling and jitter); ``update_s_10000``: the same with
+    ``particles_big`` particles; ``estimate_s``: ``{"1", "5", "10"}`` whole estimates from
+    that many samples (default parameters); ``setup_s``: the first single-sample estimate
+    on a fresh copy of the map with empty per-map caches (what a worker would pay without
+    shipped caches). The GTSAM smoother has no update: its ``update_s`` is the k = 1
+    estimate and ``update_s_10000`` is null.
+``raycast``
+    Embree alone on the beam update's own rays (``rays`` of them): ``raycast_s`` and
+    ``beam_over_raycast``, the beam filter's ``update_s`` over it.
+``peak_rss_mb``
+    Per particle filter, the peak resident memory (MB) of one update with
+    ``particles_big`` particles at k = 10, in a fresh process each (so that peaks do not
+    mix): the kernel's high-water mark reset after the set-up (Linux), so the peak is the
+    update's, over what stays resident (``peak_rss_baseline_mb``: resident before it).
+``gtsam``
+    The smoother's k = 10 estimate with the stacked evaluation and with one factor per
+    sample (``stacked_factor=False``): ``per_sample_factor_s``, ``stacked_factor_s``,
+    ``speedup`` and ``max_abs_diff`` (largest difference of the two poses).
+``parallel``
+    The same small ``tofloc paper`` run (``parallel_estimators``, mocap tips, the paper's
+    prior mode, k in ``parallel_k``, ``parallel_trials`` trials, no calibration) with 1 and
+    2 workers, the data prepared beforehand and the per-map caches emptied before each:
+    ``workers_1_s``, ``workers_2_s``, ``speedup``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+__all__ = ["paper_bench_problem", "run_bench", "bench_gtsam_smoother", "bench_parallel", "peak_rss_child"]
+
+
+def _median_time(fn: Callable[[], Any], repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(statistics.median(times))
+
+
+def paper_bench_problem(n_samples: int = 10, seed: int = 0) -> Any:
+    """The benchmark's problem: the paper's simulated log (seed 0), ``n_samples`` samples
+    with motion-capture tip poses, the paper's prior centred on the truth, and the map as
+    ``tofloc paper`` gives it: the 2000-point CAD cloud (the ICP score) with the CAD mesh
+    attached for ray casts (beam, likelihood field)."""
+    from tofloc import frames
+    from tofloc.problem import Prior
+    from tofloc.problem_builder import build_problem
+    from tofloc.simulation import simulate
+
+    sim = simulate("paper", seed)
+    log = sim.log
+    ok = np.flatnonzero(np.isfinite(log.T_base_tip[:, 0, 0]))
+    idx = np.random.default_rng(seed).choice(ok, n_samples, replace=False)
+    truth = frames.xyyaw_from_se3(log.T_map_base)
+    prior = Prior(truth, np.array([0.2, 0.2, math.radians(20.0)]), z=float(log.T_map_base[2, 3]))
+    return build_problem(
+        rig=log.rig,
+        distance_m=log.distance_m[idx],
+        status=log.status[idx],
+        T_base_tip=log.T_base_tip[idx],
+        map=sim.map_cloud.with_surface(sim.cad_mesh),
+        prior=prior,
+        sigma_m=None if log.sigma_mm is None else log.sigma_mm[idx] / 1000.0,
+        configuration_source="mocap",
+        sample_indices=idx,
+    )
+
+
+def _states(bound: Any, particles: int, problem: Any) -> np.ndarray:
+    """``particles`` prior draws with the bound model's declared nuisance columns."""
+    poses = problem.prior.sample(particles, np.random.default_rng(0))
+    r0 = np.random.default_rng(2)
+    return np.column_stack([poses] + [r0.normal(0.0, v.sigma, particles) for v in bound.state]) if bound.state else poses
+
+
+def _pf_update(est: Any, bound: Any, states: np.ndarray, step: int) -> Callable[[], None]:
+    """One particle-filter update of ``states`` at ``step`` (weighting, normalization,
+    resampling, jitter), as the filter makes it."""
+    from estimators.resampling import RESAMPLERS, normalize_log_weights
+
+    resample = RESAMPLERS[est.resampling]
+    r = np.random.default_rng(1)
+
+    def update() -> None:
+        w = normalize_log_weights(bound.log_likelihood_chunked(states, step))
+        idx = resample(w, r)
+        _ = states[idx] + r.normal(size=states.shape) * 0.01
+
+    return update
+
+
+def _fresh_map(problem: Any) -> Any:
+    """The problem with a fresh copy of its map (no KD-tree, no ray-casting scene yet)."""
+    import dataclasses
+    import pickle
+
+    return dataclasses.replace(problem, map=pickle.loads(pickle.dumps(problem.map)))  # our own object, in memory
+
+
+def _estimate_times(est: Any, problem: Any, repeat: int) -> dict[str, float]:
+    out = {}
+    for k in (1, 5, 10):
+        sub = problem.subset(slice(0, k))
+        out[str(k)] = _median_time(lambda: est.estimate(sub, np.random.default_rng(0)), min(repeat, 3))
+    return out
+
+
+def _setup_time(est: Any, problem: Any) -> float:
+    from tofloc import map_cache
+
+    map_cache.clear()
+    fresh = _fresh_map(problem).subset(slice(0, 1))
+    t0 = time.perf_counter()
+    est.estimate(fresh, np.random.default_rng(0))
+    return time.perf_counter() - t0
+
+
+def bench_gtsam_smoother(est: Any, problem: Any, repeat: int) -> dict[str, Any]:
+    """Whole estimates of the GTSAM smoother from k = 1, 5 and 10 samples (median of
+    ``min(repeat, 3)`` runs): ``update_s`` is the k = 1 time; also ``k1_s``, ``k5_s``, ``k10_s``
+    and the solver's work at each k (starts, rounds, Levenberg-Marquardt iterations)."""
+    out: dict[str, Any] = {}
+    for k in (1, 5, 10):
+        sub = problem.subset(slice(0, k))
+        last: dict[str, Any] = {}
+
+        def run() -> None:
+            last["r"] = est.estimate(sub, np.random.default_rng(0))
+
+        out[f"k{k}_s"] = _median_time(run, min(repeat, 3))
+        d = last["r"].diagnostics
+        out[f"k{k}_work"] = {"starts": len(d.get("starts", [])), "rounds": d.get("rounds"), "iterations": d.get("iterations"),
+                             "zones": d.get("zones")}
+    out["update_s"] = out["k1_s"]
+    return out
+
+
+def _bench_gtsam_factors(problem: Any, repeat: int) -> dict[str, Any]:
+    from estimators.gtsam_smoother import GTSAMSmoother
+
+    res: dict[bool, Any] = {}
+    times: dict[bool, float] = {}
+    for stacked in (False, True):
+        est = GTSAMSmoother(stacked_factor=stacked)
+
+        def run(est: Any = est, stacked: bool = stacked) -> None:
+            res[stacked] = est.estimate(problem, np.random.default_rng(0))
+
+        times[stacked] = _median_time(run, min(repeat, 3))
+    return {"per_sample_factor_s": times[False], "stacked_factor_s": times[True], "speedup": times[False] / times[True],
+            "max_abs_diff": float(np.max(np.abs(res[True].pose - res[False].pose)))}
+
+
+def peak_rss_child(name: str, particles: int) -> None:
+    """In a fresh process: one update of estimator ``name`` with ``particles`` particles at
+    k = 10; prints ``{"peak_rss_mb", "baseline_mb"}`` (peak resident memory after and before)."""
+    import ctypes
+    import gc
+
+    from tofloc.registry import ESTIMATORS
+
+    problem = paper_bench_problem()
+    est = ESTIMATORS.load(name)(n_particles=particles)
+    bound = est.make_sensor_model().bind(problem)
+    step = bound.n_steps - 1
+    _pf_update(est, bound, _states(bound, 16, problem), step)()  # lazy imports, caches, first cast
+    states = _states(bound, particles, problem)
+    # forget the simulation's peak: hand freed memory back to the system, reset the kernel's
+    # high-water mark (Linux), so that the peak is the update's (over what stays resident)
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:  # pragma: no cover - not glibc
+        pass
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:  # pragma: no cover - not Linux: the process's whole peak is reported
+        pass
+    before = _status_mb("VmRSS")
+    _pf_update(est, bound, states, step)()
+    print(json.dumps({"peak_rss_mb": _status_mb("VmHWM"), "baseline_mb": before}))
+
+
+def _status_mb(field: str) -> float:
+    """A memory field of ``/proc/self/status`` in MB (Linux), else the peak from ``getrusage``."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:  # pragma: no cover
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _peak_rss(name: str, particles: int) -> dict[str, float]:
+    code = "import sys; from tofloc.bench import peak_rss_child; peak_rss_child(sys.argv[1], int(sys.argv[2]))"
+    out = subprocess.run([sys.executable, "-c", code, name, str(particles)], capture_output=True, text=True, check=True)
+    return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[int]) -> dict[str, Any]:
+    """The same small ``paper`` run with 1 and 2 workers (see the module doc)."""
+    import shutil
+
+    from tofloc import api, map_cache
+
+    def run(out: str, workers: int) -> float:
+        shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)
+        map_cache.clear()
+        t0 = time.perf_counter()
+        api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
+                  prior_modes=("paper",), calibrate=False, workers=workers)
+        return time.perf_counter() - t0
+
+    with tempfile.TemporaryDirectory(prefix="tofloc-bench-") as out:
+        from evaluation.paper_data import prepare_data
+        from pathlib import Path
+
+        prepare_data(Path(out), "paper", 0, True)  # simulated once, outside the timings
+        one = run(out, 1)
+        two = run(out, 2)
+    return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two, "estimators": list(estimators),
+            "trials": int(trials), "k_values": [int(k) for k in k_values]}
+
+
+def run_bench(
+    particles: int = 1000,
+    repeat: int = 5,
+    reporter: Any = None,
+    *,
+    particles_big: int = 10_000,
+    parallel_estimators: Sequence[str] | None = None,
+    parallel_trials: int = 4,
+    parallel_k: Sequence[int] = (1, 5, 10),
+) -> dict[str, Any]:
+    """Measure everything the module doc describes; returns the JSON document.
+
+    ``reporter`` (a :class:`tofloc.api.Reporter`) gets a progress count of the measurements
+    and one note with each result as it is measured."""
+    from estimators.particle_filter import ParticleFilter
+    from sensor_models.icp_score import ICPScore, open3d_fitness
+    from tofloc.api import Reporter
+    from tofloc.provenance import provenance
+    from tofloc.registry import ESTIMATORS
+
+    rep = reporter if reporter is not None else Reporter()
+    names = ESTIMATORS.names()
+    pf_names = [n for n in names if isinstance(ESTIMATORS.load(n)(), ParticleFilter)]
+    total = 3 + len(names) + 4
+    label = f"measurements ({particles} particles, median of {repeat})"
+    with rep.stage("simulating the paper's data (seed 0) for the benchmark problem"):
+        problem = paper_bench_problem()
+    done = 0
+    rep.progress(done, total, label)
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        rep.progress(done, total, label)
+
+    rng = np.random.default_rng(0)
+    poses = problem.prior.sample(particles, rng)
+    T = problem.prior.T_map_base(poses)
+    icp = ICPScore().bind(problem)
+    per_k = []
+    for k in (1, 5, 10):
+        step = k - 1
+        icp.fitness(poses, step)  # warm-up
+        vec = _median_time(lambda: icp.fitness(poses, step), repeat)
+        ref_box: dict[str, Any] = {}
+
+        def o3d_loop() -> None:
+            ref_box["f"] = open3d_fitness(icp.clouds[step], T, problem.map.points, icp.model.max_correspondence)
+
+        loop = _median_time(o3d_loop, min(repeat, 3))  # ~1 s a run: the median of up to 3
+        diff = float(np.max(np.abs(icp.fitness(poses, step) - ref_box["f"])))
+        per_k.append({"k": k, "points": int(icp.clouds[step].shape[0]), "vectorized_s": vec, "open3d_loop_s": loop,
+                      "speedup": loop / vec, "max_abs_fitness_diff": diff})
+        rep.note(f"ICP score, k = {k} ({per_k[-1]['points']} points): vectorized {1e3 * vec:.1f} ms, "
+                 f"Open3D loop {1e3 * loop:.0f} ms ({loop / vec:.1f}x)")
+        tick()
+    main = per_k[-1]
+    doc: dict[str, Any] = {
+        "icp_score": {"particles": particles, **{k: v for k, v in main.items() if k != "k"}, "samples": 10, "per_k": per_k},
+        "estimators": {},
+        "machine": {"cpus": os.cpu_count()},
+        "provenance": provenance(),
+    }
+    for name in names:
+        est = ESTIMATORS.load(name)(n_particles=particles) if name in pf_names else ESTIMATORS.load(name)()
+        row: dict[str, Any] = {"setup_s": _setup_time(est, problem)}
+        if name in pf_names:
+            model = est.make_sensor_model()
+            bound = model.bind(problem)
+            step = bound.n_steps - 1
+            states = _states(bound, particles, problem)
+            update = _pf_update(est, bound, states, step)
+            update()
+            row["update_s"] = _median_time(update, repeat)
+            big = _pf_update(est, bound, _states(bound, particles_big, problem), step)
+            row["update_s_10000"] = _median_time(big, min(repeat, 3))
+            row.update(particles=particles, particles_big=particles_big, sensor_model=model.name,
+                       state=[v.name for v in bound.state],
+                       points_or_zones=int(icp.clouds[step].shape[0]) if model.name == "icp_score"
+                       else int(problem.valid[step].sum()))
+            row["estimate_s"] = _estimate_times(est, problem, repeat)
+        elif name == "gtsam_smoother":
+            g = bench_gtsam_smoother(est, problem, repeat)
+            row.update(g, update_s_10000=None, estimate_s={str(k): g[f"k{k}_s"] for k in (1, 5, 10)})
+        else:
+            row["estimate_s"] = _estimate_times(est, problem, repeat)
+            row.update(update_s=row["estimate_s"]["1"], update_s_10000=None)
+        doc["estimators"][name] = row
+        rep.note(f"{name}: one update {1e3 * row['update_s']:.1f} ms")
+        tick()
+
+    # Embree alone on the beam filter's own rays
+    if "beam_pf" in pf_names:
+        bound = ESTIMATORS.load("beam_pf")().make_sensor_model().bind(problem)
+        x = _states(bound, particles, problem)
+        rays = bound.rays.ray_buffer(x[:, :3], bound.n_steps - 1, bound.column(x, "support_yaw"))
+        reach = bound.rays.caster.max_ray_length
+        problem.map.raycast_distance(rays, reach)
+        cast = _median_time(lambda: problem.map.raycast_distance(rays, reach), repeat)
+        doc["raycast"] = {"rays": int(np.prod(rays.shape[:-1])), "raycast_s": cast,
+                          "beam_over_raycast": doc["estimators"]["beam_pf"]["update_s"] / cast}
+        rep.note(f"ray cast of the beam update's {doc['raycast']['rays']} rays: {1e3 * cast:.1f} ms "
+                 f"(beam update {doc['raycast']['beam_over_raycast']:.1f}x that)")
+    tick()
+    doc["peak_rss_mb"] = {}
+    doc["peak_rss_baseline_mb"] = {}
+    for name in pf_names:
+        r = _peak_rss(name, particles_big)
+        doc["peak_rss_mb"][name] = r["peak_rss_mb"]
+        doc["peak_rss_baseline_mb"][name] = r["baseline_mb"]
+        rep.note(f"{name}: peak RSS {r['peak_rss_mb']:.0f} MB for one update of {particles_big} particles "
+                 f"({r['baseline_mb']:.0f} MB before it)")
+    tick()
+    doc["gtsam"] = _bench_gtsam_factors(problem, repeat)
+    rep.note(f"gtsam_smoother k = 10: stacked {1e3 * doc['gtsam']['stacked_factor_s']:.0f} ms, per-sample factors "
+             f"{1e3 * doc['gtsam']['per_sample_factor_s']:.0f} ms ({doc['gtsam']['speedup']:.2f}x)")
+    tick()
+    doc["parallel"] = bench_parallel(list(parallel_estimators) if parallel_estimators is not None else names,
+                                     parallel_trials, parallel_k)
+    rep.note(f"paper run: 1 worker {doc['parallel']['workers_1_s']:.1f} s, 2 workers {doc['parallel']['workers_2_s']:.1f} s "
+             f"({doc['parallel']['speedup']:.2f}x)")
+    tick()
+    return doc

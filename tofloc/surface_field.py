@@ -1,0 +1,149 @@
+"""The signed distance to a map's surface, sampled once per map on a grid.
+
+At every node of a regular grid of ``cell`` metres: the *signed* distance to the
+surface, positive on the side the surface normal points to, clipped to ``+-r_field``,
+stored as int16 codes; a query is trilinearly interpolated (a signed field interpolates a
+plane exactly; an unsigned one would round off the V at the surface). The surface is the
+triangles of a mesh map (or of the mesh attached to a cloud,
+:meth:`tofloc.maps.Map.with_surface`), or for a point-cloud map the same surfels
+:meth:`tofloc.maps.Map.raycast` casts against (discs of radius ``surfel_radius`` around
+each point, perpendicular to its normal; the disc of the nearest point is used). Unlike
+:class:`tofloc.distance_grid.DistanceGrid` (distances to the nearest map *point*, which
+on the 2000-point cuboid map is up to ~2 cm off a wall), this field measures the distance
+to the surface.
+
+Built once per (map content, cell, r_field) and process by :func:`surface_field_for`
+(:func:`tofloc.map_cache.per_map`, which also ships it to worker processes). The
+likelihood-field model (:mod:`sensor_models.likelihood_field`) is its user.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tofloc import numba_kernels
+
+__all__ = ["SurfaceField", "surface_field_for", "MAX_FIELD_CELLS"]
+
+#: Largest field grid (cells, int16 each); the cell grows beyond it.
+MAX_FIELD_CELLS = 16_000_000
+#: Field nodes computed per batch (bounds the memory of a build).
+_FIELD_CHUNK = 1_000_000
+
+
+class SurfaceField:
+    """Signed distance to a map's surface sampled on a grid, clipped to ``+-r_field``.
+
+    Parameters
+    ----------
+    the_map : tofloc.maps.Map
+    cell : float
+        Grid step (m); grown by 25 % steps while the grid exceeds :data:`MAX_FIELD_CELLS`.
+    r_field : float
+        Distances are clipped to this (m); the grid spans the map's bounds grown by it.
+    """
+
+    def __init__(self, the_map: Any, cell: float, r_field: float) -> None:
+        lo, hi = (np.asarray(b, dtype=float) for b in the_map.bounds())
+        lo = lo - r_field - cell
+        hi = hi + r_field + cell
+        while np.prod(np.ceil((hi - lo) / cell) + 1) > MAX_FIELD_CELLS:
+            cell *= 1.25
+        self.cell = float(cell)
+        self.r_field = float(r_field)
+        self.lo = lo
+        self.shape = tuple(int(n) for n in np.ceil((hi - lo) / cell).astype(int) + 1)
+        axes = [lo[i] + np.arange(self.shape[i]) * cell for i in range(3)]
+        #: int16 codes of the signed distance: ``code * r_field / 32767`` metres
+        self.scale = self.r_field / 32767.0
+        values = np.empty(int(np.prod(self.shape)), dtype=np.int16)
+        ny, nz = self.shape[1], self.shape[2]
+        for start in range(0, values.size, _FIELD_CHUNK):  # batches of nodes (memory), not a loop per node
+            flat = np.arange(start, min(start + _FIELD_CHUNK, values.size))
+            ix, rest = np.divmod(flat, ny * nz)
+            iy, iz = np.divmod(rest, nz)
+            nodes = np.stack([axes[0][ix], axes[1][iy], axes[2][iz]], axis=-1)
+            values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field) / self.scale).astype(np.int16)
+        self.values = values.reshape(self.shape)
+
+    def distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Unsigned distance ``(...)`` of points ``(..., 3)`` (trilinear; ``r_field`` outside the grid)."""
+        return np.abs(self.signed_distance(query))
+
+    def signed_distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Signed distance ``(...)`` of points ``(..., 3)``, positive on the free side of the
+        surface (trilinear, clipped to ``+-r_field``; ``+r_field`` outside the grid).
+
+        One fused pass per point with the compiled kernel
+        (:func:`tofloc.numba_kernels.trilinear_int16`) when numba is available, else numpy;
+        both give the same bits."""
+        q = np.asarray(query, dtype=float)
+        if numba_kernels.enabled():
+            flat = np.ascontiguousarray(q.reshape(-1, 3))
+            out = np.empty(flat.shape[0])
+            numba_kernels.trilinear_int16(flat, np.ascontiguousarray(self.lo, dtype=float), 1.0 / self.cell,
+                                          np.asarray(self.shape, dtype=np.int64), self.values.reshape(-1), self.scale,
+                                          self.r_field, out)
+            return out.reshape(q.shape[:-1])
+        return self._signed_distance_numpy(q)
+
+    def _signed_distance_numpy(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
+        shape = q.shape[:-1]
+        u = ((q.reshape(-1, 3) - self.lo) * (1.0 / self.cell)).astype(np.float32)
+        n = np.asarray(self.shape)
+        inside = np.all((u >= 0) & (u < (n - 1).astype(np.float32)), axis=1)
+        u[~inside] = 0.0
+        i = u.astype(np.int32)
+        f = u - i
+        ny, nz = self.shape[1], self.shape[2]
+        base = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
+        v = self.values.ravel()
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+
+        # trilinear on the int16 codes (linear: scaled to metres once at the end); along z,
+        # then y, then x (the 8 corners as 8 gathers)
+        def along_z(off: int) -> NDArray[np.float32]:
+            a = v[base + off].astype(np.float32)
+            return a + fz * (v[base + off + 1].astype(np.float32) - a)
+
+        c0 = along_z(0)
+        c0 += fy * (along_z(nz) - c0)
+        c1 = along_z(ny * nz)
+        c1 += fy * (along_z(ny * nz + nz) - c1)
+        c0 += fx * (c1 - c0)
+        return np.where(inside, c0 * np.float32(self.scale), np.float32(self.r_field)).astype(float).reshape(shape)
+
+
+def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
+    """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field`` (a
+    cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's)."""
+    if the_map.kind == "mesh" or getattr(the_map, "surface", None) is not None:
+        closest, normal = the_map.closest_surface_point(nodes)
+        diff = nodes - closest
+        dist = np.linalg.norm(diff, axis=1)
+        side = np.sign(np.einsum("ij,ij->i", np.nan_to_num(normal), diff))
+        side[side == 0] = 1.0
+        return np.clip(side * dist, -r_field, r_field)
+    R = float(the_map.surfel_radius)
+    tree = the_map._kdtree()
+    d, idx = tree.query(nodes, k=1, distance_upper_bound=r_field + R)
+    out = np.full(nodes.shape[0], r_field)
+    near = np.isfinite(d)
+    diff = nodes[near] - the_map.points[idx[near]]
+    nrm = the_map.normals[idx[near]]
+    s = np.einsum("ij,ij->i", diff, nrm)
+    tangential = np.linalg.norm(diff - s[:, None] * nrm, axis=1)
+    disc = np.sqrt(s * s + np.maximum(tangential - R, 0.0) ** 2)
+    out[near] = np.where(s >= 0, 1.0, -1.0) * disc
+    return np.clip(out, -r_field, r_field)
+
+
+def surface_field_for(the_map: Any, cell: float, r_field: float) -> SurfaceField:
+    """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and
+    process (:func:`tofloc.map_cache.per_map`)."""
+    from tofloc.map_cache import per_map
+
+    return per_map(the_map, "surface_field", (float(cell), float(r_field)), lambda: SurfaceField(the_map, cell, r_field))
