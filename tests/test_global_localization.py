@@ -220,6 +220,36 @@ def test_recovery_parameters_are_checked() -> None:
         LikelihoodFieldPF(min_particles=500, max_particles=100)
 
 
+def test_found_is_summarized_and_tabled_for_the_global_mode() -> None:
+    from evaluation.report import found_summary, global_markdown
+
+    recs = [{"found": True, "truth_mode": 0, "runtime_s": 2.0}, {"found": False, "truth_mode": 1, "runtime_s": 4.0},
+            {"found": False, "truth_mode": None, "runtime_s": 9.0}, {"found": None, "truth_mode": None}]
+    hits = found_summary(recs)
+    assert hits == {"n": 3, "found": 1, "truth_in_modes": 2, "runtime_s_median": 4.0}
+    doc = {"results": {"beam_pf": {"mocap": {"global": {"overall": {"found": hits}}, "offset": {"overall": {"found": hits}}}}}}
+    lines = global_markdown(doc)
+    assert lines and sum(line.startswith("| beam_pf |") for line in lines) == 1
+    assert "| beam_pf | mocap | 1 / 3 (33 %) | 2 / 3 (67 %) | 4.0 |" in lines
+    assert global_markdown({"results": {"beam_pf": {"mocap": {"offset": {"overall": {"found": hits}}}}}}) == []
+
+
+def test_warm_up_builds_a_global_priors_free_space_for_the_workers() -> None:
+    """warm_caches makes each group's first prior with the map: a global prior's free space
+    is then in the bundle the workers get (and no warm-up is skipped for want of a map)."""
+    from evaluation.executors import warm_caches
+    from evaluation.trials import TrialContext, make_tasks, sample_pool
+    from test_protocol import CountsGridBuilds, small_log
+    from tofloc import map_cache
+
+    log = small_log(K=12)
+    the_map = Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0))
+    ctx = TrialContext(log, the_map, sample_pool(log, None, 1))
+    tasks = make_tasks("g", "test_counts_grid_builds", CountsGridBuilds, {}, "mocap", PriorSpec("global"), [1], 2, 0)
+    map_cache.clear()
+    assert "free_space" in warm_caches(ctx, tasks).kinds()
+
+
 # -- the simulated paper scenario and the CLI --------------------------------------------------------
 
 
