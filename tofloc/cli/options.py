@@ -25,7 +25,7 @@ def parse_prior_mode(text: str, option: str = "--prior-mode") -> str:
 
     mode = text.strip()
     if mode not in ALL_PRIOR_MODES:
-        raise ParameterError(f"{option} must be one of {', '.join(ALL_PRIOR_MODES)}, got {text!r}")
+        raise ParameterError(f"{option}: the prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {text!r}")
     return mode
 
 
