@@ -372,8 +372,9 @@ def is_failure(record: Mapping[str, Any]) -> bool:
 
 def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """``n``, median and mean of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
-    ``failure_rate`` (:func:`is_failure`), ``nees`` and ``nees_exact_truth`` (mean, median,
-    n: the trials with a defined NEES; see the module doc) and the median ``runtime_s``
+    ``failure_rate`` (:func:`is_failure`), ``nees``, ``nees_exact_truth`` and ``nees_model``
+    (mean, median, n: the trials with a defined NEES; see the module doc), ``widened`` (trials
+    whose fit check failed, their covariance widened by the prior's) and the median ``runtime_s``
     (those the records have)."""
     n = len(records)
     fails = sum(is_failure(r) for r in records)
@@ -388,6 +389,10 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         out["nees"] = summarize(_values(records, "nees"), keys=("mean", "median", "n"))
     if any("nees_exact_truth" in r for r in records):
         out["nees_exact_truth"] = summarize(_values(records, "nees_exact_truth"), keys=("mean", "median", "n"))
+    if any("nees_model" in r for r in records):
+        out["nees_model"] = summarize(_values(records, "nees_model"), keys=("mean", "median", "n"))
+    if any("covariance_widened" in r for r in records):
+        out["widened"] = int(sum(bool(r.get("covariance_widened")) for r in records))
     if any("runtime_s" in r for r in records):
         out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
     return out

@@ -22,12 +22,14 @@ def _f(v: Any, fmt: str, scale: float = 1.0) -> str:
 def _row(name: str, s: Mapping[str, Any]) -> str:
     nees = s.get("nees") or {}
     exact = s.get("nees_exact_truth") or {}
+    model = s.get("nees_model") or {}
+    wid = s.get("widened")
     rt = (s.get("runtime_s") or {}).get("median")
     fails = f"{s['failures']}/{s['n']} ({_f(s['failure_rate'], '.0%')})"
     return (f"| {name} | {_f(s['e_x_m']['median'], '.1f', 1000)} | {_f(s['e_gamma_deg']['median'], '.2f')} | "
             f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
             f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(exact.get('mean'), '.2f')} | "
-            f"{_f(rt, '.2f')} |")
+            f"{'n/a' if wid is None else wid} | {_f(model.get('mean'), '.2f')} | {_f(rt, '.2f')} |")
 
 
 def _span(v: Any, fmt: str) -> str:
@@ -63,17 +65,20 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         f"(sigma {prior['sigma_xy_m']} m, {prior['sigma_yaw_deg']} deg), the log's own configurations "
         f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
-        "NEES: 3 for a consistent estimator (chi2(3)); runtime: median seconds per trial.",
+        "NEES: 3 for a consistent estimator (chi2(3)); an estimate whose data do not fit the map (the fit check, "
+        "tofloc/fit_check.py) has the prior's covariance added to its own (flagged column); the last NEES column "
+        "is the estimator's own covariance before that; runtime: median seconds per trial.",
         truth_sentence(doc),
         "",
         "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "
-        "NEES mean | NEES median | NEES vs exact truth (mean) | runtime (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "NEES mean | NEES median | NEES vs exact truth (mean) | flagged (covariance widened) | "
+        "NEES of the model's covariance (mean) | runtime (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in ests:
         lines.append(_row(e, doc["summary"][e]))
     o = doc["oracle_summary"]
-    lines.append(_row("**oracle floor**", {**o, "nees": None, "nees_exact_truth": None, "runtime_s": None}))
+    lines.append(_row("**oracle floor**", {**o, "nees": None, "nees_exact_truth": None, "nees_model": None, "widened": None, "runtime_s": None}))
     lines += [
         "",
         f"Oracle floor: a robust registration of each trial's zones to the map started at the true pose "

@@ -424,7 +424,7 @@ class TrialOutcome:
 def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     """Draw a trial's samples and prior, run its estimator and check the fit (the work of
     :func:`run_trial`; also used to re-run one trial for a plot: same seed, same numbers)."""
-    from tofloc.fit_check import check_fit
+    from tofloc.fit_check import check_fit, widen_if_unfit
 
     idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
     truth_T = context.truth(idx)
@@ -438,6 +438,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     result = est.estimate(problem, est_rng)
     if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
         result.fit = check_fit(problem, result)
+        widen_if_unfit(problem, result)  # a flagged estimate's covariance is widened by the prior's
     return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration)
 
 
@@ -453,7 +454,9 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         estimate's covariance plus the truth's declared one, ``truth_covariance`` (3x3,
         :meth:`TrialContext.truth_covariance`), when the log declares it),
         ``nees_exact_truth`` (the truth taken as exact: equal to ``nees`` when the log
-        declares no truth covariance), ``runtime_s`` (the
+        declares no truth covariance), ``nees_model`` (``nees`` with the estimator's own
+        covariance, before :func:`tofloc.fit_check.widen_if_unfit`), ``covariance_widened``
+        (whether the fit check failed and the prior's covariance was added), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up), ``setup_s`` (the
         one-off set-up this trial paid before it ran: :func:`warm_up`; 0 for every trial
         but the first of its estimator, parameters and map in a process),
@@ -488,6 +491,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "e_gamma_deg": None,
         "nees": None,
         "nees_exact_truth": None,
+        "nees_model": None,
+        "covariance_widened": bool(result.fit is not None and not result.fit.ok),
         "truth_covariance": None,
         "runtime_s": float(result.runtime_s),
         "setup_s": float(out.setup_s),
@@ -506,10 +511,13 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         record["nees_exact_truth"] = record["nees"] = json_float(nees(truth, result.pose, result.covariance))
         record["found"] = bool(found(truth, result.pose))
         record["truth_mode"] = truth_mode_index(truth, [m.mean for m in modes])
+        C_model = np.asarray(result.diagnostics.get("model_covariance", result.covariance), dtype=float)
+        record["nees_model"] = json_float(nees(truth, result.pose, C_model))
         P_truth = context.truth_covariance(idx)
         if P_truth is not None:
             record["truth_covariance"] = jsonable(P_truth)
             record["nees"] = json_float(nees(truth, result.pose, np.asarray(result.covariance, dtype=float) + P_truth))
+            record["nees_model"] = json_float(nees(truth, result.pose, C_model + P_truth))
         if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
             from evaluation.crlb import crlb_for_problem
 

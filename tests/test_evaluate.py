@@ -142,6 +142,8 @@ def test_nees_uses_a_declared_truth_covariance(logs: list[Path], tmp_path: Path)
         assert r["nees"] == pytest.approx(e @ np.linalg.solve(P + P_truth, e), rel=1e-9)
         assert r["nees_exact_truth"] == pytest.approx(e @ np.linalg.solve(P, e), rel=1e-9)
         assert r["nees"] < r["nees_exact_truth"]
+        P_model = np.array(r["covariance"]) - (np.diag([0.2, 0.2, np.radians(20.0)]) ** 2 if r["covariance_widened"] else 0.0)
+        assert r["nees_model"] == pytest.approx(e @ np.linalg.solve(P_model + P_truth, e), rel=1e-6)
     plain = doc["logs"]["l_room"]["estimators"]["beam_pf"]["records"]
     assert all(r["nees"] == r["nees_exact_truth"] for r in plain)
     s = doc["summary"]["beam_pf"]
@@ -157,8 +159,10 @@ def test_nees_uses_a_declared_truth_covariance(logs: list[Path], tmp_path: Path)
     assert "The truth is uncertain: 1 of 2 log(s) declare it" in table and "yaw 1.36 deg" in table
     row = next(line for line in table.splitlines() if line.startswith("| beam_pf |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert len(cells) == 10 and float(cells[6]) == pytest.approx(s["nees"]["mean"], abs=0.006)
+    assert len(cells) == 12 and float(cells[6]) == pytest.approx(s["nees"]["mean"], abs=0.006)
     assert float(cells[8]) == pytest.approx(s["nees_exact_truth"]["mean"], abs=0.006)
+    assert int(cells[9]) == s["widened"] == sum(r["covariance_widened"] for r in every)
+    assert float(cells[10]) == pytest.approx(s["nees_model"]["mean"], abs=0.006)
     assert (out / "nees.png").stat().st_size > 0
 
 
@@ -413,13 +417,14 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     for lg in doc["logs"].values():
         assert lg["k"] == 15 and lg["configuration_source"] == "odometry" and "without-drone" in lg["map"]
     o = doc["oracle_summary"]
-    # measured: per log 10.1, 13.3, 50.1 and 37.2 mm (every trial uses all 15 samples, so a
-    # log's trials share one floor), median 25.2 mm and 0.72 deg: a few centimetres, as the
+    # measured (scan maps with carving and line fit, zones weighed by their configuration's
+    # uncertainty): per log 11.8, 34.8, 66.3 and 23.7 mm (every trial uses all 15 samples, so a
+    # log's trials share one floor), median 29.2 mm and 1.05 deg: a few centimetres, as the
     # maps' gaps, their 2 cm grid and the odometry's errors let expect (docs/real-data.md)
-    assert 0.020 < o["e_x_m"]["median"] < 0.030, o
-    assert 0.5 < o["e_gamma_deg"]["median"] < 1.0 and o["not_converged"] == 0
+    assert 0.020 < o["e_x_m"]["median"] < 0.040, o
+    assert 0.5 < o["e_gamma_deg"]["median"] < 1.5 and o["not_converged"] == 0
     per_log = [lg["oracle"]["summary"]["e_x_m"]["median"] for lg in doc["logs"].values()]
-    assert min(per_log) > 0.005 and max(per_log) < 0.06, per_log
+    assert min(per_log) > 0.005 and max(per_log) < 0.08, per_log
 
 
 def test_one_dask_scatter_for_several_logs_matches_inline(run: dict) -> None:

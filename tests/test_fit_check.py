@@ -21,6 +21,7 @@ from tofloc.fit_check import (
     configuration_variance,
     fit_statistics,
     nuisance_means,
+    widen_if_unfit,
     zone_residuals,
 )
 from tofloc.maps import Map
@@ -175,6 +176,25 @@ def test_truth_passes_a_lost_estimate_and_a_wrong_map_are_flagged(sim: dict) -> 
     assert not off.ok
 
 
+def test_a_flagged_estimate_gets_the_priors_covariance_added(sim: dict) -> None:
+    """The covariance promise: an estimate whose data do not fit keeps its pose and has the
+    prior's covariance added; a good one is untouched; the model's is kept for comparison."""
+    C = np.diag([1e-6, 2e-6, 3e-6])
+    good = Estimate(pose=sim["truth"], covariance=C)
+    good.fit = check_fit(sim["problem"], good)
+    assert not widen_if_unfit(sim["problem"], good)
+    np.testing.assert_array_equal(good.covariance, C)
+    np.testing.assert_array_equal(good.diagnostics["model_covariance"], C)
+    lost = Estimate(pose=np.array([3.0, 3.0, 0.0]), covariance=C)
+    lost.fit = check_fit(sim["problem"], lost)
+    assert widen_if_unfit(sim["problem"], lost)
+    np.testing.assert_allclose(lost.covariance, C + sim["problem"].prior.covariance)
+    np.testing.assert_array_equal(lost.pose, [3.0, 3.0, 0.0])
+    np.testing.assert_array_equal(lost.diagnostics["model_covariance"], C)
+    unchecked = Estimate(pose=sim["truth"], covariance=C)
+    assert not widen_if_unfit(sim["problem"], unchecked)
+
+
 def test_the_thresholds_procedure_reproduces_on_a_small_library(tmp_path: Path) -> None:
     """The procedure that set the constants (evaluation/fit_thresholds.py), re-run on one
     scene: no good estimate exceeds the constants, and the derivation takes the quantile."""
@@ -209,6 +229,9 @@ def test_localize_records_fit_modes_and_warns(sim: dict, tmp_path: Path, capsys:
     for t in doc["trials"]:
         assert {"ok", "statistic", "threshold", "outlier_fraction", "reason"} <= set(t["fit"])
         assert t["fit"]["ok"] is False and t["fit"]["reason"]
+        assert t["covariance_widened"] is True  # the prior's covariance added: the data did not establish the pose
+        sxy, syaw = doc["prior"]["sigma_xy_m"], math.radians(doc["prior"]["sigma_yaw_deg"])
+        assert np.all(np.diag(t["covariance"]) >= np.array([sxy, sxy, syaw]) ** 2)
         assert isinstance(t["ambiguous"], bool) and t["modes"]
         assert abs(sum(m["weight"] for m in t["modes"]) - 1.0) < 1e-9
         assert np.asarray(t["modes"][0]["covariance"]).shape == (3, 3) and len(t["modes"][0]["mean"]) == 3

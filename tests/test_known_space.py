@@ -37,6 +37,44 @@ def test_queries_and_entry_distance() -> None:
     assert np.isinf(ks.unknown_entry(np.array([0.0, 0.0, 0.5]), np.array([1.0, 0.0, 0.0]), np.array(0.9)))
 
 
+def _march(ks: KnownSpace, o: np.ndarray, d: np.ndarray, tm: np.ndarray) -> np.ndarray:
+    """The plain march the clearance jumps must reproduce: every half cell, first unknown sample."""
+    h = ks.cell / 2
+    t = np.arange(int(math.ceil(tm.max() / h)) + 1) * h
+    unknown = ~ks.is_known(o[:, None, :] + t[None, :, None] * d[:, None, :]) & (t[None, :] <= tm[:, None])
+    first = np.argmax(unknown, axis=1)
+    return np.where(unknown[np.arange(len(o)), first], t[first], np.inf)
+
+
+def test_entry_distance_agrees_with_a_plain_half_cell_march() -> None:
+    """Random holes, rays from anywhere (inside and outside the grid, across the height
+    limits): the boundary ray cast finds each crossing the march finds, at most half a cell
+    before the march's first unknown sample; the march alone misses a corner a ray only
+    clips between two samples (rare)."""
+    rng = np.random.default_rng(3)
+    known = rng.random((120, 90)) > 0.03
+    known[40:60, 30:50] = False
+    ks = KnownSpace(np.array([-1.2, -0.9]), 0.02, np.array([0.1, 0.9]), known)
+    n = 3000
+    o = np.column_stack([rng.uniform(-1.4, 1.4, n), rng.uniform(-1.0, 1.0, n), rng.uniform(0.0, 1.0, n)])
+    d = rng.normal(size=(n, 3)) * [1, 1, 0.2]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tm = rng.uniform(0.0, 3.0, n)
+    fast, slow = ks.unknown_entry(o, d, tm), _march(ks, o, d, tm)
+    both = np.isfinite(fast) & np.isfinite(slow)
+    assert not np.any(np.isinf(fast) & np.isfinite(slow))  # never misses what the march sees
+    assert np.all(fast[both] <= slow[both] + 1e-5)  # the crossing comes before the first unknown sample
+    assert np.mean(slow[both] - fast[both] <= ks.cell / 2 + 1e-5) > 0.95  # the rest: cells the march stepped over
+    assert np.mean(np.isfinite(fast) & np.isinf(slow)) < 0.03  # corners only the exact cast sees
+    hit = np.isfinite(fast) & (fast > 0)
+    just_after = ks.is_known(o[hit] + (fast[hit] + 1e-6)[:, None] * d[hit])
+    just_before = ks.is_known(o[hit] + (fast[hit] - 1e-6)[:, None] * d[hit])
+    assert np.mean(~just_after & just_before) > 0.99  # each answer is a crossing from known into unknown
+    assert both.mean() > 0.3 and np.isinf(fast).mean() > 0.05  # both outcomes exercised
+    start_unknown = ~ks.is_known(o) & (tm > 0)
+    assert start_unknown.any() and np.all(fast[start_unknown] == 0.0)
+
+
 def test_file_round_trip_map_sidecar_and_fingerprint(tmp_path: Path) -> None:
     wall = Map.from_points(np.column_stack([np.full(50, 1.0), np.linspace(-0.5, 0.5, 50), np.full(50, 0.5)]),
                            np.tile([-1.0, 0.0, 0.0], (50, 1)))

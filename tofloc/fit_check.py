@@ -40,6 +40,16 @@ recorded (``ess_fraction``), and so is an evidence the diagnostics carry
 (``log_evidence``), but neither decides: after resampling and annealing the ESS says how
 the filter spent its particles, and the evidence's scale depends on the model's
 tempering; neither says on its own whether the map explains the data.
+
+A covariance is a promise, and an estimate whose data do not fit the map cannot keep it:
+the model's covariance measures the curvature of a likelihood the data contradict (on
+the nano-swarm recordings every estimate off by more than 10 cm or 10 deg was flagged,
+with reported sigmas of a few millimetres: NEES in the thousands).
+:func:`widen_if_unfit` therefore adds the prior's covariance to a flagged estimate's:
+the data did not establish the pose, so it is known at best as well as before them. The
+pose is unchanged; the model's own covariance stays in
+``estimate.diagnostics["model_covariance"]``. The callers that fill ``Estimate.fit``
+apply it (offline trials, live localization, the API).
 """
 
 from __future__ import annotations
@@ -68,6 +78,7 @@ __all__ = [
     "zone_residuals",
     "fit_statistics",
     "check_fit",
+    "widen_if_unfit",
     "nuisance_means",
 ]
 
@@ -325,3 +336,33 @@ def check_fit(problem: Any, estimate: Any, *, threshold: float = STATISTIC_THRES
         reasons.append(f"mean capped squared residual {stat:.2f} > {threshold:.2f}")
     return FitCheck(not reasons, stat, float(threshold), frac, float(outlier_threshold), n, n_mis, "; ".join(reasons), ess,
                     evidence)
+
+
+def widen_if_unfit(problem: Any, estimate: Any) -> bool:
+    """Add the prior's covariance to ``estimate.covariance`` when its fit check failed.
+
+    Parameters
+    ----------
+    problem : tofloc.problem.Problem
+        The problem the estimate answers (its ``prior.covariance`` is added).
+    estimate : tofloc.problem.Estimate
+        With ``fit`` filled by :func:`check_fit`; modified in place. Its covariance before
+        widening is kept in ``diagnostics["model_covariance"]`` (always, so that the two
+        can be compared).
+
+    Returns
+    -------
+    bool
+        Whether the covariance was widened (``fit`` present and not ok).
+    """
+    cov = np.asarray(estimate.covariance, dtype=float)
+    if isinstance(getattr(estimate, "diagnostics", None), dict):
+        estimate.diagnostics["model_covariance"] = cov.copy()
+    fit = getattr(estimate, "fit", None)
+    if fit is None or fit.ok:
+        return False
+    P = np.asarray(problem.prior.covariance, dtype=float)
+    if P.shape != (3, 3) or not np.all(np.isfinite(P)):
+        raise ParameterError(f"widen_if_unfit: the prior's covariance must be a finite 3x3 matrix, got {P!r}")
+    estimate.covariance = cov + P
+    return True

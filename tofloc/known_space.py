@@ -25,6 +25,7 @@ import math
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -100,9 +101,58 @@ class KnownSpace:
         j = np.where(inside, ij[..., 1], 0)
         return inside & self.known[i, j]
 
+    def _boundary_scene(self) -> Any:
+        """An Open3D ray-casting scene of the known space's boundary (cached): a vertical
+        quad on every edge between a known and an unknown cell (the grid's outside counts
+        as unknown), from ``z_range[0]`` to ``z_range[1]``, and the two horizontal planes at
+        those heights over the grid."""
+        scene = self.__dict__.get("_scene")
+        if scene is None:
+            import open3d as o3d
+
+            k = np.pad(self.known, 1, constant_values=False)
+            (x0, y0), c = self.origin - self.cell, self.cell  # corner of the padded grid
+            zlo, zhi = (float(v) for v in self.z_range)
+            quads = []
+            # edges between cells (i, j) and (i + 1, j): the plane x = x0 + (i + 1) c
+            i, j = np.nonzero(k[:-1, :] != k[1:, :])
+            x = x0 + (i + 1) * c
+            quads.append(np.stack([np.column_stack([x, y0 + j * c]), np.column_stack([x, y0 + (j + 1) * c])], axis=1))
+            i, j = np.nonzero(k[:, :-1] != k[:, 1:])
+            y = y0 + (j + 1) * c
+            quads.append(np.stack([np.column_stack([x0 + i * c, y]), np.column_stack([x0 + (i + 1) * c, y])], axis=1))
+            seg = np.concatenate(quads)  # (n, 2 ends, xy)
+            n = len(seg)
+            v = np.empty((n, 4, 3))
+            v[:, 0, :2], v[:, 1, :2], v[:, 2, :2], v[:, 3, :2] = seg[:, 0], seg[:, 1], seg[:, 1], seg[:, 0]
+            v[:, :2, 2], v[:, 2:, 2] = zlo, zhi
+            nx, ny = k.shape
+            x1, y1 = x0 + nx * c, y0 + ny * c
+            caps = np.array([[[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]] for z in (zlo, zhi)])
+            v = np.concatenate([v, caps]).reshape(-1, 3).astype(np.float32)
+            base = np.arange(n + 2, dtype=np.uint32)[:, None] * 4
+            tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.uint32)
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(tris))
+            self.__dict__["_scene"] = scene
+        return scene
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_scene", None)  # rebuilt on first use (cheap)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
     def unknown_entry(self, origins: ArrayLike, directions: ArrayLike, max_t: ArrayLike) -> NDArray[np.float64]:
         """Distance along each ray to where it first enters unknown space (``inf`` when it
-        stays in known space up to ``max_t``), sampled every half cell.
+        stays in known space up to ``max_t``; 0 when it starts there).
+
+        One Embree ray cast against the known space's boundary (:meth:`_boundary_scene`):
+        the first crossing of a known/unknown cell edge or of a height limit. A plain march
+        in half-cell steps gives the same distance to within half a cell (tested), at
+        hundreds of lookups per ray instead of one cast.
 
         Parameters
         ----------
@@ -112,30 +162,24 @@ class KnownSpace:
         max_t : array (...)
             How far to look along each ray (m).
         """
+        import open3d as o3d
+
+        from tofloc.threads import open3d_threads
+
         o = np.asarray(origins, dtype=float)
         d = np.asarray(directions, dtype=float)
         tmax = np.asarray(max_t, dtype=float)
         shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], tmax.shape)
-        o = np.broadcast_to(o, shape + (3,)).reshape(-1, 3)
-        d = np.broadcast_to(d, shape + (3,)).reshape(-1, 3)
+        rays = np.empty(shape + (6,), dtype=np.float32)
+        rays[..., :3] = o
+        rays[..., 3:] = d
+        rays = rays.reshape(-1, 6)
         tm = np.broadcast_to(tmax, shape).reshape(-1)
-        out = np.full(o.shape[0], np.inf)
-        finite = np.isfinite(tm) & (tm > 0)
-        if not finite.any():
-            return out.reshape(shape)
-        step = self.cell / 2.0
-        n_steps = int(math.ceil(float(tm[finite].max()) / step)) + 1
-        todo = np.flatnonzero(finite)
-        chunk = max(1, 4_000_000 // n_steps)  # bounded temporaries, each chunk vectorized
-        for a in range(0, todo.size, chunk):
-            idx = todo[a:a + chunk]
-            t = (np.arange(n_steps) * step)[None, :]
-            q = o[idx, None, :] + t[..., None] * d[idx, None, :]
-            unknown = ~self.is_known(q) & (t <= tm[idx, None])
-            first = np.argmax(unknown, axis=1)
-            hit = unknown[np.arange(idx.size), first]
-            out[idx] = np.where(hit, first * step, np.inf)
-        return out.reshape(shape)
+        ans = self._boundary_scene().cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=open3d_threads())
+        t = ans["t_hit"].numpy().astype(np.float64)
+        t[~self.is_known(rays[:, :3].astype(np.float64))] = 0.0
+        t[~((t <= tm) & (tm > 0))] = np.inf
+        return t.reshape(shape)
 
     # -- identity and files --------------------------------------------------------------------
     def fingerprint_bytes(self) -> bytes:

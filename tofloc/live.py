@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
-from tofloc.fit_check import check_fit
+from tofloc.fit_check import check_fit, widen_if_unfit
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 from tofloc.problem_builder import build_problem, mm_to_m
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
@@ -166,6 +166,7 @@ class LiveLocalizer:
         except ProblemError as e:
             return LiveUpdate(index, problem.n_samples, None, str(e))
         est.fit = check_fit(problem, est)  # does the window's data fit the map at the estimate?
+        widen_if_unfit(problem, est)  # if not, its covariance is widened by the prior's
         return LiveUpdate(index, problem.n_samples, est, reason)
 
     def run(self, samples: Iterable[Any]) -> Iterator[LiveUpdate]:
