@@ -53,11 +53,16 @@ estimator: starts, the best run, the covariance).
 Solve
 -----
 For every start (the prior mean and ``n_starts - 1`` draws of the prior from the given
-``rng``): associate every zone with the map at the current estimate (gate shrinking from
+``rng``; with a global prior, the ``global_starts`` best distinct basins a coarse search
+of the prior finds, :func:`estimators.global_search.coarse_modes`, and no prior factor
+on ``X``): associate every zone with the map at the current estimate (gate shrinking from
 ``gate_start_m`` to ``gate_m`` over the first rounds), optimize with
 Levenberg-Marquardt, and repeat until the association stops changing (ICP inside the
 factor graph) or ``max_rounds``. The start with the lowest final graph error wins (every
-valid zone contributes to every start's error: gated zones at a constant cost). The
+valid zone contributes to every start's error: gated zones at a constant cost). Every
+start's optimum is in ``diagnostics["starts"]``; its distinct local optima, with relative
+evidence ``exp(-(error - min error))``, are the posterior's modes
+(:func:`tofloc.posterior_modes.modes_from_starts`). The
 covariance of ``(x, y, yaw)`` is ``gtsam.Marginals`` at the solution, rotated from
 Pose2's body-frame tangent space to the map frame. An
 ``IndeterminantLinearSystemException`` (an unconstrained direction) is caught: the
@@ -144,6 +149,11 @@ class GTSAMSmoother(Estimator):
         (the tip poses taken as exact, as the particle filters do).
     incremental : bool
         Use ISAM2, adding samples one at a time.
+    global_candidates : int
+        With a global prior: the prior draws the coarse search scores first
+        (:func:`estimators.global_search.coarse_modes`).
+    global_starts : int
+        With a global prior: the distinct basins the coarse search returns, each a start.
     stacked_factor : bool
         Batch solve: the samples' factors share one stacked evaluation of every zone per
         linearization (default), or each evaluates its own sample (the same cost, slower;
@@ -171,6 +181,8 @@ class GTSAMSmoother(Estimator):
     knn_sigma_rot_deg: float = DEFAULT_KNN_SIGMA_ROT_DEG
     exact_tip_poses: bool = False
     incremental: bool = False
+    global_candidates: int = 20_000
+    global_starts: int = 8
     stacked_factor: bool = True
 
     def __post_init__(self) -> None:
@@ -184,7 +196,8 @@ class GTSAMSmoother(Estimator):
             raise ParameterError(f"information_scale must be in (0, 1], got {self.information_scale!r}")
         if self.gate_start_m < self.gate_m:
             raise ParameterError(f"gate_start_m ({self.gate_start_m}) must be >= gate_m ({self.gate_m})")
-        for n, lo, hi in (("n_starts", 1, 1000), ("n_candidates", 0, 100_000), ("max_rounds", 1, 1000), ("lm_max_iterations", 1, 10000), ("gate_rounds", 0, 100)):
+        for n, lo, hi in (("n_starts", 1, 1000), ("n_candidates", 0, 100_000), ("max_rounds", 1, 1000), ("lm_max_iterations", 1, 10000), ("gate_rounds", 0, 100),
+                          ("global_candidates", 1, 10_000_000), ("global_starts", 1, 1000)):
             check_int(n, getattr(self, n), lo, hi)
         for n in ("incremental", "exact_tip_poses", "stacked_factor"):
             if not isinstance(getattr(self, n), bool):
@@ -193,8 +206,15 @@ class GTSAMSmoother(Estimator):
     def starts(self, problem: Problem, meas: list[SampleMeasurement], rng: np.random.Generator) -> FloatArray:
         """The starts ``(n, 3)``: the best-scoring distinct poses among the prior mean and
         ``n_candidates`` prior draws (truncated mean squared distance of up to 400 zone
-        points, configurations as given, to their nearest map point)."""
+        points, configurations as given, to their nearest map point); with a global prior,
+        the coarse search's best distinct basins (:func:`estimators.global_search.coarse_modes`)."""
         prior = problem.prior
+        if prior.is_global:
+            from estimators.global_search import coarse_modes
+
+            found = coarse_modes(problem, rng, n_candidates=self.global_candidates, tau=self.gate_m,
+                                 n_modes=self.global_starts)
+            return np.array([m.pose for m in found]) if found else prior.sample(1, rng)
         cand = np.vstack([prior.mean[None], prior.sample(self.n_candidates, rng)])
         if cand.shape[0] <= 1:
             return cand

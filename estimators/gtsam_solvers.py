@@ -86,13 +86,14 @@ class SmootherGraph:
         return gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, t, t, t]))
 
     def priors(self) -> Any:
-        """The prior factors of ``X``, every ``C_k``, and ``D``/``B`` when they exist."""
+        """The prior factors of ``X`` (none for a global prior), every ``C_k``, and ``D``/``B`` when they exist."""
         import gtsam
         from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
 
         g = gtsam.NonlinearFactorGraph()
         pr = self.problem.prior
-        g.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*pr.mean), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(pr.sigma))))
+        if not pr.is_global:  # a global prior is uniform: no factor
+            g.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*pr.mean), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(pr.sigma))))
         for k in range(self.problem.n_samples):
             g.add(gtsam.PriorFactorPose3(Ck(k), gtsam.Pose3(np.asarray(self.problem.T_base_tip[k])), self.config_noise(k)))
         if self.use_rig:

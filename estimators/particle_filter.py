@@ -29,10 +29,45 @@ floors ``jitter_xy`` and ``jitter_yaw_deg`` (a nuisance column: its declared
 ``jitter_floor``): the jitter shrinks as the posterior narrows. ``roughening = 0`` gives
 the fixed jitter of the floors.
 
+KLD sampling (Fox 2003), ``kld = "global"`` (the default: with a global prior only),
+``"always"`` or ``"off"``: the particle count adapts at every resampling. A filter started
+from a global prior (uniform over the map's free space and every yaw,
+:meth:`tofloc.problem.Prior.uniform`) draws ``max_particles``; each resampling keeps as
+many as Fox's bound asks for the histogram bins (``kld_bin_xy`` metres by
+``kld_bin_yaw_deg``) the resampled particles occupy, with error ``kld_epsilon`` at
+confidence ``1 - kld_delta`` (:func:`estimators.resampling.kld_resample`), clipped to
+``[min_particles, max_particles]``: many while the posterior is wide, ``min_particles``
+(default ``n_particles``) once it is narrow. Deterministic under the generator. With a
+Gaussian prior and the default ``kld = "global"`` the count stays ``n_particles`` and the
+filter is the fixed-size one it always was.
+
+The estimate (``point_estimate = "best_mode"``, the default): the particles' modes
+(:func:`tofloc.posterior_modes.cluster_poses`, weighted mean shift); with one mode, the
+weighted mean and covariance of every particle (exactly the fixed-size filter's answer);
+with several, the heaviest mode's mean and the covariance of its particles, never the
+average of two modes. The modes are in ``diagnostics["modes"]``. ``"mean"``: the weighted
+mean of every particle (the paper's estimate).
+
+Recovery (AMCL's ``recovery_alpha_slow``/``recovery_alpha_fast``; off by default, both 0):
+before each sample's update the filter takes that sample's average likelihood under the
+current particles, per valid zone so that samples with different zone counts compare,
+``w_avg = exp(logsumexp(log w_i + l_i) / n_valid)``, and keeps a slow and a fast
+exponential average of it (``w_slow += alpha_slow (w_avg - w_slow)``, the same with
+``alpha_fast``; both start at the first ``w_avg``, as AMCL's). When the short-term one drops
+below the long-term one, a fraction ``max(0, 1 - w_fast / w_slow)`` of the particles is
+drawn anew from the *global* prior over the map's free space (``recovery_free_space``,
+:class:`tofloc.free_space.FreeSpace`, or the problem's own prior when it is global), the
+rest resampled from the posterior (with KLD sampling the set is ``max_particles`` large,
+else ``n_particles``), and both averages restart (AMCL resets them to 0). The injected
+particles are then weighted by this and the later samples. For a static base the
+average drops when the posterior sits on a pose that explained the earlier samples but
+not the new one (a wrong prior far from the truth). ``diagnostics["recovery"]`` records
+each sample's ``w_avg`` (log), the averages and the injected count.
+
 The paper's filter (``icp_pf``): 1000 particles from the Gaussian prior with uniform
 weights; per sample the ICP score, systematic resampling at every step and Gaussian
 jitter around the drawn (best-matching) particles; the estimate at k = N is the
-normalized weighted mean (circular mean for the yaw).
+normalized weighted mean (circular mean for the yaw): ``point_estimate = "mean"``.
 """
 
 from __future__ import annotations
@@ -44,13 +79,20 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.resampling import RESAMPLERS, effective_sample_size, normalize_log_weights
+from estimators.global_search import pose_bins
+from estimators.resampling import RESAMPLERS, effective_sample_size, kld_resample, normalize_log_weights
 from sensor_models.base import WEIGHT_UPDATES, SensorModel
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 
-__all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step"]
+__all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step",
+           "KLD_MODES", "POINT_ESTIMATES", "pose_bins"]
+
+#: When the particle count adapts (KLD sampling): with a global prior only, always, never.
+KLD_MODES = ("global", "always", "off")
+#: What the estimate is: the heaviest mode of the particles, or their weighted mean (the paper's).
+POINT_ESTIMATES = ("best_mode", "mean")
 
 
 def weighted_pose_stats(particles: NDArray[np.float64], weights: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -125,6 +167,27 @@ class ParticleFilter(Estimator):
         sample size (0: off; ``"bayes"`` sensor models only).
     max_stages : int
         Most tempered stages per sample.
+    kld : {"global", "always", "off"}
+        When the particle count adapts by KLD sampling (see the module doc).
+    min_particles : int, optional
+        Fewest particles KLD sampling keeps (default: ``n_particles``).
+    max_particles : int
+        Most particles KLD sampling keeps, and the count a global prior starts with (at
+        least the floor: ``n_particles`` above it raises it).
+    kld_epsilon, kld_delta : float
+        Fox's bound: K-L error and 1 - confidence.
+    kld_bin_xy, kld_bin_yaw_deg : float
+        Histogram bins of KLD sampling (m, deg).
+    point_estimate : {"best_mode", "mean"}
+        The estimate: the heaviest mode of the particles, or their weighted mean.
+    recovery_alpha_slow, recovery_alpha_fast : float
+        AMCL's recovery (0, 0: off): ``0 < alpha_slow < alpha_fast <= 1`` injects particles
+        from the global prior when the short-term average likelihood drops below the
+        long-term one (see the module doc).
+    recovery_free_space : tofloc.free_space.FreeSpace, optional
+        Where recovery draws from (the problem's prior when it is global; else required
+        with recovery: the map's free space, :func:`tofloc.free_space.free_space_of`, is
+        drawn at the prior's height when not given).
     """
 
     name: ClassVar[str] = "pf"
@@ -139,9 +202,41 @@ class ParticleFilter(Estimator):
     roughening: float = 0.0
     anneal_ess: float = 0.0
     max_stages: int = 50
+    kld: str = "global"
+    min_particles: int | None = None
+    max_particles: int = 20_000
+    kld_epsilon: float = 0.05
+    kld_delta: float = 0.01
+    kld_bin_xy: float = 0.02
+    kld_bin_yaw_deg: float = 5.0
+    point_estimate: str = "best_mode"
+    recovery_alpha_slow: float = 0.0
+    recovery_alpha_fast: float = 0.0
+    recovery_free_space: Any = None
 
     def __post_init__(self) -> None:
         check_int("n_particles", self.n_particles, 1, 10_000_000)
+        check_in("kld", self.kld, KLD_MODES)
+        check_in("point_estimate", self.point_estimate, POINT_ESTIMATES)
+        if self.min_particles is not None:
+            check_int("min_particles", self.min_particles, 1, 10_000_000)
+        check_int("max_particles", self.max_particles, 1, 10_000_000)
+        if self.min_particles is not None and self.max_particles < self.min_particles:
+            raise ParameterError(f"max_particles ({self.max_particles}) must be >= min_particles ({self.min_particles})")
+        for n, lo, hi in (("kld_epsilon", 1e-4, 1.0), ("kld_delta", 1e-6, 0.5), ("kld_bin_xy", 1e-4, 10.0),
+                          ("kld_bin_yaw_deg", 0.1, 360.0)):
+            v = getattr(self, n)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
+                raise ParameterError(f"{n} must be a number in [{lo:g}, {hi:g}], got {v!r}")
+        for n in ("recovery_alpha_slow", "recovery_alpha_fast"):
+            v = getattr(self, n)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= 1:
+                raise ParameterError(f"{n} must be a number in [0, 1], got {v!r}")
+        if self.recovery and not self.recovery_alpha_slow < self.recovery_alpha_fast:
+            raise ParameterError(f"recovery needs 0 < recovery_alpha_slow < recovery_alpha_fast <= 1 (AMCL's), got "
+                                 f"{self.recovery_alpha_slow!r} and {self.recovery_alpha_fast!r}")
+        if self.recovery_free_space is not None and not hasattr(self.recovery_free_space, "sample"):
+            raise ParameterError("recovery_free_space must be a tofloc.free_space.FreeSpace")
         check_in("resampling", self.resampling, RESAMPLERS)
         check_positive("resample_threshold", self.resample_threshold, strict=False)
         if self.resample_threshold > 1.0:
@@ -161,6 +256,9 @@ class ParticleFilter(Estimator):
         if model.weight_update not in WEIGHT_UPDATES:
             raise ParameterError(f"sensor model {model.name!r}: weight_update must be one of {list(WEIGHT_UPDATES)}, "
                                  f"got {model.weight_update!r}")
+        if self.recovery and model.weight_update != "bayes":
+            raise ParameterError(f"recovery needs a sensor model with weight_update 'bayes'; {model.name!r} has "
+                                 f"{model.weight_update!r}")
         if self.anneal_ess > 0 and model.weight_update != "bayes":
             raise ParameterError(f"anneal_ess > 0 needs a sensor model with weight_update 'bayes'; {model.name!r} "
                                  f"has {model.weight_update!r}")
@@ -184,6 +282,40 @@ class ParticleFilter(Estimator):
     def uses_calibration(self) -> bool:
         return bool(self.make_sensor_model().uses_calibration)
 
+    @property
+    def particles_floor(self) -> int:
+        """The fewest particles KLD sampling keeps (``min_particles``, default ``n_particles``)."""
+        return int(self.n_particles if self.min_particles is None else self.min_particles)
+
+    @property
+    def particles_ceiling(self) -> int:
+        """The most particles KLD sampling keeps (``max_particles``, at least the floor)."""
+        return max(int(self.max_particles), self.particles_floor)
+
+    @property
+    def recovery(self) -> bool:
+        """Whether AMCL's recovery is on (both alphas > 0)."""
+        return self.recovery_alpha_slow > 0 or self.recovery_alpha_fast > 0
+
+    def _resample(self, particles: NDArray[np.float64], w: NDArray[np.float64], floors: NDArray[np.float64],
+                  adapt: bool, rng: np.random.Generator) -> NDArray[np.float64]:
+        """Resample (KLD sampling when ``adapt``: the count follows the posterior's spread) and roughen."""
+        resample = RESAMPLERS[self.resampling]
+        if adapt:
+            bins = pose_bins(particles, self.kld_bin_xy, math.radians(self.kld_bin_yaw_deg))
+            idx = kld_resample(w, bins, rng, resample, self.kld_epsilon, self.kld_delta, self.particles_floor,
+                               self.particles_ceiling)
+        else:
+            idx = resample(w, rng)
+        return self._roughen(particles[idx], floors, rng)
+
+    def _draw(self, prior: Any, n: int, state: tuple[Any, ...], rng: np.random.Generator) -> NDArray[np.float64]:
+        """``n`` states from a prior: its poses, then each declared nuisance from its own prior."""
+        p = prior.sample(n, rng)
+        if state:
+            p = np.column_stack([p, rng.normal(size=(n, len(state))) * np.array([v.sigma for v in state])])
+        return p
+
     def _roughen(self, particles: NDArray[np.float64], floors: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
         """Jitter resampled particles (fixed, or roughening that shrinks with their spread)."""
         M, D = particles.shape
@@ -196,24 +328,69 @@ class ParticleFilter(Estimator):
         out[:, 2] = frames.wrap_angle(out[:, 2])
         return out
 
+    def _recovery_space(self, problem: Problem) -> Any:
+        """Where recovery draws from: the parameter, the problem's global prior, or the map's
+        free space at the prior's height (:func:`tofloc.free_space.free_space_of`)."""
+        if self.recovery_free_space is not None:
+            return self.recovery_free_space
+        if problem.prior.is_global:
+            return problem.prior.free_space
+        from tofloc.free_space import free_space_of
+
+        return free_space_of(problem.map, problem.prior.z)
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        from tofloc.problem import Prior
+
         model = self.make_sensor_model()
         bound = model.bind(problem)
         state = tuple(bound.state)
-        M = int(self.n_particles)
-        particles = problem.prior.sample(M, rng)
-        if state:
-            extra = rng.normal(size=(M, len(state))) * np.array([v.sigma for v in state])
-            particles = np.column_stack([particles, extra])
+        adapt = self.kld == "always" or (self.kld == "global" and problem.prior.is_global)
+        M = self.particles_ceiling if (adapt and problem.prior.is_global) else int(self.n_particles)
+        particles = self._draw(problem.prior, M, state, rng)
         floors = np.array([self.jitter_xy, self.jitter_xy, math.radians(self.jitter_yaw_deg)] + [v.jitter_floor for v in state])
         log_w = np.zeros(M)
-        resample = RESAMPLERS[self.resampling]
         ess: list[float] = []
         resampled: list[bool] = []
         stages: list[int] = []
+        counts: list[int] = []
+        scored: list[int] = []
+        recovery: dict[str, Any] = {"log_w_avg": [], "w_fast_over_slow": [], "injected": []}
+        global_prior = None
+        w_slow = w_fast = 0.0
+        valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
             ll = bound.log_likelihood_chunked(particles, k)
+            n_scored = particles.shape[0]
+            if self.recovery and model.weight_update == "bayes":
+                # AMCL's w_avg per valid zone, from this sample's full likelihood under the current weights
+                lw = normalize_log_weights(log_w)
+                with np.errstate(divide="ignore"):
+                    a = np.log(lw) + ll
+                top = float(np.max(a))
+                log_avg = (top + math.log(float(np.sum(np.exp(a - top))))) / max(int(valid_per_step[k]), 1) if np.isfinite(top) else -np.inf
+                w_avg = math.exp(max(log_avg, -700.0))
+                w_slow = w_avg if w_slow == 0.0 else w_slow + self.recovery_alpha_slow * (w_avg - w_slow)
+                w_fast = w_avg if w_fast == 0.0 else w_fast + self.recovery_alpha_fast * (w_avg - w_fast)
+                ratio = w_fast / w_slow if w_slow > 0 else 1.0
+                recovery["log_w_avg"].append(log_avg)
+                recovery["w_fast_over_slow"].append(ratio)
+                inject = max(0.0, 1.0 - ratio)
+                n_new = int(round(inject * (self.particles_ceiling if adapt else int(self.n_particles))))
+                recovery["injected"].append(n_new)
+                if n_new > 0:
+                    if global_prior is None:
+                        global_prior = Prior.uniform(self._recovery_space(problem), roll=problem.prior.roll,
+                                                     pitch=problem.prior.pitch)
+                    n_keep = (self.particles_ceiling if adapt else int(self.n_particles)) - n_new
+                    idx = RESAMPLERS[self.resampling](lw, rng, n_keep) if n_keep > 0 else np.zeros(0, dtype=np.intp)
+                    kept = self._roughen(particles[idx], floors, rng) if n_keep > 0 else particles[:0]
+                    particles = np.vstack([kept, self._draw(global_prior, n_new, state, rng)])
+                    log_w = np.zeros(particles.shape[0])
+                    ll = bound.log_likelihood_chunked(particles, k)
+                    n_scored += particles.shape[0]
+                    w_slow = w_fast = 0.0
             n_stages = 1
             if model.weight_update == "replace":
                 log_w = ll
@@ -227,52 +404,73 @@ class ParticleFilter(Estimator):
                     if remaining <= 1e-12 or last_stage:
                         break
                     # an intermediate stage: resample, roughen, re-score what remains
-                    idx = resample(normalize_log_weights(log_w), rng)
-                    particles = self._roughen(particles[idx], floors, rng)
-                    log_w = np.zeros(M)
+                    particles = self._resample(particles, normalize_log_weights(log_w), floors, adapt, rng)
+                    log_w = np.zeros(particles.shape[0])
                     ll = bound.log_likelihood_chunked(particles, k)
+                    n_scored += particles.shape[0]
                     n_stages += 1
             else:
                 log_w = log_w + ll
             stages.append(n_stages)
+            scored.append(int(n_scored))
             w = normalize_log_weights(log_w)
             ess.append(effective_sample_size(w))
+            counts.append(int(particles.shape[0]))
             last = k == bound.n_steps - 1
-            do = (not last) and ess[-1] < self.resample_threshold * M
+            do = (not last) and ess[-1] < self.resample_threshold * particles.shape[0]
             resampled.append(bool(do))
             if do:
-                idx = resample(w, rng)
-                particles = self._roughen(particles[idx], floors, rng)
-                log_w = np.zeros(M)
-        mean, cov = weighted_pose_stats(particles[:, :3], w)
+                particles = self._resample(particles, w, floors, adapt, rng)
+                log_w = np.zeros(particles.shape[0])
+        pose, cov, modes = self._point_estimate(particles, w)
         state_diag = {}
         for i, v in enumerate(state):
             col = particles[:, 3 + i]
             m = float(w @ col)
             state_diag[v.name] = {"mean": m, "std": math.sqrt(max(float(w @ (col - m) ** 2), 0.0)), "prior_sigma": v.sigma,
                                   "source": v.source}
-        return Estimate(
-            pose=mean,
-            covariance=cov,
-            diagnostics={
-                "state": state_diag,
-                "ess": ess,
-                "resampled": resampled,
-                "stages": stages,
-                "particles": particles,
-                "weights": w,
-                "sensor_model": model.name,
-            },
-        )
+        diagnostics: dict[str, Any] = {
+            "state": state_diag,
+            "ess": ess,
+            "resampled": resampled,
+            "stages": stages,
+            "particles": particles,
+            "weights": w,
+            "sensor_model": model.name,
+            "n_particles": counts,
+            "n_scored": scored,
+            "kld": adapt,
+        }
+        if modes is not None:
+            diagnostics["modes"] = modes
+        if self.recovery:
+            diagnostics["recovery"] = recovery
+        return Estimate(pose=pose, covariance=cov, diagnostics=diagnostics)
+
+    def _point_estimate(self, particles: NDArray[np.float64], w: NDArray[np.float64]
+                        ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[Any] | None]:
+        """The estimate and its covariance (see ``point_estimate``), and the modes when clustered."""
+        if self.point_estimate == "mean":
+            mean, cov = weighted_pose_stats(particles[:, :3], w)
+            return mean, cov, None
+        from tofloc.posterior_modes import cluster_poses
+
+        modes = cluster_poses(particles[:, :3], w)
+        if len(modes) == 1:  # one mode: every particle, exactly as the weighted mean
+            mean, cov = weighted_pose_stats(particles[:, :3], w)
+            return mean, cov, modes
+        return modes[0].mean.copy(), modes[0].covariance.copy(), modes
 
 
 @dataclass(frozen=True, eq=False)
 class ICPScorePF(ParticleFilter):
     """The paper's estimator: :class:`ParticleFilter` with the ICP-score sensor model,
-    systematic resampling at every step and 1 cm / 1 deg jitter."""
+    systematic resampling at every step, 1 cm / 1 deg jitter and the weighted mean of the
+    particles as the estimate (the paper's; ``point_estimate="best_mode"`` for the heaviest mode)."""
 
     name: ClassVar[str] = "icp_pf"
     sensor_model: Any = "icp_score"
+    point_estimate: str = "mean"
 
 
 @dataclass(frozen=True, eq=False)

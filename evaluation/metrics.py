@@ -12,6 +12,9 @@ metres and radians (the layout of :attr:`tofloc.problem.Estimate.pose`).
   When the truth declares its own uncertainty (``/truth/T_map_base_cov``), the error is
   measured against an uncertain truth and ``P`` is the estimate's covariance plus the
   truth's (:func:`planar_truth_covariance`).
+* *Found* (global localization, issue 13): a pose within :data:`FOUND_POSITION_M` (1 cm)
+  and :data:`FOUND_YAW_DEG` (1 deg) of the truth (:func:`found`); the truth is *among the
+  modes* when some reported mode's mean is (:func:`truth_mode_index`).
 """
 
 from __future__ import annotations
@@ -34,7 +37,16 @@ __all__ = [
     "planar_truth_covariance",
     "summarize",
     "json_float",
+    "FOUND_POSITION_M",
+    "FOUND_YAW_DEG",
+    "found",
+    "truth_mode_index",
 ]
+
+#: A global localization found the truth when within this distance (m) ...
+FOUND_POSITION_M = 0.01
+#: ... and this yaw (deg) of it.
+FOUND_YAW_DEG = 1.0
 
 #: A covariance counts as singular when the smallest eigenvalue of its correlation
 #: matrix (the covariance scaled to unit diagonal, so metres and radians do not mix)
@@ -121,6 +133,22 @@ def nees(truth: ArrayLike, estimate: ArrayLike, covariance: ArrayLike) -> NDArra
             vals[good] = np.einsum("ni,ni->n", z[good], sol)
         out[ok] = vals
     return out.reshape(shape)
+
+
+def found(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.bool_]:
+    """Whether ``estimate`` is within :data:`FOUND_POSITION_M` and :data:`FOUND_YAW_DEG` of
+    ``truth`` (planar poses ``(..., 3)``, broadcast)."""
+    return (position_error(truth, estimate) <= FOUND_POSITION_M) & (yaw_error_deg(truth, estimate) <= FOUND_YAW_DEG)
+
+
+def truth_mode_index(truth: ArrayLike, mode_means: ArrayLike) -> int | None:
+    """Index of the first (heaviest, when they are so ordered) mode mean ``(G, 3)`` that
+    :func:`found` the truth, None when none does (or there is no mode)."""
+    m = np.asarray(mode_means, dtype=float).reshape(-1, 3)
+    if m.shape[0] == 0:
+        return None
+    hit = np.flatnonzero(found(np.asarray(truth, dtype=float)[None], m))
+    return int(hit[0]) if hit.size else None
 
 
 def planar_truth_covariance(truth_yaw: ArrayLike, covariance: ArrayLike) -> NDArray[np.float64]:

@@ -13,11 +13,15 @@ from scipy.spatial.transform import Rotation
 
 from tofloc import frames
 from tofloc.errors import ParameterError
+from tofloc.free_space import DEFAULT_CLEARANCE_M, parse_region
 from tofloc.problem import Prior
 
-__all__ = ["PRIOR_MODES", "PAPER_SIGMA_XY_M", "PAPER_SIGMA_YAW_DEG", "PriorSpec", "base_pose_parts"]
+__all__ = ["PRIOR_MODES", "ALL_PRIOR_MODES", "PAPER_SIGMA_XY_M", "PAPER_SIGMA_YAW_DEG", "PriorSpec", "base_pose_parts"]
 
+#: The paper's two prior modes (what ``tofloc paper`` runs by default).
 PRIOR_MODES = ("paper", "offset")
+#: Every mode a trial's prior may be drawn in: the paper's two and ``global``.
+ALL_PRIOR_MODES = PRIOR_MODES + ("global",)
 #: The paper's prior spread (section III.C): 0.2 m on x and y, 20 deg on yaw.
 PAPER_SIGMA_XY_M = 0.2
 PAPER_SIGMA_YAW_DEG = 20.0
@@ -62,18 +66,25 @@ class PriorSpec:
 
     Parameters
     ----------
-    mode : {"paper", "offset", "given"}
+    mode : {"paper", "offset", "given", "global"}
         ``paper``: a Gaussian centred on the true pose (the paper's set-up: the particles
         are drawn around the truth). ``offset``: the prior *mean* is itself drawn from
         that Gaussian around the truth, so the estimator must find the truth.
         ``given``: a fixed prior (``mean``, ``z``, ``roll``, ``pitch``), e.g. for a log
-        without ground truth.
+        without ground truth. ``global``: uniform over the map's free space at the base
+        height (or over ``region``) and every yaw (:mod:`tofloc.free_space` says how free
+        space is decided); the sigmas are not used.
     sigma_xy_m, sigma_yaw_deg : float
         Standard deviations of the prior (and of the offset draw).
     mean : tuple of 3 floats, optional
         ``(x, y, yaw)`` in metres and radians, for mode ``given``.
     z, roll, pitch : float
-        The known base height and tilt, for mode ``given`` (other modes take the truth's).
+        The known base height and tilt, for mode ``given`` and for mode ``global`` on a log
+        without truth (otherwise the truth's).
+    region : (xmin, xmax, ymin, ymax), optional
+        Mode ``global``: the rectangle (m) the base is in; default the map's x-y bounds.
+    clearance_m : float
+        Mode ``global``: a free position is at least this far from the map's surface.
     """
 
     mode: str = "offset"
@@ -83,10 +94,19 @@ class PriorSpec:
     z: float = 0.0
     roll: float = 0.0
     pitch: float = 0.0
+    region: tuple[float, float, float, float] | None = None
+    clearance_m: float = DEFAULT_CLEARANCE_M
 
     def __post_init__(self) -> None:
-        if self.mode not in PRIOR_MODES + ("given",):
-            raise ParameterError(f"prior mode must be one of {', '.join(PRIOR_MODES + ('given',))}, got {self.mode!r}")
+        if self.mode not in ALL_PRIOR_MODES + ("given",):
+            raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES + ('given',))}, got {self.mode!r}")
+        if self.region is not None:
+            if self.mode != "global":
+                raise ParameterError(f"a region goes with prior mode global, not {self.mode!r}")
+            object.__setattr__(self, "region", parse_region(self.region))
+        v = self.clearance_m
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= 10:
+            raise ParameterError(f"prior clearance_m must be a number in [0, 10] m, got {v!r}")
         for name in ("sigma_xy_m", "sigma_yaw_deg"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
@@ -102,20 +122,32 @@ class PriorSpec:
         """``(sigma_x, sigma_y, sigma_yaw)`` in metres and radians."""
         return np.array([self.sigma_xy_m, self.sigma_xy_m, math.radians(self.sigma_yaw_deg)])
 
-    def make(self, truth: ArrayLike | None, offset_normals: ArrayLike) -> Prior:
+    def make(self, truth: ArrayLike | None, offset_normals: ArrayLike, the_map: Any = None) -> Prior:
         """The prior of one trial.
 
         Parameters
         ----------
         truth : array (4, 4) or None
-            The true base pose (needed unless the mode is ``given``).
+            The true base pose (needed unless the mode is ``given`` or ``global``).
         offset_normals : array (3,)
             Standard-normal draws; the ``offset`` mode moves the mean by
             ``offset_normals * sigma`` (the other modes ignore them).
+        the_map : tofloc.maps.Map, optional
+            The map whose free space a ``global`` prior covers (needed for that mode).
         """
         if self.mode == "given":
             assert self.mean is not None
             return Prior(mean=np.asarray(self.mean, dtype=float), sigma=self.sigma, z=self.z, roll=self.roll, pitch=self.pitch)
+        if self.mode == "global":
+            from tofloc.free_space import free_space_of
+
+            if the_map is None:
+                raise ParameterError("prior mode global needs the map (its free space is the prior's support)")
+            if truth is None:
+                z, roll, pitch = self.z, self.roll, self.pitch
+            else:
+                _, z, roll, pitch = base_pose_parts(truth)
+            return Prior.uniform(free_space_of(the_map, z, self.region, self.clearance_m), roll=roll, pitch=pitch)
         if truth is None:
             raise ParameterError(f"prior mode {self.mode!r} needs the true base pose; without truth give the prior explicitly")
         xyyaw, z, roll, pitch = base_pose_parts(truth)
@@ -125,8 +157,12 @@ class PriorSpec:
         return Prior(mean=mean, sigma=self.sigma, z=z, roll=roll, pitch=pitch)
 
     def to_json(self) -> dict[str, Any]:
-        """``{"mode", "sigma_xy_m", "sigma_yaw_deg"}`` (plus ``mean``, ``z``, ``roll``, ``pitch`` for ``given``)."""
+        """``{"mode", "sigma_xy_m", "sigma_yaw_deg"}`` (plus ``mean``, ``z``, ``roll``, ``pitch`` for ``given``;
+        ``region`` and ``clearance_m`` for ``global``)."""
         out: dict[str, Any] = {"mode": self.mode, "sigma_xy_m": float(self.sigma_xy_m), "sigma_yaw_deg": float(self.sigma_yaw_deg)}
+        if self.mode == "global":
+            out.update(region=None if self.region is None else [float(v) for v in self.region],
+                       clearance_m=float(self.clearance_m))
         if self.mode == "given":
             assert self.mean is not None
             out.update(mean=[float(v) for v in self.mean], z=float(self.z), roll=float(self.roll), pitch=float(self.pitch))

@@ -104,6 +104,20 @@ def fit_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
             "ambiguous": sum(bool(r.get("ambiguous")) for r in recs)}
 
 
+def found_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """``{"n", "found", "truth_in_modes", "runtime_s_median"}``: trials against a truth, how
+    many estimates were within 1 cm and 1 deg of it (:func:`evaluation.metrics.found`), how
+    many had it among their modes, and the median runtime (s) of those trials; None when
+    no trial records it (the global-localization table of issue 13)."""
+    recs = [r for r in records if r.get("found") is not None]
+    if not recs:
+        return None
+    rt = np.array([float(r.get("runtime_s") or np.nan) for r in recs])
+    return {"n": len(recs), "found": sum(bool(r["found"]) for r in recs),
+            "truth_in_modes": sum(r.get("truth_mode") is not None for r in recs),
+            "runtime_s_median": json_float(float(np.nanmedian(rt))) if np.isfinite(rt).any() else None}
+
+
 def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """The ``summary`` of a ``localize`` run.
 
@@ -115,7 +129,8 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES,
         ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound and
         ``"fit": {"checked", "not_ok", "ambiguous"}`` (:func:`fit_summary`) when the trials
-        carry a data-fit check. The error entries are ``None`` when no trial has a truth.
+        carry a data-fit check, ``"found"`` (:func:`found_summary`) when they record it. The
+        error entries are ``None`` when no trial has a truth.
     """
     out: dict[str, Any] = {}
     for key in ERROR_KEYS:
@@ -138,7 +153,7 @@ def setup_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def _add_nees_and_crlb(
     out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
 ) -> None:
-    """Add ``nees``, ``crlb`` and ``fit`` summaries to ``out`` where the trials define them."""
+    """Add ``nees``, ``crlb``, ``fit`` and ``found`` summaries to ``out`` where the trials define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=nees_keys)
@@ -148,6 +163,9 @@ def _add_nees_and_crlb(
     fit = fit_summary(records)
     if fit is not None:
         out["fit"] = fit
+    hits = found_summary(records)
+    if hits is not None:
+        out["found"] = hits
 
 
 def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:
@@ -227,6 +245,28 @@ def _crlb_cell(c: Mapping[str, Any] | None) -> str:
     return f"{pos} / {yaw}"
 
 
+def global_markdown(doc: Mapping[str, Any]) -> list[str]:
+    """The global-localization section of ``table.md`` (lines; none without a ``global``
+    prior mode): per estimator and tip source, the trials within 1 cm and 1 deg of the
+    truth, those with the truth among the reported modes, and the median time per trial."""
+    rows = []
+    for est, by_tip in doc["results"].items():
+        for tip in ("knn", "mocap"):
+            hits = ((by_tip.get(tip, {}).get("global") or {}).get("overall") or {}).get("found")
+            if not hits:
+                continue
+            n = hits["n"]
+            t = hits.get("runtime_s_median")
+            rows.append(f"| {est} | {tip} | {hits['found']} / {n} ({100 * hits['found'] / n:.0f} %) | "
+                        f"{hits['truth_in_modes']} / {n} ({100 * hits['truth_in_modes'] / n:.0f} %) | "
+                        f"{'n/a' if t is None else format(t, '.1f')} |")
+    if not rows:
+        return []
+    return ["", "## Global localization (prior uniform over the map's free space and every yaw)", "",
+            "| estimator | tips | within 1 cm and 1 deg | truth among the modes | s per trial (median) |",
+            "|---|---|---|---|---|", *rows]
+
+
 def table_markdown(doc: Mapping[str, Any]) -> str:
     """``table.md``: our rows under the paper's Table I row.
 
@@ -276,7 +316,8 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     lines += [
         "",
         "Prior modes: `paper` = particles drawn from a Gaussian centred on the true pose (as the paper);",
-        "`offset` = the prior mean itself drawn from that Gaussian, so the estimator must find the truth.",
+        "`offset` = the prior mean itself drawn from that Gaussian, so the estimator must find the truth;",
+        "`global` = uniform over the map's free space at the base height and every yaw (no hint).",
         "",
         "## Spread of the per-k means",
         "",
@@ -287,6 +328,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "|---|---|---|---|---|---|",
         *spread_rows,
     ]
+    lines += global_markdown(doc)
     comps = doc.get("comparisons") or {}
     if comps:
         lines += [

@@ -47,7 +47,15 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from evaluation.metrics import json_float, nees, planar_truth_covariance, position_error, yaw_error_deg
+from evaluation.metrics import (
+    found,
+    json_float,
+    nees,
+    planar_truth_covariance,
+    position_error,
+    truth_mode_index,
+    yaw_error_deg,
+)
 from evaluation.priors import PriorSpec, base_pose_parts
 from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
@@ -420,7 +428,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
 
     idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
     truth_T = context.truth(idx)
-    prior = task.prior.make(truth_T, normals)
+    prior = task.prior.make(truth_T, normals, context.map)
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
     calibration = context.calibration if est.uses_calibration() else None
     problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
@@ -441,7 +449,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     -------
     dict
         ``seed``, ``k``, ``trial``, ``sample_indices``, ``truth`` ([x, y, yaw] or None),
-        ``prior_mean``, ``estimate``, ``covariance`` (3x3), ``e_x_m``, ``e_gamma_deg``,
+        ``prior_mean`` (None for a global prior), ``estimate``, ``covariance`` (3x3), ``e_x_m``, ``e_gamma_deg``,
         ``nees`` (None without truth or with a singular covariance; computed with the
         estimate's covariance plus the truth's declared one, ``truth_covariance`` (3x3,
         :meth:`TrialContext.truth_covariance`), when the log declares it),
@@ -459,7 +467,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         None for a map that cannot be ray cast),
         ``modes``: the posterior's modes (:func:`tofloc.posterior_modes.modes_of_estimate`:
         ``[{"mean", "covariance", "weight"}, ...]``, heaviest first) and ``ambiguous``
-        (a second mode holds more than :data:`tofloc.posterior_modes.AMBIGUOUS_SHARE`).
+        (a second mode holds more than :data:`tofloc.posterior_modes.AMBIGUOUS_SHARE`),
+        ``found`` (the estimate within 1 cm and 1 deg of the truth, :func:`evaluation.metrics.found`)
+        and ``truth_mode`` (the index of the first mode that is, None when none; both None
+        without truth).
     """
     from tofloc.posterior_modes import is_ambiguous, modes_of_estimate
 
@@ -473,7 +484,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "trial": int(task.trial),
         "sample_indices": [int(i) for i in idx],
         "truth": None,
-        "prior_mean": jsonable(prior.mean),
+        "prior_mean": None if prior.is_global else jsonable(prior.mean),
         "estimate": jsonable(result.pose),
         "covariance": jsonable(result.covariance),
         "e_x_m": None,
@@ -489,6 +500,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "fit": None if result.fit is None else jsonable(result.fit.to_json()),
         "modes": jsonable([m.to_json() for m in modes]),
         "ambiguous": is_ambiguous(modes),
+        "found": None,
+        "truth_mode": None,
     }
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
@@ -496,6 +509,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         record["e_x_m"] = json_float(position_error(truth, result.pose))
         record["e_gamma_deg"] = json_float(yaw_error_deg(truth, result.pose))
         record["nees_exact_truth"] = record["nees"] = json_float(nees(truth, result.pose, result.covariance))
+        record["found"] = bool(found(truth, result.pose))
+        record["truth_mode"] = truth_mode_index(truth, [m.mean for m in modes])
         C_model = np.asarray(result.diagnostics.get("model_covariance", result.covariance), dtype=float)
         record["nees_model"] = json_float(nees(truth, result.pose, C_model))
         P_truth = context.truth_covariance(idx)

@@ -413,6 +413,7 @@ def paper(
     k_values: Sequence[int] | None = None,
     tip_sources: Sequence[str] = ("knn", "mocap"),
     prior_modes: Sequence[str] | None = None,
+    region: Sequence[float] | None = None,
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
@@ -425,7 +426,9 @@ def paper(
     same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
     scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
     ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
-    both tip sources, both prior modes). ``params`` go to every estimator;
+    both tip sources, the paper's two prior modes; ``"global"`` is the third: uniform over the
+    map's free space at the base height, or over ``region`` ``(xmin, xmax, ymin, ymax)``,
+    and every yaw, :mod:`tofloc.free_space`). ``params`` go to every estimator;
     ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
     :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
     written to ``out/config.toml`` (``--config`` reads it back).
@@ -447,12 +450,14 @@ def paper(
     ks = list(range(1, k_max + 1)) if k_values is None else sorted({int(k) for k in k_values})
     if not ks or ks[0] < 1 or ks[-1] > 1000:
         raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
-    from evaluation.priors import PRIOR_MODES as _MODES
+    from evaluation.priors import ALL_PRIOR_MODES, PRIOR_MODES as _MODES
     from evaluation.trials import TIP_SOURCES as _TIPS
 
     modes = list(_MODES if prior_modes is None else prior_modes)
-    if not modes or any(m not in _MODES for m in modes) or len(set(modes)) != len(modes):
-        raise ParameterError(f"prior modes must be distinct among {list(_MODES)}, got {modes!r}")
+    if not modes or any(m not in ALL_PRIOR_MODES for m in modes) or len(set(modes)) != len(modes):
+        raise ParameterError(f"prior modes must be distinct among {list(ALL_PRIOR_MODES)}, got {modes!r}")
+    if region is not None and "global" not in modes:
+        raise ParameterError("a region goes with the global prior mode")
     tips = list(tip_sources)
     if not tips or any(t not in _TIPS for t in tips) or len(set(tips)) != len(tips):
         raise ParameterError(f"tip sources must be distinct among {list(_TIPS)}, got {tips!r}")
@@ -474,7 +479,7 @@ def paper(
     if unknown_names:
         raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
     ests = {n: estimator(n, per_est[n]) for n in names}
-    priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg) for m in modes]
+    priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
     t0 = time.perf_counter()
     data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
     for n in data.notes:
@@ -505,7 +510,8 @@ def paper(
         extra={
             "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
                            for n in names},
-            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes},
+            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes,
+                      "specs": {p.mode: p.to_json() for p in priors}},
             "tip_sources": tips,
             "k_values": k_values,
             "scenario": scenario,
@@ -571,6 +577,7 @@ def scenes(
     seed: int = 0,
     tip_source: str = "mocap",
     prior_mode: str = "offset",
+    region: Sequence[float] | None = None,
     params: Mapping[str, Any] | None = None,
     estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     calibrate: bool | None = None,
@@ -601,8 +608,8 @@ def scenes(
         reporter.note(f"scene {scene} ({rig_variant} rig)")
         run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
                     params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
-                    k_values=[k], tip_sources=[tip_source],
-                    prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter)
+                    k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
+                    workers=workers, scheduler=scheduler, reporter=reporter)
         for est in estimators:
             g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
             crlb = g.get("crlb") or {}
@@ -614,6 +621,7 @@ def scenes(
                 row[f"crlb_{bound}"] = b
                 row[f"ratio_{key}"] = None if (mean is None or not b) else mean / b
             row["nees_mean"] = (g.get("nees") or {}).get("mean")
+            row["found"] = g.get("found")  # within 1 cm and 1 deg; the truth among the modes; median runtime
             rows.append(row)
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
            "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows, "provenance": provenance()}
@@ -633,15 +641,22 @@ def scenes_markdown(doc: Mapping[str, Any]) -> str:
     def f(v: Any, fmt: str) -> str:
         return "n/a" if v is None else format(v, fmt)
 
+    hits = any(r.get("found") for r in doc["rows"])
     lines = [f"# Scene library: {doc['rig_variant']} rigs, k = {doc['k']}, {doc['tip_source']} tips, "
              f"{doc['prior_mode']} prior, {doc['trials']} trials (seed {doc['seed']})", "",
-             "| scene | estimator | e_x (mm) | sqrt CRLB (mm) | ratio | e_gamma (deg) | sqrt CRLB (deg) | ratio | NEES |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| scene | estimator | e_x (mm) | sqrt CRLB (mm) | ratio | e_gamma (deg) | sqrt CRLB (deg) | ratio | NEES |"
+             + (" within 1 cm, 1 deg | truth among modes | s per trial |" if hits else ""),
+             "|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if hits else "")]
     for r in doc["rows"]:
-        lines.append(f"| {r['scene']} | {r['estimator']} | {f(r['e_x_m'] and 1000 * r['e_x_m'], '.2f')} | "
-                     f"{f(r['crlb_position_m'] and 1000 * r['crlb_position_m'], '.2f')} | {f(r['ratio_e_x_m'], '.2f')} | "
-                     f"{f(r['e_gamma_deg'], '.3f')} | {f(r['crlb_yaw_deg'], '.3f')} | {f(r['ratio_e_gamma_deg'], '.2f')} | "
-                     f"{f(r['nees_mean'], '.1f')} |")
+        line = (f"| {r['scene']} | {r['estimator']} | {f(r['e_x_m'] and 1000 * r['e_x_m'], '.2f')} | "
+                f"{f(r['crlb_position_m'] and 1000 * r['crlb_position_m'], '.2f')} | {f(r['ratio_e_x_m'], '.2f')} | "
+                f"{f(r['e_gamma_deg'], '.3f')} | {f(r['crlb_yaw_deg'], '.3f')} | {f(r['ratio_e_gamma_deg'], '.2f')} | "
+                f"{f(r['nees_mean'], '.1f')} |")
+        if hits:
+            h = r.get("found") or {}
+            line += (f" {h.get('found', 'n/a')} / {h.get('n', 'n/a')} | {h.get('truth_in_modes', 'n/a')} / {h.get('n', 'n/a')} | "
+                     f"{f(h.get('runtime_s_median'), '.1f')} |")
+        lines.append(line)
     return "\n".join(lines) + "\n"
 
 
@@ -680,6 +695,7 @@ def evaluate(
     prior_mode: str = "offset",
     prior_sigma_xy: float = 0.2,
     prior_sigma_yaw_deg: float = 20.0,
+    region: Sequence[float] | None = None,
     calibration: SensorCalibration | str | os.PathLike[str] | None = None,
     params: Mapping[str, Any] | None = None,
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES,
@@ -705,8 +721,10 @@ def evaluate(
         Trials per log.
     samples : int or None
         Samples per trial; None: every usable sample of each log.
-    prior_mode : {"offset", "paper"}
-        ``offset``: the prior mean drawn around the truth; ``paper``: centred on it.
+    prior_mode : {"offset", "paper", "global"}
+        ``offset``: the prior mean drawn around the truth; ``paper``: centred on it;
+        ``global``: uniform over each log's map's free space at the base height (or over
+        ``region``) and every yaw.
     prior_sigma_xy, prior_sigma_yaw_deg : float
         The prior's spread (m, deg): the paper's by default.
     calibration : SensorCalibration or path, optional
@@ -728,7 +746,7 @@ def evaluate(
         run_estimators,
     )
     from evaluation.evaluate_report import plot_error_cdfs, plot_nees, table_markdown
-    from evaluation.priors import PRIOR_MODES, PriorSpec
+    from evaluation.priors import ALL_PRIOR_MODES, PriorSpec
     from evaluation.report import write_json_atomic, write_text_atomic
     from evaluation.trials import jsonable
     from tofloc.atomic import check_output_path
@@ -742,13 +760,13 @@ def evaluate(
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
     if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
-    if prior_mode not in PRIOR_MODES:
-        raise ParameterError(f"prior mode must be one of {', '.join(PRIOR_MODES)}, got {prior_mode!r}")
+    if prior_mode not in ALL_PRIOR_MODES:
+        raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {prior_mode!r}")
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if not logs:
         raise ParameterError("evaluate needs at least one log")
-    prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg)
+    prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     ests = {n: estimator(n, params) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
     cal = load_calibration(calibration)

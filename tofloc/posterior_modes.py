@@ -288,12 +288,17 @@ def modes_from_starts(starts: Sequence[Mapping[str, Any]], covariance: ArrayLike
 
 
 def modes_of_estimate(estimate: Any) -> list[PosteriorMode]:
-    """The posterior modes of an estimate, heaviest first: from a particle filter's final
+    """The posterior modes of an estimate, heaviest first: the estimator's own
+    ``diagnostics["modes"]`` (:class:`PosteriorMode` objects) when it clustered them, else
+    from a particle filter's final
     ``diagnostics["particles"]``/``["weights"]`` (:func:`cluster_poses`), else a smoother's
     ``diagnostics["starts"]`` (:func:`modes_from_starts`), else one mode, the estimate's
     own Gaussian (an estimator that reports nothing else has one answer)."""
     diag = getattr(estimate, "diagnostics", None)
     diag = diag if isinstance(diag, Mapping) else {}
+    given = diag.get("modes")
+    if isinstance(given, (list, tuple)) and given and all(isinstance(m, PosteriorMode) for m in given):
+        return list(given)  # already clustered by the estimator (the same function)
     particles, weights = diag.get("particles"), diag.get("weights")
     if particles is not None and weights is not None:
         return cluster_poses(np.asarray(particles, dtype=float), np.asarray(weights, dtype=float))

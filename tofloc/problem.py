@@ -49,7 +49,8 @@ def _readonly(a: ArrayLike | None, dtype: Any = float) -> NDArray[Any] | None:
 
 @dataclass(frozen=True, eq=False)
 class Prior:
-    """Gaussian prior on the planar base pose, with the known height, roll and pitch.
+    """Prior on the planar base pose, with the known height, roll and pitch: a Gaussian
+    (the default), or uniform over free space and every yaw (a *global* prior).
 
     Parameters
     ----------
@@ -59,6 +60,10 @@ class Prior:
         Standard deviations ``(sigma_x, sigma_y, sigma_yaw)``.
     z, roll, pitch : float
         The known height of the base and its (fixed) tilt.
+    free_space : tofloc.free_space.FreeSpace, optional
+        When given, the prior is uniform over these free positions and over every yaw
+        (build it with :meth:`uniform`); ``mean`` and ``sigma`` are then that uniform
+        density's moments (yaw: 0 and pi / sqrt(3)), kept for code that only reads them.
     """
 
     mean: NDArray[np.float64]
@@ -66,6 +71,21 @@ class Prior:
     z: float = 0.0
     roll: float = 0.0
     pitch: float = 0.0
+    free_space: Any = None
+
+    @classmethod
+    def uniform(cls, free_space: Any, roll: float = 0.0, pitch: float = 0.0) -> "Prior":
+        """The global prior: uniform over ``free_space`` (a :class:`tofloc.free_space.FreeSpace`,
+        at its height) and every yaw."""
+        mean_xy, sd_xy = free_space.moments()
+        return cls(mean=np.array([mean_xy[0], mean_xy[1], 0.0]),
+                   sigma=np.array([max(sd_xy[0], 1e-6), max(sd_xy[1], 1e-6), np.pi / np.sqrt(3.0)]),
+                   z=float(free_space.z), roll=roll, pitch=pitch, free_space=free_space)
+
+    @property
+    def is_global(self) -> bool:
+        """Whether the prior is uniform over free space and every yaw (else Gaussian)."""
+        return self.free_space is not None
 
     def __post_init__(self) -> None:
         mean = np.asarray(self.mean, dtype=float).copy()
@@ -91,6 +111,9 @@ class Prior:
 
     def sample(self, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
         """``n`` draws ``(n, 3)`` (yaw wrapped)."""
+        if self.free_space is not None:
+            xy = self.free_space.sample(n, rng)
+            return np.column_stack([xy, frames.wrap_angle(rng.uniform(-np.pi, np.pi, size=n))])
         p = self.mean + rng.normal(size=(n, 3)) * self.sigma
         p[:, 2] = frames.wrap_angle(p[:, 2])
         return p

@@ -17,7 +17,7 @@ from rich import box
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import parse_params, parse_samples, parse_statuses
+from tofloc.cli.options import REGION_HELP, parse_params, parse_prior_mode, parse_region_option, parse_samples, parse_statuses
 from tofloc.errors import ParameterError
 
 __all__ = ["evaluate"]
@@ -31,7 +31,8 @@ def evaluate(
     trials: int = typer.Option(10, "--trials", help="Trials per log."),
     samples: str = typer.Option("all", "--samples", help="Samples per trial, or 'all' (every usable sample of the log)."),
     prior_mode: str = typer.Option("offset", "--prior-mode", help="offset: the prior mean drawn around the truth; "
-                                   "paper: centred on it."),
+                                   "paper: centred on it; global: uniform over the map's free space and every yaw."),
+    region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
     prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
     calibration: Optional[Path] = typer.Option(
@@ -60,8 +61,8 @@ def evaluate(
     k = parse_samples(samples, api.MAX_TRIALS)
     if not 1 <= trials <= api.MAX_TRIALS:
         raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
-    if prior_mode not in ("offset", "paper"):
-        raise ParameterError(f"--prior-mode must be offset or paper, got {prior_mode!r}")
+    prior_mode = parse_prior_mode(prior_mode)
+    rect = parse_region_option(region, [prior_mode])
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if workers is not None and workers < 1:
@@ -73,7 +74,8 @@ def evaluate(
     with RichReporter() as reporter:
         run = api.evaluate(
             list(logs), names, out=out, trials=trials, samples=k, prior_mode=prior_mode, prior_sigma_xy=prior_sigma_xy,
-            prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration, params=params, valid_statuses=statuses,
+            prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, params=params,
+            valid_statuses=statuses,
             seed=seed, workers=workers, scheduler=scheduler, reporter=reporter,
         )
     console.print(summary_table(run.document))

@@ -18,7 +18,15 @@ from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import estimator_params, parse_samples, parse_statuses, require_finite
+from tofloc.cli.options import (
+    REGION_HELP,
+    estimator_params,
+    parse_prior_mode,
+    parse_region_option,
+    parse_samples,
+    parse_statuses,
+    require_finite,
+)
 from tofloc.errors import ParameterError
 
 __all__ = ["localize"]
@@ -40,7 +48,10 @@ def localize(
     seed: int = typer.Option(0, "--seed", help="Run seed (trial seeds derive from it; recorded in the JSON)."),
     tip_source: str = typer.Option("mocap", "--tip-source", help="Where T_base_tip comes from: mocap (the log's) or knn."),
     kinematics: Optional[Path] = typer.Option(None, "--kinematics", help="k-NN model (.npz from `tofloc kinematics fit`)."),
-    prior_mode: Optional[str] = typer.Option(None, "--prior-mode", help="paper (centred on the truth) or offset (default)."),
+    prior_mode: Optional[str] = typer.Option(
+        None, "--prior-mode", help="paper (centred on the truth), offset (default) or global (uniform over the map's free "
+        "space at the base height and every yaw; a log without truth needs --base-z)."),
+    region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
     prior_sigma_xy: float = typer.Option(0.2, "--prior-sigma-xy", help="Prior standard deviation on x and y (m)."),
     prior_sigma_yaw_deg: float = typer.Option(20.0, "--prior-sigma-yaw-deg", help="Prior standard deviation on yaw (deg)."),
     prior_x: Optional[float] = typer.Option(None, "--prior-x", help="Give the prior mean x (m) instead of drawing it."),
@@ -140,6 +151,8 @@ def localize(
         raise ParameterError("give all of --prior-x, --prior-y and --prior-yaw-deg, or none")
     if any(given) and prior_mode is not None:
         raise ParameterError("--prior-mode draws the prior around the truth; it cannot be combined with --prior-x/-y/-yaw-deg")
+    mode = "offset" if prior_mode is None else parse_prior_mode(prior_mode)
+    rect = parse_region_option(region, [mode])
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
@@ -157,11 +170,17 @@ def localize(
             z, roll, pitch = base_z, 0.0, 0.0
         prior = PriorSpec("given", prior_sigma_xy, prior_sigma_yaw_deg,
                           (prior_x, prior_y, math.radians(prior_yaw_deg)), z, roll, pitch)  # type: ignore[arg-type]
+    elif mode == "global":
+        if has_truth and base_z is not None:
+            raise ParameterError(f"--base-z: {log_path} has /truth/T_map_base, whose height the global prior takes")
+        if not has_truth and base_z is None:
+            raise ParameterError(f"{log_path} has no /truth/T_map_base: give the base height with --base-z (m)")
+        prior = PriorSpec("global", z=0.0 if base_z is None else base_z, region=rect)
     else:
         if not has_truth:
             raise ParameterError(f"{log_path} has no /truth/T_map_base: give the prior with --prior-x, --prior-y, "
-                                 "--prior-yaw-deg and the base height with --base-z")
-        prior = PriorSpec(prior_mode or "offset", prior_sigma_xy, prior_sigma_yaw_deg)
+                                 "--prior-yaw-deg (or --prior-mode global) and the base height with --base-z")
+        prior = PriorSpec(mode, prior_sigma_xy, prior_sigma_yaw_deg)
     with RichReporter() as reporter:
         result = api.localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
@@ -180,7 +199,7 @@ def localize(
     if estimates_out is not None:
         from tofloc.io.estimates import write_trial_estimates
 
-        if prior.mode == "given":
+        if prior.mode == "given" or not has_truth:
             z, roll, pitch = prior.z, prior.roll, prior.pitch
         else:  # the static base's known height and tilt (the truth's, as the priors take them)
             first = int(doc["trials"][0]["sample_indices"][0])

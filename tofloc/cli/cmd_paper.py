@@ -22,7 +22,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import estimator_params, require_finite
+from tofloc.cli.options import REGION_HELP, estimator_params, parse_region_option, require_finite
 from tofloc.errors import ParameterError
 
 __all__ = ["paper"]
@@ -60,7 +60,9 @@ def paper(
         "(a support rotation and mounting scatter within the declared tolerance). Default: as the scene file writes it."),
     k_values: Optional[str] = typer.Option(None, "--k-values", help="Comma-separated numbers of samples (default 1..--k-max)."),
     tip_sources: str = typer.Option("knn,mocap", "--tip-sources", help="Comma-separated tip sources (knn, mocap)."),
-    prior_modes: str = typer.Option("paper,offset", "--prior-modes", help="Comma-separated prior modes (paper, offset)."),
+    prior_modes: str = typer.Option("paper,offset", "--prior-modes",
+                                    help="Comma-separated prior modes (paper, offset, global: uniform over free space)."),
+    region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
     calibrate: Optional[bool] = typer.Option(
         None, "--calibrate/--no-calibrate",
         help="Calibrate the sensor model (support rotation with its uncertainty, each sensor's mounting, then EM) on a "
@@ -99,8 +101,9 @@ def paper(
     if not tips or any(t not in ("knn", "mocap") for t in tips) or len(set(tips)) != len(tips):
         raise ParameterError(f"--tip-sources expects distinct names among knn, mocap; got {tip_sources!r}")
     modes = [m.strip() for m in prior_modes.split(",") if m.strip()]
-    if not modes or any(m not in ("paper", "offset") for m in modes) or len(set(modes)) != len(modes):
-        raise ParameterError(f"--prior-modes expects distinct names among paper, offset; got {prior_modes!r}")
+    if not modes or any(m not in ("paper", "offset", "global") for m in modes) or len(set(modes)) != len(modes):
+        raise ParameterError(f"--prior-modes expects distinct names among paper, offset, global; got {prior_modes!r}")
+    rect = parse_region_option(region, modes)
     if rig_variant is not None and rig_variant not in ("exact", "perturbed"):
         raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
     if out.exists() and not out.is_dir():
@@ -113,7 +116,7 @@ def paper(
             names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
-            prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter,
+            prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter,
         )
     _print(run.document)
     for p in run.paths:

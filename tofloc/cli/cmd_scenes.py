@@ -11,7 +11,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import estimator_params
+from tofloc.cli.options import REGION_HELP, estimator_params, parse_prior_mode, parse_region_option
 from tofloc.errors import ParameterError
 
 __all__ = ["scenes"]
@@ -27,7 +27,9 @@ def scenes(
     trials: int = typer.Option(20, "--trials", help="Trials per scene."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulations and the trials."),
     tip_source: str = typer.Option("mocap", "--tip-source", help="mocap or knn."),
-    prior_mode: str = typer.Option("offset", "--prior-mode", help="offset or paper."),
+    prior_mode: str = typer.Option("offset", "--prior-mode", help="offset, paper or global (uniform over free space)."),
+    region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX",
+                                         help=REGION_HELP + " The same rectangle for every scene."),
     param: Optional[list[str]] = typer.Option(
         None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
     config: Optional[Path] = typer.Option(
@@ -55,14 +57,15 @@ def scenes(
         raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
     if tip_source not in ("mocap", "knn"):
         raise ParameterError(f"--tip-source must be mocap or knn, got {tip_source!r}")
-    if prior_mode not in ("offset", "paper"):
-        raise ParameterError(f"--prior-mode must be offset or paper, got {prior_mode!r}")
+    prior_mode = parse_prior_mode(prior_mode)
+    rect = parse_region_option(region, [prior_mode])
     per_estimator, notes = estimator_params(config, names, param)
     for note in notes:
         err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
-                         tip_source=tip_source, prior_mode=prior_mode, estimator_params=per_estimator, calibrate=calibrate,
+                         tip_source=tip_source, prior_mode=prior_mode, region=rect, estimator_params=per_estimator,
+                         calibrate=calibrate,
                          workers=workers, scheduler=scheduler, reporter=reporter)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):

@@ -10,7 +10,35 @@ from typing import Any, Sequence
 
 from tofloc.errors import ParameterError
 
-__all__ = ["parse_params", "parse_statuses", "parse_samples", "require_finite", "estimator_params"]
+__all__ = ["parse_params", "parse_statuses", "parse_samples", "require_finite", "estimator_params", "parse_prior_mode",
+           "parse_region_option", "REGION_HELP"]
+
+#: ``--region``'s help, the same for every command that takes it.
+REGION_HELP = ("With --prior-mode global: the rectangle XMIN,XMAX,YMIN,YMAX (m) the base is in (default: the map's x-y "
+               "bounds); the prior is uniform over its free positions (at least 5 cm from the map's surface at the base "
+               "height) and every yaw.")
+
+
+def parse_prior_mode(text: str, option: str = "--prior-mode") -> str:
+    """One prior mode among ``paper``, ``offset``, ``global`` (:data:`evaluation.priors.ALL_PRIOR_MODES`)."""
+    from evaluation.priors import ALL_PRIOR_MODES
+
+    mode = text.strip()
+    if mode not in ALL_PRIOR_MODES:
+        raise ParameterError(f"{option}: the prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {text!r}")
+    return mode
+
+
+def parse_region_option(text: str | None, modes: Sequence[str]) -> tuple[float, float, float, float] | None:
+    """``--region XMIN,XMAX,YMIN,YMAX`` (:func:`tofloc.free_space.parse_region`); refused
+    unless ``global`` is among the prior modes of the run."""
+    if text is None:
+        return None
+    from tofloc.free_space import parse_region
+
+    if "global" not in modes:
+        raise ParameterError("--region goes with --prior-mode global (the rectangle of the global prior)")
+    return parse_region(text)
 
 
 def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
