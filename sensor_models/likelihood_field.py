@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
 from tofloc.errors import ParameterError
@@ -224,6 +225,49 @@ class BoundLikelihoodField(BoundSensorModel):
         return self.field.signed_distance(self.end_points(states, step))
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Tempered log-likelihood ``(M,)``: one fused compiled pass per (state, end point)
+        when numba is there (:func:`tofloc.numba_kernels.likelihood_field_log_likelihood`:
+        end point, field lookup, known-space test and mixture, no ``(M, P, 3)``
+        temporaries), else numpy (:meth:`_log_likelihood_numpy`); the two agree to ~1e-13
+        relative (sums in order vs pairwise, libm vs numpy ``exp``/``log``, the lift as
+        three products vs a matrix product)."""
+        if numba_kernels.enabled():
+            return self._log_likelihood_fused(np.asarray(states, dtype=float), step)
+        return self._log_likelihood_numpy(states, step)
+
+    def _sigma(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Each end point's sigma ``(P,)``, its configuration variance added."""
+        sig = self.sigma[step]
+        v_cfg = self.configuration_variance(states, step)
+        return sig if v_cfg is None else np.sqrt(sig**2 + v_cfg)
+
+    def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        m = self.model
+        M = x.shape[0]
+        psi = self.column(x, "support_yaw")
+        scale = self.column(x, "range_scale")
+        lifted = psi is None and scale is None
+        ks = getattr(self.problem.map, "known_space", None)
+        has_known = ks is not None and m.unknown_weight > 0
+        f = self.field
+        one = np.zeros(1)
+        out = np.empty(M)
+        numba_kernels.likelihood_field_log_likelihood(
+            out, float(m.temper), np.ascontiguousarray(self.points[step] if lifted else self.points_tip[step]),
+            np.ascontiguousarray(self.origins_tip[step]), lifted, np.ascontiguousarray(self.T_lift_tip[step]),
+            np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1]), np.cos(x[:, 2]), np.sin(x[:, 2]),
+            one if scale is None else np.ascontiguousarray(scale), scale is not None,
+            one if psi is None else np.cos(psi), one if psi is None else np.sin(psi), psi is not None,
+            np.ascontiguousarray(f.lo, dtype=float), 1.0 / f.cell, np.asarray(f.shape, dtype=np.int64), f.values.reshape(-1),
+            f.scale, f.r_field,
+            ks.known if has_known else np.zeros((1, 1), dtype=bool), ks.origin if has_known else np.zeros(2),
+            ks.cell if has_known else 1.0, ks.z_range if has_known else np.zeros(2), has_known, float(m.unknown_weight),
+            np.ascontiguousarray(self._sigma(x, step), dtype=float), np.ascontiguousarray(self.short_density[step], dtype=float),
+            float(m.z_hit), float(m.z_rand))
+        return out
+
+    def _log_likelihood_numpy(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """:meth:`log_likelihood` in numpy (without numba)."""
         m = self.model
         sig = self.sigma[step][None, :]
         v_cfg = self.configuration_variance(states, step)
