@@ -413,7 +413,8 @@ class BoundBeamModel(BoundSensorModel):
                 d_end = np.where(np.isfinite(expected), expected, r)
                 reach = np.where(self.valid[step], np.maximum(self.z[step], d_end), d_end)
                 u = self.unknown_entry(x, step, reach)
-                u_entry = empty if u is None else np.ascontiguousarray(u.reshape(M, J))
+                assert u is not None  # a known space and unknown_weight > 0
+                u_entry = np.ascontiguousarray(u.reshape(M, J))
             e, frac, raw = np.ascontiguousarray(expected.reshape(M, J)), np.ascontiguousarray(fr.reshape(M, J)), False
         out = np.empty(M)
         numba_kernels.beam_log_likelihood(

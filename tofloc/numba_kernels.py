@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_log_likelihood", "planar_ray_buffer", "parallel"]
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
@@ -40,6 +40,11 @@ def enabled() -> bool:
 
 def _jit(fn: Any) -> Any:
     return fn if _nb is None else _nb.njit(cache=True, nogil=True)(fn)
+
+
+def _jit_inline(fn: Any) -> Any:
+    """A helper inlined into its callers (no call, no reference counting of its arrays per call)."""
+    return fn if _nb is None else _nb.njit(cache=True, nogil=True, inline="always")(fn)
 
 
 def _jit_parallel(fn: Any) -> Any:
@@ -96,7 +101,7 @@ def sub_cell_states(centres: Any, offsets: Any, h: float, cand: Any, rows: Any, 
                 out[i, j] = 0
 
 
-@_jit
+@_jit_inline
 def _trilinear_one(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int, ny: int, nz: int, values: Any,
                    scale: float, r_field: float) -> float:  # pragma: no cover - compiled
     """One point of :func:`trilinear_int16`."""
@@ -254,31 +259,26 @@ def beam_log_likelihood(out: Any, *args: Any) -> None:
 
 
 @_jit
-def _lf_block(out: Any, lo_m: int, hi_m: int, temper: float, pts: Any, origins: Any, lifted: bool, T: Any, x: Any,
+def _lf_block(dist: Any, unknown: Any, lo_m: int, hi_m: int, pts: Any, origins: Any, lifted: bool, T: Any, x: Any,
               y: Any, cos_yaw: Any, sin_yaw: Any, scale: Any, has_scale: bool, cos_psi: Any, sin_psi: Any,
               has_psi: bool, lo: Any, inv: float, shape: Any, values: Any, field_scale: float, r_field: float,
-              known: Any, known_origin: Any, known_cell: float, known_z: Any, has_known: bool, unknown_weight: float,
-              sig: Any, short_density: Any, z_hit: float, z_rand: float) -> None:  # pragma: no cover - compiled
-    """States ``lo_m:hi_m`` of :func:`likelihood_field_log_likelihood`: end point, field
-    lookup, known-space test and mixture fused per (state, end point), summed per state.
+              known: Any, known_origin: Any, known_cell: float, known_z: Any,
+              has_known: bool) -> None:  # pragma: no cover - compiled
+    """States ``lo_m:hi_m`` of :func:`likelihood_field_distances`: each end point moved
+    into the map frame and looked up in the field (and in the known space), fused.
 
     ``pts`` ``(P, 3)``: with ``lifted`` the end points in the lifted base frame, else in the
     tip frame (with their sensors' ``origins``), moved by each state's range scale and
-    support yaw then by the lift ``T`` ``(4, 4)``. Each state's planar pose is
-    ``x, y`` and the yaw's cosine and sine. The field is :class:`tofloc.surface_field.SurfaceField`'s
+    support yaw then by the lift ``T`` ``(4, 4)``. Each state's planar pose is ``x, y``
+    and the yaw's cosine and sine. The field is :class:`tofloc.surface_field.SurfaceField`'s
     grid (``lo, inv, shape, values, field_scale, r_field``), the known space
-    :class:`tofloc.known_space.KnownSpace`'s (``has_known``). ``sig`` and ``short_density``
-    ``(P,)``: each end point's sigma (configuration variance included) and short term.
-    End point outer, states inner (a point's lookups for nearby states hit the same part of
-    the field: cache-friendly); each state's sum still runs over the points in order."""
+    :class:`tofloc.known_space.KnownSpace`'s (``has_known``). Writes the signed distance
+    ``dist[m, p]`` and, with a known space, ``unknown[m, p]`` (the end point lies in
+    space the map does not know). End point outer, states inner: a point's lookups for
+    nearby states hit the same part of the field."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     kx, ky = known.shape[0], known.shape[1]
-    floor = z_rand / r_field
-    c_hit = math.sqrt(2.0 * math.pi)
-    for m in range(lo_m, hi_m):
-        out[m] = 0.0
     for p in range(pts.shape[0]):
-        sg = sig[p]
         for m in range(lo_m, hi_m):
             if lifted:
                 lx = pts[p, 0]
@@ -305,40 +305,34 @@ def _lf_block(out: Any, lo_m: int, hi_m: int, temper: float, pts: Any, origins: 
             qx = c * lx - s * ly + x[m]
             qy = s * lx + c * ly + y[m]
             qz = lz
-            d = _trilinear_one(qx, qy, qz, lo, inv, nx, ny, nz, values, field_scale, r_field)
-            u = d / sg
-            p_hit = math.exp(-0.5 * (u * u)) / (sg * c_hit)
+            dist[m, p] = _trilinear_one(qx, qy, qz, lo, inv, nx, ny, nz, values, field_scale, r_field)
             if has_known:
                 i = math.floor((qx - known_origin[0]) / known_cell)
                 j = math.floor((qy - known_origin[1]) / known_cell)
-                is_known = (i >= 0 and i < kx and j >= 0 and j < ky and qz >= known_z[0] and qz <= known_z[1]
-                            and known[int(i), int(j)])
-                w = 0.0 if is_known else unknown_weight
-                p_hit = (1.0 - w) * p_hit + w / (2.0 * r_field)
-            short = short_density[p] if d > 0 else 0.0
-            out[m] += math.log(z_hit * p_hit + short + floor)
-    for m in range(lo_m, hi_m):
-        out[m] = temper * out[m]
+                unknown[m, p] = not (i >= 0 and i < kx and j >= 0 and j < ky and qz >= known_z[0]
+                                     and qz <= known_z[1] and known[int(i), int(j)])
 
 
 @_jit
-def _lf_serial(out: Any, temper: float, args: Any) -> None:  # pragma: no cover - compiled
-    _lf_block(out, 0, out.shape[0], temper, *args)
+def _lf_serial(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
+    _lf_block(dist, unknown, 0, dist.shape[0], *args)
 
 
 @_jit_parallel
-def _lf_parallel(out: Any, temper: float, args: Any) -> None:  # pragma: no cover - compiled
-    M = out.shape[0]
+def _lf_parallel(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
+    M = dist.shape[0]
     n_blocks = (M + 255) // 256
     for b in _prange(n_blocks):
-        _lf_block(out, b * 256, min(M, (b + 1) * 256), temper, *args)
+        _lf_block(dist, unknown, b * 256, min(M, (b + 1) * 256), *args)
 
 
-def likelihood_field_log_likelihood(out: Any, temper: float, *args: Any) -> None:
-    """The likelihood-field model's tempered log-likelihood of every state into ``out``
-    ``(M,)`` (arguments: :func:`_lf_block`'s after ``temper``), over threads when
-    :func:`parallel`."""
-    (_lf_parallel if parallel() else _lf_serial)(out, float(temper), args)
+def likelihood_field_distances(dist: Any, unknown: Any, *args: Any) -> None:
+    """The likelihood-field model's signed distances ``dist`` ``(M, P)`` of every state's
+    end points, and with a known space whether each lies in unknown space (``unknown``
+    ``(M, P)`` bool); arguments: :func:`_lf_block`'s after ``hi_m``; over threads when
+    :func:`parallel`. (The mixture's ``exp`` and ``log`` stay in numpy: its vectorized
+    loops are several times faster than libm's scalar calls.)"""
+    (_lf_parallel if parallel() else _lf_serial)(dist, unknown, args)
 
 
 @_jit
