@@ -80,7 +80,7 @@ def test_fused_beam_equals_the_numpy_code(monkeypatch, short_support: str, known
         fused = bound.log_likelihood(x, step)
         assert _rel(fused, ref) < RTOL
     if known:  # the known space is read: the unknown half changes the numbers
-        plain = BeamModel(short_support=short_support, unknown_weight=0.0).bind(problem).log_likelihood(x, 0)
+        plain = BeamModel(short_support=short_support, unknown_weight=0.0).bind(problem).log_likelihood(x, step)
         assert np.max(np.abs(plain - fused)) > 1e-3
 
 
