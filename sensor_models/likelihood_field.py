@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
 from tofloc.errors import ParameterError
@@ -225,18 +226,66 @@ class BoundLikelihoodField(BoundSensorModel):
         return self.field.signed_distance(self.end_points(states, step))
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
-        m = self.model
+        """Tempered log-likelihood ``(M,)``. With numba the end points are moved, looked up
+        in the field and in the known space by one compiled pass per (state, end point)
+        (:func:`tofloc.numba_kernels.likelihood_field_distances`: no ``(M, P, 3)``
+        temporaries), the mixture is numpy's (:meth:`_mixture`); else all numpy
+        (:meth:`_log_likelihood_numpy`). The two agree to ~1e-13 relative (the lift as
+        three products vs a matrix product, then the same arithmetic)."""
+        if numba_kernels.enabled():
+            return self._log_likelihood_fused(np.asarray(states, dtype=float), step)
+        return self._log_likelihood_numpy(states, step)
+
+    def _sigma(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Each end point's sigma ``(1, P)``, its configuration variance added."""
         sig = self.sigma[step][None, :]
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sig = np.sqrt(sig**2 + v_cfg[None, :])
-        q = self.end_points(np.asarray(states, dtype=float), step)
-        d = self.field.signed_distance(q)
+        return sig
+
+    def _mixture(self, d: NDArray[np.float64], unknown: NDArray[np.bool_] | None, sig: NDArray[np.float64],
+                 step: int) -> NDArray[np.float64]:
+        """Tempered log-likelihood ``(M,)`` from the end points' signed distances ``d``
+        ``(M, P)``, whether they lie in unknown space (None: no known space is used) and
+        their sigmas ``(1, P)``."""
+        m = self.model
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
         p_hit = np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
-        ks = getattr(self.problem.map, "known_space", None)
-        if ks is not None and m.unknown_weight > 0:  # an end point where the map knows nothing
-            w = np.where(ks.is_known(q), 0.0, m.unknown_weight)
+        if unknown is not None:  # an end point where the map knows nothing
+            w = np.where(unknown, m.unknown_weight, 0.0)
             p_hit = (1.0 - w) * p_hit + w / (2.0 * self.r_field)
         p = m.z_hit * p_hit + short + m.z_rand / self.r_field
         return m.temper * np.log(p).sum(axis=1)
+
+    def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        m = self.model
+        M, P = x.shape[0], self.points[step].shape[0]
+        psi = self.column(x, "support_yaw")
+        scale = self.column(x, "range_scale")
+        lifted = psi is None and scale is None
+        ks = getattr(self.problem.map, "known_space", None)
+        has_known = ks is not None and m.unknown_weight > 0
+        f = self.field
+        one = np.zeros(1)
+        d = np.empty((M, P))
+        unknown = np.empty((M, P) if has_known else (1, 1), dtype=bool)
+        numba_kernels.likelihood_field_distances(
+            d, unknown, np.ascontiguousarray(self.points[step] if lifted else self.points_tip[step]),
+            np.ascontiguousarray(self.origins_tip[step]), lifted, np.ascontiguousarray(self.T_lift_tip[step]),
+            np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1]), np.cos(x[:, 2]), np.sin(x[:, 2]),
+            one if scale is None else np.ascontiguousarray(scale), scale is not None,
+            one if psi is None else np.cos(psi), one if psi is None else np.sin(psi), psi is not None,
+            np.ascontiguousarray(f.lo, dtype=float), 1.0 / f.cell, np.asarray(f.shape, dtype=np.int64), f.values.reshape(-1),
+            f.scale, f.r_field,
+            ks.known if has_known else np.zeros((1, 1), dtype=bool), ks.origin if has_known else np.zeros(2),
+            ks.cell if has_known else 1.0, ks.z_range if has_known else np.zeros(2), has_known)
+        return self._mixture(d, unknown if has_known else None, self._sigma(x, step), step)
+
+    def _log_likelihood_numpy(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """:meth:`log_likelihood` in numpy (without numba)."""
+        q = self.end_points(np.asarray(states, dtype=float), step)
+        d = self.field.signed_distance(q)
+        ks = getattr(self.problem.map, "known_space", None)
+        unknown = ~ks.is_known(q) if ks is not None and self.model.unknown_weight > 0 else None
+        return self._mixture(d, unknown, self._sigma(states, step), step)

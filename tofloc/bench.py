@@ -36,7 +36,10 @@ returns one JSON document:
     The same small ``tofloc paper`` run (``parallel_estimators``, mocap tips, the paper's
     prior mode, k in ``parallel_k``, ``parallel_trials`` trials, no calibration) with 1 and
     2 workers, the data prepared beforehand and the per-map caches emptied before each:
-    ``workers_1_s``, ``workers_2_s``, ``speedup``.
+    ``workers_1_s``, ``workers_2_s``, ``speedup``; and on a local Dask cluster of two
+    single-threaded worker processes (started before the timing, as ``--scheduler`` is
+    given a running one): ``dask_2_s`` and ``dask_speedup`` (over ``workers_1_s``; null
+    without dask).
 """
 
 from __future__ import annotations
@@ -244,6 +247,21 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
                   prior_modes=("paper",), calibrate=False, workers=workers)
         return time.perf_counter() - t0
 
+    def run_dask(out: str) -> float | None:
+        try:
+            from dask import distributed
+        except ImportError:  # pragma: no cover - dask is a dependency; without it: null
+            return None
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+            with distributed.Client(cluster, set_as_default=False) as client:
+                client.wait_for_workers(2)  # a running cluster, as `--scheduler` is given one
+                shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)
+                map_cache.clear()
+                t0 = time.perf_counter()
+                api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
+                          prior_modes=("paper",), calibrate=False, scheduler=client)
+                return time.perf_counter() - t0
+
     with tempfile.TemporaryDirectory(prefix="tofloc-bench-") as out:
         from evaluation.paper_data import prepare_data
         from pathlib import Path
@@ -251,8 +269,10 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
         prepare_data(Path(out), "paper", 0, True)  # simulated once, outside the timings
         one = run(out, 1)
         two = run(out, 2)
-    return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two, "estimators": list(estimators),
-            "trials": int(trials), "k_values": [int(k) for k in k_values]}
+        dask_two = run_dask(out)
+    return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two,
+            "dask_2_s": dask_two, "dask_speedup": None if dask_two is None else one / dask_two,
+            "estimators": list(estimators), "trials": int(trials), "k_values": [int(k) for k in k_values]}
 
 
 def run_bench(
@@ -374,7 +394,8 @@ def run_bench(
     tick()
     doc["parallel"] = bench_parallel(list(parallel_estimators) if parallel_estimators is not None else names,
                                      parallel_trials, parallel_k)
-    rep.note(f"paper run: 1 worker {doc['parallel']['workers_1_s']:.1f} s, 2 workers {doc['parallel']['workers_2_s']:.1f} s "
-             f"({doc['parallel']['speedup']:.2f}x)")
+    par = doc["parallel"]
+    rep.note(f"paper run: 1 worker {par['workers_1_s']:.1f} s, 2 workers {par['workers_2_s']:.1f} s ({par['speedup']:.2f}x)"
+             + ("" if par["dask_2_s"] is None else f", Dask 2 single-threaded workers {par['dask_2_s']:.1f} s ({par['dask_speedup']:.2f}x)"))
     tick()
     return doc

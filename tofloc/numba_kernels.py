@@ -15,15 +15,20 @@ them again.
 
 from __future__ import annotations
 
+import math
 import os
+import threading
 from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16"]
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
+
+    if "NUMBA_THREADING_LAYER" not in os.environ:  # numba's own pool: no TBB/OpenMP probing beside Open3D's
+        _nb.config.THREADING_LAYER = "workqueue"
 except ImportError:  # pragma: no cover
     _nb = None
 
@@ -35,6 +40,33 @@ def enabled() -> bool:
 
 def _jit(fn: Any) -> Any:
     return fn if _nb is None else _nb.njit(cache=True, nogil=True)(fn)
+
+
+def _jit_inline(fn: Any) -> Any:
+    """A helper inlined into its callers (no call, no reference counting of its arrays per call)."""
+    return fn if _nb is None else _nb.njit(cache=True, nogil=True, inline="always")(fn)
+
+
+def _jit_parallel(fn: Any) -> Any:
+    return fn if _nb is None else _nb.njit(cache=True, nogil=True, parallel=True)(fn)
+
+
+_prange = range if _nb is None else _nb.prange
+
+
+def parallel() -> bool:
+    """Whether the per-state kernels split their states over threads: when this process's
+    native libraries may use every core (:func:`tofloc.threads.open3d_threads` is 0, not
+    a pool's worker limited to one thread). Each state's sum is computed by one thread in
+    the same order: the same numbers either way."""
+    from tofloc.threads import open3d_threads
+
+    return (open3d_threads() == 0 and _nb is not None and _nb.config.NUMBA_NUM_THREADS > 1
+            and threading.current_thread() is threading.main_thread())
+
+
+_SQRT1_2 = 0.7071067811865476
+_SQRT_2PI = 2.5066282746310002
 
 
 @_jit
@@ -69,6 +101,38 @@ def sub_cell_states(centres: Any, offsets: Any, h: float, cand: Any, rows: Any, 
                 out[i, j] = 0
 
 
+@_jit_inline
+def _trilinear_one(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int, ny: int, nz: int, values: Any,
+                   scale: float, r_field: float) -> float:  # pragma: no cover - compiled
+    """One point of :func:`trilinear_int16`."""
+    ux = np.float32((qx - lo[0]) * inv)
+    uy = np.float32((qy - lo[1]) * inv)
+    uz = np.float32((qz - lo[2]) * inv)
+    if not (ux >= 0 and ux < np.float32(nx - 1) and uy >= 0 and uy < np.float32(ny - 1) and uz >= 0
+            and uz < np.float32(nz - 1)):
+        return np.float64(np.float32(r_field))
+    ix = np.int32(ux)
+    iy = np.int32(uy)
+    iz = np.int32(uz)
+    # numpy promotes float32 - int32 to float64: the fractions and the rest are float64
+    fx = np.float64(ux) - np.float64(ix)
+    fy = np.float64(uy) - np.float64(iy)
+    fz = np.float64(uz) - np.float64(iz)
+    b = (ix * ny + iy) * nz + iz
+    a00 = np.float64(values[b])
+    c00 = a00 + fz * (np.float64(values[b + 1]) - a00)
+    a01 = np.float64(values[b + nz])
+    c01 = a01 + fz * (np.float64(values[b + nz + 1]) - a01)
+    a10 = np.float64(values[b + ny * nz])
+    c10 = a10 + fz * (np.float64(values[b + ny * nz + 1]) - a10)
+    a11 = np.float64(values[b + ny * nz + nz])
+    c11 = a11 + fz * (np.float64(values[b + ny * nz + nz + 1]) - a11)
+    c0 = c00 + fy * (c01 - c00)
+    c1 = c10 + fy * (c11 - c10)
+    c0 = c0 + fx * (c1 - c0)
+    return c0 * np.float64(np.float32(scale))
+
+
 @_jit
 def trilinear_int16(q: Any, lo: Any, inv: float, shape: Any, values: Any, scale: float, r_field: float,
                     out: Any) -> None:  # pragma: no cover - compiled
@@ -76,33 +140,220 @@ def trilinear_int16(q: Any, lo: Any, inv: float, shape: Any, values: Any, scale:
     the numpy path's arithmetic in the same order and precision (float32 cell coordinates,
     float64 from the fractions on); ``r_field`` outside."""
     nx, ny, nz = shape[0], shape[1], shape[2]
-    fnx = np.float32(nx - 1)
-    fny = np.float32(ny - 1)
-    fnz = np.float32(nz - 1)
     for i in range(q.shape[0]):
-        ux = np.float32((q[i, 0] - lo[0]) * inv)
-        uy = np.float32((q[i, 1] - lo[1]) * inv)
-        uz = np.float32((q[i, 2] - lo[2]) * inv)
-        if not (ux >= 0 and ux < fnx and uy >= 0 and uy < fny and uz >= 0 and uz < fnz):
-            out[i] = np.float64(np.float32(r_field))
+        out[i] = _trilinear_one(q[i, 0], q[i, 1], q[i, 2], lo, inv, nx, ny, nz, values, scale, r_field)
+
+
+@_jit
+def ndtr(a: float) -> float:  # pragma: no cover - compiled
+    """The standard normal CDF, as scipy's (cephes) ``ndtr`` computes it from ``erf`` and
+    ``erfc`` (libm's here, scipy's own there: equal to a few ulps, ~1e-13 relative deep
+    in the lower tail; 0 where cephes underflows)."""
+    if a > 9.0:  # 0.5 erfc(6.36) < 1e-19: 1 - y rounds to 1
+        return 1.0
+    x = a * _SQRT1_2
+    if x < 0 and x * x > 709.782712893384:  # where cephes' erfc gives up (MAXLOG): 0, not a denormal
+        return 0.0
+    z = abs(x)
+    if z < _SQRT1_2:
+        return 0.5 + 0.5 * math.erf(x)
+    y = 0.5 * math.erfc(z)
+    return 1.0 - y if x > 0 else y
+
+
+@_jit
+def _beam_state(m: int, e: Any, frac: Any, raw: bool, along: Any, min_range: float, max_reading: Any, target_ok: bool,
+                        scale: Any, has_scale: bool, u_entry: Any, has_unknown: bool, unknown_weight: float,
+                        kind: Any, z: Any, r: Any, sig_floor: float, sig_slope: float, sig_factor: Any, sig_rep: Any,
+                        v_cfg: Any, has_cfg: bool, b0: Any, b1: Any, short_r: Any, expected_support: bool,
+                        z_hit: float, z_short: float, z_max: float, z_rand: float, lam: float,
+                        temper: float) -> float:  # pragma: no cover - compiled
+    """State ``m`` of :func:`beam_log_likelihood`: the beam model's tempered log-likelihood of every state (:meth:`sensor_models.beam.BoundBeamModel.log_likelihood`,
+    Gaussian hit density): the per-(state, zone) mixture fused, summed over the zones.
+
+    ``e`` ``(M, J)``: with ``raw`` the zones' centre-ray hit distances (inf: miss), reduced
+    here as :meth:`tofloc.zone_caster.ZoneCaster._reduce` does for one sub-ray (reading
+    ``t * along``, returning within ``[min_range, max_reading]``); else the expected
+    readings (NaN: no target) with hit fractions ``frac``. ``kind`` ``(J,)``: 0 dropped
+    zone, 1 valid reading ``z``, 2 no return. Per zone: range ``r``, sigma ``max(sig_floor,
+    sig_slope |d|) sig_factor`` unless ``sig_rep`` (reported, NaN: not used), plus
+    ``v_cfg``; bias ``b0 + b1 d``; ``short_r`` the short term ``z_short p_short(r)``.
+    The formulas, their order and precision are the numpy code's
+    (:meth:`~sensor_models.beam.BoundBeamModel.zone_log_likelihood`); the sums over zones
+    are sequential (numpy's are pairwise)."""
+    J = e.shape[1]
+    acc = 0.0
+    for j in range(J):
+        k = kind[j]
+        if k == 0:
             continue
-        ix = np.int32(ux)
-        iy = np.int32(uy)
-        iz = np.int32(uz)
-        # numpy promotes float32 - int32 to float64: the fractions and the rest are float64
-        fx = np.float64(ux) - np.float64(ix)
-        fy = np.float64(uy) - np.float64(iy)
-        fz = np.float64(uz) - np.float64(iz)
-        b = (ix * ny + iy) * nz + iz
-        a00 = np.float64(values[b])
-        c00 = a00 + fz * (np.float64(values[b + 1]) - a00)
-        a01 = np.float64(values[b + nz])
-        c01 = a01 + fz * (np.float64(values[b + nz + 1]) - a01)
-        a10 = np.float64(values[b + ny * nz])
-        c10 = a10 + fz * (np.float64(values[b + ny * nz + 1]) - a10)
-        a11 = np.float64(values[b + ny * nz + nz])
-        c11 = a11 + fz * (np.float64(values[b + ny * nz + nz + 1]) - a11)
-        c0 = c00 + fy * (c01 - c00)
-        c1 = c10 + fy * (c11 - c10)
-        c0 = c0 + fx * (c1 - c0)
-        out[i] = c0 * np.float64(np.float32(scale))
+        if raw:
+            sub = e[m, j] * along[j]
+            ret = math.isfinite(e[m, j]) and sub >= min_range and sub <= max_reading[j]
+            f = 1.0 if ret else 0.0
+            ex = sub if (ret and target_ok) else np.nan
+        else:
+            ex = e[m, j]
+            f = frac[m, j]
+        if has_scale:
+            ex = ex * (1.0 + scale[m])
+        rj = r[j]
+        d = ex if math.isfinite(ex) else rj
+        if has_unknown:
+            u = u_entry[m, j]
+            q = unknown_weight if u < d else 0.0
+            span = max(d - u, 1e-3)
+            zj = z[j]
+            p_unk = 1.0 / span if (zj >= u and zj <= d) else 0.0
+        else:
+            q = 0.0
+            p_unk = 0.0
+        if k == 2:
+            p = z_max + (1.0 - f) * z_hit * (1.0 - q)
+        else:
+            zj = z[j]
+            if math.isfinite(sig_rep[j]):
+                sigma = sig_rep[j]
+            else:
+                sigma = max(sig_floor, sig_slope * abs(d)) * sig_factor[j]
+            if has_cfg:
+                sigma = math.sqrt(sigma * sigma + v_cfg[j])
+            mu = d + (b0[j] + b1[j] * d)
+            t = (zj - mu) / sigma
+            a_hi = ndtr((rj - mu) / sigma)
+            b = -mu / sigma
+            if b < -8.5 and a_hi >= 0.5:  # ndtr(b) < 1e-17, under half an ulp of a_hi: a_hi - ndtr(b) == a_hi
+                mass = max(a_hi, 1e-12)
+            else:
+                mass = max(a_hi - ndtr(b), 1e-12)
+            p_hit = math.exp(-0.5 * t * t) / (sigma * _SQRT_2PI * mass)
+            p_hit = (1.0 - q) * p_hit + q * p_unk
+            p_rand = z_rand / rj
+            if expected_support:
+                ps = lam * math.exp(-lam * zj) / -math.expm1(-lam * max(d, 1e-6)) if zj < d else 0.0
+                p_vh = z_hit * p_hit + z_short * ps + p_rand
+            else:
+                p_vh = z_hit * p_hit + short_r[j] + p_rand
+            p_vm = z_hit * q * p_unk + short_r[j] + p_rand
+            p = f * p_vh + (1.0 - f) * p_vm
+        acc += math.log(max(p, 1e-300))
+    return temper * acc
+
+
+@_jit
+def _beam_serial(out: Any, args: Any) -> None:  # pragma: no cover - compiled
+    for m in range(out.shape[0]):
+        out[m] = _beam_state(m, *args)
+
+
+@_jit_parallel
+def _beam_parallel(out: Any, args: Any) -> None:  # pragma: no cover - compiled
+    for m in _prange(out.shape[0]):
+        out[m] = _beam_state(m, *args)
+
+
+def beam_log_likelihood(out: Any, *args: Any) -> None:
+    """The beam model's tempered log-likelihood of every state into ``out`` ``(M,)``
+    (arguments: :func:`_beam_state`'s after ``m``), over threads when :func:`parallel`."""
+    (_beam_parallel if parallel() else _beam_serial)(out, args)
+
+
+@_jit
+def _lf_block(dist: Any, unknown: Any, lo_m: int, hi_m: int, pts: Any, origins: Any, lifted: bool, T: Any, x: Any,
+              y: Any, cos_yaw: Any, sin_yaw: Any, scale: Any, has_scale: bool, cos_psi: Any, sin_psi: Any,
+              has_psi: bool, lo: Any, inv: float, shape: Any, values: Any, field_scale: float, r_field: float,
+              known: Any, known_origin: Any, known_cell: float, known_z: Any,
+              has_known: bool) -> None:  # pragma: no cover - compiled
+    """States ``lo_m:hi_m`` of :func:`likelihood_field_distances`: each end point moved
+    into the map frame and looked up in the field (and in the known space), fused.
+
+    ``pts`` ``(P, 3)``: with ``lifted`` the end points in the lifted base frame, else in the
+    tip frame (with their sensors' ``origins``), moved by each state's range scale and
+    support yaw then by the lift ``T`` ``(4, 4)``. Each state's planar pose is ``x, y``
+    and the yaw's cosine and sine. The field is :class:`tofloc.surface_field.SurfaceField`'s
+    grid (``lo, inv, shape, values, field_scale, r_field``), the known space
+    :class:`tofloc.known_space.KnownSpace`'s (``has_known``). Writes the signed distance
+    ``dist[m, p]`` and, with a known space, ``unknown[m, p]`` (the end point lies in
+    space the map does not know). End point outer, states inner: a point's lookups for
+    nearby states hit the same part of the field."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    kx, ky = known.shape[0], known.shape[1]
+    for p in range(pts.shape[0]):
+        for m in range(lo_m, hi_m):
+            if lifted:
+                lx = pts[p, 0]
+                ly = pts[p, 1]
+                lz = pts[p, 2]
+            else:
+                tx = pts[p, 0]
+                ty = pts[p, 1]
+                tz = pts[p, 2]
+                if has_scale:
+                    g = 1.0 + scale[m]
+                    tx = origins[p, 0] + (tx - origins[p, 0]) / g
+                    ty = origins[p, 1] + (ty - origins[p, 1]) / g
+                    tz = origins[p, 2] + (tz - origins[p, 2]) / g
+                if has_psi:
+                    rx = cos_psi[m] * tx - sin_psi[m] * ty
+                    ty = sin_psi[m] * tx + cos_psi[m] * ty
+                    tx = rx
+                lx = T[0, 0] * tx + T[0, 1] * ty + T[0, 2] * tz + T[0, 3]
+                ly = T[1, 0] * tx + T[1, 1] * ty + T[1, 2] * tz + T[1, 3]
+                lz = T[2, 0] * tx + T[2, 1] * ty + T[2, 2] * tz + T[2, 3]
+            c = cos_yaw[m]
+            s = sin_yaw[m]
+            qx = c * lx - s * ly + x[m]
+            qy = s * lx + c * ly + y[m]
+            qz = lz
+            dist[m, p] = _trilinear_one(qx, qy, qz, lo, inv, nx, ny, nz, values, field_scale, r_field)
+            if has_known:
+                i = math.floor((qx - known_origin[0]) / known_cell)
+                j = math.floor((qy - known_origin[1]) / known_cell)
+                unknown[m, p] = not (i >= 0 and i < kx and j >= 0 and j < ky and qz >= known_z[0]
+                                     and qz <= known_z[1] and known[int(i), int(j)])
+
+
+@_jit
+def _lf_serial(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
+    _lf_block(dist, unknown, 0, dist.shape[0], *args)
+
+
+@_jit_parallel
+def _lf_parallel(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
+    M = dist.shape[0]
+    n_blocks = (M + 255) // 256
+    for b in _prange(n_blocks):
+        _lf_block(dist, unknown, b * 256, min(M, (b + 1) * 256), *args)
+
+
+def likelihood_field_distances(dist: Any, unknown: Any, *args: Any) -> None:
+    """The likelihood-field model's signed distances ``dist`` ``(M, P)`` of every state's
+    end points, and with a known space whether each lies in unknown space (``unknown``
+    ``(M, P)`` bool); arguments: :func:`_lf_block`'s after ``hi_m``; over threads when
+    :func:`parallel`. (The mixture's ``exp`` and ``log`` stay in numpy: its vectorized
+    loops are several times faster than libm's scalar calls.)"""
+    (_lf_parallel if parallel() else _lf_serial)(dist, unknown, args)
+
+
+@_jit
+def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma: no cover - compiled
+    """Rays packed for the ray caster (:meth:`tofloc.zone_caster.PlanarZoneRays.ray_buffer`):
+    ``out[m, s, i]`` (float32) is the origin ``org[m, s]`` then ``A[m] @ dirs[s, i]``, for
+    rotations ``A`` ``(M, 3, 3)``, origins ``(M, S, 3)`` and unit directions ``(S, R, 3)``."""
+    M = A.shape[0]
+    S, R = dirs.shape[0], dirs.shape[1]
+    for m in range(M):
+        for s in range(S):
+            ox = np.float32(org[m, s, 0])
+            oy = np.float32(org[m, s, 1])
+            oz = np.float32(org[m, s, 2])
+            for i in range(R):
+                dx = dirs[s, i, 0]
+                dy = dirs[s, i, 1]
+                dz = dirs[s, i, 2]
+                out[m, s, i, 0] = ox
+                out[m, s, i, 1] = oy
+                out[m, s, i, 2] = oz
+                out[m, s, i, 3] = np.float32(A[m, 0, 0] * dx + A[m, 0, 1] * dy + A[m, 0, 2] * dz)
+                out[m, s, i, 4] = np.float32(A[m, 1, 0] * dx + A[m, 1, 1] * dy + A[m, 1, 2] * dz)
+                out[m, s, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)

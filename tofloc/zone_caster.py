@@ -47,6 +47,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from tofloc import numba_kernels
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig, Sensor
 
@@ -396,11 +397,16 @@ class PlanarZoneRays:
             Rp[:, 0, 0], Rp[:, 0, 1], Rp[:, 1, 0], Rp[:, 1, 1], Rp[:, 2, 2] = cp, -sp, sp, cp, 1.0
             A = A @ Rp
         out = np.empty((M,) + self.dirs_tip.shape[:-1] + (6,), dtype=np.float32)
-        # every candidate's rotation applied to every ray: one stacked matrix product
-        out.reshape(M, -1, 6)[:, :, 3:] = np.matmul(self._dirs_tip_flat[None], A.transpose(0, 2, 1))
         org = np.einsum("mij,sj->msi", A, self.origins_tip) + np.einsum("mij,j->mi", Rz, t)[:, None, :]
         org[..., 0] += p[:, None, 0]
         org[..., 1] += p[:, None, 1]
+        if numba_kernels.enabled():  # one compiled pass writing the buffer
+            S = self.dirs_tip.shape[0]
+            numba_kernels.planar_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org),
+                                            self._dirs_tip_flat.reshape(S, -1, 3), out.reshape(M, S, -1, 6))
+            return out
+        # every candidate's rotation applied to every ray: one stacked matrix product
+        out.reshape(M, -1, 6)[:, :, 3:] = np.matmul(self._dirs_tip_flat[None], A.transpose(0, 2, 1))
         out[..., :3] = org[:, :, None, None, :]
         return out
 
