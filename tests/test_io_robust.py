@@ -457,7 +457,7 @@ def test_ctrl_c_while_a_command_imports_its_libraries_is_one_line(tmp_path: Path
 
 
 def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_path: Path) -> None:
-    entry = "from tofloc.cli import main; main()"  # what the `tofloc` script runs
+    entry = "import sys; from tofloc.cli import main; sys.exit(main())"  # what the `tofloc` script runs
     for delay in (0.6, 1.2, 2.5):  # while the CLI, then open3d and the simulator load, then simulating
         p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(tmp_path / "x.h5")],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
