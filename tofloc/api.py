@@ -44,6 +44,7 @@ __all__ = [
     "scenes",
     "ScenesResult",
     "resolve_workers",
+    "check_selection",
     "MAX_TRIALS",
 ]
 
@@ -78,6 +79,17 @@ def resolve_workers(workers: int | None, n_tasks: int) -> int:
     if not isinstance(workers, int) or workers < 1:
         raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
     return workers
+
+
+def check_selection(name: str) -> str:
+    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
+    a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
+    from tofloc.selection import make_policy, policy_names
+
+    if not isinstance(name, str) or name not in policy_names():
+        raise ParameterError(f"selection must be one of {', '.join(policy_names())}, got {name!r}")
+    make_policy(name)  # loads and checks the plug-in now
+    return name
 
 
 def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
@@ -259,6 +271,7 @@ def localize(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     plot: str | os.PathLike[str] | None = None,
+    selection: str = "random",
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -282,6 +295,9 @@ def localize(
     plot : path, optional
         Draw the first trial (re-run in this process: same seed, same numbers) as a top
         view here (:func:`evaluation.localize_plot.plot_localization`).
+    selection : str
+        How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
+        protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
 
     Every trial record carries the data-fit check (``fit``), the posterior's ``modes`` and
     ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
@@ -331,7 +347,8 @@ def localize(
     pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
-    tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed)
+    tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
+                       check_selection(selection))
     reporter.note(f"samples: {pool.note}")
     n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
     done = [0]
@@ -353,6 +370,7 @@ def localize(
         "params": full_params,
         "tip_source": tip_source,
         "samples": int(k),
+        "selection": selection,
         "prior": prior.to_json(),
         "trials": records,
         "summary": summary,
@@ -416,6 +434,7 @@ def paper(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
     prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
@@ -428,7 +447,9 @@ def paper(
     both tip sources, both prior modes). ``params`` go to every estimator;
     ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
     :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
-    written to ``out/config.toml`` (``--config`` reads it back).
+    written to ``out/config.toml`` (``--config`` reads it back). ``selection`` names the
+    policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in turn,
+    :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
@@ -491,7 +512,8 @@ def paper(
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior) for n in names for tip in tips for prior in priors]
+    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, check_selection(selection))
+               for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
@@ -507,6 +529,7 @@ def paper(
                            for n in names},
             "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes},
             "tip_sources": tips,
+            "selection": selection,
             "k_values": k_values,
             "scenario": scenario,
             "rig_variant": rig_variant,
@@ -577,6 +600,7 @@ def scenes(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
@@ -585,7 +609,8 @@ def scenes(
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
     tips, offset prior, 20 trials; every estimator with its default parameters
     (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
-    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``. ``selection``: as
+    :func:`paper` (recorded in ``scenes.json``).
     """
     from evaluation.report import write_json_atomic, write_text_atomic
     from tofloc.provenance import provenance
@@ -602,7 +627,7 @@ def scenes(
         run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
                     params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
                     k_values=[k], tip_sources=[tip_source],
-                    prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter)
+                    prior_modes=[prior_mode], workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
         for est in estimators:
             g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
             crlb = g.get("crlb") or {}
@@ -616,7 +641,8 @@ def scenes(
             row["nees_mean"] = (g.get("nees") or {}).get("mean")
             rows.append(row)
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows, "provenance": provenance()}
+           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
+           "provenance": provenance()}
     from tofloc.estimator_config import config_toml
 
     config_text = config_toml({n: e["params"] for n, e in run.document["estimators"].items()}, header=[
@@ -687,6 +713,7 @@ def evaluate(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor; ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
@@ -719,6 +746,8 @@ def evaluate(
     workers, scheduler
         Local worker processes (default one per core) or a Dask scheduler address.
     reporter : Reporter
+    selection : str
+        How each trial's samples are chosen among the log's (:func:`check_selection`).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -764,6 +793,7 @@ def evaluate(
     records = run_estimators(
         entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
         partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
+        selection=check_selection(selection),
         on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
     )
     doc = results_document(
@@ -773,6 +803,7 @@ def evaluate(
                            for n in names},
             "calibration": None if cal is None else cal.source,
             "valid_statuses": sorted(valid_statuses),
+            "selection": selection,
             "wall_time_s": round(time.perf_counter() - t0, 3),
         },
     )

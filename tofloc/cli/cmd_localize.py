@@ -65,6 +65,8 @@ def localize(
         help=escape("Estimator parameters from a TOML file: [estimator] and [estimators.NAME] tables with --param's keys "
                     "(docs/evaluation.md); the resolved parameters are saved in the --json document.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
+                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
         help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
@@ -166,7 +168,7 @@ def localize(
         result = api.localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
             trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
-            workers=workers, scheduler=scheduler, reporter=reporter, plot=plot,
+            workers=workers, scheduler=scheduler, reporter=reporter, plot=plot, selection=selection,
         )
     doc = result.document
     from evaluation.trials import jsonable

@@ -61,6 +61,8 @@ def paper(
     k_values: Optional[str] = typer.Option(None, "--k-values", help="Comma-separated numbers of samples (default 1..--k-max)."),
     tip_sources: str = typer.Option("knn,mocap", "--tip-sources", help="Comma-separated tip sources (knn, mocap)."),
     prior_modes: str = typer.Option("paper,offset", "--prior-modes", help="Comma-separated prior modes (paper, offset)."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
+                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
     calibrate: Optional[bool] = typer.Option(
         None, "--calibrate/--no-calibrate",
         help="Calibrate the sensor model (support rotation with its uncertainty, each sensor's mounting, then EM) on a "
@@ -113,7 +115,7 @@ def paper(
             names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
-            prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter,
+            prior_modes=modes, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
         )
     _print(run.document)
     for p in run.paths:

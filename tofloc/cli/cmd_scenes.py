@@ -28,6 +28,7 @@ def scenes(
     seed: int = typer.Option(0, "--seed", help="Seed of the simulations and the trials."),
     tip_source: str = typer.Option("mocap", "--tip-source", help="mocap or knn."),
     prior_mode: str = typer.Option("offset", "--prior-mode", help="offset or paper."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random or active."),
     param: Optional[list[str]] = typer.Option(
         None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
     config: Optional[Path] = typer.Option(
@@ -63,7 +64,7 @@ def scenes(
     with RichReporter() as reporter:
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
                          tip_source=tip_source, prior_mode=prior_mode, estimator_params=per_estimator, calibrate=calibrate,
-                         workers=workers, scheduler=scheduler, reporter=reporter)
+                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):
         t.add_column(col, justify="right")
