@@ -85,6 +85,10 @@ def localize(
         help="Save the estimates here: CSV with the (x, y, yaw) covariance, or TUM for .tum/.txt. Live: one row per "
              "estimate as it comes; offline: one row per trial (its latest sample's index and time)."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
+    suggest_next: Optional[Path] = typer.Option(
+        None, "--suggest-next", metavar="FILE",
+        help="Live: before the first sample and after every estimate, print the pressures of the posture to command next "
+        "(the active selection policy among the k-NN model's postures) and write them to FILE (JSON)."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
     from tofloc.atomic import check_output_path
@@ -99,6 +103,8 @@ def localize(
         if port is not None:
             raise ParameterError("--plot draws the first trial of an offline run (not --port)")
         check_output_path(plot, option="--plot")
+    if suggest_next is not None and port is None:
+        raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:
         check_output_path(estimates_out, option="--estimates-out")
         if json_out is not None and estimates_out.resolve() == json_out.resolve():
@@ -124,6 +130,7 @@ def localize(
             prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg, prior_sigma_xy=prior_sigma_xy,
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window, duration=duration, journal=journal,
             out=out, seed=seed, timeout=timeout, estimates_out=estimates_out, valid_statuses=statuses,
+            suggest_next=suggest_next,
         )
         return
     if log_path is None:
