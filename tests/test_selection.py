@@ -175,3 +175,21 @@ def test_active_trials_choose_in_turn_deterministically_with_the_same_prior() ->
         assert sel["n_candidates"] == [16, 15]
         again = run_trial(ctx, ta)
         assert again["sample_indices"] == chosen and again["estimate"] == a["estimate"]
+
+
+@pytest.mark.parametrize("command", [
+    ["paper", "--estimators", "beam_pf", "--trials", "1"],
+    ["localize", "LOG", "--estimator", "beam_pf"],
+    ["evaluate", "LOG", "--estimators", "beam_pf", "--out", "OUT"],
+    ["scenes", "--estimators", "beam_pf", "--out", "OUT"],
+])
+def test_an_unknown_policy_is_refused_before_any_work(command, tmp_path, capsys) -> None:
+    from tofloc.cli import main
+
+    args = [str(tmp_path / a) if a in ("LOG", "OUT") else a for a in command]
+    if command[0] == "paper":
+        args += ["--out", str(tmp_path / "paper")]
+    assert main(args + ["--selection", "smart"]) == 2
+    err = capsys.readouterr().err
+    assert "selection must be one of active, random, got 'smart'" in err
+    assert not (tmp_path / "paper").exists() and not (tmp_path / "OUT").exists()

@@ -317,6 +317,7 @@ def localize(
     if samples is not None and (not isinstance(samples, int) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
     est = estimator(estimator_name, params)
+    check_selection(selection)
     full_params = jsonable(est.get_params())
     cal = load_calibration(calibration)
     lg = _as_log(log)
@@ -348,7 +349,7 @@ def localize(
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
     tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
-                       check_selection(selection))
+                       selection)
     reporter.note(f"samples: {pool.note}")
     n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
     done = [0]
@@ -485,6 +486,7 @@ def paper(
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
+    check_selection(selection)
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
@@ -512,7 +514,7 @@ def paper(
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, check_selection(selection))
+    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
                for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
@@ -778,6 +780,7 @@ def evaluate(
     if not logs:
         raise ParameterError("evaluate needs at least one log")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg)
+    check_selection(selection)
     ests = {n: estimator(n, params) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
     cal = load_calibration(calibration)
@@ -793,7 +796,7 @@ def evaluate(
     records = run_estimators(
         entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
         partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
-        selection=check_selection(selection),
+        selection=selection,
         on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
     )
     doc = results_document(

@@ -72,6 +72,7 @@ def evaluate(
     params = parse_params(param)
     for n in names:  # unknown names and parameters: refused before any log is read
         api.estimator(n, params)
+    api.check_selection(selection)
     with RichReporter() as reporter:
         run = api.evaluate(
             list(logs), names, out=out, trials=trials, samples=k, prior_mode=prior_mode, prior_sigma_xy=prior_sigma_xy,

@@ -152,6 +152,7 @@ def localize(
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
+    api.check_selection(selection)
     log = read_log(log_path)
     has_truth = log.T_map_base is not None
     if plot_nees is not None and not has_truth:
