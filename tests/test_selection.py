@@ -193,3 +193,11 @@ def test_an_unknown_policy_is_refused_before_any_work(command, tmp_path, capsys)
     err = capsys.readouterr().err
     assert "selection must be one of active, random, got 'smart'" in err
     assert not (tmp_path / "paper").exists() and not (tmp_path / "OUT").exists()
+
+
+def test_tofloc_list_shows_the_policies(capsys) -> None:
+    from tofloc.cli import main
+
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "tofloc.selection_policies" in out and "tofloc.selection.active:ActiveSelection" in out
