@@ -201,3 +201,37 @@ def test_tofloc_list_shows_the_policies(capsys) -> None:
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "tofloc.selection_policies" in out and "tofloc.selection.active:ActiveSelection" in out
+
+
+@dataclass(frozen=True)
+class FirstFree:
+    """A third-party policy: always the first candidate still free."""
+
+    name: ClassVar[str] = "test_first_free"
+
+
+def test_a_registered_plugin_policy_chooses_a_trials_samples() -> None:
+    from tofloc.registry import SELECTION_POLICIES
+    from tofloc.selection.base import SelectionPolicy
+
+    @dataclass(frozen=True)
+    class FirstFreePolicy(SelectionPolicy):
+        name: ClassVar[str] = "test_first_free"
+
+        def scores(self, view: SelectionInput, rng: np.random.Generator) -> np.ndarray:
+            return -np.arange(len(view.candidates), dtype=float)
+
+    with pytest.raises(PluginError, match="not a subclass"):
+        SELECTION_POLICIES.register("test_first_free", FirstFree)
+    SELECTION_POLICIES.register("test_first_free", FirstFreePolicy)
+    try:
+        log, m = _wall_log(), _two_walls()
+        pool = sample_pool(log, None, 3)
+        ctx = TrialContext(log, m, pool)
+        task = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("paper"), [3], 1, 0,
+                          "test_first_free")[0]
+        rec = run_trial(ctx, task)
+        assert rec["sample_indices"] == pool.indices[:3].tolist()
+        assert rec["selection"]["policy"] == "test_first_free"
+    finally:
+        SELECTION_POLICIES.unregister("test_first_free")
