@@ -205,7 +205,7 @@ def test_tofloc_list_shows_the_policies(capsys) -> None:
 
 @dataclass(frozen=True)
 class FirstFree:
-    """A third-party policy: always the first candidate still free."""
+    """Named like a policy but not a SelectionPolicy: the registry refuses it."""
 
     name: ClassVar[str] = "test_first_free"
 
