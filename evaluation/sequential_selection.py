@@ -13,8 +13,10 @@ among the pool's samples not yet used (the log's recorded postures)::
 The last re-estimate is the trial's own estimate (made by :func:`evaluation.trials.solve_trial`
 on the chosen samples, with the trial's estimator generator), so a trial runs its estimator
 ``k`` times (``k - 1`` intermediate ones here). The prior is the trial's (same seed, same
-prior as the random draw); the policy sees only the candidates' configurations and their
-covariance, never their recorded readings.
+prior as the random draw: for a log whose truth is per sample, made from the randomly
+drawn samples' truth, static within :data:`evaluation.trials.STATIC_BASE_TOL_M`; the errors
+are measured against the chosen samples' truth); the policy sees only the candidates'
+configurations and their covariance, never their recorded readings.
 
 Generators: from the trial seed, ``SeedSequence(trial_seed).spawn(3)[2]`` is split into
 the policy's generator and one generator per intermediate estimate (the first two children

@@ -1,9 +1,12 @@
 """Compare a `random` and an `active` run of `tofloc paper` (issue 16) on the trials they share.
 
     python scripts/selection_comparison.py RANDOM_DIR ACTIVE_DIR --out DIR [--label-a random --label-b active]
+        [--more-a FILE --more-b FILE]
 
 Reads each run's per-trial records (DIR/partial/*.json), keeps the (estimator, tip source,
-prior mode, k, trial) both have (same seed: same prior), and writes DIR/selection.md (mean
+prior mode, k, trial) both have (same seed: same prior); ``--more-a/--more-b``: JSON lists of
+more trial records of the same runs (``run_trial`` records with an ``estimator`` key, made
+with the same seeds for further trial numbers), added to each run's. Writes DIR/selection.md (mean
 e_x and e_gamma per k for both policies with the mean sqrt(CRLB) of the same trials, and
 the time per active choice) and DIR/selection_errors_vs_k.png (evaluation.error_plots).
 """
@@ -45,9 +48,15 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--label-a", default="random")
     ap.add_argument("--label-b", default="active")
-    ap.add_argument("--reference-k", type=int, default=10, help="random's k the active rows are compared with")
+    ap.add_argument("--more-a", type=Path)
+    ap.add_argument("--more-b", type=Path)
     a = ap.parse_args()
     ra, rb = records_of(a.random_dir), records_of(a.active_dir)
+    for recs, more in ((ra, a.more_a), (rb, a.more_b)):
+        for r in json.loads(more.read_text()) if more is not None else []:
+            g = next(g for g in recs if g[0] == r["estimator"])
+            if (r["k"], r["trial"]) not in {(x["k"], x["trial"]) for x in recs[g]}:
+                recs[g].append(r)
     groups = sorted(set(ra) & set(rb))
     lines = [f"# {a.label_a} vs {a.label_b} selection ({a.random_dir} vs {a.active_dir})", ""]
     shared_a, shared_b = {}, {}
@@ -59,7 +68,7 @@ def main() -> None:
         shared_b[g] = [r for r in rb[g] if (r["k"], r["trial"]) in {(x["k"], x["trial"]) for x in ra[g]}]
         ks_all |= {int(r["k"]) for r in shared_a[g] + shared_b[g]}
         est, tip, mode = g
-        lines += [f"## {est}, {tip} tips, {mode} prior: trials {min(trials_b)}..{max(trials_b)} of both", "",
+        lines += [f"## {est}, {tip} tips, {mode} prior: {len(trials_b)} trials ({min(trials_b)}..{max(trials_b)}) of both", "",
                   f"| k | {a.label_a} e_x (mm) | {a.label_b} e_x (mm) | {a.label_a} e_gamma (deg) | {a.label_b} e_gamma (deg) "
                   "| sqrt CRLB a / b (mm) | n |", "|---|---|---|---|---|---|---|"]
         for k in sorted({int(r["k"]) for r in shared_a[g]} | {int(r["k"]) for r in shared_b[g]}):
