@@ -35,6 +35,7 @@ Every unobservable bound carries a reason (:attr:`CRLB.reason`; ``null`` plus
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -46,9 +47,10 @@ from tofloc.range_model import RangeUncertainty
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
-from tofloc.zone_caster import ZoneCaster
+from tofloc.zone_caster import ZoneCast, ZoneCaster
 
-__all__ = ["CRLB", "expected_distances", "zone_jacobians", "fisher_information", "crlb_from_information", "crlb",
+__all__ = ["CRLB", "expected_distances", "zone_jacobians", "zone_geometry", "ZoneGeometry", "zone_weights",
+           "sample_information", "fisher_information", "crlb_from_information", "crlb",
            "crlb_for_problem", "map_extent", "MAX_YAW_BOUND_DEG"]
 
 #: Relative eigenvalue (of the scale-normalized information) below which a direction is unobservable.
@@ -190,11 +192,55 @@ def zone_jacobians(
         return r0, J
     if method != "analytic":
         raise ParameterError(f"method must be 'analytic' or 'numeric', got {method!r}")
+    g = zone_geometry(Tb, Tt, rig, the_map)
+    return g.reading, g.jacobian
+
+
+@dataclass(frozen=True, eq=False)
+class ZoneGeometry:
+    """One geometric cast of the zones' centre rays and what it gives (:func:`zone_geometry`).
+
+    Attributes
+    ----------
+    reading : ndarray (K, S, Z)
+        Expected distances (NaN: no hit within range).
+    jacobian : ndarray (K, S, Z, 3)
+        Their analytic Jacobians w.r.t. (x, y, yaw) (the module doc).
+    caster : ZoneCaster
+        The centre-ray caster used.
+    T_map_sensor : ndarray (K, S, 4, 4)
+    T_map_tip : ndarray (K, 4, 4)
+    cast : ZoneCast
+        The cast with its geometry (hit points, normals).
+    """
+
+    reading: NDArray[np.float64]
+    jacobian: NDArray[np.float64]
+    caster: ZoneCaster
+    T_map_sensor: NDArray[np.float64]
+    T_map_tip: NDArray[np.float64]
+    cast: Any
+
+
+def zone_geometry(T_map_base: ArrayLike, T_base_tip: ArrayLike, rig: Rig, the_map: Any) -> ZoneGeometry:
+    """Expected distances, their analytic Jacobians and the cast they come from, for the
+    centre rays of every zone of every sample (one ray cast of all of them, flattened:
+    :meth:`~tofloc.zone_caster.ZoneCaster.cast_zone_rays`)."""
+    Tb, Tt = _as_poses(T_map_base, T_base_tip)
     caster = ZoneCaster(rig)
-    o, u = caster.rays(_sensor_poses(Tb, Tt, rig))
-    o, u = o[..., 0, :], u[..., 0, :]  # centre rays: (K, S, 1, 3) and (K, S, Z, 3)
-    cast = caster.cast_rays(the_map, o[..., None, :], u[..., None, :], geometry=True)
-    assert cast.normal is not None and cast.point is not None
+    T_map_tip = Tb @ Tt
+    T_map_sensor = T_map_tip[:, None] @ rig.T_tip_sensor[None]  # (K, S, 4, 4)
+    # centre rays: (K, S, 3) origins and (K, S, Z, 3) directions (one stacked product)
+    u = np.matmul(caster.dirs_sensor[None, :, :, 0, :], np.swapaxes(T_map_sensor[..., :3, :3], -1, -2))
+    K, S, Z = u.shape[:3]
+    o = np.broadcast_to(T_map_sensor[:, :, None, :3, 3], u.shape)
+    sz = np.broadcast_to(np.arange(S)[None, :, None], (K, S, Z)).ravel()
+    zz = np.broadcast_to(np.arange(Z)[None, None, :], (K, S, Z)).ravel()
+    flat = caster.cast_zone_rays(the_map, o.reshape(-1, 3), u.reshape(-1, 3), sz, zz)
+    assert flat.normal is not None and flat.point is not None and flat.mean_cos is not None and flat.index is not None
+    cast = ZoneCast(flat.reading.reshape(K, S, Z), flat.hit_fraction.reshape(K, S, Z), flat.mean_cos.reshape(K, S, Z),
+                    flat.normal.reshape(K, S, Z, 3), flat.point.reshape(K, S, Z, 3), flat.index.reshape(K, S, Z),
+                    np.zeros((K, S, Z), dtype=bool))
     r = cast.reading
     n = cast.normal
     h = cast.point
@@ -207,7 +253,7 @@ def zone_jacobians(
         dt = -np.stack([n[..., 0], n[..., 1], np.einsum("...i,...i->...", n, rot)], axis=-1) / cos[..., None]
         dt = np.where((np.abs(cos) > 1e-6)[..., None], dt, np.nan)
     f = rig.range_factor[None, :, :, None]
-    return r, dt / f
+    return ZoneGeometry(r, dt / f, caster, T_map_sensor, T_map_tip, cast)
 
 
 def fisher_information(
@@ -230,8 +276,42 @@ def fisher_information(
     uncertainty : RangeUncertainty, optional
         Sigma at the expected distance (default: the datasheet's).
     """
-    unc = uncertainty or RangeUncertainty()
     r, J = zone_jacobians(T_map_base, T_base_tip, rig, the_map, method=method)
+    use, w, Jz = zone_weights(r, J, rig, uncertainty, valid)
+    info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
+    return 0.5 * (info + info.T), int(use.sum())
+
+
+def zone_weights(
+    r: NDArray[np.float64],
+    J: NDArray[np.float64],
+    rig: Rig,
+    uncertainty: RangeUncertainty | None = None,
+    valid: ArrayLike | None = None,
+    extra_variance: ArrayLike | None = None,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """The zones that count, their Fisher weights and their Jacobians (zero where unused).
+
+    Parameters
+    ----------
+    r, J : ndarray (..., S, Z) and (..., S, Z, 3)
+        Expected distances and their Jacobians (:func:`zone_jacobians`, :func:`zone_geometry`).
+    uncertainty : RangeUncertainty, optional
+        Sigma at the expected distance (default: the datasheet's).
+    valid : array (..., S, Z) of bool, optional
+        Zones to count (default: every zone with a finite distance and Jacobian).
+    extra_variance : array broadcast to (..., S, Z), optional
+        Reading variance (m^2) added to the sensor's (e.g. the configuration's,
+        :func:`tofloc.fit_check.configuration_variance`); NaN counts as 0.
+
+    Returns
+    -------
+    use : ndarray of bool (..., S, Z)
+    w : ndarray (..., S, Z)
+        ``1 / (sigma^2 + extra)`` where used, 0 elsewhere.
+    Jz : ndarray (..., S, Z, 3)
+    """
+    unc = uncertainty or RangeUncertainty()
     use = np.isfinite(r) & np.all(np.isfinite(J), axis=-1)
     if valid is not None:
         v = np.asarray(valid, dtype=bool)
@@ -239,10 +319,51 @@ def fisher_information(
             raise ParameterError(f"valid must be shaped {r.shape}, got {v.shape}")
         use &= v
     sigma = unc.sigma(rig, np.where(use, r, 1.0))
-    w = np.where(use, 1.0 / sigma**2, 0.0)
+    var = sigma**2 if extra_variance is None else sigma**2 + np.nan_to_num(np.asarray(extra_variance, dtype=float))
+    w = np.where(use, 1.0 / var, 0.0)
     Jz = np.where(use[..., None], J, 0.0)
-    info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
-    return 0.5 * (info + info.T), int(use.sum())
+    return use, w, Jz
+
+
+def sample_information(
+    T_map_base: ArrayLike,
+    T_base_tip: ArrayLike,
+    rig: Rig,
+    the_map: Any,
+    uncertainty: RangeUncertainty | None = None,
+    T_base_tip_cov: ArrayLike | None = None,
+    *,
+    covariance_rows: int | None = None,
+) -> NDArray[np.float64]:
+    """Fisher information ``(K, 3, 3)`` of (x, y, yaw) of each sample on its own, from one
+    ray cast of every zone (:func:`zone_geometry`), with each zone's reading variance the
+    range model's plus, given the configurations' covariance ``T_base_tip_cov``
+    ``(6, 6)`` or ``(K, 6, 6)``, the one that covariance causes
+    (:func:`tofloc.fit_check.configuration_variance`, the beam model's and the oracle's).
+
+    ``covariance_rows`` ``= m`` evaluates the configuration's variance on the first ``m``
+    rows only and reuses it for row ``i`` from row ``i % m`` (rows laid out as
+    ``m``-blocks of the same configurations seen from other base poses: the variance moves
+    little with the base pose, and the beam model too evaluates it at one reference pose).
+    """
+    from tofloc.fit_check import configuration_variance
+
+    g = zone_geometry(T_map_base, T_base_tip, rig, the_map)
+    extra = None
+    if T_base_tip_cov is not None:
+        K = g.reading.shape[0]
+        m = K if covariance_rows is None else int(covariance_rows)
+        if not 1 <= m <= K or K % m:
+            raise ParameterError(f"covariance_rows must divide the {K} samples, got {covariance_rows!r}")
+        C = np.broadcast_to(np.asarray(T_base_tip_cov, dtype=float), (K, 6, 6))[:m]
+        head = dataclasses.replace(g.cast, point=g.cast.point[:m], normal=g.cast.normal[:m])
+        with np.errstate(invalid="ignore"):
+            v = configuration_variance(g.caster, g.T_map_sensor[:m], g.T_map_tip[:m], head, C)
+        extra = np.tile(v, (K // m, 1, 1))
+    _, w, Jz = zone_weights(g.reading, g.jacobian, rig, uncertainty, extra_variance=extra)
+    Jf = Jz.reshape(Jz.shape[0], -1, 3)
+    info = np.matmul(np.swapaxes(Jf * w.reshape(Jf.shape[:2])[..., None], 1, 2), Jf)  # sum_z w J^T J per sample
+    return 0.5 * (info + np.swapaxes(info, 1, 2))
 
 
 def crlb_from_information(info: ArrayLike, n_zones: int = 0, rtol: float = SINGULAR_RTOL,

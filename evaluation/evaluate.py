@@ -244,6 +244,7 @@ def run_estimators(
     partial_dir: Path | None = None,
     on_progress: Callable[[int, int], None] | None = None,
     on_reused: Callable[[int, int], None] | None = None,
+    selection: str = "random",
 ) -> dict[str, dict[str, list[dict[str, Any]]]]:
     """Every estimator's trials on every log, in one pool, saving each finished batch.
 
@@ -264,6 +265,8 @@ def run_estimators(
         ``on_progress(done, total)`` over every trial of the run (reused ones count as done).
     on_reused : callable, optional
         ``on_reused(reused_batches, total_batches)`` once the saved batches are read.
+    selection : str
+        The policy choosing each trial's samples (:class:`evaluation.trials.TrialTask`).
 
     Returns
     -------
@@ -288,6 +291,7 @@ def run_estimators(
                 "data": data_key, "code": codes[e.name], "label": en.label, "estimator": e.name,
                 "params": full_params[e.name], "tip_source": "log", "prior": prior.to_json(), "k": en.k,
                 "trials": int(trials), "seed": int(run_seed), "log_seed": en.seed,
+                **({} if selection == "random" else {"selection": selection}),
             })
             if partial_dir is not None:
                 try:
@@ -314,7 +318,8 @@ def run_estimators(
         contexts[g] = en.context
         keys[g] = (en, e, key)
         seeds = en.trial_seeds(trials)
-        tasks += [TrialTask(g, e.name, e.cls, dict(e.params), TIP_SOURCE, prior, en.k, t, seeds[t]) for t in range(trials)]
+        tasks += [TrialTask(g, e.name, e.cls, dict(e.params), TIP_SOURCE, prior, en.k, t, seeds[t], selection)
+                  for t in range(trials)]
     collected: dict[str, dict[int, dict[str, Any]]] = {g: {} for g in keys}
 
     def on_result(i: int, rec: dict[str, Any]) -> None:

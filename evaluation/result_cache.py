@@ -56,6 +56,8 @@ class Batch:
         Keyword parameters of the estimator.
     tip_source : str
     prior : PriorSpec
+    selection : str
+        The selection policy choosing each trial's samples (``"random"``: the protocol).
     """
 
     estimator: str
@@ -63,6 +65,7 @@ class Batch:
     params: Mapping[str, Any]
     tip_source: str
     prior: PriorSpec
+    selection: str = "random"
 
     @property
     def group(self) -> str:
@@ -210,6 +213,8 @@ def run_batches(
             "estimator": b.estimator, "params": jsonable(full_params), "tip_source": b.tip_source,
             "prior": b.prior.to_json(), "k_values": [int(k) for k in k_values], "trials": int(trials), "seed": int(seed),
         }
+        if b.selection != "random":  # random keeps the keys batches were saved under before policies existed
+            key_fields["selection"] = b.selection
         key = fingerprint_arrays(extra=key_fields)
         if partial_dir is not None:
             path = _partial_path(partial_dir, b.group)
@@ -226,7 +231,8 @@ def run_batches(
 
     tasks: list[TrialTask] = []
     for b, _ in todo:
-        tasks += make_tasks(b.group, b.estimator, b.estimator_cls, b.params, b.tip_source, b.prior, k_values, trials, seed)
+        tasks += make_tasks(b.group, b.estimator, b.estimator_cls, b.params, b.tip_source, b.prior, k_values, trials, seed,
+                            b.selection)
     expected = len(k_values) * trials
     collected: dict[str, dict[int, dict[str, Any]]] = {b.group: {} for b, _ in todo}
     keys = {b.group: (b, key) for b, key in todo}

@@ -273,6 +273,10 @@ class TrialTask:
     prior : PriorSpec
     k, trial, seed : int
         Number of samples, trial number, and the trial seed (:func:`trial_seed`).
+    selection : str
+        The selection policy (:data:`tofloc.registry.SELECTION_POLICIES`): ``"random"``
+        draws the ``k`` samples at once (the protocol); another chooses them in turn
+        (:mod:`evaluation.sequential_selection`).
     """
 
     group: str
@@ -284,6 +288,7 @@ class TrialTask:
     k: int
     trial: int
     seed: int
+    selection: str = "random"
 
 
 @dataclass(eq=False)
@@ -419,6 +424,7 @@ class TrialOutcome:
     indices: NDArray[np.intp]
     setup_s: float
     has_context_calibration: bool
+    selection: Any = None
 
 
 def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
@@ -431,6 +437,12 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     prior = task.prior.make(truth_T, normals, context.map)
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
     calibration = context.calibration if est.uses_calibration() else None
+    chosen = None
+    if task.selection != "random":  # the same prior, samples chosen in turn by the policy
+        from evaluation.sequential_selection import choose_sequentially
+
+        chosen = choose_sequentially(context, task, est, prior, calibration)
+        idx, truth_T = chosen.indices, context.truth(chosen.indices)
     problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
                                context.valid_statuses)
     setup_s = warm_up(est, task, problem, context)
@@ -439,7 +451,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
         result.fit = check_fit(problem, result)
         widen_if_unfit(problem, result)  # a flagged estimate's covariance is widened by the prior's
-    return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration)
+    return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration, chosen)
 
 
 def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
@@ -503,6 +515,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "found": None,
         "truth_mode": None,
     }
+    if out.selection is not None:
+        record["selection"] = out.selection.to_json()
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
         record["truth"] = jsonable(truth)
@@ -538,12 +552,15 @@ def make_tasks(
     k_values: Iterable[int],
     trials: int,
     seed: int,
+    selection: str = "random",
 ) -> list[TrialTask]:
-    """The tasks of one batch: every ``k`` in ``k_values`` times ``trials`` trials."""
+    """The tasks of one batch: every ``k`` in ``k_values`` times ``trials`` trials, samples
+    chosen by the policy ``selection``."""
     if not isinstance(trials, int) or trials < 1:
         raise ParameterError(f"trials must be an integer >= 1, got {trials!r}")
     return [
-        TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, int(k), t, trial_seed(seed, int(k), t))
+        TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, int(k), t, trial_seed(seed, int(k), t),
+                  selection)
         for k in k_values
         for t in range(trials)
     ]

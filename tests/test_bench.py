@@ -53,6 +53,8 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert _seconds(p["workers_1_s"]) and _seconds(p["workers_2_s"]) and _seconds(p["speedup"])
     assert _seconds(p["dask_2_s"]) and p["dask_speedup"] == pytest.approx(p["workers_1_s"] / p["dask_2_s"])
     assert p["estimators"] == ["icp_pf"] and p["k_values"] == [1]
+    sel = doc["selection"]
+    assert _seconds(sel["active_choice_s"]) and sel["candidates"] == 300 and sel["particles"] == 16
     icp = doc["icp_score"]
     assert [row["k"] for row in icp["per_k"]] == [1, 5, 10] and icp["max_abs_fitness_diff"] == 0.0
     assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
@@ -63,12 +65,13 @@ def test_bench_reports_each_measurement_as_it_runs(bench) -> None:
     from tofloc.registry import ESTIMATORS
 
     _, rec = bench
-    n = 3 + len(ESTIMATORS.names()) + 4
+    n = 3 + len(ESTIMATORS.names()) + 5
     label = "measurements (10 particles, median of 1)"
     assert [c for c in rec.calls if c[2] == label] == [(i, n, label) for i in range(n + 1)]
     assert sum(m.startswith("ICP score, k = ") for m in rec.notes) == 3
     assert all(any(m.startswith(f"{name}: one update") for m in rec.notes) for name in ESTIMATORS.names())
     assert any(m.startswith("paper run: 1 worker") for m in rec.notes)
+    assert any(m.startswith("active selection: one choice among 300 postures") for m in rec.notes)
 
 
 @pytest.mark.slow

@@ -44,6 +44,7 @@ __all__ = [
     "scenes",
     "ScenesResult",
     "resolve_workers",
+    "check_selection",
     "MAX_TRIALS",
 ]
 
@@ -78,6 +79,17 @@ def resolve_workers(workers: int | None, n_tasks: int) -> int:
     if not isinstance(workers, int) or workers < 1:
         raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
     return workers
+
+
+def check_selection(name: str) -> str:
+    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
+    a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
+    from tofloc.selection import make_policy, policy_names
+
+    if not isinstance(name, str) or name not in policy_names():
+        raise ParameterError(f"selection must be one of {', '.join(policy_names())}, got {name!r}")
+    make_policy(name)  # loads and checks the plug-in now
+    return name
 
 
 def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
@@ -259,6 +271,7 @@ def localize(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     plot: str | os.PathLike[str] | None = None,
+    selection: str = "random",
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -282,6 +295,9 @@ def localize(
     plot : path, optional
         Draw the first trial (re-run in this process: same seed, same numbers) as a top
         view here (:func:`evaluation.localize_plot.plot_localization`).
+    selection : str
+        How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
+        protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
 
     Every trial record carries the data-fit check (``fit``), the posterior's ``modes`` and
     ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
@@ -301,6 +317,7 @@ def localize(
     if samples is not None and (not isinstance(samples, int) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
     est = estimator(estimator_name, params)
+    check_selection(selection)
     full_params = jsonable(est.get_params())
     cal = load_calibration(calibration)
     lg = _as_log(log)
@@ -331,7 +348,8 @@ def localize(
     pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
-    tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed)
+    tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
+                       selection)
     reporter.note(f"samples: {pool.note}")
     n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
     done = [0]
@@ -353,6 +371,7 @@ def localize(
         "params": full_params,
         "tip_source": tip_source,
         "samples": int(k),
+        "selection": selection,
         "prior": prior.to_json(),
         "trials": records,
         "summary": summary,
@@ -417,6 +436,7 @@ def paper(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
     prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
@@ -431,7 +451,9 @@ def paper(
     and every yaw, :mod:`tofloc.free_space`). ``params`` go to every estimator;
     ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
     :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
-    written to ``out/config.toml`` (``--config`` reads it back).
+    written to ``out/config.toml`` (``--config`` reads it back). ``selection`` names the
+    policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in turn,
+    :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
@@ -469,6 +491,7 @@ def paper(
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
+    check_selection(selection)
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
@@ -496,7 +519,8 @@ def paper(
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal)
-    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior) for n in names for tip in tips for prior in priors]
+    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
+               for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
@@ -513,6 +537,7 @@ def paper(
             "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes,
                       "specs": {p.mode: p.to_json() for p in priors}},
             "tip_sources": tips,
+            "selection": selection,
             "k_values": k_values,
             "scenario": scenario,
             "rig_variant": rig_variant,
@@ -584,6 +609,7 @@ def scenes(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
@@ -592,7 +618,8 @@ def scenes(
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
     tips, offset prior, 20 trials; every estimator with its default parameters
     (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
-    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``. ``selection``: as
+    :func:`paper` (recorded in ``scenes.json``).
     """
     from evaluation.report import write_json_atomic, write_text_atomic
     from tofloc.provenance import provenance
@@ -609,7 +636,7 @@ def scenes(
         run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
                     params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
                     k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
-                    workers=workers, scheduler=scheduler, reporter=reporter)
+                    workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
         for est in estimators:
             g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
             crlb = g.get("crlb") or {}
@@ -624,7 +651,8 @@ def scenes(
             row["found"] = g.get("found")  # within 1 cm and 1 deg; the truth among the modes; median runtime
             rows.append(row)
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "rows": rows, "provenance": provenance()}
+           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
+           "provenance": provenance()}
     from tofloc.estimator_config import config_toml
 
     config_text = config_toml({n: e["params"] for n, e in run.document["estimators"].items()}, header=[
@@ -703,6 +731,7 @@ def evaluate(
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
+    selection: str = "random",
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor; ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
@@ -737,6 +766,8 @@ def evaluate(
     workers, scheduler
         Local worker processes (default one per core) or a Dask scheduler address.
     reporter : Reporter
+    selection : str
+        How each trial's samples are chosen among the log's (:func:`check_selection`).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -767,6 +798,7 @@ def evaluate(
     if not logs:
         raise ParameterError("evaluate needs at least one log")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
+    check_selection(selection)
     ests = {n: estimator(n, params) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
     cal = load_calibration(calibration)
@@ -782,6 +814,7 @@ def evaluate(
     records = run_estimators(
         entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
         partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
+        selection=selection,
         on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
     )
     doc = results_document(
@@ -791,6 +824,7 @@ def evaluate(
                            for n in names},
             "calibration": None if cal is None else cal.source,
             "valid_statuses": sorted(valid_statuses),
+            "selection": selection,
             "wall_time_s": round(time.perf_counter() - t0, 3),
         },
     )

@@ -32,6 +32,11 @@ returns one JSON document:
     The smoother's k = 10 estimate with the stacked evaluation and with one factor per
     sample (``stacked_factor=False``): ``per_sample_factor_s``, ``stacked_factor_s``,
     ``speedup`` and ``max_abs_diff`` (largest difference of the two poses).
+``selection``
+    ``active_choice_s``: one choice of the ``active`` selection policy (median of
+    ``repeat``) among ``candidates`` recorded postures of the paper's log (motion-capture
+    configurations), after 4 measured ones, from the prior's particles; with
+    ``candidates``, ``particles`` (the policy's) and ``measured``.
 ``parallel``
     The same small ``tofloc paper`` run (``parallel_estimators``, mocap tips, the paper's
     prior mode, k in ``parallel_k``, ``parallel_trials`` trials, no calibration) with 1 and
@@ -56,7 +61,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-__all__ = ["paper_bench_problem", "run_bench", "bench_gtsam_smoother", "bench_parallel", "peak_rss_child"]
+__all__ = ["paper_bench_problem", "run_bench", "bench_gtsam_smoother", "bench_parallel", "peak_rss_child",
+           "bench_active_choice"]
 
 
 def _median_time(fn: Callable[[], Any], repeat: int) -> float:
@@ -275,6 +281,25 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
             "estimators": list(estimators), "trials": int(trials), "k_values": [int(k) for k in k_values]}
 
 
+def bench_active_choice(problem: Any, candidates: int = 300, repeat: int = 5, measured: int = 4) -> dict[str, Any]:
+    """The time of one ``active`` choice among ``candidates`` postures of the paper's log
+    (seed 0), seen from ``problem``'s map, rig, range model and prior (module doc)."""
+    from tofloc.selection import Posterior, Postures, SelectionInput, make_policy
+    from tofloc.simulation import simulate
+
+    log = simulate("paper", 0).log
+    rows = np.flatnonzero(np.isfinite(log.T_base_tip[:, 0, 0]))[: candidates + measured]
+    T = np.asarray(log.T_base_tip, dtype=float)[rows]
+    policy = make_policy("active")
+    rng = np.random.default_rng(0)
+    view = SelectionInput(problem.rig, problem.map, problem.range_model, problem.prior, Postures(T[measured:]),
+                          Postures(T[:measured]), Posterior.from_prior(problem.prior, 256, rng))
+    policy.choose(view, rng)  # warm-up
+    t = _median_time(lambda: policy.choose(view, rng), repeat)
+    return {"active_choice_s": t, "candidates": int(len(view.candidates)), "particles": int(policy.particles),
+            "measured": int(measured)}
+
+
 def run_bench(
     particles: int = 1000,
     repeat: int = 5,
@@ -298,7 +323,7 @@ def run_bench(
     rep = reporter if reporter is not None else Reporter()
     names = ESTIMATORS.names()
     pf_names = [n for n in names if isinstance(ESTIMATORS.load(n)(), ParticleFilter)]
-    total = 3 + len(names) + 4
+    total = 3 + len(names) + 5
     label = f"measurements ({particles} particles, median of {repeat})"
     with rep.stage("simulating the paper's data (seed 0) for the benchmark problem"):
         problem = paper_bench_problem()
@@ -391,6 +416,10 @@ def run_bench(
     doc["gtsam"] = _bench_gtsam_factors(problem, repeat)
     rep.note(f"gtsam_smoother k = 10: stacked {1e3 * doc['gtsam']['stacked_factor_s']:.0f} ms, per-sample factors "
              f"{1e3 * doc['gtsam']['per_sample_factor_s']:.0f} ms ({doc['gtsam']['speedup']:.2f}x)")
+    tick()
+    doc["selection"] = bench_active_choice(problem, repeat=repeat)
+    rep.note(f"active selection: one choice among {doc['selection']['candidates']} postures "
+             f"{1e3 * doc['selection']['active_choice_s']:.0f} ms")
     tick()
     doc["parallel"] = bench_parallel(list(parallel_estimators) if parallel_estimators is not None else names,
                                      parallel_trials, parallel_k)

@@ -2,7 +2,8 @@
 
 A plug-in is named by a string and points at ``"module:attribute"``. Built-ins are
 listed below; third-party packages declare theirs as ``importlib.metadata`` entry
-points in the groups ``tofloc.sensor_models`` and ``tofloc.estimators``::
+points in the groups ``tofloc.sensor_models``, ``tofloc.estimators`` and
+``tofloc.selection_policies``::
 
     [project.entry-points."tofloc.sensor_models"]
     my_model = "my_package.models:MyModel"
@@ -23,7 +24,8 @@ from typing import Any, Iterator
 
 from tofloc.errors import PluginError
 
-__all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "get_estimator", "get_sensor_model"]
+__all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "get_estimator",
+           "get_sensor_model"]
 
 #: pip package to install when an import of this module fails.
 _INSTALL_HINTS = {
@@ -117,7 +119,8 @@ class Registry:
 
     @property
     def _kind(self) -> str:
-        return self.group.split(".")[-1].rstrip("s").replace("_", " ")
+        kind = self.group.split(".")[-1]
+        return (kind[:-3] + "y" if kind.endswith("ies") else kind.rstrip("s")).replace("_", " ")
 
     def load(self, name: str) -> Any:
         """Import and return the plug-in's object; :class:`PluginError` with an install hint on failure."""
@@ -201,6 +204,17 @@ SENSOR_MODELS = Registry(
         "likelihood_field": "sensor_models.likelihood_field:LikelihoodFieldModel",
     },
     base="sensor_models.base:SensorModel",
+)
+
+
+#: Built-in selection policies (name -> class). Each follows tofloc.selection.base.SelectionPolicy.
+SELECTION_POLICIES = Registry(
+    "tofloc.selection_policies",
+    {
+        "random": "tofloc.selection.random_policy:RandomSelection",
+        "active": "tofloc.selection.active:ActiveSelection",
+    },
+    base="tofloc.selection.base:SelectionPolicy",
 )
 
 

@@ -40,6 +40,8 @@ def evaluate(
         help="A calibration (`tofloc calibrate` output) for every estimator that uses one, and the oracle floor."),
     param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
+                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),
@@ -71,12 +73,13 @@ def evaluate(
     params = parse_params(param)
     for n in names:  # unknown names and parameters: refused before any log is read
         api.estimator(n, params)
+    api.check_selection(selection)
     with RichReporter() as reporter:
         run = api.evaluate(
             list(logs), names, out=out, trials=trials, samples=k, prior_mode=prior_mode, prior_sigma_xy=prior_sigma_xy,
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, params=params,
             valid_statuses=statuses,
-            seed=seed, workers=workers, scheduler=scheduler, reporter=reporter,
+            seed=seed, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
         )
     console.print(summary_table(run.document))
     for p in run.paths:

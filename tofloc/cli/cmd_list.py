@@ -12,7 +12,7 @@ from rich.table import Table
 
 from tofloc.cli.app import app, console
 from tofloc.errors import ParameterError
-from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+from tofloc.registry import ESTIMATORS, SELECTION_POLICIES, SENSOR_MODELS
 
 
 @app.command("list")
@@ -21,11 +21,12 @@ def list_plugins(
         None, "--params", metavar="NAME",
         help="Show the parameters of this estimator or sensor model: default, type and meaning (from its class)."),
 ) -> None:
-    """List registered estimators and sensor models (built-ins and installed plug-ins), or one's parameters."""
+    """List registered estimators, sensor models and selection policies (built-ins and installed plug-ins), or one's parameters."""
     if params is not None:
         _print_params(params)
         return
-    for title, registry in (("Estimators", ESTIMATORS), ("Sensor models", SENSOR_MODELS)):
+    for title, registry in (("Estimators", ESTIMATORS), ("Sensor models", SENSOR_MODELS),
+                            ("Selection policies", SELECTION_POLICIES)):
         table = Table(title=f"{title} (entry-point group {registry.group})")
         table.add_column("name", style="bold")
         table.add_column("target", overflow="fold")

@@ -76,6 +76,8 @@ def localize(
         help=escape("Estimator parameters from a TOML file: [estimator] and [estimators.NAME] tables with --param's keys "
                     "(docs/evaluation.md); the resolved parameters are saved in the --json document.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
+                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
         help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
@@ -94,6 +96,10 @@ def localize(
         help="Save the estimates here: CSV with the (x, y, yaw) covariance, or TUM for .tum/.txt. Live: one row per "
              "estimate as it comes; offline: one row per trial (its latest sample's index and time)."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live: seconds to wait for the first data."),
+    suggest_next: Optional[Path] = typer.Option(
+        None, "--suggest-next", metavar="FILE",
+        help="Live: before the first sample and after every estimate, print the pressures of the posture to command next "
+        "(the active selection policy among the k-NN model's postures) and write them to FILE (JSON)."),
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
     from tofloc.atomic import check_output_path
@@ -108,6 +114,8 @@ def localize(
         if port is not None:
             raise ParameterError("--plot draws the first trial of an offline run (not --port)")
         check_output_path(plot, option="--plot")
+    if suggest_next is not None and port is None:
+        raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:
         check_output_path(estimates_out, option="--estimates-out")
         if json_out is not None and estimates_out.resolve() == json_out.resolve():
@@ -133,6 +141,7 @@ def localize(
             prior_x=prior_x, prior_y=prior_y, prior_yaw_deg=prior_yaw_deg, prior_sigma_xy=prior_sigma_xy,
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, window=window, duration=duration, journal=journal,
             out=out, seed=seed, timeout=timeout, estimates_out=estimates_out, valid_statuses=statuses,
+            suggest_next=suggest_next,
         )
         return
     if log_path is None:
@@ -156,6 +165,7 @@ def localize(
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
+    api.check_selection(selection)
     log = read_log(log_path)
     has_truth = log.T_map_base is not None
     if plot_nees is not None and not has_truth:
@@ -185,7 +195,7 @@ def localize(
         result = api.localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
             trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
-            workers=workers, scheduler=scheduler, reporter=reporter, plot=plot,
+            workers=workers, scheduler=scheduler, reporter=reporter, plot=plot, selection=selection,
         )
     doc = result.document
     from evaluation.trials import jsonable

@@ -63,6 +63,8 @@ def paper(
     prior_modes: str = typer.Option("paper,offset", "--prior-modes",
                                     help="Comma-separated prior modes (paper, offset, global: uniform over free space)."),
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
+                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
     calibrate: Optional[bool] = typer.Option(
         None, "--calibrate/--no-calibrate",
         help="Calibrate the sensor model (support rotation with its uncertainty, each sensor's mounting, then EM) on a "
@@ -116,7 +118,7 @@ def paper(
             names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
-            prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter,
+            prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
         )
     _print(run.document)
     for p in run.paths:

@@ -30,6 +30,7 @@ def scenes(
     prior_mode: str = typer.Option("offset", "--prior-mode", help="offset, paper or global (uniform over free space)."),
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX",
                                          help=REGION_HELP + " The same rectangle for every scene."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random or active."),
     param: Optional[list[str]] = typer.Option(
         None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
     config: Optional[Path] = typer.Option(
@@ -66,7 +67,7 @@ def scenes(
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
                          tip_source=tip_source, prior_mode=prior_mode, region=rect, estimator_params=per_estimator,
                          calibrate=calibrate,
-                         workers=workers, scheduler=scheduler, reporter=reporter)
+                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):
         t.add_column(col, justify="right")

@@ -50,6 +50,7 @@ def run_live(
     timeout: float,
     valid_statuses: frozenset[int],
     estimates_out: Optional[Path] = None,
+    suggest_next: Optional[Path] = None,
 ) -> None:
     """Capture from ``port`` (in a thread) and print an estimate with its uncertainty as
     often as the estimator can, on the latest samples."""
@@ -69,7 +70,10 @@ def run_live(
         )
     if estimates_out is not None:
         check_output_path(estimates_out, option="--estimates-out")
-    outputs = [(journal, "--journal")] + [(p, o) for p, o in ((out, "--out"), (estimates_out, "--estimates-out")) if p is not None]
+    if suggest_next is not None:
+        check_output_path(suggest_next, option="--suggest-next")
+    outputs = [(journal, "--journal")] + [(p, o) for p, o in ((out, "--out"), (estimates_out, "--estimates-out"),
+                                                              (suggest_next, "--suggest-next")) if p is not None]
     if len({p.resolve() for p, _ in outputs}) != len(outputs):
         raise ParameterError(f"{', '.join(o for _, o in outputs)} must name different files")
 
@@ -111,7 +115,8 @@ def run_live(
             from tofloc.io.estimates import EstimatesWriter
 
             writer = stack.enter_context(EstimatesWriter(estimates_out, z=prior.z, roll=prior.roll, pitch=prior.pitch))
-        bg = _run_loop(live, cap, writer, port, fmt, baud, estimator, journal)
+        suggest = None if suggest_next is None else _suggester(live, suggest_next, seed)
+        bg = _run_loop(live, cap, writer, port, fmt, baud, estimator, journal, suggest)
         if out is not None and bg.received:
             from tofloc.io.samples import samples_to_log
             from tofloc.logs import write_log
@@ -122,8 +127,26 @@ def run_live(
             err_console.print(f"wrote {writer.rows} estimates to {estimates_out}")
 
 
-def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, estimator: str, journal: Path) -> Any:
-    """The consumer loop: estimate on the latest samples while the capture thread reads."""
+def _suggester(live: Any, path: Path, seed: int) -> Any:
+    """``suggest(estimate, index)``: print the next posture's pressures (the ``active``
+    policy among the k-NN model's postures, :mod:`tofloc.selection.suggest`) and write them to ``path``."""
+    from tofloc.selection import make_policy
+    from tofloc.selection.suggest import suggest_next, write_suggestion
+
+    policy = make_policy("active")
+
+    def suggest(estimate: Any, index: int) -> None:
+        s = suggest_next(live, estimate, policy, np.random.default_rng([seed, index + 1]))
+        write_suggestion(path, s)
+        console.print(s.line(), highlight=False)
+
+    return suggest
+
+
+def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, estimator: str, journal: Path,
+              suggest: Any = None) -> Any:
+    """The consumer loop: estimate on the latest samples while the capture thread reads (and,
+    with ``suggest``, say which posture to command next before the first sample and after every estimate)."""
     from tofloc.io.capture import BackgroundCapture
 
     err_console.print(f"live localization with {estimator} on {port} ({fmt}, {baud} baud); journal {journal}; Ctrl-C to stop")
@@ -133,6 +156,8 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
     if in_main:
         signal.signal(signal.SIGINT, lambda *_: bg.stop())
     skipped_total = 0
+    if suggest is not None:
+        suggest(None, -1)
     bg.start()
     try:
         while True:
@@ -160,6 +185,8 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
                                   markup=False)
             if writer is not None:
                 writer.write(upd, batch[-1].t_s)
+            if suggest is not None:
+                suggest(upd.estimate, int(upd.sample_index))
     finally:
         bg.stop()
         try:

@@ -1,0 +1,237 @@
+"""Selection policies (tofloc.selection) and trials whose samples a policy chooses in turn
+(evaluation.sequential_selection): random is the protocol's draw, bit for bit; active picks
+the posture that tells most about what is still loose."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from evaluation.crlb import fisher_information, sample_information
+from evaluation.priors import PriorSpec
+from evaluation.trials import TrialContext, draw_samples_and_prior, make_tasks, run_trial, sample_pool, trial_rngs
+from tofloc import frames
+from tofloc.errors import ParameterError, PluginError
+from tofloc.logs import Log
+from tofloc.maps import Map
+from tofloc.problem import Estimate, Estimator, Prior, Problem
+from tofloc.problem_builder import problem_from_log
+from tofloc.range_model import RangeUncertainty
+from tofloc.rig import Rig, Sensor
+from tofloc.selection import Posterior, Postures, SelectionInput, make_policy, policy_names
+from tofloc.selection.random_policy import RandomSelection
+
+FLAT = RangeUncertainty(sigma_slope=0.0, sigma_floor=0.01, edge_factor=1.0)
+PHIS = np.radians([-15.0, 0.0, 15.0])
+WALL_X, WALL_Y = 0.5, 0.7
+
+
+@dataclass(frozen=True, eq=False)
+class NoisyPriorMean(Estimator):
+    """The prior mean plus ``scale`` times three draws of the generator (and the prior's spread)."""
+
+    name: ClassVar[str] = "test_selection_noisy_prior_mean"
+    scale: float = 0.01
+
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        return Estimate(pose=problem.prior.mean + self.scale * rng.normal(size=3), covariance=problem.prior.covariance)
+
+
+def _rig() -> Rig:
+    """One sensor at the tip origin looking along the tip's x axis, three radial zones in the
+    horizontal plane (tip = base = map frame at the identity)."""
+    R = np.stack([np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])], axis=1)
+    dirs = np.stack([-np.sin(PHIS), np.zeros(3), np.cos(PHIS)], axis=1)
+    return Rig((Sensor(name="a", resolution=(1, 3), distance="radial", zone_directions=dirs,
+                       T_tip_sensor=frames.se3(R, np.zeros(3))),))
+
+
+def _wall(axis: int, at: float) -> tuple[np.ndarray, np.ndarray]:
+    a, b = [i for i in range(3) if i != axis]
+    v = np.zeros((4, 3))
+    v[:, axis] = at
+    v[:, a] = [-10, 10, 10, -10]
+    v[:, b] = [-10, -10, 10, 10]
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _two_walls() -> Map:
+    (va, ta), (vb, tb) = _wall(0, WALL_X), _wall(1, WALL_Y)
+    return Map.from_mesh(np.concatenate([va, vb]), np.concatenate([ta, tb + 4]))
+
+
+def _postures(yaws_deg: list[float]) -> np.ndarray:
+    """Tip poses turned by ``yaws`` (deg) about z, a few mm apart so that none repeats."""
+    return np.stack([frames.se3(frames.rot_z(math.radians(a)), np.array([0.002 * i, 0.001 * i, 0.0]))
+                     for i, a in enumerate(yaws_deg)])
+
+
+PRIOR = Prior(np.zeros(3), np.array([0.2, 0.2, math.radians(20.0)]))
+
+
+def _view(candidates: Postures, measured: Postures | None, rng: np.random.Generator) -> SelectionInput:
+    return SelectionInput(_rig(), _two_walls(), FLAT, PRIOR, candidates, measured, Posterior.from_prior(PRIOR, 64, rng))
+
+
+def test_registry_has_random_and_active_and_refuses_unknown_names() -> None:
+    assert {"random", "active"} <= set(policy_names())
+    assert make_policy("active").particles == 16
+    with pytest.raises(PluginError, match="unknown selection policy 'nope'"):
+        make_policy("nope")
+    with pytest.raises(ParameterError, match="its parameters: particles"):
+        make_policy("active", {"particle": 3})
+    with pytest.raises(ParameterError, match="active.particles"):
+        make_policy("active", {"particles": 0})
+
+
+def test_random_draw_is_the_protocols_draw() -> None:
+    pool = np.arange(5, 200, 3)
+    for seed in (1, 7, 12345):
+        idx, _ = draw_samples_and_prior(pool, 6, seed)
+        np.testing.assert_array_equal(RandomSelection.draw(pool, 6, trial_rngs(seed)[0]), idx)
+
+
+def test_sample_information_sums_to_the_fisher_information() -> None:
+    T = _postures([0.0, 90.0, 30.0])
+    per = sample_information(np.eye(4), T, _rig(), _two_walls(), FLAT)
+    total, _ = fisher_information(np.eye(4), T, _rig(), _two_walls(), FLAT)
+    assert per.shape == (3, 3, 3)
+    np.testing.assert_allclose(per.sum(axis=0), total, rtol=1e-9)
+    # a configuration's uncertainty lowers what its zones tell (the reading variance grows)
+    cov = np.diag([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
+    noisy = sample_information(np.eye(4), T, _rig(), _two_walls(), FLAT, cov)
+    assert np.all(np.linalg.eigvalsh(per - noisy) > -1e-9)
+    assert np.trace(noisy[0]) < 0.9 * np.trace(per[0])
+
+
+def test_active_picks_the_wall_the_measured_postures_did_not_see() -> None:
+    """Measured: two postures facing the wall x = 0.5 (x and yaw known, y loose). Among
+    four more facing it and one facing the wall y = 0.7, D-optimality picks the latter; with
+    nothing measured yet and the y-wall posture's configuration uncertain, it picks a
+    certain one."""
+    rng = np.random.default_rng(0)
+    policy = make_policy("active")
+    cand = Postures(_postures([0.0, 5.0, 90.0, -5.0, 2.0]))
+    meas = Postures(_postures([0.0, 3.0]))
+    assert policy.choose(_view(cand, meas, rng), rng) == 2
+    # the random policy does not look: over many draws it picks every candidate
+    picks = {make_policy("random").choose(_view(cand, meas, rng), rng) for _ in range(60)}
+    assert picks == set(range(5))
+    # two y-wall postures, the first with an uncertain configuration: the certain one wins
+    T = _postures([0.0, 90.0, 90.0])
+    cov = np.zeros((3, 6, 6))
+    cov[1] = np.eye(6) * 1e-3
+    assert policy.choose(_view(Postures(T, cov), meas, rng), rng) == 2
+
+
+def _wall_log(K: int = 16) -> Log:
+    """Samples alternately facing the x wall and the y wall, readings the expected ones."""
+    from evaluation.crlb import expected_distances
+
+    rig = _rig()
+    yaws = [0.0 if i % 4 else 90.0 for i in range(K)]  # a quarter face the y wall
+    T = _postures(yaws)
+    d = expected_distances(np.eye(4), T, rig, _two_walls())
+    status = np.where(np.isfinite(d), 5, 255).astype(np.uint8)
+    return Log.from_arrays(rig, np.arange(K, dtype=float), np.nan_to_num(d) * 1000.0, status, T_base_tip=T,
+                           T_map_base=np.eye(4), source="test")
+
+
+def test_random_trials_are_bit_identical_to_the_protocol() -> None:
+    log, m = _wall_log(), _two_walls()
+    pool = sample_pool(log, None, 4)
+    ctx = TrialContext(log, m, pool)
+    for task in make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("offset"), [1, 4], 3, 5):
+        assert task.selection == "random"
+        rec = run_trial(ctx, task)
+        idx, normals = draw_samples_and_prior(pool.indices, task.k, task.seed)
+        prior = task.prior.make(ctx.truth(idx), normals)
+        problem = problem_from_log(log, idx, m, prior, "mocap", None, None)
+        est = NoisyPriorMean().estimate(problem, trial_rngs(task.seed)[1])
+        assert rec["sample_indices"] == idx.tolist()
+        assert rec["estimate"] == est.pose.tolist()  # exactly
+        assert "selection" not in rec
+
+
+def test_active_trials_choose_in_turn_deterministically_with_the_same_prior() -> None:
+    log, m = _wall_log(), _two_walls()
+    ctx = TrialContext(log, m, sample_pool(log, None, 2))
+    y_wall = set(range(0, 16, 4))
+    spec = PriorSpec("offset", 0.05, 5.0)  # the walls stay in front of every particle
+    rand = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", spec, [2], 4, 3)
+    act = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", spec, [2], 4, 3, "active")
+    for tr, ta in zip(rand, act):
+        r, a = run_trial(ctx, tr), run_trial(ctx, ta)
+        assert a["prior_mean"] == r["prior_mean"] and a["seed"] == r["seed"]  # same seed, same prior
+        chosen = a["sample_indices"]
+        assert len(set(chosen)) == 2
+        assert len(y_wall & set(chosen)) == 1  # one posture per wall: the second complements the first
+        sel = a["selection"]
+        assert sel["policy"] == "active" and len(sel["choice_s"]) == 2 and len(sel["estimate_s"]) == 1
+        assert sel["n_candidates"] == [16, 15]
+        again = run_trial(ctx, ta)
+        assert again["sample_indices"] == chosen and again["estimate"] == a["estimate"]
+
+
+@pytest.mark.parametrize("command", [
+    ["paper", "--estimators", "beam_pf", "--trials", "1"],
+    ["localize", "LOG", "--estimator", "beam_pf"],
+    ["evaluate", "LOG", "--estimators", "beam_pf", "--out", "OUT"],
+    ["scenes", "--estimators", "beam_pf", "--out", "OUT"],
+])
+def test_an_unknown_policy_is_refused_before_any_work(command, tmp_path, capsys) -> None:
+    from tofloc.cli import main
+
+    args = [str(tmp_path / a) if a in ("LOG", "OUT") else a for a in command]
+    if command[0] == "paper":
+        args += ["--out", str(tmp_path / "paper")]
+    assert main(args + ["--selection", "smart"]) == 2
+    err = capsys.readouterr().err
+    assert "selection must be one of active, random, got 'smart'" in err
+    assert not (tmp_path / "paper").exists() and not (tmp_path / "OUT").exists()
+
+
+def test_tofloc_list_shows_the_policies(capsys) -> None:
+    from tofloc.cli import main
+
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "tofloc.selection_policies" in out and "tofloc.selection.active:ActiveSelection" in out
+
+
+@dataclass(frozen=True)
+class FirstFree:
+    """Named like a policy but not a SelectionPolicy: the registry refuses it."""
+
+    name: ClassVar[str] = "test_first_free"
+
+
+def test_a_registered_plugin_policy_chooses_a_trials_samples() -> None:
+    from tofloc.registry import SELECTION_POLICIES
+    from tofloc.selection.base import SelectionPolicy
+
+    @dataclass(frozen=True)
+    class FirstFreePolicy(SelectionPolicy):
+        name: ClassVar[str] = "test_first_free"
+
+        def scores(self, view: SelectionInput, rng: np.random.Generator) -> np.ndarray:
+            return -np.arange(len(view.candidates), dtype=float)
+
+    with pytest.raises(PluginError, match="not a subclass"):
+        SELECTION_POLICIES.register("test_first_free", FirstFree)
+    SELECTION_POLICIES.register("test_first_free", FirstFreePolicy)
+    try:
+        log, m = _wall_log(), _two_walls()
+        pool = sample_pool(log, None, 3)
+        ctx = TrialContext(log, m, pool)
+        task = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("paper"), [3], 1, 0,
+                          "test_first_free")[0]
+        rec = run_trial(ctx, task)
+        assert rec["sample_indices"] == pool.indices[:3].tolist()
+        assert rec["selection"]["policy"] == "test_first_free"
+    finally:
+        SELECTION_POLICIES.unregister("test_first_free")
