@@ -1,4 +1,5 @@
-"""Random rays from inside the paper's cuboid, shared by the map tests."""
+"""Geometry shared by the map, bound and selection tests: random rays from inside the
+paper's cuboid, large square walls."""
 
 from __future__ import annotations
 
@@ -15,3 +16,13 @@ def interior_rays(n: int, seed: int, half_xy: float = 0.1, z: tuple[float, float
     el = np.radians(rng.uniform(elevation_deg[0], elevation_deg[1], n))
     d = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
     return o, d
+
+
+def wall_square(axis: int, at: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 20 x 20 m square in the plane ``coordinate[axis] = at``: vertices (4, 3), triangles (2, 3)."""
+    a, b = [i for i in range(3) if i != axis]
+    v = np.zeros((4, 3))
+    v[:, axis] = at
+    v[:, a] = [-10, 10, 10, -10]
+    v[:, b] = [-10, -10, 10, 10]
+    return v, np.array([[0, 1, 2], [0, 2, 3]])

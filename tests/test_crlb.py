@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from rays import wall_square
 
 from evaluation.crlb import crlb, crlb_for_problem, crlb_from_information, fisher_information, zone_jacobians
 from tofloc.range_model import RangeUncertainty
@@ -33,16 +34,6 @@ def _horizontal_sensor(name: str, heading: float) -> Sensor:
     return Sensor(name=name, resolution=(1, 3), distance="radial", zone_directions=dirs, T_tip_sensor=frames.se3(R, np.zeros(3)))
 
 
-def _wall(axis: int, at: float) -> tuple[np.ndarray, np.ndarray]:
-    """A 20 x 20 m square in the plane ``coordinate[axis] = at``."""
-    a, b = [i for i in range(3) if i != axis]
-    v = np.zeros((4, 3))
-    v[:, axis] = at
-    v[:, a] = [-10, 10, 10, -10]
-    v[:, b] = [-10, -10, 10, 10]
-    return v, np.array([[0, 1, 2], [0, 2, 3]])
-
-
 def _mesh(*walls: tuple[np.ndarray, np.ndarray]) -> Map:
     verts, tris, n = [], [], 0
     for v, t in walls:
@@ -63,7 +54,7 @@ def _hand_information(w: float) -> np.ndarray:
 def test_single_wall_leaves_the_in_plane_position_unobservable() -> None:
     w = 0.5
     rig = Rig((_horizontal_sensor("a", 0.0),))
-    m = _mesh(_wall(0, w))
+    m = _mesh(wall_square(0, w))
     info, n = fisher_information(np.eye(4), np.eye(4)[None], rig, m, FLAT)
     assert n == 3
     np.testing.assert_allclose(info, _hand_information(w), rtol=1e-5, atol=1e-6)
@@ -84,7 +75,7 @@ def test_a_floor_alone_leaves_x_y_and_yaw_unobservable() -> None:
     dirs = np.array([[0.0, 0.0, 1.0], [math.sin(0.3), 0.0, math.cos(0.3)], [0.0, math.sin(0.3), math.cos(0.3)]])
     rig = Rig((Sensor(name="down", resolution=(1, 3), distance="radial", zone_directions=dirs,
                       T_tip_sensor=frames.se3(R, np.array([0.05, 0.02, 0.0]))),))
-    b = crlb(np.eye(4), np.eye(4)[None], rig, _mesh(_wall(2, -0.4)), FLAT)
+    b = crlb(np.eye(4), np.eye(4)[None], rig, _mesh(wall_square(2, -0.4)), FLAT)
     assert b.n_zones == 3
     assert math.isinf(b.position_m) and math.isinf(b.yaw_deg)
     assert np.abs(b.information).max() < 1e-6
@@ -94,7 +85,7 @@ def test_two_walls_match_the_hand_computation() -> None:
     """Sensors along +x (wall x = 0.5) and +y (wall y = 0.7); each: r = (w - t) / cos(phi + yaw)."""
     wa, wb = 0.5, 0.7
     rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
-    m = _mesh(_wall(0, wa), _wall(1, wb))
+    m = _mesh(wall_square(0, wa), wall_square(1, wb))
     Ja = np.stack([-1 / np.cos(PHIS), np.zeros(3), wa * np.sin(PHIS) / np.cos(PHIS) ** 2], axis=1)
     Jb = np.stack([np.zeros(3), -1 / np.cos(PHIS), wb * np.sin(PHIS) / np.cos(PHIS) ** 2], axis=1)
     I_hand = (Ja.T @ Ja + Jb.T @ Jb) / SIGMA**2
@@ -143,7 +134,7 @@ def test_crlb_for_a_problem_uses_its_valid_zones() -> None:
     from tofloc.problem import Prior, Problem
 
     rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
-    m = _mesh(_wall(0, 0.5), _wall(1, 0.7))
+    m = _mesh(wall_square(0, 0.5), wall_square(1, 0.7))
     status = np.full((1, 2, 3), 5, dtype=np.uint8)
     p = Problem(rig=rig, distance_m=np.full((1, 2, 3), 0.5), status=status, T_base_tip=np.eye(4)[None], map=m,
                 prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
@@ -223,7 +214,7 @@ def test_a_nearly_singular_bound_beyond_the_map_is_unobservable_with_a_reason() 
     (kilometres) exceeds the map's extent: reported as unobservable with a reason, never as a
     number (the localize CLI once printed a 1e25 m position bound)."""
     rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi)))
-    m = _mesh(_wall(0, 0.5), _tilted_wall(-0.5, 1e-7))
+    m = _mesh(wall_square(0, 0.5), _tilted_wall(-0.5, 1e-7))
     info, _ = fisher_information(np.eye(4), np.eye(4)[None], rig, m, FLAT)
     raw = crlb_from_information(info)  # no extent given: the finite, meaningless number
     assert math.isfinite(raw.position_m) and raw.position_m > 1000.0
@@ -247,7 +238,7 @@ def test_localize_prints_unobservable_with_its_reason_not_a_huge_number(tmp_path
     from tofloc.simulation import simulate, write_simulation
 
     log = write_simulation(simulate("paper", 3), tmp_path / "sim.h5")["log"]
-    wall = _mesh(_wall(0, 1.0)).save(tmp_path / "wall.ply")
+    wall = _mesh(wall_square(0, 1.0)).save(tmp_path / "wall.ply")
     out = tmp_path / "loc.json"
     code = main(["localize", str(log), "--map", str(wall), "--estimator", "icp_pf", "--trials", "2", "--samples", "2",
                  "--json", str(out), "--param", "n_particles=50", "--workers", "1"])

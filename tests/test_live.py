@@ -66,31 +66,11 @@ def test_window_and_missing_pressures(paper) -> None:
 
 def test_cli_localize_port_end_to_end(paper, tmp_path, capsys) -> None:
     """`tofloc replay LOG --pty` in a child process, `tofloc localize --port` reading it."""
-    from test_io_cli import cli_process, wait_for
+    from live_port import localize_from_replay
 
-    from tofloc.cli import main
-    from tofloc.logs import read_log, write_log
+    from tofloc.logs import read_log
 
-    sim, model = paper
-    small = sim.log.subset(model.validation_indices[:5])
-    log_path = write_log(small, tmp_path / "five.h5")
-    sim.map_cloud.save(tmp_path / "map.ply")
-    model.save(tmp_path / "knn.npz")
-    link = tmp_path / "ttyLIVE"
-    dev = cli_process("replay", str(log_path), "--pty", "--speed", "0", "--link", str(link), "--wait", "30")
-    try:
-        wait_for(link, dev)
-        truth = frames.xyyaw_from_se3(sim.log.T_map_base)
-        code = main([
-            "localize", "--port", str(link), "--rig", str(log_path), "--map", str(tmp_path / "map.ply"),
-            "--kinematics", str(tmp_path / "knn.npz"), "--estimator", "icp_pf", "--param", "n_particles=200",
-            "--prior-x", f"{truth[0] + 0.02}", "--prior-y", f"{truth[1]}", "--prior-yaw-deg", f"{math.degrees(truth[2])}",
-            "--prior-sigma-xy", "0.05", "--prior-sigma-yaw-deg", "5", "--base-z", "0.5",
-            "--out", str(tmp_path / "live.h5"), "--timeout", "20",
-        ])
-        dev.communicate(timeout=30)
-    finally:
-        dev.kill() if dev.poll() is None else None
+    code, small = localize_from_replay(paper, tmp_path, 5, "ttyLIVE", "--out", str(tmp_path / "live.h5"), prior_dx=0.02)
     assert code == 0
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith("sample ")]

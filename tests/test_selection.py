@@ -10,6 +10,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from rays import wall_square
 
 from evaluation.crlb import fisher_information, sample_information
 from evaluation.priors import PriorSpec
@@ -50,17 +51,8 @@ def _rig() -> Rig:
                        T_tip_sensor=frames.se3(R, np.zeros(3))),))
 
 
-def _wall(axis: int, at: float) -> tuple[np.ndarray, np.ndarray]:
-    a, b = [i for i in range(3) if i != axis]
-    v = np.zeros((4, 3))
-    v[:, axis] = at
-    v[:, a] = [-10, 10, 10, -10]
-    v[:, b] = [-10, -10, 10, 10]
-    return v, np.array([[0, 1, 2], [0, 2, 3]])
-
-
 def _two_walls() -> Map:
-    (va, ta), (vb, tb) = _wall(0, WALL_X), _wall(1, WALL_Y)
+    (va, ta), (vb, tb) = wall_square(0, WALL_X), wall_square(1, WALL_Y)
     return Map.from_mesh(np.concatenate([va, vb]), np.concatenate([ta, tb + 4]))
 
 

@@ -73,31 +73,11 @@ def test_suggest_next_is_refused_offline(tmp_path) -> None:
 
 def test_cli_localize_port_suggests_the_next_posture(paper, tmp_path, capsys) -> None:
     """`tofloc replay LOG --pty` in a child process, `tofloc localize --port ... --suggest-next FILE`."""
-    from test_io_cli import cli_process, wait_for
-
-    from tofloc.cli import main
-    from tofloc.logs import write_log
+    from live_port import localize_from_replay
 
     sim, model = paper
-    small = sim.log.subset(model.validation_indices[:3])
-    log_path = write_log(small, tmp_path / "three.h5")
-    sim.map_cloud.save(tmp_path / "map.ply")
-    model.save(tmp_path / "knn.npz")
-    link = tmp_path / "ttyNEXT"
-    dev = cli_process("replay", str(log_path), "--pty", "--speed", "0", "--link", str(link), "--wait", "30")
-    try:
-        wait_for(link, dev)
-        truth = frames.xyyaw_from_se3(sim.log.T_map_base)
-        code = main([
-            "localize", "--port", str(link), "--rig", str(log_path), "--map", str(tmp_path / "map.ply"),
-            "--kinematics", str(tmp_path / "knn.npz"), "--estimator", "icp_pf", "--param", "n_particles=200",
-            "--prior-x", f"{truth[0]}", "--prior-y", f"{truth[1]}", "--prior-yaw-deg", f"{math.degrees(truth[2])}",
-            "--prior-sigma-xy", "0.05", "--prior-sigma-yaw-deg", "5", "--base-z", "0.5", "--timeout", "20",
-            "--suggest-next", str(tmp_path / "next.json"), "--journal", str(tmp_path / "j.journal"),
-        ])
-        dev.communicate(timeout=30)
-    finally:
-        dev.kill() if dev.poll() is None else None
+    code, _ = localize_from_replay(paper, tmp_path, 3, "ttyNEXT", "--suggest-next", str(tmp_path / "next.json"),
+                                   "--journal", str(tmp_path / "j.journal"))
     assert code == 0
     out = capsys.readouterr().out
     nxt = [ln for ln in out.splitlines() if ln.startswith("next posture: ")]
