@@ -12,6 +12,18 @@ from test_io_cli import cli_process, wait_for
 from tofloc import frames
 
 
+def paper_with_knn() -> tuple[Any, Any]:
+    """The simulated paper run (seed 2) and a k-NN model fitted on it: what the live tests replay."""
+    import numpy as np
+
+    from tofloc.kinematics import KinematicsModel
+    from tofloc.simulation import simulate
+
+    sim = simulate("paper", 2)
+    model, _ = KinematicsModel.fit_log(sim.log, np.random.default_rng(0), k_candidates=range(3, 8))
+    return sim, model
+
+
 def localize_from_replay(paper: Any, tmp_path: Path, n_samples: int, link_name: str, *extra: str,
                          prior_dx: float = 0.0) -> tuple[int, Any]:
     """Replay the first ``n_samples`` validation samples of ``paper`` (a (simulation, k-NN

@@ -6,23 +6,20 @@ import math
 
 import numpy as np
 import pytest
+from live_port import paper_with_knn
 
 from test_io_capture import capture_from_replay  # the real capture path through a pty
 
 from estimators.particle_filter import ICPScorePF
 from tofloc import frames
 from tofloc.errors import ParameterError
-from tofloc.kinematics import KinematicsModel
 from tofloc.live import LiveLocalizer
 from tofloc.problem import Prior
-from tofloc.simulation import simulate
 
 
 @pytest.fixture(scope="module")
 def paper():
-    sim = simulate("paper", 2)
-    model, _ = KinematicsModel.fit_log(sim.log, np.random.default_rng(0), k_candidates=range(3, 8))
-    return sim, model
+    return paper_with_knn()
 
 
 def test_live_localization_over_a_pty(paper, tmp_path) -> None:
