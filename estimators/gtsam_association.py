@@ -24,11 +24,49 @@ from estimators.gtsam_factors import SampleMeasurement
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
-__all__ = ["RESIDUALS", "measurements", "associate"]
+__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
 _UP = np.array([0.0, 0.0, 1.0])
+#: Below this cosine between a ray and its plane's normal the plane does not say where
+#: the ray meets it (grazing): the zone keeps the sigma of its measured distance.
+_MIN_COS_EXPECTED = 0.2
+
+
+def expected_sigma(problem: Problem, sigma_L: FloatArray, zones: NDArray[np.int64], o: FloatArray, u: FloatArray,
+                   p: FloatArray, q: FloatArray, n: FloatArray, t: FloatArray | None) -> FloatArray:
+    """Range sigmas along the rays ``(N,)`` at the distances the associated planes
+    predict, not at the measured ones.
+
+    A sigma taken at the measured distance is correlated with the zone's own noise (with
+    ``sigma = slope * d``, a reading that came out short gets a smaller sigma, so more
+    weight): weighted least squares then pulls every range short by about
+    ``2 sigma^2 / d`` (6 mm at 2 m for the VL53L5CX's 4 %), which moves the pose. The
+    beam model evaluates sigma at the expected distance and has no such pull; so do these
+    factors: the expected ray length is ``t`` (the ray cast, ``"range"``) or where the ray
+    meets the associated plane (``n . (q - o) / (n . u)``, point-to-plane), the distance
+    it predicts is that length over the zone's range factor. Where the plane does not
+    predict one (grazing rays, no hit, behind the sensor) or the problem uses the
+    sensor's reported sigmas, ``sigma_L`` is kept; a prediction is held within a factor
+    of two of the measured length (an association that far off is gated anyway).
+    """
+    unc = problem.range_model
+    if unc.use_reported_sigma or sigma_L.size == 0:
+        return sigma_L
+    L = np.linalg.norm(p - o, axis=1)
+    if t is None:
+        denom = np.einsum("ni,ni->n", n, u)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.einsum("ni,ni->n", n, q - o) / denom
+        usable = np.abs(denom) >= _MIN_COS_EXPECTED
+    else:
+        usable = np.ones(t.shape, dtype=bool)
+    usable &= np.isfinite(t) & (t > 0)
+    t = np.clip(np.where(usable, t, L), 0.5 * L, 2.0 * L)
+    rf = problem.rig.range_factor.reshape(-1)[zones]
+    s_exp = unc.sigma_of_zones(problem.rig, t / rf, zones) * rf
+    return np.where(usable, s_exp, sigma_L)
 
 
 def measurements(problem: Problem) -> list[SampleMeasurement]:
@@ -102,6 +140,8 @@ def associate(
     p = np.concatenate([m.points(bias) @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
     u = np.concatenate([m.u_tip @ T[:3, :3].T for m, T in zip(meas, T_mt)])
     sig = np.concatenate([m.sigma_L for m in meas])
+    o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
+    zones = np.concatenate([m.zones for m in meas]) if meas else np.zeros(0, dtype=np.int64)
     if residual == "point_to_plane":
         q, n = problem.map.closest_surface_point(p)
         if problem.map.kind == "points":
@@ -109,9 +149,8 @@ def associate(
         else:
             key = np.round(q / 1e-4).astype(np.int64) @ np.array([1, 1 << 20, 1 << 40], dtype=np.int64)
         dist = np.linalg.norm(p - q, axis=1)
+        t = None
     else:
-        o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
-        zones = np.concatenate([m.zones for m in meas])
         Z = problem.rig.n_zones
         cast = ZoneCaster(problem.rig).cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
         assert cast.point is not None and cast.normal is not None and cast.index is not None
@@ -123,6 +162,7 @@ def associate(
         key = cast.index
         dist = np.where(hit, np.abs(L - t), np.inf)
     n = np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
+    sig = expected_sigma(problem, sig, zones, o, u, p, q, n, t)
     cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
     s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2)
     zone_gate = np.maximum(gate, gate_sigmas * (s0 if residual == "point_to_plane" else np.hypot(sig, map_sigma)))

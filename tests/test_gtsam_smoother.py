@@ -324,3 +324,40 @@ def test_gates_scale_with_the_zone_noise() -> None:
     e_scaled, e_fixed = _pose_err(scaled.pose, truth), _pose_err(fixed.pose, truth)
     assert e_scaled[0] < 0.02 and e_scaled[1] < 0.5, e_scaled
     assert np.isfinite(e_fixed[0])
+
+
+@pytest.mark.parametrize("residual", ["point_to_plane", "range"])
+def test_zone_sigmas_are_taken_where_the_plane_predicts_not_at_the_reading(residual: str) -> None:
+    """A sigma at the reading grows with the zone's own noise (sigma = slope * d) and pulls
+    every range short by 2 sigma^2 / d; at the truth a zone's sigma must be the range
+    model's at the distance its plane predicts, whatever it read."""
+    from estimators.gtsam_association import associate, measurements
+    from tofloc.maps import Map
+    from tofloc.range_model import RangeUncertainty
+
+    p, truth = easy_problem(n_samples=2)
+    unc = RangeUncertainty(sigma_slope=0.04, sigma_floor=0.001)
+    p = dataclasses.replace(p, range_model=unc,
+                            map=Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y")))
+    rng = np.random.default_rng(0)
+    noisy = dataclasses.replace(p, distance_m=p.distance_m * (1.0 + rng.choice([-0.05, 0.05], p.distance_m.shape)))
+    out = {}
+    for name, prob in (("clean", p), ("noisy", noisy)):
+        meas = measurements(prob)
+        assoc, _ = associate(prob, meas, truth, list(prob.T_base_tip), np.eye(4), 10.0, residual=residual,
+                             map_sigma=1e-9, gate_sigmas=0.0)
+        cos = [np.abs(np.einsum("ni,ni->n", m.n, m.u_tip @ (prob.prior.T_map_base(truth) @ prob.T_base_tip[k])[:3, :3].T))
+               for k, m in enumerate(assoc)]
+        out[name] = (np.concatenate([m.s for m in assoc]), np.concatenate(cos), np.concatenate([m.zones for m in assoc]),
+                     np.concatenate([m.n for m in assoc]))
+    (s_clean, cos, zones, n_clean), (s_noisy, _, zones_n, n_noisy) = out["clean"], out["noisy"]
+    assert np.array_equal(zones, zones_n)
+    # zones whose plane says where the ray meets it, and the same plane however they read
+    # (near a corner a long reading's nearest surface may be the other wall)
+    ok = (cos > 0.5) & (np.einsum("ni,ni->n", n_clean, n_noisy) > 0.999)
+    assert ok.sum() > 100
+    # the same sigma whether the zone read 5 % long or 5 % short: that of the true distance
+    np.testing.assert_allclose(s_noisy[ok], s_clean[ok], rtol=1e-6)
+    d_true = np.concatenate([prob_d[m] for prob_d, m in zip(p.distance_m, p.valid)])
+    expected = unc.sigma_of_zones(p.rig, d_true, zones) * p.rig.range_factor.reshape(-1)[zones] * cos
+    np.testing.assert_allclose(s_clean[ok], expected[ok], rtol=1e-6)

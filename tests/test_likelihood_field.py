@@ -11,6 +11,7 @@ import pytest
 from sensor_models.likelihood_field import LikelihoodFieldModel, SurfaceField
 from tofloc.errors import ParameterError
 from tofloc.maps import Map
+from tofloc.rig import edge_zone_mask
 from tofloc.testing import easy_problem
 
 CUBOID = dict(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y"))
@@ -58,13 +59,51 @@ def test_likelihood_peaks_at_the_truth_and_matches_the_formula() -> None:
     ll = bound.log_likelihood(poses, 1)
     assert np.argmax(ll) == 0 and np.all(ll[0] - ll[1:] > 0.5), ll  # 1 cm and 1.1 deg off: tempered by 0.5
     d = bound.distances(poses, 1)
-    sig = bound.sigma[1]
+    unc, valid = p.range_model, p.valid[1]
+    z_true = bound.z_true[1]
+    z_exp = np.maximum(z_true + d / p.rig.range_factor[valid], 0.5 * z_true)  # the distance each pose predicts
+    sig = np.maximum(unc.sigma_floor, unc.sigma_slope * z_exp) * np.where(edge_zone_mask(p.rig)[valid], unc.edge_factor, 1.0)
     assert d.shape == (7, int(p.valid[1].sum()))
     assert np.median(np.abs(d[0])) < 1e-3  # noise-free end points lie on the walls at the truth
     L = (p.distance_m[1] * p.rig.range_factor)[p.valid[1]]  # each reading's length along its ray
     floor = 0.1 / bound.r_field + np.where(d > 0, 0.1 / L, 0.0)  # z_rand, and z_short in front of a surface
     by_hand = 0.5 * np.log(0.8 * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2 * math.pi)) + floor).sum(axis=1)
     np.testing.assert_allclose(ll, by_hand, rtol=1e-12)
+
+
+def test_sigma_is_taken_where_the_pose_predicts_not_at_the_reading() -> None:
+    """A sigma at the reading grows with the zone's own noise and pulls ranges short
+    (2 sigma^2 / z); at the truth the sigma must not depend on the noise of a zone that
+    meets its wall head-on (the predicted distance is the same whatever it read)."""
+    from dataclasses import replace
+
+    from tofloc.range_model import RangeUncertainty
+
+    p, truth = easy_problem(n_samples=2)
+    p = replace(p, range_model=RangeUncertainty(sigma_slope=0.04, sigma_floor=0.001))
+    bound = LikelihoodFieldModel().bind(p)
+    d0 = bound.distances(truth[None], 1)
+    # the zone whose ray meets its surface most nearly head-on
+    valid = p.valid[1]
+    z = bound.z_true[1]
+    h = 0.01
+    cos = []
+    for sgn in (1.0, -1.0):  # the end point moved along its ray by +-1 cm changes d by cos(incidence) cm
+        moved = replace(p, distance_m=np.where(np.arange(p.distance_m.shape[0])[:, None, None] == 1,
+                                               p.distance_m + sgn * h / p.rig.range_factor[None], p.distance_m))
+        cos.append(LikelihoodFieldModel().bind(moved).distances(truth[None], 1)[0] - d0[0])
+    head_on = int(np.argmax(np.abs(cos[1] - cos[0])))
+    assert abs(cos[1][head_on] - cos[0][head_on]) > 0.019  # that zone really meets its wall head-on
+    sigmas = []
+    for eps in (+0.03, -0.03):  # the same zone reading 3 cm long, then 3 cm short
+        dist = p.distance_m.copy()
+        k_s_z = np.argwhere(valid)[head_on]
+        dist[1][tuple(k_s_z)] += eps / p.rig.range_factor[tuple(k_s_z)]
+        b = LikelihoodFieldModel().bind(replace(p, distance_m=dist))
+        sigmas.append(b._sigma(truth[None], 1, b.distances(truth[None], 1))[0, head_on])
+    assert sigmas[0] == pytest.approx(sigmas[1], rel=2e-3)  # at the reading they would differ by 2 * 3 cm / z
+    zone = bound.zone_index[1][head_on]
+    assert sigmas[0] == pytest.approx(float(p.range_model.sigma_of_zones(p.rig, z[head_on], zone)), rel=2e-2)
 
 
 def _room_problem(seed: int = 0):

@@ -86,13 +86,21 @@ class RangeUncertainty:
         self, rig: Rig, distance_m: ArrayLike, reported_sigma_m: ArrayLike | None = None
     ) -> NDArray[np.float64]:
         """Sigma (m) of zones ``(..., S, Z)`` at (true or expected) distances ``distance_m``."""
-        d = np.asarray(distance_m, dtype=float)
-        edge = edge_zone_mask(rig)
-        s = np.maximum(self.sigma_floor, self.sigma_slope * np.abs(d)) * np.where(edge, self.edge_factor, 1.0)
+        s = self._sigma_curve(np.asarray(distance_m, dtype=float), edge_zone_mask(rig))
         if self.use_reported_sigma and reported_sigma_m is not None:
             rep = np.asarray(reported_sigma_m, dtype=float)
             s = np.where(np.isfinite(rep) & (rep > 0), np.maximum(rep, 1e-4), s)
         return s
+
+    def sigma_of_zones(self, rig: Rig, distance_m: ArrayLike, zones: ArrayLike) -> NDArray[np.float64]:
+        """Sigma (m) of the zones with flat indices ``zones`` (``sensor * Z + zone``) at
+        distances ``distance_m`` (same shape): the curve alone, never a reported sigma (for
+        a distance the model predicts rather than one a zone reported)."""
+        edge = edge_zone_mask(rig).reshape(-1)[np.asarray(zones, dtype=np.intp)]
+        return self._sigma_curve(np.asarray(distance_m, dtype=float), edge)
+
+    def _sigma_curve(self, d: NDArray[np.float64], edge: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return np.maximum(self.sigma_floor, self.sigma_slope * np.abs(d)) * np.where(edge, self.edge_factor, 1.0)
 
     def bias(self, rig: Rig, distance_m: ArrayLike) -> NDArray[np.float64]:
         """Expected bias (m) of zones ``(..., S, Z)`` at distances ``distance_m``."""
