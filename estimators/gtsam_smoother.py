@@ -52,8 +52,9 @@ estimator: starts, the best run, the covariance).
 
 Solve
 -----
-For every start (the prior mean and ``n_starts - 1`` draws of the prior from the given
-``rng``; with a global prior, the ``global_starts`` best distinct basins a coarse search
+For every start (the ``n_starts`` best distinct poses among the prior mean and
+``n_candidates`` draws of the prior widened by ``candidate_spread``, from the given
+``rng``, :meth:`GTSAMSmoother.starts`; with a global prior, the ``global_starts`` best distinct basins a coarse search
 of the prior finds, :func:`estimators.global_search.coarse_modes`, and no prior factor
 on ``X``): associate every zone with the map at the current estimate (gate shrinking from
 ``gate_start_m`` to ``gate_m`` over the first rounds), optimize with
