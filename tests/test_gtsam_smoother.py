@@ -265,7 +265,8 @@ def test_indeterminant_system_is_reported_not_raised(easy4, monkeypatch) -> None
 @pytest.mark.parametrize(
     "kw",
     [{"residual": "icp"}, {"robust": "tukey"}, {"information_scale": 1.5}, {"n_starts": 0}, {"gate_m": 0.3},
-     {"incremental": "yes"}, {"exact_tip_poses": 1}, {"mocap_sigma_m": 0.0}],
+     {"incremental": "yes"}, {"exact_tip_poses": 1}, {"mocap_sigma_m": 0.0}, {"candidate_spread": 0.5},
+     {"candidate_spread": "2"}],
 )
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):
