@@ -205,7 +205,8 @@ class GTSAMSmoother(Estimator):
         for n in ("robust_k", "map_sigma", "information_scale", "gate_m", "gate_start_m", "mocap_sigma_m",
                   "mocap_sigma_rot_deg", "knn_sigma_m", "knn_sigma_rot_deg"):
             check_positive(n, getattr(self, n))
-        if isinstance(self.candidate_spread, bool) or not (isinstance(self.candidate_spread, (int, float)) and 1.0 <= self.candidate_spread <= 10.0):
+        spread = self.candidate_spread
+        if isinstance(spread, bool) or not (isinstance(spread, (int, float)) and 1.0 <= spread <= 10.0):
             raise ParameterError(f"candidate_spread must be a number in [1, 10], got {self.candidate_spread!r}")
         if self.information_scale > 1.0:
             raise ParameterError(f"information_scale must be in (0, 1], got {self.information_scale!r}")
