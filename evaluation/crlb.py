@@ -23,7 +23,11 @@ by ``dt`` divided by the zone's range factor (perpendicular convention). ``metho
 and noisy where a perturbed ray crosses an edge; used to check the analytic form).
 
 The bound treats zones as independent and the configurations ``T_base_tip`` as exact,
-and it ignores a zone's footprint: it is optimistic. Directions the measurements do
+and it ignores a zone's footprint: it is optimistic. A problem's bound
+(:func:`crlb_for_problem`) counts only the zones the map explains at the truth (reading
+within three sigmas of the map's): a zone that reads an object the map does not hold
+informs no one who knows only the map (the bound that counts every valid zone is kept
+beside it, ``"valid"``). Directions the measurements do
 not constrain (e.g. sliding along a single wall) make ``I`` singular: the bound of any
 parameter with a component in its null space is infinite (``inf``). A bound larger than
 anything the map can tell apart is no bound either: a position bound beyond the map's
@@ -51,10 +55,14 @@ from tofloc.zone_caster import ZoneCast, ZoneCaster
 
 __all__ = ["CRLB", "expected_distances", "zone_jacobians", "zone_geometry", "ZoneGeometry", "zone_weights",
            "sample_information", "fisher_information", "crlb_from_information", "crlb",
-           "crlb_for_problem", "map_extent", "MAX_YAW_BOUND_DEG"]
+           "crlb_for_problem", "crlb_bounds_for_problem", "explained_zones", "EXPLAINED_SIGMAS", "map_extent",
+           "MAX_YAW_BOUND_DEG"]
 
 #: Relative eigenvalue (of the scale-normalized information) below which a direction is unobservable.
 SINGULAR_RTOL = 1e-9
+#: A zone counts towards a problem's bound when its reading is within this many range
+#: sigmas of the map's at the truth (:func:`explained_zones`).
+EXPLAINED_SIGMAS = 3.0
 #: A yaw bound beyond this (deg) says nothing: the yaw is unobservable.
 MAX_YAW_BOUND_DEG = 180.0
 
@@ -430,8 +438,44 @@ def crlb(
     return crlb_from_information(info, n, max_position_m=map_extent(the_map))
 
 
-def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, *, method: str = "analytic") -> CRLB:
-    """The bound of a :class:`~tofloc.problem.Problem` at the true base pose: its configurations,
-    its rig (calibration applied) and map, its range model, and only the zones it holds as valid."""
-    return crlb(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, problem.range_model, problem.valid,
-                method=method)
+def explained_zones(problem: Any, expected: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """``(K, S, Z)``: the problem's valid zones whose reading, its expected bias removed,
+    lies within :data:`EXPLAINED_SIGMAS` of its range sigma of the map's reading
+    ``expected`` (at the true pose): the zones the map explains. A zone that reads an
+    object the map does not hold (or a ghost, a multipath echo) carries no information
+    about the pose to anyone who only knows the map (the object's unknown position
+    absorbs it), so a bound that counts it is one no estimator can reach."""
+    unc, rig = problem.range_model, problem.rig
+    z = np.where(problem.valid, problem.distance_m, np.nan)
+    with np.errstate(invalid="ignore"):
+        res = z - unc.bias(rig, expected) - expected
+        ok = np.abs(res) <= EXPLAINED_SIGMAS * unc.sigma(rig, expected)
+    return problem.valid & np.isfinite(expected) & ok
+
+
+def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, *, zones: str = "explained",
+                     method: str = "analytic") -> CRLB:
+    """The bound of a :class:`~tofloc.problem.Problem` at the true base pose: its
+    configurations, its rig (calibration applied) and map, its range model.
+
+    Parameters
+    ----------
+    zones : {"explained", "valid"}
+        ``"explained"`` (default): the valid zones the map explains at the truth
+        (:func:`explained_zones`); ``"valid"``: every zone the problem holds as valid
+        (optimistic where the scene holds objects the map does not).
+    """
+    return crlb_bounds_for_problem(problem, T_map_base_true, method=method)[zones]
+
+
+def crlb_bounds_for_problem(problem: Any, T_map_base_true: ArrayLike, *,
+                            method: str = "analytic") -> dict[str, CRLB]:
+    """Both bounds of :func:`crlb_for_problem` (``"explained"`` and ``"valid"``) from one
+    ray cast of every zone."""
+    r, J = zone_jacobians(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, method=method)
+    out = {}
+    for name, mask in (("valid", problem.valid), ("explained", explained_zones(problem, r))):
+        use, w, Jz = zone_weights(r, J, problem.rig, problem.range_model, mask)
+        info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
+        out[name] = crlb_from_information(0.5 * (info + info.T), int(use.sum()), max_position_m=map_extent(problem.map))
+    return out

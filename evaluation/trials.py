@@ -473,8 +473,11 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         one-off set-up this trial paid before it ran: :func:`warm_up`; 0 for every trial
         but the first of its estimator, parameters and map in a process),
         ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
-        the true pose from the trial's valid zones (:func:`evaluation.crlb.crlb_for_problem`;
-        ``null`` plus a reason for an unobservable one; the whole entry None without truth),
+        the true pose from the trial's valid zones the map explains there
+        (:func:`evaluation.crlb.crlb_for_problem`; ``null`` plus a reason for an
+        unobservable one; the whole entry None without truth), ``crlb_all_valid`` the same
+        from every valid zone, ``crlb_unexplained_zones`` how many valid zones the map
+        does not explain (objects it does not hold, ghosts),
         ``fit``: the data-fit check at the estimate (:meth:`tofloc.fit_check.FitCheck.to_json`;
         None for a map that cannot be ray cast),
         ``modes``: the posterior's modes (:func:`tofloc.posterior_modes.modes_of_estimate`:
@@ -509,6 +512,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "runtime_s": float(result.runtime_s),
         "setup_s": float(out.setup_s),
         "crlb": None,
+        "crlb_all_valid": None,
+        "crlb_unexplained_zones": None,
         "fit": None if result.fit is None else jsonable(result.fit.to_json()),
         "modes": jsonable([m.to_json() for m in modes]),
         "ambiguous": is_ambiguous(modes),
@@ -533,12 +538,15 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
             record["nees"] = json_float(nees(truth, result.pose, np.asarray(result.covariance, dtype=float) + P_truth))
             record["nees_model"] = json_float(nees(truth, result.pose, C_model + P_truth))
         if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
-            from evaluation.crlb import crlb_for_problem
+            from evaluation.crlb import crlb_bounds_for_problem
 
             bound_problem = problem if out.has_context_calibration else problem_from_log(
                 context.log, idx, context.map, prior, task.tip_source, context.kinematics, context.calibration,
                 context.valid_statuses)
-            record["crlb"] = crlb_for_problem(bound_problem, truth_T).to_json()
+            bounds = crlb_bounds_for_problem(bound_problem, truth_T)
+            record["crlb"] = bounds["explained"].to_json()
+            record["crlb_all_valid"] = bounds["valid"].to_json()
+            record["crlb_unexplained_zones"] = bounds["valid"].n_zones - bounds["explained"].n_zones
     return record
 
 

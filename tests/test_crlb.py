@@ -10,6 +10,7 @@ import pytest
 from rays import wall_square
 
 from evaluation.crlb import crlb, crlb_for_problem, crlb_from_information, fisher_information, zone_jacobians
+import evaluation.crlb as crlb_mod
 from tofloc.range_model import RangeUncertainty
 from tofloc import frames
 from tofloc.maps import Map
@@ -136,15 +137,36 @@ def test_crlb_for_a_problem_uses_its_valid_zones() -> None:
     rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
     m = _mesh(wall_square(0, 0.5), wall_square(1, 0.7))
     status = np.full((1, 2, 3), 5, dtype=np.uint8)
-    p = Problem(rig=rig, distance_m=np.full((1, 2, 3), 0.5), status=status, T_base_tip=np.eye(4)[None], map=m,
+    d = crlb_mod.expected_distances(np.eye(4), np.eye(4)[None], rig, m)
+    p = Problem(rig=rig, distance_m=d, status=status, T_base_tip=np.eye(4)[None], map=m,
                 prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
     full = crlb_for_problem(p, np.eye(4))
     assert full.n_zones == 6 and math.isfinite(full.position_m)
     status[0, 1] = 255  # the +y sensor returns nothing: y becomes unobservable
-    p2 = Problem(rig=rig, distance_m=np.full((1, 2, 3), 0.5), status=status, T_base_tip=np.eye(4)[None], map=m,
+    p2 = Problem(rig=rig, distance_m=d, status=status, T_base_tip=np.eye(4)[None], map=m,
                  prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
     half = crlb_for_problem(p2, np.eye(4))
     assert half.n_zones == 3 and math.isinf(half.position_m) and math.isfinite(half.yaw_deg)
+
+
+def test_a_problems_bound_leaves_out_zones_the_map_does_not_explain() -> None:
+    """The +y sensor reads an object 20 cm in front of its wall (the map does not hold it):
+    those zones inform no one who knows only the map; the bound counting them is kept as "valid"."""
+    from tofloc.problem import Prior, Problem
+
+    rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
+    m = _mesh(wall_square(0, 0.5), wall_square(1, 0.7))
+    d = crlb_mod.expected_distances(np.eye(4), np.eye(4)[None], rig, m)
+    d[0, 1] -= 0.2
+    d[0, 0, 0] += 2 * FLAT.sigma_floor  # within three sigmas: still explained
+    p = Problem(rig=rig, distance_m=d, status=np.full((1, 2, 3), 5, dtype=np.uint8), T_base_tip=np.eye(4)[None], map=m,
+                prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
+    explained = crlb_mod.explained_zones(p, crlb_mod.expected_distances(np.eye(4), np.eye(4)[None], rig, m))
+    assert explained.tolist() == [[[True] * 3, [False] * 3]]
+    bounds = crlb_mod.crlb_bounds_for_problem(p, np.eye(4))
+    assert bounds["valid"].n_zones == 6 and math.isfinite(bounds["valid"].position_m)
+    assert bounds["explained"].n_zones == 3 and math.isinf(bounds["explained"].position_m)
+    assert crlb_for_problem(p, np.eye(4)).n_zones == 3 and crlb_for_problem(p, np.eye(4), zones="valid").n_zones == 6
 
 
 def test_crlb_from_information_handles_singular_and_scaled_matrices() -> None:
