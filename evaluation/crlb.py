@@ -55,7 +55,8 @@ from tofloc.zone_caster import ZoneCast, ZoneCaster
 
 __all__ = ["CRLB", "expected_distances", "zone_jacobians", "zone_geometry", "ZoneGeometry", "zone_weights",
            "sample_information", "fisher_information", "crlb_from_information", "crlb",
-           "crlb_for_problem", "crlb_bounds_for_problem", "explained_zones", "EXPLAINED_SIGMAS", "map_extent",
+           "crlb_for_problem", "crlb_bounds_for_problem", "explained_zones", "face_labels", "map_tolerance_information",
+           "EXPLAINED_SIGMAS", "map_extent",
            "MAX_YAW_BOUND_DEG"]
 
 #: Relative eigenvalue (of the scale-normalized information) below which a direction is unobservable.
@@ -454,28 +455,84 @@ def explained_zones(problem: Any, expected: NDArray[np.float64]) -> NDArray[np.b
 
 
 def crlb_for_problem(problem: Any, T_map_base_true: ArrayLike, *, zones: str = "explained",
-                     method: str = "analytic") -> CRLB:
+                     map_tolerance_m: float = 0.0) -> CRLB:
     """The bound of a :class:`~tofloc.problem.Problem` at the true base pose: its
     configurations, its rig (calibration applied) and map, its range model.
 
     Parameters
     ----------
-    zones : {"explained", "valid"}
+    zones : {"explained", "valid", "explained_map_tolerance"}
         ``"explained"`` (default): the valid zones the map explains at the truth
-        (:func:`explained_zones`); ``"valid"``: every zone the problem holds as valid
-        (optimistic where the scene holds objects the map does not).
+        (:func:`explained_zones`), the map exact; ``"valid"``: every zone the problem
+        holds as valid (optimistic where the scene holds objects the map does not);
+        ``"explained_map_tolerance"``: the explained zones with the map's faces off their
+        places by its declared tolerance (needs ``map_tolerance_m`` > 0 and a mesh).
+    map_tolerance_m : float
+        The map's declared tolerance: every planar face of the mesh lies off its true
+        place along its normal by an unknown N(0, tolerance^2)
+        (:func:`map_tolerance_information`). That bound is over the draws of the faces'
+        offsets: one map (one simulated world) may do better or worse.
     """
-    return crlb_bounds_for_problem(problem, T_map_base_true, method=method)[zones]
+    bounds = crlb_bounds_for_problem(problem, T_map_base_true, map_tolerance_m=map_tolerance_m)
+    if zones not in bounds:
+        raise ParameterError(f"zones must be one of {sorted(bounds)} here, got {zones!r}")
+    return bounds[zones]
 
 
 def crlb_bounds_for_problem(problem: Any, T_map_base_true: ArrayLike, *,
-                            method: str = "analytic") -> dict[str, CRLB]:
-    """Both bounds of :func:`crlb_for_problem` (``"explained"`` and ``"valid"``) from one
-    ray cast of every zone."""
-    r, J = zone_jacobians(T_map_base_true, problem.T_base_tip, problem.rig, problem.map, method=method)
+                            map_tolerance_m: float = 0.0) -> dict[str, CRLB]:
+    """The bounds of :func:`crlb_for_problem` from one ray cast of every zone: ``"valid"``
+    (every valid zone, exact map), ``"explained"`` (the zones the map explains, exact map)
+    and, with a tolerance and a map with a mesh, ``"explained_map_tolerance"``."""
+    g = zone_geometry(T_map_base_true, problem.T_base_tip, problem.rig, problem.map)
+    r, J = g.reading, g.jacobian
+    extent = map_extent(problem.map)
     out = {}
     for name, mask in (("valid", problem.valid), ("explained", explained_zones(problem, r))):
         use, w, Jz = zone_weights(r, J, problem.rig, problem.range_model, mask)
         info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
-        out[name] = crlb_from_information(0.5 * (info + info.T), int(use.sum()), max_position_m=map_extent(problem.map))
+        info = 0.5 * (info + info.T)
+        out[name] = crlb_from_information(info, int(use.sum()), max_position_m=extent)
+        mesh = problem.map if problem.map.kind == "mesh" else problem.map.surface
+        if name == "explained" and map_tolerance_m > 0 and mesh is not None:
+            info_m = map_tolerance_information(info, g, w, Jz, use, problem.rig, face_labels(mesh), map_tolerance_m)
+            out["explained_map_tolerance"] = crlb_from_information(info_m, int(use.sum()), max_position_m=extent)
     return out
+
+
+def face_labels(mesh: Any) -> NDArray[np.int64]:
+    """``(T,)``: the planar face each triangle of a mesh map belongs to (triangles whose
+    normals agree within 1e-3 and whose planes within 1 mm share a label)."""
+    n = mesh.face_normals()
+    tri = mesh.triangles()
+    if n is None or tri is None:
+        raise ParameterError("face labels need a mesh map")
+    offset = np.einsum("ij,ij->i", n, mesh.points[tri[:, 0]])
+    key = np.round(np.column_stack([np.nan_to_num(n) * 1e3, offset * 1e3])).astype(np.int64)
+    return np.unique(key, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+
+
+def map_tolerance_information(
+    info: NDArray[np.float64], g: ZoneGeometry, w: NDArray[np.float64], Jz: NDArray[np.float64],
+    use: NDArray[np.bool_], rig: Rig, labels: NDArray[np.int64], tolerance_m: float,
+) -> NDArray[np.float64]:
+    """The pose's Fisher information ``(3, 3)`` when every planar face of the map lies off
+    its place by an unknown offset ``delta_f ~ N(0, tolerance^2)`` along its normal (a CAD
+    model's assembly tolerance): the hybrid bound (Van Trees) with the offsets as
+    nuisances, ``I - sum_f b_f b_f^T / (c_f + 1 / tolerance^2)``, where a zone ``i`` on face
+    ``f`` reads ``delta_f / (|cos incidence| * range_factor)`` more, ``b_f = sum_i w_i J_i
+    g_i`` and ``c_f = sum_i w_i g_i^2``. Each zone sees one face, so the nuisance block is
+    diagonal. Zones whose hit is not a triangle of ``labels``' mesh count as on an exact face."""
+    assert g.cast.index is not None and g.cast.mean_cos is not None
+    idx = g.cast.index
+    cos = np.abs(g.cast.mean_cos)
+    on_face = use & (idx >= 0) & (idx < labels.size) & (cos > 1e-6)
+    rf = np.broadcast_to(rig.range_factor[None], idx.shape)
+    gi = np.where(on_face, 1.0 / np.where(on_face, cos * rf, 1.0), 0.0)
+    f = labels[np.where(on_face, idx, 0)][on_face]
+    n_faces = int(labels.max()) + 1 if labels.size else 0
+    wg = (w * gi)[on_face]
+    b = np.stack([np.bincount(f, weights=wg * Jz[on_face][:, j], minlength=n_faces) for j in range(3)], axis=1)
+    c = np.bincount(f, weights=wg * gi[on_face], minlength=n_faces) + 1.0 / tolerance_m**2
+    out = info - np.einsum("fi,fj,f->ij", b, b, 1.0 / c)
+    return 0.5 * (out + out.T)

@@ -58,6 +58,9 @@ class PaperData:
     kinematics: Any
     notes: list[str]
     fit_report: Any | None = None
+    #: the map's declared face tolerance (m): the scenario's CAD error when the log was
+    #: simulated from it, else 0 (a log we did not simulate declares none)
+    map_tolerance_m: float = 0.0
 
 
 def _rig_variant(source: str) -> str | None:
@@ -140,7 +143,8 @@ def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, r
             f"fit {knn_path}: k = {report.k}, validation MSE {report.validation_mse_m2:.2e} m^2, "
             f"{report.validation_rot_err_deg:.2f} deg (paper: k = 6, 3e-4 m^2)"
         )
-    return PaperData(log, the_map, map_path, kin, notes, report)
+    tolerance = sc.environment.cad_error_sigma if log.source.startswith(f"simulation:{sc.scenario.name} ") else 0.0
+    return PaperData(log, the_map, map_path, kin, notes, report, float(tolerance))
 
 
 def _hardware_seed(source: str) -> int | None:

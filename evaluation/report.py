@@ -73,12 +73,13 @@ def _values(records: Iterable[Mapping[str, Any]], key: str) -> np.ndarray:
     return np.array([np.nan if r.get(key) is None else float(r[key]) for r in records], dtype=float)
 
 
-def crlb_summary(records: Iterable[Mapping[str, Any]]) -> dict[str, Any] | None:
+def crlb_summary(records: Iterable[Mapping[str, Any]], key: str = "crlb") -> dict[str, Any] | None:
     """Mean sqrt(CRLB) over the trials that have one: ``{"position_m", "yaw_deg", "n",
     "n_unobservable_position", "n_unobservable_yaw"}`` (means over the finite bounds;
     an unobservable direction is ``null`` in a record and counted apart). None when no
-    trial has a bound."""
-    bounds = [r["crlb"] for r in records if isinstance(r.get("crlb"), Mapping)]
+    trial has a bound. ``key``: the record's bound (``"crlb"``, ``"crlb_map_tolerance"``,
+    ``"crlb_all_valid"``)."""
+    bounds = [r[key] for r in records if isinstance(r.get(key), Mapping)]
     if not bounds:
         return None
     out: dict[str, Any] = {}
@@ -153,13 +154,15 @@ def setup_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def _add_nees_and_crlb(
     out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
 ) -> None:
-    """Add ``nees``, ``crlb``, ``fit`` and ``found`` summaries to ``out`` where the trials define them."""
+    """Add ``nees``, ``crlb`` (and ``crlb_map_tolerance``, ``crlb_all_valid``), ``fit`` and
+    ``found`` summaries to ``out`` where the trials define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=nees_keys)
-    bound = crlb_summary(records)
-    if bound is not None:
-        out["crlb"] = bound
+    for key in ("crlb", "crlb_map_tolerance", "crlb_all_valid"):
+        bound = crlb_summary(records, key)
+        if bound is not None:
+            out[key] = bound
     fit = fit_summary(records)
     if fit is not None:
         out["fit"] = fit

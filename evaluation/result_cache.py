@@ -75,7 +75,7 @@ class Batch:
 
 def context_fingerprint(context: TrialContext) -> str:
     """Identifies the data a run used: the log's arrays, the map (:meth:`~tofloc.maps.Map.fingerprint`),
-    the k-NN model, the pool, the valid statuses and the calibration."""
+    the k-NN model, the pool, the valid statuses, the calibration and the map's declared tolerance."""
     log, kin = context.log, context.kinematics
     cal = context.calibration
     return fingerprint_arrays(
@@ -89,7 +89,8 @@ def context_fingerprint(context: TrialContext) -> str:
         extra={"map": context.map.fingerprint(), "rig": log.rig.to_dict(), "k": None if kin is None else int(kin.k),
                "valid_statuses": sorted(context.valid_statuses),
                "calibration": None if cal is None else cal.to_dict(),
-               "configuration_source": getattr(log, "configuration_source", None)},
+               "configuration_source": getattr(log, "configuration_source", None),
+               "map_tolerance_m": float(context.map_tolerance_m)},
     )
 
 

@@ -307,6 +307,9 @@ class TrialContext:
         :meth:`~tofloc.problem.Estimator.uses_calibration` is true (the paper's ICP-score
         filter uses the CAD rig, as the paper did); the Cramér-Rao bound of every trial is
         computed with it.
+    map_tolerance_m : float
+        The map's declared face tolerance (m; 0: exact), counted by the Cramér-Rao bound
+        (:func:`evaluation.crlb.map_tolerance_information`); the estimators do not see it.
     """
 
     log: Any
@@ -315,6 +318,7 @@ class TrialContext:
     kinematics: Any | None = None
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
     calibration: Any | None = None
+    map_tolerance_m: float = 0.0
     _truth_xyyaw: NDArray[np.float64] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -475,9 +479,12 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
         the true pose from the trial's valid zones the map explains there
         (:func:`evaluation.crlb.crlb_for_problem`; ``null`` plus a reason for an
-        unobservable one; the whole entry None without truth), ``crlb_all_valid`` the same
-        from every valid zone, ``crlb_unexplained_zones`` how many valid zones the map
-        does not explain (objects it does not hold, ghosts),
+        unobservable one; the whole entry None without truth), the map taken as exact;
+        ``crlb_map_tolerance`` the same with the map's declared face tolerance
+        (:attr:`TrialContext.map_tolerance_m`; None without one), ``crlb_all_valid`` the
+        exact-map bound from every valid zone,
+        ``crlb_unexplained_zones`` how many valid zones the map does not explain (objects it
+        does not hold, ghosts),
         ``fit``: the data-fit check at the estimate (:meth:`tofloc.fit_check.FitCheck.to_json`;
         None for a map that cannot be ray cast),
         ``modes``: the posterior's modes (:func:`tofloc.posterior_modes.modes_of_estimate`:
@@ -512,6 +519,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "runtime_s": float(result.runtime_s),
         "setup_s": float(out.setup_s),
         "crlb": None,
+        "crlb_map_tolerance": None,
         "crlb_all_valid": None,
         "crlb_unexplained_zones": None,
         "fit": None if result.fit is None else jsonable(result.fit.to_json()),
@@ -543,8 +551,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
             bound_problem = problem if out.has_context_calibration else problem_from_log(
                 context.log, idx, context.map, prior, task.tip_source, context.kinematics, context.calibration,
                 context.valid_statuses)
-            bounds = crlb_bounds_for_problem(bound_problem, truth_T)
+            bounds = crlb_bounds_for_problem(bound_problem, truth_T, map_tolerance_m=context.map_tolerance_m)
             record["crlb"] = bounds["explained"].to_json()
+            tol = bounds.get("explained_map_tolerance")
+            record["crlb_map_tolerance"] = None if tol is None else tol.to_json()
             record["crlb_all_valid"] = bounds["valid"].to_json()
             record["crlb_unexplained_zones"] = bounds["valid"].n_zones - bounds["explained"].n_zones
     return record

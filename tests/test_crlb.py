@@ -273,3 +273,24 @@ def test_localize_prints_unobservable_with_its_reason_not_a_huge_number(tmp_path
     assert "position unobservable" in line
     assert not any(len(tok) > 12 and tok.replace(".", "").isdigit() for tok in cap.out.split())
     assert doc["summary"]["crlb"]["reason"]
+
+
+def test_a_map_tolerance_adds_its_variance_along_each_faces_normal() -> None:
+    """Two walls, each seen head-on by its own sensor: a face offset delta ~ N(0, t^2) along
+    x is indistinguishable from the base moving by delta along x (and likewise in y), so the
+    hybrid bound is the exact-map covariance plus t^2 on x and on y, yaw untouched."""
+    from tofloc.problem import Prior, Problem
+
+    rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
+    m = _mesh(wall_square(0, 0.5), wall_square(1, 0.7))
+    d = crlb_mod.expected_distances(np.eye(4), np.eye(4)[None], rig, m)
+    p = Problem(rig=rig, distance_m=d, status=np.full((1, 2, 3), 5, dtype=np.uint8), T_base_tip=np.eye(4)[None], map=m,
+                prior=Prior(mean=np.zeros(3), sigma=np.ones(3)), range_model=FLAT)
+    t = 0.004
+    b = crlb_mod.crlb_bounds_for_problem(p, np.eye(4), map_tolerance_m=t)
+    exact, tol = b["explained"].covariance, b["explained_map_tolerance"].covariance
+    np.testing.assert_allclose(tol - exact, np.diag([t**2, t**2, 0.0]), atol=1e-12)
+    assert b["explained_map_tolerance"].position_m == pytest.approx(math.sqrt(exact[0, 0] + exact[1, 1] + 2 * t**2))
+    assert len(set(crlb_mod.face_labels(m).tolist())) == 2
+    # without a tolerance (or a mesh) there is no such bound
+    assert "explained_map_tolerance" not in crlb_mod.crlb_bounds_for_problem(p, np.eye(4))
