@@ -162,10 +162,15 @@ def associate(
         key = cast.index
         dist = np.where(hit, np.abs(L - t), np.inf)
     n = np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
-    sig = expected_sigma(problem, sig, zones, o, u, p, q, n, t)
+    # the gate with the smaller of the two sigmas: a reading far short of its plane (an
+    # object the map does not hold) must not widen its own gate through a longer prediction
+    expected = expected_sigma(problem, sig, zones, o, u, p, q, n, t)
+    sig_gate = np.minimum(sig, expected)
+    sig = expected
     cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
     s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2)
-    zone_gate = np.maximum(gate, gate_sigmas * (s0 if residual == "point_to_plane" else np.hypot(sig, map_sigma)))
+    s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2)
+    zone_gate = np.maximum(gate, gate_sigmas * (s_gate if residual == "point_to_plane" else np.hypot(sig_gate, map_sigma)))
     inlier = np.isfinite(dist) & (dist <= zone_gate)
     s = s0 / math.sqrt(information_scale)
     gate_e = zone_gate / s
