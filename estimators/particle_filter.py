@@ -339,6 +339,12 @@ class ParticleFilter(Estimator):
 
         return free_space_of(problem.map, problem.prior.z)
 
+    def prepare(self, problem: Problem) -> None:
+        """Bind the sensor model to ``problem`` (its per-map caches are built then: a
+        likelihood field's clipping distance, for one, follows the problem's zone sigmas,
+        so a one-sample problem may need another field than the trial's)."""
+        self.make_sensor_model().bind(problem)
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         from tofloc.problem import Prior
 

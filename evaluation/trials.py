@@ -385,18 +385,22 @@ def warm_up(est: Estimator, task: TrialTask, problem: Any, context: TrialContext
     grid, the likelihood field), KD-trees and Open3D's ray-casting scene, the first call
     into Embree. Before that trial, the estimator is run once on the trial's first sample
     alone with a throw-away generator (``default_rng(0)``; estimators are pure functions of
-    the problem and the generator, so the trial's numbers do not change): the wall time of
-    that run is returned as the trial's ``setup_s`` (set-up plus one single-sample
+    the problem and the generator, so the trial's numbers do not change), after
+    :meth:`~tofloc.problem.Estimator.prepare` on the whole trial's problem (caches that
+    depend on all its samples, such as a likelihood field's clipping distance: a one-sample
+    run built another field, and the trial paid 76 s for its own on a real maze map): the
+    wall time of that is returned as the trial's ``setup_s`` (set-up plus one single-sample
     estimate), and the trial's ``runtime_s`` is then the estimator's steady-state time.
-    0.0 for every later trial of the same estimator, parameters and map in this process.
+    Later trials of the same estimator, parameters and map in this process only prepare
+    (near 0 s unless their samples need a cache the earlier ones did not).
     """
     key = (task.estimator_cls, json.dumps(jsonable(task.params), sort_keys=True), context.map.fingerprint())
-    if key in _WARMED:
-        return 0.0
-    _WARMED.add(key)
     t0 = time.perf_counter()
     try:
-        est.estimate(problem.subset(slice(0, 1)), np.random.default_rng(0))
+        est.prepare(problem)  # every trial: what its own samples need (nothing new when cached)
+        if key not in _WARMED:
+            _WARMED.add(key)
+            est.estimate(problem.subset(slice(0, 1)), np.random.default_rng(0))
     except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
         pass
     return time.perf_counter() - t0
@@ -474,8 +478,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         covariance, before :func:`tofloc.fit_check.widen_if_unfit`), ``covariance_widened``
         (whether the fit check failed and the prior's covariance was added), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up), ``setup_s`` (the
-        one-off set-up this trial paid before it ran: :func:`warm_up`; 0 for every trial
-        but the first of its estimator, parameters and map in a process),
+        one-off set-up this trial paid before it ran: :func:`warm_up`; near 0 for every
+        trial but the first of its estimator, parameters and map in a process),
         ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
         the true pose from the trial's valid zones the map explains there
         (:func:`evaluation.crlb.crlb_for_problem`; ``null`` plus a reason for an

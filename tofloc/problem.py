@@ -361,6 +361,14 @@ class Estimator(ABC):
             return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
         return {}
 
+    def prepare(self, problem: Problem) -> None:
+        """Build what estimating ``problem`` will reuse and keep per map or per process
+        (a sensor model's per-map caches: the likelihood field, the ICP score's grid, the
+        ray caster's scene), without estimating. Evaluation calls it before the first
+        timed trial so that set-up is not counted as the estimator's runtime. Default:
+        nothing (an estimator's first :meth:`estimate` builds what it needs)."""
+        return None
+
     def estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         """Estimate the base pose; times the work and records it in the result."""
         if not isinstance(rng, np.random.Generator):
