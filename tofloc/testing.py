@@ -174,11 +174,23 @@ def check_rng_must_be_generator(est: Estimator) -> None:
         raise AssertionError(f"rng={bad!r} was accepted")
 
 
+def check_prepare_changes_no_number(est: Estimator) -> None:
+    """:meth:`~tofloc.problem.Estimator.prepare` only builds what estimating will reuse:
+    the estimate after it equals the one without it, and it leaves the problem as it was."""
+    p, _ = easy_problem()
+    a = est.estimate(p, np.random.default_rng(7))
+    before = np.array(p.distance_m, copy=True)
+    assert est.prepare(p) is None, "prepare returns nothing"
+    np.testing.assert_array_equal(p.distance_m, before, err_msg="prepare mutated the problem")
+    _assert_same(a, est.estimate(p, np.random.default_rng(7)))
+
+
 CHECKS: list[Callable[[Estimator], None]] = [
     check_rng_must_be_generator,
     check_no_valid_zone_is_an_error,
     check_result_contract,
     check_same_seed_same_result,
+    check_prepare_changes_no_number,
     check_inputs_not_mutated,
     check_params_round_trip,
     check_converges_on_easy_problem,
