@@ -90,7 +90,7 @@ def context_fingerprint(context: TrialContext) -> str:
                "valid_statuses": sorted(context.valid_statuses),
                "calibration": None if cal is None else cal.to_dict(),
                "configuration_source": getattr(log, "configuration_source", None),
-               "map_tolerance_m": float(context.map_tolerance_m)},
+               "map_tolerance_m": float(getattr(context, "map_tolerance_m", 0.0))},
     )
 
 
