@@ -128,7 +128,10 @@ class BoundSensorModel(ABC):
         """:meth:`log_likelihood` of the states in chunks whose temporaries stay under
         ``max_bytes`` (:meth:`temporaries_per_state`), whatever the number of states and
         zones: the same numbers (each state's value is computed alone), bounded memory.
-        What a filter calls."""
+        What a filter calls. (One exception: a configuration covariance's per-zone variance
+        is evaluated once per call at :func:`reference_pose` of the states given, so with
+        a covariance and more states than one chunk holds, each chunk uses its own
+        reference; at 1000 particles one chunk holds them all.)"""
         M = states.shape[0]
         chunk = max(1, int(max_bytes) // max(1, self.temporaries_per_state()))
         if M <= chunk:
