@@ -287,8 +287,13 @@ def fisher_information(
     """
     r, J = zone_jacobians(T_map_base, T_base_tip, rig, the_map, method=method)
     use, w, Jz = zone_weights(r, J, rig, uncertainty, valid)
+    return _information(Jz, w), int(use.sum())
+
+
+def _information(Jz: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``sum_i w_i J_i^T J_i`` ``(3, 3)`` over every zone (zeros where unused), symmetrized."""
     info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
-    return 0.5 * (info + info.T), int(use.sum())
+    return 0.5 * (info + info.T)
 
 
 def zone_weights(
@@ -490,8 +495,7 @@ def crlb_bounds_for_problem(problem: Any, T_map_base_true: ArrayLike, *,
     out = {}
     for name, mask in (("valid", problem.valid), ("explained", explained_zones(problem, r))):
         use, w, Jz = zone_weights(r, J, problem.rig, problem.range_model, mask)
-        info = np.einsum("kszi,kszj,ksz->ij", Jz, Jz, w)
-        info = 0.5 * (info + info.T)
+        info = _information(Jz, w)
         out[name] = crlb_from_information(info, int(use.sum()), max_position_m=extent)
         mesh = problem.map if problem.map.kind == "mesh" else problem.map.surface
         if name == "explained" and map_tolerance_m > 0 and mesh is not None:
@@ -506,7 +510,8 @@ def face_labels(mesh: Any) -> NDArray[np.int64]:
     n = mesh.face_normals()
     tri = mesh.triangles()
     if n is None or tri is None:
-        raise ParameterError("face labels need a mesh map")
+        raise ParameterError(f"face labels need a mesh map; {getattr(mesh, 'source', 'the map')!r} is a "
+                             f"{getattr(mesh, 'kind', 'map')!r} map (give its CAD mesh, e.g. DIR/NAME.cad.ply)")
     offset = np.einsum("ij,ij->i", n, mesh.points[tri[:, 0]])
     key = np.round(np.column_stack([np.nan_to_num(n) * 1e3, offset * 1e3])).astype(np.int64)
     return np.unique(key, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)

@@ -294,3 +294,9 @@ def test_a_map_tolerance_adds_its_variance_along_each_faces_normal() -> None:
     assert len(set(crlb_mod.face_labels(m).tolist())) == 2
     # without a tolerance (or a mesh) there is no such bound
     assert "explained_map_tolerance" not in crlb_mod.crlb_bounds_for_problem(p, np.eye(4))
+
+
+def test_face_labels_refuse_a_cloud_naming_it() -> None:
+    cloud = Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0)).sample_surface(200, np.random.default_rng(0))
+    with pytest.raises(Exception, match="face labels need a mesh map.*'points' map"):
+        crlb_mod.face_labels(cloud)

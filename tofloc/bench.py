@@ -245,12 +245,13 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
 
     from tofloc import api, map_cache
 
-    def run(out: str, workers: int) -> float:
+    def run(out: str, workers: int = 1, scheduler: Any = None) -> float:
+        """One timed run from empty result and map caches (local workers, or a Dask client)."""
         shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)
         map_cache.clear()
         t0 = time.perf_counter()
         api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
-                  prior_modes=("paper",), calibrate=False, workers=workers)
+                  prior_modes=("paper",), calibrate=False, workers=workers, scheduler=scheduler)
         return time.perf_counter() - t0
 
     def run_dask(out: str) -> float | None:
@@ -261,12 +262,7 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
             with distributed.Client(cluster, set_as_default=False) as client:
                 client.wait_for_workers(2)  # a running cluster, as `--scheduler` is given one
-                shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)
-                map_cache.clear()
-                t0 = time.perf_counter()
-                api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
-                          prior_modes=("paper",), calibrate=False, scheduler=client)
-                return time.perf_counter() - t0
+                return run(out, scheduler=client)
 
     with tempfile.TemporaryDirectory(prefix="tofloc-bench-") as out:
         from evaluation.paper_data import prepare_data
