@@ -4,13 +4,18 @@ variant of the beam model.
 Each valid zone's end point (its reading minus the expected bias, along its ray) is moved
 into the map frame by the candidate state; its probability is a Gaussian of its *signed*
 distance ``s`` to the map's surface (positive on the free side, where the surface's normal
-points), plus a uniform floor, plus, in front of a surface only, a "short" term::
+points) turned into a range residual ``r = s / cos(beta)`` (``beta`` the ray's incidence
+on the surface, from the field's gradient), plus a uniform floor, plus, in front of a
+surface only, a "short" term::
 
-    p = z_hit * N(s; 0, sigma(z + s)^2) + z_short * [s > 0] / L + z_rand / r_field
+    p = z_hit * N(r; 0, sigma(z + r)^2) + z_short * [s > 0] / L + z_rand / r_field
 
 with ``sigma`` the problem's range model (:class:`tofloc.range_model.RangeUncertainty`)
-at the distance the state predicts (the reading plus ``s``; at the reading itself it would
-pull every range short, :meth:`BoundLikelihoodField._sigma`) and ``L`` the reading's length along its ray. The short term is Thrun's
+at the distance the state predicts (the reading plus ``r``; at the reading itself it would
+pull every range short, :meth:`BoundLikelihoodField._sigma`) and ``L`` the reading's
+length along its ray. With ``min_incidence_cos = 1`` it is Thrun's model (``r = s``),
+which undercounts a zone meeting a wall obliquely by ``cos(beta)^2``
+(:meth:`BoundLikelihoodField._mixture`). The short term is Thrun's
 beam-model reasoning carried to end points: a reading that stops in free space in front
 of a mapped surface may be an object the map does not hold (a chair, a person), which
 says nothing against the pose (its density, uniform over the ray up to where the reading
@@ -94,6 +99,11 @@ class LikelihoodFieldModel(SensorModel):
         (:func:`tofloc.configuration_uncertainty.normal_variance` along the field's
         gradient at :func:`sensor_models.base.reference_pose` of the states). False: the
         configurations are taken as exact.
+    min_incidence_cos : float
+        Floor of the incidence cosine by which an end point's distance to the surface is
+        turned into a range residual (:meth:`BoundLikelihoodField._mixture`): 0.25 (76 deg)
+        keeps a grazing zone, whose footprint spreads along the wall, from counting more
+        than 16 times a head-on one. 1: Thrun's end-point model (distances as residuals).
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -109,6 +119,7 @@ class LikelihoodFieldModel(SensorModel):
     r_field: float | None = None
     unknown_weight: float = 0.0
     configuration_cov: bool = True
+    min_incidence_cos: float = 0.25
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_short", "z_rand"):
@@ -122,6 +133,9 @@ class LikelihoodFieldModel(SensorModel):
         check_temper("likelihood_field", self.temper)
         if not isinstance(self.configuration_cov, bool):
             raise ParameterError(f"likelihood_field.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        c = self.min_incidence_cos
+        if not isinstance(c, (int, float)) or isinstance(c, bool) or not math.isfinite(c) or not 0.05 <= c <= 1:
+            raise ParameterError(f"likelihood_field.min_incidence_cos must be in [0.05, 1], got {c!r}")
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"likelihood_field.unknown_weight must be in [0, 1], got {u!r}")
@@ -159,6 +173,9 @@ class BoundLikelihoodField(BoundSensorModel):
         self.origins_tip = [origins[k][valid[k]] for k in range(self.n_steps)]
         pts = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], tip) + self.T_lift_tip[:, None, None, :3, 3]
         self.points = [pts[k][valid[k]] for k in range(self.n_steps)]  # lifted
+        org = np.einsum("kij,kszj->kszi", self.T_lift_tip[:, :3, :3], origins) + self.T_lift_tip[:, None, None, :3, 3]
+        #: per sample, each end point's ray origin in the lifted base frame (P_k, 3)
+        self.origins = [org[k][valid[k]] for k in range(self.n_steps)]
         self.sigma = [sigma[k][valid[k]] for k in range(self.n_steps)]
         #: per sample, each end point's reading with its bias removed (m), its zone's range
         #: factor and flat zone index: its sigma is taken at the distance the state predicts
@@ -178,6 +195,25 @@ class BoundLikelihoodField(BoundSensorModel):
         self.configuration_cov = [None if cov is None or not np.all(np.isfinite(cov[k])) else cov[k]
                                   for k in range(self.n_steps)]
 
+    def _surface_at_reference(self, states: NDArray[np.float64], step: int) -> tuple[
+            NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+        """Step ``step``'s end points seen from :func:`~sensor_models.base.reference_pose`
+        of ``states``: the field's unit gradient at each (the surface's normal, ``(P, 3)``
+        in the map frame, central differences of one cell), whether the field resolves a
+        surface there (``(P,)``: not clipped, farther than ``r_field`` from any surface)
+        and the rotation map <- tip ``(3, 3)``."""
+        ref = reference_pose(states)
+        T = self.problem.prior.T_map_base(ref) @ self.problem.T_base_tip[step]
+        R, t = T[:3, :3], T[:3, 3]
+        q = self.points_tip[step] @ R.T + t
+        h = self.field.cell
+        grad = np.stack([(self.field.signed_distance(q + h * e) - self.field.signed_distance(q - h * e)) / (2 * h)
+                         for e in np.eye(3)], axis=-1)  # three axes, each vectorized over the points
+        g = np.linalg.norm(grad, axis=-1, keepdims=True)
+        resolved = g[..., 0] > 0.5
+        normal = np.where(resolved[:, None], grad / np.maximum(g, 1e-12), 0.0)
+        return normal, resolved, R
+
     def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
         """Variance ``(P,)`` of each end point's distance to the surface caused by sample
         ``step``'s configuration uncertainty: along the field's gradient at the end point
@@ -188,19 +224,11 @@ class BoundLikelihoodField(BoundSensorModel):
         C = self.configuration_cov[step]
         if C is None:
             return None
-        ref = reference_pose(states)
-        T = self.problem.prior.T_map_base(ref) @ self.problem.T_base_tip[step]
-        R, t = T[:3, :3], T[:3, 3]
+        normal, resolved, R = self._surface_at_reference(states, step)
         p_tip = self.points_tip[step]
-        q = p_tip @ R.T + t
-        h = self.field.cell
-        grad = np.stack([(self.field.signed_distance(q + h * e) - self.field.signed_distance(q - h * e)) / (2 * h)
-                         for e in np.eye(3)], axis=-1)  # three axes, each vectorized over the points
-        g = np.linalg.norm(grad, axis=-1, keepdims=True)
-        n_tip = np.where(g > 0.5, grad / np.maximum(g, 1e-12), 0.0) @ R
-        v = normal_variance(p_tip, n_tip, C)
+        v = normal_variance(p_tip, normal @ R, C)
         worst = np.linalg.eigvalsh(point_covariance(p_tip, C))[..., -1]
-        return np.where(g[..., 0] > 0.5, v, worst)
+        return np.where(resolved, v, worst)
 
     def _lifted_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """End points ``(1|M, P, 3)`` of step ``step`` in the lifted base frame, with the
@@ -217,6 +245,21 @@ class BoundLikelihoodField(BoundSensorModel):
             t = rotate_z(t, np.cos(psi)[:, None], np.sin(psi)[:, None])
         T = self.T_lift_tip[step]
         return t @ T[:3, :3].T + T[:3, 3]
+
+    def ray_origins(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Each end point's sensor ``(M, P, 3)`` in the map frame for states ``(M, 3 + n)``
+        (the range scale moves end points along their rays, not the sensors)."""
+        x = np.asarray(states, dtype=float)
+        psi = self.column(x, "support_yaw")
+        if psi is None:
+            p = self.origins[step][None]
+        else:
+            T = self.T_lift_tip[step]
+            p = rotate_z(self.origins_tip[step][None], np.cos(psi)[:, None], np.sin(psi)[:, None]) @ T[:3, :3].T + T[:3, 3]
+        q = rotate_z(p, np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None])
+        q[..., 0] += x[:, 0:1]
+        q[..., 1] += x[:, 1:2]
+        return q
 
     def end_points(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """End points ``(M, P, 3)`` of step ``step`` in the map frame for states ``(M, 3 + n)``."""
@@ -244,39 +287,51 @@ class BoundLikelihoodField(BoundSensorModel):
             return self._log_likelihood_fused(np.asarray(states, dtype=float), step)
         return self._log_likelihood_numpy(states, step)
 
-    def _sigma(self, states: NDArray[np.float64], step: int, d: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Each end point's sigma ``(M, P)`` (``(1, P)`` with the sensor's reported sigmas),
-        its configuration variance added.
+    def _sigma(self, states: NDArray[np.float64], step: int, r: NDArray[np.float64],
+               cos_in: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Each end point's range sigma ``(M, P)`` (``(1, P)`` with the sensor's reported
+        sigmas), its configuration variance added, for range residuals ``r`` ``(M, P)``
+        (the signed distance to the surface over the incidence cosine ``cos_in``, ``(M, P)``
+        or ``(1, 1)``).
 
         The range model's sigma is taken at the distance each state predicts, the reading
-        plus the end point's signed distance ``d`` to the surface (along the ray, as if the
-        ray met the surface head-on), not at the reading itself: a sigma taken at the
-        reading grows with the zone's own noise (``sigma = slope * z``: a reading that came
-        out short gets a smaller sigma, so more weight), which pulls every range short by
-        about ``2 sigma^2 / z`` (6 mm at 2 m for the VL53L5CX's 4 %) and moves the pose
-        (measured: 5-6 mm in the L-shaped room, whose bound is 3 mm). The beam model takes
-        sigma at its ray cast; the head-on step removes the part of the pull a ray at
-        incidence ``beta`` would leave, ``1 - cos(beta)`` of it. Its ``-log sigma`` is part
-        of the density, so the model stays a likelihood of the state."""
+        plus ``r`` along the ray, not at the reading itself: a sigma taken at the reading
+        grows with the zone's own noise (``sigma = slope * z``: a reading that came out
+        short gets a smaller sigma, so more weight), which pulls every range short by about
+        ``2 sigma^2 / z`` (6 mm at 2 m for the VL53L5CX's 4 %) and moves the pose (measured:
+        5-6 mm in the L-shaped room, whose bound is 3 mm). The beam model takes sigma at its
+        ray cast. Its ``-log sigma`` is part of the density, so the model stays a
+        likelihood of the state. The configuration's variance of the distance along the
+        normal is one of the range over ``cos_in^2``."""
         if self.problem.range_model.use_reported_sigma:
             sig = self.sigma[step][None, :]
         else:
             z = self.z_true[step][None, :]
-            z_exp = np.maximum(z + d / self.range_factor[step][None, :], 0.5 * z)
+            z_exp = np.maximum(z + r / self.range_factor[step][None, :], 0.5 * z)
             sig = self.problem.range_model.sigma_of_zones(self.problem.rig, z_exp, self.zone_index[step][None, :])
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
-            sig = np.sqrt(sig**2 + v_cfg[None, :])
+            sig = np.sqrt(sig**2 + v_cfg[None, :] / cos_in**2)
         return sig
 
-    def _mixture(self, d: NDArray[np.float64], unknown: NDArray[np.bool_] | None, sig: NDArray[np.float64],
-                 step: int) -> NDArray[np.float64]:
+    def _mixture(self, states: NDArray[np.float64], d: NDArray[np.float64], unknown: NDArray[np.bool_] | None,
+                 cos_in: NDArray[np.float64] | None, step: int) -> NDArray[np.float64]:
         """Tempered log-likelihood ``(M,)`` from the end points' signed distances ``d``
         ``(M, P)``, whether they lie in unknown space (None: no known space is used) and
-        their sigmas ``(1, P)``."""
+        each ray's incidence cosine at its end point ``(M, P)`` (None: head-on).
+
+        The hit term is a Gaussian of the range residual ``r = d / cos(beta)``, the
+        distance along the ray from the end point to the surface (the surface taken as the
+        plane through its nearest point, ``beta`` the angle between the ray and the field's
+        gradient, floored by ``min_incidence_cos``): the beam model's ray cast, linearized.
+        With ``cos(beta) = 1`` (``min_incidence_cos = 1``) it is Thrun's end-point model,
+        which counts a zone meeting a wall at 60 deg as a quarter of its information."""
         m = self.model
+        cos_in = np.ones((1, 1)) if cos_in is None else np.maximum(cos_in, m.min_incidence_cos)
+        r = d / cos_in
+        sig = self._sigma(states, step, r, cos_in)
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
-        p_hit = np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
+        p_hit = np.exp(-0.5 * (r / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
         if unknown is not None:  # an end point where the map knows nothing
             w = np.where(unknown, m.unknown_weight, 0.0)
             p_hit = (1.0 - w) * p_hit + w / (2.0 * self.r_field)
@@ -293,24 +348,32 @@ class BoundLikelihoodField(BoundSensorModel):
         has_known = ks is not None and m.unknown_weight > 0
         f = self.field
         one = np.zeros(1)
+        incidence = m.min_incidence_cos < 1.0
         d = np.empty((M, P))
         unknown = np.empty((M, P) if has_known else (1, 1), dtype=bool)
+        cos_in = np.empty((M, P) if incidence else (1, 1))
         numba_kernels.likelihood_field_distances(
-            d, unknown, np.ascontiguousarray(self.points[step] if lifted else self.points_tip[step]),
-            np.ascontiguousarray(self.origins_tip[step]), lifted, np.ascontiguousarray(self.T_lift_tip[step]),
+            d, unknown, cos_in, np.ascontiguousarray(self.points[step] if lifted else self.points_tip[step]),
+            np.ascontiguousarray(self.origins[step] if lifted else self.origins_tip[step]), lifted, np.ascontiguousarray(self.T_lift_tip[step]),
             np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1]), np.cos(x[:, 2]), np.sin(x[:, 2]),
             one if scale is None else np.ascontiguousarray(scale), scale is not None,
             one if psi is None else np.cos(psi), one if psi is None else np.sin(psi), psi is not None,
             np.ascontiguousarray(f.lo, dtype=float), 1.0 / f.cell, np.asarray(f.shape, dtype=np.int64), f.values.reshape(-1),
             f.scale, f.r_field,
             ks.known if has_known else np.zeros((1, 1), dtype=bool), ks.origin if has_known else np.zeros(2),
-            ks.cell if has_known else 1.0, ks.z_range if has_known else np.zeros(2), has_known)
-        return self._mixture(d, unknown if has_known else None, self._sigma(x, step, d), step)
+            ks.cell if has_known else 1.0, ks.z_range if has_known else np.zeros(2), has_known, incidence)
+        return self._mixture(x, d, unknown if has_known else None, cos_in if incidence else None, step)
 
     def _log_likelihood_numpy(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """:meth:`log_likelihood` in numpy (without numba)."""
-        q = self.end_points(np.asarray(states, dtype=float), step)
+        x = np.asarray(states, dtype=float)
+        q = self.end_points(x, step)
         d = self.field.signed_distance(q)
         ks = getattr(self.problem.map, "known_space", None)
         unknown = ~ks.is_known(q) if ks is not None and self.model.unknown_weight > 0 else None
-        return self._mixture(d, unknown, self._sigma(states, step, d), step)
+        cos_in = None
+        if self.model.min_incidence_cos < 1.0:
+            ray = q - self.ray_origins(x, step)
+            ray /= np.maximum(np.linalg.norm(ray, axis=-1, keepdims=True), 1e-300)
+            cos_in = self.field.incidence_cos(q, ray)
+        return self._mixture(x, d, unknown, cos_in, step)

@@ -61,14 +61,46 @@ def test_likelihood_peaks_at_the_truth_and_matches_the_formula() -> None:
     d = bound.distances(poses, 1)
     unc, valid = p.range_model, p.valid[1]
     z_true = bound.z_true[1]
-    z_exp = np.maximum(z_true + d / p.rig.range_factor[valid], 0.5 * z_true)  # the distance each pose predicts
+    q = bound.end_points(poses, 1)
+    ray = q - bound.ray_origins(poses, 1)
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    cos_in = np.maximum(bound.field.incidence_cos(q, ray), model.min_incidence_cos)
+    assert cos_in.min() < 0.9  # the formula's incidence matters here
+    r = d / cos_in  # the range residual: along the ray to the wall
+    z_exp = np.maximum(z_true + r / p.rig.range_factor[valid], 0.5 * z_true)  # the distance each pose predicts
     sig = np.maximum(unc.sigma_floor, unc.sigma_slope * z_exp) * np.where(edge_zone_mask(p.rig)[valid], unc.edge_factor, 1.0)
     assert d.shape == (7, int(p.valid[1].sum()))
     assert np.median(np.abs(d[0])) < 1e-3  # noise-free end points lie on the walls at the truth
     L = (p.distance_m[1] * p.rig.range_factor)[p.valid[1]]  # each reading's length along its ray
     floor = 0.1 / bound.r_field + np.where(d > 0, 0.1 / L, 0.0)  # z_rand, and z_short in front of a surface
-    by_hand = 0.5 * np.log(0.8 * np.exp(-0.5 * (d / sig) ** 2) / (sig * math.sqrt(2 * math.pi)) + floor).sum(axis=1)
+    by_hand = 0.5 * np.log(0.8 * np.exp(-0.5 * (r / sig) ** 2) / (sig * math.sqrt(2 * math.pi)) + floor).sum(axis=1)
     np.testing.assert_allclose(ll, by_hand, rtol=1e-12)
+
+
+def test_incidence_is_the_angle_between_the_ray_and_the_wall_normal() -> None:
+    """The field's trilinear gradient gives each ray's incidence on the cuboid's walls (the
+    finite differences of the distance agree), and a head-on model ignores it."""
+    p, truth = easy_problem(n_samples=2)
+    bound = LikelihoodFieldModel().bind(p)
+    poses = truth[None] + np.array([[0.0, 0.0, 0.0], [0.004, -0.003, 0.01]])
+    q = bound.end_points(poses, 0)
+    ray = q - bound.ray_origins(poses, 0)
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    cos_in = bound.field.incidence_cos(q, ray)
+    h = 1e-4
+    grad = np.stack([(bound.field.signed_distance(q + h * e) - bound.field.signed_distance(q - h * e)) / (2 * h)
+                     for e in np.eye(3)], axis=-1)
+    # on a wall, off the edges where the nearest wall switches within a cell (the distance's gradient is not unit)
+    near = (np.abs(bound.distances(poses, 0)) < 0.02) & (np.abs(np.linalg.norm(grad, axis=-1) - 1.0) < 0.05)
+    assert near.mean() > 0.9
+    by_fd = np.abs(np.einsum("mpi,mpi->mp", grad, ray)) / np.linalg.norm(grad, axis=-1)
+    np.testing.assert_allclose(cos_in[near], by_fd[near], atol=2e-3)
+    assert 0.2 < cos_in[near].min() < 0.8 and cos_in[near].max() > 0.95
+    head_on = LikelihoodFieldModel(min_incidence_cos=1.0).bind(p)
+    with_incidence = bound.log_likelihood(poses, 0)
+    assert not np.allclose(head_on.log_likelihood(poses, 0), with_incidence)
+    with pytest.raises(ParameterError, match="min_incidence_cos"):
+        LikelihoodFieldModel(min_incidence_cos=0.0)
 
 
 def test_sigma_is_taken_where_the_pose_predicts_not_at_the_reading() -> None:
@@ -100,7 +132,7 @@ def test_sigma_is_taken_where_the_pose_predicts_not_at_the_reading() -> None:
         k_s_z = np.argwhere(valid)[head_on]
         dist[1][tuple(k_s_z)] += eps / p.rig.range_factor[tuple(k_s_z)]
         b = LikelihoodFieldModel().bind(replace(p, distance_m=dist))
-        sigmas.append(b._sigma(truth[None], 1, b.distances(truth[None], 1))[0, head_on])
+        sigmas.append(b._sigma(truth[None], 1, b.distances(truth[None], 1), np.ones((1, 1)))[0, head_on])  # head-on: r = d
     assert sigmas[0] == pytest.approx(sigmas[1], rel=2e-3)  # at the reading they would differ by 2 * 3 cm / z
     zone = bound.zone_index[1][head_on]
     assert sigmas[0] == pytest.approx(float(p.range_model.sigma_of_zones(p.rig, z[head_on], zone)), rel=2e-2)

@@ -254,3 +254,50 @@ def test_localize_help_explains_surface(capsys: pytest.CaptureFixture[str]) -> N
     res = CliRunner().invoke(app, ["localize", "--help"], env={"COLUMNS": "200", "TERM": "dumb"})
     text = re.sub(r"[\s│]+", " ", res.output)
     assert "--surface" in text and "a mesh of the same environment for ray casts" in text.lower()
+
+
+def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None:
+    """A field built once is written to the cache folder and loaded, identical, by the next
+    process (the in-process cache emptied stands for it); a corrupt file is rebuilt and
+    replaced; ``off`` writes nothing."""
+    from tofloc import map_cache
+    from tofloc.surface_field import SurfaceField, surface_field_for
+
+    the_map = Map.cuboid((0.8, 0.6, 0.4), (-0.4, -0.3, 0.0))
+    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
+    map_cache.clear()
+    builds, loads = map_cache.build_count("surface_field"), map_cache.disk_count("surface_field")
+    built = surface_field_for(the_map, 0.01, 0.05)
+    files = list((tmp_path / "cache").glob("surface_field-*.npz"))
+    assert len(files) == 1 and map_cache.build_count("surface_field") == builds + 1
+    map_cache.clear()
+    loaded = surface_field_for(the_map, 0.01, 0.05)
+    assert map_cache.disk_count("surface_field") == loads + 1 and map_cache.build_count("surface_field") == builds + 1
+    np.testing.assert_array_equal(loaded.values, built.values)
+    assert (loaded.cell, loaded.r_field, loaded.shape) == (built.cell, built.r_field, built.shape)
+    q = np.random.default_rng(0).uniform(-0.5, 0.5, (200, 3))
+    np.testing.assert_array_equal(loaded.signed_distance(q), built.signed_distance(q))
+    # another parameter, another file
+    map_cache.clear()
+    surface_field_for(the_map, 0.01, 0.1)
+    assert len(list((tmp_path / "cache").glob("surface_field-*.npz"))) == 2
+    # a truncated file is not trusted: rebuilt, and the file replaced by a good one
+    files[0].write_bytes(files[0].read_bytes()[:100])
+    map_cache.clear()
+    again = surface_field_for(the_map, 0.01, 0.05)
+    assert map_cache.build_count("surface_field") == builds + 3
+    np.testing.assert_array_equal(again.values, built.values)
+    with np.load(files[0], allow_pickle=False) as z:
+        SurfaceField.from_arrays({k: z[k] for k in z.files})
+    # inconsistent arrays are refused
+    bad = built.to_arrays() | {"values": built.values.astype(np.float32)}
+    with pytest.raises(ValueError, match="int16"):
+        SurfaceField.from_arrays(bad)
+    with pytest.raises(ValueError, match="expected the arrays"):
+        SurfaceField.from_arrays({"values": built.values})
+    # off: nothing written
+    monkeypatch.setenv("TOFLOC_CACHE_DIR", "off")
+    map_cache.clear()
+    surface_field_for(Map.cuboid((0.7, 0.6, 0.4), (-0.35, -0.3, 0.0)), 0.01, 0.05)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
+    assert map_cache.cache_folder() is None

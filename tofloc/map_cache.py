@@ -12,15 +12,51 @@ once to each worker with its shared context (the process pool's initializer, or 
 scatter to every worker); :meth:`MapCacheBundle.install` puts the entries into the
 worker's cache, where :func:`per_map` finds them. :func:`build_count` counts the builds
 this process made (tests check that a worker built nothing).
+
+Persisted between processes
+---------------------------
+What is slow to build and made of arrays (a likelihood field of a scanned maze: ~80 s)
+is also written to a cache folder, :func:`cache_folder` (``TOFLOC_CACHE_DIR``, default
+``$XDG_CACHE_HOME/tofloc`` or ``~/.cache/tofloc``; ``off`` disables it), and the next
+process loads it instead of building it again. A file's name holds the kind, the map's
+fingerprint, the parameters and a hash of the source of the module that builds the
+object, so a changed map, parameter or builder never reuses a stale file. Files are
+written atomically, read with ``numpy.load(allow_pickle=False)`` and checked by the
+class's ``from_arrays`` (shapes, dtypes, parameters); an unreadable or inconsistent file
+is rebuilt and replaced, never trusted. The folder keeps at most :data:`MAX_DISK_BYTES`
+(the least recently used files go first). :func:`disk_count` counts this process's loads.
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
+import os
+import sys
 import threading
 from collections import Counter, OrderedDict
-from typing import Any, Callable, Hashable, TypeVar
+from pathlib import Path
+from typing import Any, Callable, Hashable, Protocol, TypeVar
 
-__all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "MAX_ENTRIES"]
+import numpy as np
+
+__all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "disk_count", "cache_folder",
+           "Persistable", "MAX_ENTRIES", "MAX_DISK_BYTES"]
+
+_LOG = logging.getLogger(__name__)
+#: Bytes the cache folder keeps at most (least recently used files removed first).
+MAX_DISK_BYTES = 4 * 1024**3
+
+
+class Persistable(Protocol):
+    """A cache object that can be written to and read from a folder as arrays."""
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays that make the object (numeric, no objects)."""
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Any:
+        """The object from :meth:`to_arrays`'s output; ValueError when inconsistent."""
 
 T = TypeVar("T")
 #: Entries kept (least recently used dropped first).
@@ -28,9 +64,91 @@ MAX_ENTRIES = 16
 _CACHE: "OrderedDict[tuple[str, str, Hashable], Any]" = OrderedDict()
 _LOCK = threading.Lock()
 _BUILDS: Counter[str] = Counter()
+_LOADS: Counter[str] = Counter()
 
 
-def per_map(the_map: Any, kind: str, params: Hashable, build: Callable[[], T]) -> T:
+def cache_folder() -> Path | None:
+    """The folder of persisted per-map caches (``TOFLOC_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/tofloc``, else ``~/.cache/tofloc``), or None when ``TOFLOC_CACHE_DIR``
+    is ``off``, ``0`` or empty."""
+    env = os.environ.get("TOFLOC_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "0", "off", "none", "false") else Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "tofloc"
+
+
+def _source_hash(cls: type) -> str:
+    """SHA-256 (16 hex) of the source files of the module defining ``cls`` and of
+    :mod:`tofloc.maps` (the map queries every builder uses)."""
+    h = hashlib.sha256(cls.__qualname__.encode())
+    for name in (cls.__module__, "tofloc.maps"):
+        path = getattr(sys.modules.get(name), "__file__", None)
+        h.update(Path(path).read_bytes() if path else name.encode())
+    return h.hexdigest()[:16]
+
+
+def _disk_path(folder: Path, key: tuple[str, str, Hashable], cls: type) -> Path:
+    fp, kind, params = key
+    tag = hashlib.sha256(repr((params, cls.__module__, cls.__qualname__, _source_hash(cls))).encode()).hexdigest()[:16]
+    return folder / f"{kind}-{fp[:32]}-{tag}.npz"
+
+
+def _load(path: Path, cls: Any) -> Any | None:
+    """The object in ``path`` or None (missing, unreadable or inconsistent: logged)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        obj = cls.from_arrays(arrays)
+    except Exception as exc:  # a corrupt or foreign file is rebuilt, never trusted
+        _LOG.warning("cache file %s is not usable (%s); building it again", path, exc)
+        return None
+    try:
+        os.utime(path)  # recently used: pruned last
+    except OSError:
+        pass
+    return obj
+
+
+def _save(path: Path, obj: Any) -> None:
+    """Write ``obj`` to ``path`` atomically, then prune the folder; a full or read-only
+    folder only costs the next process a build (logged)."""
+    from tofloc.atomic import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **obj.to_arrays())
+        _prune(path.parent)
+    except OSError as exc:
+        _LOG.warning("could not write the cache file %s (%s)", path, exc)
+
+
+def _prune(folder: Path) -> None:
+    files = []
+    for f in folder.glob("*.npz"):
+        try:
+            st = f.stat()
+        except OSError:
+            continue
+        files.append((st.st_mtime, st.st_size, f))
+    total = sum(size for _, size, _ in files)
+    for _, size, f in sorted(files, key=lambda t: t[0]):
+        if total <= MAX_DISK_BYTES:
+            break
+        f.unlink(missing_ok=True)
+        total -= size
+
+
+def disk_count(kind: str | None = None) -> int:
+    """How many objects (of ``kind``, or of any kind) :func:`per_map` loaded from the cache folder."""
+    with _LOCK:
+        return _LOADS[kind] if kind is not None else sum(_LOADS.values())
+
+
+def per_map(the_map: Any, kind: str, params: Hashable, build: Callable[[], T], stored_as: Any = None) -> T:
     """The cached ``build()`` for ``(the_map's fingerprint, kind, params)``; built on first use.
 
     Parameters
@@ -42,13 +160,25 @@ def per_map(the_map: Any, kind: str, params: Hashable, build: Callable[[], T]) -
         Everything else the object depends on (cell sizes, radii).
     build : callable
         Makes the object (called outside the lock; a race builds twice, keeps one).
+    stored_as : class, optional
+        A :class:`Persistable` class: the object is also loaded from and saved to
+        :func:`cache_folder` (see the module doc). None: this process only.
     """
     key = (the_map.fingerprint(), kind, params)
     with _LOCK:
         if key in _CACHE:
             _CACHE.move_to_end(key)
             return _CACHE[key]  # type: ignore[no-any-return]
+    folder = cache_folder() if stored_as is not None else None
+    path = _disk_path(folder, key, stored_as) if folder is not None else None
+    obj = _load(path, stored_as) if path is not None else None
+    if obj is not None:
+        with _LOCK:
+            _LOADS[kind] += 1
+            return _store(key, obj)  # type: ignore[no-any-return]
     obj = build()
+    if path is not None:
+        _save(path, obj)
     with _LOCK:
         _BUILDS[kind] += 1
         return _store(key, obj)
@@ -102,6 +232,6 @@ def bundle(*maps: Any) -> MapCacheBundle:
 
 
 def clear() -> None:
-    """Drop every entry (tests, memory)."""
+    """Drop every entry of this process (tests, memory; the cache folder stays)."""
     with _LOCK:
         _CACHE.clear()

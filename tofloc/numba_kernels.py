@@ -134,6 +134,49 @@ def _trilinear_one(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int
 
 
 @_jit
+def _incidence_one(qx: float, qy: float, qz: float, dx: float, dy: float, dz: float, lo: Any, inv: float, nx: int,
+                   ny: int, nz: int, values: Any) -> float:  # pragma: no cover - compiled
+    """``|cos|`` of the angle between the unit ray direction ``d`` and the gradient of the
+    trilinear field at ``q`` (the 8 corners :func:`_trilinear_one` reads, differentiated;
+    the codes' scale cancels); 1 (head-on) outside the grid or where the gradient vanishes
+    (clipped, far from any surface)."""
+    ux = np.float32((qx - lo[0]) * inv)
+    uy = np.float32((qy - lo[1]) * inv)
+    uz = np.float32((qz - lo[2]) * inv)
+    if not (ux >= 0 and ux < np.float32(nx - 1) and uy >= 0 and uy < np.float32(ny - 1) and uz >= 0
+            and uz < np.float32(nz - 1)):
+        return 1.0
+    ix = np.int32(ux)
+    iy = np.int32(uy)
+    iz = np.int32(uz)
+    fx = np.float64(ux) - np.float64(ix)
+    fy = np.float64(uy) - np.float64(iy)
+    fz = np.float64(uz) - np.float64(iz)
+    b = (ix * ny + iy) * nz + iz
+    v000 = np.float64(values[b])
+    v001 = np.float64(values[b + 1])
+    v010 = np.float64(values[b + nz])
+    v011 = np.float64(values[b + nz + 1])
+    v100 = np.float64(values[b + ny * nz])
+    v101 = np.float64(values[b + ny * nz + 1])
+    v110 = np.float64(values[b + ny * nz + nz])
+    v111 = np.float64(values[b + ny * nz + nz + 1])
+    c00 = v000 + fz * (v001 - v000)
+    c01 = v010 + fz * (v011 - v010)
+    c10 = v100 + fz * (v101 - v100)
+    c11 = v110 + fz * (v111 - v110)
+    c0 = c00 + fy * (c01 - c00)
+    c1 = c10 + fy * (c11 - c10)
+    gx = c1 - c0
+    gy = (c01 - c00) + fx * ((c11 - c10) - (c01 - c00))
+    e0 = (v001 - v000) + fy * ((v011 - v010) - (v001 - v000))
+    e1 = (v101 - v100) + fy * ((v111 - v110) - (v101 - v100))
+    gz = e0 + fx * (e1 - e0)
+    g = math.sqrt(gx * gx + gy * gy + gz * gz)
+    return abs(gx * dx + gy * dy + gz * dz) / g if g > 0.0 else 1.0
+
+
+@_jit
 def trilinear_int16(q: Any, lo: Any, inv: float, shape: Any, values: Any, scale: float, r_field: float,
                     out: Any) -> None:  # pragma: no cover - compiled
     """Trilinear interpolation of int16 codes on a grid (:meth:`tofloc.surface_field.SurfaceField.signed_distance`):
@@ -259,53 +302,73 @@ def beam_log_likelihood(out: Any, *args: Any) -> None:
 
 
 @_jit
-def _lf_block(dist: Any, unknown: Any, lo_m: int, hi_m: int, pts: Any, origins: Any, lifted: bool, T: Any, x: Any,
+def _lf_block(dist: Any, unknown: Any, cos_in: Any, lo_m: int, hi_m: int, pts: Any, origins: Any, lifted: bool, T: Any,
+              x: Any,
               y: Any, cos_yaw: Any, sin_yaw: Any, scale: Any, has_scale: bool, cos_psi: Any, sin_psi: Any,
               has_psi: bool, lo: Any, inv: float, shape: Any, values: Any, field_scale: float, r_field: float,
               known: Any, known_origin: Any, known_cell: float, known_z: Any,
-              has_known: bool) -> None:  # pragma: no cover - compiled
+              has_known: bool, incidence: bool) -> None:  # pragma: no cover - compiled
     """States ``lo_m:hi_m`` of :func:`likelihood_field_distances`: each end point moved
     into the map frame and looked up in the field (and in the known space), fused.
 
     ``pts`` ``(P, 3)``: with ``lifted`` the end points in the lifted base frame, else in the
-    tip frame (with their sensors' ``origins``), moved by each state's range scale and
-    support yaw then by the lift ``T`` ``(4, 4)``. Each state's planar pose is ``x, y``
+    tip frame, moved by each state's range scale and support yaw then by the lift ``T``
+    ``(4, 4)``; ``origins`` ``(P, 3)``: each end point's sensor, in the same frame. Each state's planar pose is ``x, y``
     and the yaw's cosine and sine. The field is :class:`tofloc.surface_field.SurfaceField`'s
     grid (``lo, inv, shape, values, field_scale, r_field``), the known space
     :class:`tofloc.known_space.KnownSpace`'s (``has_known``). Writes the signed distance
     ``dist[m, p]`` and, with a known space, ``unknown[m, p]`` (the end point lies in
-    space the map does not know). End point outer, states inner: a point's lookups for
+    space the map does not know), and with ``incidence`` ``cos_in[m, p]``, the ray's
+    incidence cosine at its end point (:func:`_incidence_one`). End point outer, states inner: a point's lookups for
     nearby states hit the same part of the field."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     kx, ky = known.shape[0], known.shape[1]
     for p in range(pts.shape[0]):
         for m in range(lo_m, hi_m):
-            if lifted:
-                lx = pts[p, 0]
-                ly = pts[p, 1]
-                lz = pts[p, 2]
-            else:
-                tx = pts[p, 0]
-                ty = pts[p, 1]
-                tz = pts[p, 2]
-                if has_scale:
-                    g = 1.0 + scale[m]
-                    tx = origins[p, 0] + (tx - origins[p, 0]) / g
-                    ty = origins[p, 1] + (ty - origins[p, 1]) / g
-                    tz = origins[p, 2] + (tz - origins[p, 2]) / g
-                if has_psi:
-                    rx = cos_psi[m] * tx - sin_psi[m] * ty
-                    ty = sin_psi[m] * tx + cos_psi[m] * ty
-                    tx = rx
-                lx = T[0, 0] * tx + T[0, 1] * ty + T[0, 2] * tz + T[0, 3]
-                ly = T[1, 0] * tx + T[1, 1] * ty + T[1, 2] * tz + T[1, 3]
-                lz = T[2, 0] * tx + T[2, 1] * ty + T[2, 2] * tz + T[2, 3]
             c = cos_yaw[m]
             s = sin_yaw[m]
-            qx = c * lx - s * ly + x[m]
-            qy = s * lx + c * ly + y[m]
-            qz = lz
+            qx = qy = qz = ox = oy = oz = 0.0
+            # the end point (w = 0) and, for the incidence, its sensor (w = 1) through the same chain
+            for w in range(2 if incidence else 1):
+                src = pts if w == 0 else origins
+                if lifted:
+                    lx = src[p, 0]
+                    ly = src[p, 1]
+                    lz = src[p, 2]
+                else:
+                    tx = src[p, 0]
+                    ty = src[p, 1]
+                    tz = src[p, 2]
+                    if has_scale and w == 0:
+                        g = 1.0 + scale[m]
+                        tx = origins[p, 0] + (tx - origins[p, 0]) / g
+                        ty = origins[p, 1] + (ty - origins[p, 1]) / g
+                        tz = origins[p, 2] + (tz - origins[p, 2]) / g
+                    if has_psi:
+                        rx = cos_psi[m] * tx - sin_psi[m] * ty
+                        ty = sin_psi[m] * tx + cos_psi[m] * ty
+                        tx = rx
+                    lx = T[0, 0] * tx + T[0, 1] * ty + T[0, 2] * tz + T[0, 3]
+                    ly = T[1, 0] * tx + T[1, 1] * ty + T[1, 2] * tz + T[1, 3]
+                    lz = T[2, 0] * tx + T[2, 1] * ty + T[2, 2] * tz + T[2, 3]
+                if w == 0:
+                    qx = c * lx - s * ly + x[m]
+                    qy = s * lx + c * ly + y[m]
+                    qz = lz
+                else:
+                    ox = c * lx - s * ly + x[m]
+                    oy = s * lx + c * ly + y[m]
+                    oz = lz
             dist[m, p] = _trilinear_one(qx, qy, qz, lo, inv, nx, ny, nz, values, field_scale, r_field)
+            if incidence:
+                rx = qx - ox
+                ry = qy - oy
+                rz = qz - oz
+                n = math.sqrt(rx * rx + ry * ry + rz * rz)
+                if n > 0.0:
+                    cos_in[m, p] = _incidence_one(qx, qy, qz, rx / n, ry / n, rz / n, lo, inv, nx, ny, nz, values)
+                else:
+                    cos_in[m, p] = 1.0
             if has_known:
                 i = math.floor((qx - known_origin[0]) / known_cell)
                 j = math.floor((qy - known_origin[1]) / known_cell)
@@ -314,25 +377,26 @@ def _lf_block(dist: Any, unknown: Any, lo_m: int, hi_m: int, pts: Any, origins: 
 
 
 @_jit
-def _lf_serial(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
-    _lf_block(dist, unknown, 0, dist.shape[0], *args)
+def _lf_serial(dist: Any, unknown: Any, cos_in: Any, args: Any) -> None:  # pragma: no cover - compiled
+    _lf_block(dist, unknown, cos_in, 0, dist.shape[0], *args)
 
 
 @_jit_parallel
-def _lf_parallel(dist: Any, unknown: Any, args: Any) -> None:  # pragma: no cover - compiled
+def _lf_parallel(dist: Any, unknown: Any, cos_in: Any, args: Any) -> None:  # pragma: no cover - compiled
     M = dist.shape[0]
     n_blocks = (M + 255) // 256
     for b in _prange(n_blocks):
-        _lf_block(dist, unknown, b * 256, min(M, (b + 1) * 256), *args)
+        _lf_block(dist, unknown, cos_in, b * 256, min(M, (b + 1) * 256), *args)
 
 
-def likelihood_field_distances(dist: Any, unknown: Any, *args: Any) -> None:
+def likelihood_field_distances(dist: Any, unknown: Any, cos_in: Any, *args: Any) -> None:
     """The likelihood-field model's signed distances ``dist`` ``(M, P)`` of every state's
-    end points, and with a known space whether each lies in unknown space (``unknown``
-    ``(M, P)`` bool); arguments: :func:`_lf_block`'s after ``hi_m``; over threads when
+    end points, with a known space whether each lies in unknown space (``unknown``
+    ``(M, P)`` bool), with ``incidence`` each ray's incidence cosine at its end point
+    (``cos_in`` ``(M, P)``); arguments: :func:`_lf_block`'s after ``hi_m``; over threads when
     :func:`parallel`. (The mixture's ``exp`` and ``log`` stay in numpy: its vectorized
     loops are several times faster than libm's scalar calls.)"""
-    (_lf_parallel if parallel() else _lf_serial)(dist, unknown, args)
+    (_lf_parallel if parallel() else _lf_serial)(dist, unknown, cos_in, args)
 
 
 @_jit

@@ -69,6 +69,34 @@ class SurfaceField:
             values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field) / self.scale).astype(np.int16)
         self.values = values.reshape(self.shape)
 
+    def to_arrays(self) -> dict[str, NDArray[Any]]:
+        """The field as arrays (:class:`tofloc.map_cache.Persistable`)."""
+        return {"lo": np.asarray(self.lo, dtype=float), "cell": np.array(self.cell), "r_field": np.array(self.r_field),
+                "values": self.values}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, NDArray[Any]]) -> "SurfaceField":
+        """A field from :meth:`to_arrays`'s output, checked (ValueError when inconsistent)."""
+        need = {"lo", "cell", "r_field", "values"}
+        if set(arrays) != need:
+            raise ValueError(f"expected the arrays {sorted(need)}, got {sorted(arrays)}")
+        lo, cell, r_field, values = (arrays[k] for k in ("lo", "cell", "r_field", "values"))
+        if lo.shape != (3,) or lo.dtype != np.float64 or not np.all(np.isfinite(lo)):
+            raise ValueError(f"lo must be 3 finite float64, got {lo.dtype} {lo.shape}")
+        if cell.shape != () or r_field.shape != () or not (0 < float(cell) <= 1.0) or not (0 < float(r_field) <= 10.0):
+            raise ValueError(f"cell and r_field must be positive scalars, got {cell!r}, {r_field!r}")
+        if values.dtype != np.int16 or values.ndim != 3 or values.size > MAX_FIELD_CELLS or min(values.shape) < 2:
+            raise ValueError(f"values must be a 3-D int16 grid of at most {MAX_FIELD_CELLS} cells, got "
+                             f"{values.dtype} {values.shape}")
+        obj = cls.__new__(cls)
+        obj.cell = float(cell)
+        obj.r_field = float(r_field)
+        obj.lo = lo.copy()
+        obj.shape = tuple(int(n) for n in values.shape)
+        obj.scale = obj.r_field / 32767.0
+        obj.values = np.ascontiguousarray(values)
+        return obj
+
     def distance(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unsigned distance ``(...)`` of points ``(..., 3)`` (trilinear; ``r_field`` outside the grid)."""
         return np.abs(self.signed_distance(query))
@@ -89,6 +117,38 @@ class SurfaceField:
                                           self.r_field, out)
             return out.reshape(q.shape[:-1])
         return self._signed_distance_numpy(q)
+
+    def incidence_cos(self, query: NDArray[np.float64], direction: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``|cos|`` ``(...)`` of the angle between unit directions ``(..., 3)`` and the
+        field's gradient at points ``(..., 3)`` (the trilinear interpolant differentiated,
+        as :func:`tofloc.numba_kernels._incidence_one`); 1 outside the grid or where the
+        gradient vanishes."""
+        q = np.asarray(query, dtype=float).reshape(-1, 3)
+        dirs = np.asarray(direction, dtype=float).reshape(-1, 3)
+        u = ((q - self.lo) * (1.0 / self.cell)).astype(np.float32)
+        n = np.asarray(self.shape)
+        inside = np.all((u >= 0) & (u < (n - 1).astype(np.float32)), axis=1)
+        u[~inside] = 0.0
+        i = u.astype(np.int32)
+        f = u.astype(float) - i
+        ny, nz = self.shape[1], self.shape[2]
+        b = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
+        v = self.values.ravel()
+        corner = {(a, c, e): v[b + a * ny * nz + c * nz + e].astype(float) for a in (0, 1) for c in (0, 1) for e in (0, 1)}
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        c00 = corner[0, 0, 0] + fz * (corner[0, 0, 1] - corner[0, 0, 0])
+        c01 = corner[0, 1, 0] + fz * (corner[0, 1, 1] - corner[0, 1, 0])
+        c10 = corner[1, 0, 0] + fz * (corner[1, 0, 1] - corner[1, 0, 0])
+        c11 = corner[1, 1, 0] + fz * (corner[1, 1, 1] - corner[1, 1, 0])
+        gx = (c10 + fy * (c11 - c10)) - (c00 + fy * (c01 - c00))
+        gy = (c01 - c00) + fx * ((c11 - c10) - (c01 - c00))
+        e0 = (corner[0, 0, 1] - corner[0, 0, 0]) + fy * ((corner[0, 1, 1] - corner[0, 1, 0]) - (corner[0, 0, 1] - corner[0, 0, 0]))
+        e1 = (corner[1, 0, 1] - corner[1, 0, 0]) + fy * ((corner[1, 1, 1] - corner[1, 1, 0]) - (corner[1, 0, 1] - corner[1, 0, 0]))
+        gz = e0 + fx * (e1 - e0)
+        g = np.sqrt(gx * gx + gy * gy + gz * gz)
+        dot = np.abs(gx * dirs[:, 0] + gy * dirs[:, 1] + gz * dirs[:, 2])
+        out = np.where(inside & (g > 0), dot / np.where(g > 0, g, 1.0), 1.0)
+        return out.reshape(np.shape(query)[:-1])
 
     def _signed_distance_numpy(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         shape = q.shape[:-1]
@@ -143,7 +203,9 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
 
 def surface_field_for(the_map: Any, cell: float, r_field: float) -> SurfaceField:
     """A :class:`SurfaceField` of ``the_map``, built once per (map content, cell, r_field) and
-    process (:func:`tofloc.map_cache.per_map`)."""
+    process (:func:`tofloc.map_cache.per_map`), and persisted in the cache folder for the
+    next process (:func:`tofloc.map_cache.cache_folder`)."""
     from tofloc.map_cache import per_map
 
-    return per_map(the_map, "surface_field", (float(cell), float(r_field)), lambda: SurfaceField(the_map, cell, r_field))
+    return per_map(the_map, "surface_field", (float(cell), float(r_field)), lambda: SurfaceField(the_map, cell, r_field),
+                   stored_as=SurfaceField)
