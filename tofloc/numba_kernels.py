@@ -102,23 +102,31 @@ def sub_cell_states(centres: Any, offsets: Any, h: float, cand: Any, rows: Any, 
 
 
 @_jit_inline
-def _trilinear_one(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int, ny: int, nz: int, values: Any,
-                   scale: float, r_field: float) -> float:  # pragma: no cover - compiled
-    """One point of :func:`trilinear_int16`."""
+def _grid_cell(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int, ny: int,
+               nz: int) -> tuple[bool, int, float, float, float]:  # pragma: no cover - compiled
+    """The grid cell of a point: whether it lies inside, the flat index of its lower corner
+    and the fractions along x, y, z (float32 cell coordinates, as the numpy path)."""
     ux = np.float32((qx - lo[0]) * inv)
     uy = np.float32((qy - lo[1]) * inv)
     uz = np.float32((qz - lo[2]) * inv)
     if not (ux >= 0 and ux < np.float32(nx - 1) and uy >= 0 and uy < np.float32(ny - 1) and uz >= 0
             and uz < np.float32(nz - 1)):
-        return np.float64(np.float32(r_field))
+        return False, 0, 0.0, 0.0, 0.0
     ix = np.int32(ux)
     iy = np.int32(uy)
     iz = np.int32(uz)
-    # numpy promotes float32 - int32 to float64: the fractions and the rest are float64
-    fx = np.float64(ux) - np.float64(ix)
-    fy = np.float64(uy) - np.float64(iy)
-    fz = np.float64(uz) - np.float64(iz)
     b = (ix * ny + iy) * nz + iz
+    # numpy promotes float32 - int32 to float64: the fractions and the rest are float64
+    return True, b, np.float64(ux) - np.float64(ix), np.float64(uy) - np.float64(iy), np.float64(uz) - np.float64(iz)
+
+
+@_jit_inline
+def _trilinear_one(qx: float, qy: float, qz: float, lo: Any, inv: float, nx: int, ny: int, nz: int, values: Any,
+                   scale: float, r_field: float) -> float:  # pragma: no cover - compiled
+    """One point of :func:`trilinear_int16`."""
+    inside, b, fx, fy, fz = _grid_cell(qx, qy, qz, lo, inv, nx, ny, nz)
+    if not inside:
+        return np.float64(np.float32(r_field))
     a00 = np.float64(values[b])
     c00 = a00 + fz * (np.float64(values[b + 1]) - a00)
     a01 = np.float64(values[b + nz])
@@ -140,19 +148,9 @@ def _incidence_one(qx: float, qy: float, qz: float, dx: float, dy: float, dz: fl
     trilinear field at ``q`` (the 8 corners :func:`_trilinear_one` reads, differentiated;
     the codes' scale cancels); 1 (head-on) outside the grid or where the gradient vanishes
     (clipped, far from any surface)."""
-    ux = np.float32((qx - lo[0]) * inv)
-    uy = np.float32((qy - lo[1]) * inv)
-    uz = np.float32((qz - lo[2]) * inv)
-    if not (ux >= 0 and ux < np.float32(nx - 1) and uy >= 0 and uy < np.float32(ny - 1) and uz >= 0
-            and uz < np.float32(nz - 1)):
+    inside, b, fx, fy, fz = _grid_cell(qx, qy, qz, lo, inv, nx, ny, nz)
+    if not inside:
         return 1.0
-    ix = np.int32(ux)
-    iy = np.int32(uy)
-    iz = np.int32(uz)
-    fx = np.float64(ux) - np.float64(ix)
-    fy = np.float64(uy) - np.float64(iy)
-    fz = np.float64(uz) - np.float64(iz)
-    b = (ix * ny + iy) * nz + iz
     v000 = np.float64(values[b])
     v001 = np.float64(values[b + 1])
     v010 = np.float64(values[b + nz])
