@@ -51,6 +51,7 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert 0.0 <= g["max_abs_diff"] < 1e-9
     p = doc["parallel"]
     assert _seconds(p["workers_1_s"]) and _seconds(p["workers_2_s"]) and _seconds(p["speedup"])
+    assert _seconds(p["workers_1_one_thread_s"]) and p["scaling"] == pytest.approx(p["workers_1_one_thread_s"] / p["workers_2_s"])
     assert _seconds(p["dask_2_s"]) and p["dask_speedup"] == pytest.approx(p["workers_1_s"] / p["dask_2_s"])
     assert p["estimators"] == ["icp_pf"] and p["k_values"] == [1]
     sel = doc["selection"]

@@ -44,7 +44,12 @@ returns one JSON document:
     ``workers_1_s``, ``workers_2_s``, ``speedup``; and on a local Dask cluster of two
     single-threaded worker processes (started before the timing, as ``--scheduler`` is
     given a running one): ``dask_2_s`` and ``dask_speedup`` (over ``workers_1_s``; null
-    without dask).
+    without dask). One worker runs in this process and its hot paths use every core
+    (numba's threads, Open3D's casts), as ``--workers 1`` does; a pool's workers get one
+    thread each. So ``workers_1_one_thread_s`` is the same run in this process limited to
+    one thread (Open3D, BLAS, numba's kernels serial), what each of the two workers gets,
+    and ``scaling`` = ``workers_1_one_thread_s / workers_2_s`` says how the harness scales
+    with workers; ``speedup`` says what a user gains over ``--workers 1`` on this machine.
 """
 
 from __future__ import annotations
@@ -254,6 +259,20 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
                   prior_modes=("paper",), calibrate=False, workers=workers, scheduler=scheduler)
         return time.perf_counter() - t0
 
+    def run_one_thread(out: str) -> float:
+        """:func:`run` with one worker in this process limited to one thread, as a pool's worker."""
+        from threadpoolctl import threadpool_limits
+
+        from tofloc import threads
+
+        before = threads.open3d_threads()
+        threads.set_open3d_threads(1)
+        try:
+            with threadpool_limits(1):
+                return run(out, 1)
+        finally:
+            threads.set_open3d_threads(before)
+
     def run_dask(out: str) -> float | None:
         try:
             from dask import distributed
@@ -270,9 +289,11 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
 
         prepare_data(Path(out), "paper", 0, True)  # simulated once, outside the timings
         one = run(out, 1)
+        one_thread = run_one_thread(out)
         two = run(out, 2)
         dask_two = run_dask(out)
     return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two,
+            "workers_1_one_thread_s": one_thread, "scaling": one_thread / two,
             "dask_2_s": dask_two, "dask_speedup": None if dask_two is None else one / dask_two,
             "estimators": list(estimators), "trials": int(trials), "k_values": [int(k) for k in k_values]}
 
@@ -303,7 +324,7 @@ def run_bench(
     *,
     particles_big: int = 10_000,
     parallel_estimators: Sequence[str] | None = None,
-    parallel_trials: int = 4,
+    parallel_trials: int = 12,
     parallel_k: Sequence[int] = (1, 5, 10),
 ) -> dict[str, Any]:
     """Measure everything the module doc describes; returns the JSON document.
@@ -420,7 +441,8 @@ def run_bench(
     doc["parallel"] = bench_parallel(list(parallel_estimators) if parallel_estimators is not None else names,
                                      parallel_trials, parallel_k)
     par = doc["parallel"]
-    rep.note(f"paper run: 1 worker {par['workers_1_s']:.1f} s, 2 workers {par['workers_2_s']:.1f} s ({par['speedup']:.2f}x)"
+    rep.note(f"paper run: 1 worker {par['workers_1_s']:.1f} s, 2 workers {par['workers_2_s']:.1f} s ({par['speedup']:.2f}x); "
+             f"1 worker on one thread {par['workers_1_one_thread_s']:.1f} s ({par['scaling']:.2f}x)"
              + ("" if par["dask_2_s"] is None else f", Dask 2 single-threaded workers {par['dask_2_s']:.1f} s ({par['dask_speedup']:.2f}x)"))
     tick()
     return doc
