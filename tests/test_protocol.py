@@ -3,6 +3,8 @@ builder (tofloc.problem_builder): problems from logs, priors, the sample pool, p
 
 from __future__ import annotations
 
+import sys
+
 import dataclasses
 import math
 import pickle
@@ -369,6 +371,12 @@ def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     order: list[int] = []
     procs = run_tasks(ctx, tasks, workers=2, on_result=lambda i, rec: order.append(i))
     assert sorted(order) == list(range(len(tasks)))
+    # workers fork from a preloaded server where the platform has one; spawned ones agree
+    from evaluation.executors import DEFAULT_START_METHOD
+
+    assert DEFAULT_START_METHOD == ("forkserver" if sys.platform.startswith("linux") else DEFAULT_START_METHOD)
+    spawned = run_tasks(ctx, tasks, workers=2, start_method="spawn")
+    assert _numbers(spawned) == _numbers(procs)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
         with distributed.Client(cluster, set_as_default=False) as client:
             dask = run_tasks(ctx, tasks, scheduler=client)
