@@ -189,7 +189,9 @@ class WorkerPool:
         self.workers = int(workers)
         ctx = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
-            ctx.set_forkserver_preload(list(PRELOAD))  # read when the server starts (once per process)
+            # read when the server starts (once per process); "__main__" kept first, as in
+            # multiprocessing's default list (each worker also imports the user's script)
+            ctx.set_forkserver_preload(["__main__", *PRELOAD])
         self._executor = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                                 initargs=(_Payload(context, caches),))
 

@@ -3,11 +3,11 @@ builder (tofloc.problem_builder): problems from logs, priors, the sample pool, p
 
 from __future__ import annotations
 
-import sys
-
 import dataclasses
 import math
 import pickle
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -384,6 +384,46 @@ def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     assert all(r["runtime_s"] >= 0 for r in procs + dask)
     # the particle filter did move away from its prior (the test is not vacuous)
     assert all(r["estimate"] != r["prior_mean"] for r in inline[:2])
+
+
+def test_an_estimator_defined_in_a_script_runs_on_local_workers(tmp_path: Path) -> None:
+    """Workers fork from a preloaded server: the user's script (``__main__``) is imported
+    there too, so a class it defines unpickles in the workers, as with spawned ones."""
+    script = tmp_path / "user_script.py"
+    script.write_text(f"""
+import sys
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from test_protocol import small_log
+from evaluation.executors import run_tasks
+from evaluation.priors import PriorSpec
+from evaluation.trials import TrialContext, make_tasks, sample_pool
+from tofloc.maps import Map
+from tofloc.problem import Estimate, Estimator
+
+
+@dataclass(frozen=True, eq=False)
+class DefinedInMain(Estimator):
+    name: ClassVar[str] = "defined_in_main"
+
+    def _estimate(self, problem, rng):
+        return Estimate(pose=problem.prior.mean + 0.001, covariance=np.diag(problem.prior.sigma ** 2))
+
+
+if __name__ == "__main__":
+    log = small_log(K=12)
+    ctx = TrialContext(log, Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0)), sample_pool(log, None, 1))
+    tasks = make_tasks("g", "defined_in_main", DefinedInMain, {{}}, "mocap", PriorSpec("paper"), [1], 3, 0)
+    recs = run_tasks(ctx, tasks, workers=2)
+    print("records", len(recs), all(abs(r["estimate"][0] - r["prior_mean"][0] - 0.001) < 1e-12 for r in recs))
+""")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "records 3 True" in out.stdout, out.stdout
 
 
 def _grid_builds_seen(records: list[dict[str, Any]]) -> list[float]:
