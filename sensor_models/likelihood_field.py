@@ -354,7 +354,8 @@ class BoundLikelihoodField(BoundSensorModel):
         cos_in = np.empty((M, P) if incidence else (1, 1))
         numba_kernels.likelihood_field_distances(
             d, unknown, cos_in, np.ascontiguousarray(self.points[step] if lifted else self.points_tip[step]),
-            np.ascontiguousarray(self.origins[step] if lifted else self.origins_tip[step]), lifted, np.ascontiguousarray(self.T_lift_tip[step]),
+            np.ascontiguousarray(self.origins[step] if lifted else self.origins_tip[step]), lifted,
+            np.ascontiguousarray(self.T_lift_tip[step]),
             np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1]), np.cos(x[:, 2]), np.sin(x[:, 2]),
             one if scale is None else np.ascontiguousarray(scale), scale is not None,
             one if psi is None else np.cos(psi), one if psi is None else np.sin(psi), psi is not None,

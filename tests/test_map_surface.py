@@ -289,6 +289,13 @@ def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None
     np.testing.assert_array_equal(again.values, built.values)
     with np.load(files[0], allow_pickle=False) as z:
         SurfaceField.from_arrays({k: z[k] for k in z.files})
+    # a file larger than the bound is not read
+    monkeypatch.setattr(map_cache, "MAX_FILE_BYTES", 10)
+    map_cache.clear()
+    surface_field_for(the_map, 0.01, 0.05)
+    assert map_cache.build_count("surface_field") == builds + 4
+    monkeypatch.undo()
+    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
     # inconsistent arrays are refused
     bad = built.to_arrays() | {"values": built.values.astype(np.float32)}
     with pytest.raises(ValueError, match="int16"):

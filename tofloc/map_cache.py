@@ -41,11 +41,13 @@ from typing import Any, Callable, Hashable, Protocol, TypeVar
 import numpy as np
 
 __all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "disk_count", "cache_folder",
-           "Persistable", "MAX_ENTRIES", "MAX_DISK_BYTES"]
+           "Persistable", "MAX_ENTRIES", "MAX_DISK_BYTES", "MAX_FILE_BYTES"]
 
 _LOG = logging.getLogger(__name__)
 #: Bytes the cache folder keeps at most (least recently used files removed first).
 MAX_DISK_BYTES = 4 * 1024**3
+#: Larger cache files are not read (rebuilt instead).
+MAX_FILE_BYTES = 1024**3
 
 
 class Persistable(Protocol):
@@ -99,6 +101,9 @@ def _load(path: Path, cls: Any) -> Any | None:
     if not path.is_file():
         return None
     try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise ValueError(f"{size} bytes, more than the {MAX_FILE_BYTES} a cache file may hold")
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
         obj = cls.from_arrays(arrays)

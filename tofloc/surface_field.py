@@ -142,8 +142,10 @@ class SurfaceField:
         c11 = corner[1, 1, 0] + fz * (corner[1, 1, 1] - corner[1, 1, 0])
         gx = (c10 + fy * (c11 - c10)) - (c00 + fy * (c01 - c00))
         gy = (c01 - c00) + fx * ((c11 - c10) - (c01 - c00))
-        e0 = (corner[0, 0, 1] - corner[0, 0, 0]) + fy * ((corner[0, 1, 1] - corner[0, 1, 0]) - (corner[0, 0, 1] - corner[0, 0, 0]))
-        e1 = (corner[1, 0, 1] - corner[1, 0, 0]) + fy * ((corner[1, 1, 1] - corner[1, 1, 0]) - (corner[1, 0, 1] - corner[1, 0, 0]))
+        # along z: each corner column's difference, interpolated in y then x
+        dz = {(a, c): corner[a, c, 1] - corner[a, c, 0] for a in (0, 1) for c in (0, 1)}
+        e0 = dz[0, 0] + fy * (dz[0, 1] - dz[0, 0])
+        e1 = dz[1, 0] + fy * (dz[1, 1] - dz[1, 0])
         gz = e0 + fx * (e1 - e0)
         g = np.sqrt(gx * gx + gy * gy + gz * gz)
         dot = np.abs(gx * dirs[:, 0] + gy * dirs[:, 1] + gz * dirs[:, 2])
