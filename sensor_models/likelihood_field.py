@@ -199,16 +199,13 @@ class BoundLikelihoodField(BoundSensorModel):
             NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
         """Step ``step``'s end points seen from :func:`~sensor_models.base.reference_pose`
         of ``states``: the field's unit gradient at each (the surface's normal, ``(P, 3)``
-        in the map frame, central differences of one cell), whether the field resolves a
-        surface there (``(P,)``: not clipped, farther than ``r_field`` from any surface)
-        and the rotation map <- tip ``(3, 3)``."""
+        in the map frame, :meth:`~tofloc.surface_field.SurfaceField.gradient`, the one the
+        incidence uses), whether the field resolves a surface there (``(P,)``: not clipped,
+        farther than ``r_field`` from any surface) and the rotation map <- tip ``(3, 3)``."""
         ref = reference_pose(states)
         T = self.problem.prior.T_map_base(ref) @ self.problem.T_base_tip[step]
         R, t = T[:3, :3], T[:3, 3]
-        q = self.points_tip[step] @ R.T + t
-        h = self.field.cell
-        grad = np.stack([(self.field.signed_distance(q + h * e) - self.field.signed_distance(q - h * e)) / (2 * h)
-                         for e in np.eye(3)], axis=-1)  # three axes, each vectorized over the points
+        grad = self.field.gradient(self.points_tip[step] @ R.T + t)
         g = np.linalg.norm(grad, axis=-1, keepdims=True)
         resolved = g[..., 0] > 0.5
         normal = np.where(resolved[:, None], grad / np.maximum(g, 1e-12), 0.0)
@@ -217,8 +214,7 @@ class BoundLikelihoodField(BoundSensorModel):
     def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
         """Variance ``(P,)`` of each end point's distance to the surface caused by sample
         ``step``'s configuration uncertainty: along the field's gradient at the end point
-        seen from :func:`~sensor_models.base.reference_pose` of ``states`` (central
-        differences of one cell); where the field is flat (clipped, farther than
+        seen from :func:`~sensor_models.base.reference_pose` of ``states``; where the field is flat (clipped, farther than
         ``r_field`` from any surface) the end point's largest variance in any direction.
         None when the configuration is exact or its covariance unknown."""
         C = self.configuration_cov[step]

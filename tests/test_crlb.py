@@ -298,5 +298,7 @@ def test_a_map_tolerance_adds_its_variance_along_each_faces_normal() -> None:
 
 def test_face_labels_refuse_a_cloud_naming_it() -> None:
     cloud = Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0)).sample_surface(200, np.random.default_rng(0))
-    with pytest.raises(Exception, match="face labels need a mesh map.*'points' map"):
+    from tofloc.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="face labels need a mesh map.*'points' map"):
         crlb_mod.face_labels(cloud)

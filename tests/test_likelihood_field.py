@@ -95,6 +95,13 @@ def test_incidence_is_the_angle_between_the_ray_and_the_wall_normal() -> None:
     assert near.mean() > 0.9
     by_fd = np.abs(np.einsum("mpi,mpi->mp", grad, ray)) / np.linalg.norm(grad, axis=-1)
     np.testing.assert_allclose(cos_in[near], by_fd[near], atol=2e-3)
+    # the analytic gradient (the configuration variance's normal too) is the unit normal of the wall
+    grad_a = bound.field.gradient(q)
+    # (within a cell of an edge the cell's corners see two walls: a few per cent off there)
+    dev = np.abs(np.linalg.norm(grad_a[near], axis=-1) - 1.0)
+    assert np.quantile(dev, 0.95) < 5e-3 and dev.max() < 0.06, (np.quantile(dev, 0.95), dev.max())
+    assert np.quantile(np.linalg.norm(grad_a[near] - grad[near], axis=-1), 0.95) < 5e-3
+    assert np.all(bound.field.gradient(np.array([[50.0, 0.0, 0.0]])) == 0.0)  # outside the grid
     assert 0.2 < cos_in[near].min() < 0.8 and cos_in[near].max() > 0.95
     head_on = LikelihoodFieldModel(min_incidence_cos=1.0).bind(p)
     with_incidence = bound.log_likelihood(poses, 0)

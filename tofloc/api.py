@@ -518,7 +518,8 @@ def paper(
     k_values = ks
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
-    context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal, map_tolerance_m=data.map_tolerance_m)
+    context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal,
+                           map_tolerance_m=data.map_tolerance_m)
     batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
                for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials

@@ -118,23 +118,30 @@ class SurfaceField:
             return out.reshape(q.shape[:-1])
         return self._signed_distance_numpy(q)
 
-    def incidence_cos(self, query: NDArray[np.float64], direction: NDArray[np.float64]) -> NDArray[np.float64]:
-        """``|cos|`` ``(...)`` of the angle between unit directions ``(..., 3)`` and the
-        field's gradient at points ``(..., 3)`` (the trilinear interpolant differentiated,
-        as :func:`tofloc.numba_kernels._incidence_one`); 1 outside the grid or where the
-        gradient vanishes."""
-        q = np.asarray(query, dtype=float).reshape(-1, 3)
-        dirs = np.asarray(direction, dtype=float).reshape(-1, 3)
+    def _grid_cells(self, q: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.bool_],
+                                                           NDArray[np.int64]]:
+        """Points ``(N, 3)``: their float32 cell coordinates (0 outside the grid), the
+        integer cell, whether they lie inside and the flat index of the cell's lower corner
+        (the numpy twin of :func:`tofloc.numba_kernels._grid_cell`)."""
         u = ((q - self.lo) * (1.0 / self.cell)).astype(np.float32)
         n = np.asarray(self.shape)
         inside = np.all((u >= 0) & (u < (n - 1).astype(np.float32)), axis=1)
         u[~inside] = 0.0
         i = u.astype(np.int32)
-        f = u.astype(float) - i
         ny, nz = self.shape[1], self.shape[2]
-        b = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
+        return u, i, inside, (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
+
+    def gradient(self, query: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Gradient ``(..., 3)`` of the field at points ``(..., 3)`` (m per m): the trilinear
+        interpolant differentiated within its cell, from the same 8 corners
+        :meth:`signed_distance` reads (as :func:`tofloc.numba_kernels._incidence_one`). Unit
+        length near a surface, 0 where the field is clipped and outside the grid."""
+        q = np.asarray(query, dtype=float).reshape(-1, 3)
+        u, i, inside, b = self._grid_cells(q)
+        ny, nz = self.shape[1], self.shape[2]
         v = self.values.ravel()
         corner = {(a, c, e): v[b + a * ny * nz + c * nz + e].astype(float) for a in (0, 1) for c in (0, 1) for e in (0, 1)}
+        f = u.astype(float) - i
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
         c00 = corner[0, 0, 0] + fz * (corner[0, 0, 1] - corner[0, 0, 0])
         c01 = corner[0, 1, 0] + fz * (corner[0, 1, 1] - corner[0, 1, 0])
@@ -147,21 +154,23 @@ class SurfaceField:
         e0 = dz[0, 0] + fy * (dz[0, 1] - dz[0, 0])
         e1 = dz[1, 0] + fy * (dz[1, 1] - dz[1, 0])
         gz = e0 + fx * (e1 - e0)
-        g = np.sqrt(gx * gx + gy * gy + gz * gz)
-        dot = np.abs(gx * dirs[:, 0] + gy * dirs[:, 1] + gz * dirs[:, 2])
-        out = np.where(inside & (g > 0), dot / np.where(g > 0, g, 1.0), 1.0)
-        return out.reshape(np.shape(query)[:-1])
+        g = np.stack([gx, gy, gz], axis=-1) * (self.scale / self.cell)  # codes per cell -> m per m
+        return np.where(inside[:, None], g, 0.0).reshape(np.shape(query))
+
+    def incidence_cos(self, query: NDArray[np.float64], direction: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``|cos|`` ``(...)`` of the angle between unit directions ``(..., 3)`` and the
+        field's :meth:`gradient` at points ``(..., 3)``; 1 where the gradient vanishes
+        (clipped, outside the grid)."""
+        g = self.gradient(query)
+        norm = np.linalg.norm(g, axis=-1)
+        dot = np.abs(np.einsum("...i,...i->...", g, np.asarray(direction, dtype=float)))
+        return np.where(norm > 0, dot / np.where(norm > 0, norm, 1.0), 1.0)
 
     def _signed_distance_numpy(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         shape = q.shape[:-1]
-        u = ((q.reshape(-1, 3) - self.lo) * (1.0 / self.cell)).astype(np.float32)
-        n = np.asarray(self.shape)
-        inside = np.all((u >= 0) & (u < (n - 1).astype(np.float32)), axis=1)
-        u[~inside] = 0.0
-        i = u.astype(np.int32)
+        u, i, inside, base = self._grid_cells(q.reshape(-1, 3))
         f = u - i
         ny, nz = self.shape[1], self.shape[2]
-        base = (i[:, 0] * ny + i[:, 1]) * nz + i[:, 2]
         v = self.values.ravel()
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
 
