@@ -41,7 +41,7 @@ from evaluation.trials import TrialContext, TrialError, TrialTask, jsonable, mak
 from tofloc import map_cache
 from tofloc.errors import ParameterError, TofLocError
 
-__all__ = ["run_tasks", "warm_caches", "WorkerPool", "Contexts", "PRELOAD", "DEFAULT_START_METHOD"]
+__all__ = ["run_tasks", "warm_caches", "start_server", "WorkerPool", "Contexts", "PRELOAD", "DEFAULT_START_METHOD"]
 
 #: Modules the fork server imports once for every local worker (import only: no threads,
 #: no Open3D objects, nothing compiled).
@@ -157,13 +157,32 @@ def _run_with_context(task: TrialTask, payload: "_Payload | _Shared | TrialConte
     if isinstance(payload, _Payload):
         payload.install()
         if os.getpid() != payload.parent_pid:  # a worker process of its own (not a thread of ours)
+            from tofloc.heap import reuse_freed_memory
             from tofloc.threads import limit_to_one_thread
 
             limit_to_one_thread()
+            reuse_freed_memory()  # a Dask nanny's MALLOC_TRIM_THRESHOLD_ maps every temporary (tofloc.heap)
         context = payload.context
     else:
         context = payload
     return _guarded(context, task)
+
+
+def start_server(start_method: str = DEFAULT_START_METHOD) -> Any:
+    """The multiprocessing context of ``start_method``; for ``forkserver``, its server
+    started now (once per process; it imports :data:`PRELOAD` in the background, so a
+    caller building caches meanwhile overlaps the two: ~1.5 s of a pool's start)."""
+    if start_method not in ("spawn", "forkserver"):
+        raise ParameterError(f"start_method must be spawn or forkserver, got {start_method!r}")
+    ctx = multiprocessing.get_context(start_method)
+    if start_method == "forkserver":
+        # read when the server starts (once per process); "__main__" kept first, as in
+        # multiprocessing's default list (each worker also imports the user's script)
+        ctx.set_forkserver_preload(["__main__", *PRELOAD])
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
+    return ctx
 
 
 class WorkerPool:
@@ -183,15 +202,9 @@ class WorkerPool:
 
     def __init__(self, context: Contexts, workers: int, caches: map_cache.MapCacheBundle | None = None,
                  start_method: str = DEFAULT_START_METHOD) -> None:
-        if start_method not in ("spawn", "forkserver"):
-            raise ParameterError(f"start_method must be spawn or forkserver, got {start_method!r}")
         self.context = context
         self.workers = int(workers)
-        ctx = multiprocessing.get_context(start_method)
-        if start_method == "forkserver":
-            # read when the server starts (once per process); "__main__" kept first, as in
-            # multiprocessing's default list (each worker also imports the user's script)
-            ctx.set_forkserver_preload(["__main__", *PRELOAD])
+        ctx = start_server(start_method)
         self._executor = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                                 initargs=(_Payload(context, caches),))
 
@@ -281,8 +294,7 @@ def run_tasks(
         for i, task in enumerate(tasks):
             done(i, _guarded(context, task))
     else:
-        if start_method not in ("spawn", "forkserver"):
-            raise ParameterError(f"start_method must be spawn or forkserver, got {start_method!r}")
+        start_server(start_method)  # the server's imports overlap the cache builds below
         caches = warm_caches(context, tasks)
         with WorkerPool(context, min(int(workers), n), caches, start_method) as own:
             own.run(tasks, done)

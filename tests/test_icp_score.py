@@ -102,3 +102,43 @@ def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs) -> Non
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):
         ICPScore(**kw)
+
+
+def test_distance_grid_persists_between_processes(tmp_path, monkeypatch) -> None:
+    """The ICP score's grid is written to the cache folder and loaded (the in-process
+    cache emptied stands for the next process) with the same answers; inconsistent arrays
+    are refused, a corrupt file is rebuilt."""
+    from tofloc import map_cache
+    from tofloc.distance_grid import distance_grid_for
+    from tofloc.maps import Map
+
+    the_map = Map.cuboid((0.8, 0.6, 0.4), (-0.4, -0.3, 0.0))
+    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
+    map_cache.clear()
+    builds, loads = map_cache.build_count("distance_grid"), map_cache.disk_count("distance_grid")
+    built = distance_grid_for(the_map, 0.005, 0.04)
+    files = list((tmp_path / "cache").glob("distance_grid-*.npz"))
+    assert len(files) == 1
+    map_cache.clear()
+    loaded = distance_grid_for(the_map, 0.005, 0.04)
+    assert map_cache.disk_count("distance_grid") == loads + 1 and map_cache.build_count("distance_grid") == builds + 1
+    rng = np.random.default_rng(5)
+    cloud = rng.uniform(-0.45, 0.45, (600, 3)) * np.array([1.0, 1.0, 0.5]) + np.array([0, 0, 0.2])
+    poses = np.column_stack([rng.normal(0, 0.05, 300), rng.normal(0, 0.05, 300), rng.uniform(-0.3, 0.3, 300)])
+    assert (built._state == 2).any() and (built._sub == 2).any()  # both levels have undecided cells
+    np.testing.assert_array_equal(loaded.count_within_planar(cloud, poses), built.count_within_planar(cloud, poses))
+    np.testing.assert_array_equal(loaded.within(cloud, 0.03), built.within(cloud, 0.03))
+    np.testing.assert_array_equal(loaded.distance(cloud), built.distance(cloud))
+    arrays = built.to_arrays()
+    for bad, match in [({"d": arrays["d"].astype(np.float64)}, "float32"),
+                       ({"cand_row": np.full_like(arrays["cand_row"], arrays["row_centre"].shape[0])}, "cand_row"),
+                       ({"state": arrays["state"][1:]}, "state"),
+                       ({"cell": np.array(-1.0)}, "positive")]:
+        with pytest.raises(ValueError, match=match):
+            DistanceGrid.from_arrays(arrays | bad)
+    with pytest.raises(ValueError, match="expected the arrays"):
+        DistanceGrid.from_arrays({"d": arrays["d"]})
+    files[0].write_bytes(files[0].read_bytes()[:100])
+    map_cache.clear()
+    distance_grid_for(the_map, 0.005, 0.04)
+    assert map_cache.build_count("distance_grid") == builds + 2

@@ -114,11 +114,77 @@ class DistanceGrid:
         self._state = np.pad(state.reshape(self.shape), 1, constant_values=0)
         # the same decisions and rows, padded, z-major (layer, x, y), flattened
         self._state_z = np.ascontiguousarray(np.transpose(self._state, (2, 0, 1))).ravel()
-        rows_pad = np.pad(self._cand_row.reshape(self.shape), 1, constant_values=-1)
-        self._row_z = np.ascontiguousarray(np.transpose(rows_pad, (2, 0, 1))).ravel()
+        self._row_z = self._rows_z_major()
         #: second level: per row, the SUB^3 sub-cells' decisions (0, 1, 2 as above)
         self._row_centre = rc  # (rows, 3)
         self._sub = self._sub_states(np.arange(amb.size))
+
+    def _rows_z_major(self) -> NDArray[np.int32]:
+        rows_pad = np.pad(self._cand_row.reshape(self.shape), 1, constant_values=-1)
+        return np.ascontiguousarray(np.transpose(rows_pad, (2, 0, 1))).ravel()
+
+    #: The arrays of :meth:`to_arrays`, with their dtypes.
+    _STORED = {"points": np.float64, "cell": np.float64, "r_max": np.float64, "lo": np.float64, "d": np.float32,
+               "cand_row": np.int32, "crowded": np.bool_, "cand": np.float64, "state": np.uint8,
+               "row_centre": np.float64, "sub": np.uint8}
+
+    def to_arrays(self) -> dict[str, NDArray[Any]]:
+        """The grid as arrays (:class:`tofloc.map_cache.Persistable`): what the build
+        computed; the KD-tree and the z-major copies are remade on load."""
+        return {"points": self.points, "cell": np.array(self.cell), "r_max": np.array(self.r_max),
+                "lo": np.asarray(self.lo, dtype=np.float64), "d": self.d, "cand_row": self._cand_row,
+                "crowded": self._crowded, "cand": self._cand, "state": self._state, "row_centre": self._row_centre,
+                "sub": self._sub}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, NDArray[Any]]) -> "DistanceGrid":
+        """A grid from :meth:`to_arrays`'s output, checked (ValueError when inconsistent:
+        keys, dtypes, shapes, cell bound, row indices)."""
+        if set(arrays) != set(cls._STORED):
+            raise ValueError(f"expected the arrays {sorted(cls._STORED)}, got {sorted(arrays)}")
+        for key, dtype in cls._STORED.items():
+            if arrays[key].dtype != dtype:
+                raise ValueError(f"{key} must be {np.dtype(dtype).name}, got {arrays[key].dtype}")
+        a = arrays
+        points, lo, d, cand, state, sub = a["points"], a["lo"], a["d"], a["cand"], a["state"], a["sub"]
+        cell, r_max = a["cell"], a["r_max"]
+        if cell.shape != () or r_max.shape != () or not (0 < float(cell) <= 1.0) or not (0 < float(r_max) <= 10.0):
+            raise ValueError(f"cell and r_max must be positive scalars, got {cell!r}, {r_max!r}")
+        if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0 or not np.all(np.isfinite(points)):
+            raise ValueError(f"points must be (N, 3) finite, got {points.shape}")
+        if lo.shape != (3,) or not np.all(np.isfinite(lo)):
+            raise ValueError(f"lo must be 3 finite numbers, got {lo.shape}")
+        if d.ndim != 3 or d.size > MAX_CELLS or min(d.shape) < 1:
+            raise ValueError(f"d must be a 3-D grid of at most {MAX_CELLS} cells, got {d.shape}")
+        rows = a["row_centre"].shape[0]
+        if a["row_centre"].shape != (rows, 3) or a["crowded"].shape != (rows,) or sub.shape != (rows, SUB**3):
+            raise ValueError(f"row_centre, crowded and sub must have {rows} rows: {a['row_centre'].shape}, "
+                             f"{a['crowded'].shape}, {sub.shape}")
+        if cand.ndim != 3 or cand.shape[:2] != (3, rows) or cand.shape[2] < 1:
+            raise ValueError(f"cand must be (3, {rows}, width), got {cand.shape}")
+        if state.shape != tuple(n + 2 for n in d.shape) or state.max(initial=0) > 2 or sub.max(initial=0) > 2:
+            raise ValueError(f"state must be {tuple(n + 2 for n in d.shape)} decisions 0-2, got {state.shape}")
+        cand_row = a["cand_row"]
+        if cand_row.shape != (d.size,) or cand_row.min(initial=-1) < -1 or cand_row.max(initial=-1) >= rows:
+            raise ValueError(f"cand_row must be ({d.size},) row numbers in [-1, {rows}), got {cand_row.shape}")
+        obj = cls.__new__(cls)
+        obj.points = np.ascontiguousarray(points)
+        obj.tree = cKDTree(obj.points)
+        obj.r_max = float(r_max)
+        obj.cell = float(cell)
+        obj.lo = lo.copy()
+        obj.shape = tuple(int(n) for n in d.shape)
+        obj.d = d
+        obj.slack = obj.cell * math.sqrt(3.0) / 2.0
+        obj._cand_row = cand_row
+        obj._crowded = a["crowded"]
+        obj._cand = np.ascontiguousarray(cand)
+        obj._state = state
+        obj._state_z = np.ascontiguousarray(np.transpose(state, (2, 0, 1))).ravel()
+        obj._row_z = obj._rows_z_major()
+        obj._row_centre = np.ascontiguousarray(a["row_centre"])
+        obj._sub = np.ascontiguousarray(sub)
+        return obj
 
     def _cells(self, q: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
         """Flat cell index and inside-the-grid mask of points ``(N, 3)``."""
@@ -366,8 +432,9 @@ class DistanceGrid:
 
 def distance_grid_for(the_map: Any, cell: float, r_max: float) -> DistanceGrid:
     """A :class:`DistanceGrid` of the map's points, built once per (map, cell, r_max) and
-    process (:func:`tofloc.map_cache.per_map`)."""
+    process, and kept in the cache folder between processes (:func:`tofloc.map_cache.per_map`)."""
     from tofloc.map_cache import per_map
 
     return per_map(the_map, "distance_grid", (float(cell), float(r_max)),
-                   lambda: DistanceGrid(np.asarray(the_map.points, dtype=np.float64), float(cell), float(r_max)))
+                   lambda: DistanceGrid(np.asarray(the_map.points, dtype=np.float64), float(cell), float(r_max)),
+                   stored_as=DistanceGrid)
