@@ -81,6 +81,15 @@ def resolve_workers(workers: int | None, n_tasks: int) -> int:
     return workers
 
 
+def _start_server_early(workers: int | None, scheduler: Any) -> None:
+    """Start the local workers' fork server now when the run may use local workers: its
+    imports (:data:`evaluation.executors.PRELOAD`) then overlap the data's preparation."""
+    if scheduler is None and (workers is None or (isinstance(workers, int) and workers > 1)) and (os.cpu_count() or 1) > 1:
+        from evaluation.executors import DEFAULT_START_METHOD, start_server
+
+        start_server(DEFAULT_START_METHOD)
+
+
 def check_selection(name: str) -> str:
     """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
     a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
@@ -504,6 +513,7 @@ def paper(
     ests = {n: estimator(n, per_est[n]) for n in names}
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
     t0 = time.perf_counter()
+    _start_server_early(workers, scheduler)
     data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
     for n in data.notes:
         reporter.note(n)
@@ -815,6 +825,7 @@ def evaluate(
     ests = {n: estimator(n, params) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
     cal = load_calibration(calibration)
+    _start_server_early(workers, scheduler)
     entries = prepare_logs(logs, samples=samples, seed=seed, calibration=cal, valid_statuses=valid_statuses,
                            on_map=lambda p: reporter.note(f"map {p}"))
     ks = sorted({en.k for en in entries})
