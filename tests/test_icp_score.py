@@ -104,7 +104,7 @@ def test_bad_parameters_are_refused(kw) -> None:
         ICPScore(**kw)
 
 
-def test_distance_grid_persists_between_processes(tmp_path, monkeypatch) -> None:
+def test_distance_grid_persists_between_processes(cache_folder) -> None:
     """The ICP score's grid is written to the cache folder and loaded (the in-process
     cache emptied stands for the next process) with the same answers; inconsistent arrays
     are refused, a corrupt file is rebuilt."""
@@ -113,11 +113,9 @@ def test_distance_grid_persists_between_processes(tmp_path, monkeypatch) -> None
     from tofloc.maps import Map
 
     the_map = Map.cuboid((0.8, 0.6, 0.4), (-0.4, -0.3, 0.0))
-    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
-    map_cache.clear()
     builds, loads = map_cache.build_count("distance_grid"), map_cache.disk_count("distance_grid")
     built = distance_grid_for(the_map, 0.005, 0.04)
-    files = list((tmp_path / "cache").glob("distance_grid-*.npz"))
+    files = list(cache_folder.glob("distance_grid-*.npz"))
     assert len(files) == 1
     map_cache.clear()
     loaded = distance_grid_for(the_map, 0.005, 0.04)

@@ -256,7 +256,7 @@ def test_localize_help_explains_surface(capsys: pytest.CaptureFixture[str]) -> N
     assert "--surface" in text and "a mesh of the same environment for ray casts" in text.lower()
 
 
-def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None:
+def test_surface_field_persists_between_processes(cache_folder, monkeypatch) -> None:
     """A field built once is written to the cache folder and loaded, identical, by the next
     process (the in-process cache emptied stands for it); a corrupt file is rebuilt and
     replaced; ``off`` writes nothing."""
@@ -264,11 +264,9 @@ def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None
     from tofloc.surface_field import SurfaceField, surface_field_for
 
     the_map = Map.cuboid((0.8, 0.6, 0.4), (-0.4, -0.3, 0.0))
-    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
-    map_cache.clear()
     builds, loads = map_cache.build_count("surface_field"), map_cache.disk_count("surface_field")
     built = surface_field_for(the_map, 0.01, 0.05)
-    files = list((tmp_path / "cache").glob("surface_field-*.npz"))
+    files = list(cache_folder.glob("surface_field-*.npz"))
     assert len(files) == 1 and map_cache.build_count("surface_field") == builds + 1
     map_cache.clear()
     loaded = surface_field_for(the_map, 0.01, 0.05)
@@ -280,7 +278,7 @@ def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None
     # another parameter, another file
     map_cache.clear()
     surface_field_for(the_map, 0.01, 0.1)
-    assert len(list((tmp_path / "cache").glob("surface_field-*.npz"))) == 2
+    assert len(list(cache_folder.glob("surface_field-*.npz"))) == 2
     # a truncated file is not trusted: rebuilt, and the file replaced by a good one
     files[0].write_bytes(files[0].read_bytes()[:100])
     map_cache.clear()
@@ -295,7 +293,7 @@ def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None
     surface_field_for(the_map, 0.01, 0.05)
     assert map_cache.build_count("surface_field") == builds + 4
     monkeypatch.undo()
-    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("TOFLOC_CACHE_DIR", str(cache_folder))
     # inconsistent arrays are refused
     bad = built.to_arrays() | {"values": built.values.astype(np.float32)}
     with pytest.raises(ValueError, match="int16"):
@@ -306,5 +304,5 @@ def test_surface_field_persists_between_processes(tmp_path, monkeypatch) -> None
     monkeypatch.setenv("TOFLOC_CACHE_DIR", "off")
     map_cache.clear()
     surface_field_for(Map.cuboid((0.7, 0.6, 0.4), (-0.35, -0.3, 0.0)), 0.01, 0.05)
-    assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
+    assert len(list(cache_folder.glob("*.npz"))) == 2
     assert map_cache.cache_folder() is None
