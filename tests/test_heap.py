@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import os
-import platform
 import subprocess
 import sys
 
@@ -12,8 +11,7 @@ import pytest
 
 from tofloc import heap
 
-pytestmark = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
-                                reason="glibc's mallopt")
+pytestmark = pytest.mark.skipif(not heap.on_glibc(), reason="glibc's mallopt")
 
 _SCRIPT = """
 import resource, sys

@@ -129,7 +129,8 @@ def test_distance_grid_persists_between_processes(cache_folder) -> None:
     np.testing.assert_array_equal(loaded.distance(cloud), built.distance(cloud))
     arrays = built.to_arrays()
     for bad, match in [({"d": arrays["d"].astype(np.float64)}, "float32"),
-                       ({"cand_row": np.full_like(arrays["cand_row"], arrays["row_centre"].shape[0])}, "cand_row"),
+                       ({"cand_row": np.full_like(arrays["cand_row"], arrays["row_centre"].shape[0])},
+                        rf"cand_row .* from {arrays['row_centre'].shape[0]} to {arrays['row_centre'].shape[0]}"),
                        ({"state": arrays["state"][1:]}, "state"),
                        ({"cell": np.array(-1.0)}, "positive")]:
         with pytest.raises(ValueError, match=match):

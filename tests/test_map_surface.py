@@ -300,6 +300,8 @@ def test_surface_field_persists_between_processes(cache_folder, monkeypatch) -> 
         SurfaceField.from_arrays(bad)
     with pytest.raises(ValueError, match="expected the arrays"):
         SurfaceField.from_arrays({"values": built.values})
+    with pytest.raises(ValueError, match=r"r_field must be a positive scalar at most 10.0, got array\(50"):
+        SurfaceField.from_arrays(built.to_arrays() | {"r_field": np.array(50.0)})
     # off: nothing written
     monkeypatch.setenv("TOFLOC_CACHE_DIR", "off")
     map_cache.clear()

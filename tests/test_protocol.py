@@ -470,7 +470,14 @@ def test_dask_workers_get_the_caches_once() -> None:
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         with distributed.Client(cluster, set_as_default=False) as client:
             got = run_tasks(ctx, tasks, scheduler=client)
+            # each worker process undid the nanny's MALLOC_TRIM_THRESHOLD_ (tofloc.heap), once
+            from tofloc import heap
+
+            applied = client.run(lambda: (heap._DONE, "MALLOC_TRIM_THRESHOLD_" in __import__("os").environ))
     assert _grid_builds_seen(got) == [0.0] * 4
+    if heap.on_glibc():
+        # (distributed's default nanny environment sets the variable: dask.config "distributed.nanny.pre-spawn-environ")
+        assert sorted(applied.values()) == [(True, True)] * 2, applied
 
 
 def test_unreachable_scheduler_is_a_clear_error() -> None:

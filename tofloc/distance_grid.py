@@ -140,16 +140,12 @@ class DistanceGrid:
     def from_arrays(cls, arrays: dict[str, NDArray[Any]]) -> "DistanceGrid":
         """A grid from :meth:`to_arrays`'s output, checked (ValueError when inconsistent:
         keys, dtypes, shapes, cell bound, row indices)."""
-        if set(arrays) != set(cls._STORED):
-            raise ValueError(f"expected the arrays {sorted(cls._STORED)}, got {sorted(arrays)}")
-        for key, dtype in cls._STORED.items():
-            if arrays[key].dtype != dtype:
-                raise ValueError(f"{key} must be {np.dtype(dtype).name}, got {arrays[key].dtype}")
+        from tofloc.map_cache import check_stored, stored_scalar
+
+        check_stored(arrays, cls._STORED)
         a = arrays
         points, lo, d, cand, state, sub = a["points"], a["lo"], a["d"], a["cand"], a["state"], a["sub"]
-        cell, r_max = a["cell"], a["r_max"]
-        if cell.shape != () or r_max.shape != () or not (0 < float(cell) <= 1.0) or not (0 < float(r_max) <= 10.0):
-            raise ValueError(f"cell and r_max must be positive scalars, got {cell!r}, {r_max!r}")
+        cell, r_max = stored_scalar(a, "cell", 1.0), stored_scalar(a, "r_max", 10.0)
         if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0 or not np.all(np.isfinite(points)):
             raise ValueError(f"points must be (N, 3) finite, got {points.shape}")
         if lo.shape != (3,) or not np.all(np.isfinite(lo)):
@@ -163,15 +159,18 @@ class DistanceGrid:
         if cand.ndim != 3 or cand.shape[:2] != (3, rows) or cand.shape[2] < 1:
             raise ValueError(f"cand must be (3, {rows}, width), got {cand.shape}")
         if state.shape != tuple(n + 2 for n in d.shape) or state.max(initial=0) > 2 or sub.max(initial=0) > 2:
-            raise ValueError(f"state must be {tuple(n + 2 for n in d.shape)} decisions 0-2, got {state.shape}")
+            raise ValueError(f"state must be {tuple(n + 2 for n in d.shape)} decisions 0-2 (sub too), got {state.shape} "
+                             f"with largest {state.max(initial=0)} (sub {sub.max(initial=0)})")
         cand_row = a["cand_row"]
-        if cand_row.shape != (d.size,) or cand_row.min(initial=-1) < -1 or cand_row.max(initial=-1) >= rows:
-            raise ValueError(f"cand_row must be ({d.size},) row numbers in [-1, {rows}), got {cand_row.shape}")
+        low, high = (int(cand_row.min()), int(cand_row.max())) if cand_row.size else (-1, -1)
+        if cand_row.shape != (d.size,) or low < -1 or high >= rows:
+            raise ValueError(f"cand_row must be ({d.size},) row numbers in [-1, {rows}), got {cand_row.shape} "
+                             f"from {low} to {high}")
         obj = cls.__new__(cls)
         obj.points = np.ascontiguousarray(points)
         obj.tree = cKDTree(obj.points)
-        obj.r_max = float(r_max)
-        obj.cell = float(cell)
+        obj.r_max = r_max
+        obj.cell = cell
         obj.lo = lo.copy()
         obj.shape = tuple(int(n) for n in d.shape)
         obj.d = d

@@ -21,7 +21,7 @@ import logging
 import os
 import platform
 
-__all__ = ["reuse_freed_memory", "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
+__all__ = ["reuse_freed_memory", "on_glibc", "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
 _LOG = logging.getLogger(__name__)
 #: Blocks below this come from the heap (glibc's largest dynamic threshold on 64-bit).
@@ -34,23 +34,22 @@ _M_MMAP_THRESHOLD = -3
 _DONE = False
 
 
-def reuse_freed_memory(force: bool = False) -> bool:
-    """Let this process's heap reuse freed blocks of up to 32 MiB (see the module doc).
+def on_glibc() -> bool:
+    """Whether this process runs on Linux with glibc (the only C library handled here)."""
+    return platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
-    Parameters
-    ----------
-    force : bool
-        Apply even when ``MALLOC_TRIM_THRESHOLD_`` is not set (tests).
+
+def reuse_freed_memory() -> bool:
+    """Let this process's heap reuse freed blocks of up to 32 MiB when
+    ``MALLOC_TRIM_THRESHOLD_`` is set (see the module doc).
 
     Returns
     -------
     bool
-        Whether ``mallopt`` was applied now (False: not glibc, nothing to undo, or done before).
+        Whether ``mallopt`` was applied now (False: not glibc, no such variable, or done before).
     """
     global _DONE
-    if _DONE or not (force or "MALLOC_TRIM_THRESHOLD_" in os.environ):
-        return False
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    if _DONE or "MALLOC_TRIM_THRESHOLD_" not in os.environ or not on_glibc():
         return False
     name = ctypes.util.find_library("c")
     if name is None:

@@ -41,7 +41,7 @@ from typing import Any, Callable, Hashable, Protocol, TypeVar
 import numpy as np
 
 __all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "disk_count", "cache_folder",
-           "Persistable", "MAX_ENTRIES", "MAX_DISK_BYTES", "MAX_FILE_BYTES"]
+           "Persistable", "check_stored", "stored_scalar", "MAX_ENTRIES", "MAX_DISK_BYTES", "MAX_FILE_BYTES"]
 
 _LOG = logging.getLogger(__name__)
 #: Bytes the cache folder keeps at most (least recently used files removed first).
@@ -59,6 +59,26 @@ class Persistable(Protocol):
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Any:
         """The object from :meth:`to_arrays`'s output; ValueError when inconsistent."""
+
+def check_stored(arrays: dict[str, np.ndarray], dtypes: dict[str, Any]) -> None:
+    """What every :meth:`Persistable.from_arrays` checks first: exactly the keys of
+    ``dtypes``, each array of its dtype (ValueError naming the key, the expected and the
+    found dtype)."""
+    if set(arrays) != set(dtypes):
+        raise ValueError(f"expected the arrays {sorted(dtypes)}, got {sorted(arrays)}")
+    for key, dtype in dtypes.items():
+        if arrays[key].dtype != dtype:
+            raise ValueError(f"{key} must be {np.dtype(dtype).name}, got {arrays[key].dtype}")
+
+
+def stored_scalar(arrays: dict[str, np.ndarray], key: str, high: float) -> float:
+    """The scalar ``arrays[key]``, checked to lie in ``(0, high]`` (ValueError naming the
+    key, the bound and the value)."""
+    a = arrays[key]
+    if a.shape != () or not (0 < float(a) <= high):
+        raise ValueError(f"{key} must be a positive scalar at most {high}, got {a!r}")
+    return float(a)
+
 
 T = TypeVar("T")
 #: Entries kept (least recently used dropped first).

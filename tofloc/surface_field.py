@@ -77,20 +77,19 @@ class SurfaceField:
     @classmethod
     def from_arrays(cls, arrays: dict[str, NDArray[Any]]) -> "SurfaceField":
         """A field from :meth:`to_arrays`'s output, checked (ValueError when inconsistent)."""
-        need = {"lo", "cell", "r_field", "values"}
-        if set(arrays) != need:
-            raise ValueError(f"expected the arrays {sorted(need)}, got {sorted(arrays)}")
-        lo, cell, r_field, values = (arrays[k] for k in ("lo", "cell", "r_field", "values"))
-        if lo.shape != (3,) or lo.dtype != np.float64 or not np.all(np.isfinite(lo)):
+        from tofloc.map_cache import check_stored, stored_scalar
+
+        check_stored(arrays, {"lo": np.float64, "cell": np.float64, "r_field": np.float64, "values": np.int16})
+        lo, values = arrays["lo"], arrays["values"]
+        if lo.shape != (3,) or not np.all(np.isfinite(lo)):
             raise ValueError(f"lo must be 3 finite float64, got {lo.dtype} {lo.shape}")
-        if cell.shape != () or r_field.shape != () or not (0 < float(cell) <= 1.0) or not (0 < float(r_field) <= 10.0):
-            raise ValueError(f"cell and r_field must be positive scalars, got {cell!r}, {r_field!r}")
-        if values.dtype != np.int16 or values.ndim != 3 or values.size > MAX_FIELD_CELLS or min(values.shape) < 2:
+        cell, r_field = stored_scalar(arrays, "cell", 1.0), stored_scalar(arrays, "r_field", 10.0)
+        if values.ndim != 3 or values.size > MAX_FIELD_CELLS or min(values.shape) < 2:
             raise ValueError(f"values must be a 3-D int16 grid of at most {MAX_FIELD_CELLS} cells, got "
                              f"{values.dtype} {values.shape}")
         obj = cls.__new__(cls)
-        obj.cell = float(cell)
-        obj.r_field = float(r_field)
+        obj.cell = cell
+        obj.r_field = r_field
         obj.lo = lo.copy()
         obj.shape = tuple(int(n) for n in values.shape)
         obj.scale = obj.r_field / 32767.0
