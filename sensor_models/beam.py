@@ -102,7 +102,7 @@ class BeamMixture:
         if abs(total - 1.0) > _SUM_TOL:
             raise ParameterError(
                 f"beam mixture weights z_hit + z_short + z_max + z_rand must sum to 1, got "
-                f"{self.z_hit} + {self.z_short} + {self.z_max} + {self.z_rand} = {total:.6g}"
+                f"{self.z_hit} + {self.z_short} + {self.z_max} + {self.z_rand} = {total!r} (tolerance {_SUM_TOL:g})"
             )
 
     def to_dict(self) -> dict[str, float]:
@@ -256,8 +256,9 @@ class BoundBeamModel(BoundSensorModel):
         if model.mixture is not None:
             self.mixture, self.mixture_source = _as_mixture(model.mixture), "parameter"
         elif cal_table is not None:
-            src = f"{problem.calibration.source} [beam]"
-            self.mixture, self.mixture_source = _as_mixture(cal_table, src), src
+            # the file names itself; the table ("[beam]") is added by the parse error
+            self.mixture = _as_mixture(cal_table, str(problem.calibration.source))
+            self.mixture_source = f"{problem.calibration.source} [beam]"
         else:
             self.mixture, self.mixture_source = BeamMixture(), "defaults"
         self.mixture = self.mixture.with_outlier_floor(model.outlier_floor)

@@ -45,6 +45,12 @@ def test_beam_table_of_a_calibration_is_validated_by_the_model(tmp_path: Path) -
     with pytest.raises(ParameterError) as e:
         BeamModel().bind(dataclasses.replace(p, calibration=cal))
     assert "bad.toml" in str(e.value) and "[beam]" in str(e.value) and "sum to 1" in str(e.value)
+    assert str(e.value).count("[beam]") == 1, str(e.value)  # the table named once
+    # a sum just outside the tolerance is shown with the digits that make it wrong, not as "= 1"
+    near = tmp_path / "near.toml"
+    near.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.849995\nz_short = 0.15\nz_max = 1e-6\nz_rand = 1e-6\nlambda_short = 2.0\n")
+    with pytest.raises(ParameterError, match=r"= 0\.99999[0-9]* \(tolerance 1e-06\)"):
+        BeamModel().bind(dataclasses.replace(p, calibration=SensorCalibration.from_toml(near)))
     good = tmp_path / "good.toml"
     good.write_text("[uncertainty]\nsigma_slope = 0.03\n[beam]\nz_hit = 0.7\nz_short = 0.1\nz_max = 0.1\nz_rand = 0.1\nlambda_short = 2.0\n")
     p_cal = dataclasses.replace(p, calibration=SensorCalibration.from_toml(good))
