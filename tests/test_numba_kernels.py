@@ -68,3 +68,47 @@ def test_chunked_log_likelihood_equals_one_call(model: str) -> None:
     assert per_state > 0
     chunked = bound.log_likelihood_chunked(states, 1, max_bytes=7 * per_state)  # chunks of 7 states
     np.testing.assert_array_equal(chunked, whole)
+
+
+@needs_numba
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "none"])
+@pytest.mark.parametrize("stacked", [False, True])
+def test_smoother_zone_rows_agree_with_numpy(monkeypatch, kernel: str, stacked: bool) -> None:
+    """The GTSAM smoother's residuals and Jacobian rows: the compiled kernel and the numpy
+    code agree to rounding for one sample's rows and for stacked rows of several samples,
+    inliers and gated zones, with and without Jacobians."""
+    import math
+
+    from estimators.gtsam_factors import _zone_rows
+    from tofloc import frames
+
+    rng = np.random.default_rng(11)
+    N, K = 300, 4
+    n = rng.normal(size=(N, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    args = dict(p_tip=rng.normal(size=(N, 3)), n=n, q=rng.normal(size=(N, 3)), s_=rng.uniform(0.002, 0.05, N),
+                inlier=rng.random(N) < 0.8, out_const=rng.uniform(1.0, 3.0, N), d=rng.uniform(0.1, 3.0, N),
+                v_tip=rng.normal(size=(N, 3)))
+    R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, 0.05, -0.03)[:3, :3]
+    C = np.stack([frames.se3_from_xyyaw(*rng.normal(size=4) * 0.3, 0.2, -0.1) for _ in range(K)])
+    D = frames.se3_from_xyyaw(0.001, 0.002, 0.003, 0.05, 0.01, 0.02)
+    xyyaw = np.array([0.3, -0.2, 0.7])
+    if stacked:
+        RC, tC, rows = C[:, :3, :3], C[:, :3, 3], rng.integers(0, K, N).astype(np.intp)
+    else:
+        RC, tC, rows = C[0, :3, :3], C[0, :3, 3], None
+    out = {}
+    for flag in ("1", "0"):
+        monkeypatch.setenv("TOFLOC_NUMBA", flag)
+        out[flag] = [_zone_rows(**args, xyyaw=xyyaw, z=0.4, R_tilt=R_tilt, RC=RC, tC=tC, rows=rows, D=D, kernel=kernel,
+                                k=1.5, jacobians=j) for j in (True, False)]
+    for with_j, without_j in zip(out["1"], out["0"]):
+        for a, b in zip(with_j, without_j):
+            if b is None:
+                assert a is None
+                continue
+            assert np.abs(b).max() > 0.1  # non-trivial values
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    res = out["1"][0][0]
+    assert np.array_equal(res[~args["inlier"]], args["out_const"][~args["inlier"]])  # gated zones: the constant
+    assert math.isfinite(float(np.abs(res).max()))

@@ -3,7 +3,8 @@
 numba is an optional dependency (``pip install tofloc[fast]``). Every kernel here has a
 numpy twin in the module that calls it; the two give identical results (tested in
 ``tests/test_numba_kernels.py``): the kernels repeat the numpy arithmetic in the same
-order and precision.
+order and precision (the GTSAM smoother's zone rows, :func:`smoother_zone_rows`, agree to
+rounding: numpy's small matrix products may fuse multiply-adds).
 
 (A compiled inlier count for :meth:`tofloc.distance_grid.DistanceGrid.count_within_planar`
 was tried and dropped: with its branches to the second level it could not be vectorized
@@ -22,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel"]
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "ROBUST_CODES"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
@@ -419,3 +420,91 @@ def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma:
                 out[m, s, i, 3] = np.float32(A[m, 0, 0] * dx + A[m, 0, 1] * dy + A[m, 0, 2] * dz)
                 out[m, s, i, 4] = np.float32(A[m, 1, 0] * dx + A[m, 1, 1] * dy + A[m, 1, 2] * dz)
                 out[m, s, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
+
+
+#: Robust kernels of :func:`smoother_zone_rows` by code (the order of
+#: :data:`estimators.gtsam_factors.ROBUST_KERNELS`).
+ROBUST_CODES = {"huber": 0, "cauchy": 1, "none": 2}
+
+
+@_jit
+def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_const: Any, d: Any, v_tip: Any,
+                       R_mb: Any, t_mb: Any, c: float, s: float, R_tilt: Any, RC: Any, tC: Any, RmC: Any, rows: Any,
+                       D: Any, kernel: int, k: float, jacobians: bool, res: Any, Hb: Any, Hc: Any, Hd: Any,
+                       Hbias: Any) -> None:  # pragma: no cover - compiled
+    """The GTSAM smoother's robustified whitened zone residuals and their Jacobian rows
+    (:func:`estimators.gtsam_factors._zone_rows`, whose numpy code is the twin: the same
+    formulas, row by row, without the ``(N, 3)`` temporaries), into ``res`` ``(N,)`` and,
+    with ``jacobians``, ``Hb`` ``(N, 3)``, ``Hc`` ``(N, 6)``, ``Hd`` ``(N, 6)``, ``Hbias``
+    ``(N, 1)``. Row ``i`` uses sample ``rows[i]``'s configuration ``RC``, ``tC`` and
+    ``RmC = R_mb @ RC``; ``kernel`` is a code of :data:`ROBUST_CODES`. Sums of three
+    products are taken in index order; numpy's matrix products may use fused multiply-adds,
+    so the two agree to rounding (~1e-16 relative), not bit for bit."""
+    N = p_tip.shape[0]
+    for i in range(N):
+        r = rows[i]
+        px, py, pz = p_tip[i, 0], p_tip[i, 1], p_tip[i, 2]
+        # corrected tip frame, base frame, map frame
+        dx = px * D[0, 0] + py * D[0, 1] + pz * D[0, 2] + D[0, 3]
+        dy = px * D[1, 0] + py * D[1, 1] + pz * D[1, 2] + D[1, 3]
+        dz = px * D[2, 0] + py * D[2, 1] + pz * D[2, 2] + D[2, 3]
+        bx = RC[r, 0, 0] * dx + RC[r, 0, 1] * dy + RC[r, 0, 2] * dz + tC[r, 0]
+        by = RC[r, 1, 0] * dx + RC[r, 1, 1] * dy + RC[r, 1, 2] * dz + tC[r, 1]
+        bz = RC[r, 2, 0] * dx + RC[r, 2, 1] * dy + RC[r, 2, 2] * dz + tC[r, 2]
+        mx = bx * R_mb[0, 0] + by * R_mb[0, 1] + bz * R_mb[0, 2] + t_mb[0]
+        my = bx * R_mb[1, 0] + by * R_mb[1, 1] + bz * R_mb[1, 2] + t_mb[1]
+        mz = bx * R_mb[2, 0] + by * R_mb[2, 1] + bz * R_mb[2, 2] + t_mb[2]
+        nx, ny, nz = n[i, 0], n[i, 1], n[i, 2]
+        e = (nx * (mx - q[i, 0]) + ny * (my - q[i, 1]) + nz * (mz - q[i, 2])) / s_[i]
+        a = abs(e)
+        sg = -1.0 if e < 0 else 1.0
+        if kernel == 2:
+            er, de = e, 1.0
+        elif kernel == 0:
+            if a <= k:
+                er, de = e, 1.0
+            else:
+                er = sg * math.sqrt(max(2.0 * k * a - k * k, 0.0))
+                de = k / math.sqrt(max(2.0 * k * a - k * k, 1e-300))
+        else:
+            x = (e / k) ** 2
+            lg = math.log1p(x)
+            er = sg * k * math.sqrt(lg)
+            if x < 1e-8:
+                de = 1.0 - 0.75 * x
+            else:
+                de = (a / (1.0 + x)) / (k * math.sqrt(lg))
+        res[i] = er if inlier[i] else out_const[i]
+        if not jacobians:
+            continue
+        w = de / s_[i] if inlier[i] else 0.0
+        # base: Rz^T n, and the base-frame point tilted
+        ax = nx * c + ny * s
+        ay = nx * (-s) + ny * c
+        ppx = bx * R_tilt[0, 0] + by * R_tilt[0, 1] + bz * R_tilt[0, 2]
+        ppy = bx * R_tilt[1, 0] + by * R_tilt[1, 1] + bz * R_tilt[1, 2]
+        Hb[i, 0] = ax * w
+        Hb[i, 1] = ay * w
+        Hb[i, 2] = (ay * ppx - ax * ppy) * w
+        # configuration: b = (R_mb R_C)^T n, rows [p_d x b, b]
+        b0 = RmC[r, 0, 0] * nx + RmC[r, 1, 0] * ny + RmC[r, 2, 0] * nz
+        b1 = RmC[r, 0, 1] * nx + RmC[r, 1, 1] * ny + RmC[r, 2, 1] * nz
+        b2 = RmC[r, 0, 2] * nx + RmC[r, 1, 2] * ny + RmC[r, 2, 2] * nz
+        Hc[i, 0] = (dy * b2 - dz * b1) * w
+        Hc[i, 1] = (dz * b0 - dx * b2) * w
+        Hc[i, 2] = (dx * b1 - dy * b0) * w
+        Hc[i, 3] = b0 * w
+        Hc[i, 4] = b1 * w
+        Hc[i, 5] = b2 * w
+        # support: bd = b^T D_R, rows [p_tip x bd, bd]
+        e0 = b0 * D[0, 0] + b1 * D[1, 0] + b2 * D[2, 0]
+        e1 = b0 * D[0, 1] + b1 * D[1, 1] + b2 * D[2, 1]
+        e2 = b0 * D[0, 2] + b1 * D[1, 2] + b2 * D[2, 2]
+        Hd[i, 0] = (py * e2 - pz * e1) * w
+        Hd[i, 1] = (pz * e0 - px * e2) * w
+        Hd[i, 2] = (px * e1 - py * e0) * w
+        Hd[i, 3] = e0 * w
+        Hd[i, 4] = e1 * w
+        Hd[i, 5] = e2 * w
+        g = -(e0 * v_tip[i, 0] + e1 * v_tip[i, 1] + e2 * v_tip[i, 2]) * w
+        Hbias[i, 0] = g * d[i]
