@@ -456,6 +456,30 @@ def test_ctrl_c_while_a_command_imports_its_libraries_is_one_line(tmp_path: Path
     assert code == 130 and one_line(capsys.readouterr().err) == "interrupted"
 
 
+@pytest.mark.parametrize("which", ["int", "term"])
+def test_an_interruption_python_ignores_in_a_callback_is_delivered_again(which: str, capsys) -> None:
+    """Ctrl-C (or SIGTERM) landing in a callback whose exceptions Python only prints ("Exception
+    ignored in": an import lock's weakref callback during start-up, a ``__del__``) must not be
+    lost with a traceback on screen: the CLI's handler delivers it again to the main thread."""
+    from tofloc.cli import Terminated, _Signals
+
+    exc = KeyboardInterrupt if which == "int" else Terminated
+
+    class Dropped:
+        def __del__(self) -> None:
+            raise exc  # what the signal handler raises, here inside a finalizer
+
+    before = sys.unraisablehook
+    with pytest.raises(exc):
+        with _Signals():
+            d = Dropped()
+            del d  # the finalizer's exception is unraisable
+            for _ in range(200):  # the interruption comes back at one of these instructions
+                time.sleep(0.005)
+    assert "Traceback" not in capsys.readouterr().err
+    assert sys.unraisablehook is before  # restored
+
+
 def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_path: Path) -> None:
     entry = "import sys; from tofloc.cli import main; sys.exit(main())"  # what the `tofloc` script runs
     for delay in (0.6, 1.2, 2.5):  # while the CLI, then open3d and the simulator load, then simulating

@@ -427,6 +427,19 @@ def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma:
 ROBUST_CODES = {"huber": 0, "cauchy": 1, "none": 2}
 
 
+@_jit_inline
+def _pose_row(H: Any, i: int, x: float, y: float, z: float, a: float, b: float, c: float,
+              w: float) -> None:  # pragma: no cover - compiled
+    """Row ``i`` of a Pose3 Jacobian in GTSAM's order, ``w [p x v, v]`` for the point ``p = (x, y, z)``
+    and the direction ``v = (a, b, c)``."""
+    H[i, 0] = (y * c - z * b) * w
+    H[i, 1] = (z * a - x * c) * w
+    H[i, 2] = (x * b - y * a) * w
+    H[i, 3] = a * w
+    H[i, 4] = b * w
+    H[i, 5] = c * w
+
+
 @_jit
 def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_const: Any, d: Any, v_tip: Any,
                        R_mb: Any, t_mb: Any, c: float, s: float, R_tilt: Any, RC: Any, tC: Any, RmC: Any, rows: Any,
@@ -490,21 +503,11 @@ def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_con
         b0 = RmC[r, 0, 0] * nx + RmC[r, 1, 0] * ny + RmC[r, 2, 0] * nz
         b1 = RmC[r, 0, 1] * nx + RmC[r, 1, 1] * ny + RmC[r, 2, 1] * nz
         b2 = RmC[r, 0, 2] * nx + RmC[r, 1, 2] * ny + RmC[r, 2, 2] * nz
-        Hc[i, 0] = (dy * b2 - dz * b1) * w
-        Hc[i, 1] = (dz * b0 - dx * b2) * w
-        Hc[i, 2] = (dx * b1 - dy * b0) * w
-        Hc[i, 3] = b0 * w
-        Hc[i, 4] = b1 * w
-        Hc[i, 5] = b2 * w
+        _pose_row(Hc, i, dx, dy, dz, b0, b1, b2, w)
         # support: bd = b^T D_R, rows [p_tip x bd, bd]
         e0 = b0 * D[0, 0] + b1 * D[1, 0] + b2 * D[2, 0]
         e1 = b0 * D[0, 1] + b1 * D[1, 1] + b2 * D[2, 1]
         e2 = b0 * D[0, 2] + b1 * D[1, 2] + b2 * D[2, 2]
-        Hd[i, 0] = (py * e2 - pz * e1) * w
-        Hd[i, 1] = (pz * e0 - px * e2) * w
-        Hd[i, 2] = (px * e1 - py * e0) * w
-        Hd[i, 3] = e0 * w
-        Hd[i, 4] = e1 * w
-        Hd[i, 5] = e2 * w
+        _pose_row(Hd, i, px, py, pz, e0, e1, e2, w)
         g = -(e0 * v_tip[i, 0] + e1 * v_tip[i, 1] + e2 * v_tip[i, 2]) * w
         Hbias[i, 0] = g * d[i]

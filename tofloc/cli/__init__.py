@@ -55,12 +55,30 @@ class _Signals:
     def __init__(self) -> None:
         self.received: int | None = None
         self._previous: dict[int, object] = {}
+        self._previous_unraisable: Any = None
 
     def __enter__(self) -> "_Signals":
         if threading.current_thread() is threading.main_thread():
             for sig, handler in ((signal.SIGINT, self._on_int), (signal.SIGTERM, self._on_term)):
                 self._previous[sig] = signal.signal(sig, handler)
+            self._previous_unraisable = sys.unraisablehook
+            sys.unraisablehook = self._on_unraisable
         return self
+
+    def _on_unraisable(self, unraisable: Any) -> None:
+        """An interruption raised where Python cannot propagate it (a signal landing in a
+        weakref callback of the import system, a ``__del__``) would be printed as "Exception
+        ignored" with a traceback and then lost, the command running on. Deliver it again
+        from another thread, so that it reaches the main thread once this hook has returned
+        (raised here, it would be ignored again) and unwinds as usual; should it land in such
+        a callback again, it comes back here."""
+        if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)):
+            import _thread
+
+            sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
+            _thread.start_new_thread(_redeliver, (sig,))  # not threading.Thread: its start() waits, here
+            return
+        (self._previous_unraisable or sys.__unraisablehook__)(unraisable)
 
     def _on_int(self, signum: int, frame: object) -> None:
         self.received = signum
@@ -73,6 +91,17 @@ class _Signals:
     def __exit__(self, *exc: object) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
+        if self._previous_unraisable is not None:
+            sys.unraisablehook = self._previous_unraisable
+
+
+def _redeliver(sig: int) -> None:
+    """Signal ``sig`` to the main thread again, 20 ms from now (after the hook that asked returned)."""
+    import _thread
+    import time
+
+    time.sleep(0.02)
+    _thread.interrupt_main(sig)
 
 
 def _interrupted_by(e: BaseException, signals: _Signals) -> int | None:
