@@ -81,7 +81,7 @@ def robust_loss(e: FloatArray, kernel: str, k: float) -> FloatArray:
         return np.where(a <= k, 0.5 * e * e, k * a - 0.5 * k * k)
     if kernel == "cauchy":
         return 0.5 * k * k * np.log1p((e / k) ** 2)
-    raise ValueError(f"unknown robust kernel {kernel!r}")
+    raise ValueError(f"unknown robust kernel {kernel!r}, expected one of {ROBUST_KERNELS}")
 
 
 def robust_transform(e: FloatArray, kernel: str, k: float) -> tuple[FloatArray, FloatArray]:
@@ -109,7 +109,7 @@ def robust_transform(e: FloatArray, kernel: str, k: float) -> tuple[FloatArray, 
             # rho' = e / (1 + x); sqrt(2 rho) = k sqrt(log1p(x)) ; ratio -> 1 as e -> 0
             d = np.where(small, 1.0 - 0.75 * x, (a / (1.0 + x)) / (k * np.sqrt(np.where(small, 1.0, lg))))
         return out, d
-    raise ValueError(f"unknown robust kernel {kernel!r}")
+    raise ValueError(f"unknown robust kernel {kernel!r}, expected one of {ROBUST_KERNELS}")
 
 
 def cross(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -178,7 +178,7 @@ def _zone_rows_compiled(
     (one pass over the rows, no temporaries; the same numbers to rounding, tested)."""
     N = p_tip.shape[0]
     if kernel not in numba_kernels.ROBUST_CODES:
-        raise ValueError(f"unknown robust kernel {kernel!r}")
+        raise ValueError(f"unknown robust kernel {kernel!r}, expected one of {ROBUST_KERNELS}")
     if rows is None:
         RC3, tC2, idx = RC[None], tC[None], np.zeros(N, dtype=np.intp)
     else:

@@ -362,3 +362,16 @@ def test_zone_sigmas_are_taken_where_the_plane_predicts_not_at_the_reading(resid
     d_true = np.concatenate([prob_d[m] for prob_d, m in zip(p.distance_m, p.valid)])
     expected = unc.sigma_of_zones(p.rig, d_true, zones) * p.rig.range_factor.reshape(-1)[zones] * cos
     np.testing.assert_allclose(s_clean[ok], expected[ok], rtol=1e-6)
+
+
+@pytest.mark.parametrize("numba_flag", ["0", "1"])
+def test_an_unknown_robust_kernel_names_the_known_ones(monkeypatch, numba_flag: str) -> None:
+    from estimators.gtsam_factors import _zone_rows, robust_loss, robust_transform
+
+    monkeypatch.setenv("TOFLOC_NUMBA", numba_flag)
+    for call in (lambda: robust_loss(np.zeros(2), "tukey", 1.0), lambda: robust_transform(np.zeros(2), "tukey", 1.0),
+                 lambda: _zone_rows(np.zeros((2, 3)), np.ones((2, 3)), np.zeros((2, 3)), np.ones(2), np.ones(2, bool),
+                                    np.ones(2), np.ones(2), np.zeros((2, 3)), np.zeros(3), 0.3, np.eye(3), np.eye(3),
+                                    np.zeros(3), None, np.eye(4), "tukey", 1.0, True)):
+        with pytest.raises(ValueError, match=r"unknown robust kernel 'tukey', expected one of \('huber', 'cauchy', 'none'\)"):
+            call()

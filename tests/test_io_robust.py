@@ -480,6 +480,23 @@ def test_an_interruption_python_ignores_in_a_callback_is_delivered_again(which: 
     assert sys.unraisablehook is before  # restored
 
 
+def test_a_redelivery_after_the_command_ended_is_dropped_and_main_restores_the_hook() -> None:
+    """An interruption re-sent 20 ms after the hook saw it must not reach Python's default
+    handler once the command has ended (a traceback after the fact), and ``main`` leaves
+    ``sys.unraisablehook`` as it found it."""
+    from types import SimpleNamespace
+
+    from tofloc.cli import _Signals
+
+    signals = _Signals()
+    with signals:
+        signals._on_unraisable(SimpleNamespace(exc_value=KeyboardInterrupt(), object=None))
+    time.sleep(0.2)  # the redelivery thread wakes after the block was left: nothing arrives
+    before = sys.unraisablehook
+    assert main(["list"]) == 0
+    assert sys.unraisablehook is before
+
+
 def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_path: Path) -> None:
     entry = "import sys; from tofloc.cli import main; sys.exit(main())"  # what the `tofloc` script runs
     for delay in (0.6, 1.2, 2.5):  # while the CLI, then open3d and the simulator load, then simulating

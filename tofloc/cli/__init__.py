@@ -56,6 +56,9 @@ class _Signals:
         self.received: int | None = None
         self._previous: dict[int, object] = {}
         self._previous_unraisable: Any = None
+        #: False once the block is left: a redelivery still on its way is then dropped (the
+        #: default handler it would meet would print a traceback)
+        self.active = False
 
     def __enter__(self) -> "_Signals":
         if threading.current_thread() is threading.main_thread():
@@ -63,6 +66,7 @@ class _Signals:
                 self._previous[sig] = signal.signal(sig, handler)
             self._previous_unraisable = sys.unraisablehook
             sys.unraisablehook = self._on_unraisable
+            self.active = True
         return self
 
     def _on_unraisable(self, unraisable: Any) -> None:
@@ -76,7 +80,7 @@ class _Signals:
             import _thread
 
             sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
-            _thread.start_new_thread(_redeliver, (sig,))  # not threading.Thread: its start() waits, here
+            _thread.start_new_thread(_redeliver, (self, sig))  # not threading.Thread: its start() waits, here
             return
         (self._previous_unraisable or sys.__unraisablehook__)(unraisable)
 
@@ -89,19 +93,22 @@ class _Signals:
         raise Terminated
 
     def __exit__(self, *exc: object) -> None:
+        self.active = False
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
-        if self._previous_unraisable is not None:
+        if sys.unraisablehook == self._on_unraisable:  # not if a later hook replaced it (main's restore)
             sys.unraisablehook = self._previous_unraisable
 
 
-def _redeliver(sig: int) -> None:
-    """Signal ``sig`` to the main thread again, 20 ms from now (after the hook that asked returned)."""
+def _redeliver(signals: _Signals, sig: int) -> None:
+    """Signal ``sig`` to the main thread again, 20 ms from now (after the hook that asked
+    returned), unless the guarded block has been left meanwhile."""
     import _thread
     import time
 
     time.sleep(0.02)
-    _thread.interrupt_main(sig)
+    if signals.active:
+        _thread.interrupt_main(sig)
 
 
 def _interrupted_by(e: BaseException, signals: _Signals) -> int | None:
