@@ -72,13 +72,35 @@ def test_distance_grid_within_is_exact() -> None:
     np.testing.assert_array_equal(planar, (d2 < 0.05).reshape(50, 400))
 
 
-@pytest.mark.parametrize("chunk_pairs", [131_072, 1_000])
-def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs) -> None:
+@pytest.mark.parametrize("chunk_pairs, compiled", [(131_072, "0"), (1_000, "0"), (131_072, "serial"),
+                                                    (131_072, "threads"), (131_072, "small buffers"),
+                                                    (131_072, "no room for crowded pairs")])
+def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs, compiled) -> None:
     """The two-level count equals a KD-tree's, also with crowded cells (a dense cluster:
-    rows answered by the KD-tree), points leaving the grid and several chunks of points."""
+    rows answered by the KD-tree), points leaving the grid and several chunks of points;
+    so does the compiled kernel, in one block or in blocks over threads, with buffers
+    flushed many times, and when its crowded pairs overflow (the numpy path then counts)."""
     import tofloc.distance_grid as dg
+    from tofloc import numba_kernels
 
     monkeypatch.setattr(dg, "CHUNK_PAIRS", chunk_pairs)
+    monkeypatch.setenv("TOFLOC_NUMBA", "0" if compiled == "0" else "1")
+    if compiled != "0":
+        if not numba_kernels.enabled():
+            pytest.skip("numba is not installed")
+        monkeypatch.setattr(numba_kernels, "parallel", lambda: compiled != "serial")
+        if compiled == "threads":  # four blocks even where numba has one thread
+            monkeypatch.setattr(numba_kernels._nb.config, "NUMBA_NUM_THREADS", 2)
+        kw = {"small buffers": {"buffer_pairs": 1}, "no room for crowded pairs": {"left_cap": 0}}.get(compiled, {})
+        counted = []
+        kernel = numba_kernels.planar_inlier_count
+
+        def spy(*args, **kwargs):
+            out = kernel(*args, **{**kwargs, **kw})
+            counted.append(out[0] is not None)
+            return out
+
+        monkeypatch.setattr(numba_kernels, "planar_inlier_count", spy)
     rng = np.random.default_rng(11)
     walls = rng.random((1500, 3)) * np.array([1.0, 1.0, 0.0]) + np.array([0, 0, 0.2])  # a floor
     cluster = 0.3 + rng.normal(size=(300, 3)) * 0.004  # crowded cells
@@ -96,6 +118,8 @@ def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs) -> Non
     np.testing.assert_array_equal(count, g.within_planar(cloud, poses, 0.04).sum(axis=1))
     assert count.max() > count.min() and (g._sub == 2).any()  # the second level has undecided sub-cells
     assert g.count_within_planar(cloud[:0], poses).tolist() == [0] * 400
+    if compiled != "0":  # the kernel counted (or, without room for crowded pairs, gave way)
+        assert counted and all(counted) == (compiled != "no room for crowded pairs")
 
 
 @pytest.mark.parametrize("kw", [{"max_correspondence": 0.0}, {"voxel_size": -1.0}, {"crop_margin": 20.0}, {"log_floor": 1.0}])

@@ -22,7 +22,11 @@ exact distance test against the cell's candidate map points.
 The grid is built once per map and parameters (:func:`distance_grid_for`, through
 :func:`tofloc.map_cache.per_map`, which also ships it to worker processes); its sub-cell
 decisions are one compiled pass when numba is available (:mod:`tofloc.numba_kernels`),
-else numpy in chunks of rows, with the same arithmetic and the same decisions.
+else numpy in chunks of rows, with the same arithmetic and the same decisions. With numba
+the count itself is a compiled kernel too
+(:func:`tofloc.numba_kernels.planar_inlier_count`: the same float32 cell coordinates, the
+same decisions, the same float64 exact tests; the counts are identical, tested), else
+the numpy chunks below.
 """
 
 from __future__ import annotations
@@ -290,6 +294,10 @@ class DistanceGrid:
         iz = uz.astype(np.intp)
         layer = (iz * (nx * ny)).astype(np.int32)
         sub_z = np.minimum(((uz - iz) * SUB).astype(np.intp), SUB - 1)
+        if numba_kernels.enabled():
+            compiled = self._count_compiled(pts, layer, sub_z, poses)
+            if compiled is not None:
+                return compiled
         # cell coordinates (float32) as one small matrix product per axis: u = B @ A
         B = np.column_stack([pts[:, 0] * inv, pts[:, 1] * inv, np.ones(P)]).astype(np.float32)
         c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
@@ -339,6 +347,29 @@ class DistanceGrid:
             inlier = self._exact_within_rows(q, row)
             count += np.bincount(m_idx[inlier], minlength=M)
         return count
+
+    def _count_compiled(self, pts: NDArray[np.float64], layer: NDArray[np.int32], sub_z: NDArray[np.intp],
+                        poses: NDArray[np.float64]) -> NDArray[np.intp] | None:
+        """:meth:`count_within_planar` by the compiled kernel
+        (:func:`tofloc.numba_kernels.planar_inlier_count`): the same decisions, the exact
+        tests with the same arithmetic, crowded rows' pairs by the KD-tree; ``None`` when
+        too many pairs met crowded rows (the numpy path then counts)."""
+        nx, ny, _ = self._state.shape
+        X, Y, Z = (np.ascontiguousarray(pts[:, i]) for i in range(3))
+        count, left_p, left_m = numba_kernels.planar_inlier_count(
+            X, Y, Z, layer.astype(np.int64), sub_z.astype(np.int64), poses, self.lo, 1.0 / self.cell, nx, ny,
+            self._state_z, self._row_z, self._sub.reshape(-1), SUB, self._cand, self._crowded, self.r_max)
+        if count is None:
+            return None
+        if left_p.size:
+            c, s = np.cos(poses[left_m, 2]), np.sin(poses[left_m, 2])
+            q = np.empty((left_p.size, 3))
+            q[:, 0] = c * X[left_p] - s * Y[left_p] + poses[left_m, 0]
+            q[:, 1] = s * X[left_p] + c * Y[left_p] + poses[left_m, 1]
+            q[:, 2] = Z[left_p]
+            inlier = self._exact_within_rows(q, np.full(left_p.size, -1, dtype=np.intp))
+            count += np.bincount(left_m[inlier], minlength=poses.shape[0])
+        return count.astype(np.intp, copy=False)
 
     def _sub_states(self, rows: NDArray[np.intp]) -> NDArray[np.uint8]:
         """The sub-cell decisions ``(len(rows), SUB^3)`` of candidate rows ``rows``.

@@ -6,9 +6,12 @@ numpy twin in the module that calls it; the two give identical results (tested i
 order and precision (the GTSAM smoother's zone rows, :func:`smoother_zone_rows`, agree to
 rounding: numpy's small matrix products may fuse multiply-adds).
 
-(A compiled inlier count for :meth:`tofloc.distance_grid.DistanceGrid.count_within_planar`
-was tried and dropped: with its branches to the second level it could not be vectorized
-and ran no faster than the numpy chunks.) :func:`enabled` says whether the kernels are used: numba importable and the
+The ICP score's inlier count (:func:`planar_inlier_count`, for
+:meth:`tofloc.distance_grid.DistanceGrid.count_within_planar`) is one pass over (point,
+pose) pairs that only records the undecided ones, then a tight pass over those (their
+sub-cell decisions are independent loads the processor overlaps), then the exact tests;
+a first version that branched to the second level inside the pair loop ran no faster
+than the numpy chunks. :func:`enabled` says whether the kernels are used: numba importable and the
 environment variable ``TOFLOC_NUMBA`` not set to ``0``. Kernels are compiled on first
 use and cached on disk by numba (``cache=True``), so a spawned worker does not compile
 them again.
@@ -23,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "ROBUST_CODES"]
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "ROBUST_CODES",
+           "planar_inlier_count"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
@@ -511,3 +515,151 @@ def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_con
         _pose_row(Hd, i, px, py, pz, e0, e1, e2, w)
         g = -(e0 * v_tip[i, 0] + e1 * v_tip[i, 1] + e2 * v_tip[i, 2]) * w
         Hbias[i, 0] = g * d[i]
+
+
+@_jit
+def _inlier_block(lo_p: int, hi_p: int, X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, cs: Any, sn: Any, tx: Any,
+                  ty: Any, bx: Any, by: Any, cs32: Any, sn32: Any, ox: Any, oy: Any, nx: int, ny: int, state: Any,
+                  rows: Any, sub: Any, n_sub: int, cand: Any, crowded: Any, r2: float, count: Any, flat: Any, ux: Any,
+                  uy: Any, amb: Any, amb_m: Any, amb_p: Any, left_p: Any, left_m: Any) -> int:  # pragma: no cover - compiled
+    """Inlier counts of points ``lo_p:hi_p`` under every pose, added to ``count`` ``(M,)``.
+
+    Per point, first its cell under every pose (float32 cell coordinates ``u = B @ A`` as
+    the numpy path: ``bx, by`` the point's, ``cs32, sn32, ox, oy`` the poses'; one
+    vectorizable loop into ``flat, ux, uy`` ``(M,)``), then the cells' decisions (0 out, 1
+    in, 2 undecided). Undecided pairs are buffered (``amb*``, flushed when full) and then
+    decided by their sub-cell (``sub``: flat, ``row * n_sub^3 + sub-cell``, ``n_sub`` a
+    power of two), the rest by the exact distance to the row's candidates (float64, the
+    numpy path's arithmetic), except crowded rows, whose pairs go to ``left_p, left_m``
+    for the KD-tree. Returns how many pairs went there (more than ``left_p.size``: the
+    caller must count without this kernel)."""
+    M = cs.shape[0]
+    cap = amb.shape[0]
+    n_left = 0
+    fx = np.float32(nx - 1)
+    fy = np.float32(ny - 1)
+    zero = np.float32(0.0)
+    ny32 = np.int32(ny)
+    width = cand.shape[2]
+    mask = n_sub - 1
+    n_sub2 = n_sub * n_sub
+    fsub = np.float32(n_sub)
+    na = 0
+    for p in range(lo_p, hi_p + 1):
+        if p < hi_p:
+            x = bx[p]
+            y = by[p]
+            lay = np.int32(layer[p])
+            for m in range(M):  # vectorized by the compiler: no branch, no gather
+                u = min(max(cs32[m] * x - sn32[m] * y + ox[m], zero), fx)
+                v = min(max(sn32[m] * x + cs32[m] * y + oy[m], zero), fy)
+                ux[m] = u
+                uy[m] = v
+                flat[m] = np.int32(u) * ny32 + np.int32(v) + lay
+            sz = sub_z[p]
+            for m in range(M):
+                st = state[flat[m]]
+                count[m] += st & 1
+                if st == 2:
+                    amb[na] = ((rows[flat[m]] * n_sub + (np.int64(ux[m] * fsub) & mask)) * n_sub2
+                               + (np.int64(uy[m] * fsub) & mask) * n_sub + sz)
+                    amb_m[na] = m
+                    amb_p[na] = p
+                    na += 1
+        if na and (p == hi_p or na + M > cap):  # flush: the second level, then the exact tests
+            n_exact = 0
+            for i in range(na):  # independent loads: the processor overlaps their misses
+                ss = sub[amb[i]]
+                if ss == 1:
+                    count[amb_m[i]] += 1
+                elif ss == 2:
+                    amb[n_exact] = amb[i] // (n_sub2 * n_sub)
+                    amb_m[n_exact] = amb_m[i]
+                    amb_p[n_exact] = amb_p[i]
+                    n_exact += 1
+            for i in range(n_exact):
+                row = amb[i]
+                m = amb_m[i]
+                q = amb_p[i]
+                if crowded[row]:
+                    if n_left < left_p.shape[0]:
+                        left_p[n_left] = q
+                        left_m[n_left] = m
+                    n_left += 1
+                    continue
+                # the numpy path's arithmetic: q' = (c x - s y + t_x, s x + c y + t_y, z)
+                qx = cs[m] * X[q] - sn[m] * Y[q] + tx[m]
+                qy = sn[m] * X[q] + cs[m] * Y[q] + ty[m]
+                best = np.inf
+                for w in range(width):
+                    dx = cand[0, row, w] - qx
+                    dy = cand[1, row, w] - qy
+                    dz = cand[2, row, w] - Z[q]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < best:
+                        best = d2
+                if best < r2:
+                    count[m] += 1
+            na = 0
+    return n_left
+
+
+@_jit
+def _inlier_serial(counts: Any, bounds: Any, flat: Any, ux: Any, uy: Any, amb: Any, amb_m: Any, amb_p: Any,
+                   left_p: Any, left_m: Any, n_left: Any, args: Any) -> None:  # pragma: no cover - compiled
+    for b in range(bounds.shape[0] - 1):
+        n_left[b] = _inlier_block(bounds[b], bounds[b + 1], *args, counts[b], flat[b], ux[b], uy[b], amb[b], amb_m[b],
+                                  amb_p[b], left_p[b], left_m[b])
+
+
+@_jit_parallel
+def _inlier_parallel(counts: Any, bounds: Any, flat: Any, ux: Any, uy: Any, amb: Any, amb_m: Any, amb_p: Any,
+                     left_p: Any, left_m: Any, n_left: Any, args: Any) -> None:  # pragma: no cover - compiled
+    for b in _prange(bounds.shape[0] - 1):
+        n_left[b] = _inlier_block(bounds[b], bounds[b + 1], *args, counts[b], flat[b], ux[b], uy[b], amb[b], amb_m[b],
+                                  amb_p[b], left_p[b], left_m[b])
+
+
+def planar_inlier_count(X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, poses: Any, lo: Any, inv: float, nx: int,
+                        ny: int, state: Any, rows: Any, sub: Any, n_sub: int, cand: Any, crowded: Any, r_max: float,
+                        buffer_pairs: int = 16_384, left_cap: int = 4_096) -> tuple[Any, Any, Any]:
+    """Inlier counts of points (``X, Y, Z`` sorted by z, their ``layer`` offsets and
+    sub-cell ``sub_z``) under planar ``poses`` ``(M, 3)`` on a distance grid's z-major
+    decisions (:meth:`tofloc.distance_grid.DistanceGrid.count_within_planar`).
+
+    The points are split into blocks (two per thread when :func:`parallel`), each with its
+    own count row and buffers; the rows are summed (integers: any order gives the same
+    counts). Returns ``(count (M,), left_p, left_m)``: the (point, pose) pairs of crowded
+    rows, for the KD-tree; ``None`` instead of the count when more than ``left_cap`` of
+    them fell in one block (the caller then counts with numpy)."""
+    M = int(poses.shape[0])
+    P = int(X.shape[0])
+    n_blocks = max(1, min(P, 2 * _nb.config.NUMBA_NUM_THREADS)) if parallel() else 1
+    bounds = np.linspace(0, P, n_blocks + 1).astype(np.int64)
+    cap = max(int(buffer_pairs), M + 1)
+    counts = np.zeros((n_blocks, M), dtype=np.int64)
+    flat = np.empty((n_blocks, M), dtype=np.int32)
+    ux = np.empty((n_blocks, M), dtype=np.float32)
+    uy = np.empty((n_blocks, M), dtype=np.float32)
+    amb = np.empty((n_blocks, cap), dtype=np.int64)
+    amb_m = np.empty((n_blocks, cap), dtype=np.int64)
+    amb_p = np.empty((n_blocks, cap), dtype=np.int64)
+    left_p = np.empty((n_blocks, left_cap), dtype=np.int64)
+    left_m = np.empty((n_blocks, left_cap), dtype=np.int64)
+    n_left = np.zeros(n_blocks, dtype=np.int64)
+    poses = np.asarray(poses, dtype=np.float64)
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    # float32 cell coordinates as the numpy path's u = B @ A
+    bx, by = (X * inv).astype(np.float32), (Y * inv).astype(np.float32)
+    ox = ((poses[:, 0] - lo[0]) * inv + 1.0).astype(np.float32)
+    oy = ((poses[:, 1] - lo[1]) * inv + 1.0).astype(np.float32)
+    args = (X, Y, Z, layer, sub_z, c, s, np.ascontiguousarray(poses[:, 0]), np.ascontiguousarray(poses[:, 1]), bx, by,
+            c.astype(np.float32), s.astype(np.float32), ox, oy, int(nx), int(ny), state, rows, sub, int(n_sub), cand,
+            crowded, float(r_max) ** 2)
+    (_inlier_parallel if n_blocks > 1 else _inlier_serial)(counts, bounds, flat, ux, uy, amb, amb_m, amb_p, left_p,
+                                                           left_m, n_left, args)
+    if (n_left > left_cap).any():
+        return None, None, None
+    keep = [slice(0, int(n)) for n in n_left]
+    return (counts.sum(axis=0), np.concatenate([left_p[b, keep[b]] for b in range(n_blocks)]),
+            np.concatenate([left_m[b, keep[b]] for b in range(n_blocks)]))
