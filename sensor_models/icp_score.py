@@ -9,7 +9,8 @@ Vectorized over particles: the ``M x P`` inlier tests of a step are answered at 
 :class:`tofloc.distance_grid.DistanceGrid` of the map (cell = ``max_correspondence / 8``):
 a two-level table of decisions, z-major because a planar pose leaves every point's z
 unchanged, and the exact distance test only for the ~1.5 % of (point, particle) pairs
-that fall in a thin shell around the inlier boundary. The result is exactly Open3D's
+that fall in a thin shell around the inlier boundary (one compiled pass when numba is
+installed, else numpy chunks: the same counts). The result is exactly Open3D's
 (the same inlier test as its hybrid radius search: squared distance < radius^2);
 ``tofloc bench`` measures it beside M calls to Open3D.
 
