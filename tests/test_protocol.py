@@ -480,6 +480,26 @@ def test_dask_workers_get_the_caches_once() -> None:
         assert sorted(applied.values()) == [(True, True)] * 2, applied
 
 
+@pytest.mark.slow  # starts a Dask worker process
+def test_dask_workers_preload_the_imports() -> None:
+    """``--preload evaluation.executors`` imports what a trial needs while the worker starts
+    (before any task); a worker without it has not imported them."""
+    distributed = pytest.importorskip("distributed")
+    from evaluation.executors import PRELOAD
+
+    def imported() -> list[str]:
+        import sys
+
+        return [m for m in PRELOAD if m in sys.modules]
+
+    for preload, expected in (([], False), (["evaluation.executors"], True)):
+        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                                      preload=preload) as cluster:
+            with distributed.Client(cluster, set_as_default=False) as client:
+                (got,) = client.run(imported).values()
+        assert ("gtsam" in got and "open3d" in got and set(got) == set(PRELOAD)) == expected, got
+
+
 def test_unreachable_scheduler_is_a_clear_error() -> None:
     pytest.importorskip("distributed")
     log = small_log(K=10)

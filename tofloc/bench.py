@@ -42,8 +42,9 @@ returns one JSON document:
     prior mode, k in ``parallel_k``, ``parallel_trials`` trials, no calibration) with 1 and
     2 workers, the data prepared beforehand and the per-map caches emptied before each:
     ``workers_1_s``, ``workers_2_s``, ``speedup``; and on a local Dask cluster of two
-    single-threaded worker processes (started before the timing, as ``--scheduler`` is
-    given a running one): ``dask_2_s`` and ``dask_speedup`` (over ``workers_1_s``; null
+    single-threaded worker processes (started before the timing with the preload
+    ``evaluation.executors``, as ``--scheduler`` is given a running cluster):
+    ``dask_2_s`` and ``dask_speedup`` (over ``workers_1_s``; null
     without dask). One worker runs in this process and its hot paths use every core
     (numba's threads, Open3D's casts), as ``--workers 1`` does; a pool's workers get one
     thread each. So ``workers_1_one_thread_s`` is the same run in this process limited to
@@ -278,7 +279,9 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
             from dask import distributed
         except ImportError:  # pragma: no cover - dask is a dependency; without it: null
             return None
-        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        # workers started as docs/evaluation.md advises: imports preloaded (evaluation.executors.dask_setup)
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                      preload=["evaluation.executors"]) as cluster:
             with distributed.Client(cluster, set_as_default=False) as client:
                 client.wait_for_workers(2)  # a running cluster, as `--scheduler` is given one
                 return run(out, scheduler=client)
