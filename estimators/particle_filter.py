@@ -72,6 +72,7 @@ normalized weighted mean (circular mean for the yaw): ``point_estimate = "mean"`
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping
@@ -346,10 +347,30 @@ class ParticleFilter(Estimator):
         self.make_sensor_model().bind(problem)
 
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
-        from tofloc.problem import Prior
-
+        """One pass of the filter; when its sensor model refits itself to the problem's data
+        at that pass's estimate (:meth:`sensor_models.base.BoundSensorModel.refit`, e.g. the
+        beam model's short-reading weight), a second pass with the refitted model, from the
+        prior again and the generator where the first left it (its estimate is returned;
+        ``diagnostics["refit"]`` holds the first pass's estimate and the refitted model)."""
         model = self.make_sensor_model()
         bound = model.bind(problem)
+        first = self._filter(problem, model, bound, rng)
+        diag = first.diagnostics
+        state = np.concatenate([np.asarray(first.pose, dtype=float)[:3],
+                                [diag["state"][v.name]["mean"] for v in bound.state]])
+        refitted = bound.refit(state)
+        if refitted is None:
+            return first
+        second = self._filter(problem, refitted, refitted.bind(problem), rng)
+        second.diagnostics["refit"] = {"first_pose": np.asarray(first.pose, dtype=float).tolist(),
+                                       "sensor_model_params": {f.name: getattr(refitted, f.name)
+                                                               for f in dataclasses.fields(refitted)}}
+        return second
+
+    def _filter(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator) -> Estimate:
+        """One pass of the filter over the problem's samples with a bound sensor model."""
+        from tofloc.problem import Prior
+
         state = tuple(bound.state)
         adapt = self.kld == "always" or (self.kld == "global" and problem.prior.is_global)
         M = self.particles_ceiling if (adapt and problem.prior.is_global) else int(self.n_particles)

@@ -534,6 +534,9 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     }
     if out.selection is not None:
         record["selection"] = out.selection.to_json()
+    refit = result.diagnostics.get("refit") if isinstance(result.diagnostics, Mapping) else None
+    if refit is not None:  # a sensor model refitted to the trial's data (a second pass of the filter)
+        record["refit"] = jsonable(refit)
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
         record["truth"] = jsonable(truth)

@@ -111,6 +111,13 @@ class BoundSensorModel(ABC):
         ``-inf`` is allowed (a state the data exclude); NaN is not.
         """
 
+    def refit(self, state: NDArray[np.float64]) -> "SensorModel | None":
+        """A model whose data-dependent parameters are fitted to this problem's own readings
+        at ``state`` ``(3 + len(state),)`` (a first estimate), or None when the model fits
+        nothing or the fit leaves it unchanged. A filter that gets a model runs again with
+        it (:class:`estimators.particle_filter.ParticleFilter`). Default: None."""
+        return None
+
     def temporaries_per_state(self) -> int:
         """Upper estimate of the bytes of temporaries :meth:`log_likelihood` makes per state.
 

@@ -42,6 +42,8 @@ defaults.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -60,12 +62,18 @@ from tofloc.range_model import RangeUncertainty, edge_zone_mask
 from tofloc.toml_tables import params_from_table, params_from_toml
 from tofloc.zone_caster import PlanarZoneRays, ZoneCaster
 
-__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper"]
+__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper", "REFIT_ITERATIONS", "REFIT_TOLERANCE", "REFIT_SHORT_MAX"]
 
 #: VL53L5CX ``target_status`` of a zone that saw no target (log format v1).
 NO_TARGET_STATUS = 255
 #: Tolerance on the sum of the mixture weights.
 _SUM_TOL = 1e-6
+#: Most EM iterations of :meth:`BoundBeamModel.refit` (from the mixture given, at one
+#: estimate); it stops earlier once ``z_short`` moves by less than :data:`REFIT_TOLERANCE`.
+REFIT_ITERATIONS = 100
+REFIT_TOLERANCE = 1e-4
+#: The largest short-reading weight :meth:`BoundBeamModel.refit` fits (``z_hit`` keeps the rest).
+REFIT_SHORT_MAX = 0.6
 _LOG_TINY = 1e-300
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -203,6 +211,15 @@ class BeamModel(SensorModel):
         unknown stretch instead of an outlier (0, the default: unknown space is free, as on
         a CAD map; 0.5 on the nano-swarm recordings turned 7 into 8 failures of 96 with
         yaw flips: docs/real-data.md, "Ablation"). Ignored on maps without a known space.
+    refit_short : bool
+        Fit the short-reading weight ``z_short`` to each problem's own zones (the share of
+        readings from objects the map does not hold belongs to the scene being localized
+        in, not to the calibration session): EM at a first estimate
+        (:meth:`BoundBeamModel.refit`), never below the mixture's own ``z_short`` (the
+        calibration's, floored), at most :data:`REFIT_SHORT_MAX`; when the fit raises it,
+        the filter runs again with the fitted mixture. False: the mixture as given.
+        Only with ``short_support = "range"`` (the short density then does not depend on
+        the pose).
     configuration_cov : bool
         Add each zone's reading variance caused by its sample's configuration uncertainty
         (the problem's ``T_base_tip_cov``, e.g. odometry) to the zone's sensor variance
@@ -223,14 +240,16 @@ class BeamModel(SensorModel):
     short_support: str = "range"
     hit_dof: float = float("inf")
     unknown_weight: float = 0.0
+    refit_short: bool = True
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
-        if not isinstance(self.configuration_cov, bool):
-            raise ParameterError(f"beam.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        for flag in ("configuration_cov", "refit_short"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ParameterError(f"beam.{flag} must be true or false, got {getattr(self, flag)!r}")
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
@@ -379,6 +398,52 @@ class BoundBeamModel(BoundSensorModel):
         p_none = mix.z_max + (1.0 - frac) * mix.z_hit * (1.0 - q)
         p = np.where(valid, p_valid, np.where(no_ret, p_none, 1.0))
         return np.log(np.maximum(p, _LOG_TINY))
+
+    def short_responsibility(self, state: NDArray[np.float64]) -> tuple[float, int]:
+        """Sum over every sample's zones of the short component's responsibility at ``state``
+        ``(3 + n,)`` (valid readings: ``z_short p_short(z) / p(z)``; a zone with no return
+        or a dropped one: 0), and the number of zones that count (valid or no return)."""
+        mix, lam = self.mixture, self.mixture.lambda_short
+        total, n = 0.0, 0
+        x = np.asarray(state, dtype=float)[None]
+        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over zones
+            valid = self.valid[k]
+            n += int(valid.sum() + self.no_return[k].sum())
+            if not valid.any():
+                continue
+            p = np.exp(self.zone_log_likelihood(x, k)[0])
+            z, r = self.z[k], np.broadcast_to(self.r[0], self.z[k].shape)
+            short = mix.z_short * np.where(z < r, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(r, 1e-6)), 0.0)
+            total += float(np.sum(short[valid] / np.maximum(p[valid], _LOG_TINY)))
+        return total, n
+
+    def refit(self, state: NDArray[np.float64]) -> "BeamModel | None":
+        """With ``refit_short``: ``z_short`` by EM at ``state`` (a first estimate), the other
+        weights but ``z_hit`` kept: until it converges (:data:`REFIT_TOLERANCE`, at most
+        :data:`REFIT_ITERATIONS` times), ``z_short`` = the mean
+        responsibility of the short component over the zones that count
+        (:meth:`short_responsibility`), clipped to [this mixture's ``z_short``,
+        :data:`REFIT_SHORT_MAX`], and ``z_hit`` = 1 - the others. Returns the model with
+        that mixture (``refit_short`` off), or None when the fit does not raise ``z_short``
+        or does not apply (``short_support = "expected"``, no zone)."""
+        if not self.model.refit_short or self.model.short_support != "range":
+            return None
+        start = self.mixture
+        work = copy.copy(self)  # the same bound data, its mixture replaced at each iteration
+        for _ in range(REFIT_ITERATIONS):
+            total, n = work.short_responsibility(state)
+            if n == 0:
+                return None
+            z_short = min(max(total / n, start.z_short), REFIT_SHORT_MAX)
+            moved = abs(z_short - work.mixture.z_short)
+            work.mixture = dataclasses.replace(work.mixture, z_short=z_short,
+                                               z_hit=1.0 - z_short - start.z_max - start.z_rand)
+            if moved < REFIT_TOLERANCE:
+                break
+        if not work.mixture.z_short > start.z_short:
+            return None
+        return dataclasses.replace(self.model, mixture=dataclasses.asdict(work.mixture), outlier_floor=0.0,
+                                   refit_short=False)
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Tempered log-likelihood ``(M,)``: the fused kernel when numba is there and the model

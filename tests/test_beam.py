@@ -239,3 +239,66 @@ def test_declared_support_yaw_column_rotates_the_rays() -> None:
     np.testing.assert_allclose(e_state[both], e_rig[both], atol=1e-5)
     e0, _ = bound.expected(np.array([[*truth, 0.0]]), 1)
     assert np.nanmax(np.abs(e0 - e_state)) > 0.01  # the column matters
+
+
+# -- the short-reading weight fitted to the problem's own zones (refit_short) ------------------
+def _cluttered(p: Problem, fraction: float, seed: int = 0) -> Problem:
+    """``p`` with a ``fraction`` of its valid readings replaced by readings from objects the
+    map does not hold: 5-60 % of the wall's distance."""
+    import dataclasses
+
+    rng = np.random.default_rng(seed)
+    d = np.array(p.distance_m)
+    v = np.isfinite(d) & (p.status != NO_TARGET_STATUS)
+    hit = v & (rng.random(d.shape) < fraction)
+    d[hit] = d[hit] * rng.uniform(0.05, 0.6, int(hit.sum()))
+    return dataclasses.replace(p, distance_m=d)
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.5])
+def test_refit_short_finds_the_share_of_unmapped_readings(fraction: float) -> None:
+    p, truth = easy_problem(n_samples=4)
+    clean = BeamModel().bind(p)
+    assert clean.refit(truth) is None  # nothing reads short: the calibrated weight stays
+    bound = BeamModel().bind(_cluttered(p, fraction))
+    refitted = bound.refit(truth)
+    assert refitted is not None and refitted.refit_short is False
+    mix = refitted.bind(p).mixture
+    start = bound.mixture
+    # the EM's weight is the share of the zones that count (valid or no return) that the
+    # short component explains: the injected share, less what the random component takes
+    q = _cluttered(p, fraction)
+    share = float(np.sum(q.distance_m < p.distance_m)) / float(np.sum(p.valid | (p.status == NO_TARGET_STATUS)))
+    assert share - 0.04 < mix.z_short <= share, (mix, share)
+    assert (mix.z_max, mix.z_rand, mix.lambda_short) == (start.z_max, start.z_rand, start.lambda_short)
+    assert mix.z_hit + mix.z_short + mix.z_max + mix.z_rand == pytest.approx(1.0, abs=1e-12)
+    # off, or with Thrun's pose-dependent short support, nothing is refitted
+    assert BeamModel(refit_short=False).bind(_cluttered(p, fraction)).refit(truth) is None
+    assert BeamModel(short_support="expected").bind(_cluttered(p, fraction)).refit(truth) is None
+    with pytest.raises(ParameterError, match="refit_short must be true or false"):
+        BeamModel(refit_short="yes")
+
+
+def test_beam_pf_runs_again_with_the_refitted_weight() -> None:
+    """Clean data: one pass, the same numbers as without the refit. Cluttered data: a second
+    pass with the fitted mixture, whose estimate is the one returned (and is closer to the
+    truth than the calibrated weight's)."""
+    from estimators.particle_filter import BeamPF
+
+    p, truth = easy_problem(n_samples=4)
+    plain = BeamPF(sensor_model_params={"refit_short": False})
+    a = BeamPF().estimate(p, np.random.default_rng(5))
+    b = plain.estimate(p, np.random.default_rng(5))
+    assert "refit" not in a.diagnostics
+    np.testing.assert_array_equal(a.pose, b.pose)
+    q = _cluttered(p, 0.4, seed=2)
+    c = BeamPF().estimate(q, np.random.default_rng(5))
+    refit = c.diagnostics["refit"]
+    assert refit["sensor_model_params"]["mixture"]["z_short"] > 0.3
+    one_pass = plain.estimate(q, np.random.default_rng(5))
+    np.testing.assert_allclose(refit["first_pose"], one_pass.pose, atol=0)  # the first pass is the plain filter
+    # the second pass is the plain filter with the fitted mixture, the generator continuing
+    rng = np.random.default_rng(5)
+    plain.estimate(q, rng)
+    again = BeamPF(sensor_model_params=refit["sensor_model_params"]).estimate(q, rng)
+    np.testing.assert_array_equal(c.pose, again.pose)
