@@ -214,7 +214,7 @@ class BeamModel(SensorModel):
     refit_short : bool
         Fit the short-reading weight ``z_short`` to each problem's own zones (the share of
         readings from objects the map does not hold belongs to the scene being localized
-        in, not to the calibration session): EM at a first estimate
+        in, not to the calibration session): EM at a first estimate the data fit
         (:meth:`BoundBeamModel.refit`), never below the mixture's own ``z_short`` (the
         calibration's, floored), at most :data:`REFIT_SHORT_MAX`; when the fit raises it,
         the filter runs again with the fitted mixture. False: the mixture as given.
@@ -425,8 +425,22 @@ class BoundBeamModel(BoundSensorModel):
         (:meth:`short_responsibility`), clipped to [this mixture's ``z_short``,
         :data:`REFIT_SHORT_MAX`], and ``z_hit`` = 1 - the others. Returns the model with
         that mixture (``refit_short`` off), or None when the fit does not raise ``z_short``
-        or does not apply (``short_support = "expected"``, no zone)."""
+        or does not apply (``short_support = "expected"``, no zone), and when the data do
+        not fit the map at ``state`` (:func:`tofloc.fit_check.check_fit`'s test and
+        thresholds): there the first estimate is likely wrong, and the EM would take the
+        zones that disagree with it for objects the map lacks (on the four-drone
+        recordings it then fitted z_short ~0.5 at poses 7-10 cm off and moved them further)."""
         if not self.model.refit_short or self.model.short_support != "range":
+            return None
+        # at an estimate whose data do not fit the map (the shared fit check's verdict) the
+        # EM would explain the misfit as unmapped objects: no refit there
+        from tofloc.fit_check import OUTLIER_FRACTION_THRESHOLD, STATISTIC_THRESHOLD, fit_statistics, zone_residuals
+
+        x = np.asarray(state, dtype=float)
+        nuisance = {v.name: float(x[3 + i]) for i, v in enumerate(self.state)}
+        stat, frac, n_checked, _ = fit_statistics(zone_residuals(self.problem, x[:3], nuisance.get("support_yaw", 0.0),
+                                                                 nuisance.get("range_scale", 0.0)))
+        if n_checked == 0 or stat > STATISTIC_THRESHOLD or frac > OUTLIER_FRACTION_THRESHOLD:
             return None
         start = self.mixture
         work = copy.copy(self)  # the same bound data, its mixture replaced at each iteration

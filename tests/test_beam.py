@@ -255,7 +255,7 @@ def _cluttered(p: Problem, fraction: float, seed: int = 0) -> Problem:
     return dataclasses.replace(p, distance_m=d)
 
 
-@pytest.mark.parametrize("fraction", [0.3, 0.5])
+@pytest.mark.parametrize("fraction", [0.2, 0.3])
 def test_refit_short_finds_the_share_of_unmapped_readings(fraction: float) -> None:
     p, truth = easy_problem(n_samples=4)
     clean = BeamModel().bind(p)
@@ -272,6 +272,10 @@ def test_refit_short_finds_the_share_of_unmapped_readings(fraction: float) -> No
     assert share - 0.04 < mix.z_short <= share, (mix, share)
     assert (mix.z_max, mix.z_rand, mix.lambda_short) == (start.z_max, start.z_rand, start.lambda_short)
     assert mix.z_hit + mix.z_short + mix.z_max + mix.z_rand == pytest.approx(1.0, abs=1e-12)
+    # where the data do not fit the map (the fit check's outlier share: half the readings
+    # short, or the pose 10 cm off) the first estimate is not trusted: no refit
+    assert BeamModel().bind(_cluttered(p, 0.5)).refit(truth) is None
+    assert BeamModel().bind(_cluttered(p, fraction)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
     # off, or with Thrun's pose-dependent short support, nothing is refitted
     assert BeamModel(refit_short=False).bind(_cluttered(p, fraction)).refit(truth) is None
     assert BeamModel(short_support="expected").bind(_cluttered(p, fraction)).refit(truth) is None
@@ -291,10 +295,10 @@ def test_beam_pf_runs_again_with_the_refitted_weight() -> None:
     b = plain.estimate(p, np.random.default_rng(5))
     assert "refit" not in a.diagnostics
     np.testing.assert_array_equal(a.pose, b.pose)
-    q = _cluttered(p, 0.4, seed=2)
+    q = _cluttered(p, 0.3, seed=2)
     c = BeamPF().estimate(q, np.random.default_rng(5))
     refit = c.diagnostics["refit"]
-    assert refit["sensor_model_params"]["mixture"]["z_short"] > 0.3
+    assert refit["sensor_model_params"]["mixture"]["z_short"] > 0.15
     one_pass = plain.estimate(q, np.random.default_rng(5))
     np.testing.assert_allclose(refit["first_pose"], one_pass.pose, atol=0)  # the first pass is the plain filter
     # the second pass is the plain filter with the fitted mixture, the generator continuing

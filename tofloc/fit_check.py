@@ -4,7 +4,9 @@ An estimator always answers with a pose; :func:`check_fit` says whether the zone
 sensors read are what the sensor model predicts from that pose. It is the one data-fit
 check of the toolkit: ``tofloc localize`` (offline trials), live localization and the
 Python API call it on every :class:`~tofloc.problem.Estimate` (the callers fill
-``Estimate.fit``; no estimator computes it itself).
+``Estimate.fit``; no estimator computes it for its answer; the beam model's refit of its
+short-reading weight consults the same test at the filter's first estimate,
+:meth:`sensor_models.beam.BoundBeamModel.refit`).
 
 At the estimate (its pose and, when its ``diagnostics["state"]`` has them, the means of
 the nuisances ``support_yaw`` and ``range_scale``, applied as the beam model does), the
