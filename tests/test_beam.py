@@ -258,9 +258,10 @@ def _cluttered(p: Problem, fraction: float, seed: int = 0) -> Problem:
 @pytest.mark.parametrize("fraction", [0.2, 0.3])
 def test_refit_short_finds_the_share_of_unmapped_readings(fraction: float) -> None:
     p, truth = easy_problem(n_samples=4)
-    clean = BeamModel().bind(p)
+    clean = BeamModel(refit_short=True).bind(p)
     assert clean.refit(truth) is None  # nothing reads short: the calibrated weight stays
-    bound = BeamModel().bind(_cluttered(p, fraction))
+    assert BeamModel().refit_short is False  # off by default
+    bound = BeamModel(refit_short=True).bind(_cluttered(p, fraction))
     refitted = bound.refit(truth)
     assert refitted is not None and refitted.refit_short is False
     mix = refitted.bind(p).mixture
@@ -274,11 +275,11 @@ def test_refit_short_finds_the_share_of_unmapped_readings(fraction: float) -> No
     assert mix.z_hit + mix.z_short + mix.z_max + mix.z_rand == pytest.approx(1.0, abs=1e-12)
     # where the data do not fit the map (the fit check's outlier share: half the readings
     # short, or the pose 10 cm off) the first estimate is not trusted: no refit
-    assert BeamModel().bind(_cluttered(p, 0.5)).refit(truth) is None
-    assert BeamModel().bind(_cluttered(p, fraction)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
+    assert BeamModel(refit_short=True).bind(_cluttered(p, 0.5)).refit(truth) is None
+    assert BeamModel(refit_short=True).bind(_cluttered(p, fraction)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
     # off, or with Thrun's pose-dependent short support, nothing is refitted
     assert BeamModel(refit_short=False).bind(_cluttered(p, fraction)).refit(truth) is None
-    assert BeamModel(short_support="expected").bind(_cluttered(p, fraction)).refit(truth) is None
+    assert BeamModel(refit_short=True, short_support="expected").bind(_cluttered(p, fraction)).refit(truth) is None
     with pytest.raises(ParameterError, match="refit_short must be true or false"):
         BeamModel(refit_short="yes")
 
@@ -290,13 +291,14 @@ def test_beam_pf_runs_again_with_the_refitted_weight() -> None:
     from estimators.particle_filter import BeamPF
 
     p, truth = easy_problem(n_samples=4)
-    plain = BeamPF(sensor_model_params={"refit_short": False})
-    a = BeamPF().estimate(p, np.random.default_rng(5))
+    plain = BeamPF()
+    refitting = BeamPF(sensor_model_params={"refit_short": True})
+    a = refitting.estimate(p, np.random.default_rng(5))
     b = plain.estimate(p, np.random.default_rng(5))
     assert "refit" not in a.diagnostics
     np.testing.assert_array_equal(a.pose, b.pose)
     q = _cluttered(p, 0.3, seed=2)
-    c = BeamPF().estimate(q, np.random.default_rng(5))
+    c = refitting.estimate(q, np.random.default_rng(5))
     refit = c.diagnostics["refit"]
     assert refit["sensor_model_params"]["mixture"]["z_short"] > 0.15
     one_pass = plain.estimate(q, np.random.default_rng(5))
