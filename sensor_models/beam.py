@@ -164,6 +164,12 @@ def hit_density(z: NDArray[np.float64], mu: NDArray[np.float64], sigma: NDArray[
     return norm * (1.0 + t * t / dof) ** (-(dof + 1) / 2) / (sigma * mass)
 
 
+def short_density(z: NDArray[np.float64], support: NDArray[np.float64], lam: float) -> NDArray[np.float64]:
+    """Density of an unexpectedly short reading ``z``: ``lam e^(-lam z)`` normalized over
+    ``[0, support]`` (0 beyond it)."""
+    return np.where(z < support, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(support, 1e-6)), 0.0)
+
+
 def check_temper(owner: str, temper: Any) -> None:
     """``temper`` must lie in (0, 1]."""
     if not isinstance(temper, (int, float)) or isinstance(temper, bool) or not math.isfinite(temper) or not 0 < temper <= 1:
@@ -373,7 +379,7 @@ class BoundBeamModel(BoundSensorModel):
         p_hit = hit_density(z, mu, sigma, r, self.model.hit_dof)
 
         def p_short(dexp: NDArray[np.float64]) -> NDArray[np.float64]:
-            return np.where(z < dexp, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(dexp, 1e-6)), 0.0)
+            return short_density(z, dexp, lam)
 
         p_rand = mix.z_rand / r
         # a surface the map cannot hold, in space it does not know (maps from scans): with
@@ -416,7 +422,7 @@ class BoundBeamModel(BoundSensorModel):
                 continue
             p = np.exp(self.zone_log_likelihood(x, k)[0])
             z, r = self.z[k], np.broadcast_to(self.r[0], self.z[k].shape)
-            short = mix.z_short * np.where(z < r, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(r, 1e-6)), 0.0)
+            short = mix.z_short * short_density(z, r, lam)
             total += float(np.sum(short[valid] / np.maximum(p[valid], _LOG_TINY)))
         return total, n
 
@@ -547,7 +553,7 @@ def _fused_constants(bound: BoundBeamModel) -> dict[str, Any] | None:
     lam = bound.mixture.lambda_short
     r = np.broadcast_to(bound.r, (K, S, Z))
     z = bound.z
-    short_r = bound.mixture.z_short * np.where(z < r, lam * np.exp(-lam * z) / -np.expm1(-lam * np.maximum(r, 1e-6)), 0.0)
+    short_r = bound.mixture.z_short * short_density(z, r, lam)
     kind = np.where(bound.valid, 1, np.where(bound.no_return, 2, 0)).astype(np.int8)
     flat = lambda a: np.ascontiguousarray(np.broadcast_to(a, (S, Z)).reshape(J), dtype=float)  # noqa: E731
     steps = lambda a: np.ascontiguousarray(np.asarray(a).reshape(K, J))  # noqa: E731
