@@ -607,9 +607,9 @@ def _inlier_block(lo_p: int, hi_p: int, X: Any, Y: Any, Z: Any, layer: Any, sub_
 @_jit
 def _inlier_serial(counts: Any, bounds: Any, flat: Any, ux: Any, uy: Any, amb: Any, amb_m: Any, amb_p: Any,
                    left_p: Any, left_m: Any, n_left: Any, args: Any) -> None:  # pragma: no cover - compiled
-    for b in range(bounds.shape[0] - 1):
-        n_left[b] = _inlier_block(bounds[b], bounds[b + 1], *args, counts[b], flat[b], ux[b], uy[b], amb[b], amb_m[b],
-                                  amb_p[b], left_p[b], left_m[b])
+    """One block: every point (``bounds`` ``[0, P]``, the buffers' first rows)."""
+    n_left[0] = _inlier_block(0, bounds[-1], *args, counts[0], flat[0], ux[0], uy[0], amb[0], amb_m[0], amb_p[0],
+                              left_p[0], left_m[0])
 
 
 @_jit_parallel
