@@ -443,13 +443,11 @@ class BoundBeamModel(BoundSensorModel):
             return None
         # at an estimate whose data do not fit the map (the shared fit check's verdict) the
         # EM would explain the misfit as unmapped objects: no refit there
-        from tofloc.fit_check import OUTLIER_FRACTION_THRESHOLD, STATISTIC_THRESHOLD, fit_statistics, zone_residuals
+        from tofloc.fit_check import check_pose
 
         x = np.asarray(state, dtype=float)
         nuisance = {v.name: float(x[3 + i]) for i, v in enumerate(self.state)}
-        stat, frac, n_checked, _ = fit_statistics(zone_residuals(self.problem, x[:3], nuisance.get("support_yaw", 0.0),
-                                                                 nuisance.get("range_scale", 0.0)))
-        if n_checked == 0 or stat > STATISTIC_THRESHOLD or frac > OUTLIER_FRACTION_THRESHOLD:
+        if not check_pose(self.problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok:
             return None
         start = self.mixture
         work = copy.copy(self)  # the same bound data, its mixture replaced at each iteration

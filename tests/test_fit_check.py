@@ -18,6 +18,7 @@ from tofloc.fit_check import (
     STATISTIC_THRESHOLD,
     FitCheck,
     check_fit,
+    check_pose,
     configuration_variance,
     fit_statistics,
     nuisance_means,
@@ -174,6 +175,12 @@ def test_truth_passes_a_lost_estimate_and_a_wrong_map_are_flagged(sim: dict) -> 
     # 10 cm and 20 deg off in the right room: the zones no longer fit either
     off = check_fit(sim["problem"], Estimate(pose=sim["truth"] + [0.1, 0.0, math.radians(20)], covariance=np.eye(3)))
     assert not off.ok
+    # the same test of a bare pose (what the beam model's refit asks): the same verdicts and statistics
+    for problem, pose, check in ((sim["problem"], sim["truth"], at_truth), (sim["wall_problem"], sim["truth"], wrong),
+                                 (sim["problem"], sim["truth"] + [0.1, 0.0, math.radians(20)], off)):
+        bare = check_pose(problem, pose)
+        assert (bare.ok, bare.statistic, bare.outlier_fraction, bare.n_zones) == (check.ok, check.statistic,
+                                                                                   check.outlier_fraction, check.n_zones)
 
 
 def test_a_flagged_estimate_gets_the_priors_covariance_added(sim: dict) -> None:

@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from tofloc import numba_kernels
 from tofloc.threads import kdtree_workers
+from tofloc.zone_caster import rotate_z
 
 __all__ = ["DistanceGrid", "distance_grid_for"]
 
@@ -264,12 +265,7 @@ class DistanceGrid:
             ambiguous &= ~out
         if ambiguous.any():
             m, k = np.nonzero(ambiguous)
-            cm, sm = np.cos(poses[m, 2]), np.sin(poses[m, 2])
-            q = np.stack(
-                [cm * pts[k, 0] - sm * pts[k, 1] + poses[m, 0], sm * pts[k, 0] + cm * pts[k, 1] + poses[m, 1], pts[k, 2]],
-                axis=-1,
-            )
-            out[m, k] = self._exact_within(q, radius)
+            out[m, k] = self._exact_within(_moved_pairs(pts, poses, k, m), radius)
         return out
 
     def count_within_planar(self, points: NDArray[np.float64], poses: NDArray[np.float64]) -> NDArray[np.intp]:
@@ -338,13 +334,7 @@ class DistanceGrid:
         left = sub_state == 2
         if left.any():
             p_idx, m_idx, row = p_idx[left], m_idx[left], row[left]
-            x, y = pts[p_idx, 0], pts[p_idx, 1]
-            cm, sm = c[m_idx], s[m_idx]
-            q = np.empty((p_idx.size, 3))
-            q[:, 0] = cm * x - sm * y + poses[m_idx, 0]
-            q[:, 1] = sm * x + cm * y + poses[m_idx, 1]
-            q[:, 2] = pts[p_idx, 2]
-            inlier = self._exact_within_rows(q, row)
+            inlier = self._exact_within_rows(_moved_pairs(pts, poses, p_idx, m_idx), row)
             count += np.bincount(m_idx[inlier], minlength=M)
         return count
 
@@ -362,11 +352,7 @@ class DistanceGrid:
         if count is None:
             return None
         if left_p.size:
-            c, s = np.cos(poses[left_m, 2]), np.sin(poses[left_m, 2])
-            q = np.empty((left_p.size, 3))
-            q[:, 0] = c * X[left_p] - s * Y[left_p] + poses[left_m, 0]
-            q[:, 1] = s * X[left_p] + c * Y[left_p] + poses[left_m, 1]
-            q[:, 2] = Z[left_p]
+            q = _moved_pairs(pts, poses, left_p, left_m)
             inlier = self._exact_within_rows(q, np.full(left_p.size, -1, dtype=np.intp))
             count += np.bincount(left_m[inlier], minlength=poses.shape[0])
         return count.astype(np.intp, copy=False)
@@ -458,6 +444,16 @@ class DistanceGrid:
         flat, inside = self._cells(q.reshape(-1, 3))
         dc = np.where(inside, self.d.ravel()[flat], np.inf)
         return np.minimum(dc, self.r_max).reshape(shape)
+
+
+def _moved_pairs(pts: NDArray[np.float64], poses: NDArray[np.float64], p_idx: NDArray[np.intp],
+                 m_idx: NDArray[np.intp]) -> NDArray[np.float64]:
+    """Points ``pts[p_idx]`` moved by the planar poses ``poses[m_idx]``:
+    ``(c x - s y + t_x, s x + c y + t_y, z)`` (the exact tests' arithmetic, every path)."""
+    q = rotate_z(pts[p_idx], np.cos(poses[m_idx, 2]), np.sin(poses[m_idx, 2]))
+    q[:, 0] += poses[m_idx, 0]
+    q[:, 1] += poses[m_idx, 1]
+    return q
 
 
 def distance_grid_for(the_map: Any, cell: float, r_max: float) -> DistanceGrid:

@@ -80,6 +80,7 @@ __all__ = [
     "zone_residuals",
     "fit_statistics",
     "check_fit",
+    "check_pose",
     "widen_if_unfit",
     "nuisance_means",
 ]
@@ -317,16 +318,25 @@ def check_fit(problem: Any, estimate: Any, *, threshold: float = STATISTIC_THRES
         Thresholds of the statistic and of the outlier fraction (default: the documented
         constants derived from simulated data).
     """
+    yaw, scale = nuisance_means(estimate)
+    diag = estimate.diagnostics if isinstance(getattr(estimate, "diagnostics", None), Mapping) else {}
+    ev = diag.get("log_evidence")
+    evidence = float(ev) if isinstance(ev, (int, float, np.floating)) and not isinstance(ev, bool) else None
+    return check_pose(problem, estimate.pose, yaw, scale, threshold=threshold, outlier_threshold=outlier_threshold,
+                      ess_fraction=_ess_fraction(diag), log_evidence=evidence)
+
+
+def check_pose(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0, *,
+               threshold: float = STATISTIC_THRESHOLD, outlier_threshold: float = OUTLIER_FRACTION_THRESHOLD,
+               ess_fraction: float | None = None, log_evidence: float | None = None) -> FitCheck:
+    """:func:`check_fit` of a pose and nuisance values instead of an estimate (what a model
+    asks of a first estimate before fitting anything to it: the beam model's refit)."""
     for name, v in (("threshold", threshold), ("outlier_threshold", outlier_threshold)):
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
             raise ParameterError(f"{name} must be a finite number > 0, got {v!r}")
-    yaw, scale = nuisance_means(estimate)
-    res = zone_residuals(problem, estimate.pose, yaw, scale)
+    res = zone_residuals(problem, pose, support_yaw, range_scale)
     stat, frac, n, n_mis = fit_statistics(res)
-    diag = estimate.diagnostics if isinstance(getattr(estimate, "diagnostics", None), Mapping) else {}
-    ess = _ess_fraction(diag)
-    ev = diag.get("log_evidence")
-    evidence = float(ev) if isinstance(ev, (int, float, np.floating)) and not isinstance(ev, bool) else None
+    ess, evidence = ess_fraction, log_evidence
     if n == 0:
         return FitCheck(False, stat, float(threshold), frac, float(outlier_threshold), 0, 0,
                         "no zone to check (no valid or no-target zone)", ess, evidence)
