@@ -367,6 +367,38 @@ class ParticleFilter(Estimator):
                                                                for f in dataclasses.fields(refitted)}}
         return second
 
+    def log_target(self, problem: Problem, poses: NDArray[np.float64], estimate: Estimate) -> NDArray[np.float64]:
+        """The log of what the filter's final weighted particles stand for, up to a constant,
+        at planar poses ``(M, 3)``: the prior's log density plus, for a ``"bayes"`` model,
+        the sum over samples of each sample's log-likelihood, for a ``"replace"`` model the
+        last step's log-score (the particles are drawn from the prior and weighted by it).
+
+        The sensor model is the one the estimate ends with (the refitted one when the filter
+        refitted it, ``diagnostics["refit"]``); each declared nuisance is held at the
+        estimate's weighted mean (``diagnostics["state"]``) and adds its prior's log
+        density. Comparing it at the estimate and near the truth says whether a wrong
+        estimate is what the model prefers or what the search missed
+        (:mod:`evaluation.failure_cause`).
+        """
+        model = self.make_sensor_model()
+        diag = estimate.diagnostics if isinstance(estimate.diagnostics, Mapping) else {}
+        refit = diag.get("refit")
+        if refit is not None:
+            model = type(model)(**dict(refit["sensor_model_params"]))
+        bound = model.bind(problem)
+        P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
+        state_means = diag.get("state", {})
+        extra = [float(state_means[v.name]["mean"]) if v.name in state_means else 0.0 for v in bound.state]
+        states = np.column_stack([P] + [np.full(P.shape[0], x) for x in extra]) if extra else P
+        out = problem.prior.log_density(P)
+        for v, x in zip(bound.state, extra):
+            out = out - 0.5 * (x / v.sigma) ** 2 - math.log(math.sqrt(2.0 * math.pi) * v.sigma)
+        if model.weight_update == "replace":
+            return out + bound.log_likelihood_chunked(states, bound.n_steps - 1)
+        for k in range(bound.n_steps):
+            out = out + bound.log_likelihood_chunked(states, k)
+        return out
+
     def _filter(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator) -> Estimate:
         """One pass of the filter over the problem's samples with a bound sensor model."""
         from tofloc.problem import Prior

@@ -50,6 +50,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from evaluation.failure_cause import count_causes
 from evaluation.metrics import json_float, summarize
 from evaluation.priors import PriorSpec
 from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
@@ -379,8 +380,9 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """``n``, median and mean of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
     ``failure_rate`` (:func:`is_failure`), ``nees``, ``nees_exact_truth`` and ``nees_model``
     (mean, median, n: the trials with a defined NEES; see the module doc), ``widened`` (trials
-    whose fit check failed, their covariance widened by the prior's) and the median ``runtime_s``
-    (those the records have)."""
+    whose fit check failed, their covariance widened by the prior's), the median ``runtime_s``
+    and ``failure_causes`` (counts of the failed trials by cause, ``{"model", "search",
+    "unattributed"}``: :func:`evaluation.failure_cause.count_causes`) (those the records have)."""
     n = len(records)
     fails = sum(is_failure(r) for r in records)
     out: dict[str, Any] = {
@@ -400,6 +402,9 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         out["widened"] = int(sum(bool(r.get("covariance_widened")) for r in records))
     if any("runtime_s" in r for r in records):
         out["runtime_s"] = summarize(_values(records, "runtime_s"), keys=("median",))
+    causes = count_causes(records)
+    if causes is not None:
+        out["failure_causes"] = causes
     return out
 
 

@@ -26,6 +26,10 @@ def _row(name: str, s: Mapping[str, Any]) -> str:
     wid = s.get("widened")
     rt = (s.get("runtime_s") or {}).get("median")
     fails = f"{s['failures']}/{s['n']} ({_f(s['failure_rate'], '.0%')})"
+    causes = s.get("failure_causes")
+    if causes and s["failures"]:
+        fails += f": model {causes['model']}, search {causes['search']}" + (
+            f", unattributed {causes['unattributed']}" if causes["unattributed"] else "")
     return (f"| {name} | {_f(s['e_x_m']['median'], '.1f', 1000)} | {_f(s['e_gamma_deg']['median'], '.2f')} | "
             f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
             f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(exact.get('mean'), '.2f')} | "
@@ -67,7 +71,11 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
         "NEES: 3 for a consistent estimator (chi2(3)); an estimate whose data do not fit the map (the fit check, "
         "tofloc/fit_check.py) has the prior's covariance added to its own (flagged column); the last NEES column "
-        "is the estimator's own covariance before that; runtime: median seconds per trial.",
+        "is the estimator's own covariance before that; runtime: median seconds per trial. "
+        "A failure's cause (evaluation/failure_cause.py): `model` when the estimator's own target is at least as "
+        "high at its wrong estimate as near the truth (the model, map or data prefer the wrong answer), `search` "
+        "when it is higher near the truth (the search missed it), unattributed for an estimator that cannot "
+        "evaluate its target.",
         truth_sentence(doc),
         "",
         "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "

@@ -496,7 +496,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         (a second mode holds more than :data:`tofloc.posterior_modes.AMBIGUOUS_SHARE`),
         ``found`` (the estimate within 1 cm and 1 deg of the truth, :func:`evaluation.metrics.found`)
         and ``truth_mode`` (the index of the first mode that is, None when none; both None
-        without truth).
+        without truth), ``failure_cause``: for a failed trial (:func:`evaluation.evaluate.is_failure`),
+        whether the estimator's own target prefers its wrong estimate to the truth
+        (``"model"``) or not (``"search"``), :func:`evaluation.failure_cause.failure_cause`;
+        None for a trial that did not fail or has no truth.
     """
     from tofloc.posterior_modes import is_ambiguous, modes_of_estimate
 
@@ -531,6 +534,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "ambiguous": is_ambiguous(modes),
         "found": None,
         "truth_mode": None,
+        "failure_cause": None,
     }
     if out.selection is not None:
         record["selection"] = out.selection.to_json()
@@ -552,6 +556,13 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
             record["truth_covariance"] = jsonable(P_truth)
             record["nees"] = json_float(nees(truth, result.pose, np.asarray(result.covariance, dtype=float) + P_truth))
             record["nees_model"] = json_float(nees(truth, result.pose, C_model + P_truth))
+        from evaluation.evaluate import is_failure
+
+        if is_failure(record):  # the model's preference or a missed search (evaluation/failure_cause.py)
+            from evaluation.failure_cause import failure_cause
+
+            est = make_estimator(task.estimator_cls, task.params, task.estimator)
+            record["failure_cause"] = jsonable(failure_cause(est, problem, result, truth, P_truth, task.seed))
         if hasattr(context.map, "raycast"):  # a map that cannot be ray cast gives no bound
             from evaluation.crlb import crlb_bounds_for_problem
 

@@ -9,6 +9,7 @@ scikit-learn's estimators); :meth:`Estimator.estimate` takes a problem and an ex
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -108,6 +109,21 @@ class Prior:
         """Full base poses ``(..., 4, 4)`` of planar poses ``(..., 3)`` with the known z, roll, pitch."""
         p = np.asarray(xyyaw, dtype=float)
         return frames.se3_from_xyyaw(p[..., 0], p[..., 1], p[..., 2], self.z, self.roll, self.pitch)
+
+    def log_density(self, xyyaw: ArrayLike) -> NDArray[np.float64]:
+        """Log prior density ``(M,)`` of planar poses ``(M, 3)`` (yaw differences wrapped).
+
+        Gaussian: ``-0.5 * sum(((p - mean) / sigma)**2) - log((2 pi)^1.5 * prod(sigma))``.
+        Global: ``-log(area * 2 pi)`` inside the free space, ``-inf`` outside.
+        """
+        p = np.atleast_2d(np.asarray(xyyaw, dtype=float))
+        if self.free_space is not None:
+            inside = self.free_space.contains(p[:, :2])
+            return np.where(inside, -math.log(self.free_space.area * 2.0 * math.pi), -np.inf)
+        d = p[:, :3] - self.mean
+        d[:, 2] = frames.wrap_angle(d[:, 2])
+        z = d / self.sigma
+        return -0.5 * np.sum(z * z, axis=1) - math.log((2.0 * math.pi) ** 1.5 * float(np.prod(self.sigma)))
 
     def sample(self, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
         """``n`` draws ``(n, 3)`` (yaw wrapped)."""
