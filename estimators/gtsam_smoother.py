@@ -256,6 +256,31 @@ class GTSAMSmoother(Estimator):
         return cand[picked]
 
     # -- the estimator ---------------------------------------------------------------------------
+    #: Poses :meth:`log_target` is asked for near an uncertain truth (one solve each), see
+    #: :mod:`evaluation.failure_cause`
+    target_candidates: ClassVar[int] = 20
+
+    def log_target(self, problem: Problem, poses: FloatArray, estimate: Estimate) -> FloatArray:
+        """The smoother's target at base poses ``(M, 3)``: minus the final graph error (the
+        robust whitened zone residuals, gated zones at their constant cost, the prior on
+        ``X`` and the configuration and nuisance factors: a negative log posterior up to a
+        constant) with the base held at each pose and every other variable optimized, data
+        association included (``solve_batch(..., fix_base=True)``): the target profiled
+        over the configurations and nuisances. ``-inf`` where the solve meets an
+        indeterminant system. One solve per pose (a failed trial's few, not a hot path);
+        ``estimate`` is not needed (its other variables are optimized again)."""
+        graph = SmootherGraph(self, problem)
+        meas0 = measurements(problem)
+        P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
+        out = np.full(P.shape[0], -np.inf)
+        for i in range(P.shape[0]):
+            try:
+                out[i] = -float(graph.solve_batch(meas0, P[i], fix_base=True)["error"])
+            except RuntimeError as e:
+                if not is_indeterminate(e):
+                    raise
+        return out
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         from gtsam.symbol_shorthand import D as Dk, X as Xk
 

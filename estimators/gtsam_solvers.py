@@ -29,7 +29,7 @@ from tofloc.problem import Problem
 if TYPE_CHECKING:
     from estimators.gtsam_smoother import GTSAMSmoother
 
-__all__ = ["SmootherGraph", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M"]
+__all__ = ["SmootherGraph", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M", "FIXED_BASE_SIGMA"]
 
 FloatArray = NDArray[np.float64]
 #: A round that moves the base by less than this (m, rad) ends the association loop even if
@@ -39,6 +39,9 @@ _STILL = 1e-5
 #: held (numerically) at zero, so ``D`` is the support's rotation about the tip's z axis.
 D_FIXED_SIGMA_RAD = 1e-5
 D_FIXED_SIGMA_M = 1e-6
+#: Prior sigma (m, rad) that holds the base pose where a profiled solve puts it
+#: (``solve_batch(..., fix_base=True)``).
+FIXED_BASE_SIGMA = 1e-6
 
 
 def is_indeterminate(e: BaseException) -> bool:
@@ -174,13 +177,22 @@ class SmootherGraph:
         return d
 
     # -- batch solve ---------------------------------------------------------------------------
-    def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray) -> dict[str, Any]:
-        """Association rounds, each followed by Levenberg-Marquardt, from ``start``."""
+    def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False) -> dict[str, Any]:
+        """Association rounds, each followed by Levenberg-Marquardt, from ``start``.
+
+        ``fix_base``: the base pose is held at ``start`` (a prior of :data:`FIXED_BASE_SIGMA`
+        on it) and only the configurations and nuisances are optimized: the graph's error
+        profiled over them at that base pose (:meth:`estimators.gtsam_smoother.GTSAMSmoother.log_target`).
+        """
         import gtsam
+        from gtsam.symbol_shorthand import X as Xk
 
         est = self.est
         K = self.problem.n_samples
         priors = self.priors()
+        if fix_base:
+            priors.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*np.asarray(start, dtype=float)[:3]),
+                                              gtsam.noiseModel.Isotropic.Sigma(3, FIXED_BASE_SIGMA)))
         values = self.initial_values(start)
         gates = self.gates()
         iterations, rounds, converged = 0, 0, False

@@ -14,10 +14,13 @@ from the truth's declared uncertainty (``/truth/T_map_base_cov``; without one, t
 alone), the nuisances held at the estimate's values: the best of them stands for the
 target's local maximum at the truth (a truth known to 2 deg is not the model's optimum to
 2 deg). Draws use a generator seeded from the trial's seed, so a record is reproducible.
+An estimator whose target is costly to evaluate says how many poses it is asked for
+(``target_candidates``: the GTSAM smoother, one profiled solve a pose, 20).
 
 Only estimators that can evaluate their target implement ``log_target(problem, poses,
-estimate) -> (M,)`` (the particle filters: :meth:`estimators.particle_filter.ParticleFilter.log_target`);
-for the others the cause is ``None`` with the reason.
+estimate) -> (M,)`` (the particle filters: :meth:`estimators.particle_filter.ParticleFilter.log_target`;
+the smoother: :meth:`estimators.gtsam_smoother.GTSAMSmoother.log_target`); for the others
+the cause is ``None`` with the reason.
 """
 
 from __future__ import annotations
@@ -31,18 +34,19 @@ from tofloc import frames
 
 __all__ = ["TRUTH_CANDIDATES", "CAUSES", "failure_cause", "count_causes"]
 
-#: Poses scored near the truth: the truth and this many minus one draws around it.
+#: Poses scored near the truth: the truth and this many minus one draws around it (unless
+#: the estimator says fewer, ``target_candidates``).
 TRUTH_CANDIDATES = 1000
 #: The causes a failed trial can be given.
 CAUSES = ("model", "search")
 
 
-def _candidates(truth: NDArray[np.float64], truth_cov: NDArray[np.float64] | None, seed: int) -> NDArray[np.float64]:
-    if truth_cov is None:
+def _candidates(truth: NDArray[np.float64], truth_cov: NDArray[np.float64] | None, seed: int, n: int) -> NDArray[np.float64]:
+    if truth_cov is None or n <= 1:
         return truth[None, :].copy()
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED]))
     C = np.asarray(truth_cov, dtype=float)
-    draws = rng.multivariate_normal(truth, C, size=TRUTH_CANDIDATES - 1, method="eigh")
+    draws = rng.multivariate_normal(truth, C, size=n - 1, method="eigh")
     P = np.vstack([truth[None, :], draws])
     P[:, 2] = frames.wrap_angle(P[:, 2])
     return P
@@ -78,7 +82,8 @@ def failure_cause(estimator: Any, problem: Any, estimate: Any, truth: ArrayLike,
     if not callable(score):
         return {"cause": None, "reason": f"{type(estimator).__name__} does not evaluate its target (no log_target)"}
     t = np.asarray(truth, dtype=float)[:3]
-    cand = _candidates(t, None if truth_cov is None else np.asarray(truth_cov, dtype=float), seed)
+    n = int(getattr(estimator, "target_candidates", TRUTH_CANDIDATES))
+    cand = _candidates(t, None if truth_cov is None else np.asarray(truth_cov, dtype=float), seed, n)
     at_truth = np.asarray(score(problem, cand, estimate), dtype=float)
     at_est = float(np.asarray(score(problem, np.asarray(estimate.pose, dtype=float)[None, :3], estimate), dtype=float)[0])
     finite = np.where(np.isfinite(at_truth), at_truth, -np.inf)

@@ -82,10 +82,23 @@ def test_log_target_is_prior_plus_the_models_steps(sim: dict) -> None:
                                problem.prior.log_density(poses) + b.log_likelihood(poses, problem.n_samples - 1), rtol=1e-10)
 
 
+def test_the_smoothers_target_is_its_graph_error_profiled_at_the_base(sim: dict) -> None:
+    """At its own optimum the profiled target is minus the solve's final error; elsewhere lower."""
+    from estimators.gtsam_smoother import GTSAMSmoother
+
+    est = GTSAMSmoother()
+    res = est.estimate(sim["problem"], np.random.default_rng(0))
+    at = est.log_target(sim["problem"], np.vstack([res.pose, res.pose + [0.03, 0.0, 0.0]]), res)
+    assert at[0] == pytest.approx(-res.diagnostics["final_error"], rel=1e-3, abs=1e-3)
+    assert at[1] < at[0] - 1.0
+
+
 def test_the_cause_is_the_search_on_the_right_map_and_the_model_on_a_moved_one(sim: dict) -> None:
+    from estimators.gtsam_smoother import GTSAMSmoother
+
     truth = sim["truth"]
     off = Estimate(pose=truth + [0.15, 0.0, 0.0], covariance=np.eye(3))
-    for est in (BeamPF(), ICPScorePF()):
+    for est in (BeamPF(), ICPScorePF(), GTSAMSmoother()):
         right = failure_cause(est, sim["problem"], off, truth, None, seed=1)
         assert right["cause"] == "search" and right["candidates"] == 1, right
         assert right["log_target_near_truth"] > right["log_target_estimate"]
@@ -107,6 +120,9 @@ def test_an_uncertain_truth_is_searched_around_reproducibly(sim: dict) -> None:
     at_truth = float(est.log_target(sim["problem"], truth[None], off)[0])
     assert a["log_target_near_truth"] >= at_truth
     assert np.hypot(*(np.asarray(a["best_near_truth"][:2]) - truth[:2])) < 0.06  # within the draws' spread
+    from estimators.gtsam_smoother import GTSAMSmoother
+
+    assert failure_cause(GTSAMSmoother(), sim["problem"], off, truth, C, seed=7)["candidates"] == GTSAMSmoother.target_candidates
 
 
 def test_an_estimator_without_a_target_is_unattributed_and_counts_add_up(sim: dict) -> None:
