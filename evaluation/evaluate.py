@@ -67,6 +67,7 @@ __all__ = [
     "log_labels",
     "log_seed",
     "prepare_logs",
+    "batch_group",
     "run_estimators",
     "oracle_floor",
     "is_failure",
@@ -229,7 +230,8 @@ def prepare_logs(
     return out
 
 
-def _group(entry: EvalLog, est: str) -> str:
+def batch_group(entry: EvalLog, est: str) -> str:
+    """The name of a (log, estimator) batch of trials: ``label/estimator``."""
     return f"{entry.label}/{est}"
 
 
@@ -296,7 +298,7 @@ def run_estimators(
             })
             if partial_dir is not None:
                 try:
-                    saved = json.loads(_partial_path(partial_dir, _group(en, e.name)).read_text())
+                    saved = json.loads(_partial_path(partial_dir, batch_group(en, e.name)).read_text())
                 except (OSError, ValueError):
                     saved = None
                 if isinstance(saved, dict) and saved.get("key") == key and isinstance(saved.get("records"), list) \
@@ -315,7 +317,7 @@ def run_estimators(
     contexts: dict[str, TrialContext] = {}
     keys: dict[str, tuple[EvalLog, EstimatorSpec, str]] = {}
     for en, e, key in todo:
-        g = _group(en, e.name)
+        g = batch_group(en, e.name)
         contexts[g] = en.context
         keys[g] = (en, e, key)
         seeds = en.trial_seeds(trials)

@@ -14,7 +14,8 @@ What it shows, in the map's x-y plane:
   makes it visible (the legend says by how much: "x 10");
 * every valid zone's point placed at the estimate, coloured by the data-fit check
   (:mod:`tofloc.fit_check`): within 3 sigma of the map, beyond, or a misfit (a reading
-  where the map has no surface in range).
+  where the map has no surface in range); optionally (``zones_at_truth``, the failure
+  plots of ``tofloc evaluate``) the same points placed at the truth.
 
 The title says whether the data fit the map at the estimate.
 """
@@ -84,7 +85,7 @@ def _ellipse(center: NDArray[np.float64], cov: NDArray[np.float64], n_sigma: flo
 
 
 def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDArray[np.float64] | None = None,
-                      title: str = "") -> Path:
+                      title: str = "", zones_at_truth: bool = False) -> Path:
     """Draw one localization (see the module doc) into ``path`` (PNG, written atomically).
 
     Parameters
@@ -96,6 +97,10 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         The true ``(x, y, yaw)``.
     title : str
         First line of the title.
+    zones_at_truth : bool
+        Also place every valid zone at the truth (blue rings in the top view): where the
+        data and the map disagree there (walls the map lacks, a map surface the readings
+        pass through) is what a wrong estimate may have been preferred for.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
@@ -120,6 +125,10 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     T = prior.T_map_base(pose)
     pts_map = pts @ T[:3, :3].T + T[:3, 3]
     valid = problem.valid
+    pts_truth = None
+    if zones_at_truth and truth is not None:
+        T_truth = prior.T_map_base(np.asarray(truth, dtype=float)[:3])
+        pts_truth = (pts @ T_truth[:3, :3].T + T_truth[:3, 3])[valid]
     misfit = res.misfit & valid
     with np.errstate(invalid="ignore"):
         beyond = valid & ~misfit & (np.abs(np.nan_to_num(res.r)) > 3.0)
@@ -143,6 +152,8 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     zp = pts_map[valid][:, :2]
     if zp.size:
         xy.append(zp)
+    if pts_truth is not None and pts_truth.size:
+        xy.append(pts_truth[:, :2])
     allxy = np.concatenate(xy)
     lo, hi = allxy.min(axis=0), allxy.max(axis=0)
     view = float(max(hi - lo))
@@ -193,6 +204,9 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
             if misfit.any():
                 a.scatter(pts_map[misfit][:, 0], pts_map[misfit][:, 1], s=10, c="tab:red", lw=0,
                           label="misfit zones: no surface expected in range")
+            if pts_truth is not None and pts_truth.size:
+                a.scatter(pts_truth[:, 0], pts_truth[:, 1], s=14, facecolors="none", edgecolors="tab:blue", lw=0.7,
+                          label="zones placed at the truth")
             pc = _ellipse(prior.mean[:2], np.diag(prior.sigma[:2] ** 2), 2.0, 1.0)
             a.plot(pc[:, 0], pc[:, 1], "--", color="tab:gray", lw=1.4, label="prior: 2-sigma circle")
             a.plot(*prior.mean[:2], "o", mfc="none", mec="tab:gray", mew=1.5, ms=10, label="prior mean")

@@ -5,6 +5,7 @@ ParticleFilter.log_target)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -160,3 +161,28 @@ def test_a_failed_trial_records_its_cause_and_a_good_one_none(sim: dict) -> None
     s = error_summary([rec, good])
     assert s["failures"] == 1 and s["failure_causes"] == {**{"model": 0, "search": 0}, rec["failure_cause"]["cause"]: 1,
                                                          "unattributed": 0}
+
+
+def test_evaluate_draws_each_failed_trial_from_its_seed(sim: dict, tmp_path) -> None:
+    """`tofloc evaluate --plot-failures N`: a prior far too wide for 10 particles makes trials
+    fail; the first N failures are drawn (the re-run reproduces each recorded estimate), none
+    when N = 0; a bad N is refused naming the option."""
+    from evaluation.failure_plots import failed_trials, failure_plot_name
+    from tofloc.cli import main
+
+    out = tmp_path / "ev"
+    args = ["evaluate", str(sim["log_path"]), "--estimators", "beam_pf", "--trials", "4", "--samples", "2",
+            "--prior-sigma-xy", "0.6", "--prior-sigma-yaw-deg", "90", "--param", "n_particles=10", "--workers", "1",
+            "--out", str(out)]
+    assert main(args + ["--plot-failures", "2"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    failed = failed_trials(doc)
+    assert len(failed) >= 2  # the set-up fails on purpose
+    drawn = sorted(p.name for p in (out / "failures").iterdir())
+    assert drawn == sorted(failure_plot_name(lab, est, r["trial"]) for lab, est, r in failed[:2])
+    assert all((out / "failures" / n).stat().st_size > 20_000 for n in drawn)
+    for _, _, r in failed:
+        assert r["failure_cause"]["cause"] in ("model", "search")
+    assert "model" in (out / "table.md").read_text().split("| beam_pf |")[1].split("\n")[0]
+    assert main(args + ["--out", str(tmp_path / "none")]) == 0 and not (tmp_path / "none" / "failures").exists()
+    assert main(args + ["--plot-failures", "-1"]) == 2

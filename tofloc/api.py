@@ -46,10 +46,13 @@ __all__ = [
     "resolve_workers",
     "check_selection",
     "MAX_TRIALS",
+    "MAX_FAILURE_PLOTS",
 ]
 
 #: Largest number of trials or samples a run accepts (bounds the work a typo can ask for).
 MAX_TRIALS = 100_000
+#: Most failed trials ``evaluate`` draws (each is solved again).
+MAX_FAILURE_PLOTS = 1000
 
 
 class Reporter:
@@ -755,10 +758,12 @@ def evaluate(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
+    plot_failures: int = 0,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor; ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
-    in ``out`` (finished batches in ``out/partial``, reused by a rerun).
+    in ``out`` (finished batches in ``out/partial``, reused by a rerun), and with
+    ``plot_failures`` a picture of each of the first failed trials in ``out/failures``.
 
     Parameters
     ----------
@@ -791,6 +796,9 @@ def evaluate(
     reporter : Reporter
     selection : str
         How each trial's samples are chosen among the log's (:func:`check_selection`).
+    plot_failures : int
+        Draw at most this many failed trials, each solved again from its seed
+        (:mod:`evaluation.failure_plots`; 0: none).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -820,6 +828,8 @@ def evaluate(
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if not logs:
         raise ParameterError("evaluate needs at least one log")
+    if not isinstance(plot_failures, int) or isinstance(plot_failures, bool) or not 0 <= plot_failures <= MAX_FAILURE_PLOTS:
+        raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     check_selection(selection)
     ests = {n: estimator(n, params) for n in names}
@@ -858,4 +868,9 @@ def evaluate(
         plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
         plot_nees(doc, out_dir / "nees.png"),
     ]
+    if plot_failures:
+        from evaluation.failure_plots import plot_failures as draw_failures
+
+        paths += draw_failures(entries, specs, doc, prior, out_dir / "failures", plot_failures, selection=selection,
+                               on_progress=lambda d, t: reporter.progress(d, t, "failure plots"))
     return EvaluateResult(doc, paths)

@@ -2,7 +2,8 @@
 for all, against each trial's oracle floor.
 
 ``DIR/results.json`` (every trial, per log and estimator; summaries; the oracle floor and
-each estimator's ratio to it), ``DIR/table.md``, ``DIR/errors_cdf.png``, ``DIR/nees.png``;
+each estimator's ratio to it), ``DIR/table.md``, ``DIR/errors_cdf.png``, ``DIR/nees.png``,
+with ``--plot-failures N`` ``DIR/failures/*.png``;
 finished (log, estimator) batches in ``DIR/partial/``, reused by a rerun with the same
 arguments. The work is :func:`tofloc.api.evaluate`; this module parses and prints.
 """
@@ -45,6 +46,9 @@ def evaluate(
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),
+    plot_failures: int = typer.Option(0, "--plot-failures", metavar="N", help="Draw the first N failed trials (solved "
+                                      "again from their seeds) into DIR/failures/: map, zones at the estimate and at the "
+                                      "truth, the failure's cause."),
 ) -> None:
     """Compare estimators on many logs with ground truth: paired trials, the oracle floor."""
     from tofloc import api
@@ -69,6 +73,8 @@ def evaluate(
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if workers is not None and workers < 1:
         raise ParameterError(f"--workers must be >= 1, got {workers}")
+    if not 0 <= plot_failures <= api.MAX_FAILURE_PLOTS:
+        raise ParameterError(f"--plot-failures must be in [0, {api.MAX_FAILURE_PLOTS}], got {plot_failures}")
     statuses = parse_statuses(valid_statuses)
     params = parse_params(param)
     for n in names:  # unknown names and parameters: refused before any log is read
@@ -80,6 +86,7 @@ def evaluate(
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, params=params,
             valid_statuses=statuses,
             seed=seed, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
+            plot_failures=plot_failures,
         )
     console.print(summary_table(run.document))
     for p in run.paths:

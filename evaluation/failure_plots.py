@@ -1,0 +1,112 @@
+"""One picture per failed trial of ``tofloc evaluate --plot-failures N``.
+
+Each failed trial (:func:`evaluation.evaluate.is_failure`, in log, estimator and trial
+order, at most ``N``) is solved again in this process from its recorded seed (same seed,
+same numbers) and drawn by :func:`evaluation.localize_plot.plot_localization` with the
+zones placed both at the estimate and at the truth, the title giving the errors and the
+failure's cause (:mod:`evaluation.failure_cause`): ``DIR/failures/<log>__<estimator>__trial<t>.png``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+__all__ = ["failed_trials", "plot_failures", "failure_plot_name"]
+
+
+def failed_trials(doc: Mapping[str, Any]) -> list[tuple[str, str, dict[str, Any]]]:
+    """``(log label, estimator, record)`` of every failed trial of a ``results.json``
+    document, in log, estimator and trial order."""
+    from evaluation.evaluate import is_failure
+
+    out = []
+    for label, lg in doc["logs"].items():
+        for name, est in lg["estimators"].items():
+            out += [(label, name, r) for r in est["records"] if is_failure(r)]
+    return out
+
+
+def failure_plot_name(label: str, estimator: str, trial: int) -> str:
+    """The file name of a failed trial's picture (a label's path separators become ``_``)."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", f"{label}__{estimator}__trial{int(trial)}") + ".png"
+
+
+def _title(label: str, name: str, rec: Mapping[str, Any], same: bool) -> str:
+    fc = rec.get("failure_cause") or {}
+    cause = fc.get("cause")
+    if cause is None:
+        why = f"cause unattributed ({fc.get('reason', 'not recorded')})"
+    else:
+        why = (f"cause: {cause} (the estimator's log target {fc['log_target_estimate']:.1f} at its estimate, "
+               f"{fc['log_target_near_truth']:.1f} near the truth)")
+    title = (f"{name} on {label}, trial {rec['trial']}: FAILED, e_x {1000 * float(rec['e_x_m']):.0f} mm, "
+             f"e_gamma {float(rec['e_gamma_deg']):.1f} deg; {why}")
+    if not same:
+        title += " [the re-run's estimate differs from the record's]"
+    return title
+
+
+def plot_failures(
+    entries: Sequence[Any],
+    specs: Sequence[Any],
+    doc: Mapping[str, Any],
+    prior: Any,
+    out_dir: Path,
+    limit: int,
+    *,
+    selection: str = "random",
+    on_progress: Callable[[int, int], None] | None = None,
+) -> list[Path]:
+    """Draw up to ``limit`` failed trials of ``doc`` into ``out_dir`` (see the module doc).
+
+    Parameters
+    ----------
+    entries : sequence of evaluation.evaluate.EvalLog
+        The run's logs (their trial contexts).
+    specs : sequence of evaluation.evaluate.EstimatorSpec
+        The run's estimators.
+    doc : dict
+        The run's ``results.json`` document.
+    prior : evaluation.priors.PriorSpec
+    out_dir : Path
+        Created when there is something to draw.
+    limit : int
+        At most this many pictures (0: none).
+    selection : str
+        The run's selection policy.
+    on_progress : callable, optional
+        ``on_progress(done, total)``.
+
+    Returns
+    -------
+    list of Path
+        The pictures written.
+    """
+    from evaluation.evaluate import TIP_SOURCE, batch_group
+    from evaluation.localize_plot import plot_localization
+    from evaluation.trials import TrialTask, solve_trial
+
+    todo = failed_trials(doc)[: max(int(limit), 0)]
+    if not todo:
+        return []
+    by_label = {en.label: en for en in entries}
+    by_name = {s.name: s for s in specs}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for i, (label, name, rec) in enumerate(todo):
+        en, spec = by_label[label], by_name[name]
+        task = TrialTask(batch_group(en, name), name, spec.cls, dict(spec.params), TIP_SOURCE, prior, en.k, int(rec["trial"]),
+                         int(rec["seed"]), selection)
+        out = solve_trial(en.context, task)
+        same = bool(np.allclose(np.asarray(out.estimate.pose, dtype=float), np.asarray(rec["estimate"], dtype=float),
+                                rtol=0.0, atol=1e-9))
+        written.append(plot_localization(out_dir / failure_plot_name(label, name, rec["trial"]), out.problem, out.estimate,
+                                         np.asarray(rec["truth"], dtype=float), title=_title(label, name, rec, same),
+                                         zones_at_truth=True))
+        if on_progress is not None:
+            on_progress(i + 1, len(todo))
+    return written
