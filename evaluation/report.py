@@ -16,6 +16,7 @@ import numpy as np
 
 from tofloc.atomic import atomic_path
 
+from evaluation.failure_cause import count_causes
 from evaluation.metrics import json_float, summarize
 
 __all__ = [
@@ -130,7 +131,8 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         plus ``"nees": {"mean", "n"}`` when at least one trial has a defined NEES,
         ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound and
         ``"fit": {"checked", "not_ok", "ambiguous"}`` (:func:`fit_summary`) when the trials
-        carry a data-fit check, ``"found"`` (:func:`found_summary`) when they record it. The
+        carry a data-fit check, ``"found"`` (:func:`found_summary`) when they record it,
+        ``"failure_causes"`` when failed trials record their cause. The
         error entries are ``None`` when no trial has a truth.
     """
     out: dict[str, Any] = {}
@@ -154,8 +156,9 @@ def setup_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def _add_nees_and_crlb(
     out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
 ) -> None:
-    """Add ``nees``, ``crlb`` (and ``crlb_map_tolerance``, ``crlb_all_valid``), ``fit`` and
-    ``found`` summaries to ``out`` where the trials define them."""
+    """Add ``nees``, ``crlb`` (and ``crlb_map_tolerance``, ``crlb_all_valid``), ``fit``,
+    ``found`` and ``failure_causes`` (:func:`evaluation.failure_cause.count_causes`)
+    summaries to ``out`` where the trials define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=nees_keys)
@@ -169,6 +172,9 @@ def _add_nees_and_crlb(
     hits = found_summary(records)
     if hits is not None:
         out["found"] = hits
+    causes = count_causes(records)
+    if causes is not None:
+        out["failure_causes"] = causes
 
 
 def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:

@@ -186,3 +186,12 @@ def test_evaluate_draws_each_failed_trial_from_its_seed(sim: dict, tmp_path) -> 
     assert "model" in (out / "table.md").read_text().split("| beam_pf |")[1].split("\n")[0]
     assert main(args + ["--out", str(tmp_path / "none")]) == 0 and not (tmp_path / "none" / "failures").exists()
     assert main(args + ["--plot-failures", "-1"]) == 2
+
+
+def test_localize_and_paper_summaries_count_the_causes() -> None:
+    from evaluation.report import summarize_trials
+
+    recs = [{"e_x_m": 0.2, "e_gamma_deg": 1.0, "runtime_s": 1.0, "failure_cause": {"cause": "model"}},
+            {"e_x_m": 0.001, "e_gamma_deg": 0.1, "runtime_s": 1.0, "failure_cause": None}]
+    assert summarize_trials(recs)["failure_causes"] == {"model": 1, "search": 0, "unattributed": 0}
+    assert "failure_causes" not in summarize_trials(recs[1:])
