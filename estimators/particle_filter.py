@@ -283,6 +283,10 @@ class ParticleFilter(Estimator):
     def uses_calibration(self) -> bool:
         return bool(self.make_sensor_model().uses_calibration)
 
+    def calibration_footprint(self) -> int:
+        """The sensor model's (:meth:`sensor_models.base.SensorModel.calibration_footprint`)."""
+        return int(self.make_sensor_model().calibration_footprint())
+
     @property
     def particles_floor(self) -> int:
         """The fewest particles KLD sampling keeps (``min_particles``, default ``n_particles``)."""

@@ -88,7 +88,7 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapC
             est = make_estimator(task.estimator_cls, task.params, task.estimator)
             idx, normals = draw_samples_and_prior(ctx.pool.indices, 1, task.seed)
             prior = task.prior.make(ctx.truth(idx), normals, ctx.map)  # a global prior: its free space is cached too
-            calibration = ctx.calibration if est.uses_calibration() else None
+            calibration = ctx.calibration_for(est)
             problem = problem_from_log(ctx.log, idx, ctx.map, prior, task.tip_source, ctx.kinematics, calibration,
                                        ctx.valid_statuses)
             if hasattr(est, "make_sensor_model"):

@@ -20,11 +20,18 @@ from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
 
 __all__ = ["PaperData", "prepare_data", "calibrate_for_paper", "calibration_session", "LOG_NAME", "KNN_NAME",
-           "CALIBRATION_NAME", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET", "KNN_STREAM"]
+           "CALIBRATION_NAME", "calibration_name", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET", "KNN_STREAM"]
 
 LOG_NAME = "paper.h5"
 KNN_NAME = "knn.npz"
 CALIBRATION_NAME = "sensor_model.toml"
+
+
+def calibration_name(footprint: int = 1) -> str:
+    """The calibration file of ``tofloc paper`` for models casting ``footprint`` sub-rays per
+    zone side: :data:`CALIBRATION_NAME` for the centre ray, ``sensor_model.footprint<n>.toml``
+    otherwise."""
+    return CALIBRATION_NAME if int(footprint) == 1 else f"sensor_model.footprint{int(footprint)}.toml"
 #: Mixed into the run seed for the k-NN split, so the split and the trials use distinct streams.
 KNN_STREAM = 0x6B6E6E
 #: Name of the calibration session simulated beside the log.
@@ -228,7 +235,7 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
     key = fingerprint_arrays(cal_log_used.distance_mm, cal_log_used.status, cal_log_used.T_base_tip, cal_log_used.T_map_base,
                              extra={"map": data.map.fingerprint(), "rig": cal_log_used.rig.to_dict(), "footprint": sub_rays,
                                     "code": code_fingerprint()})
-    path = out / CALIBRATION_NAME
+    path = out / calibration_name(sub_rays)
     if path.exists():
         try:
             old = SensorCalibration.from_toml(path)

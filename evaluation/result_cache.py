@@ -76,7 +76,8 @@ class Batch:
 
 def context_fingerprint(context: TrialContext) -> str:
     """Identifies the data a run used: the log's arrays, the map (:meth:`~tofloc.maps.Map.fingerprint`),
-    the k-NN model, the pool, the valid statuses, the calibration and the map's declared tolerance."""
+    the k-NN model, the pool, the valid statuses, the calibration (and those of other
+    footprints, when there are any) and the map's declared tolerance."""
     log, kin = context.log, context.kinematics
     cal = context.calibration
     return fingerprint_arrays(
@@ -90,6 +91,8 @@ def context_fingerprint(context: TrialContext) -> str:
         extra={"map": context.map.fingerprint(), "rig": log.rig.to_dict(), "k": None if kin is None else int(kin.k),
                "valid_statuses": sorted(context.valid_statuses),
                "calibration": None if cal is None else cal.to_dict(),
+               **({"footprint_calibrations": {str(f): c.to_dict() for f, c in sorted(context.footprint_calibrations.items())}}
+                  if getattr(context, "footprint_calibrations", None) else {}),
                "configuration_source": getattr(log, "configuration_source", None),
                "map_tolerance_m": float(getattr(context, "map_tolerance_m", 0.0))},
     )

@@ -310,6 +310,10 @@ class TrialContext:
     map_tolerance_m : float
         The map's declared face tolerance (m; 0: exact), counted by the Cramér-Rao bound
         (:func:`evaluation.crlb.map_tolerance_information`); the estimators do not see it.
+    footprint_calibrations : dict of int to SensorCalibration
+        Calibrations fitted with other footprints than the centre ray's, for estimators
+        whose model casts one (:meth:`~tofloc.problem.Estimator.calibration_footprint`;
+        :meth:`calibration_for`); ``calibration`` serves every other estimator and the bound.
     """
 
     log: Any
@@ -319,6 +323,7 @@ class TrialContext:
     valid_statuses: frozenset[int] = DEFAULT_VALID_STATUSES
     calibration: Any | None = None
     map_tolerance_m: float = 0.0
+    footprint_calibrations: Mapping[int, Any] = field(default_factory=dict)
     _truth_xyyaw: NDArray[np.float64] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -342,6 +347,13 @@ class TrialContext:
     @property
     def has_truth(self) -> bool:
         return self.log.T_map_base is not None
+
+    def calibration_for(self, est: Estimator) -> Any | None:
+        """The calibration ``est`` gets: None when it uses none; the one fitted with its
+        footprint when there is one; else :attr:`calibration`."""
+        if not est.uses_calibration():
+            return None
+        return self.footprint_calibrations.get(int(est.calibration_footprint()), self.calibration)
 
     def truth(self, indices: NDArray[np.intp]) -> NDArray[np.float64] | None:
         """The true base pose ``(4, 4)`` for these samples, None without truth.
@@ -444,7 +456,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     truth_T = context.truth(idx)
     prior = task.prior.make(truth_T, normals, context.map)
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
-    calibration = context.calibration if est.uses_calibration() else None
+    calibration = context.calibration_for(est)
     chosen = None
     if task.selection != "random":  # the same prior, samples chosen in turn by the policy
         from evaluation.sequential_selection import choose_sequentially

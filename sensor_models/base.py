@@ -165,6 +165,11 @@ class SensorModel(ABC):
     #: whether its scores depend on the problem's range model or calibrated mounting
     uses_calibration: ClassVar[bool] = True
 
+    def calibration_footprint(self) -> int:
+        """Sub-rays per zone side this model casts a zone with (its calibration must be fitted
+        with the same, :meth:`tofloc.problem.Estimator.calibration_footprint`). Default: 1."""
+        return 1
+
     @abstractmethod
     def bind(self, problem: Problem) -> BoundSensorModel:
         """Precompute what scoring ``problem`` needs; must not mutate it."""

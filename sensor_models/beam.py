@@ -270,6 +270,10 @@ class BeamModel(SensorModel):
         check_temper("beam", self.temper)
         check_int("beam.sub_rays", self.sub_rays, 1, 5)
 
+    def calibration_footprint(self) -> int:
+        """``sub_rays``: a calibration for this model is fitted with the same footprint."""
+        return int(self.sub_rays)
+
     def bind(self, problem: Problem) -> "BoundBeamModel":
         return BoundBeamModel(self, problem)
 

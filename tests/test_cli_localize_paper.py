@@ -296,6 +296,57 @@ def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_pat
     assert code == 2 and "not both" in err
 
 
+def test_paper_calibrates_each_footprint_its_estimators_cast(data: dict[str, Path], tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """A beam model casting 2 x 2 sub-rays gets a calibration fitted with that footprint, the
+    centre-ray estimators the centre ray's, each trial's problem the one of its estimator
+    (the calibration itself stubbed: its fits are tested in test_calibration.py)."""
+    import evaluation.paper_data as paper_data
+    from evaluation.evaluate import prepare_logs
+    from evaluation.priors import PriorSpec
+    from evaluation.trials import TrialTask, solve_trial
+    from estimators.particle_filter import BeamPF, ICPScorePF, LikelihoodFieldPF
+    from tofloc.calibration_file import SensorCalibration
+    from tofloc.range_model import RangeUncertainty
+
+    assert BeamPF().calibration_footprint() == 1 and LikelihoodFieldPF().calibration_footprint() == 1
+    assert BeamPF(sensor_model_params={"sub_rays": 2}).calibration_footprint() == 2
+    calls: list[int] = []
+
+    def fitted(footprint: int) -> SensorCalibration:  # a bias that says which footprint it was "fitted" with
+        return SensorCalibration(RangeUncertainty(bias_offset=0.001 * footprint), meta={"footprint": footprint})
+
+    def stub(data_: object, out: Path, scenario: str, seed: int, sub_rays: int = 1, **_: object) -> tuple[SensorCalibration, Path]:
+        calls.append(sub_rays)
+        return fitted(sub_rays), out / paper_data.calibration_name(sub_rays)
+
+    monkeypatch.setattr(paper_data, "calibrate_for_paper", stub)
+    out = tmp_path / "fp"
+    out.mkdir()
+    for name in ("paper.h5", "paper.map.ply", "paper.cad.ply"):
+        shutil.copy(data["folder"] / name, out / name)
+    cfg = tmp_path / "fp.toml"
+    cfg.write_text("[estimators.beam_pf.sensor_model_params]\nsub_rays = 2\n")
+    code, _, err = _run(capsys, ["paper", "--estimators", "beam_pf,likelihood_field_pf", "--trials", "1", "--k-max", "1",
+                                 "--seed", "3", "--out", str(out), "--workers", "1", "--param", "n_particles=50",
+                                 "--calibrate", "--tip-sources", "mocap", "--prior-modes", "paper", "--config", str(cfg)])
+    assert code == 0, err
+    assert calls == [1, 2]
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["footprint_calibrations"] == {"2": str(out / "sensor_model.footprint2.toml")}
+    # what each trial's problem gets from a context holding both
+    (entry,) = prepare_logs([data["log"]], samples=2, seed=0, calibration=fitted(1))
+    ctx = dataclasses.replace(entry.context, footprint_calibrations={2: fitted(2)})
+    bias = {}
+    for name, cls, params in (("b2", BeamPF, {"n_particles": 20, "sensor_model_params": {"sub_rays": 2}}),
+                              ("b1", BeamPF, {"n_particles": 20}), ("lf", LikelihoodFieldPF, {"n_particles": 20}),
+                              ("icp", ICPScorePF, {"n_particles": 20})):
+        task = TrialTask("g", name, cls, params, "mocap", PriorSpec("paper"), 2, 0, 5)
+        bias[name] = solve_trial(ctx, task).problem.range_model.bias_offset
+    assert bias == {"b2": 0.002, "b1": 0.001, "lf": 0.001, "icp": 0.0}  # the ICP score takes no calibration
+
+
 @pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A log the simulator did not write has no calibration session: the k-NN training split."""

@@ -524,15 +524,29 @@ def paper(
     cal_path = None if cal is None else cal.source
     if calibrate is None:
         calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
+    footprint_cals: dict[int, Any] = {}
+    footprint_paths: dict[str, str] = {}
+    footprints = sorted({int(e.calibration_footprint()) for e in ests.values() if e.uses_calibration()})
     if calibrate:
         cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
                                      progress=reporter.progress)
         cal_path = str(p)
+        for f in (f for f in footprints if f != 1):  # a model casting footprints gets a calibration fitted with them
+            footprint_cals[f], p = calibrate_for_paper(data, out_dir, scenario, seed, sub_rays=f, note=reporter.note,
+                                                       stage=reporter.stage, progress=reporter.progress)
+            footprint_paths[str(f)] = str(p)
+    elif cal is not None:
+        fitted = cal.meta.get("footprint")
+        for n, e in ests.items():
+            if e.uses_calibration() and fitted is not None and int(fitted) != int(e.calibration_footprint()):
+                reporter.note(f"{n} casts {e.calibration_footprint()} sub-ray(s) per zone side but {cal.source} was fitted "
+                              f"with footprint {fitted}: its bias is relative to another expected distance "
+                              "(docs/calibration.md, 'Cast as the estimator casts')")
     k_values = ks
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
     context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal,
-                           map_tolerance_m=data.map_tolerance_m)
+                           map_tolerance_m=data.map_tolerance_m, footprint_calibrations=footprint_cals)
     batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
                for n in names for tip in tips for prior in priors]
     n_tasks = len(batches) * len(k_values) * trials
@@ -563,6 +577,7 @@ def paper(
             "pool": pool.to_json(),
             "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
             "calibration": cal_path,
+            **({"footprint_calibrations": footprint_paths} if footprint_paths else {}),
             "wall_time_s": round(time.perf_counter() - t0, 3),
             "provenance": provenance(),
         },

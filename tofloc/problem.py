@@ -371,6 +371,14 @@ class Estimator(ABC):
         (``tofloc paper`` calibrates only when some estimator says so). Default: True."""
         return True
 
+    def calibration_footprint(self) -> int:
+        """Sub-rays per zone side the estimator's model casts a zone with: a calibration's
+        bias is relative to the expected distance it was fitted against, so ``tofloc paper``
+        and ``tofloc scenes`` give the estimator a calibration fitted with this footprint
+        (:attr:`evaluation.trials.TrialContext.footprint_calibrations`). Default: 1 (the
+        centre ray)."""
+        return 1
+
     def get_params(self) -> dict[str, Any]:
         """The parameters, as given to the constructor (JSON-friendly)."""
         if dataclasses.is_dataclass(self):
