@@ -523,11 +523,13 @@ class BoundBeamModel(BoundSensorModel):
 def _fused_constants(bound: BoundBeamModel) -> dict[str, Any] | None:
     """Per-zone constants of the fused beam kernel, flattened over (sensor, zone), or None
     when the kernel does not apply: a Student-t hit density (scipy's ``stdtr`` has no
-    compiled twin), several sub-rays with the signal weighting (their normals), or a range
-    model the per-zone coefficients do not reproduce exactly (checked at a few distances:
-    another :class:`~tofloc.range_model.RangeUncertainty` subclass or formula)."""
+    compiled twin), or a range model the per-zone coefficients do not reproduce exactly
+    (checked at a few distances: another :class:`~tofloc.range_model.RangeUncertainty`
+    subclass or formula). Several sub-rays per zone are cast and reduced by the zone caster
+    (:meth:`BoundBeamModel.expected`) and their readings and hit fractions handed to the
+    kernel; one sub-ray's hit distances are reduced in the kernel itself."""
     model, problem, caster = bound.model, bound.problem, bound.rays.caster
-    if math.isfinite(model.hit_dof) or caster.needs_normals:
+    if math.isfinite(model.hit_dof):
         return None
     unc, rig = problem.range_model, problem.rig
     if type(unc) is not RangeUncertainty:

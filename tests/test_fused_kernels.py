@@ -68,10 +68,14 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 @needs_numba
 @pytest.mark.parametrize("short_support", ["range", "expected"])
 @pytest.mark.parametrize("known", [True, False])
-def test_fused_beam_equals_the_numpy_code(monkeypatch, short_support: str, known: bool) -> None:
+@pytest.mark.parametrize("sub_rays", [1, 2])
+def test_fused_beam_equals_the_numpy_code(monkeypatch, short_support: str, known: bool, sub_rays: int) -> None:
+    """The kernel's mixture against the numpy code, with one ray per zone (hit distances
+    reduced in the kernel) and with a footprint (2 x 2 signal-weighted sub-rays reduced by
+    the zone caster, fractional hit fractions)."""
     monkeypatch.setenv("TOFLOC_NUMBA", "1")
     problem = _hard_problem(known=known)
-    bound = BeamModel(short_support=short_support, unknown_weight=0.4).bind(problem)
+    bound = BeamModel(short_support=short_support, unknown_weight=0.4, sub_rays=sub_rays).bind(problem)
     assert bound.fused is not None and [v.name for v in bound.state] == ["support_yaw", "range_scale"]
     x = _states(bound)
     for step in range(problem.n_samples):
@@ -80,8 +84,11 @@ def test_fused_beam_equals_the_numpy_code(monkeypatch, short_support: str, known
         fused = bound.log_likelihood(x, step)
         assert _rel(fused, ref) < RTOL
     if known:  # the known space is read: the unknown half changes the numbers
-        plain = BeamModel(short_support=short_support, unknown_weight=0.0).bind(problem).log_likelihood(x, step)
+        plain = BeamModel(short_support=short_support, unknown_weight=0.0, sub_rays=sub_rays).bind(problem).log_likelihood(x, step)
         assert np.max(np.abs(plain - fused)) > 1e-3
+    if sub_rays > 1:  # partly covered footprints: hit fractions strictly between 0 and 1 were scored
+        frac = bound.expected(x, problem.n_samples - 1)[1]
+        assert np.any((frac > 0) & (frac < 1))
 
 
 @needs_numba
@@ -99,7 +106,6 @@ def test_fused_beam_without_nuisances_or_covariance(monkeypatch) -> None:
 def test_beam_falls_back_to_numpy_where_the_kernel_does_not_apply(monkeypatch) -> None:
     problem = _hard_problem(known=False)
     assert BeamModel(hit_dof=4.0).bind(problem).fused is None  # Student-t: scipy's stdtr
-    assert BeamModel(sub_rays=2).bind(problem).fused is None  # signal weighting of sub-rays: normals
     monkeypatch.setenv("TOFLOC_NUMBA", "0")  # numba switched off: the numpy code itself
     bound = BeamModel().bind(problem)
     x = _states(bound, 50)
