@@ -360,8 +360,7 @@ class ParticleFilter(Estimator):
         bound = model.bind(problem)
         first = self._filter(problem, model, bound, rng)
         diag = first.diagnostics
-        state = np.concatenate([np.asarray(first.pose, dtype=float)[:3],
-                                [diag["state"][v.name]["mean"] for v in bound.state]])
+        state = np.concatenate([np.asarray(first.pose, dtype=float)[:3], [first.nuisance_mean(v.name) for v in bound.state]])
         refitted = bound.refit(state)
         if refitted is None:
             return first
@@ -391,12 +390,9 @@ class ParticleFilter(Estimator):
             model = type(model)(**dict(refit["sensor_model_params"]))
         bound = model.bind(problem)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
-        state_means = diag.get("state", {})
-        extra = [float(state_means[v.name]["mean"]) if v.name in state_means else 0.0 for v in bound.state]
+        extra = [estimate.nuisance_mean(v.name) for v in bound.state]
         states = np.column_stack([P] + [np.full(P.shape[0], x) for x in extra]) if extra else P
-        out = problem.prior.log_density(P)
-        for v, x in zip(bound.state, extra):
-            out = out - 0.5 * (x / v.sigma) ** 2 - math.log(math.sqrt(2.0 * math.pi) * v.sigma)
+        out = problem.prior.log_density(P) + sum(v.log_prior(x) for v, x in zip(bound.state, extra))
         if model.weight_update == "replace":
             return out + bound.log_likelihood_chunked(states, bound.n_steps - 1)
         for k in range(bound.n_steps):

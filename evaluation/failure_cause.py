@@ -89,6 +89,9 @@ def failure_cause(estimator: Any, problem: Any, estimate: Any, truth: ArrayLike,
     finite = np.where(np.isfinite(at_truth), at_truth, -np.inf)
     best = int(np.argmax(finite))
     near = float(finite[best])
+    if not (np.isfinite(at_est) or np.isfinite(near)):
+        return {"cause": None, "reason": "the estimator's target is -inf at its estimate and near the truth",
+                "candidates": int(cand.shape[0])}
     return {
         "cause": "model" if at_est >= near else "search",
         "log_target_estimate": at_est if np.isfinite(at_est) else None,

@@ -35,14 +35,18 @@ def failure_plot_name(label: str, estimator: str, trial: int) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", f"{label}__{estimator}__trial{int(trial)}") + ".png"
 
 
+def _num(v: Any) -> str:
+    return "-inf" if v is None else f"{float(v):.1f}"  # a record stores a non-finite target as null
+
+
 def _title(label: str, name: str, rec: Mapping[str, Any], same: bool) -> str:
     fc = rec.get("failure_cause") or {}
     cause = fc.get("cause")
     if cause is None:
         why = f"cause unattributed ({fc.get('reason', 'not recorded')})"
     else:
-        why = (f"cause: {cause} (the estimator's log target {fc['log_target_estimate']:.1f} at its estimate, "
-               f"{fc['log_target_near_truth']:.1f} near the truth)")
+        why = (f"cause: {cause} (the estimator's log target {_num(fc.get('log_target_estimate'))} at its estimate, "
+               f"{_num(fc.get('log_target_near_truth'))} near the truth)")
     title = (f"{name} on {label}, trial {rec['trial']}: FAILED, e_x {1000 * float(rec['e_x_m']):.0f} mm, "
              f"e_gamma {float(rec['e_gamma_deg']):.1f} deg; {why}")
     if not same:

@@ -122,13 +122,11 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         pts = problem.rig.points_in_base(d, T_base_tip @ Rz)
     else:
         pts = problem.rig.points_in_base(d, T_base_tip)
-    T = prior.T_map_base(pose)
-    pts_map = pts @ T[:3, :3].T + T[:3, 3]
+    pts_map = frames.transform_points(prior.T_map_base(pose), pts)
     valid = problem.valid
     pts_truth = None
     if zones_at_truth and truth is not None:
-        T_truth = prior.T_map_base(np.asarray(truth, dtype=float)[:3])
-        pts_truth = (pts @ T_truth[:3, :3].T + T_truth[:3, 3])[valid]
+        pts_truth = frames.transform_points(prior.T_map_base(np.asarray(truth, dtype=float)[:3]), pts)[valid]
     misfit = res.misfit & valid
     with np.errstate(invalid="ignore"):
         beyond = valid & ~misfit & (np.abs(np.nan_to_num(res.r)) > 3.0)

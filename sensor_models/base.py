@@ -25,6 +25,7 @@ How a step enters the weights (:attr:`SensorModel.weight_update`)
 from __future__ import annotations
 
 import dataclasses
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
@@ -69,6 +70,10 @@ class StateVariable:
     sigma: float
     jitter_floor: float
     source: str = ""
+
+    def log_prior(self, value: float) -> float:
+        """Log density of the variable's prior, ``N(0, sigma^2)``, at ``value``."""
+        return -0.5 * (value / self.sigma) ** 2 - math.log(math.sqrt(2.0 * math.pi) * self.sigma)
 
     def __post_init__(self) -> None:
         if self.name not in NUISANCES:

@@ -183,7 +183,10 @@ def test_evaluate_draws_each_failed_trial_from_its_seed(sim: dict, tmp_path) -> 
     assert all((out / "failures" / n).stat().st_size > 20_000 for n in drawn)
     for _, _, r in failed:
         assert r["failure_cause"]["cause"] in ("model", "search")
-    assert "model" in (out / "table.md").read_text().split("| beam_pf |")[1].split("\n")[0]
+    causes = doc["summary"]["beam_pf"]["failure_causes"]
+    assert causes["model"] + causes["search"] == len(failed) and causes["unattributed"] == 0
+    row = (out / "table.md").read_text().split("| beam_pf |")[1].split("\n")[0]
+    assert f"{len(failed)}/4 ({len(failed) / 4:.0%}): model {causes['model']}, search {causes['search']} |" in row
     assert main(args + ["--out", str(tmp_path / "none")]) == 0 and not (tmp_path / "none" / "failures").exists()
     assert main(args + ["--plot-failures", "-1"]) == 2
 
@@ -195,3 +198,19 @@ def test_localize_and_paper_summaries_count_the_causes() -> None:
             {"e_x_m": 0.001, "e_gamma_deg": 0.1, "runtime_s": 1.0, "failure_cause": None}]
     assert summarize_trials(recs)["failure_causes"] == {"model": 1, "search": 0, "unattributed": 0}
     assert "failure_causes" not in summarize_trials(recs[1:])
+
+
+def test_a_target_that_is_minus_infinity_everywhere_gives_no_cause(sim: dict) -> None:
+    """An estimate the target cannot judge (-inf at it and near the truth) is not called the model's."""
+    class Blind:
+        def log_target(self, problem, poses, estimate):
+            return np.full(len(np.atleast_2d(poses)), -np.inf)
+
+    r = failure_cause(Blind(), sim["problem"], Estimate(pose=sim["truth"] + [0.2, 0, 0], covariance=np.eye(3)),
+                      sim["truth"], None, 0)
+    assert r["cause"] is None and "-inf" in r["reason"]
+    from evaluation.failure_plots import _title
+
+    rec = {"trial": 0, "e_x_m": 0.2, "e_gamma_deg": 1.0,
+           "failure_cause": {"cause": "model", "log_target_estimate": None, "log_target_near_truth": -3.25}}
+    assert "log target -inf at its estimate, -3.2 near the truth" in _title("log", "beam_pf", rec, True)

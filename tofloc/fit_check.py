@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +67,9 @@ from tofloc import frames
 from tofloc.configuration_uncertainty import range_variance
 from tofloc.errors import ParameterError
 from tofloc.zone_caster import ZoneCaster
+
+if TYPE_CHECKING:
+    from tofloc.problem import Estimate
 
 __all__ = [
     "FitCheck",
@@ -190,17 +193,10 @@ class FitCheck:
                 f"({self.n_misfits} of {self.n_zones} zones are misfits)")
 
 
-def nuisance_means(estimate: Any) -> tuple[float, float]:
+def nuisance_means(estimate: "Estimate") -> tuple[float, float]:
     """``(support_yaw, range_scale)``: the means an estimate's ``diagnostics["state"]``
-    holds for the nuisances (0 for each it does not hold)."""
-    diag = getattr(estimate, "diagnostics", None) or {}
-    state = diag.get("state") if isinstance(diag, Mapping) else None
-    out = []
-    for name in ("support_yaw", "range_scale"):
-        v = state.get(name) if isinstance(state, Mapping) else None
-        m = v.get("mean") if isinstance(v, Mapping) else None
-        out.append(float(m) if isinstance(m, (int, float, np.floating)) and math.isfinite(float(m)) else 0.0)
-    return out[0], out[1]
+    holds for the nuisances (0 for each it does not hold; :meth:`tofloc.problem.Estimate.nuisance_mean`)."""
+    return estimate.nuisance_mean("support_yaw"), estimate.nuisance_mean("range_scale")
 
 
 def _rot_z(angle: float) -> NDArray[np.float64]:

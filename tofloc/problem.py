@@ -13,7 +13,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Literal, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -343,6 +343,14 @@ class Estimate:
     diagnostics: dict[str, Any] = field(default_factory=dict)
     runtime_s: float = 0.0
     fit: "FitCheck | None" = None
+
+    def nuisance_mean(self, name: str) -> float:
+        """The mean the estimate holds for nuisance ``name`` (``diagnostics["state"][name]["mean"]``),
+        0 when it holds none or a non-finite one (the problem's rig and range model as given)."""
+        state = self.diagnostics.get("state") if isinstance(self.diagnostics, Mapping) else None
+        v = state.get(name) if isinstance(state, Mapping) else None
+        m = v.get("mean") if isinstance(v, Mapping) else None
+        return float(m) if isinstance(m, (int, float, np.floating)) and math.isfinite(float(m)) else 0.0
 
     def __post_init__(self) -> None:
         self.pose = np.asarray(self.pose, dtype=float).copy()
