@@ -40,13 +40,6 @@ def _sim(name: str, variant: str | None = None, seed: int = 1):
     return _CACHE[key]
 
 
-def _digest(*arrays: np.ndarray) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
-
-
 # --------------------------------------------------------------------------------------
 # The library
 # --------------------------------------------------------------------------------------
@@ -272,14 +265,46 @@ def test_rig_variant_errors() -> None:
 # --------------------------------------------------------------------------------------
 # The paper, unchanged
 # --------------------------------------------------------------------------------------
+#: Pinned against the simulator before the scene library (commit 4185d9f), seed 1: per array
+#: (sum, sum of squares, sum weighted by position mod 101); see the test.
+PAPER_FINGERPRINTS = {
+    "distance_mm": [53743489.0, 22844836367.0, 2739585598.0],
+    "status": [7043736.0, 1617232450.0, 359687288.0],
+    "sigma_mm": [2518124.299911976, 52661416.68344869, 128363966.69261146],
+    "T_base_tip": [2970.494471727973, 3237.0356212665693, 151735.7025731596],
+    "T_map_base": [4.495143711353174, 4.25061, 40.27461263103983],
+    "T_tip_sensor": [-1.0830762113533154, 12.00075, -15.910640513196512],
+    "map_points": [254.57153073111448, 444.2488470134633, 13224.465976591084],
+    "map_normals": [1076.0, 2000.0, 53354.0],
+    "world": [2.3734120389783953, 3.3820982241476285, 58.964991359717715],
+    "cad": [2.4, 3.4, 59.4],
+}
+
+
+def _fingerprint(a: np.ndarray) -> list[float]:
+    v = np.nan_to_num(np.asarray(a, dtype=np.float64)).ravel()
+    w = np.arange(v.size) % 101 + 1.0
+    return [float(v.sum()), float((v * v).sum()), float((v * w).sum())]
+
+
 def test_paper_output_unchanged_but_the_declared_tolerance(tmp_path) -> None:
     """Pinned against the simulator before the scene library (commit 4185d9f), seed 1: the
-    same arrays and map files; the log's rig now declares the builder's 3 deg tolerance."""
+    same arrays and map files; the log's rig now declares the builder's 3 deg tolerance.
+
+    The log's arrays are compared by fingerprints to 1e-6 relative, not bit for bit: the
+    ray casts (Open3D's Embree picks its code path by CPU) differ in the last bits between
+    machines, which can move a quantized reading by a millimetre here and there (a bit digest
+    pinned on one CI machine failed on an AVX-512 one with the same code). A changed noise
+    draw, geometry or kinematics moves these sums by 1e-5 or more; the trajectories and the
+    map, computed without casts, are held to 1e-12."""
     sim = simulate("paper", 1)
     log = sim.log
-    assert _digest(log.distance_mm, log.status, log.sigma_mm, log.T_base_tip, log.T_map_base, log.rig.T_tip_sensor,
-                   sim.map.points, sim.map.normals, sim.world.points, sim.cad_mesh.points) == (
-        "43dfc40f9b378cce52ddffce8b4e38e9fa52a3a6637e89a424ea20d1ae59d21e")
+    got = {"distance_mm": log.distance_mm, "status": log.status, "sigma_mm": log.sigma_mm, "T_base_tip": log.T_base_tip,
+           "T_map_base": log.T_map_base, "T_tip_sensor": log.rig.T_tip_sensor, "map_points": sim.map.points,
+           "map_normals": sim.map.normals, "world": sim.world.points, "cad": sim.cad_mesh.points}
+    for name, pinned in PAPER_FINGERPRINTS.items():
+        rtol = 1e-6 if name in ("distance_mm", "status", "sigma_mm") else 1e-12
+        np.testing.assert_allclose(_fingerprint(got[name]), pinned, rtol=rtol, err_msg=name)
     paths = write_simulation(sim, tmp_path / "paper.h5")
     assert hashlib.sha256(paths["map"].read_bytes()).hexdigest() == "197b33d9384d94b0636b30ff05795156be7d82f8403c87b0291101551a3a1978"
     assert hashlib.sha256(paths["cad"].read_bytes()).hexdigest() == "f817f8631fdf46be1ce9d7bc72883e1bb16f1a1b1d7e97a3bd00b091206fe8d6"
