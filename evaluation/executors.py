@@ -21,7 +21,9 @@ other estimator runs once with a throw-away generator): that builds the per-map 
 its sensor model uses (the ICP score's distance grid, the
 likelihood field's surface field; :mod:`tofloc.map_cache`). They travel to each worker
 once, with the context (:class:`tofloc.map_cache.MapCacheBundle`: the pool's initializer,
-or the Dask scatter), so no worker rebuilds them. A :class:`WorkerPool` keeps its warm
+or the Dask scatter), so no worker rebuilds them; local workers read the caches that are
+persisted in the cache folder from their files (names sent, not ~100 MB of pickled grid
+per worker through the pool's start-up pipe). A :class:`WorkerPool` keeps its warm
 workers across calls of :func:`run_tasks` (all the batches of a run share one call:
 :func:`evaluation.result_cache.run_batches`).
 """
@@ -64,7 +66,7 @@ def _contexts_of(context: Contexts) -> list[TrialContext]:
     return [context] if isinstance(context, TrialContext) else list(context.values())
 
 
-def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapCacheBundle:
+def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = False) -> map_cache.MapCacheBundle:
     """Build, in this process, the per-map caches the tasks' estimators use, and return them
     as a bundle to ship to workers (see the module doc).
 
@@ -73,6 +75,8 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapC
     particle filters) binds it (what builds its caches); any other runs once with
     ``default_rng(0)`` (estimators are pure functions of the problem and the generator: no
     trial's numbers change). A failure there is left to the trial itself to report.
+    ``by_file``: caches persisted in the cache folder travel as file names
+    (:func:`tofloc.map_cache.bundle`; local workers only).
     """
     from tofloc.problem_builder import problem_from_log
     from evaluation.trials import draw_samples_and_prior
@@ -97,7 +101,7 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask]) -> map_cache.MapC
                 est.estimate(problem, np.random.default_rng(0))
         except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
             continue
-    return map_cache.bundle(*[c.map for c in _contexts_of(context) if hasattr(c.map, "fingerprint")])
+    return map_cache.bundle(*[c.map for c in _contexts_of(context) if hasattr(c.map, "fingerprint")], by_file=by_file)
 
 
 class _Payload:
@@ -306,7 +310,7 @@ def run_tasks(
             done(i, _guarded(context, task))
     else:
         start_server(start_method)  # the server's imports overlap the cache builds below
-        caches = warm_caches(context, tasks)
+        caches = warm_caches(context, tasks, by_file=True)
         with WorkerPool(context, min(int(workers), n), caches, start_method) as own:
             own.run(tasks, done)
     assert all(r is not None for r in results)

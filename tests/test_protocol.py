@@ -459,6 +459,38 @@ def test_workers_get_the_caches_built_once_here_and_keep_them_across_calls() -> 
         run_tasks(other, tasks, pool=pool)
 
 
+def test_local_workers_read_persisted_caches_from_their_files(cache_folder: Path) -> None:
+    """With a cache folder, a local pool's payload names the grid's file instead of carrying
+    the grid: the bundle pickles to a few hundred bytes, each worker reads the file and
+    builds nothing; a file gone before the workers start costs them a build, not a failure."""
+    from evaluation.executors import WorkerPool, warm_caches
+    from tofloc import map_cache
+    from tofloc.maps import Map
+
+    log = small_log(K=12)
+    the_map = Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0))
+    ctx = TrialContext(log, the_map, sample_pool(log, None, 1))
+    tasks = make_tasks("g", "test_counts_grid_builds", CountsGridBuilds, {}, "mocap", PriorSpec("paper"), [1], 4, 0)
+    caches = warm_caches(ctx, tasks, by_file=True)
+    assert caches.kinds() == ["distance_grid"] and caches.entries == {} and len(caches.files) == 1
+    (path, _), = caches.files.values()
+    assert path.parent == cache_folder and path.is_file()
+    assert len(pickle.dumps(caches)) < 1000 < len(pickle.dumps(warm_caches(ctx, tasks)))  # the object itself: the grid
+    # in a process without the entry: read from the file, counted as a load, not a build
+    builds, loads = map_cache.build_count("distance_grid"), map_cache.disk_count("distance_grid")
+    map_cache.clear()
+    caches.install()
+    assert map_cache.disk_count("distance_grid") == loads + 1 and map_cache.build_count("distance_grid") == builds
+    with WorkerPool(ctx, 2, caches) as pool:
+        assert _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)) == [0.0] * 4
+    path.unlink()
+    with WorkerPool(ctx, 2, caches) as pool:
+        assert all(n >= 1 for n in _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)))
+    # bundle() sends an object whose file is gone as the object
+    again = map_cache.bundle(the_map, by_file=True)
+    assert again.files == {} and again.kinds() == ["distance_grid"]
+
+
 @pytest.mark.slow  # starts a Dask cluster of two worker processes
 def test_dask_workers_get_the_caches_once() -> None:
     distributed = pytest.importorskip("distributed")
