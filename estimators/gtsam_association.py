@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_factors import SampleMeasurement
+from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
@@ -106,6 +107,7 @@ def associate(
     map_sigma: float = 0.003,
     information_scale: float = 1.0,
     gate_sigmas: float = 0.0,
+    config_cov: NDArray[np.float64] | None = None,
 ) -> tuple[list[SampleMeasurement], list[bool]]:
     """New measurements associated at the given estimate, and per sample whether its
     association changed.
@@ -133,6 +135,10 @@ def associate(
         Map and association error (m) added in quadrature to every zone's sigma.
     information_scale : float
         Every zone's information is multiplied by it.
+    config_cov : array (K, 6, 6), optional
+        The configurations' covariances: each zone's variance gains what its sample's
+        configuration error does to the zone's distance along the associated plane's normal
+        (:func:`tofloc.configuration_uncertainty.normal_variance`; non-finite: nothing).
     """
     T_mb = problem.prior.T_map_base(xyyaw)
     sizes = [m.size for m in meas]
@@ -168,8 +174,18 @@ def associate(
     sig_gate = np.minimum(sig, expected)
     sig = expected
     cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
-    s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2)
-    s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2)
+    v_cfg = np.zeros(sig.shape)
+    if config_cov is not None and meas:
+        # the zone points and the planes' normals in their tip frames
+        sample = np.repeat(np.arange(len(meas)), sizes)
+        R_tm = np.stack([np.linalg.inv(T)[:3, :3] for T in T_mt])[sample]  # the tip's axes in map coordinates, inverted
+        p_tip = np.concatenate([m.points(bias) for m in meas])
+        n_tip = np.einsum("nij,nj->ni", R_tm, n)
+        cov = np.asarray(config_cov, dtype=float)[sample]
+        v = normal_variance(p_tip, n_tip, cov)
+        v_cfg = np.where(np.isfinite(v), v, 0.0)
+    s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2 + v_cfg)
+    s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2 + v_cfg)
     zone_gate = np.maximum(gate, gate_sigmas * (s_gate if residual == "point_to_plane" else np.hypot(sig_gate, map_sigma)))
     inlier = np.isfinite(dist) & (dist <= zone_gate)
     s = s0 / math.sqrt(information_scale)

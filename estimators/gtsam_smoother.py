@@ -159,7 +159,14 @@ class GTSAMSmoother(Estimator):
         Configuration prior for any other tip source without a covariance.
     exact_tip_poses : bool
         Ablation: give every configuration the motion-capture sigmas whatever its source
-        (the tip poses taken as exact, as the particle filters do).
+        (the tip poses taken as exact).
+    marginalize_configurations : bool
+        Hold every configuration at its given value (the motion-capture sigmas, as
+        ``exact_tip_poses``) and add what its covariance (``problem.T_base_tip_cov``) does to
+        each zone's point-to-plane distance to the zone's variance
+        (:func:`tofloc.configuration_uncertainty.normal_variance`, at each association):
+        the particle filters' treatment. False (the default): the configurations are
+        variables of the graph with their covariance as prior.
     incremental : bool
         Use ISAM2, adding samples one at a time.
     global_candidates : int
@@ -194,6 +201,7 @@ class GTSAMSmoother(Estimator):
     knn_sigma_m: float = DEFAULT_KNN_SIGMA_M
     knn_sigma_rot_deg: float = DEFAULT_KNN_SIGMA_ROT_DEG
     exact_tip_poses: bool = False
+    marginalize_configurations: bool = False
     incremental: bool = False
     global_candidates: int = 20_000
     global_starts: int = 8
@@ -216,7 +224,7 @@ class GTSAMSmoother(Estimator):
         for n, lo, hi in (("n_starts", 1, 1000), ("n_candidates", 0, 100_000), ("max_rounds", 1, 1000), ("lm_max_iterations", 1, 10000), ("gate_rounds", 0, 100),
                           ("global_candidates", 1, 10_000_000), ("global_starts", 1, 1000)):
             check_int(n, getattr(self, n), lo, hi)
-        for n in ("incremental", "exact_tip_poses", "stacked_factor"):
+        for n in ("incremental", "exact_tip_poses", "marginalize_configurations", "stacked_factor"):
             if not isinstance(getattr(self, n), bool):
                 raise ParameterError(f"{n} must be true or false, got {getattr(self, n)!r}")
 

@@ -77,12 +77,13 @@ class SmootherGraph:
         import gtsam
 
         est, problem = self.est, self.problem
-        if problem.T_base_tip_cov is not None and not est.exact_tip_poses:
+        held = est.exact_tip_poses or est.marginalize_configurations
+        if problem.T_base_tip_cov is not None and not held:
             c = np.array(problem.T_base_tip_cov[k], dtype=float)
             c = 0.5 * (c + c.T)
             floor = np.diag([math.radians(est.mocap_sigma_rot_deg) ** 2] * 3 + [est.mocap_sigma_m**2] * 3)
             return gtsam.noiseModel.Gaussian.Covariance(c + floor)
-        if problem.tip_source == "mocap" or est.exact_tip_poses:
+        if problem.tip_source == "mocap" or held:
             r, t = math.radians(est.mocap_sigma_rot_deg), est.mocap_sigma_m
         else:
             r, t = math.radians(est.knn_sigma_rot_deg), est.knn_sigma_m
@@ -163,9 +164,10 @@ class SmootherGraph:
 
     def associate(self, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray], D: FloatArray, gate: float,
                   bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
-        est = self.est
+        est, cov = self.est, self.problem.T_base_tip_cov
+        config_cov = None if cov is None or not est.marginalize_configurations else cov
         return associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
-                         information_scale=est.information_scale, gate_sigmas=est.gate_sigmas)
+                         information_scale=est.information_scale, gate_sigmas=est.gate_sigmas, config_cov=config_cov)
 
     def pose_change(self, a: Any, b: Any, K: int) -> float:
         """Largest change of any variable's matrix entries between two GTSAM value sets."""

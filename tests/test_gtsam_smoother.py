@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -362,6 +363,37 @@ def test_zone_sigmas_are_taken_where_the_plane_predicts_not_at_the_reading(resid
     d_true = np.concatenate([prob_d[m] for prob_d, m in zip(p.distance_m, p.valid)])
     expected = unc.sigma_of_zones(p.rig, d_true, zones) * p.rig.range_factor.reshape(-1)[zones] * cos
     np.testing.assert_allclose(s_clean[ok], expected[ok], rtol=1e-6)
+
+
+def test_marginalized_configuration_variance_is_added_along_the_normal() -> None:
+    """``config_cov``: a zero covariance changes no sigma; a translation covariance
+    sigma_t^2 I adds sigma_t^2 to every zone's variance (the normal is a unit vector); a
+    yaw covariance adds (n . (e_z x p))^2 sigma_r^2 for a point p and normal n in the tip frame."""
+    from estimators.gtsam_association import associate, measurements
+
+    p, truth = easy_problem(n_samples=2)
+    meas = measurements(p)
+    C = list(p.T_base_tip)
+    K = p.n_samples
+
+    def sigmas(cov: Any) -> tuple[np.ndarray, list[Any]]:
+        assoc, _ = associate(p, meas, truth, C, np.eye(4), 10.0, map_sigma=0.003, gate_sigmas=0.0, config_cov=cov)
+        return np.concatenate([m.s for m in assoc]), assoc
+
+    base, assoc = sigmas(None)
+    np.testing.assert_array_equal(sigmas(np.zeros((K, 6, 6)))[0], base)
+    st = 0.004
+    np.testing.assert_allclose(sigmas(np.tile(np.diag([0, 0, 0, st**2, st**2, st**2]), (K, 1, 1)))[0] ** 2,
+                               base**2 + st**2, rtol=1e-12)
+    sr = 0.01
+    got = sigmas(np.tile(np.diag([0, 0, sr**2, 0, 0, 0]), (K, 1, 1)))[0]
+    want = []
+    for k, m in enumerate(assoc):
+        R_tip = (p.prior.T_map_base(truth) @ C[k])[:3, :3]
+        n_tip = m.n @ R_tip  # R^T n
+        lever = np.cross(np.array([0.0, 0.0, 1.0]), m.points())
+        want.append(m.s**2 + (np.einsum("ni,ni->n", n_tip, lever) * sr) ** 2)
+    np.testing.assert_allclose(got**2, np.concatenate(want), rtol=1e-9)
 
 
 @pytest.mark.parametrize("numba_flag", ["0", "1"])
