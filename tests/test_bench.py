@@ -53,6 +53,9 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert _seconds(p["workers_1_s"]) and _seconds(p["workers_2_s"]) and _seconds(p["speedup"])
     assert _seconds(p["workers_1_one_thread_s"]) and p["scaling"] == pytest.approx(p["workers_1_one_thread_s"] / p["workers_2_s"])
     assert _seconds(p["dask_2_s"]) and p["dask_speedup"] == pytest.approx(p["workers_1_s"] / p["dask_2_s"])
+    assert set(p["trial_s"]) == {"workers_1", "workers_1_one_thread", "workers_2", "dask_2"}
+    assert all(_seconds(v) for v in p["trial_s"].values())
+    assert p["contention"] == pytest.approx(p["trial_s"]["workers_2"] / p["trial_s"]["workers_1_one_thread"])
     assert p["estimators"] == ["icp_pf"] and p["k_values"] == [1]
     sel = doc["selection"]
     assert _seconds(sel["active_choice_s"]) and sel["candidates"] == 300 and sel["particles"] == 16
@@ -87,3 +90,4 @@ def test_bench_command_writes_the_json_and_shows_the_tables(bench, monkeypatch, 
     assert json.loads(out.read_text())["parallel"] == doc["parallel"]
     shown = capsys.readouterr().out
     assert "gtsam_smoother k = 10" in shown and "paper run" in shown and "ray cast" in shown
+    assert "as long on 2 workers as on one thread" in " ".join(shown.split())  # rich wraps lines

@@ -51,6 +51,11 @@ returns one JSON document:
     one thread (Open3D, BLAS, numba's kernels serial), what each of the two workers gets,
     and ``scaling`` = ``workers_1_one_thread_s / workers_2_s`` says how the harness scales
     with workers; ``speedup`` says what a user gains over ``--workers 1`` on this machine.
+    ``trial_s``: the trials' own time (their ``runtime_s`` and ``setup_s``) summed over
+    each run (``workers_1``, ``workers_1_one_thread``, ``workers_2``, ``dask_2``), and
+    ``contention`` = ``trial_s.workers_2 / trial_s.workers_1_one_thread``: how much slower
+    the same trials run when two workers share the machine (1: not at all); what the
+    wall times add beyond ``trial_s`` is the run's serial part and the workers' start.
 """
 
 from __future__ import annotations
@@ -251,14 +256,19 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
 
     from tofloc import api, map_cache
 
-    def run(out: str, workers: int = 1, scheduler: Any = None) -> float:
-        """One timed run from empty result and map caches (local workers, or a Dask client)."""
+    trial_s: dict[str, float] = {}
+
+    def run(out: str, workers: int = 1, scheduler: Any = None, label: str = "workers_1") -> float:
+        """One timed run from empty result and map caches (local workers, or a Dask client);
+        the trials' own time summed into ``trial_s[label]``."""
         shutil.rmtree(os.path.join(out, "partial"), ignore_errors=True)
         map_cache.clear()
         t0 = time.perf_counter()
         api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
                   prior_modes=("paper",), calibrate=False, workers=workers, scheduler=scheduler)
-        return time.perf_counter() - t0
+        wall = time.perf_counter() - t0
+        trial_s[label] = _trial_seconds(os.path.join(out, "partial"))
+        return wall
 
     def run_one_thread(out: str) -> float:
         """:func:`run` with one worker in this process limited to one thread, as a pool's worker."""
@@ -270,7 +280,7 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
         threads.set_open3d_threads(1)
         try:
             with threadpool_limits(1):
-                return run(out, 1)
+                return run(out, 1, label="workers_1_one_thread")
         finally:
             threads.set_open3d_threads(before)
 
@@ -284,7 +294,7 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
                                       preload=["evaluation.executors"]) as cluster:
             with distributed.Client(cluster, set_as_default=False) as client:
                 client.wait_for_workers(2)  # a running cluster, as `--scheduler` is given one
-                return run(out, scheduler=client)
+                return run(out, scheduler=client, label="dask_2")
 
     with tempfile.TemporaryDirectory(prefix="tofloc-bench-") as out:
         from evaluation.paper_data import prepare_data
@@ -293,12 +303,25 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
         prepare_data(Path(out), "paper", 0, True)  # simulated once, outside the timings
         one = run(out, 1)
         one_thread = run_one_thread(out)
-        two = run(out, 2)
+        two = run(out, 2, label="workers_2")
         dask_two = run_dask(out)
     return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two,
             "workers_1_one_thread_s": one_thread, "scaling": one_thread / two,
             "dask_2_s": dask_two, "dask_speedup": None if dask_two is None else one / dask_two,
+            "trial_s": trial_s, "contention": trial_s["workers_2"] / trial_s["workers_1_one_thread"],
             "estimators": list(estimators), "trials": int(trials), "k_values": [int(k) for k in k_values]}
+
+
+def _trial_seconds(partial_dir: str) -> float:
+    """The trials' own time (``runtime_s`` plus ``setup_s``) summed over every record a
+    ``paper`` run left in its ``partial`` folder."""
+    total = 0.0
+    for name in sorted(os.listdir(partial_dir)):
+        if name.endswith(".json"):
+            with open(os.path.join(partial_dir, name), encoding="utf-8") as fh:
+                for rec in json.load(fh)["records"]:
+                    total += float(rec["runtime_s"]) + float(rec.get("setup_s") or 0.0)
+    return total
 
 
 def bench_active_choice(problem: Any, candidates: int = 300, repeat: int = 5, measured: int = 4) -> dict[str, Any]:
@@ -446,6 +469,8 @@ def run_bench(
     par = doc["parallel"]
     rep.note(f"paper run: 1 worker {par['workers_1_s']:.1f} s, 2 workers {par['workers_2_s']:.1f} s ({par['speedup']:.2f}x); "
              f"1 worker on one thread {par['workers_1_one_thread_s']:.1f} s ({par['scaling']:.2f}x)"
-             + ("" if par["dask_2_s"] is None else f", Dask 2 single-threaded workers {par['dask_2_s']:.1f} s ({par['dask_speedup']:.2f}x)"))
+             + ("" if par["dask_2_s"] is None else f", Dask 2 single-threaded workers {par['dask_2_s']:.1f} s ({par['dask_speedup']:.2f}x)")
+             + f"; the trials' own time {par['trial_s']['workers_1_one_thread']:.1f} s on one thread, "
+             f"{par['trial_s']['workers_2']:.1f} s on 2 workers ({par['contention']:.2f}x)")
     tick()
     return doc

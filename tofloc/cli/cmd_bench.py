@@ -63,7 +63,9 @@ def bench(
     console.print(f"paper run ({p['trials']} trials x k {p['k_values']}): 1 worker {p['workers_1_s']:.1f} s, "
                   f"2 workers {p['workers_2_s']:.1f} s ({p['speedup']:.2f}x)"
                   + ("" if p.get("dask_2_s") is None else
-                     f", Dask cluster of 2 single-threaded workers {p['dask_2_s']:.1f} s ({p['dask_speedup']:.2f}x)"))
+                     f", Dask cluster of 2 single-threaded workers {p['dask_2_s']:.1f} s ({p['dask_speedup']:.2f}x)")
+                  + ("" if "contention" not in p else
+                     f"; each trial {p['contention']:.2f}x as long on 2 workers as on one thread"))
     if json_out is None:
         console.print_json(json.dumps(doc))
     else:
