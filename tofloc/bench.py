@@ -244,10 +244,23 @@ def _status_mb(field: str) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _peak_rss(name: str, particles: int) -> dict[str, float]:
+def _peak_rss(names: Sequence[str], particles: int) -> dict[str, dict[str, float]]:
+    """:func:`peak_rss_child` of every estimator in ``names``, each in a fresh process, all
+    running at once (each process's peak is its own; ~6 s of imports and set-up apiece)."""
     code = "import sys; from tofloc.bench import peak_rss_child; peak_rss_child(sys.argv[1], int(sys.argv[2]))"
-    out = subprocess.run([sys.executable, "-c", code, name, str(particles)], capture_output=True, text=True, check=True)
-    return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+    procs = {name: subprocess.Popen([sys.executable, "-c", code, name, str(particles)], stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True) for name in names}
+    out: dict[str, dict[str, float]] = {}
+    failed = None
+    for name, proc in procs.items():
+        stdout, stderr = proc.communicate()
+        if proc.returncode != 0:
+            failed = failed or subprocess.CalledProcessError(proc.returncode, proc.args, stdout, stderr)
+            continue
+        out[name] = dict(json.loads(stdout.strip().splitlines()[-1]))
+    if failed is not None:
+        raise failed
+    return out
 
 
 def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[int]) -> dict[str, Any]:
@@ -449,8 +462,9 @@ def run_bench(
     tick()
     doc["peak_rss_mb"] = {}
     doc["peak_rss_baseline_mb"] = {}
+    rss = _peak_rss(pf_names, particles_big)
     for name in pf_names:
-        r = _peak_rss(name, particles_big)
+        r = rss[name]
         doc["peak_rss_mb"][name] = r["peak_rss_mb"]
         doc["peak_rss_baseline_mb"][name] = r["baseline_mb"]
         rep.note(f"{name}: peak RSS {r['peak_rss_mb']:.0f} MB for one update of {particles_big} particles "
