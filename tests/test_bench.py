@@ -91,3 +91,15 @@ def test_bench_command_writes_the_json_and_shows_the_tables(bench, monkeypatch, 
     shown = capsys.readouterr().out
     assert "gtsam_smoother k = 10" in shown and "paper run" in shown and "ray cast" in shown
     assert "as long on 2 workers as on one thread" in " ".join(shown.split())  # rich wraps lines
+
+
+def test_a_failing_peak_rss_child_raises_with_its_output() -> None:
+    """The peak-RSS children run at once; one that fails (an unknown estimator) raises
+    CalledProcessError carrying its stderr, after the others have been waited for."""
+    import subprocess
+
+    from tofloc.bench import _peak_rss
+
+    with pytest.raises(subprocess.CalledProcessError) as info:
+        _peak_rss(["no_such_estimator"], 10)
+    assert "no_such_estimator" in info.value.stderr
