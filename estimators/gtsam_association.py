@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_factors import SampleMeasurement
+from tofloc import frames
 from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
@@ -176,13 +177,13 @@ def associate(
     cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
     v_cfg = np.zeros(sig.shape)
     if config_cov is not None and meas:
-        # the zone points and the planes' normals in their tip frames
+        # T_base_tip_true = C exp(delta), the support correction D after it: the zone points
+        # D p and the planes' normals in each sample's tip frame (the frame delta moves)
         sample = np.repeat(np.arange(len(meas)), sizes)
-        R_tm = np.stack([np.linalg.inv(T)[:3, :3] for T in T_mt])[sample]  # the tip's axes in map coordinates, inverted
-        p_tip = np.concatenate([m.points(bias) for m in meas])
-        n_tip = np.einsum("nij,nj->ni", R_tm, n)
-        cov = np.asarray(config_cov, dtype=float)[sample]
-        v = normal_variance(p_tip, n_tip, cov)
+        R_map_tip = (T_mb @ np.stack([np.asarray(c, dtype=float) for c in C]))[:, :3, :3][sample]
+        p_tip = frames.transform_points(D, np.concatenate([m.points(bias) for m in meas]))
+        n_tip = np.einsum("nji,nj->ni", R_map_tip, n)  # R^T n
+        v = normal_variance(p_tip, n_tip, np.asarray(config_cov, dtype=float)[sample])
         v_cfg = np.where(np.isfinite(v), v, 0.0)
     s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2 + v_cfg)
     s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2 + v_cfg)

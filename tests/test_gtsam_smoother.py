@@ -394,6 +394,33 @@ def test_marginalized_configuration_variance_is_added_along_the_normal() -> None
         lever = np.cross(np.array([0.0, 0.0, 1.0]), m.points())
         want.append(m.s**2 + (np.einsum("ni,ni->n", n_tip, lever) * sr) ** 2)
     np.testing.assert_allclose(got**2, np.concatenate(want), rtol=1e-9)
+    # any covariance, a support correction D: the variance of n . (p_map - q) with C_k ->
+    # C_k exp(delta), by central differences (delta a rotation vector, then a translation)
+    from tofloc import frames
+
+    D = frames.se3(frames.rot_z(np.radians(5.0)) @ frames.matrix_from_rotvec(np.array([0.02, -0.01, 0.0])),
+                   np.array([0.003, -0.002, 0.001]))
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(K, 6, 6)) * np.array([0.01, 0.01, 0.02, 0.003, 0.003, 0.003])
+    cov = A @ np.swapaxes(A, 1, 2)
+    assoc_D, _ = associate(p, meas, truth, C, D, 10.0, map_sigma=0.003, gate_sigmas=0.0)
+    got_D, _ = associate(p, meas, truth, C, D, 10.0, map_sigma=0.003, gate_sigmas=0.0, config_cov=cov)
+    T_mb = p.prior.T_map_base(truth)
+    h = 1e-6
+    for k, (m0, m1) in enumerate(zip(assoc_D, got_D)):
+        J = np.zeros((m0.size, 6))
+        for a in range(6):
+            step = np.zeros(6)
+            step[a] = h
+
+            def dist(d: np.ndarray) -> np.ndarray:
+                E = frames.se3(frames.matrix_from_rotvec(d[:3]), d[3:])
+                pm = frames.transform_points(T_mb @ C[k] @ E @ D, m0.points())
+                return np.einsum("ni,ni->n", m0.n, pm - m0.q)
+
+            J[:, a] = (dist(step) - dist(-step)) / (2 * h)
+        want_v = np.einsum("na,ab,nb->n", J, cov[k], J)
+        np.testing.assert_allclose(m1.s**2 - m0.s**2, want_v, rtol=1e-5, atol=1e-12)
 
 
 @pytest.mark.parametrize("numba_flag", ["0", "1"])
