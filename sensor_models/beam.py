@@ -195,6 +195,10 @@ class BeamModel(SensorModel):
         Exponent in (0, 1] applied to the sum of the zones' log-likelihoods of a sample.
     sub_rays : int
         Footprint sub-rays per zone side (1..5).
+    footprint_tolerance : float or None
+        With an odd ``sub_rays > 1``: cast a zone's footprint only where its centre ray's
+        reading is not within this many metres of its neighbours' straight-line prediction
+        (:class:`tofloc.zone_caster.ZoneCaster`); None: every zone's footprint.
     short_support : {"range", "expected"}
         Where a short reading's density lives: ``"range"`` (default), the exponential
         ``lambda e^(-lambda z)`` normalized over the sensor's whole range, the same for every
@@ -246,6 +250,7 @@ class BeamModel(SensorModel):
     outlier_floor: float = 0.05
     temper: float = 0.25
     sub_rays: int = 1
+    footprint_tolerance: float | None = None
     short_support: str = "range"
     hit_dof: float = float("inf")
     unknown_weight: float = 0.0
@@ -295,7 +300,7 @@ class BoundBeamModel(BoundSensorModel):
             self.mixture, self.mixture_source = BeamMixture(), "defaults"
         self.mixture = self.mixture.with_outlier_floor(model.outlier_floor)
         self.state = declared_state(problem, model.nuisances)
-        caster = ZoneCaster(problem.rig, footprint=int(model.sub_rays))
+        caster = ZoneCaster(problem.rig, footprint=int(model.sub_rays), footprint_tolerance=model.footprint_tolerance)
         T_lift_tip = problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip
         self.rays = PlanarZoneRays(caster, problem.rig.T_tip_sensor, T_lift_tip)
         self.n_steps = problem.n_samples

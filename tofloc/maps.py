@@ -1023,6 +1023,31 @@ class Map:
         t[~(t <= float(max_range))] = np.inf  # misses are inf already; beyond range too
         return t.reshape(rays.shape[:-1])
 
+    def raycast_incidence(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
+                          nthreads: int | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Ray length to the first hit and ``|cos|`` of the angle between the ray and the hit
+        surface's normal (0 on a miss): :meth:`raycast_distance` plus the incidence, from the
+        same float32 rays (unit directions, not checked), for callers that weigh hits by
+        their incidence (the zone caster's signal weighting) without the normals themselves.
+
+        The normal is Open3D's of the triangle hit: a mesh's face normal, or on a cloud the
+        surfel's, which is perpendicular to its point's normal (as :meth:`raycast`'s, up to
+        float32 rounding)."""
+        if self._surface is not None:
+            return self._surface.raycast_incidence(rays, max_range, nthreads=nthreads)
+        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
+            raise ParameterError(f"raycast_incidence: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+        o3d = _open3d()
+        flat = rays.reshape(-1, 6)
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(flat), nthreads=_threads(nthreads))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        hit = t <= float(max_range)
+        t[~hit] = np.inf
+        n = ans["primitive_normals"].numpy()
+        cos_i = np.abs(np.einsum("ni,ni->n", n, flat[:, 3:], dtype=np.float64))
+        cos_i[~hit] = 0.0
+        return t.reshape(rays.shape[:-1]), cos_i.reshape(rays.shape[:-1])
+
     # ---- pickling and display ------------------------------------------------------------
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()

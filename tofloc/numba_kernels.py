@@ -426,6 +426,33 @@ def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma:
                 out[m, s, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
 
 
+@_jit
+def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_idx: Any,
+                         out: Any) -> None:  # pragma: no cover - compiled
+    """The sub-rays of chosen zones (:meth:`tofloc.zone_caster.PlanarZoneRays.cast`'s rough
+    zones): ``out[f, i]`` (float32) is the origin ``org[m, s]`` then ``A[m] @ dirs[s, z, i]``
+    with ``m, s, z`` the ``f``-th entries of ``m_idx, s_idx, z_idx``; rotations ``A`` ``(M,
+    3, 3)``, origins ``(M, S, 3)``, unit directions ``(S, Z, n, 3)``."""
+    n = dirs.shape[2]
+    for f in range(m_idx.shape[0]):
+        m = m_idx[f]
+        s = s_idx[f]
+        z = z_idx[f]
+        ox = np.float32(org[m, s, 0])
+        oy = np.float32(org[m, s, 1])
+        oz = np.float32(org[m, s, 2])
+        for i in range(n):
+            dx = dirs[s, z, i, 0]
+            dy = dirs[s, z, i, 1]
+            dz = dirs[s, z, i, 2]
+            out[f, i, 0] = ox
+            out[f, i, 1] = oy
+            out[f, i, 2] = oz
+            out[f, i, 3] = np.float32(A[m, 0, 0] * dx + A[m, 0, 1] * dy + A[m, 0, 2] * dz)
+            out[f, i, 4] = np.float32(A[m, 1, 0] * dx + A[m, 1, 1] * dy + A[m, 1, 2] * dz)
+            out[f, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
+
+
 #: Robust kernels of :func:`smoother_zone_rows` by code (the order of
 #: :data:`estimators.gtsam_factors.ROBUST_KERNELS`).
 ROBUST_CODES = {"huber": 0, "cauchy": 1, "none": 2}

@@ -31,6 +31,20 @@ sub-rays' readings, with weights
 
 With one sub-ray both give the same reading.
 
+Footprints only where the surface is not smooth
+-----------------------------------------------
+With ``footprint_tolerance = tol`` (metres, an odd ``footprint``) a zone casts its whole
+footprint only where its centre ray alone may misjudge it: every zone's centre ray is cast
+first, and a zone is *rough* when its centre reading differs by more than ``tol`` from the
+straight-line prediction of its grid neighbours (the mean of the two opposite neighbours
+along a row, a column or a diagonal; at the grid's border, the extrapolation of the two
+inner neighbours), or when it and one of its eight neighbours disagree on whether there
+is a target at all. Rough zones read as with the full footprint; the others read their
+centre ray (hit fraction 0 or 1). On a smooth surface the readings of neighbouring zones
+lie on a line to within ``tol``, and the footprint's mean is then the centre's to about
+the same; at an edge, a gap or a surface's end the prediction misses and the footprint is
+cast. ``tol < 0`` casts every zone's footprint (the same readings as without a tolerance).
+
 Geometry (``geometry=True``): per zone the mean ``|cos|`` of incidence of the returning
 sub-rays, the unit normal (the weighted mean of their normals, turned to face the
 sensor), the hit point (the weighted mean of their hit points), the map primitive hit by
@@ -126,6 +140,9 @@ class ZoneCaster:
         Smallest reading (m) a sub-ray may return.
     max_range : float, optional
         Largest reading (m); default each sensor's ``max_range_m`` (never above it).
+    footprint_tolerance : float, optional
+        With an odd ``footprint > 1``: cast the footprint only for rough zones (module
+        doc, "Footprints only where the surface is not smooth"); None casts it everywhere.
     """
 
     def __init__(
@@ -136,6 +153,7 @@ class ZoneCaster:
         min_hit_fraction: float = 0.0,
         min_range: float = 0.0,
         max_range: float | None = None,
+        footprint_tolerance: float | None = None,
     ) -> None:
         if not isinstance(footprint, (int, np.integer)) or isinstance(footprint, bool) or not 1 <= footprint <= MAX_FOOTPRINT:
             raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
@@ -145,6 +163,10 @@ class ZoneCaster:
             raise ParameterError(f"min_hit_fraction must be in [0, 1], got {min_hit_fraction!r}")
         if not 0.0 <= float(min_range) or (max_range is not None and not float(max_range) > float(min_range)):
             raise ParameterError(f"expected 0 <= min_range < max_range, got {min_range!r} and {max_range!r}")
+        if footprint_tolerance is not None and not (isinstance(footprint_tolerance, (int, float))
+                                                    and not isinstance(footprint_tolerance, bool)
+                                                    and math.isfinite(footprint_tolerance)):
+            raise ParameterError(f"footprint_tolerance must be a finite number of metres or None, got {footprint_tolerance!r}")
         self.rig = rig
         explicit = any(s.zone_directions is not None for s in rig.sensors)
         #: sub-rays per side actually cast (1 when a sensor has an explicit zone table)
@@ -166,6 +188,13 @@ class ZoneCaster:
         self.max_reading: FloatArray = np.asarray(cap, dtype=float)
         #: longest ray worth casting (the largest reading along the most oblique sub-ray)
         self.max_ray_length = float(np.max(self.max_reading[:, None, None] / np.maximum(self.along, 1e-9)))
+        #: footprints cast only for rough zones (None: every zone's)
+        self.footprint_tolerance: float | None = None
+        if footprint_tolerance is not None and self.footprint > 1:
+            if self.footprint % 2 == 0:
+                raise ParameterError(f"footprint_tolerance needs an odd footprint (a centre sub-ray), got footprint={footprint}")
+            self.footprint_tolerance = float(footprint_tolerance)
+            self._stencil = _smoothness_stencil(rig, dirs)
 
     @property
     def n_sub(self) -> int:
@@ -218,6 +247,8 @@ class ZoneCaster:
         d = np.asarray(directions, dtype=float)
         if d.ndim < 4 or d.shape[-4:] != self.dirs_sensor.shape:
             raise ParameterError(f"directions must be shaped (..., {', '.join(map(str, self.dirs_sensor.shape))}), got {d.shape}")
+        if not geometry and self.footprint_tolerance is not None:
+            return self._cast_rough(the_map, origins, d)
         if not geometry and not self.needs_normals:
             rays = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
             rays[..., :3] = origins
@@ -253,12 +284,15 @@ class ZoneCaster:
             corner = np.zeros(target.shape, dtype=bool)
         return ZoneCast(reading, frac, mean_cos, normal_z, point, index, corner)
 
-    def _weights(self, t: FloatArray, ret: NDArray[np.bool_], normal: FloatArray | None, d: FloatArray | None) -> FloatArray:
-        """Weights ``(..., n)`` of the returning sub-rays in a zone's reading (module doc)."""
+    def _weights(self, t: FloatArray, ret: NDArray[np.bool_], normal: FloatArray | None, d: FloatArray | None,
+                 cos_i: FloatArray | None = None) -> FloatArray:
+        """Weights ``(..., n)`` of the returning sub-rays in a zone's reading (module doc), from
+        the hits' normals and the rays' directions or their incidence ``cos_i``."""
         if self.n_sub == 1 or self.weighting == "mean":
             return ret.astype(float)
-        assert normal is not None and d is not None
-        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), d))
+        if cos_i is None:
+            assert normal is not None and d is not None
+            cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(normal), d))
         return np.where(ret, np.maximum(cos_i, 0.05) / np.maximum(np.where(ret, t, 1.0), 0.05) ** 2, 0.0)
 
     def _reduce(self, t: FloatArray, normal: FloatArray | None, d: FloatArray | None) -> ZoneCast:
@@ -271,19 +305,80 @@ class ZoneCaster:
         reading, frac = self._weighted(t, normal, d)[:2]
         return ZoneCast(reading, frac)
 
-    def _weighted(self, t: FloatArray, normal: FloatArray | None, d: FloatArray | None) -> tuple[Any, ...]:
+    def _weighted(self, t: FloatArray, normal: FloatArray | None, d: FloatArray | None,
+                  along: FloatArray | None = None, max_reading: FloatArray | None = None,
+                  cos_i: FloatArray | None = None) -> tuple[Any, ...]:
         """Reading, hit fraction, and the intermediates the geometry reuses (returning mask,
-        count, target, weights and their sum) from sub-ray hit distances ``t``."""
-        sub_reading = t * self.along
-        ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= self.max_reading[:, None, None])
+        count, target, weights and their sum) from sub-ray hit distances ``t``
+        ``(..., S, Z, n)``, or of chosen zones ``(F, n)`` with their ``along`` ``(F, n)``
+        and ``max_reading`` ``(F, 1)``."""
+        along = self.along if along is None else along
+        max_reading = self.max_reading[:, None, None] if max_reading is None else max_reading
+        sub_reading = t * along
+        ret = np.isfinite(t) & (sub_reading >= self.min_range) & (sub_reading <= max_reading)
         n_ret = ret.sum(axis=-1)
         frac = n_ret / self.n_sub
         target = (n_ret > 0) & (frac >= self.min_hit_fraction - 1e-12)
-        w = self._weights(t, ret, normal, d)
+        w = self._weights(t, ret, normal, d, cos_i)
         wsum = w.sum(axis=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
             reading = np.where(target, (w * np.where(ret, sub_reading, 0.0)).sum(axis=-1) / wsum, np.nan)
         return reading, frac, ret, n_ret, target, w, wsum
+
+    def rough(self, reading: FloatArray) -> NDArray[np.bool_]:
+        """Zones ``(..., S, Z)`` whose centre readings ``reading`` (NaN: no target) are not
+        smooth within :attr:`footprint_tolerance` (module doc): a depth predicted from the
+        neighbours (:func:`_smoothness_stencil`, exact on a plane) misses by more than the
+        tolerance, or a neighbour disagrees on whether there is a target."""
+        assert self.footprint_tolerance is not None
+        if self.footprint_tolerance < 0:
+            return np.ones(reading.shape, dtype=bool)
+        nbr, w, used, nb, depth = self._stencil
+        S, Z = reading.shape[-2:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = 1.0 / (reading * depth)
+            # index Z (no neighbour) reads 0 with weight 0
+            pad = np.concatenate([inv, np.zeros(inv.shape[:-1] + (1,))], axis=-1)
+            s_idx = np.arange(S)[:, None, None, None]
+            pred = np.einsum("...szkj,szkj->...szk", pad[..., s_idx, nbr], w)  # (..., S, Z, 4)
+            miss = np.abs(inv[..., None] - pred) * (reading * depth)[..., None] ** 2 > self.footprint_tolerance
+            miss |= pred <= 0  # no plane through the neighbours in front of the sensor
+        rough = np.any(used & miss, axis=-1)
+        # a target here and none at a neighbour (or the reverse): a surface ends in the footprint
+        has = np.isfinite(inv)
+        rough |= np.any((nb < Z) & (np.isfinite(pad[..., s_idx[..., 0], nb]) != has[..., None]), axis=-1)
+        return rough
+
+    def _cast_rough(self, the_map: Any, origins: ArrayLike, d: FloatArray) -> ZoneCast:
+        """:meth:`cast_rays` with :attr:`footprint_tolerance`: centre rays, then the whole
+        footprint of the rough zones only."""
+        c = self.n_sub // 2
+        o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
+        rays = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
+        rays[..., :3] = o
+        rays[..., 3:] = d
+        t_c = the_map.raycast_distance(np.ascontiguousarray(rays[..., c, :]), max_range=self.max_ray_length)
+        return self.cast_rough(the_map, t_c, lambda idx: np.ascontiguousarray(rays[idx]))
+
+    def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any) -> ZoneCast:
+        """Readings ``(..., S, Z)`` from the centre rays' hit distances ``t_centre`` and, for
+        the rough zones (:meth:`rough`), their whole footprint: ``footprints(idx)`` returns
+        the sub-rays ``(F, n, 6)`` (float32, origins then unit directions in the map frame)
+        of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
+        c = self.n_sub // 2
+        r_c = t_centre * self.along[..., c]
+        ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
+        target = ret & (1.0 >= self.min_hit_fraction - 1e-12)
+        reading = np.where(target, r_c, np.nan)
+        frac = ret.astype(float)
+        idx = np.nonzero(self.rough(np.where(ret, r_c, np.nan)))
+        if idx[0].size:
+            s_i, z_i = idx[-2], idx[-1]
+            t_f, cos_f = the_map.raycast_incidence(footprints(idx), max_range=self.max_ray_length)
+            r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
+            reading[idx] = r_f
+            frac[idx] = f_f
+        return ZoneCast(reading, frac)
 
     def cast_zone_rays(self, the_map: Any, origins: ArrayLike, directions: ArrayLike, sensor: ArrayLike,
                        zone: ArrayLike) -> ZoneCast:
@@ -375,15 +470,9 @@ class PlanarZoneRays:
         dr = rotate_z(d, c[:, None, None, None], s[:, None, None, None])
         return org[:, :, None, None, :], dr
 
-    def ray_buffer(self, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None) -> NDArray[np.float32]:
-        """The sub-rays of sample ``step`` for planar poses ``(M, 3)``, packed for the ray
-        caster: ``(M, S, Z, n, 6)`` float32, origins then unit directions in the map frame.
-
-        Each candidate's rotation ``A = Rz(yaw) R_lift [Rz(support_yaw)]`` is composed once
-        (``(M, 3, 3)``) and applied to the tip-frame rays, written straight into the buffer
-        (one stacked matrix product for the directions); no re-normalization (rotations keep unit vectors unit). The same
-        rays as :meth:`rays` to float64 rounding (another order of the same products).
-        """
+    def _moves(self, poses: ArrayLike, step: int, support_yaw: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        """Each candidate's rotation ``A = Rz(yaw) R_lift [Rz(support_yaw)]`` ``(M, 3, 3)``
+        of the tip-frame rays and its sensors' origins ``(M, S, 3)`` in the map frame."""
         p = np.asarray(poses, dtype=float)
         M = p.shape[0]
         c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
@@ -396,30 +485,129 @@ class PlanarZoneRays:
             Rp = np.zeros((M, 3, 3))
             Rp[:, 0, 0], Rp[:, 0, 1], Rp[:, 1, 0], Rp[:, 1, 1], Rp[:, 2, 2] = cp, -sp, sp, cp, 1.0
             A = A @ Rp
-        out = np.empty((M,) + self.dirs_tip.shape[:-1] + (6,), dtype=np.float32)
         org = np.einsum("mij,sj->msi", A, self.origins_tip) + np.einsum("mij,j->mi", Rz, t)[:, None, :]
         org[..., 0] += p[:, None, 0]
         org[..., 1] += p[:, None, 1]
+        return A, org
+
+    @staticmethod
+    def _fill(A: FloatArray, org: FloatArray, dirs_tip: FloatArray) -> NDArray[np.float32]:
+        """Rays ``(M, S, Z, n, 6)`` float32 of tip-frame directions ``dirs_tip`` ``(S, Z, n,
+        3)`` moved by :meth:`_moves`' rotations and origins."""
+        M, S = A.shape[0], dirs_tip.shape[0]
+        out = np.empty((M,) + dirs_tip.shape[:-1] + (6,), dtype=np.float32)
+        flat = np.ascontiguousarray(dirs_tip.reshape(S, -1, 3))
         if numba_kernels.enabled():  # one compiled pass writing the buffer
-            S = self.dirs_tip.shape[0]
-            numba_kernels.planar_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org),
-                                            self._dirs_tip_flat.reshape(S, -1, 3), out.reshape(M, S, -1, 6))
+            numba_kernels.planar_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), flat, out.reshape(M, S, -1, 6))
             return out
         # every candidate's rotation applied to every ray: one stacked matrix product
-        out.reshape(M, -1, 6)[:, :, 3:] = np.matmul(self._dirs_tip_flat[None], A.transpose(0, 2, 1))
+        out.reshape(M, -1, 6)[:, :, 3:] = np.matmul(flat.reshape(-1, 3)[None], A.transpose(0, 2, 1))
         out[..., :3] = org[:, :, None, None, :]
         return out
+
+    def ray_buffer(self, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None) -> NDArray[np.float32]:
+        """The sub-rays of sample ``step`` for planar poses ``(M, 3)``, packed for the ray
+        caster: ``(M, S, Z, n, 6)`` float32, origins then unit directions in the map frame.
+
+        Each candidate's rotation ``A = Rz(yaw) R_lift [Rz(support_yaw)]`` is composed once
+        (``(M, 3, 3)``) and applied to the tip-frame rays, written straight into the buffer
+        (one stacked matrix product for the directions); no re-normalization (rotations keep unit vectors unit). The same
+        rays as :meth:`rays` to float64 rounding (another order of the same products).
+        """
+        A, org = self._moves(poses, step, support_yaw)
+        return self._fill(A, org, self.dirs_tip)
 
     def cast(self, the_map: Any, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None,
              *, geometry: bool = False) -> ZoneCast:
         """Expected readings ``(M, S, Z)`` of sample ``step`` for planar poses ``(M, 3)``.
 
         Without geometry (and when readings need no normals) the hot path: the rays packed
-        by :meth:`ray_buffer` and hit distances only (:meth:`ZoneCaster.cast_ray_buffer`)."""
+        by :meth:`ray_buffer` and hit distances only (:meth:`ZoneCaster.cast_ray_buffer`).
+        With the caster's ``footprint_tolerance``: the centre rays packed likewise, then the
+        footprints of the rough zones (:meth:`ZoneCaster.cast_rough`)."""
+        caster = self.caster
+        if not geometry and caster.footprint_tolerance is not None:
+            A, org = self._moves(poses, step, support_yaw)
+            c = caster.n_sub // 2
+            t_c = the_map.raycast_distance(self._fill(A, org, self.dirs_tip[:, :, c : c + 1]), max_range=caster.max_ray_length)
+
+            def footprints(idx: tuple[NDArray[np.intp], ...]) -> NDArray[np.float32]:
+                m, s, z = idx
+                if numba_kernels.enabled():  # one compiled pass, no (F, n, 3) temporaries
+                    out = np.empty((m.size, caster.n_sub, 6), dtype=np.float32)
+                    numba_kernels.footprint_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), self.dirs_tip,
+                                                       m, s, z, out)
+                    return out
+                Am, d = A[m], self.dirs_tip[s, z]  # (F, 3, 3), (F, n, 3)
+                out = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
+                out[..., :3] = org[m, s][:, None, :]
+                for i in range(3):  # d @ Am^T, one output axis at a time
+                    out[..., 3 + i] = d[..., 0] * Am[:, None, i, 0] + d[..., 1] * Am[:, None, i, 1] + d[..., 2] * Am[:, None, i, 2]
+                return out
+
+            return caster.cast_rough(the_map, t_c[..., 0], footprints)
         if not geometry and not self.caster.needs_normals:
             return self.caster.cast_ray_buffer(the_map, self.ray_buffer(poses, step, support_yaw))
         o, d = self.rays(poses, step, support_yaw)
         return self.caster.cast_rays(the_map, o, d, geometry=geometry)
+
+
+def _smoothness_stencil(rig: Rig, dirs_sensor: FloatArray) -> tuple[NDArray[Any], ...]:
+    """Per sensor and zone, four predictions of its centre ray's depth from grid neighbours,
+    one per axis (row, column, two diagonals), each exact on a plane: the inverse
+    perpendicular depth ``1/z`` of a plane is affine in the image coordinates ``(x/z, y/z)``
+    of the ray, so ``1/z_i = sum_k w_k / z_k`` with ``sum_k w_k = 1`` and ``sum_k w_k p_k
+    = p_i`` (``p`` the image points). A row or column uses the two opposite neighbours
+    (collinear with the zone; at the grid's border the two inner ones, extrapolated); a
+    diagonal's image points are not collinear with the zone's, so a diagonal adds the
+    nearest row or column neighbour and the weights are the zone's barycentric coordinates.
+
+    Returns indices ``nbr`` ``(S, Z, 4, 3)`` (``Z``: none), weights ``w`` ``(S, Z, 4, 3)``,
+    ``used`` ``(S, Z, 4)`` (the axis has a prediction), the eight neighbours ``nb`` ``(S,
+    Z, 8)`` and ``depth`` ``(S, Z)``: the perpendicular depth per unit reading of each
+    centre ray."""
+    S, Z = rig.n_sensors, rig.n_zones
+    nbr = np.full((S, Z, 4, 3), Z, dtype=np.intp)
+    w = np.zeros((S, Z, 4, 3))
+    nb = np.full((S, Z, 8), Z, dtype=np.intp)
+    c = dirs_sensor.shape[2] // 2
+    centre = dirs_sensor[:, :, c, :]  # (S, Z, 3) unit
+    image = centre[..., :2] / centre[..., 2:3]  # (S, Z, 2)
+    axes = ((0, 1), (1, 0), (1, 1), (1, -1))
+    for s, sensor in enumerate(rig.sensors):  # a loop over sensors and their <= 64 zones, once per caster
+        R, C = sensor.resolution
+
+        def at(i: int, j: int) -> int:
+            return i * C + j if 0 <= i < R and 0 <= j < C else Z
+
+        for i in range(R):
+            for j in range(C):
+                z = i * C + j
+                for k, (di, dj) in enumerate(axes):
+                    plus, minus = at(i + di, j + dj), at(i - di, j - dj)
+                    nb[s, z, 2 * k], nb[s, z, 2 * k + 1] = plus, minus
+                    if plus < Z and minus < Z:
+                        pts = [plus, minus]
+                    elif plus < Z and at(i + 2 * di, j + 2 * dj) < Z:
+                        pts = [plus, at(i + 2 * di, j + 2 * dj)]
+                    elif minus < Z and at(i - 2 * di, j - 2 * dj) < Z:
+                        pts = [minus, at(i - 2 * di, j - 2 * dj)]
+                    else:
+                        continue
+                    if di and dj:  # a diagonal: add a row or column neighbour off its line
+                        third = [q for q in (at(i, j + dj), at(i + di, j), at(i, j - dj), at(i - di, j)) if q < Z]
+                        if not third:
+                            continue
+                        pts.append(third[0])
+                    P = np.vstack([image[s, pts].T, np.ones(len(pts))])  # (3, n): image points and the affine row
+                    sol = np.linalg.lstsq(P, np.append(image[s, z], 1.0), rcond=None)[0]
+                    nbr[s, z, k, : len(pts)] = pts
+                    w[s, z, k, : len(pts)] = sol
+    used = nbr[..., 0] < Z
+    perpendicular = np.array([sn.distance == "perpendicular" for sn in rig.sensors])
+    # depth = t * u_z; reading = t * along: depth per unit reading
+    depth = np.where(perpendicular[:, None], 1.0, centre[..., 2])
+    return nbr, w, used, nb, depth
 
 
 def rotate_z(v: FloatArray, c: ArrayLike, s: ArrayLike) -> FloatArray:
