@@ -194,7 +194,7 @@ def test_likelihood_peaks_at_the_truth(kind: str) -> None:
         import dataclasses
 
         p = dataclasses.replace(p, map=Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y")))
-    bound = BeamModel(temper=1.0).bind(p)
+    bound = BeamModel(temper=1.0, sub_rays=1).bind(p)  # the data's own centre-ray physics (tofloc.testing)
     offsets = np.array([[0, 0, 0], [0.01, 0, 0], [-0.01, 0, 0], [0, 0.01, 0], [0, -0.01, 0], [0, 0, 0.02], [0, 0, -0.02]])
     ll = bound.log_likelihood(truth + offsets, 0)
     assert np.argmax(ll) == 0, ll

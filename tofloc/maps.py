@@ -1024,7 +1024,7 @@ class Map:
         return t.reshape(rays.shape[:-1])
 
     def raycast_incidence(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
-                          nthreads: int | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+                          nthreads: int | None = None, normals: bool = False) -> tuple[NDArray[np.float64], NDArray[Any]]:
         """Ray length to the first hit and ``|cos|`` of the angle between the ray and the hit
         surface's normal (0 on a miss): :meth:`raycast_distance` plus the incidence, from the
         same float32 rays (unit directions, not checked), for callers that weigh hits by
@@ -1032,9 +1032,10 @@ class Map:
 
         The normal is Open3D's of the triangle hit: a mesh's face normal, or on a cloud the
         surfel's, which is perpendicular to its point's normal (as :meth:`raycast`'s, up to
-        float32 rounding)."""
+        float32 rounding). ``normals=True`` returns the hit triangles' unit normals
+        ``(..., 3)`` (float32, any sign; meaningless on a miss) instead of ``|cos|``."""
         if self._surface is not None:
-            return self._surface.raycast_incidence(rays, max_range, nthreads=nthreads)
+            return self._surface.raycast_incidence(rays, max_range, nthreads=nthreads, normals=normals)
         if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
             raise ParameterError(f"raycast_incidence: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
         o3d = _open3d()
@@ -1044,7 +1045,9 @@ class Map:
         hit = t <= float(max_range)
         t[~hit] = np.inf
         n = ans["primitive_normals"].numpy()
-        cos_i = np.abs(np.einsum("ni,ni->n", n, flat[:, 3:], dtype=np.float64))
+        if normals:
+            return t.reshape(rays.shape[:-1]), n.reshape(rays.shape[:-1] + (3,))
+        cos_i = np.abs(np.einsum("ni,ni->n", n, flat[:, 3:])).astype(np.float64)
         cos_i[~hit] = 0.0
         return t.reshape(rays.shape[:-1]), cos_i.reshape(rays.shape[:-1])
 

@@ -453,6 +453,123 @@ def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_
             out[f, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
 
 
+@_jit_parallel
+def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading: Any, s_idx: Any, z_idx: Any,
+                       min_range: float, min_fraction: float, signal: bool, reading: Any,
+                       fraction: Any) -> None:  # pragma: no cover - compiled
+    """Readings and hit fractions ``(F,)`` of chosen zones from their sub-rays' hit lengths
+    ``t`` ``(F, n)`` (inf: no hit), the hit triangles' normals ``(F, n, 3)`` (float32) and
+    the rays ``(F, n, 6)`` (float32): the range cut on each sub-ray's reading and the
+    weighted mean of :class:`tofloc.zone_caster.ZoneCaster` (``signal``: ``max(|cos i|,
+    0.05) / max(t, 0.05)^2``, else equal weights)."""
+    F, n = t.shape
+    for f in _prange(F):
+        s = s_idx[f]
+        z = z_idx[f]
+        wsum = 0.0
+        acc = 0.0
+        n_ret = 0
+        for j in range(n):
+            tj = t[f, j]
+            r = tj * along[s, z, j]
+            if not (r >= min_range and r <= max_reading[s]):  # also a miss (inf, or nan)
+                continue
+            n_ret += 1
+            w = 1.0
+            if signal:
+                c = abs(np.float64(normals[f, j, 0]) * rays[f, j, 3] + np.float64(normals[f, j, 1]) * rays[f, j, 4]
+                        + np.float64(normals[f, j, 2]) * rays[f, j, 5])
+                w = max(c, 0.05) / max(tj, 0.05) ** 2
+            wsum += w
+            acc += w * r
+        frac = n_ret / n
+        fraction[f] = frac
+        reading[f] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
+
+
+@_jit_parallel
+def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, tolerance: float,
+                out: Any) -> None:  # pragma: no cover - compiled
+    """:meth:`tofloc.zone_caster.ZoneCaster.rough` for centre readings ``(M, S, Z)`` (NaN: no
+    target) into ``out`` (bool): a neighbour disagreeing on a target, or a plane prediction
+    of ``1/z`` (weights ``w`` of neighbours ``nbr``, index ``Z``: none) not in front of the
+    sensor or missing the zone's depth by more than ``tolerance``."""
+    M, S, Z = reading.shape
+    for m in _prange(M):
+        for s in range(S):
+            for z in range(Z):
+                r = reading[m, s, z]
+                has = r == r
+                rough = False
+                for k in range(nb.shape[2]):
+                    j = nb[s, z, k]
+                    if j < Z and (reading[m, s, j] == reading[m, s, j]) != has:
+                        rough = True
+                        break
+                if has and not rough:
+                    zi = r * depth[s, z]
+                    inv = 1.0 / zi
+                    for k in range(4):
+                        if not used[s, z, k]:
+                            continue
+                        pred = 0.0
+                        for q in range(3):
+                            j = nbr[s, z, k, q]
+                            if j < Z:
+                                pred += w[s, z, k, q] / (reading[m, s, j] * depth[s, j])
+                        if not pred > 0.0 or abs(inv - pred) * zi * zi > tolerance:
+                            rough = True
+                            break
+                out[m, s, z] = rough
+
+
+@_jit_parallel
+def plane_footprints(centre: Any, rough: Any, depth: Any, planar: Any, nbr: Any, slope: Any, image: Any, dirs: Any,
+                     along: Any, max_reading: Any, min_range: float, min_fraction: float, signal: bool, reading: Any,
+                     fraction: Any) -> None:  # pragma: no cover - compiled
+    """Footprints spread over planes (:meth:`tofloc.zone_caster.ZoneCaster.cast_rough`):
+    for every smooth zone (not ``rough``, ``planar``, a finite ``centre`` reading) of every
+    candidate, the plane ``n . p = 1`` through its centre hit with the slope of ``1/z``
+    from its row and column neighbours, each sub-ray's hit on it, the range cut and the
+    weighting, into ``reading, fraction`` ``(M, S, Z)`` (other zones left as they are).
+    The arithmetic of the numpy path (:meth:`~tofloc.zone_caster.ZoneCaster._plane_footprints`)."""
+    M, S, Z = centre.shape
+    n = dirs.shape[2]
+    for m in _prange(M):
+        for s in range(S):
+            for z in range(Z):
+                c = centre[m, s, z]
+                if rough[m, s, z] or not planar[s, z] or not c == c:
+                    continue
+                q = 1.0 / (c * depth[s, z])
+                a, b = nbr[s, z, 0, 0], nbr[s, z, 0, 1]
+                gx = slope[s, z, 0, 0] / (centre[m, s, a] * depth[s, a]) + slope[s, z, 0, 1] / (centre[m, s, b] * depth[s, b])
+                a, b = nbr[s, z, 1, 0], nbr[s, z, 1, 1]
+                gy = slope[s, z, 1, 0] / (centre[m, s, a] * depth[s, a]) + slope[s, z, 1, 1] / (centre[m, s, b] * depth[s, b])
+                gz = q - gx * image[s, z, 0] - gy * image[s, z, 1]
+                norm = math.sqrt(gx * gx + gy * gy + gz * gz)
+                wsum = 0.0
+                acc = 0.0
+                n_ret = 0
+                for j in range(n):
+                    nu = gx * dirs[s, z, j, 0] + gy * dirs[s, z, j, 1] + gz * dirs[s, z, j, 2]
+                    if not nu > 0.0:
+                        continue
+                    t = 1.0 / nu
+                    r = t * along[s, z, j]
+                    if r < min_range or r > max_reading[s]:
+                        continue
+                    n_ret += 1
+                    w = 1.0
+                    if signal:
+                        w = max(nu / norm, 0.05) / max(t, 0.05) ** 2
+                    wsum += w
+                    acc += w * r
+                frac = n_ret / n
+                fraction[m, s, z] = frac
+                reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
+
+
 #: Robust kernels of :func:`smoother_zone_rows` by code (the order of
 #: :data:`estimators.gtsam_factors.ROBUST_KERNELS`).
 ROBUST_CODES = {"huber": 0, "cauchy": 1, "none": 2}

@@ -333,8 +333,13 @@ class ZoneCaster:
         assert self.footprint_tolerance is not None
         if self.footprint_tolerance < 0:
             return np.ones(reading.shape, dtype=bool)
-        nbr, w, used, nb, depth = self._stencil
+        nbr, w, used, nb, depth = self._stencil[:5]
         S, Z = reading.shape[-2:]
+        if numba_kernels.enabled():
+            flat = np.ascontiguousarray(reading.reshape((-1, S, Z)), dtype=float)
+            out = np.empty(flat.shape, dtype=bool)
+            numba_kernels.rough_zones(flat, depth, nbr, w, used, nb, self.footprint_tolerance, out)
+            return out.reshape(reading.shape)
         with np.errstate(invalid="ignore", divide="ignore"):
             inv = 1.0 / (reading * depth)
             # index Z (no neighbour) reads 0 with weight 0
@@ -343,6 +348,7 @@ class ZoneCaster:
             pred = np.einsum("...szkj,szkj->...szk", pad[..., s_idx, nbr], w)  # (..., S, Z, 4)
             miss = np.abs(inv[..., None] - pred) * (reading * depth)[..., None] ** 2 > self.footprint_tolerance
             miss |= pred <= 0  # no plane through the neighbours in front of the sensor
+            miss |= ~np.isfinite(pred) & np.isfinite(inv)[..., None]  # a neighbour it needs has no target
         rough = np.any(used & miss, axis=-1)
         # a target here and none at a neighbour (or the reverse): a surface ends in the footprint
         has = np.isfinite(inv)
@@ -368,17 +374,65 @@ class ZoneCaster:
         c = self.n_sub // 2
         r_c = t_centre * self.along[..., c]
         ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
-        target = ret & (1.0 >= self.min_hit_fraction - 1e-12)
-        reading = np.where(target, r_c, np.nan)
-        frac = ret.astype(float)
-        idx = np.nonzero(self.rough(np.where(ret, r_c, np.nan)))
+        centre = np.where(ret, r_c, np.nan)
+        rough = self.rough(centre)
+        planar = self._stencil[5]
+        rough |= ret & ~planar  # no plane to spread the footprint over: cast it
+        if numba_kernels.enabled():
+            reading = np.full(centre.shape, np.nan)
+            frac = np.zeros(centre.shape)
+            _, _, _, _, depth, planar, slope, image = self._stencil
+            c3 = np.ascontiguousarray(centre.reshape((-1,) + centre.shape[-2:]))
+            numba_kernels.plane_footprints(c3, np.ascontiguousarray(rough.reshape(c3.shape)), depth, planar,
+                                           self._stencil[0][:, :, :2, :2].copy(), slope, image, self.dirs_sensor,
+                                           self.along, self.max_reading, self.min_range, self.min_hit_fraction,
+                                           self.weighting == "signal", reading.reshape(c3.shape), frac.reshape(c3.shape))
+        else:
+            reading, frac = self._plane_footprints(centre)
+        idx = np.nonzero(rough)
         if idx[0].size:
             s_i, z_i = idx[-2], idx[-1]
-            t_f, cos_f = the_map.raycast_incidence(footprints(idx), max_range=self.max_ray_length)
-            r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
+            rays = footprints(idx)
+            if numba_kernels.enabled():  # one compiled pass from the hits' normals
+                t_f, n_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length, normals=True)
+                r_f, f_f = np.empty(s_i.size), np.empty(s_i.size)
+                numba_kernels.footprint_readings(t_f, n_f, rays, self.along, self.max_reading, s_i, z_i, self.min_range,
+                                                 self.min_hit_fraction, self.weighting == "signal", r_f, f_f)
+            else:
+                t_f, cos_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length)
+                r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
             reading[idx] = r_f
             frac[idx] = f_f
         return ZoneCast(reading, frac)
+
+    def _plane_footprints(self, centre: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Readings and hit fractions ``(..., S, Z)`` of every zone's footprint on the plane
+        through its centre ray's hit with the slope its row and column neighbours give
+        (:func:`_smoothness_stencil`), from the centre readings ``centre`` (NaN: no target).
+
+        In the sensor frame the plane is ``n . p = 1`` with ``n = (a, b, 1/z_i - a x_i - b
+        y_i)``, ``(a, b)`` the slope of ``1/z`` in image coordinates: a sub-ray of unit
+        direction ``u`` hits it at ray length ``1 / (n . u)`` (none where ``n . u <= 0``)
+        with incidence ``|n . u| / |n|``; the readings are then reduced as a cast's
+        (range cut, weighting). Zones without a target read NaN (hit fraction 0); zones
+        without a plane (:attr:`rough` or not ``planar``) are overwritten by the caller."""
+        _, _, _, _, depth, planar, slope, image = self._stencil
+        S, Z = centre.shape[-2:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            q = 1.0 / (centre * depth)  # (..., S, Z)
+            qp = np.concatenate([q, np.zeros(q.shape[:-1] + (1,))], axis=-1)
+            nbr = self._stencil[0]
+            s_idx = np.arange(S)[:, None]
+            gx = slope[..., 0, 0] * qp[..., s_idx, nbr[..., 0, 0]] + slope[..., 0, 1] * qp[..., s_idx, nbr[..., 0, 1]]
+            gy = slope[..., 1, 0] * qp[..., s_idx, nbr[..., 1, 0]] + slope[..., 1, 1] * qp[..., s_idx, nbr[..., 1, 1]]
+            gz = q - gx * image[..., 0] - gy * image[..., 1]
+            u = self.dirs_sensor  # (S, Z, n, 3)
+            nu = gx[..., None] * u[..., 0] + gy[..., None] * u[..., 1] + gz[..., None] * u[..., 2]  # (..., S, Z, n)
+            t = np.where(nu > 0, 1.0 / nu, np.inf)
+            cos_i = np.abs(nu) / np.sqrt(gx * gx + gy * gy + gz * gz)[..., None]
+        reading, frac = self._weighted(t, None, None, cos_i=cos_i)[:2]
+        keep = np.isfinite(centre) & planar
+        return np.where(keep, reading, np.nan), np.where(keep, frac, 0.0)
 
     def cast_zone_rays(self, the_map: Any, origins: ArrayLike, directions: ArrayLike, sensor: ArrayLike,
                        zone: ArrayLike) -> ZoneCast:
@@ -564,8 +618,11 @@ def _smoothness_stencil(rig: Rig, dirs_sensor: FloatArray) -> tuple[NDArray[Any]
 
     Returns indices ``nbr`` ``(S, Z, 4, 3)`` (``Z``: none), weights ``w`` ``(S, Z, 4, 3)``,
     ``used`` ``(S, Z, 4)`` (the axis has a prediction), the eight neighbours ``nb`` ``(S,
-    Z, 8)`` and ``depth`` ``(S, Z)``: the perpendicular depth per unit reading of each
-    centre ray."""
+    Z, 8)``, ``depth`` ``(S, Z)`` (the perpendicular depth per unit reading of each centre
+    ray), ``planar`` ``(S, Z)`` (a row and a column prediction: the plane's slope is known),
+    ``slope`` ``(S, Z, 2, 2)`` (per image axis, the factors of ``1/z`` at the row's or
+    column's two points giving the plane's slope of ``1/z`` along that axis) and the centre
+    rays' image points ``(S, Z, 2)``."""
     S, Z = rig.n_sensors, rig.n_zones
     nbr = np.full((S, Z, 4, 3), Z, dtype=np.intp)
     w = np.zeros((S, Z, 4, 3))
@@ -607,7 +664,19 @@ def _smoothness_stencil(rig: Rig, dirs_sensor: FloatArray) -> tuple[NDArray[Any]
     perpendicular = np.array([sn.distance == "perpendicular" for sn in rig.sensors])
     # depth = t * u_z; reading = t * along: depth per unit reading
     depth = np.where(perpendicular[:, None], 1.0, centre[..., 2])
-    return nbr, w, used, nb, depth
+    # the plane's slope of 1/z along the image's x (the row's two points) and y (the column's)
+    planar = used[..., 0] & used[..., 1]
+    slope = np.zeros((S, Z, 2, 2))  # per axis: 1/z = ... + (q_a - q_b) / (x_a - x_b) * x
+    for axis in (0, 1):
+        ia, ib = nbr[..., axis, 0], nbr[..., axis, 1]
+        sel = planar
+        s_i = np.broadcast_to(np.arange(S)[:, None], (S, Z))
+        xa = image[s_i, np.minimum(ia, Z - 1), axis]
+        xb = image[s_i, np.minimum(ib, Z - 1), axis]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv_dx = np.where(sel, 1.0 / (xa - xb), 0.0)
+        slope[..., axis, 0], slope[..., axis, 1] = inv_dx, -inv_dx
+    return nbr, w, used, nb, depth, planar, slope, image
 
 
 def rotate_z(v: FloatArray, c: ArrayLike, s: ArrayLike) -> FloatArray:
