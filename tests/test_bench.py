@@ -44,7 +44,10 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
             assert row["update_s_10000"] is None
     assert doc["estimators"]["beam_pf"]["state"] == ["support_yaw"]  # the columns the filter really carries
     r = doc["raycast"]
-    assert r["rays"] == 10 * 3 * 64 and _seconds(r["raycast_s"]) and _seconds(r["beam_over_raycast"])
+    # the update's own rays: 10 particles' centre rays, then nine for each rough zone
+    centre, feet = r["buffers"]
+    assert centre == 10 * 3 * 64 and feet % 9 == 0 and 0 < feet < 9 * centre and r["rays"] == centre + feet
+    assert _seconds(r["raycast_s"]) and _seconds(r["beam_over_raycast"])
     assert set(doc["peak_rss_mb"]) == pfs and all(v >= doc["peak_rss_baseline_mb"][n] > 50 for n, v in doc["peak_rss_mb"].items())
     g = doc["gtsam"]
     assert _seconds(g["per_sample_factor_s"]) and _seconds(g["stacked_factor_s"]) and _seconds(g["speedup"])

@@ -32,7 +32,9 @@ def _consumers(p, truth: np.ndarray, footprint: int) -> dict[str, np.ndarray]:
     out = {
         "simulator": cast_zones(p.map, p.rig, T_map_sensor, physics).distance,
         "calibration": cast_expected(p.map, p.rig, T_map_sensor, footprint)[0],
-        "beam": np.concatenate([BeamModel(sub_rays=footprint).bind(p).expected(truth[None], k)[0] for k in range(p.n_samples)]),
+        # every footprint cast (a negative tolerance); the default's rough-zones-only footprints: below
+        "beam": np.concatenate([BeamModel(sub_rays=footprint, footprint_tolerance=-1.0).bind(p).expected(truth[None], k)[0]
+                                for k in range(p.n_samples)]),
     }
     if footprint == 1:
         out["crlb"] = expected_distances(T_map_base, p.T_base_tip, p.rig, p.map)
@@ -65,6 +67,13 @@ def test_every_consumer_computes_the_same_expected_readings(footprint: int) -> N
         assert value.shape == ref.shape, name
         np.testing.assert_array_equal(np.isfinite(value), np.isfinite(ref), err_msg=name)
         np.testing.assert_allclose(value[np.isfinite(ref)], ref[np.isfinite(ref)], atol=2e-6, err_msg=name)
+    if footprint == 3:  # the beam model's default: footprints cast on rough zones, spread over planes elsewhere
+        from sensor_models.beam import BeamModel
+
+        default = np.concatenate([BeamModel().bind(p).expected(truth[None], k)[0] for k in range(p.n_samples)])
+        both = np.isfinite(default) & np.isfinite(ref)
+        assert np.mean(np.isfinite(default) == np.isfinite(ref)) > 0.995
+        assert np.quantile(np.abs(default - ref)[both], 0.95) < 1e-3
 
 
 def _plane_rig(distance: str) -> tuple[Rig, Map]:
@@ -261,3 +270,22 @@ def test_rough_zones_compiled_equal_numpy(monkeypatch) -> None:
     monkeypatch.setenv("TOFLOC_NUMBA", "1")
     np.testing.assert_array_equal(caster.rough(centre), ref)
     assert 0.05 < ref.mean() < 0.9
+
+
+def test_cast_buffers_are_the_rays_the_cast_casts() -> None:
+    """What a benchmark times Embree on: the centre rays and the rough zones' footprints,
+    exactly the rays :meth:`PlanarZoneRays.cast` casts (their hits rebuild its readings)."""
+    p, truth = easy_problem(n_samples=2)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    poses = truth + np.random.default_rng(6).normal(size=(100, 3)) * np.array([0.05, 0.05, 0.2])
+    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
+    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    centre, feet = rays.cast_buffers(p.map, poses, 1)
+    assert centre.shape == (100, 3, 64, 1, 6) and feet.shape[1:] == (9, 6)
+    t_c = p.map.raycast_distance(centre, max_range=caster.max_ray_length)[..., 0]
+    rough = caster.centre_and_rough(t_c)[1]
+    assert feet.shape[0] == rough.sum() > 0
+    got = caster.cast_rough(p.map, t_c, lambda idx: feet)
+    np.testing.assert_array_equal(got.reading, rays.cast(p.map, poses, 1).reading)
+    full = PlanarZoneRays(ZoneCaster(p.rig, footprint=3), p.rig.T_tip_sensor, T_lift)
+    assert len(full.cast_buffers(p.map, poses, 1)) == 1

@@ -366,18 +366,23 @@ class ZoneCaster:
         t_c = the_map.raycast_distance(np.ascontiguousarray(rays[..., c, :]), max_range=self.max_ray_length)
         return self.cast_rough(the_map, t_c, lambda idx: np.ascontiguousarray(rays[idx]))
 
+    def centre_and_rough(self, t_centre: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """The centre readings ``(..., S, Z)`` (NaN: no return) from the centre rays' hit
+        distances, and the zones whose footprints :meth:`cast_rough` casts: the rough ones
+        and those with a return but no plane (no row or column prediction)."""
+        r_c = t_centre * self.along[..., self.n_sub // 2]
+        ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
+        centre = np.where(ret, r_c, np.nan)
+        rough = self.rough(centre)
+        rough |= ret & ~self._stencil[5]  # no plane to spread the footprint over: cast it
+        return centre, rough
+
     def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any) -> ZoneCast:
         """Readings ``(..., S, Z)`` from the centre rays' hit distances ``t_centre`` and, for
         the rough zones (:meth:`rough`), their whole footprint: ``footprints(idx)`` returns
         the sub-rays ``(F, n, 6)`` (float32, origins then unit directions in the map frame)
         of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
-        c = self.n_sub // 2
-        r_c = t_centre * self.along[..., c]
-        ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
-        centre = np.where(ret, r_c, np.nan)
-        rough = self.rough(centre)
-        planar = self._stencil[5]
-        rough |= ret & ~planar  # no plane to spread the footprint over: cast it
+        centre, rough = self.centre_and_rough(t_centre)
         if numba_kernels.enabled():
             reading = np.full(centre.shape, np.nan)
             frac = np.zeros(centre.shape)
@@ -571,6 +576,36 @@ class PlanarZoneRays:
         A, org = self._moves(poses, step, support_yaw)
         return self._fill(A, org, self.dirs_tip)
 
+    def _footprints(self, A: FloatArray, org: FloatArray, idx: tuple[NDArray[np.intp], ...]) -> NDArray[np.float32]:
+        """The sub-rays ``(F, n, 6)`` (float32) of zones ``idx = (m, s, z)`` moved by
+        :meth:`_moves`' rotations ``A`` and origins ``org``."""
+        m, s, z = idx
+        if numba_kernels.enabled():  # one compiled pass, no (F, n, 3) temporaries
+            out = np.empty((m.size, self.caster.n_sub, 6), dtype=np.float32)
+            numba_kernels.footprint_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), self.dirs_tip, m, s, z, out)
+            return out
+        Am, d = A[m], self.dirs_tip[s, z]  # (F, 3, 3), (F, n, 3)
+        out = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
+        out[..., :3] = org[m, s][:, None, :]
+        for i in range(3):  # d @ Am^T, one output axis at a time
+            out[..., 3 + i] = d[..., 0] * Am[:, None, i, 0] + d[..., 1] * Am[:, None, i, 1] + d[..., 2] * Am[:, None, i, 2]
+        return out
+
+    def cast_buffers(self, the_map: Any, poses: ArrayLike, step: int,
+                     support_yaw: FloatArray | None = None) -> list[NDArray[np.float32]]:
+        """The ray buffers :meth:`cast` (without geometry) hands the ray caster for these
+        poses: one (every sub-ray, or the centre rays), or with the caster's
+        ``footprint_tolerance`` the centre rays and then the rough zones' footprints (found
+        by casting the centre rays). What a benchmark times Embree alone on."""
+        caster = self.caster
+        if caster.footprint_tolerance is None:
+            return [self.ray_buffer(poses, step, support_yaw)]
+        A, org = self._moves(poses, step, support_yaw)
+        c = caster.n_sub // 2
+        centre = self._fill(A, org, self.dirs_tip[:, :, c : c + 1])
+        t_c = the_map.raycast_distance(centre, max_range=caster.max_ray_length)[..., 0]
+        return [centre, self._footprints(A, org, np.nonzero(caster.centre_and_rough(t_c)[1]))]
+
     def cast(self, the_map: Any, poses: ArrayLike, step: int, support_yaw: FloatArray | None = None,
              *, geometry: bool = False) -> ZoneCast:
         """Expected readings ``(M, S, Z)`` of sample ``step`` for planar poses ``(M, 3)``.
@@ -584,22 +619,7 @@ class PlanarZoneRays:
             A, org = self._moves(poses, step, support_yaw)
             c = caster.n_sub // 2
             t_c = the_map.raycast_distance(self._fill(A, org, self.dirs_tip[:, :, c : c + 1]), max_range=caster.max_ray_length)
-
-            def footprints(idx: tuple[NDArray[np.intp], ...]) -> NDArray[np.float32]:
-                m, s, z = idx
-                if numba_kernels.enabled():  # one compiled pass, no (F, n, 3) temporaries
-                    out = np.empty((m.size, caster.n_sub, 6), dtype=np.float32)
-                    numba_kernels.footprint_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), self.dirs_tip,
-                                                       m, s, z, out)
-                    return out
-                Am, d = A[m], self.dirs_tip[s, z]  # (F, 3, 3), (F, n, 3)
-                out = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
-                out[..., :3] = org[m, s][:, None, :]
-                for i in range(3):  # d @ Am^T, one output axis at a time
-                    out[..., 3 + i] = d[..., 0] * Am[:, None, i, 0] + d[..., 1] * Am[:, None, i, 1] + d[..., 2] * Am[:, None, i, 2]
-                return out
-
-            return caster.cast_rough(the_map, t_c[..., 0], footprints)
+            return caster.cast_rough(the_map, t_c[..., 0], lambda idx: self._footprints(A, org, idx))
         if not geometry and not self.caster.needs_normals:
             return self.caster.cast_ray_buffer(the_map, self.ray_buffer(poses, step, support_yaw))
         o, d = self.rays(poses, step, support_yaw)
