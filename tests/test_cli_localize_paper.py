@@ -310,7 +310,8 @@ def test_paper_calibrates_each_footprint_its_estimators_cast(data: dict[str, Pat
     from tofloc.calibration_file import SensorCalibration
     from tofloc.range_model import RangeUncertainty
 
-    assert BeamPF().calibration_footprint() == 1 and LikelihoodFieldPF().calibration_footprint() == 1
+    assert BeamPF().calibration_footprint() == 3 and LikelihoodFieldPF().calibration_footprint() == 1  # beam's default footprint
+    assert BeamPF(sensor_model_params={"sub_rays": 1}).calibration_footprint() == 1
     assert BeamPF(sensor_model_params={"sub_rays": 2}).calibration_footprint() == 2
     calls: list[int] = []
 
@@ -340,7 +341,8 @@ def test_paper_calibrates_each_footprint_its_estimators_cast(data: dict[str, Pat
     ctx = dataclasses.replace(entry.context, footprint_calibrations={2: fitted(2)})
     bias = {}
     for name, cls, params in (("b2", BeamPF, {"n_particles": 20, "sensor_model_params": {"sub_rays": 2}}),
-                              ("b1", BeamPF, {"n_particles": 20}), ("lf", LikelihoodFieldPF, {"n_particles": 20}),
+                              ("b1", BeamPF, {"n_particles": 20, "sensor_model_params": {"sub_rays": 1}}),
+                              ("lf", LikelihoodFieldPF, {"n_particles": 20}),
                               ("icp", ICPScorePF, {"n_particles": 20})):
         task = TrialTask("g", name, cls, params, "mocap", PriorSpec("paper"), 2, 0, 5)
         bias[name] = solve_trial(ctx, task).problem.range_model.bias_offset
