@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, stdtr
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from sensor_models.base import TEMP_BYTES_PER_ZONE, BoundSensorModel, SensorModel, declared_state, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
@@ -335,6 +335,17 @@ class BoundBeamModel(BoundSensorModel):
         self.zone_dirs_tip = u / np.linalg.norm(u, axis=-1, keepdims=True)
         #: per-zone constants of the fused kernel (:meth:`log_likelihood`), None when it does not apply
         self.fused = _fused_constants(self)
+
+    def temporaries_per_state(self) -> int:
+        """Bytes of temporaries per state: the zones' (:data:`~sensor_models.base.TEMP_BYTES_PER_ZONE`
+        each), times the sub-rays when every footprint is cast; with footprints cast on rough
+        zones only, the zones' plus at most every zone's sub-rays (packed rays, hit lengths,
+        normals: 64 bytes each), the bound when every zone is rough."""
+        zones = self.problem.rig.n_sensors * self.problem.rig.n_zones
+        caster = self.rays.caster
+        if caster.footprint_tolerance is None:
+            return TEMP_BYTES_PER_ZONE * zones * caster.n_sub
+        return zones * (TEMP_BYTES_PER_ZONE + 64 * caster.n_sub)
 
     def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
         """Variance ``(S, Z)`` of each zone's expected reading caused by sample ``step``'s

@@ -515,12 +515,81 @@ def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, 
                         pred = 0.0
                         for q in range(3):
                             j = nbr[s, z, k, q]
-                            if j < Z:
-                                pred += w[s, z, k, q] / (reading[m, s, j] * depth[s, j])
+                            if j < Z:  # the arithmetic of rough_and_plane: w * (1 / z)
+                                pred += w[s, z, k, q] * (1.0 / (reading[m, s, j] * depth[s, j]))
                         if not pred > 0.0 or abs(inv - pred) * zi * zi > tolerance:
                             rough = True
                             break
                 out[m, s, z] = rough
+
+
+@_jit_parallel
+def rough_and_plane(centre: Any, tolerance: float, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, planar: Any,
+                    slope: Any, image: Any, dirs: Any, along: Any, max_reading: Any, min_range: float,
+                    min_fraction: float, signal: bool, rough: Any, reading: Any,
+                    fraction: Any) -> None:  # pragma: no cover - compiled
+    """:func:`rough_zones` (plus the zones with a return but no plane) and
+    :func:`plane_footprints` of the smooth ones in one pass per candidate, the inverse
+    depths computed once (the same decisions and arithmetic as the two kernels)."""
+    M, S, Z = centre.shape
+    n = dirs.shape[2]
+    for m in _prange(M):
+        q = np.empty((S, Z + 1))
+        for s in range(S):
+            for z in range(Z):
+                q[s, z] = 1.0 / (centre[m, s, z] * depth[s, z])
+            q[s, Z] = 0.0
+        for s in range(S):
+            for z in range(Z):
+                qi = q[s, z]
+                has = qi == qi
+                r = False
+                for k in range(nb.shape[2]):
+                    j = nb[s, z, k]
+                    if j < Z and (q[s, j] == q[s, j]) != has:
+                        r = True
+                        break
+                if has and not r:
+                    zi = centre[m, s, z] * depth[s, z]
+                    for k in range(4):
+                        if not used[s, z, k]:
+                            continue
+                        pred = 0.0
+                        for t in range(3):
+                            j = nbr[s, z, k, t]
+                            if j < Z:
+                                pred += w[s, z, k, t] * q[s, j]
+                        if not pred > 0.0 or abs(qi - pred) * zi * zi > tolerance:
+                            r = True
+                            break
+                    if not planar[s, z]:
+                        r = True
+                rough[m, s, z] = r
+                if r or not has:
+                    continue
+                gx = slope[s, z, 0, 0] * q[s, nbr[s, z, 0, 0]] + slope[s, z, 0, 1] * q[s, nbr[s, z, 0, 1]]
+                gy = slope[s, z, 1, 0] * q[s, nbr[s, z, 1, 0]] + slope[s, z, 1, 1] * q[s, nbr[s, z, 1, 1]]
+                gz = qi - gx * image[s, z, 0] - gy * image[s, z, 1]
+                inv_norm = 1.0 / math.sqrt(gx * gx + gy * gy + gz * gz)
+                wsum = 0.0
+                acc = 0.0
+                n_ret = 0
+                for j in range(n):
+                    nu = gx * dirs[s, z, j, 0] + gy * dirs[s, z, j, 1] + gz * dirs[s, z, j, 2]
+                    if not nu > 0.0:
+                        continue
+                    rj = along[s, z, j] / nu  # ray length 1 / nu, one division
+                    if rj < min_range or rj > max_reading[s]:
+                        continue
+                    n_ret += 1
+                    wj = 1.0
+                    if signal:  # max(cos, 0.05) / max(t, 0.05)^2 with t = 1 / nu
+                        wj = max(nu * inv_norm, 0.05) * min(nu * nu, 400.0)
+                    wsum += wj
+                    acc += wj * rj
+                frac = n_ret / n
+                fraction[m, s, z] = frac
+                reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
 
 
 @_jit_parallel

@@ -382,8 +382,22 @@ class ZoneCaster:
         the rough zones (:meth:`rough`), their whole footprint: ``footprints(idx)`` returns
         the sub-rays ``(F, n, 6)`` (float32, origins then unit directions in the map frame)
         of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
-        centre, rough = self.centre_and_rough(t_centre)
-        if numba_kernels.enabled():
+        if numba_kernels.enabled() and self.footprint_tolerance is not None and self.footprint_tolerance >= 0:
+            # one compiled pass: the rough zones, and the smooth ones' footprints over their planes
+            r_c = t_centre * self.along[..., self.n_sub // 2]
+            ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
+            centre = np.where(ret, r_c, np.nan)
+            nbr, w, used, nb, depth, planar, slope, image = self._stencil
+            c3 = np.ascontiguousarray(centre.reshape((-1,) + centre.shape[-2:]))
+            rough = np.empty(c3.shape, dtype=bool)
+            reading = np.full(c3.shape, np.nan)
+            frac = np.zeros(c3.shape)
+            numba_kernels.rough_and_plane(c3, self.footprint_tolerance, depth, nbr, w, used, nb, planar, slope, image,
+                                          self.dirs_sensor, self.along, self.max_reading, self.min_range,
+                                          self.min_hit_fraction, self.weighting == "signal", rough, reading, frac)
+            rough, reading, frac = (a.reshape(centre.shape) for a in (rough, reading, frac))
+        elif numba_kernels.enabled():
+            centre, rough = self.centre_and_rough(t_centre)
             reading = np.full(centre.shape, np.nan)
             frac = np.zeros(centre.shape)
             _, _, _, _, depth, planar, slope, image = self._stencil
@@ -393,6 +407,7 @@ class ZoneCaster:
                                            self.along, self.max_reading, self.min_range, self.min_hit_fraction,
                                            self.weighting == "signal", reading.reshape(c3.shape), frac.reshape(c3.shape))
         else:
+            centre, rough = self.centre_and_rough(t_centre)
             reading, frac = self._plane_footprints(centre)
         idx = np.nonzero(rough)
         if idx[0].size:
