@@ -487,6 +487,48 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
         reading[f] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
 
 
+@_jit_inline
+def _inverse_depths(centre: Any, depth: Any, m: int) -> Any:  # pragma: no cover - compiled
+    """``1 / z`` ``(S, Z + 1)`` of candidate ``m``'s centre readings (NaN: no target; the
+    extra column, index ``Z`` = no neighbour, reads 0)."""
+    S, Z = depth.shape
+    q = np.empty((S, Z + 1))
+    for s in range(S):
+        for z in range(Z):
+            q[s, z] = 1.0 / (centre[m, s, z] * depth[s, z])
+        q[s, Z] = 0.0
+    return q
+
+
+@_jit_inline
+def _zone_is_rough(q: Any, zi: float, s: int, z: int, nbr: Any, w: Any, used: Any, nb: Any,
+                   tolerance: float) -> bool:  # pragma: no cover - compiled
+    """:meth:`tofloc.zone_caster.ZoneCaster.rough` of one zone from the inverse depths ``q``
+    (:func:`_inverse_depths`) and its depth ``zi``: a neighbour disagreeing on a target, or
+    a plane prediction ``sum_k w_k q_k`` not in front of the sensor or missing by more than
+    ``tolerance`` (m)."""
+    Z = q.shape[1] - 1
+    qi = q[s, z]
+    has = qi == qi
+    for k in range(nb.shape[2]):
+        j = nb[s, z, k]
+        if j < Z and (q[s, j] == q[s, j]) != has:
+            return True
+    if not has:
+        return False
+    for k in range(4):
+        if not used[s, z, k]:
+            continue
+        pred = 0.0
+        for t in range(3):
+            j = nbr[s, z, k, t]
+            if j < Z:
+                pred += w[s, z, k, t] * q[s, j]
+        if not pred > 0.0 or abs(qi - pred) * zi * zi > tolerance:
+            return True
+    return False
+
+
 @_jit_parallel
 def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, tolerance: float,
                 out: Any) -> None:  # pragma: no cover - compiled
@@ -496,31 +538,10 @@ def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, 
     sensor or missing the zone's depth by more than ``tolerance``."""
     M, S, Z = reading.shape
     for m in _prange(M):
+        q = _inverse_depths(reading, depth, m)
         for s in range(S):
             for z in range(Z):
-                r = reading[m, s, z]
-                has = r == r
-                rough = False
-                for k in range(nb.shape[2]):
-                    j = nb[s, z, k]
-                    if j < Z and (reading[m, s, j] == reading[m, s, j]) != has:
-                        rough = True
-                        break
-                if has and not rough:
-                    zi = r * depth[s, z]
-                    inv = 1.0 / zi
-                    for k in range(4):
-                        if not used[s, z, k]:
-                            continue
-                        pred = 0.0
-                        for q in range(3):
-                            j = nbr[s, z, k, q]
-                            if j < Z:  # the arithmetic of rough_and_plane: w * (1 / z)
-                                pred += w[s, z, k, q] * (1.0 / (reading[m, s, j] * depth[s, j]))
-                        if not pred > 0.0 or abs(inv - pred) * zi * zi > tolerance:
-                            rough = True
-                            break
-                out[m, s, z] = rough
+                out[m, s, z] = _zone_is_rough(q, reading[m, s, z] * depth[s, z], s, z, nbr, w, used, nb, tolerance)
 
 
 @_jit_parallel
@@ -528,42 +549,23 @@ def rough_and_plane(centre: Any, tolerance: float, depth: Any, nbr: Any, w: Any,
                     slope: Any, image: Any, dirs: Any, along: Any, max_reading: Any, min_range: float,
                     min_fraction: float, signal: bool, rough: Any, reading: Any,
                     fraction: Any) -> None:  # pragma: no cover - compiled
-    """:func:`rough_zones` (plus the zones with a return but no plane) and
-    :func:`plane_footprints` of the smooth ones in one pass per candidate, the inverse
-    depths computed once (the same decisions and arithmetic as the two kernels)."""
+    """:func:`rough_zones` (plus the zones with a return but no plane: ``planar`` false)
+    and, for the smooth zones with a return, the footprint spread over the plane ``n . p =
+    1`` through the centre hit with the slope of ``1/z`` from the row and column
+    neighbours (``slope``): each sub-ray's length ``1 / (n . u)``, the range cut and the
+    weighting of :class:`tofloc.zone_caster.ZoneCaster` (the numpy path:
+    ``ZoneCaster._plane_footprints``), into ``rough, reading, fraction`` ``(M, S, Z)``
+    (``reading, fraction`` of rough zones and of zones without a return left as given)."""
     M, S, Z = centre.shape
     n = dirs.shape[2]
     for m in _prange(M):
-        q = np.empty((S, Z + 1))
-        for s in range(S):
-            for z in range(Z):
-                q[s, z] = 1.0 / (centre[m, s, z] * depth[s, z])
-            q[s, Z] = 0.0
+        q = _inverse_depths(centre, depth, m)
         for s in range(S):
             for z in range(Z):
                 qi = q[s, z]
                 has = qi == qi
-                r = False
-                for k in range(nb.shape[2]):
-                    j = nb[s, z, k]
-                    if j < Z and (q[s, j] == q[s, j]) != has:
-                        r = True
-                        break
-                if has and not r:
-                    zi = centre[m, s, z] * depth[s, z]
-                    for k in range(4):
-                        if not used[s, z, k]:
-                            continue
-                        pred = 0.0
-                        for t in range(3):
-                            j = nbr[s, z, k, t]
-                            if j < Z:
-                                pred += w[s, z, k, t] * q[s, j]
-                        if not pred > 0.0 or abs(qi - pred) * zi * zi > tolerance:
-                            r = True
-                            break
-                    if not planar[s, z]:
-                        r = True
+                zi = centre[m, s, z] * depth[s, z]
+                r = _zone_is_rough(q, zi, s, z, nbr, w, used, nb, tolerance) or (has and not planar[s, z])
                 rough[m, s, z] = r
                 if r or not has:
                     continue
@@ -587,53 +589,6 @@ def rough_and_plane(centre: Any, tolerance: float, depth: Any, nbr: Any, w: Any,
                         wj = max(nu * inv_norm, 0.05) * min(nu * nu, 400.0)
                     wsum += wj
                     acc += wj * rj
-                frac = n_ret / n
-                fraction[m, s, z] = frac
-                reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
-
-
-@_jit_parallel
-def plane_footprints(centre: Any, rough: Any, depth: Any, planar: Any, nbr: Any, slope: Any, image: Any, dirs: Any,
-                     along: Any, max_reading: Any, min_range: float, min_fraction: float, signal: bool, reading: Any,
-                     fraction: Any) -> None:  # pragma: no cover - compiled
-    """Footprints spread over planes (:meth:`tofloc.zone_caster.ZoneCaster.cast_rough`):
-    for every smooth zone (not ``rough``, ``planar``, a finite ``centre`` reading) of every
-    candidate, the plane ``n . p = 1`` through its centre hit with the slope of ``1/z``
-    from its row and column neighbours, each sub-ray's hit on it, the range cut and the
-    weighting, into ``reading, fraction`` ``(M, S, Z)`` (other zones left as they are).
-    The arithmetic of the numpy path (:meth:`~tofloc.zone_caster.ZoneCaster._plane_footprints`)."""
-    M, S, Z = centre.shape
-    n = dirs.shape[2]
-    for m in _prange(M):
-        for s in range(S):
-            for z in range(Z):
-                c = centre[m, s, z]
-                if rough[m, s, z] or not planar[s, z] or not c == c:
-                    continue
-                q = 1.0 / (c * depth[s, z])
-                a, b = nbr[s, z, 0, 0], nbr[s, z, 0, 1]
-                gx = slope[s, z, 0, 0] / (centre[m, s, a] * depth[s, a]) + slope[s, z, 0, 1] / (centre[m, s, b] * depth[s, b])
-                a, b = nbr[s, z, 1, 0], nbr[s, z, 1, 1]
-                gy = slope[s, z, 1, 0] / (centre[m, s, a] * depth[s, a]) + slope[s, z, 1, 1] / (centre[m, s, b] * depth[s, b])
-                gz = q - gx * image[s, z, 0] - gy * image[s, z, 1]
-                norm = math.sqrt(gx * gx + gy * gy + gz * gz)
-                wsum = 0.0
-                acc = 0.0
-                n_ret = 0
-                for j in range(n):
-                    nu = gx * dirs[s, z, j, 0] + gy * dirs[s, z, j, 1] + gz * dirs[s, z, j, 2]
-                    if not nu > 0.0:
-                        continue
-                    t = 1.0 / nu
-                    r = t * along[s, z, j]
-                    if r < min_range or r > max_reading[s]:
-                        continue
-                    n_ret += 1
-                    w = 1.0
-                    if signal:
-                        w = max(nu / norm, 0.05) / max(t, 0.05) ** 2
-                    wsum += w
-                    acc += w * r
                 frac = n_ret / n
                 fraction[m, s, z] = frac
                 reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan

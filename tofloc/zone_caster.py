@@ -396,19 +396,12 @@ class ZoneCaster:
                                           self.dirs_sensor, self.along, self.max_reading, self.min_range,
                                           self.min_hit_fraction, self.weighting == "signal", rough, reading, frac)
             rough, reading, frac = (a.reshape(centre.shape) for a in (rough, reading, frac))
-        elif numba_kernels.enabled():
+        else:  # numpy, or every footprint cast (a negative tolerance)
             centre, rough = self.centre_and_rough(t_centre)
-            reading = np.full(centre.shape, np.nan)
-            frac = np.zeros(centre.shape)
-            _, _, _, _, depth, planar, slope, image = self._stencil
-            c3 = np.ascontiguousarray(centre.reshape((-1,) + centre.shape[-2:]))
-            numba_kernels.plane_footprints(c3, np.ascontiguousarray(rough.reshape(c3.shape)), depth, planar,
-                                           self._stencil[0][:, :, :2, :2].copy(), slope, image, self.dirs_sensor,
-                                           self.along, self.max_reading, self.min_range, self.min_hit_fraction,
-                                           self.weighting == "signal", reading.reshape(c3.shape), frac.reshape(c3.shape))
-        else:
-            centre, rough = self.centre_and_rough(t_centre)
-            reading, frac = self._plane_footprints(centre)
+            if rough.all():
+                reading, frac = np.full(centre.shape, np.nan), np.zeros(centre.shape)
+            else:
+                reading, frac = self._plane_footprints(centre)
         idx = np.nonzero(rough)
         if idx[0].size:
             s_i, z_i = idx[-2], idx[-1]
