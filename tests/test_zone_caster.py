@@ -289,3 +289,42 @@ def test_cast_buffers_are_the_rays_the_cast_casts() -> None:
     np.testing.assert_array_equal(got.reading, rays.cast(p.map, poses, 1).reading)
     full = PlanarZoneRays(ZoneCaster(p.rig, footprint=3), p.rig.T_tip_sensor, T_lift)
     assert len(full.cast_buffers(p.map, poses, 1)) == 1
+
+
+@pytest.mark.parametrize("kind", ["mesh", "cloud"])
+def test_raycast_incidence_matches_the_full_raycast(kind: str) -> None:
+    """:meth:`Map.raycast_incidence` on packed rays: the same hit lengths as
+    :meth:`Map.raycast_distance` and |cos| of the incidence equal to |n . d| with
+    :meth:`Map.raycast`'s normals (a mesh's faces, a cloud's surfels), 0 and inf on a miss;
+    a buffer of the wrong type is refused by name."""
+    p, truth = easy_problem(n_samples=1)
+    the_map = p.map if kind == "cloud" else Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z",))
+    assert the_map.kind == ("points" if kind == "cloud" else "mesh")
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.tile([0.0, 0.0, 0.3], (500, 1)) + rng.normal(size=(500, 3)) * 0.02
+    rays = np.ascontiguousarray(np.concatenate([o, d], axis=1), dtype=np.float32)
+    t, cos_i = the_map.raycast_incidence(rays, max_range=2.0)
+    hits = the_map.raycast(rays[:, :3].astype(float), rays[:, 3:].astype(float), max_range=2.0)
+    np.testing.assert_array_equal(t, the_map.raycast_distance(rays, max_range=2.0))
+    hit = np.isfinite(t)
+    assert 0.5 < hit.mean() and (cos_i[~hit] == 0).all()  # rays upward leave through the open top
+    np.testing.assert_allclose(cos_i[hit], np.abs(np.einsum("ni,ni->n", hits.normal[hit], rays[hit, 3:])), atol=1e-5)
+    assert cos_i[hit].max() - cos_i[hit].min() > 0.3  # varied incidences, not a constant
+    with pytest.raises(Exception, match="raycast_incidence: expected C-contiguous float32"):
+        the_map.raycast_incidence(rays.astype(np.float64))
+
+
+def test_explicit_zone_tables_have_no_footprint_in_the_beam_model() -> None:
+    """The beam model's footprint default does not apply to sensors with explicit zone
+    tables (the nano-swarm decks): one centre ray per zone, no rough-zone test."""
+    from sensor_models.beam import BeamModel
+
+    p, truth = easy_problem(n_samples=1)
+    sensors = tuple(dataclasses.replace(s, zone_directions=s.unit_directions, resolution=(1, s.n_zones)) for s in p.rig.sensors)
+    explicit = dataclasses.replace(p, rig=dataclasses.replace(p.rig, sensors=sensors))
+    caster = BeamModel().bind(explicit).rays.caster
+    assert caster.n_sub == 1 and caster.footprint_tolerance is None
+    centre = BeamModel(sub_rays=1).bind(explicit).expected(truth[None], 0)[0]
+    np.testing.assert_array_equal(BeamModel().bind(explicit).expected(truth[None], 0)[0], centre)

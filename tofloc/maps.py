@@ -1015,13 +1015,19 @@ class Map:
         """
         if self._surface is not None:
             return self._surface.raycast_distance(rays, max_range, nthreads=nthreads)
+        return self._cast_buffer("raycast_distance", rays, max_range, nthreads)[0].reshape(rays.shape[:-1])
+
+    def _cast_buffer(self, caller: str, rays: NDArray[np.float32], max_range: float,
+                     nthreads: int | None) -> tuple[NDArray[np.float64], dict[str, Any]]:
+        """Open3D's cast of packed rays (checked: C-contiguous float32 ``(..., 6)``): the ray
+        lengths ``(N,)`` as float64, inf on a miss or beyond ``max_range``, and Open3D's answer."""
         if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
-            raise ParameterError(f"raycast_distance: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+            raise ParameterError(f"{caller}: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
         o3d = _open3d()
         ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=_threads(nthreads))
         t = ans["t_hit"].numpy().astype(np.float64)
         t[~(t <= float(max_range))] = np.inf  # misses are inf already; beyond range too
-        return t.reshape(rays.shape[:-1])
+        return t, ans
 
     def raycast_incidence(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
                           nthreads: int | None = None, normals: bool = False) -> tuple[NDArray[np.float64], NDArray[Any]]:
@@ -1031,19 +1037,16 @@ class Map:
         their incidence (the zone caster's signal weighting) without the normals themselves.
 
         The normal is Open3D's of the triangle hit: a mesh's face normal, or on a cloud the
-        surfel's, which is perpendicular to its point's normal (as :meth:`raycast`'s, up to
-        float32 rounding). ``normals=True`` returns the hit triangles' unit normals
-        ``(..., 3)`` (float32, any sign; meaningless on a miss) instead of ``|cos|``."""
+        normal of the surfel hit, a hexagon perpendicular to its point's normal, so parallel
+        to that normal (:meth:`raycast`'s, up to float32 rounding and sign; tested against
+        it on both kinds of maps through the zone caster). ``normals=True`` returns the hit
+        triangles' unit normals ``(..., 3)`` (float32, any sign; meaningless on a miss)
+        instead of ``|cos|``."""
         if self._surface is not None:
             return self._surface.raycast_incidence(rays, max_range, nthreads=nthreads, normals=normals)
-        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
-            raise ParameterError(f"raycast_incidence: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
-        o3d = _open3d()
+        t, ans = self._cast_buffer("raycast_incidence", rays, max_range, nthreads)
         flat = rays.reshape(-1, 6)
-        ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(flat), nthreads=_threads(nthreads))
-        t = ans["t_hit"].numpy().astype(np.float64)
-        hit = t <= float(max_range)
-        t[~hit] = np.inf
+        hit = np.isfinite(t)
         n = ans["primitive_normals"].numpy()
         if normals:
             return t.reshape(rays.shape[:-1]), n.reshape(rays.shape[:-1] + (3,))

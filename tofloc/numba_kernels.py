@@ -402,6 +402,23 @@ def likelihood_field_distances(dist: Any, unknown: Any, cos_in: Any, *args: Any)
     (_lf_parallel if parallel() else _lf_serial)(dist, unknown, cos_in, args)
 
 
+@_jit_inline
+def _put_ray(row: Any, ox: Any, oy: Any, oz: Any, A: Any, m: int, d: Any) -> None:  # pragma: no cover - compiled
+    """``row`` (6,) float32: the origin, then ``A[m] @ d``."""
+    row[0] = ox
+    row[1] = oy
+    row[2] = oz
+    row[3] = np.float32(A[m, 0, 0] * d[0] + A[m, 0, 1] * d[1] + A[m, 0, 2] * d[2])
+    row[4] = np.float32(A[m, 1, 0] * d[0] + A[m, 1, 1] * d[1] + A[m, 1, 2] * d[2])
+    row[5] = np.float32(A[m, 2, 0] * d[0] + A[m, 2, 1] * d[1] + A[m, 2, 2] * d[2])
+
+
+@_jit_inline
+def _signal_weight(cos_i: float, inv_t: float) -> float:  # pragma: no cover - compiled
+    """The zone caster's signal weight ``max(|cos i|, 0.05) / max(t, 0.05)^2`` from ``1 / t``."""
+    return max(cos_i, 0.05) * min(inv_t * inv_t, 400.0)
+
+
 @_jit
 def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma: no cover - compiled
     """Rays packed for the ray caster (:meth:`tofloc.zone_caster.PlanarZoneRays.ray_buffer`):
@@ -415,15 +432,7 @@ def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma:
             oy = np.float32(org[m, s, 1])
             oz = np.float32(org[m, s, 2])
             for i in range(R):
-                dx = dirs[s, i, 0]
-                dy = dirs[s, i, 1]
-                dz = dirs[s, i, 2]
-                out[m, s, i, 0] = ox
-                out[m, s, i, 1] = oy
-                out[m, s, i, 2] = oz
-                out[m, s, i, 3] = np.float32(A[m, 0, 0] * dx + A[m, 0, 1] * dy + A[m, 0, 2] * dz)
-                out[m, s, i, 4] = np.float32(A[m, 1, 0] * dx + A[m, 1, 1] * dy + A[m, 1, 2] * dz)
-                out[m, s, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
+                _put_ray(out[m, s, i], ox, oy, oz, A, m, dirs[s, i])
 
 
 @_jit
@@ -442,15 +451,7 @@ def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_
         oy = np.float32(org[m, s, 1])
         oz = np.float32(org[m, s, 2])
         for i in range(n):
-            dx = dirs[s, z, i, 0]
-            dy = dirs[s, z, i, 1]
-            dz = dirs[s, z, i, 2]
-            out[f, i, 0] = ox
-            out[f, i, 1] = oy
-            out[f, i, 2] = oz
-            out[f, i, 3] = np.float32(A[m, 0, 0] * dx + A[m, 0, 1] * dy + A[m, 0, 2] * dz)
-            out[f, i, 4] = np.float32(A[m, 1, 0] * dx + A[m, 1, 1] * dy + A[m, 1, 2] * dz)
-            out[f, i, 5] = np.float32(A[m, 2, 0] * dx + A[m, 2, 1] * dy + A[m, 2, 2] * dz)
+            _put_ray(out[f, i], ox, oy, oz, A, m, dirs[s, z, i])
 
 
 @_jit_parallel
@@ -479,7 +480,7 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
             if signal:
                 c = abs(np.float64(normals[f, j, 0]) * rays[f, j, 3] + np.float64(normals[f, j, 1]) * rays[f, j, 4]
                         + np.float64(normals[f, j, 2]) * rays[f, j, 5])
-                w = max(c, 0.05) / max(tj, 0.05) ** 2
+                w = _signal_weight(c, 1.0 / tj)
             wsum += w
             acc += w * r
         frac = n_ret / n
@@ -585,8 +586,8 @@ def rough_and_plane(centre: Any, tolerance: float, depth: Any, nbr: Any, w: Any,
                         continue
                     n_ret += 1
                     wj = 1.0
-                    if signal:  # max(cos, 0.05) / max(t, 0.05)^2 with t = 1 / nu
-                        wj = max(nu * inv_norm, 0.05) * min(nu * nu, 400.0)
+                    if signal:  # t = 1 / nu
+                        wj = _signal_weight(nu * inv_norm, nu)
                     wsum += wj
                     acc += wj * rj
                 frac = n_ret / n

@@ -33,17 +33,22 @@ With one sub-ray both give the same reading.
 
 Footprints only where the surface is not smooth
 -----------------------------------------------
-With ``footprint_tolerance = tol`` (metres, an odd ``footprint``) a zone casts its whole
-footprint only where its centre ray alone may misjudge it: every zone's centre ray is cast
-first, and a zone is *rough* when its centre reading differs by more than ``tol`` from the
-straight-line prediction of its grid neighbours (the mean of the two opposite neighbours
-along a row, a column or a diagonal; at the grid's border, the extrapolation of the two
-inner neighbours), or when it and one of its eight neighbours disagree on whether there
-is a target at all. Rough zones read as with the full footprint; the others read their
-centre ray (hit fraction 0 or 1). On a smooth surface the readings of neighbouring zones
-lie on a line to within ``tol``, and the footprint's mean is then the centre's to about
-the same; at an edge, a gap or a surface's end the prediction misses and the footprint is
-cast. ``tol < 0`` casts every zone's footprint (the same readings as without a tolerance).
+With ``footprint_tolerance = tol`` (metres, an odd ``footprint``) a zone's sub-rays are
+cast only where its centre ray alone cannot tell its reading. Every zone's centre ray is
+cast first. The inverse perpendicular depth ``1/z`` of a plane is affine in the image
+coordinates of the rays, so on a plane each zone's centre depth is predicted exactly from
+its grid neighbours (:func:`_smoothness_stencil`: along its row and its column from the two
+opposite neighbours, along each diagonal with a third neighbour off the line, at the
+grid's border extrapolated from two inner zones). A zone is *rough* when one of these
+predictions misses its depth by more than ``tol``, a neighbour a prediction needs has no
+target, it and one of its eight neighbours disagree on having a target, or it has no row
+and column prediction. Rough zones cast their whole footprint (the full cast's reading);
+every other zone's footprint is spread over the plane its row and column neighbours give
+(each sub-ray's length ``1 / (n . u)`` on the plane ``n . p = 1``, its incidence, the
+range cut and the weighting below), without casting. On a plane this equals the full cast
+(tested to 2e-6 m); at an edge, a gap or a surface's end the prediction misses and the
+footprint is cast. ``tol < 0`` casts every zone's footprint (the same readings as without
+a tolerance).
 
 Geometry (``geometry=True``): per zone the mean ``|cos|`` of incidence of the returning
 sub-rays, the unit normal (the weighted mean of their normals, turned to face the
@@ -366,15 +371,20 @@ class ZoneCaster:
         t_c = the_map.raycast_distance(np.ascontiguousarray(rays[..., c, :]), max_range=self.max_ray_length)
         return self.cast_rough(the_map, t_c, lambda idx: np.ascontiguousarray(rays[idx]))
 
+    def _centre_readings(self, t_centre: FloatArray) -> FloatArray:
+        """The centre rays' readings ``(..., S, Z)`` from their hit distances, NaN where
+        they do not return (a miss, or outside the range cut)."""
+        r_c = t_centre * self.along[..., self.n_sub // 2]
+        ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
+        return np.where(ret, r_c, np.nan)
+
     def centre_and_rough(self, t_centre: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
         """The centre readings ``(..., S, Z)`` (NaN: no return) from the centre rays' hit
         distances, and the zones whose footprints :meth:`cast_rough` casts: the rough ones
         and those with a return but no plane (no row or column prediction)."""
-        r_c = t_centre * self.along[..., self.n_sub // 2]
-        ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
-        centre = np.where(ret, r_c, np.nan)
+        centre = self._centre_readings(t_centre)
         rough = self.rough(centre)
-        rough |= ret & ~self._stencil[5]  # no plane to spread the footprint over: cast it
+        rough |= np.isfinite(centre) & ~self._stencil[5]  # no plane to spread the footprint over: cast it
         return centre, rough
 
     def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any) -> ZoneCast:
@@ -384,9 +394,7 @@ class ZoneCaster:
         of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
         if numba_kernels.enabled() and self.footprint_tolerance is not None and self.footprint_tolerance >= 0:
             # one compiled pass: the rough zones, and the smooth ones' footprints over their planes
-            r_c = t_centre * self.along[..., self.n_sub // 2]
-            ret = np.isfinite(t_centre) & (r_c >= self.min_range) & (r_c <= self.max_reading[:, None])
-            centre = np.where(ret, r_c, np.nan)
+            centre = self._centre_readings(t_centre)
             nbr, w, used, nb, depth, planar, slope, image = self._stencil
             c3 = np.ascontiguousarray(centre.reshape((-1,) + centre.shape[-2:]))
             rough = np.empty(c3.shape, dtype=bool)
@@ -659,7 +667,8 @@ def _smoothness_stencil(rig: Rig, dirs_sensor: FloatArray) -> tuple[NDArray[Any]
     centre = dirs_sensor[:, :, c, :]  # (S, Z, 3) unit
     image = centre[..., :2] / centre[..., 2:3]  # (S, Z, 2)
     axes = ((0, 1), (1, 0), (1, 1), (1, -1))
-    for s, sensor in enumerate(rig.sensors):  # a loop over sensors and their <= 64 zones, once per caster
+    entries: list[tuple[int, int, int, list[int]]] = []  # (sensor, zone, axis, neighbours)
+    for s, sensor in enumerate(rig.sensors):  # index bookkeeping over sensors and their <= 64 zones, once per caster
         R, C = sensor.resolution
 
         def at(i: int, j: int) -> int:
@@ -684,10 +693,20 @@ def _smoothness_stencil(rig: Rig, dirs_sensor: FloatArray) -> tuple[NDArray[Any]
                         if not third:
                             continue
                         pts.append(third[0])
-                    P = np.vstack([image[s, pts].T, np.ones(len(pts))])  # (3, n): image points and the affine row
-                    sol = np.linalg.lstsq(P, np.append(image[s, z], 1.0), rcond=None)[0]
                     nbr[s, z, k, : len(pts)] = pts
-                    w[s, z, k, : len(pts)] = sol
+                    entries.append((s, z, k, pts))
+    if entries:  # the weights of every prediction at once: sum_k w_k (p_k, 1) = (p_i, 1), least squares
+        e_s = np.array([e[0] for e in entries])
+        e_z = np.array([e[1] for e in entries])
+        e_k = np.array([e[2] for e in entries])
+        cols = nbr[e_s, e_z, e_k]  # (E, 3), Z where a prediction has two points
+        P = np.zeros((len(entries), 3, 3))
+        has = cols < Z
+        P[:, :2, :] = np.where(has[:, None, :], image[e_s[:, None], np.minimum(cols, Z - 1)].transpose(0, 2, 1), 0.0)
+        P[:, 2, :] = has
+        rhs = np.concatenate([image[e_s, e_z], np.ones((len(entries), 1))], axis=1)
+        # a zero column (no third point) gets weight 0 from the pseudo-inverse: the two-point solution
+        w[e_s, e_z, e_k] = np.einsum("eij,ej->ei", np.linalg.pinv(P), rhs)
     used = nbr[..., 0] < Z
     perpendicular = np.array([sn.distance == "perpendicular" for sn in rig.sensors])
     # depth = t * u_z; reading = t * along: depth per unit reading
