@@ -9,7 +9,9 @@ parent: Open3D and threads do not survive it; ``"spawn"`` remains (and is used w
 there is no fork server). Workers get
 the shared :class:`~evaluation.trials.TrialContext` once, through the pool's initializer;
 each is limited to one Open3D and one BLAS thread (:func:`tofloc.threads.limit_to_one_thread`),
-so that N workers do not oversubscribe N cores. On Dask the context is scattered once to
+so that N workers do not oversubscribe N cores. Until the first worker is up, this process
+runs tasks itself (from the end of the list, on one thread): the 1-3 s a pool takes to
+start are not lost (:meth:`WorkerPool.run`). On Dask the context is scattered once to
 every worker. Trials of several logs share one pool when the context is a mapping from
 each task's ``group`` to its context (``tofloc evaluate``).
 
@@ -21,9 +23,9 @@ other estimator runs once with a throw-away generator): that builds the per-map 
 its sensor model uses (the ICP score's distance grid, the
 likelihood field's surface field; :mod:`tofloc.map_cache`). They travel to each worker
 once, with the context (:class:`tofloc.map_cache.MapCacheBundle`: the pool's initializer,
-or the Dask scatter), so no worker rebuilds them; local workers read the caches that are
-persisted in the cache folder from their files (names sent, not ~100 MB of pickled grid
-per worker through the pool's start-up pipe). A :class:`WorkerPool` keeps its warm
+or the Dask scatter), so no worker rebuilds them; local workers, and Dask workers that all
+run on this machine (:func:`workers_on_this_machine`), read the caches that are persisted
+in the cache folder from their files (names sent, not ~100 MB of pickled grid per worker). A :class:`WorkerPool` keeps its warm
 workers across calls of :func:`run_tasks` (all the batches of a run share one call:
 :func:`evaluation.result_cache.run_batches`).
 """
@@ -44,7 +46,8 @@ from evaluation.trials import TrialContext, TrialError, TrialTask, jsonable, mak
 from tofloc import map_cache
 from tofloc.errors import ParameterError, TofLocError
 
-__all__ = ["run_tasks", "warm_caches", "start_server", "dask_setup", "WorkerPool", "Contexts", "PRELOAD", "DEFAULT_START_METHOD"]
+__all__ = ["run_tasks", "warm_caches", "start_server", "dask_setup", "workers_on_this_machine", "WorkerPool", "Contexts", "PRELOAD",
+           "DEFAULT_START_METHOD"]
 
 #: Modules the fork server imports once for every local worker (import only: no threads,
 #: no Open3D objects, nothing compiled).
@@ -213,26 +216,55 @@ class WorkerPool:
     start_method : {"forkserver", "spawn"}
         ``forkserver``: forked from a server that imported :data:`PRELOAD` once (the
         default where available); ``spawn``: fresh interpreters.
+    steal : bool
+        Whether this process runs tasks itself while the workers start (:meth:`run`).
     """
 
     def __init__(self, context: Contexts, workers: int, caches: map_cache.MapCacheBundle | None = None,
-                 start_method: str = DEFAULT_START_METHOD) -> None:
+                 start_method: str = DEFAULT_START_METHOD, steal: bool = True) -> None:
         self.context = context
         self.workers = int(workers)
+        self.steal = bool(steal)
+        #: Tasks this process ran itself while no worker was up (:meth:`run`).
+        self.stolen = 0
         ctx = start_server(start_method)
         self._executor = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                                 initargs=(_Payload(context, caches),))
+        self._worker_up = self._executor.submit(os.getpid)  # done as soon as one worker is up
 
     def run(self, tasks: Sequence[TrialTask], done: Callable[[int, dict[str, Any]], None]) -> None:
-        """Run ``tasks``, calling ``done(index, record)`` as each ends; the first failure is raised."""
+        """Run ``tasks``, calling ``done(index, record)`` as each ends; the first failure is raised.
+
+        Until a worker is up (the fork server's imports, the caches' install: 1-3 s), this
+        process runs tasks itself, on one thread, taking them from the end of the list:
+        each one's future is cancelled first, so a task no worker has taken runs here and
+        none runs twice. A trial's numbers do not depend on where it runs (``runtime_s``
+        aside); once a worker is up, this process only waits.
+        """
         futures = {self._executor.submit(_run_in_process, t): i for i, t in enumerate(tasks)}
         try:
-            for fut in cf.as_completed(futures):
+            if self.steal:
+                self._steal(list(futures), futures, tasks, done)
+            for fut in cf.as_completed([f for f in futures if not f.cancelled()]):
                 done(futures[fut], fut.result())
         except BaseException:
             for f in futures:
                 f.cancel()
             raise
+
+    def _steal(self, order: list[cf.Future], index: Mapping[cf.Future, int], tasks: Sequence[TrialTask],
+               done: Callable[[int, dict[str, Any]], None]) -> None:
+        """Run the last tasks here while no worker is up (see :meth:`run`)."""
+        from tofloc.threads import one_thread
+
+        for fut in reversed(order):
+            if self._worker_up.done() or not fut.cancel():  # a worker holds this one, so the earlier ones too
+                return
+            i = index[fut]
+            with one_thread():  # the other core imports the workers' modules meanwhile
+                rec = _guarded(self.context, tasks[i])
+            self.stolen += 1
+            done(i, rec)
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
@@ -253,6 +285,7 @@ def run_tasks(
     start_method: str = DEFAULT_START_METHOD,
     connect_timeout_s: float = 10.0,
     pool: WorkerPool | None = None,
+    steal: bool = True,
 ) -> list[dict[str, Any]]:
     """Run trials and return their records in the order of ``tasks``.
 
@@ -279,6 +312,9 @@ def run_tasks(
     pool : WorkerPool, optional
         Warm workers to run on (made for the same ``context``); ``workers`` is then ignored
         and the pool stays open for the next call.
+    steal : bool
+        Local workers: whether this process runs tasks itself until a worker is up
+        (:meth:`WorkerPool.run`); ignored with ``pool`` (its own setting) and on Dask.
 
     Returns
     -------
@@ -311,10 +347,45 @@ def run_tasks(
     else:
         start_server(start_method)  # the server's imports overlap the cache builds below
         caches = warm_caches(context, tasks, by_file=True)
-        with WorkerPool(context, min(int(workers), n), caches, start_method) as own:
+        with WorkerPool(context, min(int(workers), n), caches, start_method, steal=steal) as own:
             own.run(tasks, done)
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]
+
+
+def workers_on_this_machine(client: Any) -> bool:
+    """Whether every worker of a Dask ``client``'s cluster runs on this machine (addresses
+    on a loopback or one of this host's addresses, or in this process): the per-map caches
+    persisted in the cache folder are then sent as file names, as to local workers, not as
+    ~100 MB objects (a worker that cannot read a file builds the cache: slower, not wrong)."""
+    import ipaddress
+    import socket
+    from urllib.parse import urlparse
+
+    try:
+        addresses = list(client.scheduler_info().get("workers", {}))
+    except Exception:  # noqa: BLE001 - unknown: send the objects
+        return False
+    mine = {"localhost", socket.gethostname()}
+    try:
+        mine.update(socket.gethostbyname_ex(socket.gethostname())[2])
+    except OSError:
+        pass
+    for addr in addresses:
+        url = urlparse(addr)
+        if url.scheme == "inproc":
+            continue
+        host = url.hostname
+        if host is None:
+            return False
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                continue
+        except ValueError:
+            pass
+        if host not in mine:
+            return False
+    return bool(addresses)
 
 
 def _run_dask(
@@ -335,7 +406,7 @@ def _run_dask(
         client = scheduler
     try:
         shared = context if isinstance(context, TrialContext) else _Shared(context)
-        payload = _Payload(shared, warm_caches(context, tasks))
+        payload = _Payload(shared, warm_caches(context, tasks, by_file=workers_on_this_machine(client)))
         ctx_future = client.scatter(payload, broadcast=True, hash=False)
         futures = [client.submit(_run_with_context, t, ctx_future, pure=False) for t in tasks]
         index = {f.key: i for i, f in enumerate(futures)}

@@ -64,6 +64,8 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert _seconds(sel["active_choice_s"]) and sel["candidates"] == 300 and sel["particles"] == 16
     icp = doc["icp_score"]
     assert [row["k"] for row in icp["per_k"]] == [1, 5, 10] and icp["max_abs_fitness_diff"] == 0.0
+    assert all(_seconds(row["vectorized_after_open3d_s"]) for row in icp["per_k"])
+    assert icp["speedup"] == pytest.approx(icp["open3d_loop_s"] / icp["vectorized_s"])
     assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
 
 

@@ -18,6 +18,7 @@ is silent. Results are plain objects with the JSON document the CLI writes
 from __future__ import annotations
 
 import os
+import threading
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -91,6 +92,33 @@ def _start_server_early(workers: int | None, scheduler: Any) -> None:
         from evaluation.executors import DEFAULT_START_METHOD, start_server
 
         start_server(DEFAULT_START_METHOD)
+
+
+def _warm_plotting(n_workers: int, scheduler: Any) -> threading.Thread | None:
+    """When this process will mostly wait for workers (local ones or Dask), import
+    matplotlib and draw one small figure in a background thread meanwhile (fonts, the Agg
+    text path: ~1 s a run's plots otherwise pay after the last trial); join it before
+    plotting. None (nothing started) when the trials run here."""
+    if scheduler is None and n_workers <= 1:
+        return None
+
+    def warm() -> None:
+        try:
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+            from matplotlib.figure import Figure
+
+            fig = Figure(figsize=(1.0, 1.0), dpi=40, layout="constrained")
+            FigureCanvasAgg(fig)
+            ax = fig.subplots()
+            ax.bar([0.0], [1.0], yerr=[0.1], hatch="//")
+            ax.set_title("$e_x$ (m)")
+            fig.canvas.draw()
+        except Exception:  # noqa: BLE001 - only a warm-up: the plots themselves report any problem
+            pass
+
+    thread = threading.Thread(target=warm, name="tofloc-warm-plotting", daemon=True)
+    thread.start()
+    return thread
 
 
 def check_selection(name: str) -> str:
@@ -552,6 +580,7 @@ def paper(
     n_tasks = len(batches) * len(k_values) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
+    warming = _warm_plotting(n_workers, scheduler)
     by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
                            on_progress=lambda d, t: reporter.progress(d, t, label),
                            on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
@@ -585,6 +614,9 @@ def paper(
     from evaluation.compare import series_of
     from evaluation.error_plots import plot_errors_vs_k, plot_nees
     from evaluation.report import PAPER_TABLE_I
+
+    if warming is not None:
+        warming.join()
 
     nees_panels = [(f"{tip} tip poses", [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
                                                                     if r.get("nees") is not None],
@@ -860,6 +892,7 @@ def evaluate(
     n_tasks = len(entries) * len(names) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
     label = f"{len(entries)} log(s) x {len(names)} estimator(s) x {trials} trial(s)"
+    warming = _warm_plotting(n_workers, scheduler)
     records = run_estimators(
         entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
         partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
@@ -877,6 +910,8 @@ def evaluate(
             "wall_time_s": round(time.perf_counter() - t0, 3),
         },
     )
+    if warming is not None:
+        warming.join()
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),

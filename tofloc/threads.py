@@ -2,7 +2,9 @@
 
 By default Open3D casts on every core and BLAS uses its own default. A worker process of
 a pool (``tofloc paper --workers N``, Dask) must use one thread each, or N workers
-oversubscribe the cores: :func:`limit_to_one_thread` sets both, once per worker.
+oversubscribe the cores: :func:`limit_to_one_thread` sets both, once per worker;
+:func:`one_thread` does it for a block of code (the parent's trials while a pool's workers
+start, :class:`evaluation.executors.WorkerPool`).
 :meth:`tofloc.maps.Map.raycast` and the other Open3D queries use :func:`open3d_threads`
 when no ``nthreads`` is given, and the large KD-tree queries of per-map cache builds use
 :func:`kdtree_workers`.
@@ -10,7 +12,10 @@ when no ``nthreads`` is given, and the large KD-tree queries of per-map cache bu
 
 from __future__ import annotations
 
-__all__ = ["open3d_threads", "set_open3d_threads", "kdtree_workers", "limit_to_one_thread"]
+import contextlib
+from typing import Iterator
+
+__all__ = ["open3d_threads", "set_open3d_threads", "kdtree_workers", "limit_to_one_thread", "one_thread"]
 
 _OPEN3D_THREADS = 0
 
@@ -40,3 +45,18 @@ def limit_to_one_thread() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """Within the block, one Open3D thread, one BLAS thread and no parallel compiled kernel
+    (they follow :func:`open3d_threads`); the previous settings are restored after it."""
+    from threadpoolctl import threadpool_limits
+
+    before = open3d_threads()
+    set_open3d_threads(1)
+    try:
+        with threadpool_limits(1):
+            yield
+    finally:
+        set_open3d_threads(before)
