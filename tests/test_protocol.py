@@ -552,10 +552,17 @@ def test_dask_workers_on_this_machine_get_cache_file_names() -> None:
 
 
 @pytest.mark.slow  # starts a Dask cluster of two worker processes
-def test_dask_workers_get_the_caches_once() -> None:
+@pytest.mark.parametrize("persisted", [False, True], ids=["objects", "file-names"])
+def test_dask_workers_get_the_caches_once(persisted: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Dask workers build no grid: they get the grid object, or, with a cache folder (the
+    workers all on this machine), its file's name and read it."""
     distributed = pytest.importorskip("distributed")
+    from tofloc import map_cache
     from tofloc.maps import Map
 
+    if persisted:
+        monkeypatch.setenv("TOFLOC_CACHE_DIR", str(tmp_path / "cache"))
+    map_cache.clear()
     log = small_log(K=12)
     ctx = TrialContext(log, Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0)), sample_pool(log, None, 1))
     tasks = make_tasks("g", "test_counts_grid_builds", CountsGridBuilds, {}, "mocap", PriorSpec("paper"), [1], 4, 0)
@@ -566,7 +573,9 @@ def test_dask_workers_get_the_caches_once() -> None:
             from tofloc import heap
 
             applied = client.run(lambda: (heap._DONE, "MALLOC_TRIM_THRESHOLD_" in __import__("os").environ))
+            loads = client.run(lambda: map_cache.disk_count("distance_grid"))
     assert _grid_builds_seen(got) == [0.0] * 4
+    assert (sum(loads.values()) >= 1) if persisted else (sum(loads.values()) == 0), loads
     if heap.on_glibc():
         # (distributed's default nanny environment sets the variable: dask.config "distributed.nanny.pre-spawn-environ")
         assert sorted(applied.values()) == [(True, True)] * 2, applied
