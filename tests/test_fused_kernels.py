@@ -149,6 +149,30 @@ def test_threads_give_the_same_numbers(monkeypatch) -> None:
     np.testing.assert_array_equal(many[1], one[1])
 
 
+def test_one_thread_block_restores_the_settings() -> None:
+    """``threads.one_thread()``: one Open3D thread, one BLAS thread and no parallel kernel in
+    the block (the pool's process while its workers start); the settings back after it,
+    after an exception too."""
+    from threadpoolctl import threadpool_info
+
+    def blas() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info()]
+
+    before, before_blas = threads.open3d_threads(), blas()
+    for setting in (0, 2):
+        threads.set_open3d_threads(setting)
+        try:
+            with pytest.raises(RuntimeError, match="inside"):
+                with threads.one_thread():
+                    assert threads.open3d_threads() == 1 and threads.kdtree_workers() == 1
+                    assert not numba_kernels.parallel()
+                    assert all(n == 1 for n in blas())
+                    raise RuntimeError("inside")
+            assert threads.open3d_threads() == setting and blas() == before_blas
+        finally:
+            threads.set_open3d_threads(before)
+
+
 @needs_numba
 def test_compiled_ray_buffer_equals_numpy(monkeypatch) -> None:
     problem = _hard_problem(known=False)
