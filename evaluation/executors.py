@@ -9,9 +9,7 @@ parent: Open3D and threads do not survive it; ``"spawn"`` remains (and is used w
 there is no fork server). Workers get
 the shared :class:`~evaluation.trials.TrialContext` once, through the pool's initializer;
 each is limited to one Open3D and one BLAS thread (:func:`tofloc.threads.limit_to_one_thread`),
-so that N workers do not oversubscribe N cores. Until the first worker is up, this process
-runs tasks itself (from the end of the list, on one thread): the 1-3 s a pool takes to
-start are not lost (:meth:`WorkerPool.run`). On Dask the context is scattered once to
+so that N workers do not oversubscribe N cores. On Dask the context is scattered once to
 every worker. Trials of several logs share one pool when the context is a mapping from
 each task's ``group`` to its context (``tofloc evaluate``).
 
@@ -216,55 +214,26 @@ class WorkerPool:
     start_method : {"forkserver", "spawn"}
         ``forkserver``: forked from a server that imported :data:`PRELOAD` once (the
         default where available); ``spawn``: fresh interpreters.
-    steal : bool
-        Whether this process runs tasks itself while the workers start (:meth:`run`).
     """
 
     def __init__(self, context: Contexts, workers: int, caches: map_cache.MapCacheBundle | None = None,
-                 start_method: str = DEFAULT_START_METHOD, steal: bool = True) -> None:
+                 start_method: str = DEFAULT_START_METHOD) -> None:
         self.context = context
         self.workers = int(workers)
-        self.steal = bool(steal)
-        #: Tasks this process ran itself while no worker was up (:meth:`run`).
-        self.stolen = 0
         ctx = start_server(start_method)
         self._executor = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
                                                 initargs=(_Payload(context, caches),))
-        self._worker_up = self._executor.submit(os.getpid)  # done as soon as one worker is up
 
     def run(self, tasks: Sequence[TrialTask], done: Callable[[int, dict[str, Any]], None]) -> None:
-        """Run ``tasks``, calling ``done(index, record)`` as each ends; the first failure is raised.
-
-        Until a worker is up (the fork server's imports, the caches' install: 1-3 s), this
-        process runs tasks itself, on one thread, taking them from the end of the list:
-        each one's future is cancelled first, so a task no worker has taken runs here and
-        none runs twice. A trial's numbers do not depend on where it runs (``runtime_s``
-        aside); once a worker is up, this process only waits.
-        """
+        """Run ``tasks``, calling ``done(index, record)`` as each ends; the first failure is raised."""
         futures = {self._executor.submit(_run_in_process, t): i for i, t in enumerate(tasks)}
         try:
-            if self.steal:
-                self._steal(list(futures), futures, tasks, done)
-            for fut in cf.as_completed([f for f in futures if not f.cancelled()]):
+            for fut in cf.as_completed(futures):
                 done(futures[fut], fut.result())
         except BaseException:
             for f in futures:
                 f.cancel()
             raise
-
-    def _steal(self, order: list[cf.Future], index: Mapping[cf.Future, int], tasks: Sequence[TrialTask],
-               done: Callable[[int, dict[str, Any]], None]) -> None:
-        """Run the last tasks here while no worker is up (see :meth:`run`)."""
-        from tofloc.threads import one_thread
-
-        for fut in reversed(order):
-            if self._worker_up.done() or not fut.cancel():  # a worker holds this one, so the earlier ones too
-                return
-            i = index[fut]
-            with one_thread():  # the other core imports the workers' modules meanwhile
-                rec = _guarded(self.context, tasks[i])
-            self.stolen += 1
-            done(i, rec)
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
@@ -285,7 +254,6 @@ def run_tasks(
     start_method: str = DEFAULT_START_METHOD,
     connect_timeout_s: float = 10.0,
     pool: WorkerPool | None = None,
-    steal: bool = True,
 ) -> list[dict[str, Any]]:
     """Run trials and return their records in the order of ``tasks``.
 
@@ -312,9 +280,6 @@ def run_tasks(
     pool : WorkerPool, optional
         Warm workers to run on (made for the same ``context``); ``workers`` is then ignored
         and the pool stays open for the next call.
-    steal : bool
-        Local workers: whether this process runs tasks itself until a worker is up
-        (:meth:`WorkerPool.run`); ignored with ``pool`` (its own setting) and on Dask.
 
     Returns
     -------
@@ -347,7 +312,7 @@ def run_tasks(
     else:
         start_server(start_method)  # the server's imports overlap the cache builds below
         caches = warm_caches(context, tasks, by_file=True)
-        with WorkerPool(context, min(int(workers), n), caches, start_method, steal=steal) as own:
+        with WorkerPool(context, min(int(workers), n), caches, start_method) as own:
             own.run(tasks, done)
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]

@@ -4,7 +4,6 @@ builder (tofloc.problem_builder): problems from logs, priors, the sample pool, p
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import pickle
 import subprocess
@@ -58,8 +57,7 @@ class MustNotRun(Estimator):
 @dataclass(frozen=True, eq=False)
 class CountsGridBuilds(Estimator):
     """Uses a per-map distance grid; returns the prior mean shifted in x by the number of
-    grids this process has built so far (how a test sees a worker's builds: pools made with
-    ``steal=False``, so that no task runs in this process, which has built grids)."""
+    grids this process has built so far (how a test sees a worker's builds)."""
 
     name: ClassVar[str] = "test_counts_grid_builds"
 
@@ -447,52 +445,18 @@ def test_workers_get_the_caches_built_once_here_and_keep_them_across_calls() -> 
     before = map_cache.build_count("distance_grid")
     caches = warm_caches(ctx, tasks)
     assert map_cache.build_count("distance_grid") == before + 1 and caches.kinds() == ["distance_grid"]
-    with WorkerPool(ctx, 2, caches, steal=False) as pool:
+    with WorkerPool(ctx, 2, caches) as pool:
         first = run_tasks(ctx, tasks, pool=pool)
         second = run_tasks(ctx, tasks, pool=pool)
     assert _grid_builds_seen(first) == _grid_builds_seen(second) == [0.0] * 4
-    # without the shipped caches each worker builds its own grid (every task on a worker:
-    # this process, which has the grid, runs none while the workers start)
-    with WorkerPool(ctx, 2, steal=False) as pool:
+    # without the shipped caches each worker builds its own grid
+    with WorkerPool(ctx, 2) as pool:
         assert all(n >= 1 for n in _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)))
     # run_tasks with workers does the same warm-up itself
-    assert _grid_builds_seen(run_tasks(ctx, tasks, workers=2, steal=False)) == [0.0] * 4
+    assert _grid_builds_seen(run_tasks(ctx, tasks, workers=2)) == [0.0] * 4
     other = TrialContext(log, the_map, sample_pool(log, None, 1))
     with WorkerPool(ctx, 1, caches) as pool, pytest.raises(ParameterError, match="another context"):
         run_tasks(other, tasks, pool=pool)
-
-
-def test_this_process_runs_tasks_until_a_worker_is_up() -> None:
-    """While the workers start, the pool's process runs tasks itself from the end of the
-    list (spawned workers take seconds to import; these trials take milliseconds): every
-    task runs once, the numbers are those of an inline run, and a pool with a worker up
-    leaves every task to its workers."""
-    from evaluation.executors import WorkerPool
-
-    log = small_log(K=12)
-    ctx = TrialContext(log, FakeMap(), sample_pool(log, None, 1))
-    tasks = make_tasks("g", "test_noisy_prior_mean", NoisyPriorMean, {"scale": 0.1}, "mocap", PriorSpec("paper"), [1],
-                       8, 3)
-    inline = run_tasks(ctx, tasks, workers=1)
-    order: list[int] = []
-    with WorkerPool(ctx, 2, start_method="spawn") as pool:
-        first = run_tasks(ctx, tasks, pool=pool, on_result=lambda i, rec: order.append(i))
-        assert pool.stolen >= 1
-        assert sorted(order) == list(range(len(tasks)))
-        assert order[:pool.stolen] == list(range(len(tasks) - 1, len(tasks) - 1 - pool.stolen, -1))  # from the end
-        stolen = pool.stolen
-        pool._worker_up.result(timeout=120)
-        second = run_tasks(ctx, tasks, pool=pool)
-        assert pool.stolen == stolen
-    assert _numbers(first) == _numbers(second) == _numbers(inline)
-    assert len({json.dumps(r["estimate"]) for r in inline}) == len(tasks)  # eight different trials
-    # a trial failing here is raised as a worker's failure would be
-    bad = dataclasses.replace(log, pressure_kpa=None)
-    kin, _ = KinematicsModel.fit_log(small_log(K=40), np.random.default_rng(2), k_candidates=range(1, 4))
-    bad_ctx = TrialContext(bad, FakeMap(), sample_pool(bad, None, 1), kin)
-    bad_tasks = make_tasks("g", "x", NoisyPriorMean, {}, "knn", PriorSpec("paper"), [1], 2, 0)
-    with WorkerPool(bad_ctx, 2, start_method="spawn") as pool, pytest.raises(TrialError, match="/samples/pressure_kpa"):
-        run_tasks(bad_ctx, bad_tasks, pool=pool)
 
 
 def test_local_workers_read_persisted_caches_from_their_files(cache_folder: Path) -> None:
@@ -517,10 +481,10 @@ def test_local_workers_read_persisted_caches_from_their_files(cache_folder: Path
     map_cache.clear()
     caches.install()
     assert map_cache.disk_count("distance_grid") == loads + 1 and map_cache.build_count("distance_grid") == builds
-    with WorkerPool(ctx, 2, caches, steal=False) as pool:
+    with WorkerPool(ctx, 2, caches) as pool:
         assert _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)) == [0.0] * 4
     path.unlink()
-    with WorkerPool(ctx, 2, caches, steal=False) as pool:
+    with WorkerPool(ctx, 2, caches) as pool:
         assert all(n >= 1 for n in _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)))
     # bundle() sends an object whose file is gone as the object
     again = map_cache.bundle(the_map, by_file=True)

@@ -97,7 +97,7 @@ def _start_server_early(workers: int | None, scheduler: Any) -> None:
 def _warm_plotting(n_workers: int, scheduler: Any) -> threading.Thread | None:
     """When this process will mostly wait for workers (local ones or Dask), import
     matplotlib and draw one small figure in a background thread meanwhile (fonts, the Agg
-    text path: ~1 s a run's plots otherwise pay after the last trial); join it before
+    text path: 0.7-1 s a run's plots otherwise pay after the last trial); join it before
     plotting. None (nothing started) when the trials run here."""
     if scheduler is None and n_workers <= 1:
         return None

@@ -3,8 +3,7 @@
 By default Open3D casts on every core and BLAS uses its own default. A worker process of
 a pool (``tofloc paper --workers N``, Dask) must use one thread each, or N workers
 oversubscribe the cores: :func:`limit_to_one_thread` sets both, once per worker;
-:func:`one_thread` does it for a block of code (the parent's trials while a pool's workers
-start, :class:`evaluation.executors.WorkerPool`).
+:func:`one_thread` does it for a block of code (``tofloc bench``'s one-thread run).
 :meth:`tofloc.maps.Map.raycast` and the other Open3D queries use :func:`open3d_threads`
 when no ``nthreads`` is given, and the large KD-tree queries of per-map cache builds use
 :func:`kdtree_workers`.
