@@ -289,6 +289,17 @@ class GTSAMSmoother(Estimator):
                     raise
         return out
 
+    def prepare(self, problem: Problem) -> None:
+        """Build the per-map cache the smoother reads: a global prior's coarse search reads
+        the map's surface field (:func:`estimators.global_search.coarse_modes`); the other
+        priors read none (the map's KD-tree and Open3D's closest-point scene belong to the
+        process, built on first use)."""
+        if problem.prior.is_global:
+            from estimators.global_search import FIELD_CELL_M, FIELD_R_M
+            from tofloc.surface_field import surface_field_for
+
+            surface_field_for(problem.map, FIELD_CELL_M, FIELD_R_M)
+
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         from gtsam.symbol_shorthand import D as Dk, X as Xk
 

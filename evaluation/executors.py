@@ -16,8 +16,9 @@ each task's ``group`` to its context (``tofloc evaluate``).
 Per-map caches are built once, in this process
 ------------------------------------------------
 Before workers start, :func:`warm_caches` prepares every distinct estimator (class and
-parameters) on one sample of its first task, here (a filter binds its sensor model; any
-other estimator runs once with a throw-away generator): that builds the per-map caches
+parameters) on one sample of its first task, here (a filter binds its sensor model; the
+smoother prepares, :meth:`~tofloc.problem.Estimator.prepare`; any other estimator runs
+once with a throw-away generator): that builds the per-map caches
 its sensor model uses (the ICP score's distance grid, the
 likelihood field's surface field; :mod:`tofloc.map_cache`). They travel to each worker
 once, with the context (:class:`tofloc.map_cache.MapCacheBundle`: the pool's initializer,
@@ -43,6 +44,7 @@ import numpy as np
 from evaluation.trials import TrialContext, TrialError, TrialTask, jsonable, make_estimator, run_trial
 from tofloc import map_cache
 from tofloc.errors import ParameterError, TofLocError
+from tofloc.problem import Estimator
 
 __all__ = ["run_tasks", "warm_caches", "start_server", "dask_setup", "workers_on_this_machine", "WorkerPool", "Contexts", "PRELOAD",
            "DEFAULT_START_METHOD"]
@@ -73,9 +75,10 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = F
 
     For each distinct (group's context, estimator class, parameters, tip source), on one
     sample of its first task: an estimator with a sensor model (``make_sensor_model``, the
-    particle filters) binds it (what builds its caches); any other runs once with
-    ``default_rng(0)`` (estimators are pure functions of the problem and the generator: no
-    trial's numbers change). A failure there is left to the trial itself to report.
+    particle filters) binds it (what builds its caches); one that overrides
+    :meth:`~tofloc.problem.Estimator.prepare` (the GTSAM smoother) prepares; any other runs
+    once with ``default_rng(0)`` (estimators are pure functions of the problem and the
+    generator: no trial's numbers change). A failure there is left to the trial itself to report.
     ``by_file``: caches persisted in the cache folder travel as file names
     (:func:`tofloc.map_cache.bundle`; local workers only).
     """
@@ -98,6 +101,8 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = F
                                        ctx.valid_statuses)
             if hasattr(est, "make_sensor_model"):
                 est.make_sensor_model().bind(problem)
+            elif type(est).prepare is not Estimator.prepare:  # it says what it caches
+                est.prepare(problem)
             else:
                 est.estimate(problem, np.random.default_rng(0))
         except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input

@@ -250,6 +250,30 @@ def test_warm_up_builds_a_global_priors_free_space_for_the_workers() -> None:
     assert "free_space" in warm_caches(ctx, tasks).kinds()
 
 
+def test_warm_up_prepares_the_smoother_without_running_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The smoother says what it caches (``prepare``): the warm-up builds a global prior's
+    surface field for it, nothing for the paper prior, and never runs an estimate (~1 s of
+    first-call costs that no worker would reuse)."""
+    from estimators.gtsam_smoother import GTSAMSmoother
+    from evaluation.executors import warm_caches
+    from evaluation.trials import TrialContext, make_tasks, sample_pool
+    from test_protocol import small_log
+    from tofloc import map_cache
+
+    runs: list[int] = []
+    monkeypatch.setattr(GTSAMSmoother, "_estimate", lambda self, problem, rng: runs.append(1))
+    log = small_log(K=12)
+    the_map = Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0))
+    ctx = TrialContext(log, the_map, sample_pool(log, None, 1))
+    kinds = {}
+    for mode in ("paper", "global"):
+        map_cache.clear()
+        tasks = make_tasks("g", "gtsam_smoother", GTSAMSmoother, {}, "mocap", PriorSpec(mode), [1], 2, 0)
+        kinds[mode] = warm_caches(ctx, tasks).kinds()
+    assert runs == []
+    assert kinds == {"paper": [], "global": ["free_space", "surface_field"]}
+
+
 # -- the simulated paper scenario and the CLI --------------------------------------------------------
 
 
