@@ -12,7 +12,8 @@ returns one JSON document:
     the headline ``speedup`` is the k = 10 cloud's. The vectorized counts are timed
     before any Open3D loop (as ``icp_pf`` runs them) and again right after each loop
     (``vectorized_after_open3d_s``: Open3D's OpenMP threads keep spinning for a while
-    after a loop and slow the next count, by 1.2-1.8x on a 2-core machine).
+    after a loop; on one 2-core machine that slowed the next count 1.2-1.8x, on another
+    the two timings differ by no more than the run-to-run noise, in either direction).
 ``estimators.NAME``
     ``update_s``: one particle-filter update with ``particles`` particles carrying the
     nuisance columns the estimator really declares (the sensor model's weighting of the
@@ -394,9 +395,8 @@ def run_bench(
     T = problem.prior.T_map_base(poses)
     icp = ICPScore().bind(problem)
     ks = (1, 5, 10)
-    # the vectorized counts first, as icp_pf runs them; the Open3D loops after them: right
-    # after a loop, Open3D's spinning OpenMP threads slow the count for a while, which never
-    # happens in icp_pf (measured again after the loops: ``vectorized_after_open3d_s``)
+    # the vectorized counts first, as icp_pf runs them (no Open3D loop before them); timed
+    # again right after each loop (``vectorized_after_open3d_s``, see the module doc)
     vec: dict[int, float] = {}
     for k in ks:
         icp.fitness(poses, k - 1)  # warm-up
