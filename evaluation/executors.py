@@ -80,7 +80,8 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = F
     once with ``default_rng(0)`` (estimators are pure functions of the problem and the
     generator: no trial's numbers change). A failure there is left to the trial itself to report.
     ``by_file``: caches persisted in the cache folder travel as file names
-    (:func:`tofloc.map_cache.bundle`; local workers only).
+    (:func:`tofloc.map_cache.bundle`; for workers on this machine only: local ones, or a
+    Dask cluster's when :func:`workers_on_this_machine`).
     """
     from tofloc.problem_builder import problem_from_log
     from evaluation.trials import draw_samples_and_prior

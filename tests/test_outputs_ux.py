@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -258,3 +260,26 @@ def test_help_texts_keep_their_brackets(capsys: pytest.CaptureFixture[str], monk
         out = capsys.readouterr().out
         for needle in needles:
             assert needle in out, (command, needle)
+
+
+def test_plotting_is_warmed_in_the_background_only_while_workers_run() -> None:
+    """``paper`` and ``evaluate`` with workers (local or Dask) import matplotlib and draw a
+    throw-away figure in a background thread while the trials run; inline runs do not (the
+    trials would share this process's cores and lock). A fresh interpreter: ``tofloc.api``
+    alone does not import matplotlib."""
+    code = """
+import sys
+from tofloc.api import _warm_plotting
+assert "matplotlib" not in sys.modules
+assert _warm_plotting(1, None) is None and "matplotlib" not in sys.modules
+thread = _warm_plotting(2, None)
+thread.join(120)
+assert not thread.is_alive() and thread.daemon
+assert "matplotlib.backends.backend_agg" in sys.modules and "matplotlib.font_manager" in sys.modules
+other = _warm_plotting(1, "tcp://127.0.0.1:8786")
+other.join(120)
+print("warmed")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "warmed"
