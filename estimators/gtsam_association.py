@@ -150,10 +150,10 @@ def associate(
     o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
     zones = np.concatenate([m.zones for m in meas]) if meas else np.zeros(0, dtype=np.int64)
     if residual == "point_to_plane":
-        q, n = problem.map.closest_surface_point(p)
         if problem.map.kind == "points":
-            _, key = problem.map.nearest(p)
+            q, n, key = problem.map.closest_surface_point_and_nearest(p)
         else:
+            q, n = problem.map.closest_surface_point(p)
             key = np.round(q / 1e-4).astype(np.int64) @ np.array([1, 1 << 20, 1 << 40], dtype=np.int64)
         dist = np.linalg.norm(p - q, axis=1)
         t = None

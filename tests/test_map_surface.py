@@ -55,6 +55,10 @@ def test_surface_distances_are_the_mesh_s(maps: tuple[Map, Map, Map]) -> None:
     np.testing.assert_array_equal(p, p_m)
     np.testing.assert_array_equal(n, n_m)
     assert p.shape == q.shape and n.shape == q.shape
+    p2, n2, i2 = both.closest_surface_point_and_nearest(q)  # a surface: its point, the cloud's index
+    np.testing.assert_array_equal(p2, p)
+    np.testing.assert_array_equal(n2, n)
+    np.testing.assert_array_equal(i2, both.nearest(q)[1])
     assert not np.allclose(cloud.distance_to_surface(q), mesh.distance_to_surface(q), atol=1e-3)
 
 

@@ -156,6 +156,10 @@ def test_nearest_matches_brute_force_and_survives_pickle() -> None:
     p, n = cloud.closest_surface_point(q)
     np.testing.assert_array_equal(p, cloud.points[i])
     np.testing.assert_array_equal(n, cloud.normals[i])
+    p2, n2, i2 = cloud.closest_surface_point_and_nearest(q)  # one query: the same arrays
+    np.testing.assert_array_equal(p2, p)
+    np.testing.assert_array_equal(n2, n)
+    np.testing.assert_array_equal(i2, i)
     blob = pickle.dumps(cloud)
     back = pickle.loads(blob)
     assert back._tree is None and back._scene is None
