@@ -864,11 +864,9 @@ class Map:
         """
         if self._surface is not None:
             return self._surface.closest_surface_point(query, nthreads=nthreads)
-        q = as_query(query)
         if self.kind == "points":
-            _, i = self.nearest(q)
-            assert self.normals is not None
-            return self.points[i], self.normals[i]
+            return self.closest_surface_point_and_nearest(query)[:2]
+        q = as_query(query)
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
         ans = self._scene_obj().compute_closest_points(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
