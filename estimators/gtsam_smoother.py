@@ -160,13 +160,20 @@ class GTSAMSmoother(Estimator):
     exact_tip_poses : bool
         Ablation: give every configuration the motion-capture sigmas whatever its source
         (the tip poses taken as exact).
-    marginalize_configurations : bool
-        Hold every configuration at its given value (the motion-capture sigmas, as
+    marginalize_configurations : bool or "auto"
+        True: hold every configuration at its given value (the motion-capture sigmas, as
         ``exact_tip_poses``) and add what its covariance (``problem.T_base_tip_cov``) does to
         each zone's point-to-plane distance to the zone's variance
         (:func:`tofloc.configuration_uncertainty.normal_variance`, at each association):
-        the particle filters' treatment. False (the default): the configurations are
-        variables of the graph with their covariance as prior.
+        the particle filters' treatment. False: the configurations are variables of the
+        graph with their covariance as prior. ``"auto"`` (the default): marginalized when
+        the problem says its configurations come from odometry
+        (``configuration_source == "odometry"``) with a covariance, estimated otherwise
+        (motion capture, kinematics, k-NN): odometry's errors drift from frame to frame
+        and the log gives each frame's covariance, not their correlation, so a per-frame
+        configuration variable with an independent prior trades its yaw against the
+        base's (docs/gtsam-smoother.md measures both on simulated k-NN tips and the real
+        odometry scans). ``diagnostics["configurations"]`` says which was used.
     incremental : bool
         Use ISAM2, adding samples one at a time.
     global_candidates : int
@@ -201,7 +208,7 @@ class GTSAMSmoother(Estimator):
     knn_sigma_m: float = DEFAULT_KNN_SIGMA_M
     knn_sigma_rot_deg: float = DEFAULT_KNN_SIGMA_ROT_DEG
     exact_tip_poses: bool = False
-    marginalize_configurations: bool = False
+    marginalize_configurations: bool | str = "auto"
     incremental: bool = False
     global_candidates: int = 20_000
     global_starts: int = 8
@@ -224,9 +231,20 @@ class GTSAMSmoother(Estimator):
         for n, lo, hi in (("n_starts", 1, 1000), ("n_candidates", 0, 100_000), ("max_rounds", 1, 1000), ("lm_max_iterations", 1, 10000), ("gate_rounds", 0, 100),
                           ("global_candidates", 1, 10_000_000), ("global_starts", 1, 1000)):
             check_int(n, getattr(self, n), lo, hi)
-        for n in ("incremental", "exact_tip_poses", "marginalize_configurations", "stacked_factor"):
+        for n in ("incremental", "exact_tip_poses", "stacked_factor"):
             if not isinstance(getattr(self, n), bool):
                 raise ParameterError(f"{n} must be true or false, got {getattr(self, n)!r}")
+        if not (isinstance(self.marginalize_configurations, bool) or self.marginalize_configurations == "auto"):
+            raise ParameterError("marginalize_configurations must be true, false or \"auto\", "
+                                 f"got {self.marginalize_configurations!r}")
+
+    def marginalizes(self, problem: Problem) -> bool:
+        """Whether the configurations of ``problem`` are marginalized (held, their covariance
+        in the zones' variance) rather than estimated: ``marginalize_configurations``, with
+        ``"auto"`` resolved from the problem (odometry configurations with a covariance)."""
+        if self.marginalize_configurations == "auto":
+            return problem.configuration_source == "odometry" and problem.T_base_tip_cov is not None
+        return bool(self.marginalize_configurations)
 
     def starts(self, problem: Problem, meas: list[SampleMeasurement], rng: np.random.Generator) -> FloatArray:
         """The starts ``(n, 3)``: the best-scoring distinct poses among the prior mean and
@@ -324,7 +342,8 @@ class GTSAMSmoother(Estimator):
             if best is None or run["error"] < best["error"]:
                 best, best_i = run, i
         diag: dict[str, Any] = {"starts": runs, "residual": self.residual, "robust": self.robust,
-                                "incremental": self.incremental, "nuisance": problem.nuisance.to_json()}
+                                "incremental": self.incremental, "nuisance": problem.nuisance.to_json(),
+                                "configurations": "marginalized" if graph.marginalize else "estimated"}
         if best is None:
             diag["indeterminant"] = True
             diag["message"] = "every start failed with an indeterminant linear system: returning the prior"

@@ -70,6 +70,8 @@ class SmootherGraph:
         self.R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, problem.prior.roll, problem.prior.pitch)[:3, :3]
         #: one stacked zone factor for all samples in the batch solve (else one per sample)
         self.stacked = bool(getattr(est, "stacked_factor", True))
+        #: configurations held and their covariance added to the zones' variance (else estimated)
+        self.marginalize = est.marginalizes(problem)
 
     # -- pieces ----------------------------------------------------------------------------------
     def config_noise(self, k: int) -> Any:
@@ -77,7 +79,7 @@ class SmootherGraph:
         import gtsam
 
         est, problem = self.est, self.problem
-        held = est.exact_tip_poses or est.marginalize_configurations
+        held = est.exact_tip_poses or self.marginalize
         if problem.T_base_tip_cov is not None and not held:
             c = np.array(problem.T_base_tip_cov[k], dtype=float)
             c = 0.5 * (c + c.T)
@@ -165,7 +167,7 @@ class SmootherGraph:
     def associate(self, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray], D: FloatArray, gate: float,
                   bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
         est, cov = self.est, self.problem.T_base_tip_cov
-        config_cov = None if cov is None or not est.marginalize_configurations else cov
+        config_cov = None if cov is None or not self.marginalize else cov
         return associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
                          information_scale=est.information_scale, gate_sigmas=est.gate_sigmas, config_cov=config_cov)
 

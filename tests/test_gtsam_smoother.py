@@ -231,6 +231,40 @@ def test_problem_covariance_is_used(easy4) -> None:
     np.testing.assert_allclose(SmootherGraph(exact, with_cov).config_noise(0).sigmas()[3:], est.mocap_sigma_m)
 
 
+def test_auto_marginalizes_only_odometry_configurations_with_a_covariance(easy4) -> None:
+    """``marginalize_configurations="auto"`` (the default): odometry configurations with a
+    covariance are held (motion-capture sigmas) and their covariance goes into the zones'
+    variance; k-NN, motion capture and odometry without a covariance keep configuration
+    variables; true/false force either; anything else is refused, naming the parameter."""
+    from estimators.gtsam_association import measurements
+    from estimators.gtsam_solvers import SmootherGraph
+
+    p, truth = easy4
+    cov = np.broadcast_to(np.diag([1e-4] * 3 + [4e-6] * 3), (p.n_samples, 6, 6))
+    odo = dataclasses.replace(p, T_base_tip_cov=cov, tip_source="knn", configuration_source="odometry")
+    knn = dataclasses.replace(odo, configuration_source="kinematics")
+    est = GTSAMSmoother()
+    assert est.marginalize_configurations == "auto"
+    assert est.marginalizes(odo) and not est.marginalizes(knn)
+    assert not est.marginalizes(dataclasses.replace(odo, T_base_tip_cov=None))
+    assert not est.marginalizes(p)
+    assert GTSAMSmoother(marginalize_configurations=True).marginalizes(knn)
+    assert not GTSAMSmoother(marginalize_configurations=False).marginalizes(odo)
+    g_odo, g_knn = SmootherGraph(est, odo), SmootherGraph(est, knn)
+    np.testing.assert_allclose(g_odo.config_noise(0).sigmas()[3:], est.mocap_sigma_m)  # held
+    np.testing.assert_allclose(g_knn.config_noise(0).sigmas()[3:], math.sqrt(4e-6 + est.mocap_sigma_m**2), rtol=1e-9)
+    meas = measurements(odo)
+    C = list(odo.T_base_tip)
+    s_odo = np.concatenate([m.s for m in g_odo.associate(meas, truth, C, np.eye(4), 0.05, None)[0]])
+    s_knn = np.concatenate([m.s for m in g_knn.associate(meas, truth, C, np.eye(4), 0.05, None)[0]])
+    assert np.all(s_odo**2 >= s_knn**2 + 4e-6 * (1 - 1e-9))  # the translation variance at least
+    r = est.estimate(odo, np.random.default_rng(0))
+    assert r.diagnostics["configurations"] == "marginalized"
+    assert est.estimate(knn, np.random.default_rng(0)).diagnostics["configurations"] == "estimated"
+    with pytest.raises(ParameterError, match="marginalize_configurations must be true, false or \"auto\", got 'yes'"):
+        GTSAMSmoother(marginalize_configurations="yes")
+
+
 def test_nuisance_variables_exist_only_when_declared(easy4) -> None:
     """D (support yaw) and B (range scale) come from the problem's declared nuisances, with
     their declared priors; an estimator default never adds them."""
