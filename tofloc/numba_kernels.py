@@ -690,13 +690,15 @@ def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_con
 def _inlier_block(lo_p: int, hi_p: int, X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, cs: Any, sn: Any, tx: Any,
                   ty: Any, bx: Any, by: Any, cs32: Any, sn32: Any, ox: Any, oy: Any, nx: int, ny: int, state: Any,
                   rows: Any, sub: Any, n_sub: int, cand: Any, crowded: Any, r2: float, count: Any, flat: Any, ux: Any,
-                  uy: Any, amb: Any, amb_m: Any, amb_p: Any, left_p: Any, left_m: Any) -> int:  # pragma: no cover - compiled
+                  uy: Any, amb: Any, amb_m: Any, amb_p: Any, left_p: Any, left_m: Any, sel: Any) -> int:  # pragma: no cover - compiled
     """Inlier counts of points ``lo_p:hi_p`` under every pose, added to ``count`` ``(M,)``.
 
     Per point, first its cell under every pose (float32 cell coordinates ``u = B @ A`` as
     the numpy path: ``bx, by`` the point's, ``cs32, sn32, ox, oy`` the poses'; one
     vectorizable loop into ``flat, ux, uy`` ``(M,)``), then the cells' decisions (0 out, 1
-    in, 2 undecided). Undecided pairs are buffered (``amb*``, flushed when full) and then
+    in, 2 undecided) in a loop without a branch (the decided pairs counted, the undecided
+    poses listed in ``sel`` ``(M,)``: a branch taken for a few % of the pairs cost more
+    than the rest of the loop). Undecided pairs are buffered (``amb*``, flushed when full) and then
     decided by their sub-cell (``sub``: flat, ``row * n_sub^3 + sub-cell``, ``n_sub`` a
     power of two), the rest by the exact distance to the row's candidates (float64, the
     numpy path's arithmetic), except crowded rows, whose pairs go to ``left_p, left_m``
@@ -726,15 +728,19 @@ def _inlier_block(lo_p: int, hi_p: int, X: Any, Y: Any, Z: Any, layer: Any, sub_
                 uy[m] = v
                 flat[m] = np.int32(u) * ny32 + np.int32(v) + lay
             sz = sub_z[p]
-            for m in range(M):
+            ns = 0
+            for m in range(M):  # branch-free: count the decided pairs, list the undecided ones
                 st = state[flat[m]]
                 count[m] += st & 1
-                if st == 2:
-                    amb[na] = ((rows[flat[m]] * n_sub + (np.int64(ux[m] * fsub) & mask)) * n_sub2
-                               + (np.int64(uy[m] * fsub) & mask) * n_sub + sz)
-                    amb_m[na] = m
-                    amb_p[na] = p
-                    na += 1
+                sel[ns] = m
+                ns += st >> 1
+            for j in range(ns):  # the undecided (a few %): their sub-cells
+                m = sel[j]
+                amb[na] = ((rows[flat[m]] * n_sub + (np.int64(ux[m] * fsub) & mask)) * n_sub2
+                           + (np.int64(uy[m] * fsub) & mask) * n_sub + sz)
+                amb_m[na] = m
+                amb_p[na] = p
+                na += 1
         if na and (p == hi_p or na + M > cap):  # flush: the second level, then the exact tests
             n_exact = 0
             for i in range(na):  # independent loads: the processor overlaps their misses
@@ -775,18 +781,18 @@ def _inlier_block(lo_p: int, hi_p: int, X: Any, Y: Any, Z: Any, layer: Any, sub_
 
 @_jit
 def _inlier_serial(counts: Any, bounds: Any, flat: Any, ux: Any, uy: Any, amb: Any, amb_m: Any, amb_p: Any,
-                   left_p: Any, left_m: Any, n_left: Any, args: Any) -> None:  # pragma: no cover - compiled
+                   left_p: Any, left_m: Any, n_left: Any, sel: Any, args: Any) -> None:  # pragma: no cover - compiled
     """One block: every point (``bounds`` ``[0, P]``, the buffers' first rows)."""
     n_left[0] = _inlier_block(0, bounds[-1], *args, counts[0], flat[0], ux[0], uy[0], amb[0], amb_m[0], amb_p[0],
-                              left_p[0], left_m[0])
+                              left_p[0], left_m[0], sel[0])
 
 
 @_jit_parallel
 def _inlier_parallel(counts: Any, bounds: Any, flat: Any, ux: Any, uy: Any, amb: Any, amb_m: Any, amb_p: Any,
-                     left_p: Any, left_m: Any, n_left: Any, args: Any) -> None:  # pragma: no cover - compiled
+                     left_p: Any, left_m: Any, n_left: Any, sel: Any, args: Any) -> None:  # pragma: no cover - compiled
     for b in _prange(bounds.shape[0] - 1):
         n_left[b] = _inlier_block(bounds[b], bounds[b + 1], *args, counts[b], flat[b], ux[b], uy[b], amb[b], amb_m[b],
-                                  amb_p[b], left_p[b], left_m[b])
+                                  amb_p[b], left_p[b], left_m[b], sel[b])
 
 
 def planar_inlier_count(X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, poses: Any, lo: Any, inv: float, nx: int,
@@ -816,6 +822,7 @@ def planar_inlier_count(X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, poses: A
     left_p = np.empty((n_blocks, left_cap), dtype=np.int64)
     left_m = np.empty((n_blocks, left_cap), dtype=np.int64)
     n_left = np.zeros(n_blocks, dtype=np.int64)
+    sel = np.empty((n_blocks, M), dtype=np.int64)
     poses = np.asarray(poses, dtype=np.float64)
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     # float32 cell coordinates as the numpy path's u = B @ A
@@ -826,7 +833,7 @@ def planar_inlier_count(X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, poses: A
             c.astype(np.float32), s.astype(np.float32), ox, oy, int(nx), int(ny), state, rows, sub, int(n_sub), cand,
             crowded, float(r_max) ** 2)
     (_inlier_parallel if n_blocks > 1 else _inlier_serial)(counts, bounds, flat, ux, uy, amb, amb_m, amb_p, left_p,
-                                                           left_m, n_left, args)
+                                                           left_m, n_left, sel, args)
     if (n_left > left_cap).any():
         return None, None, None
     keep = [slice(0, int(n)) for n in n_left]
