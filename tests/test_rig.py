@@ -162,3 +162,27 @@ def test_bad_rigs_are_refused_with_the_key(mutate, where: str) -> None:
 def test_malformed_json() -> None:
     with pytest.raises(FormatError, match="my.h5: rig: expected valid JSON"):
         Rig.from_json("{not json", source="my.h5")
+
+
+def test_rig_geometry_is_computed_once_and_read_only() -> None:
+    """The zone rays, range factors and edge-zone mask of a rig are immutable (the rig is):
+    computed once, shared by every caller, and refused for writing; the values are those
+    of the spec's formulas."""
+    import numpy as np
+    import pytest
+
+    from tofloc.rig import default_zone_directions, edge_zone_mask
+    from tofloc.testing import easy_problem
+
+    rig = easy_problem(n_samples=1)[0].rig
+    for name in ("unit_directions", "range_factor", "edge_zones"):
+        a = getattr(rig, name)
+        assert a is getattr(rig, name) and not a.flags.writeable, name
+        with pytest.raises(ValueError):
+            a.flat[0] = a.flat[0]
+    s = rig.sensors[0]
+    v = default_zone_directions(s.resolution, s.fov_deg)
+    np.testing.assert_array_equal(s.unit_directions, v / np.linalg.norm(v, axis=-1, keepdims=True))
+    np.testing.assert_allclose(rig.range_factor[0], np.linalg.norm(v, axis=-1) if s.distance == "perpendicular" else 1.0,
+                               rtol=1e-14)
+    assert edge_zone_mask(rig) is rig.edge_zones and rig.edge_zones.sum() == len(rig.sensors) * (4 * s.resolution[0] - 4)

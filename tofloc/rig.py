@@ -19,6 +19,7 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -66,9 +67,20 @@ def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float])
     return np.stack([np.tan(a_col), np.tan(a_row), np.ones(R * C)], axis=-1)
 
 
+def _readonly(a: NDArray[Any]) -> NDArray[Any]:
+    """``a`` marked read-only (a cached array every caller shares)."""
+    a.setflags(write=False)
+    return a
+
+
 def edge_zone_mask(rig: "Rig") -> NDArray[np.bool_]:
     """``(S, Z)``: True for zones in the outer ring of their sensor's grid (explicit
-    ``zone_directions`` tables: the zones farthest off the boresight, top quartile)."""
+    ``zone_directions`` tables: the zones farthest off the boresight, top quartile).
+    Read-only, computed once per rig (:attr:`Rig.edge_zones`)."""
+    return rig.edge_zones
+
+
+def _edge_zone_mask(rig: "Rig") -> NDArray[np.bool_]:
     out = []
     for s in rig.sensors:
         if s.zone_directions is not None:
@@ -205,24 +217,26 @@ class Sensor:
             return int(self.zone_directions.shape[0])
         return self.resolution[0] * self.resolution[1]
 
-    @property
+    @cached_property
     def unit_directions(self) -> NDArray[np.float64]:
-        """Unit ray of every zone in the sensor frame, ``(Z, 3)``."""
+        """Unit ray of every zone in the sensor frame, ``(Z, 3)`` (read-only; computed once:
+        the sensor is immutable)."""
         if self.zone_directions is not None:
             return self.zone_directions
         v = default_zone_directions(self.resolution, self.fov_deg)
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+        return _readonly(v / np.linalg.norm(v, axis=-1, keepdims=True))
 
-    @property
+    @cached_property
     def range_factor(self) -> NDArray[np.float64]:
-        """Per zone, the length along the unit ray of a reported distance of 1 m, ``(Z,)``.
+        """Per zone, the length along the unit ray of a reported distance of 1 m, ``(Z,)``
+        (read-only, computed once).
 
         ``1 / u_z`` for the perpendicular convention, 1 for the radial one.
         """
         u = self.unit_directions
         if self.distance == "perpendicular":
-            return 1.0 / u[:, 2]
-        return np.ones(u.shape[0])
+            return _readonly(1.0 / u[:, 2])
+        return _readonly(np.ones(u.shape[0]))
 
     def points(self, distance_m: ArrayLike) -> NDArray[np.float64]:
         """Points in the sensor frame, ``(..., Z, 3)``, from distances ``(..., Z)`` in metres.
@@ -426,15 +440,20 @@ class Rig:
         """``(S, 4, 4)``."""
         return np.stack([s.T_tip_sensor for s in self.sensors])
 
-    @property
+    @cached_property
     def unit_directions(self) -> NDArray[np.float64]:
-        """Unit zone rays in each sensor's frame, ``(S, Z, 3)``."""
-        return np.stack([s.unit_directions for s in self.sensors])
+        """Unit zone rays in each sensor's frame, ``(S, Z, 3)`` (read-only, computed once)."""
+        return _readonly(np.stack([s.unit_directions for s in self.sensors]))
 
-    @property
+    @cached_property
     def range_factor(self) -> NDArray[np.float64]:
-        """``(S, Z)``; see :attr:`Sensor.range_factor`."""
-        return np.stack([s.range_factor for s in self.sensors])
+        """``(S, Z)``; see :attr:`Sensor.range_factor` (read-only, computed once)."""
+        return _readonly(np.stack([s.range_factor for s in self.sensors]))
+
+    @cached_property
+    def edge_zones(self) -> NDArray[np.bool_]:
+        """``(S, Z)``: :func:`edge_zone_mask` of this rig (read-only, computed once)."""
+        return _readonly(_edge_zone_mask(self))
 
     @property
     def max_range_m(self) -> NDArray[np.float64]:
