@@ -250,7 +250,7 @@ def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path
     log = read_log(data["log"])
     bare = tmp_path / "bare.h5"
     shutil.copy(data["folder"] / "paper.map.ply", tmp_path / "paper.map.ply")
-    write_log(dataclasses.replace(log, T_base_tip=None, pressure_kpa=None), bare)
+    write_log(dataclasses.replace(log, T_base_tip=None, T_base_tip_cov=None, pressure_kpa=None), bare)
     code, _, err = _run(capsys, ["localize", str(bare), "--estimator", "icp_pf", *FEW])
     assert code == 2 and "/samples/T_base_tip" in err and str(bare) in err and len(err.strip().splitlines()) == 1
     code, _, err = _run(capsys, ["localize", str(bare), "--estimator", "icp_pf", "--tip-source", "knn",

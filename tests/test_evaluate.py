@@ -82,7 +82,7 @@ def test_outputs_and_summaries(run: dict) -> None:
     every = {e: [] for e in ("icp_pf", "beam_pf")}
     for label, lg in doc["logs"].items():
         assert lg["map"].endswith(f"{label}.map.ply") and lg["k"] == 3
-        assert lg["configuration_source"] is None  # a simulated log does not say; the problem builder records None
+        assert lg["configuration_source"] == "mocap"  # a simulated log declares its motion capture
         for e in every:
             recs = lg["estimators"][e]["records"]
             assert [r["trial"] for r in recs] == [0, 1] and all(len(r["sample_indices"]) == 3 for r in recs)

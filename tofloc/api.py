@@ -410,6 +410,8 @@ def localize(
         "estimator": estimator_name,
         "params": full_params,
         "tip_source": tip_source,
+        # where the configurations come from: the log's attribute for its own tip poses, else the k-NN model
+        "configuration_source": "knn" if tip_source == "knn" else getattr(lg, "configuration_source", None),
         "samples": int(k),
         "selection": selection,
         "prior": prior.to_json(),

@@ -259,8 +259,10 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
     """The trials (up to 10, or every estimate without truth) and the error summary; errors
     in millimetres and degrees, poses in metres and degrees; fits 80 columns."""
     recs = doc["trials"]
+    src = doc.get("configuration_source")
+    tips = f"tip source {doc['tip_source']}" + (f" (configurations from {src})" if src and src != doc["tip_source"] else "")
     title = (f"{doc['estimator']} on {Path(doc['log']).name}: {len(recs)} trial(s) of {doc['samples']} sample(s), "
-             f"tip source {doc['tip_source']}, prior {doc['prior']['mode']}")
+             f"{tips}, prior {doc['prior']['mode']}")
     if not has_truth or len(recs) <= 10:
         t = Table(title=(f"estimates ({title})" if not has_truth else "trials") + "; x, y, sd in m, angles in deg",
                   padding=(0, 1))

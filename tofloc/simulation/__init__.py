@@ -24,6 +24,8 @@ from ``h``, so that two sessions with the same ``h`` record the same physical se
 
 from __future__ import annotations
 
+import math
+
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,6 +146,12 @@ def simulate(
     distance_mm, status, sigma_mm = measure(returns, rig, sc.tof, r_tof)
 
     K = pressures.shape[0]
+    # what the log declares about its configurations: motion capture, with the noise
+    # mocap_measure adds (isotropic: the same covariance in the tip frame, T_true = T_meas
+    # exp(delta)); unknown (all NaN) where a posture has no measurement
+    sig_r, sig_t = math.radians(sc.robot.mocap_rotation_sigma_deg), sc.robot.mocap_position_sigma
+    T_base_tip_cov = np.tile(np.diag([sig_r**2] * 3 + [sig_t**2] * 3), (K, 1, 1))
+    T_base_tip_cov[~np.all(np.isfinite(T_base_tip_mocap), axis=(1, 2))] = np.nan
     log = Log(
         rig=rig,
         timestamp_s=(np.arange(K, dtype=float) + 1.0) * sc.protocol.settle_time,
@@ -152,6 +160,8 @@ def simulate(
         sigma_mm=sigma_mm,
         pressure_kpa=pressures.astype(np.float32),
         T_base_tip=T_base_tip_mocap,
+        T_base_tip_cov=T_base_tip_cov,
+        configuration_source="mocap",
         T_map_base=T_map_base,
         source=f"simulation:{sc.scenario.name} seed={seed}" + ("" if hardware_seed is None else f" hardware_seed={hardware_seed}")
         + ("" if rig_variant is None else f" rig={rig_variant}"),
