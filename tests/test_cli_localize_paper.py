@@ -51,6 +51,7 @@ def test_localize_writes_the_issue_json(data: dict[str, Path], tmp_path: Path, c
                      ("prior", dict), ("trials", list), ("summary", dict), ("seeds", dict)):
         assert isinstance(doc[key], typ), key
     assert doc["estimator"] == "icp_pf" and doc["tip_source"] == "mocap" and doc["samples"] == 2
+    assert doc["configuration_source"] == "mocap"  # the simulated log declares its motion capture
     assert doc["params"]["n_particles"] == 100
     assert doc["map"].endswith("paper.map.ply")
     assert doc["prior"] == {"mode": "offset", "sigma_xy_m": 0.2, "sigma_yaw_deg": 20.0}

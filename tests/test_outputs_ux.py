@@ -283,3 +283,16 @@ print("warmed")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "warmed"
+
+
+def test_localize_title_says_where_the_configurations_come_from(capsys) -> None:
+    """`tofloc localize` prints the log's configuration source beside the tip source when
+    they differ (an odometry log read with the log's own tip poses), and nothing extra when
+    they agree."""
+    from tofloc.cli.cmd_localize import _print
+
+    doc = _localize_doc(n=11)  # more than 10 trials: the summary table, titled
+    _print({**doc, "configuration_source": "odometry"}, True)
+    assert "(configurations from odometry)" in " ".join(capsys.readouterr().out.split())
+    _print({**doc, "configuration_source": "mocap"}, True)
+    assert "configurations from" not in capsys.readouterr().out
