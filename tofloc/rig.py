@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.errors import FormatError
+from tofloc.map_validation import readonly as _readonly
 
 __all__ = [
     "DEFAULT_VALID_STATUSES",
@@ -65,12 +66,6 @@ def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float])
     a_col = (cols.ravel() - (C - 1) / 2.0) * f_cols / C
     a_row = (rows.ravel() - (R - 1) / 2.0) * f_rows / R
     return np.stack([np.tan(a_col), np.tan(a_row), np.ones(R * C)], axis=-1)
-
-
-def _readonly(a: NDArray[Any]) -> NDArray[Any]:
-    """``a`` marked read-only (a cached array every caller shares)."""
-    a.setflags(write=False)
-    return a
 
 
 def edge_zone_mask(rig: "Rig") -> NDArray[np.bool_]:
