@@ -561,53 +561,69 @@ def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, 
 
 
 @_jit_parallel
-def rough_and_plane(centre: Any, tolerance: float, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, planar: Any,
-                    slope: Any, image: Any, dirs: Any, along: Any, max_reading: Any, min_range: float,
-                    min_fraction: float, signal: bool, rough: Any, reading: Any,
+def rough_and_plane(t_centre: Any, along_centre: Any, min_range: float, max_reading: Any, tolerance: float,
+                    depth: Any, nbr: Any, w: Any, used: Any, nb: Any, planar: Any, slope: Any, image: Any, dirs: Any,
+                    along: Any, min_fraction: float, signal: bool, rough: Any, reading: Any,
                     fraction: Any) -> None:  # pragma: no cover - compiled
-    """:func:`rough_zones` (plus the zones with a return but no plane: ``planar`` false)
-    and, for the smooth zones with a return, the footprint spread over the plane ``n . p =
-    1`` through the centre hit with the slope of ``1/z`` from the row and column
-    neighbours (``slope``): each sub-ray's length ``1 / (n . u)``, the range cut and the
-    weighting of :class:`tofloc.zone_caster.ZoneCaster` (the numpy path:
-    ``ZoneCaster._plane_footprints``), into ``rough, reading, fraction`` ``(M, S, Z)``
-    (``reading, fraction`` of rough zones and of zones without a return left as given)."""
-    M, S, Z = centre.shape
+    """From the centre rays' hit lengths ``t_centre`` ``(M, S, Z)`` (inf: miss): each
+    zone's centre reading (``t * along_centre``, NaN unless in ``[min_range,
+    max_reading]``: ``ZoneCaster._centre_readings``), :func:`rough_zones` of those (plus
+    the zones with a return but no plane: ``planar`` false) and, for the smooth zones with
+    a return, the footprint spread over the plane ``n . p = 1`` through the centre hit with
+    the slope of ``1/z`` from the row and column neighbours (``slope``): each sub-ray's
+    length ``1 / (n . u)``, the range cut and the weighting of
+    :class:`tofloc.zone_caster.ZoneCaster` (the numpy path: ``ZoneCaster._plane_footprints``).
+    Every entry of ``rough, reading, fraction`` ``(M, S, Z)`` is written: rough zones and
+    zones without a return read NaN with fraction 0 (the caller fills the rough ones)."""
+    M, S, Z = t_centre.shape
     n = dirs.shape[2]
-    for m in _prange(M):
-        q = _inverse_depths(centre, depth, m)
-        for s in range(S):
-            for z in range(Z):
-                qi = q[s, z]
-                has = qi == qi
-                zi = centre[m, s, z] * depth[s, z]
-                r = _zone_is_rough(q, zi, s, z, nbr, w, used, nb, tolerance) or (has and not planar[s, z])
-                rough[m, s, z] = r
-                if r or not has:
-                    continue
-                gx = slope[s, z, 0, 0] * q[s, nbr[s, z, 0, 0]] + slope[s, z, 0, 1] * q[s, nbr[s, z, 0, 1]]
-                gy = slope[s, z, 1, 0] * q[s, nbr[s, z, 1, 0]] + slope[s, z, 1, 1] * q[s, nbr[s, z, 1, 1]]
-                gz = qi - gx * image[s, z, 0] - gy * image[s, z, 1]
-                inv_norm = 1.0 / math.sqrt(gx * gx + gy * gy + gz * gz)
-                wsum = 0.0
-                acc = 0.0
-                n_ret = 0
-                for j in range(n):
-                    nu = gx * dirs[s, z, j, 0] + gy * dirs[s, z, j, 1] + gz * dirs[s, z, j, 2]
-                    if not nu > 0.0:
+    n_blocks = min(M, 64)
+    for b in _prange(n_blocks):
+        centre = np.empty((S, Z))
+        q = np.empty((S, Z + 1))  # 1 / z; the extra column (index Z = no neighbour) reads 0
+        for m in range(b * M // n_blocks, (b + 1) * M // n_blocks):
+            for s in range(S):
+                for z in range(Z):
+                    tc = t_centre[m, s, z]
+                    r_c = tc * along_centre[s, z]
+                    c = r_c if (math.isfinite(tc) and r_c >= min_range and r_c <= max_reading[s]) else np.nan
+                    centre[s, z] = c
+                    q[s, z] = 1.0 / (c * depth[s, z])
+                q[s, Z] = 0.0
+            for s in range(S):
+                for z in range(Z):
+                    qi = q[s, z]
+                    has = qi == qi
+                    zi = centre[s, z] * depth[s, z]
+                    r = _zone_is_rough(q, zi, s, z, nbr, w, used, nb, tolerance) or (has and not planar[s, z])
+                    rough[m, s, z] = r
+                    if r or not has:
+                        reading[m, s, z] = np.nan
+                        fraction[m, s, z] = 0.0
                         continue
-                    rj = along[s, z, j] / nu  # ray length 1 / nu, one division
-                    if rj < min_range or rj > max_reading[s]:
-                        continue
-                    n_ret += 1
-                    wj = 1.0
-                    if signal:  # t = 1 / nu
-                        wj = _signal_weight(nu * inv_norm, nu)
-                    wsum += wj
-                    acc += wj * rj
-                frac = n_ret / n
-                fraction[m, s, z] = frac
-                reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
+                    gx = slope[s, z, 0, 0] * q[s, nbr[s, z, 0, 0]] + slope[s, z, 0, 1] * q[s, nbr[s, z, 0, 1]]
+                    gy = slope[s, z, 1, 0] * q[s, nbr[s, z, 1, 0]] + slope[s, z, 1, 1] * q[s, nbr[s, z, 1, 1]]
+                    gz = qi - gx * image[s, z, 0] - gy * image[s, z, 1]
+                    inv_norm = 1.0 / math.sqrt(gx * gx + gy * gy + gz * gz)
+                    wsum = 0.0
+                    acc = 0.0
+                    n_ret = 0
+                    for j in range(n):
+                        nu = gx * dirs[s, z, j, 0] + gy * dirs[s, z, j, 1] + gz * dirs[s, z, j, 2]
+                        if not nu > 0.0:
+                            continue
+                        rj = along[s, z, j] / nu  # ray length 1 / nu, one division
+                        if rj < min_range or rj > max_reading[s]:
+                            continue
+                        n_ret += 1
+                        wj = 1.0
+                        if signal:  # t = 1 / nu
+                            wj = _signal_weight(nu * inv_norm, nu)
+                        wsum += wj
+                        acc += wj * rj
+                    frac = n_ret / n
+                    fraction[m, s, z] = frac
+                    reading[m, s, z] = acc / wsum if n_ret > 0 and frac >= min_fraction - 1e-12 else np.nan
 
 
 #: Robust kernels of :func:`smoother_zone_rows` by code (the order of

@@ -200,6 +200,7 @@ class ZoneCaster:
                 raise ParameterError(f"footprint_tolerance needs an odd footprint (a centre sub-ray), got footprint={footprint}")
             self.footprint_tolerance = float(footprint_tolerance)
             self._stencil = _smoothness_stencil(rig, dirs)
+            self._along_centre = np.ascontiguousarray(self.along[..., self.n_sub // 2])
 
     @property
     def n_sub(self) -> int:
@@ -400,17 +401,17 @@ class ZoneCaster:
         returns the other ``n - 1`` sub-rays ``(F, n - 1, 6)`` in their order. The readings
         are the same, bit for bit (the same float32 rays, the same sums in the same order)."""
         if numba_kernels.enabled() and self.footprint_tolerance is not None and self.footprint_tolerance >= 0:
-            # one compiled pass: the rough zones, and the smooth ones' footprints over their planes
-            centre = self._centre_readings(t_centre)
+            # one compiled pass from the hit lengths: the centre readings, the rough zones, and
+            # the smooth ones' footprints over their planes
             nbr, w, used, nb, depth, planar, slope, image = self._stencil
-            c3 = np.ascontiguousarray(centre.reshape((-1,) + centre.shape[-2:]))
-            rough = np.empty(c3.shape, dtype=bool)
-            reading = np.full(c3.shape, np.nan)
-            frac = np.zeros(c3.shape)
-            numba_kernels.rough_and_plane(c3, self.footprint_tolerance, depth, nbr, w, used, nb, planar, slope, image,
-                                          self.dirs_sensor, self.along, self.max_reading, self.min_range,
-                                          self.min_hit_fraction, self.weighting == "signal", rough, reading, frac)
-            rough, reading, frac = (a.reshape(centre.shape) for a in (rough, reading, frac))
+            shape = np.shape(t_centre)
+            t3 = np.ascontiguousarray(np.reshape(t_centre, (-1,) + shape[-2:]), dtype=float)
+            rough, reading, frac = np.empty(t3.shape, dtype=bool), np.empty(t3.shape), np.empty(t3.shape)
+            numba_kernels.rough_and_plane(t3, self._along_centre, self.min_range, self.max_reading,
+                                          self.footprint_tolerance, depth, nbr, w, used, nb, planar, slope, image,
+                                          self.dirs_sensor, self.along, self.min_hit_fraction,
+                                          self.weighting == "signal", rough, reading, frac)
+            rough, reading, frac = (a.reshape(shape) for a in (rough, reading, frac))
         else:  # numpy, or every footprint cast (a negative tolerance)
             centre, rough = self.centre_and_rough(t_centre)
             if rough.all():
