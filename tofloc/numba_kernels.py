@@ -456,21 +456,14 @@ def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_
 
 @_jit_parallel
 def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading: Any, s_idx: Any, z_idx: Any,
-                       min_range: float, min_fraction: float, signal: bool, reading: Any, fraction: Any,
-                       centre: int, flat_idx: Any, t_centre: Any, n_centre: Any,
-                       rays_centre: Any) -> None:  # pragma: no cover - compiled
+                       min_range: float, min_fraction: float, signal: bool, reading: Any,
+                       fraction: Any) -> None:  # pragma: no cover - compiled
     """Readings and hit fractions ``(F,)`` of chosen zones from their sub-rays' hit lengths
     ``t`` ``(F, n)`` (inf: no hit), the hit triangles' normals ``(F, n, 3)`` (float32) and
     the rays ``(F, n, 6)`` (float32): the range cut on each sub-ray's reading and the
     weighted mean of :class:`tofloc.zone_caster.ZoneCaster` (``signal``: ``max(|cos i|,
-    0.05) / max(t, 0.05)^2``, else equal weights).
-
-    With ``centre >= 0`` the arrays hold every sub-ray but the centre one (``(F, n - 1)``),
-    whose hit is taken from the centre rays' cast: ``t_centre`` ``(N,)``, ``n_centre`` ``(N,
-    3)``, ``rays_centre`` ``(N, 6)`` at the zones' flat indices ``flat_idx`` ``(F,)``; the
-    sub-rays are summed in the same order, so the readings are those of the whole footprint."""
-    F = t.shape[0]
-    n = along.shape[2]
+    0.05) / max(t, 0.05)^2``, else equal weights)."""
+    F, n = t.shape
     for f in _prange(F):
         s = s_idx[f]
         z = z_idx[f]
@@ -478,23 +471,15 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
         acc = 0.0
         n_ret = 0
         for j in range(n):
-            if j == centre:
-                i = flat_idx[f]
-                tj = t_centre[i]
-                nx, ny, nz = n_centre[i, 0], n_centre[i, 1], n_centre[i, 2]
-                dx, dy, dz = rays_centre[i, 3], rays_centre[i, 4], rays_centre[i, 5]
-            else:
-                jj = j - 1 if (centre >= 0 and j > centre) else j
-                tj = t[f, jj]
-                nx, ny, nz = normals[f, jj, 0], normals[f, jj, 1], normals[f, jj, 2]
-                dx, dy, dz = rays[f, jj, 3], rays[f, jj, 4], rays[f, jj, 5]
+            tj = t[f, j]
             r = tj * along[s, z, j]
             if not (r >= min_range and r <= max_reading[s]):  # also a miss (inf, or nan)
                 continue
             n_ret += 1
             w = 1.0
             if signal:
-                c = abs(np.float64(nx) * dx + np.float64(ny) * dy + np.float64(nz) * dz)
+                c = abs(np.float64(normals[f, j, 0]) * rays[f, j, 3] + np.float64(normals[f, j, 1]) * rays[f, j, 4]
+                        + np.float64(normals[f, j, 2]) * rays[f, j, 5])
                 w = _signal_weight(c, 1.0 / tj)
             wsum += w
             acc += w * r

@@ -388,18 +388,11 @@ class ZoneCaster:
         rough |= np.isfinite(centre) & ~self._stencil[5]  # no plane to spread the footprint over: cast it
         return centre, rough
 
-    def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any,
-                   centre_hits: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None) -> ZoneCast:
+    def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any) -> ZoneCast:
         """Readings ``(..., S, Z)`` from the centre rays' hit distances ``t_centre`` and, for
         the rough zones (:meth:`rough`), their whole footprint: ``footprints(idx)`` returns
         the sub-rays ``(F, n, 6)`` (float32, origins then unit directions in the map frame)
-        of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives).
-
-        ``centre_hits = (normals, rays)``: the centre rays' hit normals ``(..., S, Z, 3)``
-        and the centre rays themselves ``(..., S, Z, 6)`` (float32, as cast): the footprint's
-        centre sub-ray is the centre ray, so it is not cast again; ``footprints(idx)`` then
-        returns the other ``n - 1`` sub-rays ``(F, n - 1, 6)`` in their order. The readings
-        are the same, bit for bit (the same float32 rays, the same sums in the same order)."""
+        of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
         if numba_kernels.enabled() and self.footprint_tolerance is not None and self.footprint_tolerance >= 0:
             # one compiled pass from the hit lengths: the centre readings, the rough zones, and
             # the smooth ones' footprints over their planes
@@ -422,27 +415,13 @@ class ZoneCaster:
         if idx[0].size:
             s_i, z_i = idx[-2], idx[-1]
             rays = footprints(idx)
-            c = self.n_sub // 2
             if numba_kernels.enabled():  # one compiled pass from the hits' normals
                 t_f, n_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length, normals=True)
                 r_f, f_f = np.empty(s_i.size), np.empty(s_i.size)
-                if centre_hits is None:
-                    split, flat = -1, np.zeros(1, dtype=np.intp)
-                    t_cen, n_cen, r_cen = np.zeros(1), np.zeros((1, 3), np.float32), np.zeros((1, 6), np.float32)
-                else:
-                    split, flat = c, np.ravel_multi_index(idx, rough.shape)
-                    t_cen = np.ascontiguousarray(t_centre, dtype=float).reshape(-1)
-                    n_cen, r_cen = centre_hits[0].reshape(-1, 3), centre_hits[1].reshape(-1, 6)
                 numba_kernels.footprint_readings(t_f, n_f, rays, self.along, self.max_reading, s_i, z_i, self.min_range,
-                                                 self.min_hit_fraction, self.weighting == "signal", r_f, f_f,
-                                                 split, flat, t_cen, n_cen, r_cen)
+                                                 self.min_hit_fraction, self.weighting == "signal", r_f, f_f)
             else:
                 t_f, cos_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length)
-                if centre_hits is not None:  # the centre sub-ray's hit from the centre cast
-                    t_c = np.asarray(t_centre, dtype=float)[idx]
-                    n_c, d_c = centre_hits[0][idx], centre_hits[1][idx][:, 3:]  # float32, as raycast_incidence
-                    cos_c = np.where(np.isfinite(t_c), np.abs(np.einsum("fi,fi->f", n_c, d_c)).astype(np.float64), 0.0)
-                    t_f, cos_f = np.insert(t_f, c, t_c, axis=1), np.insert(cos_f, c, cos_c, axis=1)
                 r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
             reading[idx] = r_f
             frac[idx] = f_f
@@ -534,8 +513,6 @@ class PlanarZoneRays:
         self.origins_tip = T_ts[:, :3, 3].copy()
         self.dirs_tip = np.einsum("sij,sznj->szni", T_ts[:, :3, :3], caster.dirs_sensor)
         self._dirs_tip_flat = np.ascontiguousarray(self.dirs_tip.reshape(-1, 3))  # (S*Z*n, 3)
-        #: (S, Z, n - 1, 3): every sub-ray but the centre one (cast on its own first)
-        self.dirs_tip_off = np.ascontiguousarray(np.delete(self.dirs_tip, caster.n_sub // 2, axis=2))
         R, t = self.T_lift_tip[:, :3, :3], self.T_lift_tip[:, :3, 3]
         #: (K, S, 3) and (K, S, Z, n, 3): the same, lifted
         self.origins = np.einsum("kij,sj->ksi", R, self.origins_tip) + t[:, None, :]
@@ -616,18 +593,15 @@ class PlanarZoneRays:
         A, org = self._moves(poses, step, support_yaw)
         return self._fill(A, org, self.dirs_tip)
 
-    def _footprints(self, A: FloatArray, org: FloatArray, idx: tuple[NDArray[np.intp], ...],
-                    dirs: FloatArray | None = None) -> NDArray[np.float32]:
-        """The sub-rays but the centre one ``(F, n - 1, 6)`` (float32) of zones ``idx = (m,
-        s, z)`` moved by :meth:`_moves`' rotations ``A`` and origins ``org`` (``dirs``: other
-        tip-frame sub-rays ``(S, Z, n', 3)`` instead, e.g. :attr:`dirs_tip` for all of them)."""
+    def _footprints(self, A: FloatArray, org: FloatArray, idx: tuple[NDArray[np.intp], ...]) -> NDArray[np.float32]:
+        """The sub-rays ``(F, n, 6)`` (float32) of zones ``idx = (m, s, z)`` moved by
+        :meth:`_moves`' rotations ``A`` and origins ``org``."""
         m, s, z = idx
-        dirs = self.dirs_tip_off if dirs is None else dirs
         if numba_kernels.enabled():  # one compiled pass, no (F, n, 3) temporaries
-            out = np.empty((m.size, dirs.shape[2], 6), dtype=np.float32)
-            numba_kernels.footprint_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), dirs, m, s, z, out)
+            out = np.empty((m.size, self.caster.n_sub, 6), dtype=np.float32)
+            numba_kernels.footprint_ray_buffer(np.ascontiguousarray(A), np.ascontiguousarray(org), self.dirs_tip, m, s, z, out)
             return out
-        Am, d = A[m], dirs[s, z]  # (F, 3, 3), (F, n - 1, 3)
+        Am, d = A[m], self.dirs_tip[s, z]  # (F, 3, 3), (F, n, 3)
         out = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
         out[..., :3] = org[m, s][:, None, :]
         for i in range(3):  # d @ Am^T, one output axis at a time
@@ -639,8 +613,7 @@ class PlanarZoneRays:
         """The ray buffers :meth:`cast` (without geometry) hands the ray caster for these
         poses: one (every sub-ray, or the centre rays), or with the caster's
         ``footprint_tolerance`` the centre rays and then the rough zones' footprints (found
-        by casting the centre rays), but their centre sub-rays (the centre rays, cast once).
-        What a benchmark times Embree alone on."""
+        by casting the centre rays). What a benchmark times Embree alone on."""
         caster = self.caster
         if caster.footprint_tolerance is None:
             return [self.ray_buffer(poses, step, support_yaw)]
@@ -656,17 +629,14 @@ class PlanarZoneRays:
 
         Without geometry (and when readings need no normals) the hot path: the rays packed
         by :meth:`ray_buffer` and hit distances only (:meth:`ZoneCaster.cast_ray_buffer`).
-        With the caster's ``footprint_tolerance``: the centre rays packed likewise (their hits'
-        normals kept), then the other sub-rays of the rough zones' footprints
-        (:meth:`ZoneCaster.cast_rough` with ``centre_hits``)."""
+        With the caster's ``footprint_tolerance``: the centre rays packed likewise, then the
+        footprints of the rough zones (:meth:`ZoneCaster.cast_rough`)."""
         caster = self.caster
         if not geometry and caster.footprint_tolerance is not None:
             A, org = self._moves(poses, step, support_yaw)
             c = caster.n_sub // 2
-            centre = self._fill(A, org, self.dirs_tip[:, :, c : c + 1])
-            t_c, n_c = the_map.raycast_incidence(centre, max_range=caster.max_ray_length, normals=True)
-            return caster.cast_rough(the_map, t_c[..., 0], lambda idx: self._footprints(A, org, idx),
-                                     centre_hits=(n_c[..., 0, :], centre[..., 0, :]))
+            t_c = the_map.raycast_distance(self._fill(A, org, self.dirs_tip[:, :, c : c + 1]), max_range=caster.max_ray_length)
+            return caster.cast_rough(the_map, t_c[..., 0], lambda idx: self._footprints(A, org, idx))
         if not geometry and not self.caster.needs_normals:
             return self.caster.cast_ray_buffer(the_map, self.ray_buffer(poses, step, support_yaw))
         o, d = self.rays(poses, step, support_yaw)
