@@ -150,11 +150,9 @@ def associate(
     o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
     zones = np.concatenate([m.zones for m in meas]) if meas else np.zeros(0, dtype=np.int64)
     if residual == "point_to_plane":
-        if problem.map.kind == "points":
-            q, n, key = problem.map.closest_surface_point_and_nearest(p)
-        else:
-            q, n = problem.map.closest_surface_point(p)
-            key = np.round(q / 1e-4).astype(np.int64) @ np.array([1, 1 << 20, 1 << 40], dtype=np.int64)
+        # the key of a zone's plane: its triangle (a mesh, a cloud's surface) or its nearest
+        # point (a bare cloud): the association changed when a key did
+        q, n, key = problem.map.closest_surface_point_and_key(p)
         dist = np.linalg.norm(p - q, axis=1)
         t = None
     else:

@@ -62,6 +62,28 @@ def test_surface_distances_are_the_mesh_s(maps: tuple[Map, Map, Map]) -> None:
     assert not np.allclose(cloud.distance_to_surface(q), mesh.distance_to_surface(q), atol=1e-3)
 
 
+def test_closest_surface_key_is_the_triangle_or_the_nearest_point(maps: tuple[Map, Map, Map]) -> None:
+    """The association key: the triangle the closest point lies on (a mesh, a cloud's
+    surface: the same as the mesh's), the nearest point of a bare cloud."""
+    mesh, cloud, both = maps
+    q = np.random.default_rng(5).uniform([-0.3, -0.3, 0.02], [0.3, 0.3, 0.55], (30, 20, 3))
+    p, n, key = both.closest_surface_point_and_key(q)
+    p_m, n_m, key_m = mesh.closest_surface_point_and_key(q)
+    assert key.shape == q.shape[:-1] and key.dtype == np.int64
+    for a, b in ((p, p_m), (n, n_m), (key, key_m)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal((p, n), mesh.closest_surface_point(q))
+    tri, normals = mesh.triangles(), mesh.face_normals()
+    assert tri is not None and normals is not None
+    np.testing.assert_array_equal(n, normals[key])
+    corner = mesh.points[tri[key, 0]]
+    np.testing.assert_allclose(np.einsum("...i,...i->...", p - corner, n), 0.0, atol=2e-6)  # on that triangle's plane
+    assert 4 <= np.unique(key).size <= tri.shape[0]
+    p_c, n_c, key_c = cloud.closest_surface_point_and_key(q)
+    np.testing.assert_array_equal(key_c, cloud.nearest(q)[1])
+    np.testing.assert_array_equal(p_c, cloud.points[key_c])
+
+
 def test_points_and_nearest_stay_the_cloud_s(maps: tuple[Map, Map, Map]) -> None:
     mesh, cloud, both = maps
     assert both.kind == "points" and both.surface is mesh and cloud.surface is None and mesh.surface is None

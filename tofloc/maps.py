@@ -862,10 +862,26 @@ class Map:
         points : ndarray, shape (..., 3)
         normals : ndarray, shape (..., 3)
         """
+        return self.closest_surface_point_and_key(query, nthreads=nthreads)[:2]
+
+    def closest_surface_point_and_key(
+        self, query: ArrayLike, *, nthreads: int | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """:meth:`closest_surface_point` and the element of the surface it lies on: the
+        triangle of a mesh or of a cloud's :attr:`surface` (Open3D's primitive id, from the
+        same query), the nearest point of a cloud without a surface (its closest surface
+        point). Two queries with the same key lie on the same plane: what an association
+        to planes compares to tell whether it changed.
+
+        Returns
+        -------
+        points, normals : ndarray, shape (..., 3)
+        key : ndarray of int64, shape (...)
+        """
         if self._surface is not None:
-            return self._surface.closest_surface_point(query, nthreads=nthreads)
+            return self._surface.closest_surface_point_and_key(query, nthreads=nthreads)
         if self.kind == "points":
-            return self.closest_surface_point_and_nearest(query)[:2]
+            return self.closest_surface_point_and_nearest(query)
         q = as_query(query)
         o3d = _open3d()
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
@@ -873,7 +889,7 @@ class Map:
         pts = ans["points"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         assert self._face_normals is not None
-        return pts.reshape(q.shape), self._face_normals[prim].reshape(q.shape)
+        return pts.reshape(q.shape), self._face_normals[prim].reshape(q.shape), prim.reshape(q.shape[:-1])
 
     def closest_surface_point_and_nearest(
         self, query: ArrayLike, *, nthreads: int | None = None
