@@ -47,7 +47,8 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     # the update's own rays: 10 particles' centre rays, then nine for each rough zone
     centre, feet = r["buffers"]
     assert centre == 10 * 3 * 64 and feet % 9 == 0 and 0 < feet < 9 * centre and r["rays"] == centre + feet
-    assert _seconds(r["raycast_s"]) and _seconds(r["beam_over_raycast"])
+    assert _seconds(r["raycast_s"]) and _seconds(r["beam_update_s"])
+    assert r["beam_over_raycast"] == pytest.approx(r["beam_update_s"] / r["raycast_s"])
     assert set(doc["peak_rss_mb"]) == pfs and all(v >= doc["peak_rss_baseline_mb"][n] > 50 for n, v in doc["peak_rss_mb"].items())
     g = doc["gtsam"]
     assert _seconds(g["per_sample_factor_s"]) and _seconds(g["stacked_factor_s"]) and _seconds(g["speedup"])
@@ -67,6 +68,17 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert all(_seconds(row["vectorized_after_open3d_s"]) for row in icp["per_k"])
     assert icp["speedup"] == pytest.approx(icp["open3d_loop_s"] / icp["vectorized_s"])
     assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
+
+
+def test_paired_medians_alternate_and_reverse() -> None:
+    """Functions timed alternately, the order reversed every other round (A B, B A, ...):
+    each one's median of its own runs."""
+    from tofloc.bench import _paired_medians
+
+    calls: list[str] = []
+    med = _paired_medians([lambda: calls.append("a"), lambda: calls.append("b")], 4)
+    assert calls == ["a", "b", "b", "a", "a", "b", "b", "a"]
+    assert len(med) == 2 and all(_seconds(m) for m in med)
 
 
 @pytest.mark.slow

@@ -27,8 +27,10 @@ returns one JSON document:
 ``raycast``
     Embree alone on the beam update's own rays (``rays`` of them, in the ``buffers`` the
     update casts: the centre rays, then the footprints of the rough zones, see
-    :class:`tofloc.zone_caster.ZoneCaster`): ``raycast_s`` and ``beam_over_raycast``, the
-    beam filter's ``update_s`` over it.
+    :class:`tofloc.zone_caster.ZoneCaster`): ``raycast_s``; the same update timed
+    alternately with it, ``beam_update_s`` (medians of ``2 repeat`` each, interleaved, so
+    that the ratio is not one of two moments of a drifting machine), and
+    ``beam_over_raycast``, the one over the other.
 ``peak_rss_mb``
     Per particle filter, the peak resident memory (MB) of one update with
     ``particles_big`` particles at k = 10, in a fresh process each (so that peaks do not
@@ -36,8 +38,9 @@ returns one JSON document:
     update's, over what stays resident (``peak_rss_baseline_mb``: resident before it).
 ``gtsam``
     The smoother's k = 10 estimate with the stacked evaluation and with one factor per
-    sample (``stacked_factor=False``): ``per_sample_factor_s``, ``stacked_factor_s``,
-    ``speedup`` and ``max_abs_diff`` (largest difference of the two poses).
+    sample (``stacked_factor=False``), timed alternately (medians of ``repeat`` each):
+    ``per_sample_factor_s``, ``stacked_factor_s``, ``speedup`` and ``max_abs_diff``
+    (largest difference of the two poses).
 ``selection``
     ``active_choice_s``: one choice of the ``active`` selection policy (median of
     ``repeat``) among ``candidates`` recorded postures of the paper's log (motion-capture
@@ -89,6 +92,20 @@ def _median_time(fn: Callable[[], Any], repeat: int) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return float(statistics.median(times))
+
+
+def _paired_medians(fns: Sequence[Callable[[], Any]], repeat: int) -> list[float]:
+    """Median times of several functions timed alternately (rounds of each in turn, the
+    order reversed every other round), so that a ratio of two of them is not a ratio of
+    two moments of a machine whose speed drifts."""
+    times: list[list[float]] = [[] for _ in fns]
+    for r in range(repeat):
+        order = range(len(fns)) if r % 2 == 0 else reversed(range(len(fns)))
+        for i in order:
+            t0 = time.perf_counter()
+            fns[i]()
+            times[i].append(time.perf_counter() - t0)
+    return [float(statistics.median(t)) for t in times]
 
 
 def paper_bench_problem(n_samples: int = 10, seed: int = 0) -> Any:
@@ -193,15 +210,17 @@ def _bench_gtsam_factors(problem: Any, repeat: int) -> dict[str, Any]:
     from estimators.gtsam_smoother import GTSAMSmoother
 
     res: dict[bool, Any] = {}
-    times: dict[bool, float] = {}
+    runs = []
     for stacked in (False, True):
         est = GTSAMSmoother(stacked_factor=stacked)
 
         def run(est: Any = est, stacked: bool = stacked) -> None:
             res[stacked] = est.estimate(problem, np.random.default_rng(0))
 
-        times[stacked] = _median_time(run, min(repeat, 3))
-    return {"per_sample_factor_s": times[False], "stacked_factor_s": times[True], "speedup": times[False] / times[True],
+        run()  # warm-up
+        runs.append(run)
+    per_sample, stacked_s = _paired_medians(runs, repeat)  # timed alternately
+    return {"per_sample_factor_s": per_sample, "stacked_factor_s": stacked_s, "speedup": per_sample / stacked_s,
             "max_abs_diff": float(np.max(np.abs(res[True].pose - res[False].pose)))}
 
 
@@ -466,10 +485,13 @@ def run_bench(
             for rays in buffers:
                 problem.map.raycast_distance(rays, reach)
 
+        est = ESTIMATORS.load("beam_pf")(n_particles=particles)
+        update = _pf_update(est, bound, x, bound.n_steps - 1)
         embree()
-        cast = _median_time(embree, repeat)
+        update()
+        upd, cast = _paired_medians([update, embree], 2 * repeat)  # timed alternately
         doc["raycast"] = {"rays": int(sum(np.prod(b.shape[:-1]) for b in buffers)), "raycast_s": cast,
-                          "beam_over_raycast": doc["estimators"]["beam_pf"]["update_s"] / cast,
+                          "beam_update_s": upd, "beam_over_raycast": upd / cast,
                           "buffers": [int(np.prod(b.shape[:-1])) for b in buffers]}
         rep.note(f"ray cast of the beam update's {doc['raycast']['rays']} rays: {1e3 * cast:.1f} ms "
                  f"(beam update {doc['raycast']['beam_over_raycast']:.1f}x that)")
