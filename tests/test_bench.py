@@ -108,6 +108,7 @@ def test_bench_command_writes_the_json_and_shows_the_tables(bench, monkeypatch, 
     shown = capsys.readouterr().out
     assert "gtsam_smoother k = 10" in shown and "paper run" in shown and "ray cast" in shown
     assert "as long on 2 workers as on one thread" in " ".join(shown.split())  # rich wraps lines
+    assert "timed alternately with it" in " ".join(shown.split())
 
 
 def test_a_failing_peak_rss_child_raises_with_its_output() -> None:
