@@ -489,16 +489,14 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
 
 
 @_jit_inline
-def _inverse_depths(centre: Any, depth: Any, m: int) -> Any:  # pragma: no cover - compiled
-    """``1 / z`` ``(S, Z + 1)`` of candidate ``m``'s centre readings (NaN: no target; the
-    extra column, index ``Z`` = no neighbour, reads 0)."""
+def _inverse_depths(centre: Any, depth: Any, q: Any) -> None:  # pragma: no cover - compiled
+    """``1 / z`` into ``q`` ``(S, Z + 1)`` from one candidate's centre readings ``(S, Z)``
+    (NaN: no target; the extra column, index ``Z`` = no neighbour, reads 0)."""
     S, Z = depth.shape
-    q = np.empty((S, Z + 1))
     for s in range(S):
         for z in range(Z):
-            q[s, z] = 1.0 / (centre[m, s, z] * depth[s, z])
+            q[s, z] = 1.0 / (centre[s, z] * depth[s, z])
         q[s, Z] = 0.0
-    return q
 
 
 @_jit_inline
@@ -539,7 +537,8 @@ def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, 
     sensor or missing the zone's depth by more than ``tolerance``."""
     M, S, Z = reading.shape
     for m in _prange(M):
-        q = _inverse_depths(reading, depth, m)
+        q = np.empty((S, Z + 1))
+        _inverse_depths(reading[m], depth, q)
         for s in range(S):
             for z in range(Z):
                 out[m, s, z] = _zone_is_rough(q, reading[m, s, z] * depth[s, z], s, z, nbr, w, used, nb, tolerance)
@@ -567,14 +566,12 @@ def rough_and_plane(t_centre: Any, along_centre: Any, min_range: float, max_read
         centre = np.empty((S, Z))
         q = np.empty((S, Z + 1))  # 1 / z; the extra column (index Z = no neighbour) reads 0
         for m in range(b * M // n_blocks, (b + 1) * M // n_blocks):
-            for s in range(S):
+            for s in range(S):  # ZoneCaster._centre_readings, compiled
                 for z in range(Z):
                     tc = t_centre[m, s, z]
                     r_c = tc * along_centre[s, z]
-                    c = r_c if (math.isfinite(tc) and r_c >= min_range and r_c <= max_reading[s]) else np.nan
-                    centre[s, z] = c
-                    q[s, z] = 1.0 / (c * depth[s, z])
-                q[s, Z] = 0.0
+                    centre[s, z] = r_c if (math.isfinite(tc) and r_c >= min_range and r_c <= max_reading[s]) else np.nan
+            _inverse_depths(centre, depth, q)
             for s in range(S):
                 for z in range(Z):
                     qi = q[s, z]
