@@ -4,10 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from tofloc.cli.app import app, console, status
 from tofloc.errors import ParameterError
+
+#: median point-to-map distance at the truth (cm) above which ``import nanoswarm`` warns
+AT_TRUTH_WARN_CM = 5.0
 
 import_app = typer.Typer(name="import", help="Import third-party recordings into the log format.", no_args_is_help=True)
 app.add_typer(import_app, name="import")
@@ -46,10 +50,12 @@ def nanoswarm(
     voxel: float = typer.Option(0.02, "--voxel", help="Map grid (m): 2-D thinning and z extrusion step."),
     carve: bool = typer.Option(True, "--carve/--no-carve", help="Drop map cells that more readings' rays crossed than ended in (free-space carving)."),
     fit_radius: float = typer.Option(0.12, "--fit-radius", help="Move each wall point onto the robust line through its neighbours within this radius (m; 0: no fit)."),
+    map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight."),
     force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
 ) -> None:
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
-    covariance, Vicon truth) and leave-one-drone-out wall maps (docs/real-data.md)."""
+    covariance, Vicon truth) and leave-one-drone-out wall maps, or one map from another flight
+    (docs/real-data.md). Prints how far the nodes' points at the truth lie from their maps."""
     from tofloc.io.nanoswarm_maps import import_flight, write_flight
     from tofloc.scan_maps import WallFitSettings
 
@@ -67,14 +73,23 @@ def nanoswarm(
         raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
     with status(f"importing {flight_dir}"):
         fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
-        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit)  # type: ignore[arg-type]
+        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from)  # type: ignore[arg-type]
         write_flight(imp, out)
+        at_truth = imp.distances_at_truth()
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
+    built = "leave-one-drone-out" if map_from is None else f"from every drone of {map_from}"
     console.print(
         f"wrote {out}: {len(imp.flight.logs)} logs ({nodes}), valid zones {s['valid_zone_fraction']:.1%}, "
-        f"{len(imp.maps)} maps (range <= {range_cut:g} m, {voxel * 100:g} cm grid, "
+        f"{len(imp.maps)} {'map' if len(imp.maps) == 1 else 'maps'} {built} (range <= {range_cut:g} m, {voxel * 100:g} cm grid, "
         f"{'carved, ' if carve else ''}{f'lines fitted within {fit_radius * 100:g} cm, ' if fit_radius > 0 else ''}base {base})",
         highlight=False,
         soft_wrap=True,
     )
+    if at_truth.size:
+        med, p90 = 100 * float(np.median(at_truth)), 100 * float(np.percentile(at_truth, 90))
+        console.print(f"points at the truth (zones <= {range_cut:g} m): median {med:.1f} cm from the map, 90 % within {p90:.1f} cm",
+                      highlight=False, soft_wrap=True)
+        if med > AT_TRUTH_WARN_CM:
+            console.print(f"[yellow]warning:[/yellow] the median exceeds {AT_TRUTH_WARN_CM:g} cm: the map may not be of this maze "
+                          "or not in the same motion-capture frame (docs/real-data.md measured 1-3 cm)", highlight=False, soft_wrap=True)

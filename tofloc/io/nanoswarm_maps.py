@@ -1,7 +1,8 @@
 """Leave-one-drone-out wall maps for the nano-swarm flights, and writing a flight's logs and maps.
 
 For each drone ``h`` of a flight, the map the logs of ``h`` name is built from the OTHER
-drones' scans only:
+drones' scans only (or, with ``map_from``, every log names one map built from every drone of
+ANOTHER flight of the same maze: :func:`flight_map`; a flight of a single drone needs it):
 
 1. every valid zone of their nodes with a distance <= ``range_cut_m`` (1.2 m by default,
    the paper's evaluation range) becomes a point in the map frame, placed at the node's
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -58,6 +60,7 @@ __all__ = [
     "node_points",
     "wall_map",
     "leave_one_out_maps",
+    "flight_map",
     "distances_at_truth",
     "map_name",
     "log_name",
@@ -173,7 +176,7 @@ def leave_one_out_maps(
         raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
     drones = flight.drones
     if len(drones) < 2:
-        raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others')", f"only drone {drones[0]}")
+        raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others'), or a map from another flight (map_from, --map-from)", f"only drone {drones[0]}")
     out = {}
     for h in drones:
         others = np.flatnonzero(flight.drone != h)
@@ -181,6 +184,20 @@ def leave_one_out_maps(
         src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})"
         out[h] = wall_map(p, s, _z_band(flight, others, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=src)
     return out
+
+
+def flight_map(
+    flight: Flight, *, range_cut_m: float = DEFAULT_RANGE_CUT_M, voxel_m: float = DEFAULT_VOXEL_M, normal_k: int = DEFAULT_NORMAL_K,
+    wall_fit: WallFitSettings | None = None,
+) -> Map:
+    """The wall map of EVERY drone's scans of a flight (steps 1-5 of the module docstring), for
+    localizing the nodes of another flight of the same maze (same motion-capture frame)."""
+    if not (math.isfinite(range_cut_m) and range_cut_m > 0):
+        raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
+    every = np.arange(len(flight.logs))
+    p, s, _ = node_points(flight, every, range_cut_m)
+    src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in flight.drones)} (every drone of that flight)"
+    return wall_map(p, s, _z_band(flight, every, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=src)
 
 
 def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
@@ -206,8 +223,16 @@ def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float
 
 
 def map_name(drone: int) -> str:
-    """Relative path (from the output folder) of the map the logs of ``drone`` use."""
+    """Relative path (from the output folder) of the map the logs of ``drone`` use (leave-one-drone-out)."""
     return f"maps/without-drone{drone}.ply"
+
+
+def flight_map_name(folder: str | Path) -> str:
+    """Relative path (from the output folder) of the map built from every drone of the flight
+    in ``folder`` (``--map-from``): ``maps/from-<folder name>.ply``, characters other than
+    letters, digits, ``-`` and ``_`` replaced by ``_``."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", Path(folder).resolve().name) or "flight"
+    return f"maps/from-{name}.ply"
 
 
 def log_name(drone: int, node: int) -> str:
@@ -216,14 +241,27 @@ def log_name(drone: int, node: int) -> str:
 
 @dataclass(eq=False)
 class FlightImport:
-    """A flight's logs (with their ``map`` attribute set) and its leave-one-out maps."""
+    """A flight's logs (with their ``map`` attribute set) and the maps they name.
+
+    ``maps`` is keyed by the relative path the logs name (:func:`map_name`, or
+    :func:`flight_map_name` when ``map_from`` is the flight the single map was built from)."""
 
     flight: Flight
-    maps: dict[int, Map]
+    maps: dict[str, Map]
     range_cut_m: float
     voxel_m: float
     normal_k: int
     wall_fit: WallFitSettings = WallFitSettings()
+    map_from: Path | None = None
+
+    def map_of(self, i: int) -> Map:
+        """The map log ``i`` names."""
+        return self.maps[self.flight.logs[i].map]  # type: ignore[index]
+
+    def distances_at_truth(self) -> NDArray[np.float64]:
+        """:func:`distances_at_truth` of every node against its own map, concatenated (m)."""
+        f = self.flight
+        return np.concatenate([distances_at_truth(f, i, self.map_of(i), self.range_cut_m) for i in range(len(f.logs))])
 
     def summary(self) -> dict[str, object]:
         f = self.flight
@@ -231,7 +269,8 @@ class FlightImport:
         return {
             "nodes_per_drone": {int(d): int(np.sum(f.drone == d)) for d in f.drones},
             "valid_zone_fraction": float(valid.mean()),
-            "map_points": {int(d): int(m.points.shape[0]) for d, m in self.maps.items()},
+            "map_points": {name: int(m.points.shape[0]) for name, m in self.maps.items()},
+            "map_from": None if self.map_from is None else str(self.map_from),
         }
 
 
@@ -245,18 +284,48 @@ def import_flight(
     wall_fit: WallFitSettings | None = None,
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
     created: str | None = None,
+    map_from: str | Path | None = None,
 ) -> FlightImport:
-    """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build its leave-one-out maps."""
+    """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build the maps its logs name.
+
+    Parameters
+    ----------
+    map_from : path, optional
+        Another flight folder of the same maze: every log then names one map built from every
+        drone of that flight (:func:`flight_map`, same ``base``, range cut, grid and wall fit)
+        instead of its leave-one-drone-out map. Needed for a flight of a single drone.
+
+    Raises
+    ------
+    ParameterError
+        ``map_from`` is the flight itself (its scans would be in their own map).
+    FormatError
+        A file breaks the format (either flight), or the flight has a single drone and no
+        ``map_from``.
+    """
     flight = read_flight(folder, base=base, created=created, error_model=error_model)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
-    maps = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
-    for i, d in enumerate(flight.drone.tolist()):
-        flight.logs[i].map = map_name(d)
-    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit)
+    if map_from is None:
+        by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
+        maps = {map_name(d): m for d, m in by_drone.items()}
+        for i, d in enumerate(flight.drone.tolist()):
+            flight.logs[i].map = map_name(d)
+        return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit)
+    src = Path(map_from)
+    if src.is_dir() and Path(folder).is_dir() and src.resolve() == Path(folder).resolve():
+        raise ParameterError(f"map_from {src}: is the flight being imported; its nodes would be localized against their own scans "
+                             "(expected another flight of the same maze)")
+    other = read_flight(src, base=base, error_model=error_model)
+    name = flight_map_name(src)
+    maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
+    for log in flight.logs:
+        log.map = name
+    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src)
 
 
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
-    """Write ``maps/without-droneD.ply`` and one ``droneD-nodeNNN.h5`` per node into ``out_dir``.
+    """Write the maps (``maps/without-droneD.ply``, or ``maps/from-<flight>.ply``) and one
+    ``droneD-nodeNNN.h5`` per node into ``out_dir``.
 
     Each log carries an ``/import`` group: ``notes`` (JSON: flight, drone, node, base,
     odometry pose, Vicon row, map parameters), ``in_scan_motion`` (15, 3) float32 as sent,
@@ -271,10 +340,11 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for d, m in sorted(imp.maps.items()):
-        written.append(m.save(out / map_name(d)))
+    for name, m in sorted(imp.maps.items()):
+        written.append(m.save(out / name))
     f = imp.flight
-    params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict()}
+    params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict(),
+              "built_from": "leave-one-drone-out" if imp.map_from is None else f"every drone of flight {imp.map_from.resolve().name}"}
     for i, log in enumerate(f.logs):
         dest = out / log_name(int(f.drone[i]), int(f.node[i]))
         with atomic_path(dest) as tmp:
@@ -321,7 +391,7 @@ def distance_report(dataset: str | Path, flights: tuple[str, ...] = ("two-drones
             f = imp.flight
             d3, d2, rr = [], [], []
             for j in range(len(f.logs)):
-                m = imp.maps[int(f.drone[j])]
+                m = imp.map_of(j)
                 rr.append(ray_residuals_at_truth(f, j, m, eval_range_m))
                 p, _, _ = node_points(f, [j], eval_range_m)
                 d3.append(m.nearest(p)[0])

@@ -156,6 +156,7 @@ def _register_groups(
     delta = np.zeros((n_groups, 3))
     H = np.zeros((n_groups, 3, 3))
     inl = np.zeros(n_groups, dtype=np.int64)
+    log_map = np.array([lg.map for lg in f.logs])  # the map each log names
     for _ in range(ITERATIONS):
         th = delta[group, 0]
         c, s = np.cos(th), np.sin(th)
@@ -163,9 +164,8 @@ def _register_groups(
         pm = np.einsum("mij,mj->mi", R[:, :, :2], pc) + T_mt[:, :3, 3]
         q = np.empty_like(pm)
         nrm = np.empty_like(pm)
-        for d in f.drones:  # one KD-tree query per map, not per point
-            sel = f.drone[node] == d
-            m = imp.maps[d]
+        for name, m in imp.maps.items():  # one KD-tree query per map, not per point
+            sel = log_map[node] == name
             _, j = m.nearest(pm[sel])
             q[sel] = m.points[j]
             nrm[sel] = m.normals[j]
