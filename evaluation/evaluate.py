@@ -59,6 +59,8 @@ from tofloc.errors import FormatError, ParameterError
 from tofloc.rig import DEFAULT_VALID_STATUSES
 
 __all__ = [
+    "is_flagged",
+    "detection_summary",
     "FAILURE_E_X_M",
     "FAILURE_E_GAMMA_DEG",
     "SEED_DERIVATION",
@@ -384,7 +386,8 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     (mean, median, n: the trials with a defined NEES; see the module doc), ``widened`` (trials
     whose fit check failed, their covariance widened by the prior's), the median ``runtime_s``
     and ``failure_causes`` (counts of the failed trials by cause, ``{"model", "search",
-    "unattributed"}``: :func:`evaluation.failure_cause.count_causes`) (those the records have)."""
+    "unattributed"}``: :func:`evaluation.failure_cause.count_causes`) and ``detection``
+    (:func:`detection_summary`) (those the records have)."""
     n = len(records)
     fails = sum(is_failure(r) for r in records)
     out: dict[str, Any] = {
@@ -407,7 +410,35 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     causes = count_causes(records)
     if causes is not None:
         out["failure_causes"] = causes
+    det = detection_summary(records)
+    if det is not None:
+        out["detection"] = det
     return out
+
+
+def is_flagged(record: Mapping[str, Any]) -> bool:
+    """Whether a trial warned its user: its data-fit check failed (``covariance_widened``)
+    or its posterior was ambiguous (``ambiguous``: several modes, :mod:`tofloc.posterior_modes`)."""
+    return bool(record.get("covariance_widened")) or bool(record.get("ambiguous"))
+
+
+def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
+    """How well the trials' own warnings (:func:`is_flagged`) tell the failures: ``failures``,
+    ``failures_flagged`` (of them, by the fit check or ambiguity), ``failures_fit`` (by the
+    fit check alone), ``successes`` and ``successes_flagged`` (false alarms). None when the
+    records carry neither warning (an estimator run without the fit check)."""
+    if not any("covariance_widened" in r or "ambiguous" in r for r in records):
+        return None
+    failed = [is_failure(r) for r in records]
+    flagged = [is_flagged(r) for r in records]
+    fit = [bool(r.get("covariance_widened")) for r in records]
+    return {
+        "failures": int(sum(failed)),
+        "failures_flagged": int(sum(f and g for f, g in zip(failed, flagged))),
+        "failures_fit": int(sum(f and g for f, g in zip(failed, fit))),
+        "successes": int(len(records) - sum(failed)),
+        "successes_flagged": int(sum((not f) and g for f, g in zip(failed, flagged))),
+    }
 
 
 def truth_sigmas(entry: EvalLog) -> dict[str, float] | None:

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "truth_sentence", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
+__all__ = ["table_markdown", "truth_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
 #: estimator's NEES lies in it 95 % of the time).
@@ -34,6 +34,32 @@ def _row(name: str, s: Mapping[str, Any]) -> str:
             f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
             f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(exact.get('mean'), '.2f')} | "
             f"{'n/a' if wid is None else wid} | {_f(model.get('mean'), '.2f')} | {_f(rt, '.2f')} |")
+
+
+def detection_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The section "Knowing when it is lost": per estimator, how many of its failures its own
+    warnings flagged (the fit check, an ambiguous posterior) and how many good trials they
+    flagged too (false alarms); empty when no estimator's records carry the warnings."""
+    rows = [(e, s["detection"]) for e, s in doc["summary"].items() if s.get("detection")]
+    if not rows:
+        return []
+
+    def frac(a: int, b: int) -> str:
+        return f"{a}/{b}" + (f" ({a / b:.0%})" if b else "")
+
+    out = [
+        "## Knowing when it is lost",
+        "",
+        "A trial is flagged when its data-fit check fails (tofloc/fit_check.py; its covariance is then widened) "
+        "or its posterior is ambiguous (tofloc/posterior_modes.py): the warnings a user gets without the truth.",
+        "",
+        "| estimator | failures flagged | by the fit check | good trials flagged (false alarms) |",
+        "|---|---|---|---|",
+    ]
+    for e, d in rows:
+        out.append(f"| {e} | {frac(d['failures_flagged'], d['failures'])} | {frac(d['failures_fit'], d['failures'])} | "
+                   f"{frac(d['successes_flagged'], d['successes'])} |")
+    return out + [""]
 
 
 def _span(v: Any, fmt: str) -> str:
@@ -92,6 +118,9 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         f"Oracle floor: a robust registration of each trial's zones to the map started at the true pose "
         f"(evaluation/oracle.py); {o['not_converged']} of {o['n']} fits did not converge.",
         "",
+    ]
+    lines += detection_lines(doc)
+    lines += [
         "## Ratios to the oracle floor",
         "",
         "Median error over every trial divided by the oracle's median over the same trials, and the median over",

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, is_failure, log_labels, log_seed
+from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, detection_summary, error_summary, is_failure, log_labels, log_seed
 from evaluation.oracle import _moved, oracle_fit, oracle_points
 from evaluation.priors import PriorSpec, base_pose_parts
 from tofloc import frames
@@ -105,6 +105,11 @@ def test_outputs_and_summaries(run: dict) -> None:
         assert s["runtime_s"]["median"] == pytest.approx(np.median([r["runtime_s"] for r in recs]))
     table = (out / "table.md").read_text()
     assert "| icp_pf |" in table and "**oracle floor**" in table and "## Ratios to the oracle floor" in table
+    assert "## Knowing when it is lost" in table  # every trial is fit-checked: the detection table
+    for e, recs in every.items():
+        det = doc["summary"][e]["detection"]
+        assert det["failures"] == doc["summary"][e]["failures"] and det["successes"] == 4 - det["failures"]
+        assert det["successes_flagged"] == sum((not is_failure(r)) and (r["covariance_widened"] or r["ambiguous"]) for r in recs)
     assert "| l_room |" in table
     # simulated logs declare no truth covariance: the truth is exact and both NEES agree
     assert doc["truth_uncertainty"] == {"declared_by": 0, "logs": 2, "x_mm": None, "y_mm": None, "yaw_deg": None}
@@ -171,6 +176,27 @@ def test_failure_rule() -> None:
     assert is_failure({"e_x_m": 0.1001, "e_gamma_deg": 0.0})
     assert is_failure({"e_x_m": 0.0, "e_gamma_deg": 10.01})
     assert is_failure({"e_x_m": None, "e_gamma_deg": 0.0})
+
+
+def test_detection_counts_the_failures_the_warnings_caught() -> None:
+    """A failure is caught when its fit check failed or its posterior was ambiguous; a good
+    trial so flagged is a false alarm; records without either warning give no detection."""
+    def rec(ex: float, widened: bool, ambiguous: bool) -> dict:
+        return {"e_x_m": ex, "e_gamma_deg": 1.0, "covariance_widened": widened, "ambiguous": ambiguous}
+
+    recs = [rec(0.5, True, False), rec(0.3, False, True), rec(0.2, False, False), rec(0.01, True, False),
+            rec(0.02, False, False), rec(0.03, False, True), rec(0.04, False, False)]
+    assert detection_summary(recs) == {"failures": 3, "failures_flagged": 2, "failures_fit": 1, "successes": 4,
+                                       "successes_flagged": 2}
+    assert error_summary(recs)["detection"] == detection_summary(recs)
+    assert detection_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}]) is None
+    assert "detection" not in error_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}])
+    from evaluation.evaluate_report import detection_lines
+
+    lines = detection_lines({"summary": {"beam_pf": error_summary(recs), "plain": error_summary([{"e_x_m": 0.1, "e_gamma_deg": 1.0}])}})
+    assert lines[0] == "## Knowing when it is lost"
+    assert "| beam_pf | 2/3 (67%) | 1/3 (33%) | 2/4 (50%) |" in lines and not any(ln.startswith("| plain") for ln in lines)
+    assert detection_lines({"summary": {"plain": error_summary([{"e_x_m": 0.1, "e_gamma_deg": 1.0}])}}) == []
 
 
 def test_stdout_table_fits_80_columns_in_mm(logs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
