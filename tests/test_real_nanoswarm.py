@@ -127,7 +127,7 @@ def _scan_row(folder: Path, row: int) -> tuple[str, str]:
         (lambda k, h: f"{k}", "row 2", ("2 comma-separated fields (drone/node,hex)", "found 1 fields")),
         (lambda k, h: f"x/1,{h}", "row 2, field drone/node", ("drone in 0..15 and node in 0..4095", "'x/1'")),
         (lambda k, h: f"16/1,{h}", "row 2, field drone/node", ("drone in 0..15",)),
-        (lambda k, h: f"0/0,{h}", "row 2, field drone/node", ("one scan per node (0/0 is on row 1 already)",)),
+        (lambda k, h: f"0/0,{h}", "row 2, field drone/node", ("one scan per node (0/0 is on row 1 already, with a different scan)",)),
         (lambda k, h: f"1/1,{h}", "row 2, field hex bytes 0-1 (pose id)", ("4097 (drone 1 << 12 | node 1)", "found 4096 (drone 1, node 0)")),
     ],
 )
@@ -158,14 +158,11 @@ def test_bad_values_inside_a_scan_name_frame_direction_column(tmp_path: Path) ->
 @pytest.mark.parametrize(
     "name, row, new, where, frags",
     [
-        ("vicon_poses.csv", 2, "7/0,0,0,0.6,1,0,0,0", "row 2, field drone/node", ("a drone/node of scans.csv", "7/0: unknown drone (scans.csv has drones [0, 1])")),
-        ("vicon_poses.csv", 2, "1/9,0,0,0.6,1,0,0,0", "row 2, field drone/node", ("1/9: unknown node",)),
-        ("poses.csv", 6, "0/5,0,0,0", "row 6, field drone/node", ("a drone/node of scans.csv", "0/5: unknown node")),
         ("vicon_poses.csv", 3, "0/1,0,abc,0.6,1,0,0,0", "row 3, field y", ("a finite decimal number", "'abc'")),
         ("vicon_poses.csv", 3, "0/1,0,nan,0.6,1,0,0,0", "row 3, field y", ("a finite decimal number", "'nan'")),
         ("vicon_poses.csv", 3, "0/1,0,0,0.6,1,0", "row 3", ("8 comma-separated fields (drone/node,x,y,z,qw,qx,qy,qz)", "found 6 fields")),
         ("vicon_poses.csv", 3, "0/1,0,0,0.6,0.5,0,0,0", "row 3, field qw,qx,qy,qz", ("a unit quaternion", "norm 0.5000")),
-        ("vicon_poses.csv", 3, "0/0,0,0,0.6,1,0,0,0", "row 3, field drone/node", ("one motion-capture pose per node (0/0 is on row 1 already)",)),
+        ("vicon_poses.csv", 3, "0/0,0,0,0.6,1,0,0,0", "row 3, field drone/node", ("one motion-capture pose per node (0/0 is on row 1 already, with a different pose)",)),
         ("poses.csv", 1, "0/0,1e999,0,0", "row 1, field x", ("a finite decimal number",)),
         ("poses.csv", 2, "", "row 2", ("a non-empty row", "an empty line")),
     ],
@@ -174,6 +171,33 @@ def test_bad_pose_files_are_refused(tmp_path: Path, name: str, row: int, new: st
     folder = make_flight(tmp_path / "f")
     _replace_row(folder / name, row, new)
     refused(lambda: read_flight(folder), folder / name, where, *frags)
+
+
+def test_rows_without_a_scan_and_repeated_rows_are_reported_not_used(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A scan lost on the radio leaves its poses behind, a re-sent packet repeats a row: the
+    flight still imports, the same logs as without those rows, and the importer says what
+    it left out. A repeat that differs is still refused (tests above)."""
+    from tofloc.cli import main
+
+    clean = read_flight(make_flight(tmp_path / "clean"), created="2024-01-01T00:00:00+00:00")
+    folder = make_flight(tmp_path / "f")
+    with open(folder / "vicon_poses.csv", "a") as fh:
+        fh.write("7/0,0,0,0.6,1,0,0,0\n1/9,0,0,0.6,1,0,0,0\n")
+        fh.write((folder / "vicon_poses.csv").read_text().splitlines()[0] + "\n")  # 0/0 again, the same pose
+    with open(folder / "poses.csv", "a") as fh:
+        fh.write("0/5,0,0,0\n")
+    with open(folder / "scans.csv", "a") as fh:
+        fh.write((folder / "scans.csv").read_text().splitlines()[2] + "\n")  # 0/1 sent twice
+    fl = read_flight(folder, created="2024-01-01T00:00:00+00:00")
+    assert fl.unused == {"vicon_poses.csv": ["7/0", "1/9"], "poses.csv": ["0/5"], "scans.csv": ["row 5"]}
+    assert fl.keys() == clean.keys()
+    for a, b in zip(fl.logs, clean.logs):
+        assert a.distance_mm.tobytes() == b.distance_mm.tobytes() and a.T_map_base.tobytes() == b.T_map_base.tobytes()
+    assert clean.unused == {}
+    assert main(["import", "nanoswarm", str(folder), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "note: vicon_poses.csv: 2 row(s) name nodes without a scan, not used: 7/0, 1/9" in out
+    assert "note: scans.csv: 1 row(s) repeated an earlier row byte for byte, not used: row 5" in out
 
 
 def test_a_scan_without_truth_or_odometry_is_refused(tmp_path: Path) -> None:

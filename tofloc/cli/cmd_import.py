@@ -86,6 +86,11 @@ def nanoswarm(
         highlight=False,
         soft_wrap=True,
     )
+    for name, what in {**imp.flight.unused, **({} if imp.map_flight is None else
+                                                {f"{map_from}/{k}": v for k, v in imp.map_flight.unused.items()})}.items():
+        shown = ", ".join(what[:6]) + (f" and {len(what) - 6} more" if len(what) > 6 else "")
+        kind = "repeated an earlier row byte for byte" if name.endswith("scans.csv") else "name nodes without a scan"
+        console.print(f"note: {name}: {len(what)} row(s) {kind}, not used: {shown}", highlight=False, soft_wrap=True)
     if at_truth.size:
         med, p90 = 100 * float(np.median(at_truth)), 100 * float(np.percentile(at_truth, 90))
         console.print(f"points at the truth (zones <= {range_cut:g} m): median {med:.1f} cm from the map, 90 % within {p90:.1f} cm",

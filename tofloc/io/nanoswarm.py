@@ -295,6 +295,8 @@ class Scans:
     node: NDArray[np.int64]
     distance_mm: NDArray[np.int16]
     motion: NDArray[np.float32]
+    #: rows (1-based) that repeated an earlier row of the same node byte for byte, skipped
+    repeated_rows: tuple[int, ...] = ()
 
     def keys(self) -> list[str]:
         return [f"{d}/{n}" for d, n in zip(self.drone.tolist(), self.node.tolist())]
@@ -306,7 +308,9 @@ def read_scans_csv(path: str | Path) -> Scans:
     Raises
     ------
     FormatError
-        Naming the row and the field: a malformed key, a repeated node, hex of odd length,
+        Naming the row and the field: a malformed key, a node repeated with a different
+        scan (a row identical to an earlier one, as a re-sent radio packet, is skipped and
+        listed in ``repeated_rows``), hex of odd length,
         non-hex characters, a byte count other than 1144 (truncated or too long), a pose
         id that disagrees with the key, a distance other than -1 or >= 0, a non-finite or
         out-of-bounds in-scan motion.
@@ -315,13 +319,20 @@ def read_scans_csv(path: str | Path) -> Scans:
     lines = _lines(p)
     keys: list[tuple[int, int]] = []
     seen: dict[tuple[int, int], int] = {}
+    seen_hex: dict[tuple[int, int], str] = {}
+    repeated: list[int] = []
     blobs = []
     for i, line in enumerate(lines, start=1):
         key_text, hex_text = _fields(p, i, line, ("drone/node", "hex"))
         key = _key(p, i, key_text)
         if key in seen:
-            raise FormatError(p, f"row {i}, field drone/node", f"one scan per node ({key_text} is on row {seen[key]} already)", key_text)
+            if hex_text.lower() == seen_hex[key]:  # the same scan sent twice: nothing to choose between
+                repeated.append(i)
+                continue
+            raise FormatError(p, f"row {i}, field drone/node",
+                              f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan)", key_text)
         seen[key] = i
+        seen_hex[key] = hex_text.lower()
         if len(hex_text) % 2:
             raise FormatError(p, f"row {i}, field hex", "an even number of hex digits", f"{len(hex_text)} digits")
         m = _HEX.match(hex_text)
@@ -356,7 +367,7 @@ def read_scans_csv(path: str | Path) -> Scans:
         raise FormatError(p, f"row {n + 1}, field hex: frame {f} {name}", f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j]))
     drone = np.array([k[0] for k in keys], dtype=np.int64)
     node = np.array([k[1] for k in keys], dtype=np.int64)
-    return Scans(p, drone, node, mm, motion)
+    return Scans(p, drone, node, mm, motion, tuple(repeated))
 
 
 @dataclass(frozen=True)
@@ -400,9 +411,12 @@ def read_vicon_csv(path: str | Path) -> NodePoses:
     for i, line in enumerate(_lines(p), start=1):
         parts = _fields(p, i, line, ("drone/node",) + VICON_FIELDS)
         key = _key(p, i, parts[0])
-        if key in values:
-            raise FormatError(p, f"row {i}, field drone/node", f"one motion-capture pose per node ({parts[0]} is on row {rows[key]} already)", parts[0])
         v = np.array([_number(p, i, name, t) for name, t in zip(VICON_FIELDS, parts[1:])])
+        if key in values:
+            if np.array_equal(values[key], v):  # the same pose written twice: skipped
+                continue
+            raise FormatError(p, f"row {i}, field drone/node",
+                              f"one motion-capture pose per node ({parts[0]} is on row {rows[key]} already, with a different pose)", parts[0])
         qn = float(np.linalg.norm(v[3:]))
         if abs(qn - 1.0) > QUATERNION_NORM_TOL:
             raise FormatError(p, f"row {i}, field qw,qx,qy,qz", f"a unit quaternion (norm 1 within {QUATERNION_NORM_TOL:g})", f"norm {qn:.4f}")
@@ -528,6 +542,8 @@ class Flight:
         The raw in-scan motion (dx, dy, dyaw).
     base : str
         ``"level"`` or ``"mocap"`` (see :func:`base_poses`).
+    unused : dict str -> list of str
+        Per file, what no log uses: pose rows of nodes without a scan, repeated scan rows.
     """
 
     folder: Path
@@ -539,6 +555,9 @@ class Flight:
     vicon: NDArray[np.float64]
     motion: NDArray[np.float32]
     base: str
+    #: what the flight's files hold that no log uses, per file: pose rows of nodes without a
+    #: scan (``"drone/node"``) and scan rows repeating an earlier one byte for byte (``"row N"``)
+    unused: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def drones(self) -> list[int]:
@@ -559,17 +578,15 @@ class Flight:
         }
 
 
-def _cross_check(scans: Scans, poses: NodePoses, what: str) -> None:
-    """Every scan has a row in ``poses``; every row of ``poses`` names a scanned node."""
+def _cross_check(scans: Scans, poses: NodePoses, what: str) -> list[str]:
+    """Every scan has a row in ``poses`` (else :class:`FormatError`). Returns the nodes of
+    ``poses`` that have no scan (``"drone/node"``, file order): a scan lost on the radio
+    leaves its poses behind; they are not used, and reported."""
     in_scans = {k: i for i, k in enumerate(zip(scans.drone.tolist(), scans.node.tolist()), start=1)}
-    for key, row in poses.row.items():
-        if key not in in_scans:
-            drones = sorted(set(scans.drone.tolist()))
-            unknown = "node" if key[0] in drones else f"drone (scans.csv has drones {drones})"
-            raise FormatError(poses.path, f"row {row}, field drone/node", "a drone/node of scans.csv", f"{key[0]}/{key[1]}: unknown {unknown}")
     for key, i in in_scans.items():
         if key not in poses.values:
             raise FormatError(poses.path, f"drone/node {key[0]}/{key[1]}", f"{what} for every scan (scans.csv row {i})", "no row")
+    return [f"{k[0]}/{k[1]}" for k, _ in sorted(poses.row.items(), key=lambda kv: kv[1]) if k not in in_scans]
 
 
 def read_flight(
@@ -601,8 +618,9 @@ def read_flight(
     Raises
     ------
     FormatError
-        A file breaks the README's format, a scan has no motion-capture or odometry pose,
-        or a pose row names a node that was not scanned.
+        A file breaks the README's format, or a scan has no motion-capture or odometry
+        pose. (Pose rows of nodes without a scan are not an error: a scan lost on the radio
+        leaves them behind; they are listed in ``Flight.unused``.)
     ParameterError
         ``folder`` is not a folder, or ``base`` is unknown.
     """
@@ -614,8 +632,11 @@ def read_flight(
     scans = read_scans_csv(d / "scans.csv")
     vicon = read_vicon_csv(d / "vicon_poses.csv")
     odo = read_poses_csv(d / "poses.csv")
-    _cross_check(scans, vicon, "a motion-capture pose")
-    _cross_check(scans, odo, "an odometry pose")
+    unused = {"vicon_poses.csv": _cross_check(scans, vicon, "a motion-capture pose"),
+              "poses.csv": _cross_check(scans, odo, "an odometry pose")}
+    unused = {k: v for k, v in unused.items() if v}
+    if scans.repeated_rows:
+        unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows]
     keys = list(zip(scans.drone.tolist(), scans.node.tolist()))
     vic = np.stack([vicon.values[k] for k in keys])
     odo_pose = np.stack([odo.values[k] for k in keys])
@@ -651,4 +672,4 @@ def read_flight(
         )
         for i in range(len(keys))
     ]
-    return Flight(d, scans.drone, scans.node, logs, odo_pose, later, vic, scans.motion, base)
+    return Flight(d, scans.drone, scans.node, logs, odo_pose, later, vic, scans.motion, base, unused)

@@ -253,6 +253,8 @@ class FlightImport:
     normal_k: int
     wall_fit: WallFitSettings = WallFitSettings()
     map_from: Path | None = None
+    #: the flight ``map_from`` names, as read (None: leave-one-drone-out)
+    map_flight: Flight | None = None
 
     def map_of(self, i: int) -> Map:
         """The map log ``i`` names."""
@@ -320,7 +322,7 @@ def import_flight(
     maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
     for log in flight.logs:
         log.map = name
-    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src)
+    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src, other)
 
 
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
@@ -352,7 +354,7 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
             with open_for_extras(tmp) as h:
                 g = h.create_group("import")
                 write_text_attribute(g, "importer", "nanoswarm")
-                write_text_attribute(g, "notes", json.dumps({**f.notes(i), "map": params}, sort_keys=True))
+                write_text_attribute(g, "notes", json.dumps({**f.notes(i), "map": params, "unused_rows": f.unused}, sort_keys=True))
                 write_checksummed_dataset(g, "in_scan_motion", f.motion[i], "<f4")
                 write_checksummed_dataset(g, "odometry_pose", f.odometry_pose[i], "<f8")
                 write_checksummed_dataset(g, "vicon_pose", f.vicon[i], "<f8")
