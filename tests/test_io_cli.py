@@ -150,3 +150,13 @@ def test_import_eth_matrix_writes_a_valid_log_with_the_panel(tmp_path: Path, cap
     assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(out)]) == 2  # exists
     assert main(["import", "eth-matrix", str(tmp_path), "--out", str(tmp_path / "y.h5")]) == 2  # no CSVs
     assert "state_ToF.csv" in capsys.readouterr().err
+    # the bodies are options: the panel as the drone (its pose is the configuration), no panel kept
+    swapped = tmp_path / "swapped.h5"
+    assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(swapped), "--drone-body", "Surface",
+                 "--panel-body", "none"]) == 0
+    s = read_log(swapped)
+    np.testing.assert_allclose(np.nanmedian(s.T_base_tip[:, :3, 3], axis=0), [1.4142, 0.0556, 0.4491], atol=2e-3)
+    with h5py.File(swapped) as f:
+        assert "T_map_panel" not in f["/import"]
+    assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(tmp_path / "z.h5"), "--drone-body", "Cf2"]) == 2
+    assert "rows of the body 'Cf2'" in capsys.readouterr().err

@@ -22,6 +22,8 @@ def eth_matrix(
     run_dir: Path = typer.Argument(..., help="A run folder of ETH's Matrix_ToF_Drones data (state_ToF.csv + state_Vicon.csv)."),
     out: Path = typer.Option(..., "--out", "-o", help="Log (.h5) to write."),
     latency: float = typer.Option(0.085, "--latency", help="ToF stamp minus Vicon time of the measurement, seconds (fitted on the dataset: docs/real-data.md)."),
+    drone_body: str = typer.Option("Drone", "--drone-body", help="Vicon body (the 'name' column) of the drone that carries the sensor."),
+    panel_body: str = typer.Option("Surface", "--panel-body", help="Vicon body kept as the panel (/import/T_map_panel), when the run has it."),
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
 ) -> None:
     """Import one ETH Matrix_ToF_Drones run: the drone's Vicon pose as configuration, the panel kept under /import."""
@@ -30,7 +32,7 @@ def eth_matrix(
 
     check_output_path(out, option="--out", overwrite=force)
     with status(f"importing {run_dir}"):
-        imp = import_run(run_dir, latency_s=latency)
+        imp = import_run(run_dir, latency_s=latency, drone_body=drone_body, panel_body=panel_body)
         write_import(imp, out)
     n = imp.notes
     console.print(
