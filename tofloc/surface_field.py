@@ -197,9 +197,11 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
         side = np.sign(np.einsum("ij,ij->i", np.nan_to_num(normal), diff))
         side[side == 0] = 1.0
         return np.clip(side * dist, -r_field, r_field)
+    from tofloc.threads import kdtree_workers
+
     R = float(the_map.surfel_radius)
     tree = the_map._kdtree()
-    d, idx = tree.query(nodes, k=1, distance_upper_bound=r_field + R)
+    d, idx = tree.query(nodes, k=1, distance_upper_bound=r_field + R, workers=kdtree_workers())  # a one-off build: every core allowed
     out = np.full(nodes.shape[0], r_field)
     near = np.isfinite(d)
     diff = nodes[near] - the_map.points[idx[near]]
