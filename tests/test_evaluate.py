@@ -472,6 +472,12 @@ def test_a_map_gap_fails_a_node_that_another_flights_map_localizes(tmp_path: Pat
         assert code == 0, err
         res[name] = json.loads((tmp_path / f"eval-{name}" / "results.json").read_text())["summary"]["gtsam_smoother"]
     assert res["loo"]["failures"] >= 2 and res["loo"]["e_x_m"]["median"] > 0.5, res["loo"]
+    from tofloc.cli.cmd_evaluate import detection_line
+
+    doc = json.loads((tmp_path / "eval-loo" / "results.json").read_text())
+    n = res["loo"]["failures"]
+    assert detection_line(doc).startswith(f"failures flagged by their own warnings: gtsam_smoother {n}/{n} (")
+    assert detection_line(json.loads((tmp_path / "eval-cross" / "results.json").read_text())) == ""
     assert res["loo"]["detection"]["failures_flagged"] == res["loo"]["failures"]  # the user is warned
     assert res["cross"]["failures"] == 0 and res["cross"]["e_x_m"]["median"] < 0.06, res["cross"]
     assert res["cross"]["detection"]["successes_flagged"] == 0

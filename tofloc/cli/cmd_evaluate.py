@@ -89,6 +89,9 @@ def evaluate(
             plot_failures=plot_failures,
         )
     console.print(summary_table(run.document))
+    line = detection_line(run.document)
+    if line:
+        console.print(line, highlight=False, soft_wrap=True)
     for p in run.paths:
         err_console.print(f"wrote {p}", highlight=False)
 
@@ -98,6 +101,18 @@ def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
         return "n/a"
     x = float(v) * scale
     return format(x, ".0f" if abs(x) >= 1000 else fmt)
+
+
+def detection_line(doc: dict[str, Any]) -> str:
+    """One line: per estimator with failures, how many of them its own warnings flagged
+    (fit check or ambiguous posterior) and how many good trials they flagged ("" when none
+    failed or no estimator carries the warnings)."""
+    parts = []
+    for name, s in doc["summary"].items():
+        d = s.get("detection")
+        if d and d["failures"]:
+            parts.append(f"{name} {d['failures_flagged']}/{d['failures']} ({d['successes_flagged']} false alarms)")
+    return ("failures flagged by their own warnings: " + ", ".join(parts) + " (table.md: Knowing when it is lost)") if parts else ""
 
 
 def summary_table(doc: dict[str, Any]) -> Table:
