@@ -127,7 +127,7 @@ def _scan_row(folder: Path, row: int) -> tuple[str, str]:
         (lambda k, h: f"{k}", "row 2", ("2 comma-separated fields (drone/node,hex)", "found 1 fields")),
         (lambda k, h: f"x/1,{h}", "row 2, field drone/node", ("drone in 0..15 and node in 0..4095", "'x/1'")),
         (lambda k, h: f"16/1,{h}", "row 2, field drone/node", ("drone in 0..15",)),
-        (lambda k, h: f"0/0,{h}", "row 2, field drone/node", ("one scan per node (0/0 is on row 1 already, with a different scan)",)),
+        (lambda k, h: f"0/0,{h}", "row 2, field drone/node", ("one scan per node (0/0 is on row 1 already, with a different scan; --duplicates first|last keeps one)",)),
         (lambda k, h: f"1/1,{h}", "row 2, field hex bytes 0-1 (pose id)", ("4097 (drone 1 << 12 | node 1)", "found 4096 (drone 1, node 0)")),
     ],
 )
@@ -162,7 +162,7 @@ def test_bad_values_inside_a_scan_name_frame_direction_column(tmp_path: Path) ->
         ("vicon_poses.csv", 3, "0/1,0,nan,0.6,1,0,0,0", "row 3, field y", ("a finite decimal number", "'nan'")),
         ("vicon_poses.csv", 3, "0/1,0,0,0.6,1,0", "row 3", ("8 comma-separated fields (drone/node,x,y,z,qw,qx,qy,qz)", "found 6 fields")),
         ("vicon_poses.csv", 3, "0/1,0,0,0.6,0.5,0,0,0", "row 3, field qw,qx,qy,qz", ("a unit quaternion", "norm 0.5000")),
-        ("vicon_poses.csv", 3, "0/0,0,0,0.6,1,0,0,0", "row 3, field drone/node", ("one motion-capture pose per node (0/0 is on row 1 already, with a different pose)",)),
+        ("vicon_poses.csv", 3, "0/0,0,0,0.6,1,0,0,0", "row 3, field drone/node", ("one motion-capture pose per node (0/0 is on row 1 already, with a different pose; --duplicates first|last keeps one)",)),
         ("poses.csv", 1, "0/0,1e999,0,0", "row 1, field x", ("a finite decimal number",)),
         ("poses.csv", 2, "", "row 2", ("a non-empty row", "an empty line")),
     ],
@@ -189,15 +189,40 @@ def test_rows_without_a_scan_and_repeated_rows_are_reported_not_used(tmp_path: P
     with open(folder / "scans.csv", "a") as fh:
         fh.write((folder / "scans.csv").read_text().splitlines()[2] + "\n")  # 0/1 sent twice
     fl = read_flight(folder, created="2024-01-01T00:00:00+00:00")
-    assert fl.unused == {"vicon_poses.csv": ["7/0", "1/9"], "poses.csv": ["0/5"], "scans.csv": ["row 5"]}
+    assert fl.unused == {"vicon_poses.csv": ["row 7", "7/0", "1/9"], "poses.csv": ["0/5"], "scans.csv": ["row 5"]}
     assert fl.keys() == clean.keys()
     for a, b in zip(fl.logs, clean.logs):
         assert a.distance_mm.tobytes() == b.distance_mm.tobytes() and a.T_map_base.tobytes() == b.T_map_base.tobytes()
     assert clean.unused == {}
     assert main(["import", "nanoswarm", str(folder), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    assert "note: vicon_poses.csv: 2 row(s) name nodes without a scan, not used: 7/0, 1/9" in out
-    assert "note: scans.csv: 1 row(s) repeated an earlier row byte for byte, not used: row 5" in out
+    assert "note: vicon_poses.csv: 3 row(s) not used (a node without a scan, or a node's other row): row 7, 7/0, 1/9" in out
+    assert "note: scans.csv: 1 row(s) not used (a node without a scan, or a node's other row): row 5" in out
+
+
+def test_a_node_twice_with_different_contents_is_refused_unless_told_which_to_keep(tmp_path: Path) -> None:
+    folder = make_flight(tmp_path / "f")
+    rows = (folder / "scans.csv").read_text().splitlines()  # 0/0, 1/0, 0/1, 1/1
+    rng = np.random.default_rng(9)
+    other = f"0/1,{scan_hex(0, 1, rng)}"  # 0/1 again, another scan
+    (folder / "scans.csv").write_text("\n".join(rows + [other]) + "\n")
+    vic = (folder / "vicon_poses.csv").read_text().splitlines()
+    (folder / "vicon_poses.csv").write_text("\n".join(vic + ["1/1,9,9,0.6,1,0,0,0"]) + "\n")
+    refused(lambda: read_flight(folder), folder / "scans.csv", "row 5, field drone/node",
+            "one scan per node (0/1 is on row 3 already, with a different scan; --duplicates first|last keeps one)")
+    first = read_flight(folder, duplicates="first", created="2024-01-01T00:00:00+00:00")
+    last = read_flight(folder, duplicates="last", created="2024-01-01T00:00:00+00:00")
+    i = first.keys().index("0/1")
+    assert first.keys() == last.keys() == ["0/0", "1/0", "0/1", "1/1"]
+    assert first.unused == {"scans.csv": ["row 5"], "vicon_poses.csv": ["row 5"]}
+    assert last.unused == {"scans.csv": ["row 3"], "vicon_poses.csv": ["row 4"]}
+    parsed = read_scans_csv(folder / "scans.csv", "last")
+    assert not np.array_equal(read_scans_csv(folder / "scans.csv", "first").distance_mm[i], parsed.distance_mm[i])
+    np.testing.assert_array_equal(np.nan_to_num(last.logs[i].distance_mm, nan=-1).astype(np.int16), parsed.distance_mm[i])
+    np.testing.assert_allclose(last.logs[3].T_map_base[:2, 3], [9.0, 9.0])  # the last Vicon row of 1/1
+    np.testing.assert_allclose(first.logs[3].T_map_base[:2, 3], [0.5, 0.3])
+    with pytest.raises(ParameterError, match="duplicates: expected one of refuse, first, last"):
+        read_flight(folder, duplicates="newest")
 
 
 def test_a_scan_without_truth_or_odometry_is_refused(tmp_path: Path) -> None:

@@ -53,6 +53,7 @@ def nanoswarm(
     carve: bool = typer.Option(True, "--carve/--no-carve", help="Drop map cells that more readings' rays crossed than ended in (free-space carving)."),
     fit_radius: float = typer.Option(0.12, "--fit-radius", help="Move each wall point onto the robust line through its neighbours within this radius (m; 0: no fit)."),
     map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight."),
+    duplicates: str = typer.Option("refuse", "--duplicates", help="A node twice in scans.csv or vicon_poses.csv with different contents: 'refuse', or keep its 'first' or 'last' row (rows repeated byte for byte are always kept once)."),
     force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
 ) -> None:
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
@@ -63,6 +64,8 @@ def nanoswarm(
 
     if base not in ("level", "mocap"):
         raise ParameterError(f"--base: expected 'level' or 'mocap', found {base!r}")
+    if duplicates not in ("refuse", "first", "last"):
+        raise ParameterError(f"--duplicates: expected 'refuse', 'first' or 'last', found {duplicates!r}")
     if not (0 < range_cut <= 4.0):
         raise ParameterError(f"--range-cut: expected a distance in (0, 4] m, found {range_cut}")
     if not (0.001 <= voxel <= 0.5):
@@ -75,7 +78,8 @@ def nanoswarm(
         raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
     with status(f"importing {flight_dir}"):
         fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
-        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from)  # type: ignore[arg-type]
+        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from,  # type: ignore[arg-type]
+                            duplicates=duplicates)
         write_flight(imp, out)
         at_truth = imp.distances_at_truth()
     s = imp.summary()
@@ -91,8 +95,8 @@ def nanoswarm(
     for name, what in {**imp.flight.unused, **({} if imp.map_flight is None else
                                                 {f"{map_from}/{k}": v for k, v in imp.map_flight.unused.items()})}.items():
         shown = ", ".join(what[:6]) + (f" and {len(what) - 6} more" if len(what) > 6 else "")
-        kind = "repeated an earlier row byte for byte" if name.endswith("scans.csv") else "name nodes without a scan"
-        console.print(f"note: {name}: {len(what)} row(s) {kind}, not used: {shown}", highlight=False, soft_wrap=True)
+        console.print(f"note: {name}: {len(what)} row(s) not used (a node without a scan, or a node's other row): {shown}",
+                      highlight=False, soft_wrap=True)
     if at_truth.size:
         med, p90 = 100 * float(np.median(at_truth)), 100 * float(np.percentile(at_truth, 90))
         console.print(f"points at the truth (zones <= {range_cut:g} m): median {med:.1f} cm from the map, 90 % within {p90:.1f} cm",

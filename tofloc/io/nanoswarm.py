@@ -302,7 +302,18 @@ class Scans:
         return [f"{d}/{n}" for d, n in zip(self.drone.tolist(), self.node.tolist())]
 
 
-def read_scans_csv(path: str | Path) -> Scans:
+#: What to do with a node that appears twice with different contents (``--duplicates``):
+#: refuse (the default), keep its first row, or keep its last (what the upstream notebook's
+#: dictionaries do).
+DUPLICATE_POLICIES = ("refuse", "first", "last")
+
+
+def _check_policy(duplicates: str) -> None:
+    if duplicates not in DUPLICATE_POLICIES:
+        raise ParameterError(f"duplicates: expected one of {', '.join(DUPLICATE_POLICIES)}, found {duplicates!r}")
+
+
+def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
     """Read ``scans.csv`` (``drone/node,HEX``; README: 1144 bytes, little endian).
 
     Raises
@@ -310,27 +321,38 @@ def read_scans_csv(path: str | Path) -> Scans:
     FormatError
         Naming the row and the field: a malformed key, a node repeated with a different
         scan (a row identical to an earlier one, as a re-sent radio packet, is skipped and
-        listed in ``repeated_rows``), hex of odd length,
+        listed in ``repeated_rows``; with ``duplicates="first"`` or ``"last"`` a differing
+        repeat is skipped or replaces the earlier row, listed there too), hex of odd length,
         non-hex characters, a byte count other than 1144 (truncated or too long), a pose
         id that disagrees with the key, a distance other than -1 or >= 0, a non-finite or
         out-of-bounds in-scan motion.
     """
+    _check_policy(duplicates)
     p = Path(path)
     lines = _lines(p)
     keys: list[tuple[int, int]] = []
     seen: dict[tuple[int, int], int] = {}
     seen_hex: dict[tuple[int, int], str] = {}
     repeated: list[int] = []
+    file_rows: list[int] = []  # the file row of each kept scan (messages name it)
     blobs = []
     for i, line in enumerate(lines, start=1):
         key_text, hex_text = _fields(p, i, line, ("drone/node", "hex"))
         key = _key(p, i, key_text)
+        replace_at = None
         if key in seen:
             if hex_text.lower() == seen_hex[key]:  # the same scan sent twice: nothing to choose between
                 repeated.append(i)
                 continue
-            raise FormatError(p, f"row {i}, field drone/node",
-                              f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan)", key_text)
+            if duplicates == "refuse":
+                raise FormatError(p, f"row {i}, field drone/node",
+                                  f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
+                                  "--duplicates first|last keeps one)", key_text)
+            if duplicates == "first":
+                repeated.append(i)
+                continue
+            replace_at = keys.index(key)  # "last": this row replaces the earlier one
+            repeated.append(seen[key])
         seen[key] = i
         seen_hex[key] = hex_text.lower()
         if len(hex_text) % 2:
@@ -348,15 +370,20 @@ def read_scans_csv(path: str | Path) -> Scans:
             raise FormatError(
                 p, f"row {i}, field hex bytes 0-1 (pose id)", f"{key[0] << 12 | key[1]} (drone {key[0]} << 12 | node {key[1]})", f"{pose_id} (drone {pose_id >> 12}, node {pose_id & 0xFFF})"
             )
-        keys.append(key)
-        blobs.append(raw[4:])
+        if replace_at is None:
+            keys.append(key)
+            blobs.append(raw[4:])
+            file_rows.append(i)
+        else:
+            blobs[replace_at] = raw[4:]
+            file_rows[replace_at] = i
     body = np.frombuffer(b"".join(blobs), dtype=_SCAN_DTYPE).reshape(len(blobs), FRAMES)
     mm = body["mm"].astype(np.int16)
     motion = body["motion"].astype(np.float32)
     bad = mm < -1
     if bad.any():
         n, f, d, c = (int(v) for v in np.argwhere(bad)[0])
-        raise FormatError(p, f"row {n + 1}, field hex: frame {f} direction {d} column {c}", "-1 (invalid) or a distance >= 0 mm", int(mm[n, f, d, c]))
+        raise FormatError(p, f"row {file_rows[n]}, field hex: frame {f} direction {d} column {c}", "-1 (invalid) or a distance >= 0 mm", int(mm[n, f, d, c]))
     limits = np.array([MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_YAW_RAD])
     with np.errstate(invalid="ignore"):
         bad_m = ~(np.abs(motion.astype(np.float64)) <= limits)
@@ -364,10 +391,10 @@ def read_scans_csv(path: str | Path) -> Scans:
         n, f, j = (int(v) for v in np.argwhere(bad_m)[0])
         name = ("dx", "dy", "dyaw")[j]
         unit = "rad" if j == 2 else "m"
-        raise FormatError(p, f"row {n + 1}, field hex: frame {f} {name}", f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j]))
+        raise FormatError(p, f"row {file_rows[n]}, field hex: frame {f} {name}", f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j]))
     drone = np.array([k[0] for k in keys], dtype=np.int64)
     node = np.array([k[1] for k in keys], dtype=np.int64)
-    return Scans(p, drone, node, mm, motion, tuple(repeated))
+    return Scans(p, drone, node, mm, motion, tuple(sorted(repeated)))
 
 
 @dataclass(frozen=True)
@@ -390,13 +417,15 @@ class NodePoses:
     values: dict[tuple[int, int], NDArray[np.float64]]
     row: dict[tuple[int, int], int]
     later: dict[tuple[int, int], NDArray[np.float64]] = field(default_factory=dict)
+    #: rows left out: repeats of an earlier row, or the losing row of a node kept by ``duplicates``
+    skipped_rows: tuple[int, ...] = ()
 
 
 VICON_FIELDS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 ODOMETRY_FIELDS = ("x", "y", "yaw")
 
 
-def read_vicon_csv(path: str | Path) -> NodePoses:
+def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
     """Read ``vicon_poses.csv`` (``drone/node,x,y,z,qw,qx,qy,qz``): one row per node, unit quaternions.
 
     Raises
@@ -405,24 +434,33 @@ def read_vicon_csv(path: str | Path) -> NodePoses:
         Naming the row and the field: wrong field count, malformed key or number, a
         repeated node, a quaternion whose norm is not 1 within 1e-3.
     """
+    _check_policy(duplicates)
     p = Path(path)
     values: dict[tuple[int, int], NDArray[np.float64]] = {}
     rows: dict[tuple[int, int], int] = {}
+    skipped: list[int] = []
     for i, line in enumerate(_lines(p), start=1):
         parts = _fields(p, i, line, ("drone/node",) + VICON_FIELDS)
         key = _key(p, i, parts[0])
         v = np.array([_number(p, i, name, t) for name, t in zip(VICON_FIELDS, parts[1:])])
         if key in values:
             if np.array_equal(values[key], v):  # the same pose written twice: skipped
+                skipped.append(i)
                 continue
-            raise FormatError(p, f"row {i}, field drone/node",
-                              f"one motion-capture pose per node ({parts[0]} is on row {rows[key]} already, with a different pose)", parts[0])
+            if duplicates == "refuse":
+                raise FormatError(p, f"row {i}, field drone/node",
+                                  f"one motion-capture pose per node ({parts[0]} is on row {rows[key]} already, with a different pose; "
+                                  "--duplicates first|last keeps one)", parts[0])
+            if duplicates == "first":
+                skipped.append(i)
+                continue
+            skipped.append(rows[key])  # "last": this row replaces the earlier one
         qn = float(np.linalg.norm(v[3:]))
         if abs(qn - 1.0) > QUATERNION_NORM_TOL:
             raise FormatError(p, f"row {i}, field qw,qx,qy,qz", f"a unit quaternion (norm 1 within {QUATERNION_NORM_TOL:g})", f"norm {qn:.4f}")
         values[key] = v
         rows[key] = i
-    return NodePoses(p, values, rows)
+    return NodePoses(p, values, rows, skipped_rows=tuple(sorted(skipped)))
 
 
 def read_poses_csv(path: str | Path) -> NodePoses:
@@ -596,6 +634,7 @@ def read_flight(
     created: str | None = None,
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
     truth_error: TruthErrorModel | None = TRUTH_ERROR,
+    duplicates: str = "refuse",
 ) -> Flight:
     """Parse a flight folder into one log per scan node (no map yet; see the module docstring).
 
@@ -610,6 +649,10 @@ def read_flight(
         files (UTC), so that the same input gives the same bytes.
     error_model : OdometryErrorModel
         Gives ``/samples/T_base_tip_cov``.
+    duplicates : {"refuse", "first", "last"}
+        A node that appears twice in ``scans.csv`` or ``vicon_poses.csv`` with different
+        contents: refused, or its first or last row kept (the other listed in ``unused``).
+        Rows repeated byte for byte are always kept once.
     truth_error : TruthErrorModel or None
         Gives ``/truth/T_map_base_cov`` (None: leave it out). Its roll and pitch describe the
         level base; with ``base="mocap"`` the Vicon attitude's marker offset (a few degrees)
@@ -629,14 +672,17 @@ def read_flight(
         raise ParameterError(f"{d}: not a folder (expected a flight folder with scans.csv, vicon_poses.csv and poses.csv)")
     if base not in ("level", "mocap"):
         raise ParameterError(f"base: expected 'level' or 'mocap', found {base!r}")
-    scans = read_scans_csv(d / "scans.csv")
-    vicon = read_vicon_csv(d / "vicon_poses.csv")
+    _check_policy(duplicates)
+    scans = read_scans_csv(d / "scans.csv", duplicates)
+    vicon = read_vicon_csv(d / "vicon_poses.csv", duplicates)
     odo = read_poses_csv(d / "poses.csv")
     unused = {"vicon_poses.csv": _cross_check(scans, vicon, "a motion-capture pose"),
               "poses.csv": _cross_check(scans, odo, "an odometry pose")}
     unused = {k: v for k, v in unused.items() if v}
     if scans.repeated_rows:
         unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows]
+    if vicon.skipped_rows:
+        unused["vicon_poses.csv"] = [f"row {r}" for r in vicon.skipped_rows] + unused.get("vicon_poses.csv", [])
     keys = list(zip(scans.drone.tolist(), scans.node.tolist()))
     vic = np.stack([vicon.values[k] for k in keys])
     odo_pose = np.stack([odo.values[k] for k in keys])

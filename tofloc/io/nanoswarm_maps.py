@@ -287,6 +287,7 @@ def import_flight(
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
     created: str | None = None,
     map_from: str | Path | None = None,
+    duplicates: str = "refuse",
 ) -> FlightImport:
     """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build the maps its logs name.
 
@@ -296,6 +297,9 @@ def import_flight(
         Another flight folder of the same maze: every log then names one map built from every
         drone of that flight (:func:`flight_map`, same ``base``, range cut, grid and wall fit)
         instead of its leave-one-drone-out map. Needed for a flight of a single drone.
+    duplicates : {"refuse", "first", "last"}
+        A node twice with different contents (:func:`tofloc.io.nanoswarm.read_flight`), in
+        either flight.
 
     Raises
     ------
@@ -305,7 +309,7 @@ def import_flight(
         A file breaks the format (either flight), or the flight has a single drone and no
         ``map_from``.
     """
-    flight = read_flight(folder, base=base, created=created, error_model=error_model)
+    flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
@@ -317,7 +321,7 @@ def import_flight(
     if src.is_dir() and Path(folder).is_dir() and src.resolve() == Path(folder).resolve():
         raise ParameterError(f"map_from {src}: is the flight being imported; its nodes would be localized against their own scans "
                              "(expected another flight of the same maze)")
-    other = read_flight(src, base=base, error_model=error_model)
+    other = read_flight(src, base=base, error_model=error_model, duplicates=duplicates)
     name = flight_map_name(src)
     maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
     for log in flight.logs:
