@@ -335,26 +335,18 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
     seen_hex: dict[tuple[int, int], str] = {}
     repeated: list[int] = []
     file_rows: list[int] = []  # the file row of each kept scan (messages name it)
+    position: dict[tuple[int, int], int] = {}  # a node's index in keys
     blobs = []
     for i, line in enumerate(lines, start=1):
         key_text, hex_text = _fields(p, i, line, ("drone/node", "hex"))
         key = _key(p, i, key_text)
-        replace_at = None
-        if key in seen:
-            if hex_text.lower() == seen_hex[key]:  # the same scan sent twice: nothing to choose between
-                repeated.append(i)
-                continue
-            if duplicates == "refuse":
-                raise FormatError(p, f"row {i}, field drone/node",
-                                  f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
-                                  "--duplicates first|last keeps one)", key_text)
-            if duplicates == "first":
-                repeated.append(i)
-                continue
-            replace_at = keys.index(key)  # "last": this row replaces the earlier one
-            repeated.append(seen[key])
-        seen[key] = i
-        seen_hex[key] = hex_text.lower()
+        if key in seen and hex_text.lower() == seen_hex[key]:  # the same scan sent twice: nothing to choose between
+            repeated.append(i)
+            continue
+        if key in seen and duplicates == "refuse":
+            raise FormatError(p, f"row {i}, field drone/node",
+                              f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
+                              "--duplicates first|last keeps one)", key_text)
         if len(hex_text) % 2:
             raise FormatError(p, f"row {i}, field hex", "an even number of hex digits", f"{len(hex_text)} digits")
         m = _HEX.match(hex_text)
@@ -370,13 +362,20 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
             raise FormatError(
                 p, f"row {i}, field hex bytes 0-1 (pose id)", f"{key[0] << 12 | key[1]} (drone {key[0]} << 12 | node {key[1]})", f"{pose_id} (drone {pose_id >> 12}, node {pose_id & 0xFFF})"
             )
-        if replace_at is None:
+        if key not in seen:
+            position[key] = len(keys)
             keys.append(key)
             blobs.append(raw[4:])
             file_rows.append(i)
-        else:
-            blobs[replace_at] = raw[4:]
-            file_rows[replace_at] = i
+        elif duplicates == "first":  # a checked row that loses to the node's first
+            repeated.append(i)
+            continue
+        else:  # "last": this row replaces the node's earlier one
+            repeated.append(seen[key])
+            blobs[position[key]] = raw[4:]
+            file_rows[position[key]] = i
+        seen[key] = i
+        seen_hex[key] = hex_text.lower()
     body = np.frombuffer(b"".join(blobs), dtype=_SCAN_DTYPE).reshape(len(blobs), FRAMES)
     mm = body["mm"].astype(np.int16)
     motion = body["motion"].astype(np.float32)
@@ -443,6 +442,9 @@ def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
         parts = _fields(p, i, line, ("drone/node",) + VICON_FIELDS)
         key = _key(p, i, parts[0])
         v = np.array([_number(p, i, name, t) for name, t in zip(VICON_FIELDS, parts[1:])])
+        qn = float(np.linalg.norm(v[3:]))
+        if abs(qn - 1.0) > QUATERNION_NORM_TOL:  # every row is checked, a skipped one too
+            raise FormatError(p, f"row {i}, field qw,qx,qy,qz", f"a unit quaternion (norm 1 within {QUATERNION_NORM_TOL:g})", f"norm {qn:.4f}")
         if key in values:
             if np.array_equal(values[key], v):  # the same pose written twice: skipped
                 skipped.append(i)
@@ -455,9 +457,6 @@ def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
                 skipped.append(i)
                 continue
             skipped.append(rows[key])  # "last": this row replaces the earlier one
-        qn = float(np.linalg.norm(v[3:]))
-        if abs(qn - 1.0) > QUATERNION_NORM_TOL:
-            raise FormatError(p, f"row {i}, field qw,qx,qy,qz", f"a unit quaternion (norm 1 within {QUATERNION_NORM_TOL:g})", f"norm {qn:.4f}")
         values[key] = v
         rows[key] = i
     return NodePoses(p, values, rows, skipped_rows=tuple(sorted(skipped)))
