@@ -453,7 +453,6 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert min(per_log) > 0.005 and max(per_log) < 0.08, per_log
 
 
-@pytest.mark.slow  # ~20 s: skipped by `make test-fast`
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
 def test_a_map_gap_fails_a_node_that_another_flights_map_localizes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two drones, drone 0 node 12 (docs/real-data.md): against its leave-one-drone-out map
