@@ -62,6 +62,7 @@ __all__ = [
     "leave_one_out_maps",
     "flight_map",
     "distances_at_truth",
+    "ray_residuals_by_incidence",
     "map_name",
     "log_name",
     "FlightImport",
@@ -220,6 +221,26 @@ def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float
     d = log.distance_m
     ok = log.valid() & (d <= range_cut_m) & np.isfinite(expected)
     return (d - expected)[ok]
+
+
+def ray_residuals_by_incidence(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> tuple[
+        NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`ray_residuals_at_truth` of node ``i`` with each zone's angle of incidence on the
+    wall its centre ray hits (degrees, 0 = head-on): ``(residual_m, incidence_deg)``.
+
+    A column zone is 5.6 deg wide; at grazing incidence the distances across it spread by
+    ``d tan(incidence) * 0.098`` and the sensor reports the nearer part (docs/real-data.md,
+    "What the centre ray misses")."""
+    from tofloc.zone_caster import ZoneCaster
+
+    log = flight.logs[i]
+    T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
+    cast = ZoneCaster(log.rig).cast(wall, T, geometry=True)
+    d = log.distance_m
+    ok = log.valid() & (d <= range_cut_m) & np.isfinite(cast.reading)
+    assert cast.mean_cos is not None  # geometry=True
+    inc = np.degrees(np.arccos(np.clip(np.abs(cast.mean_cos), 0.0, 1.0)))
+    return (d - cast.reading)[ok], inc[ok]
 
 
 def map_name(drone: int) -> str:
