@@ -46,7 +46,7 @@ def eth_matrix(
 @import_app.command("nanoswarm")
 def nanoswarm(
     flight_dir: Path = typer.Argument(..., help="A flight folder of ETH's Nano_Swarm_Mapping data (scans.csv, vicon_poses.csv, poses.csv)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Folder to write: one log per scan node (droneD-nodeNNN.h5) and maps/without-droneD.ply."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder to write: one log per scan node (droneD-nodeNNN.h5) and the maps they name (maps/without-droneD.ply, or maps/from-<flight>.ply with --map-from)."),
     base: str = typer.Option("level", "--base", help="Base frame from the Vicon node pose: 'level' (its yaw and position) or 'mocap' (roll and pitch kept)."),
     range_cut: float = typer.Option(1.2, "--range-cut", help="Longest distance (m) of the zones the maps are built from."),
     voxel: float = typer.Option(0.02, "--voxel", help="Map grid (m): 2-D thinning and z extrusion step."),
