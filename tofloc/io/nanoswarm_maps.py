@@ -38,7 +38,7 @@ import re
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -162,6 +162,18 @@ def _z_band(flight: Flight, nodes: NDArray[np.intp], range_cut_m: float) -> tupl
     return float(z.min() - margin), float(z.max() + margin)
 
 
+def _check_range_cut(range_cut_m: float) -> None:
+    if not (math.isfinite(range_cut_m) and range_cut_m > 0):
+        raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
+
+
+def _map_of_nodes(flight: Flight, nodes: NDArray[np.intp], range_cut_m: float, voxel_m: float, normal_k: int,
+                  wall_fit: WallFitSettings | None, source: str) -> Map:
+    """The wall map of some nodes' scans (steps 1-5 of the module docstring)."""
+    p, s, _ = node_points(flight, nodes, range_cut_m)
+    return wall_map(p, s, _z_band(flight, nodes, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=source)
+
+
 def leave_one_out_maps(
     flight: Flight, *, range_cut_m: float = DEFAULT_RANGE_CUT_M, voxel_m: float = DEFAULT_VOXEL_M, normal_k: int = DEFAULT_NORMAL_K,
     wall_fit: WallFitSettings | None = None,
@@ -173,18 +185,15 @@ def leave_one_out_maps(
     FormatError
         The flight has a single drone (no other drone to build its map from).
     """
-    if not (math.isfinite(range_cut_m) and range_cut_m > 0):
-        raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
+    _check_range_cut(range_cut_m)
     drones = flight.drones
     if len(drones) < 2:
         raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others'), or a map from another flight (map_from, --map-from)", f"only drone {drones[0]}")
-    out = {}
-    for h in drones:
-        others = np.flatnonzero(flight.drone != h)
-        p, s, _ = node_points(flight, others, range_cut_m)
-        src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})"
-        out[h] = wall_map(p, s, _z_band(flight, others, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=src)
-    return out
+    return {
+        h: _map_of_nodes(flight, np.flatnonzero(flight.drone != h), range_cut_m, voxel_m, normal_k, wall_fit,
+                         f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})")
+        for h in drones
+    }
 
 
 def flight_map(
@@ -193,12 +202,9 @@ def flight_map(
 ) -> Map:
     """The wall map of EVERY drone's scans of a flight (steps 1-5 of the module docstring), for
     localizing the nodes of another flight of the same maze (same motion-capture frame)."""
-    if not (math.isfinite(range_cut_m) and range_cut_m > 0):
-        raise ParameterError(f"range_cut_m: expected a finite distance > 0 (m), found {range_cut_m}")
-    every = np.arange(len(flight.logs))
-    p, s, _ = node_points(flight, every, range_cut_m)
-    src = f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in flight.drones)} (every drone of that flight)"
-    return wall_map(p, s, _z_band(flight, every, range_cut_m), voxel_m=voxel_m, normal_k=normal_k, wall_fit=wall_fit, source=src)
+    _check_range_cut(range_cut_m)
+    return _map_of_nodes(flight, np.arange(len(flight.logs)), range_cut_m, voxel_m, normal_k, wall_fit,
+                         f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in flight.drones)} (every drone of that flight)")
 
 
 def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
@@ -208,19 +214,27 @@ def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = D
     return wall.nearest(p)[0] if p.shape[0] else np.empty(0)
 
 
+def _cast_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float, geometry: bool) -> tuple[Any, NDArray[np.float64], NDArray[np.bool_]]:
+    """Node ``i``'s zones cast at its true pose (centre rays): the cast, reading minus
+    expected reading (m) of every zone, and the zones that count (valid, <= ``range_cut_m``,
+    the ray hits the map)."""
+    from tofloc.zone_caster import ZoneCaster
+
+    log = flight.logs[i]
+    T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
+    cast = ZoneCaster(log.rig).cast(wall, T, geometry=geometry)
+    d = log.distance_m
+    ok = log.valid() & (d <= range_cut_m) & np.isfinite(cast.reading)
+    return cast, d - cast.reading, ok
+
+
 def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
     """Reading minus the map's expected reading (m) of node ``i``'s valid zones <= ``range_cut_m``
     at the true node pose (its odometry in-scan motion), where the ray hits the map
     (:class:`tofloc.zone_caster.ZoneCaster`, centre rays): positive when the reading lies
     behind the mapped wall."""
-    from tofloc.zone_caster import ZoneCaster
-
-    log = flight.logs[i]
-    T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
-    expected = ZoneCaster(log.rig).cast(wall, T).reading
-    d = log.distance_m
-    ok = log.valid() & (d <= range_cut_m) & np.isfinite(expected)
-    return (d - expected)[ok]
+    _, residual, ok = _cast_at_truth(flight, i, wall, range_cut_m, geometry=False)
+    return residual[ok]
 
 
 def ray_residuals_by_incidence(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> tuple[
@@ -231,16 +245,10 @@ def ray_residuals_by_incidence(flight: Flight, i: int, wall: Map, range_cut_m: f
     A column zone is 5.6 deg wide; at grazing incidence the distances across it spread by
     ``d tan(incidence) * 0.098`` and the sensor reports the nearer part (docs/real-data.md,
     "What the centre ray misses")."""
-    from tofloc.zone_caster import ZoneCaster
-
-    log = flight.logs[i]
-    T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
-    cast = ZoneCaster(log.rig).cast(wall, T, geometry=True)
-    d = log.distance_m
-    ok = log.valid() & (d <= range_cut_m) & np.isfinite(cast.reading)
+    cast, residual, ok = _cast_at_truth(flight, i, wall, range_cut_m, geometry=True)
     assert cast.mean_cos is not None  # geometry=True
     inc = np.degrees(np.arccos(np.clip(np.abs(cast.mean_cos), 0.0, 1.0)))
-    return (d - cast.reading)[ok], inc[ok]
+    return residual[ok], inc[ok]
 
 
 def map_name(drone: int) -> str:
