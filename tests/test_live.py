@@ -95,12 +95,17 @@ print(json.dumps({"lines_sent": rep.lines_sent, "dropped_lines": rep.dropped_lin
 """
 
 
-def _live_at_15_hz(paper, tmp_path, capsys, *, flow_control: bool, vanish_after: int, estimates: str):
+def _live_at_15_hz(paper, tmp_path, capsys, monkeypatch, *, flow_control: bool, vanish_after: int, estimates: str):
     """A 15 Hz device (60 samples, 240 lines) in a child process; `tofloc localize --port`
-    with an estimator much slower than the device. Returns (report, journal, sent lines, stdout)."""
+    with an estimator much slower than the device. Returns (report, journal, sent lines, stdout).
+
+    The estimator is made slower than the device on any machine: every live update also
+    waits three sensor periods (0.2 s), so samples always arrive while it is busy (icp_pf
+    alone keeps up with 15 Hz on a fast machine, and then nothing would be skipped)."""
     import json
     import subprocess
     import sys
+    import time
 
     from test_io_cli import wait_for
 
@@ -121,6 +126,13 @@ def _live_at_15_hz(paper, tmp_path, capsys, *, flow_control: bool, vanish_after:
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     truth = frames.xyyaw_from_se3(sim.log.T_map_base)
     journal = tmp_path / "live.journal"
+    update_latest = LiveLocalizer.update_latest
+
+    def slow_update_latest(self, samples):
+        time.sleep(3 / 15.0)
+        return update_latest(self, samples)
+
+    monkeypatch.setattr(LiveLocalizer, "update_latest", slow_update_latest)
     try:
         wait_for(link, dev, timeout=60)
         code = main([
@@ -146,8 +158,8 @@ def _journaled_lines(journal) -> list[bytes]:
     return [r.data for r in records if r.kind in ("line", "partial")]
 
 
-def test_live_at_15_hz_without_flow_control_loses_no_line(paper, tmp_path, capsys) -> None:
-    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, flow_control=False, vanish_after=0, estimates="est.csv")
+def test_live_at_15_hz_without_flow_control_loses_no_line(paper, tmp_path, capsys, monkeypatch) -> None:
+    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, monkeypatch, flow_control=False, vanish_after=0, estimates="est.csv")
     assert report["lines_sent"] == 240
     assert report["dropped_lines"] == [] and report["dropped_bytes"] == 0  # the reader never fell behind
     assert _journaled_lines(journal) == sent  # the journal holds every line the device sent, as sent
@@ -170,8 +182,8 @@ def test_live_at_15_hz_without_flow_control_loses_no_line(paper, tmp_path, capsy
     assert abs(np.linalg.norm(q) - 1) < 1e-9 and abs(2 * math.atan2(q[2], q[3]) - float(rows[-1]["yaw_rad"])) < 1e-9
 
 
-def test_a_vanishing_port_leaves_every_line_sent_journaled(paper, tmp_path, capsys) -> None:
-    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, flow_control=True, vanish_after=120, estimates="est.tum")
+def test_a_vanishing_port_leaves_every_line_sent_journaled(paper, tmp_path, capsys, monkeypatch) -> None:
+    report, journal, sent, out = _live_at_15_hz(paper, tmp_path, capsys, monkeypatch, flow_control=True, vanish_after=120, estimates="est.tum")
     assert report["vanished"] and report["lines_sent"] == 120
     assert _journaled_lines(journal) == sent  # every line sent before the device vanished
     rows = [ln.split() for ln in (tmp_path / "est.tum").read_text().splitlines()]
