@@ -395,16 +395,17 @@ def warm_up(est: Estimator, task: TrialTask, problem: Any, context: TrialContext
     The first trial of an estimator (class and parameters) on a map in a process pays
     what later ones reuse: lazy imports (GTSAM), per-map caches (the ICP score's distance
     grid, the likelihood field), KD-trees and Open3D's ray-casting scene, the first call
-    into Embree. Before that trial, the estimator is run once on the trial's first sample
-    alone with a throw-away generator (``default_rng(0)``; estimators are pure functions of
-    the problem and the generator, so the trial's numbers do not change), after
-    :meth:`~tofloc.problem.Estimator.prepare` on the whole trial's problem (caches that
-    depend on all its samples, such as a likelihood field's clipping distance: a one-sample
-    run built another field, and the trial paid 76 s for its own on a real maze map): the
-    wall time of that is returned as the trial's ``setup_s`` (set-up plus one single-sample
-    estimate), and the trial's ``runtime_s`` is then the estimator's steady-state time.
-    Later trials of the same estimator, parameters and map in this process only prepare
-    (near 0 s unless their samples need a cache the earlier ones did not).
+    into Embree. Before that trial, :meth:`~tofloc.problem.Estimator.prepare` runs on the
+    trial's problem, then the estimator is run once on that same problem with a throw-away
+    generator (``default_rng(0)``; estimators are pure functions of the problem and the
+    generator, so the trial's numbers do not change). The whole problem, not a subset of
+    it: a problem's caches can depend on all its samples (a likelihood field's clipping
+    distance comes from its zones' sigmas), and a one-sample warm-up built a field no trial
+    used (15 s of a first nano-swarm trial on a clean cache). The wall time of that is
+    returned as the trial's ``setup_s`` (set-up plus one estimate), and the trial's
+    ``runtime_s`` is then the estimator's steady-state time. Later trials of the same
+    estimator, parameters and map in this process only prepare (near 0 s unless their
+    samples need a cache the earlier ones did not).
     """
     key = (task.estimator_cls, json.dumps(jsonable(task.params), sort_keys=True), context.map.fingerprint())
     t0 = time.perf_counter()
@@ -412,7 +413,7 @@ def warm_up(est: Estimator, task: TrialTask, problem: Any, context: TrialContext
         est.prepare(problem)  # every trial: what its own samples need (nothing new when cached)
         if key not in _WARMED:
             _WARMED.add(key)
-            est.estimate(problem.subset(slice(0, 1)), np.random.default_rng(0))
+            est.estimate(problem, np.random.default_rng(0))
     except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
         pass
     return time.perf_counter() - t0

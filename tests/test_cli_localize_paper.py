@@ -464,9 +464,9 @@ def test_localize_config_file_and_param_override(data: dict[str, Path], tmp_path
 
 
 def test_warm_up_prepares_every_trials_problem_and_warms_once() -> None:
-    """The one-sample warm-up runs once per estimator, parameters and map; every trial's
-    whole problem is prepared first (a likelihood field's clipping distance follows all the
-    trial's samples: a one-sample run built another field and the trial paid for its own)."""
+    """The warm-up estimate runs once per estimator, parameters and map, on the trial's whole
+    problem; every trial's problem is prepared first (a likelihood field's clipping distance
+    follows all the trial's samples: a one-sample warm-up built a field no trial used)."""
     from evaluation import trials as tr
     from estimators.particle_filter import ParticleFilter
     from tofloc.testing import easy_problem
@@ -487,5 +487,5 @@ def test_warm_up_prepares_every_trials_problem_and_warms_once() -> None:
     tr._WARMED.clear()
     tr.warm_up(est, task, p, ctx)  # type: ignore[arg-type]
     tr.warm_up(est, task, p, ctx)  # type: ignore[arg-type]
-    assert calls == [("prepare", 3), ("estimate", 1), ("prepare", 3)]
+    assert calls == [("prepare", 3), ("estimate", 3), ("prepare", 3)]
     tr._WARMED.clear()
