@@ -483,6 +483,35 @@ def test_grazing_zones_read_short_of_their_centre_ray(flights) -> None:
         head_on, grazing = np.median(r[a < 20]), np.median(r[(a >= 65) & (a < 75)])
         assert abs(head_on) < 0.01 and grazing < -0.03, (name, head_on, grazing)
         assert np.mean(np.abs(r[a >= 75]) > 0.1) > 0.6
+        # the zone's whole 5.6 deg footprint, signal-weighted, explains little of it (measured:
+        # 65-75 deg medians -43 -> -35 mm and -56 -> -45 mm with 5 x 5 sub-rays)
+        pairs = [ray_residuals_by_incidence(f, j, m, range_cut_m=4.0, footprint=5) for j in range(len(f.logs))]
+        r5 = np.concatenate([p[0] for p in pairs])
+        a5 = np.concatenate([p[1] for p in pairs])
+        grazing5 = np.median(r5[(a5 >= 65) & (a5 < 75)])
+        assert grazing < grazing5 < -0.03, (name, grazing, grazing5)
+        assert np.mean(np.abs(r5[a5 >= 75]) > 0.1) > 0.6
+
+
+def test_a_zone_table_has_a_footprint_only_when_it_is_its_grids_centre_rays() -> None:
+    """:func:`footprint_rig` gives the nano-swarm columns their 5.6 x 22.5 deg cells and
+    refuses a table that is not its grid's centre rays (no footprint to give it)."""
+    import dataclasses
+
+    from tofloc.errors import ParameterError
+    from tofloc.io.nanoswarm import nanoswarm_rig
+    from tofloc.io.nanoswarm_maps import footprint_rig
+    from tofloc.zone_caster import ZoneCaster
+
+    rig = nanoswarm_rig()
+    grid = footprint_rig(rig)
+    assert all(s.zone_directions is None for s in grid.sensors)
+    np.testing.assert_allclose(ZoneCaster(grid).dirs_sensor[..., 0, :], rig.unit_directions, atol=1e-12)
+    assert ZoneCaster(grid, footprint=3).n_sub == 9 and ZoneCaster(rig, footprint=3).n_sub == 1
+    s0 = rig.sensors[0]
+    bent = dataclasses.replace(s0, zone_directions=s0.zone_directions[::-1] + np.array([0.0, 0.05, 0.0]))
+    with pytest.raises(ParameterError, match=f"sensor {s0.name}: its zone table is not the centre rays"):
+        footprint_rig(dataclasses.replace(rig, sensors=(bent,) + tuple(rig.sensors[1:])))
 
 
 @needs_data

@@ -214,18 +214,41 @@ def distances_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = D
     return wall.nearest(p)[0] if p.shape[0] else np.empty(0)
 
 
-def _cast_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float, geometry: bool) -> tuple[Any, NDArray[np.float64], NDArray[np.bool_]]:
-    """Node ``i``'s zones cast at its true pose (centre rays): the cast, reading minus
-    expected reading (m) of every zone, and the zones that count (valid, <= ``range_cut_m``,
-    the ray hits the map)."""
+def _cast_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float, geometry: bool,
+                   footprint: int = 1) -> tuple[Any, NDArray[np.float64], NDArray[np.bool_]]:
+    """Node ``i``'s zones cast at its true pose (centre rays, or with ``footprint > 1`` each
+    zone's signal-weighted ``footprint x footprint`` sub-rays, :func:`footprint_rig`): the
+    cast, reading minus expected reading (m) of every zone, and the zones that count (valid,
+    <= ``range_cut_m``, the ray hits the map)."""
     from tofloc.zone_caster import ZoneCaster
 
     log = flight.logs[i]
     T = frames.compose(log.T_map_base[None, None], log.T_base_tip[:, None], log.rig.T_tip_sensor[None])
-    cast = ZoneCaster(log.rig).cast(wall, T, geometry=geometry)
+    rig = log.rig if footprint == 1 else footprint_rig(log.rig)
+    cast = ZoneCaster(rig, footprint=footprint).cast(wall, T, geometry=geometry)
     d = log.distance_m
     ok = log.valid() & (d <= range_cut_m) & np.isfinite(cast.reading)
     return cast, d - cast.reading, ok
+
+
+def footprint_rig(rig: Any) -> Any:
+    """``rig`` with its sensors' explicit zone tables dropped, so that the zone caster gives
+    every zone the angular footprint of its ``resolution`` x ``fov_deg`` grid cell: only for
+    tables that are that grid's centre rays (the nano-swarm columns: 1 x 8 over 22.5 x 45
+    deg, each 5.6 deg wide), else :class:`~tofloc.errors.ParameterError`."""
+    from tofloc.errors import ParameterError
+    from tofloc.rig import default_zone_directions
+
+    sensors = []
+    for s in rig.sensors:
+        if s.zone_directions is not None:
+            grid = default_zone_directions(s.resolution, s.fov_deg)
+            grid = grid / np.linalg.norm(grid, axis=-1, keepdims=True)
+            if not np.allclose(s.zone_directions, grid, atol=1e-9):
+                raise ParameterError(f"sensor {s.name}: its zone table is not the centre rays of its {s.resolution} grid "
+                                     f"over {s.fov_deg} deg, so its zones have no footprint")
+        sensors.append(replace(s, zone_directions=None))
+    return replace(rig, sensors=tuple(sensors))
 
 
 def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> NDArray[np.float64]:
@@ -237,17 +260,22 @@ def ray_residuals_at_truth(flight: Flight, i: int, wall: Map, range_cut_m: float
     return residual[ok]
 
 
-def ray_residuals_by_incidence(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M) -> tuple[
-        NDArray[np.float64], NDArray[np.float64]]:
+def ray_residuals_by_incidence(flight: Flight, i: int, wall: Map, range_cut_m: float = DEFAULT_RANGE_CUT_M,
+                               footprint: int = 1) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """:func:`ray_residuals_at_truth` of node ``i`` with each zone's angle of incidence on the
     wall its centre ray hits (degrees, 0 = head-on): ``(residual_m, incidence_deg)``.
 
     A column zone is 5.6 deg wide; at grazing incidence the distances across it spread by
     ``d tan(incidence) * 0.098`` and the sensor reports the nearer part (docs/real-data.md,
-    "What the centre ray misses")."""
+    "What the centre ray misses"). ``footprint > 1``: the residual against each zone's
+    signal-weighted footprint of that many sub-rays per side (:func:`footprint_rig`; the
+    zones that count are those both casts see)."""
     cast, residual, ok = _cast_at_truth(flight, i, wall, range_cut_m, geometry=True)
     assert cast.mean_cos is not None  # geometry=True
     inc = np.degrees(np.arccos(np.clip(np.abs(cast.mean_cos), 0.0, 1.0)))
+    if footprint != 1:
+        _, residual, ok_f = _cast_at_truth(flight, i, wall, range_cut_m, geometry=False, footprint=footprint)
+        ok = ok & ok_f
     return residual[ok], inc[ok]
 
 
