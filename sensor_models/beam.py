@@ -70,7 +70,8 @@ from tofloc.range_model import RangeUncertainty, edge_zone_mask
 from tofloc.toml_tables import params_from_table, params_from_toml
 from tofloc.zone_caster import PlanarZoneRays, ZoneCaster
 
-__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper", "REFIT_ITERATIONS", "REFIT_TOLERANCE", "REFIT_SHORT_MAX"]
+__all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper", "REFIT_ITERATIONS", "REFIT_TOLERANCE", "REFIT_SHORT_MAX",
+           "REFIT_SIGMA_MAX"]
 
 #: VL53L5CX ``target_status`` of a zone that saw no target (log format v1).
 NO_TARGET_STATUS = 255
@@ -82,6 +83,8 @@ REFIT_ITERATIONS = 100
 REFIT_TOLERANCE = 1e-4
 #: The largest short-reading weight :meth:`BoundBeamModel.refit` fits (``z_hit`` keeps the rest).
 REFIT_SHORT_MAX = 0.6
+#: The largest noise scale :meth:`BoundBeamModel.refit` fits (``refit_sigma``).
+REFIT_SIGMA_MAX = 3.0
 _LOG_TINY = 1e-300
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -244,6 +247,16 @@ class BeamModel(SensorModel):
         mean error by +0.07 mm on average (seed 0 9.88 -> 9.13 mm, seed 1 4.42 -> 4.52,
         seed 2 5.02 -> 5.89), and left the clean scenes and the nano-swarm tables as they
         were (docs/sensor-models.md, "Unmapped objects").
+    sigma_scale : float
+        Multiplier of the hit density's sigma (the range model's, with the configuration
+        variance added): 1 keeps the model as calibrated.
+    refit_sigma : bool
+        Fit ``sigma_scale`` to each problem's own zones when the sensor is noisier there than
+        its model says (another surface, another sensor, a map built from scans): EM at the
+        first estimate (:meth:`BoundBeamModel.refit`), the scale of the hit component from
+        its responsibilities, never below the given ``sigma_scale``, at most
+        :data:`REFIT_SIGMA_MAX` times it; when the fit raises it by more than 5 %, the filter
+        runs again with it. False (the default): the sigma as calibrated.
     configuration_cov : bool
         Add each zone's reading variance caused by its sample's configuration uncertainty
         (the problem's ``T_base_tip_cov``, e.g. odometry) to the zone's sensor variance
@@ -266,15 +279,20 @@ class BeamModel(SensorModel):
     hit_dof: float = float("inf")
     unknown_weight: float = 0.0
     refit_short: bool = False
+    sigma_scale: float = 1.0
+    refit_sigma: bool = False
     configuration_cov: bool = True
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
-        for flag in ("configuration_cov", "refit_short"):
+        for flag in ("configuration_cov", "refit_short", "refit_sigma"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"beam.{flag} must be true or false, got {getattr(self, flag)!r}")
+        g = self.sigma_scale
+        if not isinstance(g, (int, float)) or isinstance(g, bool) or not math.isfinite(g) or not 0.1 <= g <= 10:
+            raise ParameterError(f"beam.sigma_scale must be in [0.1, 10], got {g!r}")
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
@@ -400,6 +418,12 @@ class BoundBeamModel(BoundSensorModel):
 
     def zone_log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Untempered log-probability of every zone ``(M, S, Z)`` (0 for dropped zones)."""
+        return np.log(np.maximum(self._zone_terms(states, step)[0], _LOG_TINY))
+
+    def _zone_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...]:
+        """Every zone's probability ``(M, S, Z)`` (1 for dropped zones), the part of it from
+        the hit Gaussian (valid readings; 0 elsewhere) and the reading's residual in hit
+        sigmas ``(z - mu) / sigma``."""
         mix, unc, rig = self.mixture, self.problem.range_model, self.problem.rig
         expected, frac = self.expected(states, step)
         valid, no_ret, z, r = self.valid[step], self.no_return[step], self.z[step], self.r
@@ -410,9 +434,12 @@ class BoundBeamModel(BoundSensorModel):
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sigma = np.sqrt(sigma**2 + v_cfg)
+        if self.model.sigma_scale != 1.0:
+            sigma = sigma * self.model.sigma_scale
         mu = d + unc.bias(rig, d)
         # truncated Gaussian on [0, r]
         p_hit = hit_density(z, mu, sigma, r, self.model.hit_dof)
+        gauss = p_hit
 
         def p_short(dexp: NDArray[np.float64]) -> NDArray[np.float64]:
             return short_density(z, dexp, lam)
@@ -442,7 +469,8 @@ class BoundBeamModel(BoundSensorModel):
         p_valid = frac * p_valid_hit + (1.0 - frac) * p_valid_miss
         p_none = mix.z_max + (1.0 - frac) * mix.z_hit * (1.0 - q)
         p = np.where(valid, p_valid, np.where(no_ret, p_none, 1.0))
-        return np.log(np.maximum(p, _LOG_TINY))
+        hit_part = np.where(valid, frac * mix.z_hit * (1.0 - q) * gauss, 0.0)
+        return p, hit_part, (z - mu) / sigma
 
     def short_responsibility(self, state: NDArray[np.float64]) -> tuple[float, int]:
         """Sum over every sample's zones of the short component's responsibility at ``state``
@@ -474,16 +502,73 @@ class BoundBeamModel(BoundSensorModel):
         not fit the map at ``state`` (:func:`tofloc.fit_check.check_fit`'s test and
         thresholds): there the first estimate is likely wrong, and the EM would take the
         zones that disagree with it for objects the map lacks (on the four-drone
-        recordings it then fitted z_short ~0.5 at poses 7-10 cm off and moved them further)."""
-        if not self.model.refit_short or self.model.short_support != "range":
+        recordings it then fitted z_short ~0.5 at poses 7-10 cm off and moved them further).
+
+        With ``refit_sigma`` (after ``z_short`` when both are on): ``sigma_scale`` by EM at
+        ``state``, each iteration multiplying it by the root of the hit component's
+        responsibility-weighted mean squared residual in hit sigmas (:meth:`hit_moments`),
+        clipped to [the given scale, :data:`REFIT_SIGMA_MAX` times it]; kept when it rises by
+        more than 5 %, and not fitted where the data do not fit the map (the same guard: on
+        the leave-one-drone-out recordings, without it, the scale rose at estimates already
+        off and moved two trials of drone 3 node 2 from 7 to 14 cm)."""
+        short = self._refit_short(state)
+        sigma = self._refit_sigma(state, short)
+        if short is None and sigma is None:
             return None
-        # at an estimate whose data do not fit the map (the shared fit check's verdict) the
-        # EM would explain the misfit as unmapped objects: no refit there
+        model = short if short is not None else self.model
+        if sigma is not None:
+            model = dataclasses.replace(model, sigma_scale=sigma)
+        return dataclasses.replace(model, refit_short=False, refit_sigma=False)
+
+    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
+        """Over every sample's valid zones at ``state`` ``(3 + n,)``: the hit component's
+        responsibilities summed, and summed times the squared residual in hit sigmas (the
+        E step of the noise scale's EM, :meth:`refit`)."""
+        x = np.asarray(state, dtype=float)[None]
+        total_w = total_wt2 = 0.0
+        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over zones
+            if not self.valid[k].any():
+                continue
+            p, hit, t = (a[0] for a in self._zone_terms(x, k))
+            w = np.where(self.valid[k], hit / np.maximum(p, _LOG_TINY), 0.0)
+            total_w += float(w.sum())
+            total_wt2 += float(np.sum(w * np.where(self.valid[k], t, 0.0) ** 2))
+        return total_w, total_wt2
+
+    def _fits(self, state: NDArray[np.float64]) -> bool:
+        """Whether the data fit the map at ``state`` (:func:`tofloc.fit_check.check_pose`, the
+        shared fit check): where they do not, the first estimate is likely wrong and an EM
+        would explain the misfit as unmapped objects or as noise, so nothing is refitted."""
         from tofloc.fit_check import check_pose
 
         x = np.asarray(state, dtype=float)
         nuisance = {v.name: float(x[3 + i]) for i, v in enumerate(self.state)}
-        if not check_pose(self.problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok:
+        return bool(check_pose(self.problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok)
+
+    def _refit_sigma(self, state: NDArray[np.float64], short: "BeamModel | None") -> float | None:
+        """With ``refit_sigma``: the noise scale by EM at ``state`` (after the short weight's
+        refit ``short``, when there is one), or None when it would not rise by 5 % or the
+        data do not fit the map there (:meth:`_fits`)."""
+        if not self.model.refit_sigma or not self._fits(state):
+            return None
+        start = float(self.model.sigma_scale)
+        work = copy.copy(self) if short is None else short.bind(self.problem)
+        scale = start
+        for _ in range(REFIT_ITERATIONS):
+            w, wt2 = work.hit_moments(state)
+            if w <= 0:
+                return None
+            new = min(max(scale * math.sqrt(wt2 / w), start), REFIT_SIGMA_MAX * start)
+            moved = abs(new - scale)
+            scale = new
+            work.model = dataclasses.replace(work.model, sigma_scale=scale)
+            if moved < REFIT_TOLERANCE * scale:
+                break
+        return scale if scale > 1.05 * start else None
+
+    def _refit_short(self, state: NDArray[np.float64]) -> "BeamModel | None":
+        """The model with ``z_short`` refitted (see :meth:`refit`), or None."""
+        if not self.model.refit_short or self.model.short_support != "range" or not self._fits(state):
             return None
         start = self.mixture
         work = copy.copy(self)  # the same bound data, its mixture replaced at each iteration
@@ -499,8 +584,7 @@ class BoundBeamModel(BoundSensorModel):
                 break
         if not work.mixture.z_short > start.z_short:
             return None
-        return dataclasses.replace(self.model, mixture=dataclasses.asdict(work.mixture), outlier_floor=0.0,
-                                   refit_short=False)
+        return dataclasses.replace(self.model, mixture=dataclasses.asdict(work.mixture), outlier_floor=0.0)
 
     def log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Tempered log-likelihood ``(M,)``: the fused kernel when numba is there and the model
@@ -546,7 +630,7 @@ class BoundBeamModel(BoundSensorModel):
             np.ascontiguousarray(scale) if scale is not None else np.zeros(1), scale is not None,
             u_entry, need_unknown, float(self.model.unknown_weight),
             c["kind"][step], c["z"][step], c["r"], c["sig_floor"], c["sig_slope"], c["sig_factor"], c["sig_rep"][step],
-            np.zeros(1) if v_cfg is None else np.ascontiguousarray(v_cfg.reshape(J)), v_cfg is not None,
+            np.zeros(1) if v_cfg is None else np.ascontiguousarray(v_cfg.reshape(J)) * self.model.sigma_scale**2, v_cfg is not None,
             c["b0"], c["b1"], c["short_r"][step], self.model.short_support == "expected",
             mix.z_hit, mix.z_short, mix.z_max, mix.z_rand, mix.lambda_short, float(self.model.temper))
         return out
@@ -586,6 +670,8 @@ def _fused_constants(bound: BoundBeamModel) -> dict[str, Any] | None:
         s_fused = np.where(np.isfinite(sig_rep[0]), sig_rep[0], np.maximum(unc.sigma_floor, unc.sigma_slope * np.abs(d)) * factor)
         if not (np.array_equal(s_ref, s_fused) and np.array_equal(unc.bias(rig, d), b0 + b1 * d)):
             return None
+    g = float(model.sigma_scale)  # the hit sigma's multiplier: sensor sigma times g here, configuration variance times g^2
+    sig_rep = sig_rep * g
     lam = bound.mixture.lambda_short
     r = np.broadcast_to(bound.r, (K, S, Z))
     z = bound.z
@@ -596,7 +682,7 @@ def _fused_constants(bound: BoundBeamModel) -> dict[str, Any] | None:
     return {
         "kind": steps(kind), "z": steps(z.astype(float)), "short_r": steps(short_r.astype(float)), "sig_rep": steps(sig_rep),
         "r": flat(bound.r[0]), "b0": flat(b0), "b1": flat(b1), "sig_factor": flat(factor),
-        "sig_floor": float(unc.sigma_floor), "sig_slope": float(unc.sigma_slope),
+        "sig_floor": float(unc.sigma_floor) * g, "sig_slope": float(unc.sigma_slope) * g,
         "along": flat(caster.along[..., 0]), "max_reading": flat(caster.max_reading[:, None]),
         "target_ok": bool(1.0 >= caster.min_hit_fraction - 1e-12),
     }

@@ -308,3 +308,83 @@ def test_beam_pf_runs_again_with_the_refitted_weight() -> None:
     plain.estimate(q, rng)
     again = BeamPF(sensor_model_params=refit["sensor_model_params"]).estimate(q, rng)
     np.testing.assert_array_equal(c.pose, again.pose)
+
+
+# -- the noise scale fitted to the problem's own zones (refit_sigma) ---------------------------
+def _noisier(p: Problem, factor: float, seed: int = 0) -> Problem:
+    """``p`` (noise-free) with Gaussian noise of ``factor`` times its range model's sigma
+    added to every valid reading."""
+    import dataclasses
+
+    rng = np.random.default_rng(seed)
+    d = np.array(p.distance_m)
+    v = p.valid
+    sigma = p.range_model.sigma(p.rig, np.where(v, d, 1.0), None)
+    d[v] = d[v] + factor * sigma[v] * rng.standard_normal(int(v.sum()))
+    return dataclasses.replace(p, distance_m=d)
+
+
+@pytest.mark.parametrize("factor", [1.6, 2.5])
+def test_refit_sigma_finds_how_much_noisier_the_sensor_is(factor: float) -> None:
+    p, truth = easy_problem(n_samples=4)
+    assert BeamModel().refit_sigma is False and BeamModel().sigma_scale == 1.0  # off by default
+    assert BeamModel(refit_sigma=True).bind(_noisier(p, 1.0)).refit(truth) is None  # as calibrated: no refit
+    refitted = BeamModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth)
+    assert refitted is not None and refitted.refit_sigma is False
+    assert factor * 0.85 < refitted.sigma_scale < factor * 1.15, refitted.sigma_scale
+    # never below the scale given, at most REFIT_SIGMA_MAX times it
+    from sensor_models.beam import REFIT_SIGMA_MAX
+
+    capped = BeamModel(refit_sigma=True, sigma_scale=0.5).bind(_noisier(p, 2.5)).refit(truth)
+    assert capped is not None and capped.sigma_scale == pytest.approx(0.5 * REFIT_SIGMA_MAX)
+    # where the data do not fit the map (the fit check: readings 4x noisier than the range
+    # model, or the pose 10 cm off) the first estimate is not trusted: no refit
+    assert BeamModel(refit_sigma=True).bind(_noisier(p, 4.0)).refit(truth) is None
+    assert BeamModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
+    both = BeamModel(refit_sigma=True, refit_short=True).bind(_noisier(_cluttered(p, 0.2), 1.6)).refit(truth)
+    assert both is not None and not both.refit_short and not both.refit_sigma and both.sigma_scale > 1.3
+    with pytest.raises(ParameterError, match="refit_sigma must be true or false"):
+        BeamModel(refit_sigma=1)
+    with pytest.raises(ParameterError, match=r"sigma_scale must be in \[0.1, 10\]"):
+        BeamModel(sigma_scale=0.0)
+
+
+def test_sigma_scale_widens_the_hit_density_in_both_paths() -> None:
+    """``sigma_scale`` multiplies the hit sigma (sensor and configuration variance): the fused
+    kernel and the numpy mixture agree, and a scale of 1 is the model as calibrated."""
+    p, truth = easy_problem(n_samples=3)
+    x = np.array([truth, truth + np.array([0.01, -0.02, 0.02])])
+    ll = {}
+    for g in (1.0, 2.0):
+        b = BeamModel(sigma_scale=g).bind(_noisier(p, 1.0))
+        assert b.fused is not None
+        xs = np.hstack([x, np.zeros((2, len(b.state)))])
+        fused = b.log_likelihood(xs, 1)
+        numpy_sum = b.model.temper * b.zone_log_likelihood(xs, 1).sum(axis=(1, 2))
+        np.testing.assert_allclose(fused, numpy_sum, rtol=1e-12)
+        ll[g] = fused
+    # at the truth a wider density scores the same readings lower, and it narrows the
+    # log-likelihood gap between the truth and a pose 2 cm off
+    assert ll[2.0][0] < ll[1.0][0]
+    assert 0 < (ll[2.0][0] - ll[2.0][1]) < (ll[1.0][0] - ll[1.0][1])
+
+
+def test_beam_pf_runs_again_with_the_fitted_noise_scale() -> None:
+    """Readings 2.5x noisier than the range model: a second pass with the fitted scale, named
+    in the diagnostics; data as noisy as the model: one pass, the numbers of no refit."""
+    from estimators.particle_filter import BeamPF
+
+    p, truth = easy_problem(n_samples=4)
+    refitting = BeamPF(sensor_model_params={"refit_sigma": True})
+    calm = _noisier(p, 1.0, seed=3)
+    a = refitting.estimate(calm, np.random.default_rng(5))
+    assert "refit" not in a.diagnostics
+    np.testing.assert_array_equal(a.pose, BeamPF().estimate(calm, np.random.default_rng(5)).pose)
+    noisy = _noisier(p, 2.5, seed=3)
+    r = refitting.estimate(noisy, np.random.default_rng(5))
+    g = r.diagnostics["refit"]["sensor_model_params"]["sigma_scale"]
+    assert 2.0 < g < 3.0
+    plain = BeamPF().estimate(noisy, np.random.default_rng(5))
+    # the widened density: a covariance that owns the noise (larger than the calibrated one's)
+    assert np.linalg.det(r.covariance) > np.linalg.det(plain.covariance)
+    assert np.hypot(*(r.pose[:2] - truth[:2])) < 0.05
