@@ -196,8 +196,9 @@ def test_rows_without_a_scan_and_repeated_rows_are_reported_not_used(tmp_path: P
     assert clean.unused == {}
     assert main(["import", "nanoswarm", str(folder), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    assert "note: vicon_poses.csv: 3 row(s) not used (a node without a scan, or a node's other row): row 7, 7/0, 1/9" in out
-    assert "note: scans.csv: 1 row(s) not used (a node without a scan, or a node's other row): row 5" in out
+    why = "(a node without a scan, a node's other row, or a scan without a pose)"
+    assert f"note: vicon_poses.csv: 3 row(s) not used {why}: row 7, 7/0, 1/9" in out
+    assert f"note: scans.csv: 1 row(s) not used {why}: row 5" in out
 
 
 def test_a_node_twice_with_different_contents_is_refused_unless_told_which_to_keep(tmp_path: Path) -> None:
@@ -225,14 +226,39 @@ def test_a_node_twice_with_different_contents_is_refused_unless_told_which_to_ke
         read_flight(folder, duplicates="newest")
 
 
-def test_a_scan_without_truth_or_odometry_is_refused(tmp_path: Path) -> None:
+def test_a_scan_without_truth_or_odometry_is_refused_unless_told_to_skip_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.cli import main
+
+    skip = "--missing-poses skip leaves such scans out"
     folder = make_flight(tmp_path / "f")
     lines = (folder / "vicon_poses.csv").read_text().splitlines()
     (folder / "vicon_poses.csv").write_text("\n".join(lines[:2] + lines[3:]) + "\n")  # drop 0/1 (row 3)
-    refused(lambda: read_flight(folder), folder / "vicon_poses.csv", "drone/node 0/1", "a motion-capture pose for every scan (scans.csv row 3)", "no row")
-    folder = make_flight(tmp_path / "g")
-    (folder / "poses.csv").write_text("0/0,0,0,0\n1/0,0,0,0\n1/1,0,0,0\n")
-    refused(lambda: read_flight(folder), folder / "poses.csv", "drone/node 0/1", "an odometry pose for every scan (scans.csv row 3)", "no row")
+    refused(lambda: read_flight(folder), folder / "vicon_poses.csv", "drone/node 0/1",
+            f"a motion-capture pose for every scan (scans.csv row 3; {skip})", "no row")
+    folder_g = make_flight(tmp_path / "g")
+    (folder_g / "poses.csv").write_text("0/0,0,0,0\n1/0,0,0,0\n1/1,0,0,0\n")
+    refused(lambda: read_flight(folder_g), folder_g / "poses.csv", "drone/node 0/1",
+            f"an odometry pose for every scan (scans.csv row 3; {skip})", "no row")
+    # skipped: the other scans import as they would without it, and the scan is reported
+    clean = read_flight(make_flight(tmp_path / "clean"), created="2024-01-01T00:00:00+00:00")
+    for fl, lacks in ((read_flight(folder, missing_poses="skip", created="2024-01-01T00:00:00+00:00"), "motion-capture"),
+                      (read_flight(folder_g, missing_poses="skip", created="2024-01-01T00:00:00+00:00"), "odometry")):
+        assert fl.keys() == ["0/0", "1/0", "1/1"] and fl.unused == {"scans.csv": [f"0/1 (no {lacks} pose)"]}
+        for key, log in zip(fl.keys(), fl.logs):
+            ref = clean.logs[clean.keys().index(key)]
+            assert log.distance_mm.tobytes() == ref.distance_mm.tobytes() and log.T_map_base.tobytes() == ref.T_map_base.tobytes()
+            # (folder g's odometry rows were rewritten with zero yaw: its configurations differ)
+            assert lacks == "odometry" or log.T_base_tip.tobytes() == ref.T_base_tip.tobytes()
+    assert main(["import", "nanoswarm", str(folder), "--missing-poses", "skip", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote" in out and "3 logs" in out and "note: scans.csv: 1 row(s) not used" in out and "0/1 (no motion-capture pose)" in out
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.h5")) == ["drone0-node000.h5", "drone1-node000.h5", "drone1-node001.h5"]
+    assert main(["import", "nanoswarm", str(folder), "--missing-poses", "drop", "--out", str(tmp_path / "out2")]) == 2
+    assert "--missing-poses: expected one of refuse, skip, found 'drop'" in capsys.readouterr().err
+    # nothing left: refused
+    (folder / "vicon_poses.csv").write_text("9/9,0,0,0.6,1,0,0,0\n")
+    refused(lambda: read_flight(folder, missing_poses="skip"), folder / "scans.csv", "drone/node column",
+            "at least one scan with a motion-capture and an odometry pose", "none of 4")
 
 
 def test_parser_bounds(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

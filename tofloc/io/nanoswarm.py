@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -615,15 +615,32 @@ class Flight:
         }
 
 
-def _cross_check(scans: Scans, poses: NodePoses, what: str) -> list[str]:
-    """Every scan has a row in ``poses`` (else :class:`FormatError`). Returns the nodes of
-    ``poses`` that have no scan (``"drone/node"``, file order): a scan lost on the radio
-    leaves its poses behind; they are not used, and reported."""
+#: What to do with a scan whose node has no motion-capture or no odometry pose
+#: (``--missing-poses``): refuse the flight (the default), or leave the scan out and report it.
+MISSING_POSE_POLICIES = ("refuse", "skip")
+
+
+def _cross_check(scans: Scans, poses: NodePoses, what: str, missing: str = "refuse") -> tuple[list[str], list[int]]:
+    """Every scan has a row in ``poses``, else :class:`FormatError` (``missing="refuse"``)
+    or the scan is listed (``"skip"``). Returns the nodes of ``poses`` that have no scan
+    (``"drone/node"``, file order: a scan lost on the radio leaves its poses behind; they are
+    not used, and reported) and the indices of the scans without a row in ``poses``."""
     in_scans = {k: i for i, k in enumerate(zip(scans.drone.tolist(), scans.node.tolist()), start=1)}
+    lacking = []
     for key, i in in_scans.items():
         if key not in poses.values:
-            raise FormatError(poses.path, f"drone/node {key[0]}/{key[1]}", f"{what} for every scan (scans.csv row {i})", "no row")
-    return [f"{k[0]}/{k[1]}" for k, _ in sorted(poses.row.items(), key=lambda kv: kv[1]) if k not in in_scans]
+            if missing == "refuse":
+                raise FormatError(poses.path, f"drone/node {key[0]}/{key[1]}", f"{what} for every scan (scans.csv row {i}; "
+                                  "--missing-poses skip leaves such scans out)", "no row")
+            lacking.append(i - 1)
+    return [f"{k[0]}/{k[1]}" for k, _ in sorted(poses.row.items(), key=lambda kv: kv[1]) if k not in in_scans], lacking
+
+
+def _without(scans: Scans, drop: set[int]) -> Scans:
+    """``scans`` without the scans at indices ``drop``."""
+    keep = np.array([i not in drop for i in range(scans.drone.size)], dtype=bool)
+    return replace(scans, drone=scans.drone[keep], node=scans.node[keep], distance_mm=scans.distance_mm[keep],
+                   motion=scans.motion[keep])
 
 
 def read_flight(
@@ -634,6 +651,7 @@ def read_flight(
     error_model: OdometryErrorModel = ODOMETRY_ERROR,
     truth_error: TruthErrorModel | None = TRUTH_ERROR,
     duplicates: str = "refuse",
+    missing_poses: str = "refuse",
 ) -> Flight:
     """Parse a flight folder into one log per scan node (no map yet; see the module docstring).
 
@@ -652,6 +670,9 @@ def read_flight(
         A node that appears twice in ``scans.csv`` or ``vicon_poses.csv`` with different
         contents: refused, or its first or last row kept (the other listed in ``unused``).
         Rows repeated byte for byte are always kept once.
+    missing_poses : {"refuse", "skip"}
+        A scan whose node has no row in ``vicon_poses.csv`` or ``poses.csv``: refused, or
+        left out of the flight (listed in ``unused["scans.csv"]``, with the file it lacks).
     truth_error : TruthErrorModel or None
         Gives ``/truth/T_map_base_cov`` (None: leave it out). Its roll and pitch describe the
         level base; with ``base="mocap"`` the Vicon attitude's marker offset (a few degrees)
@@ -661,8 +682,9 @@ def read_flight(
     ------
     FormatError
         A file breaks the README's format, or a scan has no motion-capture or odometry
-        pose. (Pose rows of nodes without a scan are not an error: a scan lost on the radio
-        leaves them behind; they are listed in ``Flight.unused``.)
+        pose (unless ``missing_poses="skip"``), or no scan is left. (Pose rows of nodes
+        without a scan are not an error: a scan lost on the radio leaves them behind; they
+        are listed in ``Flight.unused``.)
     ParameterError
         ``folder`` is not a folder, or ``base`` is unknown.
     """
@@ -672,14 +694,24 @@ def read_flight(
     if base not in ("level", "mocap"):
         raise ParameterError(f"base: expected 'level' or 'mocap', found {base!r}")
     _check_policy(duplicates)
+    if missing_poses not in MISSING_POSE_POLICIES:
+        raise ParameterError(f"missing_poses: expected one of {', '.join(MISSING_POSE_POLICIES)}, found {missing_poses!r}")
     scans = read_scans_csv(d / "scans.csv", duplicates)
     vicon = read_vicon_csv(d / "vicon_poses.csv", duplicates)
     odo = read_poses_csv(d / "poses.csv")
-    unused = {"vicon_poses.csv": _cross_check(scans, vicon, "a motion-capture pose"),
-              "poses.csv": _cross_check(scans, odo, "an odometry pose")}
-    unused = {k: v for k, v in unused.items() if v}
-    if scans.repeated_rows:
-        unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows]
+    vicon_unused, no_truth = _cross_check(scans, vicon, "a motion-capture pose", missing_poses)
+    odo_unused, no_odometry = _cross_check(scans, odo, "an odometry pose", missing_poses)
+    unused = {k: v for k, v in {"vicon_poses.csv": vicon_unused, "poses.csv": odo_unused}.items() if v}
+    keys_all = scans.keys()
+    left_out = [f"{keys_all[i]} (no {'motion-capture' if i in no_truth else 'odometry'} pose)"
+                for i in sorted(set(no_truth) | set(no_odometry))]
+    if scans.repeated_rows or left_out:
+        unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows] + left_out
+    if left_out:
+        scans = _without(scans, set(no_truth) | set(no_odometry))
+        if scans.drone.size == 0:
+            raise FormatError(d / "scans.csv", "drone/node column", "at least one scan with a motion-capture and an odometry pose",
+                              f"none of {len(keys_all)}")
     if vicon.skipped_rows:
         unused["vicon_poses.csv"] = [f"row {r}" for r in vicon.skipped_rows] + unused.get("vicon_poses.csv", [])
     keys = list(zip(scans.drone.tolist(), scans.node.tolist()))

@@ -345,6 +345,7 @@ def import_flight(
     created: str | None = None,
     map_from: str | Path | None = None,
     duplicates: str = "refuse",
+    missing_poses: str = "refuse",
 ) -> FlightImport:
     """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build the maps its logs name.
 
@@ -357,6 +358,9 @@ def import_flight(
     duplicates : {"refuse", "first", "last"}
         A node twice with different contents (:func:`tofloc.io.nanoswarm.read_flight`), in
         either flight.
+    missing_poses : {"refuse", "skip"}
+        A scan without a motion-capture or odometry pose (:func:`tofloc.io.nanoswarm.read_flight`),
+        in either flight.
 
     Raises
     ------
@@ -366,7 +370,8 @@ def import_flight(
         A file breaks the format (either flight), or the flight has a single drone and no
         ``map_from``.
     """
-    flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates)
+    flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates,
+                         missing_poses=missing_poses)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
@@ -378,7 +383,7 @@ def import_flight(
     if src.is_dir() and Path(folder).is_dir() and src.resolve() == Path(folder).resolve():
         raise ParameterError(f"map_from {src}: is the flight being imported; its nodes would be localized against their own scans "
                              "(expected another flight of the same maze)")
-    other = read_flight(src, base=base, error_model=error_model, duplicates=duplicates)
+    other = read_flight(src, base=base, error_model=error_model, duplicates=duplicates, missing_poses=missing_poses)
     name = flight_map_name(src)
     maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
     for log in flight.logs:
