@@ -24,6 +24,7 @@ How a step enters the weights (:attr:`SensorModel.weight_update`)
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from abc import ABC, abstractmethod
@@ -47,6 +48,12 @@ CHUNK_BYTES = 128 * 2**20
 #: Default upper estimate of the temporaries a model makes per state and per zone (or
 #: sub-ray): ~32 float64 arrays of the zones' shape.
 TEMP_BYTES_PER_ZONE = 256
+#: :meth:`BoundSensorModel.fitted_noise_scale`: the largest scale it fits (times the model's),
+#: its iterations, their relative tolerance, and the least rise that counts.
+REFIT_SIGMA_MAX = 3.0
+REFIT_SIGMA_ITERATIONS = 100
+REFIT_SIGMA_TOLERANCE = 1e-4
+REFIT_SIGMA_MIN_RISE = 0.05
 
 
 @dataclass(frozen=True)
@@ -122,6 +129,53 @@ class BoundSensorModel(ABC):
         nothing or the fit leaves it unchanged. A filter that gets a model runs again with
         it (:class:`estimators.particle_filter.ParticleFilter`). Default: None."""
         return None
+
+    def data_fit(self, state: NDArray[np.float64]) -> bool:
+        """Whether the problem's data fit its map at ``state`` ``(3 + len(state),)``
+        (:func:`tofloc.fit_check.check_pose`, the shared fit check, with the state's support
+        yaw and range scale): where they do not, a first estimate is likely wrong, and a
+        refit there would explain the misfit as unmapped objects or as noise."""
+        from tofloc.fit_check import check_pose
+
+        x = np.asarray(state, dtype=float)
+        nuisance = {v.name: float(x[3 + i]) for i, v in enumerate(self.state)}
+        problem = getattr(self, "problem")
+        return bool(check_pose(problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok)
+
+    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
+        """For a model with a Gaussian hit density and a ``sigma_scale`` parameter: over
+        every sample's valid zones at ``state``, the hit component's responsibilities
+        summed, and summed times the squared residual in hit sigmas (the E step of
+        :meth:`fitted_noise_scale`). Models without one raise NotImplementedError."""
+        raise NotImplementedError(f"{type(self).__name__} has no hit density to fit a noise scale to")
+
+    def fitted_noise_scale(self, state: NDArray[np.float64]) -> float | None:
+        """The noise scale (``sigma_scale``, which multiplies the hit density's sigma) that
+        the problem's own readings give at ``state``, by EM: each iteration multiplies it by
+        the root of :meth:`hit_moments`' weighted mean squared residual, clipped to [the
+        model's ``sigma_scale``, :data:`REFIT_SIGMA_MAX` times it], to
+        :data:`REFIT_SIGMA_TOLERANCE` (at most :data:`REFIT_SIGMA_ITERATIONS` times). None
+        when it would not rise by more than :data:`REFIT_SIGMA_MIN_RISE` or where the data
+        do not fit the map at ``state`` (:meth:`data_fit`). The bound model is expected to
+        have a ``model`` attribute (a dataclass with ``sigma_scale``) that its
+        :meth:`hit_moments` reads."""
+        model = getattr(self, "model")
+        start = float(model.sigma_scale)
+        if not self.data_fit(state):
+            return None
+        work = copy.copy(self)  # the same bound data, its model's scale replaced at each iteration
+        scale = start
+        for _ in range(REFIT_SIGMA_ITERATIONS):
+            w, wt2 = work.hit_moments(state)
+            if not w > 0:
+                return None
+            new = min(max(scale * math.sqrt(wt2 / w), start), REFIT_SIGMA_MAX * start)
+            moved = abs(new - scale)
+            scale = new
+            work.model = dataclasses.replace(model, sigma_scale=scale)  # type: ignore[attr-defined]
+            if moved < REFIT_SIGMA_TOLERANCE * scale:
+                break
+        return scale if scale > (1.0 + REFIT_SIGMA_MIN_RISE) * start else None
 
     def temporaries_per_state(self) -> int:
         """Upper estimate of the bytes of temporaries :meth:`log_likelihood` makes per state.

@@ -61,7 +61,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr, stdtr
 
-from sensor_models.base import TEMP_BYTES_PER_ZONE, BoundSensorModel, SensorModel, declared_state, reference_pose
+from sensor_models.base import (
+    REFIT_SIGMA_MAX,
+    TEMP_BYTES_PER_ZONE,
+    BoundSensorModel,
+    SensorModel,
+    declared_state,
+    reference_pose,
+)
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
@@ -83,8 +90,6 @@ REFIT_ITERATIONS = 100
 REFIT_TOLERANCE = 1e-4
 #: The largest short-reading weight :meth:`BoundBeamModel.refit` fits (``z_hit`` keeps the rest).
 REFIT_SHORT_MAX = 0.6
-#: The largest noise scale :meth:`BoundBeamModel.refit` fits (``refit_sigma``).
-REFIT_SIGMA_MAX = 3.0
 _LOG_TINY = 1e-300
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -535,40 +540,17 @@ class BoundBeamModel(BoundSensorModel):
             total_wt2 += float(np.sum(w * np.where(self.valid[k], t, 0.0) ** 2))
         return total_w, total_wt2
 
-    def _fits(self, state: NDArray[np.float64]) -> bool:
-        """Whether the data fit the map at ``state`` (:func:`tofloc.fit_check.check_pose`, the
-        shared fit check): where they do not, the first estimate is likely wrong and an EM
-        would explain the misfit as unmapped objects or as noise, so nothing is refitted."""
-        from tofloc.fit_check import check_pose
-
-        x = np.asarray(state, dtype=float)
-        nuisance = {v.name: float(x[3 + i]) for i, v in enumerate(self.state)}
-        return bool(check_pose(self.problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok)
-
     def _refit_sigma(self, state: NDArray[np.float64], short: "BeamModel | None") -> float | None:
-        """With ``refit_sigma``: the noise scale by EM at ``state`` (after the short weight's
-        refit ``short``, when there is one), or None when it would not rise by 5 % or the
-        data do not fit the map there (:meth:`_fits`)."""
-        if not self.model.refit_sigma or not self._fits(state):
+        """With ``refit_sigma``: the noise scale (:meth:`fitted_noise_scale`) at ``state``, after
+        the short weight's refit ``short`` when there is one."""
+        if not self.model.refit_sigma:
             return None
-        start = float(self.model.sigma_scale)
-        work = copy.copy(self) if short is None else short.bind(self.problem)
-        scale = start
-        for _ in range(REFIT_ITERATIONS):
-            w, wt2 = work.hit_moments(state)
-            if w <= 0:
-                return None
-            new = min(max(scale * math.sqrt(wt2 / w), start), REFIT_SIGMA_MAX * start)
-            moved = abs(new - scale)
-            scale = new
-            work.model = dataclasses.replace(work.model, sigma_scale=scale)
-            if moved < REFIT_TOLERANCE * scale:
-                break
-        return scale if scale > 1.05 * start else None
+        bound = self if short is None else short.bind(self.problem)
+        return bound.fitted_noise_scale(state)
 
     def _refit_short(self, state: NDArray[np.float64]) -> "BeamModel | None":
         """The model with ``z_short`` refitted (see :meth:`refit`), or None."""
-        if not self.model.refit_short or self.model.short_support != "range" or not self._fits(state):
+        if not self.model.refit_short or self.model.short_support != "range" or not self.data_fit(state):
             return None
         start = self.mixture
         work = copy.copy(self)  # the same bound data, its mixture replaced at each iteration

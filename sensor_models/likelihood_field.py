@@ -33,9 +33,10 @@ it is re-exported here for older imports.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -104,6 +105,15 @@ class LikelihoodFieldModel(SensorModel):
         turned into a range residual (:meth:`BoundLikelihoodField._mixture`): 0.25 (76 deg)
         keeps a grazing zone, whose footprint spreads along the wall, from counting more
         than 16 times a head-on one. 1: Thrun's end-point model (distances as residuals).
+    sigma_scale : float
+        Multiplier of the hit density's sigma (the range model's, with the configuration
+        variance added): 1 keeps the model as calibrated.
+    refit_sigma : bool
+        Fit ``sigma_scale`` to each problem's own end points at the filter's first estimate
+        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`: EM, never below the
+        given scale, at most 3x it, not where the data do not fit the map) and run the filter
+        again with it when it rises by more than 5 %. False (the default): the sigma as
+        calibrated (docs/sensor-models.md, "A noise scale fitted to each problem's own data").
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -120,6 +130,8 @@ class LikelihoodFieldModel(SensorModel):
     unknown_weight: float = 0.0
     configuration_cov: bool = True
     min_incidence_cos: float = 0.25
+    sigma_scale: float = 1.0
+    refit_sigma: bool = False
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_short", "z_rand"):
@@ -131,8 +143,12 @@ class LikelihoodFieldModel(SensorModel):
         if abs(total - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
-        if not isinstance(self.configuration_cov, bool):
-            raise ParameterError(f"likelihood_field.configuration_cov must be true or false, got {self.configuration_cov!r}")
+        for flag in ("configuration_cov", "refit_sigma"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ParameterError(f"likelihood_field.{flag} must be true or false, got {getattr(self, flag)!r}")
+        g = self.sigma_scale
+        if not isinstance(g, (int, float)) or isinstance(g, bool) or not math.isfinite(g) or not 0.1 <= g <= 10:
+            raise ParameterError(f"likelihood_field.sigma_scale must be in [0.1, 10], got {g!r}")
         c = self.min_incidence_cos
         if not isinstance(c, (int, float)) or isinstance(c, bool) or not math.isfinite(c) or not 0.05 <= c <= 1:
             raise ParameterError(f"likelihood_field.min_incidence_cos must be in [0.05, 1], got {c!r}")
@@ -308,6 +324,8 @@ class BoundLikelihoodField(BoundSensorModel):
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sig = np.sqrt(sig**2 + v_cfg[None, :] / cos_in**2)
+        if self.model.sigma_scale != 1.0:
+            sig = sig * self.model.sigma_scale
         return sig
 
     def _mixture(self, states: NDArray[np.float64], d: NDArray[np.float64], unknown: NDArray[np.bool_] | None,
@@ -322,17 +340,48 @@ class BoundLikelihoodField(BoundSensorModel):
         gradient, floored by ``min_incidence_cos``): the beam model's ray cast, linearized.
         With ``cos(beta) = 1`` (``min_incidence_cos = 1``) it is Thrun's end-point model,
         which counts a zone meeting a wall at 60 deg as a quarter of its information."""
+        return self.model.temper * np.log(self._terms(states, d, unknown, cos_in, step)[0]).sum(axis=1)
+
+    def _terms(self, states: NDArray[np.float64], d: NDArray[np.float64], unknown: NDArray[np.bool_] | None,
+               cos_in: NDArray[np.float64] | None, step: int) -> tuple[NDArray[np.float64], ...]:
+        """Each end point's probability ``(M, P)`` (:meth:`_mixture`), the part of it from the
+        hit Gaussian, and its range residual in hit sigmas."""
         m = self.model
         cos_in = np.ones((1, 1)) if cos_in is None else np.maximum(cos_in, m.min_incidence_cos)
         r = d / cos_in
         sig = self._sigma(states, step, r, cos_in)
         short = np.where(d > 0, self.short_density[step][None, :], 0.0)
-        p_hit = np.exp(-0.5 * (r / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
+        gauss = np.exp(-0.5 * (r / sig) ** 2) / (sig * math.sqrt(2.0 * math.pi))
+        p_hit = gauss
+        w = 0.0
         if unknown is not None:  # an end point where the map knows nothing
             w = np.where(unknown, m.unknown_weight, 0.0)
             p_hit = (1.0 - w) * p_hit + w / (2.0 * self.r_field)
         p = m.z_hit * p_hit + short + m.z_rand / self.r_field
-        return m.temper * np.log(p).sum(axis=1)
+        return p, m.z_hit * (1.0 - w) * gauss, r / sig
+
+    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
+        """Over every sample's end points at ``state`` ``(3 + n,)``: the hit component's
+        responsibilities summed, and summed times the squared range residual in hit sigmas
+        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`'s E step)."""
+        x = np.asarray(state, dtype=float)[None]
+        total_w = total_wt2 = 0.0
+        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over end points
+            if self.points[k].shape[0] == 0:
+                continue
+            p, hit, t = (a[0] for a in self._terms(x, *self._field_inputs(x, k), k))
+            w = hit / np.maximum(p, 1e-300)
+            total_w += float(w.sum())
+            total_wt2 += float(np.sum(w * t * t))
+        return total_w, total_wt2
+
+    def refit(self, state: NDArray[np.float64]) -> "LikelihoodFieldModel | None":
+        """With ``refit_sigma``: the model with the noise scale fitted at ``state``
+        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`), or None."""
+        if not self.model.refit_sigma:
+            return None
+        scale = self.fitted_noise_scale(state)
+        return None if scale is None else dataclasses.replace(self.model, sigma_scale=scale, refit_sigma=False)
 
     def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
@@ -364,6 +413,12 @@ class BoundLikelihoodField(BoundSensorModel):
     def _log_likelihood_numpy(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """:meth:`log_likelihood` in numpy (without numba)."""
         x = np.asarray(states, dtype=float)
+        return self._mixture(x, *self._field_inputs(x, step), step)
+
+    def _field_inputs(self, x: NDArray[np.float64], step: int) -> tuple[Any, ...]:
+        """The end points' signed distances ``(M, P)``, whether they lie in unknown space
+        (None: no known space used) and their rays' incidence cosines (None: head-on), in
+        numpy, for states ``x``."""
         q = self.end_points(x, step)
         d = self.field.signed_distance(q)
         ks = getattr(self.problem.map, "known_space", None)
@@ -373,4 +428,4 @@ class BoundLikelihoodField(BoundSensorModel):
             ray = q - self.ray_origins(x, step)
             ray /= np.maximum(np.linalg.norm(ray, axis=-1, keepdims=True), 1e-300)
             cos_in = self.field.incidence_cos(q, ray)
-        return self._mixture(x, d, unknown, cos_in, step)
+        return d, unknown, cos_in

@@ -199,3 +199,32 @@ def test_short_readings_in_front_of_a_surface_do_not_pull() -> None:
     assert field.distance(behind)[0] == pytest.approx(0.10, abs=2e-3)
     with pytest.raises(ParameterError, match="sum to 1"):
         LikelihoodFieldModel(z_hit=0.8, z_short=0.2, z_rand=0.1)
+
+
+# -- the noise scale fitted to the problem's own end points (refit_sigma) -----------------------
+@pytest.mark.parametrize("factor", [1.6, 2.5])
+def test_likelihood_field_refit_sigma_finds_how_much_noisier_the_sensor_is(factor: float) -> None:
+    """The same EM as the beam model's (sensor_models.base.BoundSensorModel.fitted_noise_scale),
+    on the end points' range residuals; the likelihood field's particle filter runs again with it."""
+    from test_beam import _noisier
+
+    from estimators.particle_filter import LikelihoodFieldPF
+    from sensor_models.likelihood_field import LikelihoodFieldModel
+    from tofloc.errors import ParameterError
+    from tofloc.testing import easy_problem
+
+    p, truth = easy_problem(n_samples=4)
+    assert LikelihoodFieldModel().refit_sigma is False and LikelihoodFieldModel().sigma_scale == 1.0
+    assert LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, 1.0)).refit(truth) is None
+    refitted = LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth)
+    assert refitted is not None and refitted.refit_sigma is False
+    assert factor * 0.85 < refitted.sigma_scale < factor * 1.15, refitted.sigma_scale
+    assert LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
+    noisy = _noisier(p, factor, seed=3)
+    r = LikelihoodFieldPF(sensor_model_params={"refit_sigma": True}).estimate(noisy, np.random.default_rng(5))
+    assert factor * 0.8 < r.diagnostics["refit"]["sensor_model_params"]["sigma_scale"] < factor * 1.2
+    assert np.hypot(*(r.pose[:2] - truth[:2])) < 0.05
+    with pytest.raises(ParameterError, match="likelihood_field.refit_sigma must be true or false"):
+        LikelihoodFieldModel(refit_sigma="no")
+    with pytest.raises(ParameterError, match=r"likelihood_field.sigma_scale must be in \[0.1, 10\]"):
+        LikelihoodFieldModel(sigma_scale=20.0)
