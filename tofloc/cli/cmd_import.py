@@ -60,16 +60,14 @@ def nanoswarm(
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
     covariance, Vicon truth) and leave-one-drone-out wall maps, or one map from another flight
     (docs/real-data.md). Prints how far the nodes' points at the truth lie from their maps."""
-    from tofloc.io.nanoswarm import DUPLICATE_POLICIES, MISSING_POSE_POLICIES
+    from tofloc.io.nanoswarm import MISSING_POSE_POLICIES, check_policy
     from tofloc.io.nanoswarm_maps import import_flight, write_flight
     from tofloc.scan_maps import WallFitSettings
 
     if base not in ("level", "mocap"):
         raise ParameterError(f"--base: expected 'level' or 'mocap', found {base!r}")
-    if duplicates not in DUPLICATE_POLICIES:
-        raise ParameterError(f"--duplicates: expected one of {', '.join(DUPLICATE_POLICIES)}, found {duplicates!r}")
-    if missing_poses not in MISSING_POSE_POLICIES:
-        raise ParameterError(f"--missing-poses: expected one of {', '.join(MISSING_POSE_POLICIES)}, found {missing_poses!r}")
+    check_policy("--duplicates", duplicates)
+    check_policy("--missing-poses", missing_poses, MISSING_POSE_POLICIES)
     if not (0 < range_cut <= 4.0):
         raise ParameterError(f"--range-cut: expected a distance in (0, 4] m, found {range_cut}")
     if not (0.001 <= voxel <= 0.5):

@@ -308,9 +308,11 @@ class Scans:
 DUPLICATE_POLICIES = ("refuse", "first", "last")
 
 
-def _check_policy(duplicates: str) -> None:
-    if duplicates not in DUPLICATE_POLICIES:
-        raise ParameterError(f"duplicates: expected one of {', '.join(DUPLICATE_POLICIES)}, found {duplicates!r}")
+def check_policy(name: str, value: str, policies: tuple[str, ...] = DUPLICATE_POLICIES) -> None:
+    """:class:`ParameterError` naming ``name`` (a parameter, or the CLI option) unless
+    ``value`` is one of ``policies`` (:data:`DUPLICATE_POLICIES`, :data:`MISSING_POSE_POLICIES`)."""
+    if value not in policies:
+        raise ParameterError(f"{name}: expected one of {', '.join(policies)}, found {value!r}")
 
 
 def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
@@ -327,7 +329,7 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
         id that disagrees with the key, a distance other than -1 or >= 0, a non-finite or
         out-of-bounds in-scan motion.
     """
-    _check_policy(duplicates)
+    check_policy("duplicates", duplicates)
     p = Path(path)
     lines = _lines(p)
     keys: list[tuple[int, int]] = []
@@ -433,7 +435,7 @@ def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
         Naming the row and the field: wrong field count, malformed key or number, a
         repeated node, a quaternion whose norm is not 1 within 1e-3.
     """
-    _check_policy(duplicates)
+    check_policy("duplicates", duplicates)
     p = Path(path)
     values: dict[tuple[int, int], NDArray[np.float64]] = {}
     rows: dict[tuple[int, int], int] = {}
@@ -580,7 +582,8 @@ class Flight:
     base : str
         ``"level"`` or ``"mocap"`` (see :func:`base_poses`).
     unused : dict str -> list of str
-        Per file, what no log uses: pose rows of nodes without a scan, repeated scan rows.
+        Per file, what no log uses: pose rows of nodes without a scan, rows repeated or left
+        out by ``duplicates``, scans left out by ``missing_poses``.
     """
 
     folder: Path
@@ -593,7 +596,8 @@ class Flight:
     motion: NDArray[np.float32]
     base: str
     #: what the flight's files hold that no log uses, per file: pose rows of nodes without a
-    #: scan (``"drone/node"``) and scan rows repeating an earlier one byte for byte (``"row N"``)
+    #: scan (``"drone/node"``), rows repeated or left out by ``duplicates`` (``"row N"``) and
+    #: scans left out by ``missing_poses`` (``"drone/node (no ... pose)"``)
     unused: dict[str, list[str]] = field(default_factory=dict)
 
     @property
@@ -638,7 +642,8 @@ def _cross_check(scans: Scans, poses: NodePoses, what: str, missing: str = "refu
 
 def _without(scans: Scans, drop: set[int]) -> Scans:
     """``scans`` without the scans at indices ``drop``."""
-    keep = np.array([i not in drop for i in range(scans.drone.size)], dtype=bool)
+    keep = np.ones(scans.drone.size, dtype=bool)
+    keep[sorted(drop)] = False
     return replace(scans, drone=scans.drone[keep], node=scans.node[keep], distance_mm=scans.distance_mm[keep],
                    motion=scans.motion[keep])
 
@@ -693,9 +698,8 @@ def read_flight(
         raise ParameterError(f"{d}: not a folder (expected a flight folder with scans.csv, vicon_poses.csv and poses.csv)")
     if base not in ("level", "mocap"):
         raise ParameterError(f"base: expected 'level' or 'mocap', found {base!r}")
-    _check_policy(duplicates)
-    if missing_poses not in MISSING_POSE_POLICIES:
-        raise ParameterError(f"missing_poses: expected one of {', '.join(MISSING_POSE_POLICIES)}, found {missing_poses!r}")
+    check_policy("duplicates", duplicates)
+    check_policy("missing_poses", missing_poses, MISSING_POSE_POLICIES)
     scans = read_scans_csv(d / "scans.csv", duplicates)
     vicon = read_vicon_csv(d / "vicon_poses.csv", duplicates)
     odo = read_poses_csv(d / "poses.csv")

@@ -236,18 +236,13 @@ def footprint_rig(rig: Any) -> Any:
     every zone the angular footprint of its ``resolution`` x ``fov_deg`` grid cell: only for
     tables that are that grid's centre rays (the nano-swarm columns: 1 x 8 over 22.5 x 45
     deg, each 5.6 deg wide), else :class:`~tofloc.errors.ParameterError`."""
-    from tofloc.errors import ParameterError
-    from tofloc.rig import default_zone_directions
-
     sensors = []
     for s in rig.sensors:
-        if s.zone_directions is not None:
-            grid = default_zone_directions(s.resolution, s.fov_deg)
-            grid = grid / np.linalg.norm(grid, axis=-1, keepdims=True)
-            if not np.allclose(s.zone_directions, grid, atol=1e-9):
-                raise ParameterError(f"sensor {s.name}: its zone table is not the centre rays of its {s.resolution} grid "
-                                     f"over {s.fov_deg} deg, so its zones have no footprint")
-        sensors.append(replace(s, zone_directions=None))
+        grid = replace(s, zone_directions=None)  # the sensor of its uniform grid: its unit rays are the cells' centres
+        if s.zone_directions is not None and not np.allclose(s.unit_directions, grid.unit_directions, atol=1e-9):
+            raise ParameterError(f"sensor {s.name}: its zone table is not the centre rays of its {s.resolution} grid "
+                                 f"over {s.fov_deg} deg, so its zones have no footprint")
+        sensors.append(grid)
     return replace(rig, sensors=tuple(sensors))
 
 
