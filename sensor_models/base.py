@@ -189,17 +189,24 @@ class BoundSensorModel(ABC):
         caster = getattr(getattr(self, "rays", None), "caster", None)
         return TEMP_BYTES_PER_ZONE * zones * int(getattr(caster, "n_sub", 1))
 
+    def reserved_temporaries(self) -> int:
+        """Bytes of temporaries :meth:`log_likelihood` may hold whatever the number of states
+        (a piece size of its own, e.g. the beam model's rough footprints,
+        :data:`tofloc.zone_caster.FOOTPRINT_PIECE_BYTES`): :meth:`log_likelihood_chunked`
+        sizes its chunks from what is left. Default: 0."""
+        return 0
+
     def log_likelihood_chunked(self, states: NDArray[np.float64], step: int,
                                max_bytes: int = CHUNK_BYTES) -> NDArray[np.float64]:
         """:meth:`log_likelihood` of the states in chunks whose temporaries stay under
-        ``max_bytes`` (:meth:`temporaries_per_state`), whatever the number of states and
+        ``max_bytes`` (:meth:`temporaries_per_state` per state plus :meth:`reserved_temporaries`), whatever the number of states and
         zones: the same numbers (each state's value is computed alone), bounded memory.
         What a filter calls. (One exception: a configuration covariance's per-zone variance
         is evaluated once per call at :func:`reference_pose` of the states given, so with
         a covariance and more states than one chunk holds, each chunk uses its own
         reference; with one ray per zone and up to 500 zones, one chunk holds 1000 states.)"""
         M = states.shape[0]
-        chunk = max(1, int(max_bytes) // max(1, self.temporaries_per_state()))
+        chunk = max(1, (int(max_bytes) - self.reserved_temporaries()) // max(1, self.temporaries_per_state()))
         if M <= chunk:
             return self.log_likelihood(states, step)
         return np.concatenate([self.log_likelihood(states[a : a + chunk], step) for a in range(0, M, chunk)])

@@ -75,7 +75,7 @@ from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_in, check_int
 from tofloc.range_model import RangeUncertainty, edge_zone_mask
 from tofloc.toml_tables import params_from_table, params_from_toml
-from tofloc.zone_caster import PlanarZoneRays, ZoneCaster
+from tofloc.zone_caster import FOOTPRINT_PIECE_BYTES, PlanarZoneRays, ZoneCaster
 
 __all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper", "REFIT_ITERATIONS", "REFIT_TOLERANCE", "REFIT_SHORT_MAX",
            "REFIT_SIGMA_MAX"]
@@ -361,14 +361,22 @@ class BoundBeamModel(BoundSensorModel):
 
     def temporaries_per_state(self) -> int:
         """Bytes of temporaries per state: the zones' (:data:`~sensor_models.base.TEMP_BYTES_PER_ZONE`
-        each), times the sub-rays when every footprint is cast; with footprints cast on rough
-        zones only, the zones' plus at most every zone's sub-rays (packed rays, hit lengths,
-        normals: 64 bytes each), the bound when every zone is rough."""
+        each), times the sub-rays when every footprint is cast. With footprints cast on rough
+        zones only, the compiled path holds the zones' per state and the rough footprints in
+        pieces of :meth:`reserved_temporaries` bytes; the numpy path spreads every zone's
+        footprint over its plane, so it also holds every zone's sub-rays (64 bytes each)."""
         zones = self.problem.rig.n_sensors * self.problem.rig.n_zones
         caster = self.rays.caster
         if caster.footprint_tolerance is None:
             return TEMP_BYTES_PER_ZONE * zones * caster.n_sub
+        if numba_kernels.enabled() and caster.footprint_tolerance >= 0:
+            return zones * TEMP_BYTES_PER_ZONE
         return zones * (TEMP_BYTES_PER_ZONE + 64 * caster.n_sub)
+
+    def reserved_temporaries(self) -> int:
+        """The rough zones' footprints, cast in pieces of
+        :data:`tofloc.zone_caster.FOOTPRINT_PIECE_BYTES` (0 without footprint casting)."""
+        return 0 if self.rays.caster.footprint_tolerance is None else FOOTPRINT_PIECE_BYTES
 
     def configuration_variance(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64] | None:
         """Variance ``(S, Z)`` of each zone's expected reading caused by sample ``step``'s

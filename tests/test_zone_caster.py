@@ -292,6 +292,27 @@ def test_rough_zones_compiled_equal_numpy(monkeypatch) -> None:
     assert 0.05 < ref.mean() < 0.9
 
 
+@pytest.mark.parametrize("numba", ["1", "0"])
+def test_rough_footprints_cast_in_pieces_give_the_same_readings(monkeypatch, numba: str) -> None:
+    """A small footprint budget casts the rough zones' footprints in pieces of a few zones:
+    the same readings and hit fractions, bit for bit, as one piece."""
+    import tofloc.zone_caster as zc
+
+    monkeypatch.setenv("TOFLOC_NUMBA", numba)
+    p, truth = easy_problem(n_samples=2)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    poses = truth + np.random.default_rng(9).normal(size=(60, 3)) * np.array([0.05, 0.05, 0.2])
+    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
+    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    whole = rays.cast(p.map, poses, 1)
+    n_rough = rays.cast_buffers(p.map, poses, 1)[1].shape[0]
+    monkeypatch.setattr(zc, "FOOTPRINT_PIECE_BYTES", 64 * 9 * 7)  # 7 zones per piece
+    assert caster.footprint_piece_zones == 7 and n_rough > 3 * 7
+    got = rays.cast(p.map, poses, 1)
+    np.testing.assert_array_equal(got.reading, whole.reading)
+    np.testing.assert_array_equal(got.hit_fraction, whole.hit_fraction)
+
+
 def test_cast_buffers_are_the_rays_the_cast_casts() -> None:
     """What a benchmark times Embree on: the centre rays and the rough zones' footprints,
     exactly the rays :meth:`PlanarZoneRays.cast` casts (their hits rebuild its readings)."""

@@ -419,14 +419,15 @@ def _signal_weight(cos_i: float, inv_t: float) -> float:  # pragma: no cover - c
     return max(cos_i, 0.05) * min(inv_t * inv_t, 400.0)
 
 
-@_jit
+@_jit_parallel
 def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma: no cover - compiled
     """Rays packed for the ray caster (:meth:`tofloc.zone_caster.PlanarZoneRays.ray_buffer`):
     ``out[m, s, i]`` (float32) is the origin ``org[m, s]`` then ``A[m] @ dirs[s, i]``, for
-    rotations ``A`` ``(M, 3, 3)``, origins ``(M, S, 3)`` and unit directions ``(S, R, 3)``."""
+    rotations ``A`` ``(M, 3, 3)``, origins ``(M, S, 3)`` and unit directions ``(S, R, 3)``
+    (candidates in parallel: each entry is written once, the same bits on any thread count)."""
     M = A.shape[0]
     S, R = dirs.shape[0], dirs.shape[1]
-    for m in range(M):
+    for m in _prange(M):
         for s in range(S):
             ox = np.float32(org[m, s, 0])
             oy = np.float32(org[m, s, 1])
@@ -435,15 +436,15 @@ def planar_ray_buffer(A: Any, org: Any, dirs: Any, out: Any) -> None:  # pragma:
                 _put_ray(out[m, s, i], ox, oy, oz, A, m, dirs[s, i])
 
 
-@_jit
+@_jit_parallel
 def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_idx: Any,
                          out: Any) -> None:  # pragma: no cover - compiled
     """The sub-rays of chosen zones (:meth:`tofloc.zone_caster.PlanarZoneRays.cast`'s rough
     zones): ``out[f, i]`` (float32) is the origin ``org[m, s]`` then ``A[m] @ dirs[s, z, i]``
     with ``m, s, z`` the ``f``-th entries of ``m_idx, s_idx, z_idx``; rotations ``A`` ``(M,
-    3, 3)``, origins ``(M, S, 3)``, unit directions ``(S, Z, n, 3)``."""
+    3, 3)``, origins ``(M, S, 3)``, unit directions ``(S, Z, n, 3)`` (zones in parallel)."""
     n = dirs.shape[2]
-    for f in range(m_idx.shape[0]):
+    for f in _prange(m_idx.shape[0]):
         m = m_idx[f]
         s = s_idx[f]
         z = z_idx[f]

@@ -70,11 +70,15 @@ from tofloc import numba_kernels
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig, Sensor
 
-__all__ = ["WEIGHTINGS", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions"]
+__all__ = ["WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions"]
 
 WEIGHTINGS = ("signal", "mean")
 #: Largest footprint (sub-rays per side).
 MAX_FOOTPRINT = 9
+#: Bytes the rough zones' footprints may hold at once in :meth:`ZoneCaster.cast_rough` (their
+#: packed sub-rays, hit lengths and normals, ~64 bytes per sub-ray): more rough zones are
+#: cast in pieces, so a likelihood's memory is bounded by its states' centre rays plus this.
+FOOTPRINT_PIECE_BYTES = 32 * 2**20
 #: Two returning sub-rays whose normals differ by more than this make a zone a corner.
 CORNER_ANGLE_DEG = 30.0
 
@@ -411,8 +415,10 @@ class ZoneCaster:
                 reading, frac = np.full(centre.shape, np.nan), np.zeros(centre.shape)
             else:
                 reading, frac = self._plane_footprints(centre)
-        idx = np.nonzero(rough)
-        if idx[0].size:
+        rough_idx = np.nonzero(rough)
+        piece = self.footprint_piece_zones
+        for lo in range(0, rough_idx[0].size, piece):  # bounded memory: at most `piece` footprints at once
+            idx = tuple(a[lo : lo + piece] for a in rough_idx)
             s_i, z_i = idx[-2], idx[-1]
             rays = footprints(idx)
             if numba_kernels.enabled():  # one compiled pass from the hits' normals
@@ -426,6 +432,12 @@ class ZoneCaster:
             reading[idx] = r_f
             frac[idx] = f_f
         return ZoneCast(reading, frac)
+
+    @property
+    def footprint_piece_zones(self) -> int:
+        """Rough zones whose footprints :meth:`cast_rough` casts at once
+        (:data:`FOOTPRINT_PIECE_BYTES` over 64 bytes per sub-ray)."""
+        return max(1, FOOTPRINT_PIECE_BYTES // (64 * self.n_sub))
 
     def _plane_footprints(self, centre: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Readings and hit fractions ``(..., S, Z)`` of every zone's footprint on the plane
