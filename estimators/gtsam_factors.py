@@ -16,11 +16,12 @@ robustified residuals of every zone and their Jacobians with respect to
   distance ``d`` is corrected by ``-b d`` on top of the uncertainty model's bias.
 
 :class:`StackedMeasurements` concatenates every sample's zones and association once per
-association round, and :func:`make_stacked_factors` makes the samples' factors share ONE
-stacked evaluation per linearization (one vectorized pass over every zone instead of one
-per sample; the per-sample factor, :func:`make_sample_factor`, stays for ISAM2, which
-replaces single samples' factors, and for comparison: the two give the same residuals
-and Jacobians to rounding).
+association round, and :func:`make_stacked_factor` makes ONE factor of them: one
+vectorized pass over every zone and one Python callback per linearization, each
+sample's rows compressed to ``m + 1`` equivalent ones (:func:`compress_rows`: the same
+Gauss-Newton system and cost). The per-sample factor, :func:`make_sample_factor`, stays
+for ISAM2, which replaces single samples' factors, and for comparison: the two give the
+same cost, gradient and Gauss-Newton matrix to rounding.
 
 Residual of a zone ``i`` with point ``p_i`` (map frame) and associated plane ``(q_i, n_i)``::
 
@@ -60,7 +61,8 @@ __all__ = [
     "SampleMeasurement",
     "StackedMeasurements",
     "make_sample_factor",
-    "make_stacked_factors",
+    "make_stacked_factor",
+    "compress_rows",
 ]
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
@@ -379,43 +381,38 @@ class StackedMeasurements:
                           C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians)
 
 
-def _same(a: FloatArray, b: FloatArray) -> bool:
-    """Bit-equal small arrays (cheaper than ``np.array_equal`` on 3 to 16 numbers)."""
-    return a.shape == b.shape and a.tobytes() == b.tobytes()
+#: Cholesky pivots of a sample's Gram matrix at most this times its largest diagonal entry
+#: are a direction its rows do not constrain (:func:`compress_rows`).
+GRAM_TINY = 1e-14
 
 
-class _SharedEvaluation:
-    """The last stacked evaluation, with the variable values it was made at."""
-
-    def __init__(self, stacked: StackedMeasurements) -> None:
-        self.stacked = stacked
-        self.at: tuple[FloatArray, FloatArray, FloatArray, FloatArray | None] | None = None
-        self.jacobians = False
-        self.out: tuple[Any, ...] = ()
-
-    def rows(self, k: int, xyyaw: FloatArray, C_k: FloatArray, D: FloatArray, bias: FloatArray | None, jacobians: bool,
-             read_all_C: Callable[[], FloatArray], z: float, R_tilt: FloatArray) -> tuple[Any, ...]:
-        """Sample ``k``'s residuals and Jacobian rows at (X, C_k, D, B): from the last stacked
-        evaluation when it was made at the same values of these variables (the sample's
-        rows depend on nothing else) and with Jacobians if asked, else from a new one."""
-        at = self.at
-        hit = (at is not None and (self.jacobians or not jacobians) and _same(at[0], xyyaw) and _same(at[1][k], C_k)
-               and _same(at[2], D) and (bias is None or (at[3] is not None and _same(at[3], np.asarray(bias)))))
-        if not hit:
-            C = read_all_C()
-            C[k] = C_k
-            res, Hb, Hc, Hd, Hbias = self.stacked.evaluate(xyyaw, z, R_tilt, C, D, jacobians=jacobians, bias=bias)
-            self.at = (xyyaw, C, D, None if bias is None else np.array(bias))
-            self.jacobians = jacobians
-            self.out = (res, Hb, Hc, Hd, Hbias)
-        lo, hi = self.stacked.bounds[k], self.stacked.bounds[k + 1]
-        res, Hb, Hc, Hd, Hbias = self.out
-        if not jacobians:
-            return res[lo:hi], None, None, None, None
-        return res[lo:hi], Hb[lo:hi], Hc[lo:hi], Hd[lo:hi], Hbias[lo:hi]
+def compress_rows(stacked: StackedMeasurements, res: FloatArray, blocks: list[FloatArray]) -> tuple[FloatArray, FloatArray]:
+    """Per sample ``k``, ``m + 1`` rows ``[W_k | w_k]`` equivalent to its zones' rows
+    ``[J_k | e_k]``: ``W_k^T W_k = J_k^T J_k``, ``W_k^T w_k = J_k^T e_k`` and ``|w_k| =
+    |e_k|`` (the same Gauss-Newton system and the same cost, to rounding). ``blocks`` are
+    the rows' Jacobian columns side by side (base, the row's own configuration, then the
+    support and the bias if any), ``m`` columns in all. The compiled kernel takes the
+    Cholesky factor of the Gram matrix ``G_k = [J_k | e_k]^T [J_k | e_k]``
+    (:func:`tofloc.numba_kernels.gram_root_by_sample`, directions the rows leave free give
+    zero rows); the numpy fallback ``sqrt(l) V^T`` from ``G_k = V diag(l) V^T``.
+    Returns ``W`` ``(K, m + 1, m)`` and ``w`` ``(K, m + 1)``."""
+    A = np.concatenate(blocks + [res[:, None]], axis=1)
+    b = stacked.bounds
+    K, c = len(stacked.sizes), A.shape[1]
+    if numba_kernels.enabled():
+        Wz = np.empty((K, c, c))
+        numba_kernels.gram_root_by_sample(A, b, GRAM_TINY, Wz)
+    else:
+        G = np.empty((K, c, c))
+        for k in range(K):  # one small product per sample
+            Ak = A[b[k] : b[k + 1]]
+            G[k] = Ak.T @ Ak
+        lam, V = np.linalg.eigh(G)
+        Wz = np.sqrt(np.maximum(lam, 0.0))[:, :, None] * V.transpose(0, 2, 1)  # rows sqrt(l_i) v_i^T
+    return Wz[:, :, :-1], Wz[:, :, -1]
 
 
-def make_stacked_factors(
+def make_stacked_factor(
     stacked: StackedMeasurements,
     key_base: int,
     keys_conf: list[int],
@@ -423,45 +420,47 @@ def make_stacked_factors(
     key_bias: int | None,
     z: float,
     R_tilt: FloatArray,
-) -> list[object]:
-    """The zone factors of every sample from ONE stacked evaluation per linearization.
-
-    One thin ``gtsam.CustomFactor`` per sample (keys: the base, its configuration, the
-    support and the bias, as :func:`make_sample_factor`, so that GTSAM's elimination keeps
-    the graph's sparsity), all sharing the last :meth:`StackedMeasurements.evaluate`: the
-    first factor linearized at new values evaluates every sample's zones at once, the
-    others slice their rows from it. (A single factor over all samples was tried: its
-    dense Jacobian, mostly zeros, cost GTSAM more than the callbacks it saved.)
-    """
+) -> object:
+    """ONE ``gtsam.CustomFactor`` for the zones of every sample: keys the base, every
+    configuration, the support and the bias; one stacked evaluation per linearization and
+    one Python callback, whose rows are each sample's compressed by :func:`compress_rows`
+    (``K (m + 1)`` rows: 17 per sample with the support and the bias, instead of one per
+    zone), so that GTSAM's elimination sees a small dense block, not one row per zone with
+    mostly zero Jacobians. Its cost ``0.5 |e|^2`` equals the per-sample factors' and its
+    linearization gives their Gauss-Newton system (to rounding). Without Jacobians it
+    returns ``(|e|, 0, ..., 0)``: the same cost (GTSAM reads only the norm there)."""
     import gtsam
 
     eye = np.eye(4)
-    shared = _SharedEvaluation(stacked)
-    factors = []
-    for k, key_conf in enumerate(keys_conf):
-        keys = [key_base, key_conf] + [kk for kk in (key_rig, key_bias) if kk is not None]
+    K = len(keys_conf)
+    m = 9 + (6 if key_rig is not None else 0) + (1 if key_bias is not None else 0)
+    rows = K * (m + 1)
+    keys = [key_base] + list(keys_conf) + [kk for kk in (key_rig, key_bias) if kk is not None]
 
-        def error(this: object, values: object, H: list | None, k: int = k, key_conf: int = key_conf) -> FloatArray:
-            P = values.atPose2(key_base)  # type: ignore[attr-defined]
-            xyyaw = np.array([P.x(), P.y(), P.theta()])
-            C_k = values.atPose3(key_conf).matrix()  # type: ignore[attr-defined]
-            D = values.atPose3(key_rig).matrix() if key_rig is not None else eye  # type: ignore[attr-defined]
-            bias = values.atVector(key_bias) if key_bias is not None else None  # type: ignore[attr-defined]
+    def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
+        P = values.atPose2(key_base)  # type: ignore[attr-defined]
+        xyyaw = np.array([P.x(), P.y(), P.theta()])
+        C = np.stack([values.atPose3(kc).matrix() for kc in keys_conf])  # type: ignore[attr-defined]
+        D = values.atPose3(key_rig).matrix() if key_rig is not None else eye  # type: ignore[attr-defined]
+        bias = values.atVector(key_bias) if key_bias is not None else None  # type: ignore[attr-defined]
+        res, Hb, Hc, Hd, Hbias = stacked.evaluate(xyyaw, z, R_tilt, C, D, jacobians=H is not None, bias=bias)
+        if H is None:
+            out = np.zeros(rows)
+            out[0] = math.sqrt(float(res @ res))
+            return out
+        blocks = [Hb, Hc] + ([Hd] if key_rig is not None else []) + ([Hbias] if key_bias is not None else [])
+        R, e = compress_rows(stacked, res, blocks)
+        H[0] = np.ascontiguousarray(R[:, :, 0:3].reshape(rows, 3))
+        for k in range(K):
+            Hk = np.zeros((rows, 6))
+            Hk[k * (m + 1) : (k + 1) * (m + 1)] = R[k, :, 3:9]
+            H[1 + k] = Hk
+        i, c = 1 + K, 9
+        if key_rig is not None:
+            H[i] = np.ascontiguousarray(R[:, :, c : c + 6].reshape(rows, 6))
+            i, c = i + 1, c + 6
+        if key_bias is not None:
+            H[i] = np.ascontiguousarray(R[:, :, c : c + 1].reshape(rows, 1))
+        return e.reshape(rows)
 
-            def read_all_C() -> FloatArray:
-                return np.stack([values.atPose3(kc).matrix() for kc in keys_conf])  # type: ignore[attr-defined]
-
-            res, Hb, Hc, Hd, Hbias = shared.rows(k, xyyaw, C_k, D, bias, H is not None, read_all_C, z, R_tilt)
-            if H is not None:
-                H[0] = Hb
-                H[1] = Hc
-                i = 2
-                if key_rig is not None:
-                    H[i] = Hd
-                    i += 1
-                if key_bias is not None:
-                    H[i] = Hbias
-            return res
-
-        factors.append(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(stacked.sizes[k]), keys, error))
-    return factors
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)

@@ -182,9 +182,11 @@ class GTSAMSmoother(Estimator):
     global_starts : int
         With a global prior: the distinct basins the coarse search returns, each a start.
     stacked_factor : bool
-        Batch solve: the samples' factors share one stacked evaluation of every zone per
-        linearization (default), or each evaluates its own sample (the same cost, slower;
-        kept to compare, ``tofloc bench``).
+        Batch solve: one factor over every sample's zones, one stacked evaluation and one
+        callback per linearization, each sample's rows compressed to ``m + 1`` equivalent
+        ones (default; :func:`estimators.gtsam_factors.make_stacked_factor`), or one factor
+        per sample (the same cost and Gauss-Newton system, slower; kept to compare,
+        ``tofloc bench``).
     """
 
     name: ClassVar[str] = "gtsam_smoother"

@@ -3,10 +3,11 @@
 :class:`SmootherGraph` holds what one problem's graph needs: which variables exist
 (``X`` the base, ``C_k`` the configurations, ``D`` the support correction and ``B`` the
 range bias, the last two only when the problem declares the matching nuisance), their
-priors, and the zone factors: in the batch solve one per sample sharing ONE stacked
-evaluation of every zone per linearization (:func:`estimators.gtsam_factors.make_stacked_factors`,
-the stacked arrays built once per association round), or with ``stacked_factor=False``
-each evaluating its own sample (:func:`estimators.gtsam_factors.make_sample_factor`: the
+priors, and the zone factors: in the batch solve ONE factor over every sample's zones,
+one stacked evaluation and one callback per linearization, each sample's rows compressed
+to a few equivalent ones (:func:`estimators.gtsam_factors.make_stacked_factor`, the stacked
+arrays built once per association round), or with ``stacked_factor=False`` one factor per
+sample (:func:`estimators.gtsam_factors.make_sample_factor`: the
 same cost, kept for comparison; ISAM2 always uses these, as it replaces single samples'
 factors).
 :meth:`SmootherGraph.solve_batch` and :meth:`SmootherGraph.solve_isam2` alternate data
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_association import associate
-from estimators.gtsam_factors import SampleMeasurement, StackedMeasurements, make_sample_factor, make_stacked_factors
+from estimators.gtsam_factors import SampleMeasurement, StackedMeasurements, make_sample_factor, make_stacked_factor
 from tofloc import frames
 from tofloc.problem import Problem
 
@@ -117,14 +118,14 @@ class SmootherGraph:
                                   self.problem.prior.z, self.R_tilt, self.est.robust, self.est.robust_k)
 
     def zone_factors(self, meas: list[SampleMeasurement]) -> list[Any]:
-        """The zone factors of the associated samples: sharing one stacked evaluation, or each its own."""
+        """The zone factors of the associated samples: one stacked factor, or one per sample."""
         from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
 
         if not self.stacked:
             return [self.factor(m, k) for k, m in enumerate(meas)]
         st = StackedMeasurements(meas, self.est.robust, self.est.robust_k)
-        return make_stacked_factors(st, Xk(0), [Ck(k) for k in range(len(meas))], Dk(0) if self.use_rig else None,
-                                    Bk(0) if self.use_bias else None, self.problem.prior.z, self.R_tilt)
+        return [make_stacked_factor(st, Xk(0), [Ck(k) for k in range(len(meas))], Dk(0) if self.use_rig else None,
+                                    Bk(0) if self.use_bias else None, self.problem.prior.z, self.R_tilt)]
 
     def read(self, values: Any, K: int) -> tuple[FloatArray, list[FloatArray], FloatArray]:
         """``(x, y, yaw)``, the ``K`` configurations and ``D`` from GTSAM values."""

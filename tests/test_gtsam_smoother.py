@@ -15,8 +15,9 @@ gtsam = pytest.importorskip("gtsam")
 from estimators.gtsam_factors import (  # noqa: E402
     SampleMeasurement,
     StackedMeasurements,
+    compress_rows,
     make_sample_factor,
-    make_stacked_factors,
+    make_stacked_factor,
     robust_loss,
     robust_transform,
 )
@@ -102,30 +103,72 @@ def test_factor_jacobians_match_numerical_derivatives(kernel: str) -> None:
     assert np.all(A[~m.inlier] == 0.0)
 
 
-def test_stacked_factors_equal_the_per_sample_factors() -> None:
-    """The samples' factors sharing one stacked evaluation linearize to the same residuals and
-    Jacobians as one factor per sample (to rounding), at successive values (the shared
-    evaluation is redone when a sample's variables change, whatever the order)."""
+def _normal_equations(factors: list[Any], v: Any, order: list[int]) -> tuple[np.ndarray, np.ndarray, float]:
+    """The Gauss-Newton matrix, gradient and cost ``0.5 |e|^2`` of ``factors`` at ``v`` over
+    the keys ``order``."""
+    import gtsam
+
+    g = gtsam.GaussianFactorGraph()
+    for f in factors:
+        g.push_back(f.linearize(v))
+    H, eta = g.hessian(gtsam.Ordering(order))
+    return np.asarray(H), np.asarray(eta), sum(f.error(v) for f in factors)
+
+
+@pytest.mark.parametrize("numba", ["1", "0"])
+def test_stacked_factor_equals_the_per_sample_factors(monkeypatch, numba: str) -> None:
+    """ONE factor over every sample's compressed rows has the per-sample factors' cost,
+    gradient and Gauss-Newton matrix (to 1e-10 of their largest entries) at successive values, with samples of
+    fewer zones than columns, a sample whose rows leave directions free (every zone gated)
+    and nuisance variables; compiled or numpy compression."""
     from gtsam.symbol_shorthand import B, C, D, X
 
+    monkeypatch.setenv("TOFLOC_NUMBA", numba)
     rng = np.random.default_rng(5)
-    meas = [_random_measurement(rng, n) for n in (40, 25, 33)]
+    meas = [_random_measurement(rng, n) for n in (40, 6, 33, 12)]
+    meas[3].inlier[:] = False  # constant residuals, zero Jacobian rows
     R_tilt = frames.se3_from_xyyaw(0.0, 0.0, 0.0, 0.0, 0.05, -0.03)[:3, :3]
     per = [make_sample_factor(m, X(0), C(k), D(0), B(0), 0.5, R_tilt, "cauchy", 1.5) for k, m in enumerate(meas)]
-    stacked = make_stacked_factors(StackedMeasurements(meas, "cauchy", 1.5), X(0), [C(k) for k in range(3)], D(0), B(0),
-                                   0.5, R_tilt)
+    stacked = make_stacked_factor(StackedMeasurements(meas, "cauchy", 1.5), X(0), [C(k) for k in range(4)], D(0), B(0),
+                                  0.5, R_tilt)
+    order = [X(0)] + [C(k) for k in range(4)] + [D(0), B(0)]
     for trial in range(3):
         v = gtsam.Values()
         v.insert(X(0), gtsam.Pose2(*(rng.normal(size=3) * 0.1)))
-        for k in range(3):
+        for k in range(4):
             v.insert(C(k), gtsam.Pose3(gtsam.Rot3.RzRyRx(*(rng.normal(size=3) * 0.3)), rng.normal(size=3) * 0.1))
         v.insert(D(0), gtsam.Pose3(gtsam.Rot3.RzRyRx(0.01, 0.02, 0.1 * trial), np.array([0.001, 0.0, 0.002])))
         v.insert(B(0), np.array([0.01 * trial]))
-        for k in (2, 0, 1):  # any order
-            a, b = per[k].linearize(v).jacobian(), stacked[k].linearize(v).jacobian()
-            np.testing.assert_allclose(b[0], a[0], rtol=1e-12, atol=1e-12)
-            np.testing.assert_allclose(b[1], a[1], rtol=1e-12, atol=1e-12)
-            np.testing.assert_allclose(stacked[k].unwhitenedError(v), per[k].unwhitenedError(v), rtol=1e-12, atol=1e-12)
+        H_a, g_a, e_a = _normal_equations(per, v, order)
+        H_b, g_b, e_b = _normal_equations([stacked], v, order)
+        # rounding of the Gram matrix: ~1e-11 relative where a sample has fewer zones than columns
+        scale = np.max(np.abs(H_a))
+        np.testing.assert_allclose(H_b, H_a, rtol=0, atol=1e-10 * scale)
+        np.testing.assert_allclose(g_b, g_a, rtol=0, atol=1e-10 * max(1.0, np.max(np.abs(g_a))))
+        assert e_b == pytest.approx(e_a, rel=1e-12) and e_a > 0
+        assert stacked.error(v) == pytest.approx(e_a, rel=1e-12)  # the cost without Jacobians
+        assert stacked.dim() == 4 * 17  # 3 + 6 + 6 + 1 columns, plus the residual, per sample
+
+
+def test_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
+    """:func:`compress_rows` on random rows: the compiled Cholesky of the Gram matrix and
+    the numpy eigen-root give the rows' Gram matrix (J^T J, J^T e, |e|^2) to rounding, a
+    rank-deficient sample (two identical columns, fewer rows than columns) included."""
+    rng = np.random.default_rng(3)
+    meas = [_random_measurement(rng, n) for n in (30, 4)]
+    st = StackedMeasurements(meas, "huber", 1.0)
+    blocks = [rng.normal(size=(st.size, 3)), rng.normal(size=(st.size, 6))]
+    blocks[1][:, 5] = blocks[1][:, 4]
+    res = rng.normal(size=st.size)
+    A = np.concatenate(blocks + [res[:, None]], axis=1)
+    for flag in ("1", "0"):
+        monkeypatch.setenv("TOFLOC_NUMBA", flag)
+        W, w = compress_rows(st, res, blocks)
+        assert W.shape == (2, 10, 9) and w.shape == (2, 10)
+        for k in range(2):
+            Ak = A[st.bounds[k] : st.bounds[k + 1]]
+            Wk = np.concatenate([W[k], w[k][:, None]], axis=1)
+            np.testing.assert_allclose(Wk.T @ Wk, Ak.T @ Ak, rtol=0, atol=1e-10 * np.max(np.abs(Ak.T @ Ak)))
 
 
 @pytest.mark.parametrize("declare", [False, True])

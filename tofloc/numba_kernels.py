@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "ROBUST_CODES",
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "gram_root_by_sample", "ROBUST_CODES",
            "planar_inlier_count"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
@@ -625,6 +625,44 @@ def _pose_row(H: Any, i: int, x: float, y: float, z: float, a: float, b: float, 
     H[i, 3] = a * w
     H[i, 4] = b * w
     H[i, 5] = c * w
+
+
+@_jit
+def gram_root_by_sample(A: Any, bounds: Any, tiny: float, out: Any) -> None:  # pragma: no cover - compiled
+    """Per sample ``k`` (rows ``bounds[k]:bounds[k + 1]`` of ``A`` ``(N, c)``), an upper
+    triangular ``W_k`` ``(c, c)`` with ``W_k^T W_k = A_k^T A_k``, into ``out`` ``(K, c, c)``:
+    the Gram matrix (a BLAS product; ``A`` C-contiguous), then Cholesky; a pivot not above ``tiny`` times the largest diagonal
+    entry of the Gram matrix (a direction the rows do not constrain, up to rounding) gives
+    a zero row, which keeps ``W^T W`` equal to the Gram matrix on a rank-deficient sample."""
+    K = bounds.shape[0] - 1
+    c = A.shape[1]
+    G = np.empty((c, c))
+    for k in range(K):
+        if bounds[k + 1] > bounds[k]:
+            Ak = A[bounds[k] : bounds[k + 1]]
+            G[:, :] = np.dot(Ak.T, Ak)  # BLAS
+        else:
+            G[:, :] = 0.0
+        scale = 0.0
+        for i in range(c):
+            scale = max(scale, G[i, i])
+        W = out[k]
+        for i in range(c):
+            for j in range(c):
+                W[i, j] = 0.0
+        for i in range(c):
+            d = G[i, i]
+            for t in range(i):
+                d -= W[t, i] * W[t, i]
+            if not d > tiny * scale:
+                continue  # a zero row
+            rii = math.sqrt(d)
+            W[i, i] = rii
+            for j in range(i + 1, c):
+                v = G[i, j]
+                for t in range(i):
+                    v -= W[t, i] * W[t, j]
+                W[i, j] = v / rii
 
 
 @_jit
