@@ -90,6 +90,7 @@ from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
+from tofloc.threads import kdtree_workers
 
 __all__ = ["GTSAMSmoother", "RESIDUALS", "DEFAULT_KNN_SIGMA_M", "DEFAULT_KNN_SIGMA_ROT_DEG"]
 
@@ -271,7 +272,8 @@ class GTSAMSmoother(Estimator):
         T = prior.T_map_base(cand)  # (M, 4, 4)
         p_m = p_b[None] @ np.swapaxes(T[:, :3, :3], -1, -2) + T[:, None, :3, 3]
         tau = self.gate_m
-        d, _ = problem.map.nearest(p_m, max_distance=tau)  # farther than tau costs tau^2 either way
+        # farther than tau costs tau^2 either way; every core unless the process is limited (a pool's worker)
+        d, _ = problem.map.nearest(p_m, max_distance=tau, workers=kdtree_workers())
         cost = np.mean(np.minimum(d * d, tau * tau), axis=1)
         order = np.argsort(cost, kind="stable")
         picked: list[int] = []
