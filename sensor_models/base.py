@@ -204,7 +204,8 @@ class BoundSensorModel(ABC):
         What a filter calls. (One exception: a configuration covariance's per-zone variance
         is evaluated once per call at :func:`reference_pose` of the states given, so with
         a covariance and more states than one chunk holds, each chunk uses its own
-        reference; with one ray per zone and up to 500 zones, one chunk holds 1000 states.)"""
+        reference; with one ray per zone and up to 500 zones, or the beam model's footprints on
+        rough zones and up to 390 zones, one chunk holds 1000 states.)"""
         M = states.shape[0]
         chunk = max(1, (int(max_bytes) - self.reserved_temporaries()) // max(1, self.temporaries_per_state()))
         if M <= chunk:
