@@ -14,7 +14,7 @@ batched query over all samples:
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 import math
 
 import numpy as np
@@ -191,8 +191,7 @@ def associate(
     gate_e = zone_gate / s
     out, changed = [], []
     for m, a, b in zip(meas, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
-        new = dataclasses.replace(m)
-        new.set_association(q[a:b], n[a:b], s[a:b], inlier[a:b], gate_e[a:b], key[a:b])
-        changed.append(not (np.array_equal(new.key, m.key) and np.array_equal(new.inlier, m.inlier)))
+        new = copy.copy(m)  # the zones shared; set_association replaces every association array
+        changed.append(new.set_association(q[a:b], n[a:b], s[a:b], inlier[a:b], gate_e[a:b], key[a:b]))  # against m's
         out.append(new)
     return out, changed
