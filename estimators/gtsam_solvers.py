@@ -50,6 +50,16 @@ def is_indeterminate(e: BaseException) -> bool:
     return "ndetermina" in str(e)
 
 
+#: A start whose base pose comes this close to a pose another start converged to joins
+#: that start's basin and stops (:meth:`SmootherGraph.solve_batch`, ``finished``; the
+#: smoother's ``merge_starts``): 3 mm and 0.3 deg, well inside a basin (starts are
+#: distinct at 10 cm / 15 deg; on the bench problem the starts of one basin end within
+#: 1e-5 m and 3e-5 rad of each other). On the pillars scene the yaw error rose 13 % with
+#: 1 cm and 1 deg, 5 % with these (docs/gtsam-smoother.md).
+MERGE_M = 0.003
+MERGE_RAD = math.radians(0.3)
+
+
 class SmootherGraph:
     """The factor graph of one problem for one smoother configuration.
 
@@ -182,12 +192,16 @@ class SmootherGraph:
         return d
 
     # -- batch solve ---------------------------------------------------------------------------
-    def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False) -> dict[str, Any]:
+    def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False,
+                    finished: list[FloatArray] | None = None) -> dict[str, Any]:
         """Association rounds, each followed by Levenberg-Marquardt, from ``start``.
 
         ``fix_base``: the base pose is held at ``start`` (a prior of :data:`FIXED_BASE_SIGMA`
         on it) and only the configurations and nuisances are optimized: the graph's error
         profiled over them at that base pose (:meth:`estimators.gtsam_smoother.GTSAMSmoother.log_target`).
+        ``finished``: the base poses ``(x, y, yaw)`` other starts converged to; once a round
+        leaves this start within :data:`MERGE_M` and :data:`MERGE_RAD` of one of them, it
+        stops there (``"merged"``: that pose's index): it is in that start's basin.
         """
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
@@ -221,8 +235,13 @@ class SmootherGraph:
             opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
             new_values = opt.optimize()
             iterations += int(opt.iterations())
-            moved = float(np.max(np.abs(self.read(new_values, K)[0] - xyyaw)))
+            x_new = self.read(new_values, K)[0]
+            moved = float(np.max(np.abs(x_new - xyyaw)))
             values = new_values
+            for j, P in enumerate(finished or ()):
+                if np.hypot(*(x_new[:2] - P[:2])) <= MERGE_M and abs(float(frames.wrap_angle(x_new[2] - P[2]))) <= MERGE_RAD:
+                    return {"values": values, "graph": graph, "error": float(graph.error(values)), "iterations": iterations,
+                            "rounds": rounds, "converged": False, "meas": meas, "merged": j}
         return {"values": values, "graph": graph, "error": float(graph.error(values)), "iterations": iterations,
                 "rounds": rounds, "converged": converged, "meas": meas}
 

@@ -188,6 +188,30 @@ def test_stacked_and_per_sample_solves_give_the_same_estimate(easy4, declare: bo
     assert a.diagnostics["iterations"] == b.diagnostics["iterations"]
 
 
+def test_merged_starts_stop_in_a_finished_basin_and_are_no_mode(easy4) -> None:
+    """With ``merge_starts`` a start that reaches a finished start's pose stops there: its
+    record names that start and has no error (no mode of the posterior), the estimate is
+    the default's within the merge radius (here 0.1 mm and 0.01 deg apart: another optimum of
+    the same basin), with fewer rounds in all."""
+    from tofloc.posterior_modes import modes_of_estimate
+
+    p, _ = easy4
+    a = GTSAMSmoother(n_starts=4).estimate(p, np.random.default_rng(3))
+    b = GTSAMSmoother(n_starts=4, merge_starts=True).estimate(p, np.random.default_rng(3))
+    merged = [s for s in b.diagnostics["starts"] if "merged_into" in s]
+    assert merged, b.diagnostics["starts"]
+    for s in merged:
+        assert s["error"] is None and "merged_into" not in b.diagnostics["starts"][s["merged_into"]]
+    from estimators.gtsam_solvers import MERGE_M, MERGE_RAD
+
+    assert np.hypot(*(b.pose[:2] - a.pose[:2])) < MERGE_M and abs(b.pose[2] - a.pose[2]) < MERGE_RAD
+    assert sum(s["rounds"] for s in b.diagnostics["starts"]) < sum(s["rounds"] for s in a.diagnostics["starts"])
+    finished = [s for s in b.diagnostics["starts"] if s["error"] is not None]
+    assert sum(m.weight for m in modes_of_estimate(b)) == pytest.approx(1.0) and len(modes_of_estimate(b)) <= len(finished)
+    with pytest.raises(ParameterError, match="merge_starts"):
+        GTSAMSmoother(merge_starts="yes")
+
+
 @pytest.fixture(scope="module")
 def easy4():
     return easy_problem(n_samples=4)
