@@ -53,6 +53,10 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     g = doc["gtsam"]
     assert _seconds(g["per_sample_factor_s"]) and _seconds(g["stacked_factor_s"]) and _seconds(g["speedup"])
     assert 0.0 <= g["max_abs_diff"] < 1e-9
+    assert _seconds(g["merged_starts_s"]) and g["merged_speedup"] == pytest.approx(g["stacked_factor_s"] / g["merged_starts_s"])
+    from estimators.gtsam_solvers import MERGE_M, MERGE_RAD
+
+    assert 0.0 <= g["merged_max_abs_diff"] < max(MERGE_M, MERGE_RAD)  # within the merge radius (m, rad)
     p = doc["parallel"]
     assert _seconds(p["workers_1_s"]) and _seconds(p["workers_2_s"]) and _seconds(p["speedup"])
     assert _seconds(p["workers_1_one_thread_s"]) and p["scaling"] == pytest.approx(p["workers_1_one_thread_s"] / p["workers_2_s"])

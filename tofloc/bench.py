@@ -40,7 +40,9 @@ returns one JSON document:
     The smoother's k = 10 estimate with the stacked evaluation and with one factor per
     sample (``stacked_factor=False``), timed alternately (medians of ``repeat`` each):
     ``per_sample_factor_s``, ``stacked_factor_s``, ``speedup`` and ``max_abs_diff``
-    (largest difference of the two poses).
+    (largest difference of the two poses); and the stacked path with ``merge_starts=True``
+    timed with them: ``merged_starts_s``, ``merged_speedup`` (stacked over merged) and
+    ``merged_max_abs_diff`` (against the stacked path's pose).
 ``selection``
     ``active_choice_s``: one choice of the ``active`` selection policy (median of
     ``repeat``) among ``candidates`` recorded postures of the paper's log (motion-capture
@@ -209,19 +211,21 @@ def bench_gtsam_smoother(est: Any, problem: Any, repeat: int) -> dict[str, Any]:
 def _bench_gtsam_factors(problem: Any, repeat: int) -> dict[str, Any]:
     from estimators.gtsam_smoother import GTSAMSmoother
 
-    res: dict[bool, Any] = {}
+    res: dict[str, Any] = {}
     runs = []
-    for stacked in (False, True):
-        est = GTSAMSmoother(stacked_factor=stacked)
+    for label, params in (("per_sample", {"stacked_factor": False}), ("stacked", {}), ("merged", {"merge_starts": True})):
+        est = GTSAMSmoother(**params)
 
-        def run(est: Any = est, stacked: bool = stacked) -> None:
-            res[stacked] = est.estimate(problem, np.random.default_rng(0))
+        def run(est: Any = est, label: str = label) -> None:
+            res[label] = est.estimate(problem, np.random.default_rng(0))
 
         run()  # warm-up
         runs.append(run)
-    per_sample, stacked_s = _paired_medians(runs, repeat)  # timed alternately
+    per_sample, stacked_s, merged_s = _paired_medians(runs, repeat)  # timed alternately
     return {"per_sample_factor_s": per_sample, "stacked_factor_s": stacked_s, "speedup": per_sample / stacked_s,
-            "max_abs_diff": float(np.max(np.abs(res[True].pose - res[False].pose)))}
+            "max_abs_diff": float(np.max(np.abs(res["stacked"].pose - res["per_sample"].pose))),
+            "merged_starts_s": merged_s, "merged_speedup": stacked_s / merged_s,
+            "merged_max_abs_diff": float(np.max(np.abs(res["merged"].pose - res["stacked"].pose)))}
 
 
 def peak_rss_child(name: str, particles: int) -> None:

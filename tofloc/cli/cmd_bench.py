@@ -58,7 +58,8 @@ def bench(
                       f"timed alternately with it, {1e3 * r['beam_update_s']:.1f} ms: {r['beam_over_raycast']:.2f}x that")
     g = doc["gtsam"]
     console.print(f"gtsam_smoother k = 10: stacked evaluation {1e3 * g['stacked_factor_s']:.0f} ms, per-sample factors "
-                  f"{1e3 * g['per_sample_factor_s']:.0f} ms ({g['speedup']:.2f}x; poses differ by {g['max_abs_diff']:.1e})")
+                  f"{1e3 * g['per_sample_factor_s']:.0f} ms ({g['speedup']:.2f}x; poses differ by {g['max_abs_diff']:.1e}); "
+                  f"with merge_starts {1e3 * g['merged_starts_s']:.0f} ms ({g['merged_speedup']:.2f}x the stacked path)")
     p = doc["parallel"]
     console.print(f"paper run ({p['trials']} trials x k {p['k_values']}): 1 worker {p['workers_1_s']:.1f} s, "
                   f"2 workers {p['workers_2_s']:.1f} s ({p['speedup']:.2f}x)"
