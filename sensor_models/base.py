@@ -142,12 +142,29 @@ class BoundSensorModel(ABC):
         problem = getattr(self, "problem")
         return bool(check_pose(problem, x[:3], nuisance.get("support_yaw", 0.0), nuisance.get("range_scale", 0.0)).ok)
 
-    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
-        """For a model with a Gaussian hit density and a ``sigma_scale`` parameter: over
-        every sample's valid zones at ``state``, the hit component's responsibilities
-        summed, and summed times the squared residual in hit sigmas (the E step of
-        :meth:`fitted_noise_scale`). Models without one raise NotImplementedError."""
+    def hit_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...] | None:
+        """For a model with a Gaussian hit density and a ``sigma_scale`` parameter: at
+        ``states`` ``(M, 3 + n)`` and sample ``step``, every zone's (or end point's)
+        probability ``p``, the part of it from the hit Gaussian (0 where the zone has no
+        valid reading) and the reading's residual in hit sigmas, each ``(M, ...)``; None
+        when the sample has nothing to fit. Models without one raise NotImplementedError."""
         raise NotImplementedError(f"{type(self).__name__} has no hit density to fit a noise scale to")
+
+    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
+        """Over every sample's zones at ``state`` ``(3 + n,)`` (:meth:`hit_terms`): the hit
+        component's responsibilities ``w = hit / p`` summed, and ``w t^2`` summed (``t`` the
+        residual in hit sigmas): the E step of :meth:`fitted_noise_scale`."""
+        x = np.asarray(state, dtype=float)[None]
+        total_w = total_wt2 = 0.0
+        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over zones
+            terms = self.hit_terms(x, k)
+            if terms is None:
+                continue
+            p, hit, t = (np.asarray(a)[0] for a in terms)
+            w = hit / np.maximum(p, 1e-300)
+            total_w += float(w.sum())
+            total_wt2 += float(np.sum(np.where(w > 0, w * (t * t), 0.0)))  # zones without a reading: w = 0, t undefined
+        return total_w, total_wt2
 
     def fitted_noise_scale(self, state: NDArray[np.float64]) -> float | None:
         """The noise scale (``sigma_scale``, which multiplies the hit density's sigma) that
@@ -158,7 +175,7 @@ class BoundSensorModel(ABC):
         when it would not rise by more than :data:`REFIT_SIGMA_MIN_RISE` or where the data
         do not fit the map at ``state`` (:meth:`data_fit`). The bound model is expected to
         have a ``model`` attribute (a dataclass with ``sigma_scale``) that its
-        :meth:`hit_moments` reads."""
+        :meth:`hit_terms` reads."""
         model = getattr(self, "model")
         start = float(model.sigma_scale)
         if not self.data_fit(state):

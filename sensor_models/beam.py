@@ -533,20 +533,14 @@ class BoundBeamModel(BoundSensorModel):
             model = dataclasses.replace(model, sigma_scale=sigma)
         return dataclasses.replace(model, refit_short=False, refit_sigma=False)
 
-    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
-        """Over every sample's valid zones at ``state`` ``(3 + n,)``: the hit component's
-        responsibilities summed, and summed times the squared residual in hit sigmas (the
-        E step of the noise scale's EM, :meth:`refit`)."""
-        x = np.asarray(state, dtype=float)[None]
-        total_w = total_wt2 = 0.0
-        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over zones
-            if not self.valid[k].any():
-                continue
-            p, hit, t = (a[0] for a in self._zone_terms(x, k))
-            w = np.where(self.valid[k], hit / np.maximum(p, _LOG_TINY), 0.0)
-            total_w += float(w.sum())
-            total_wt2 += float(np.sum(w * np.where(self.valid[k], t, 0.0) ** 2))
-        return total_w, total_wt2
+    def hit_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...] | None:
+        """Every zone's probability, its hit-Gaussian part (0 without a valid reading) and
+        its residual in hit sigmas at ``states`` (:meth:`_zone_terms`; the E step of the
+        noise scale's EM, :meth:`sensor_models.base.BoundSensorModel.hit_moments`); None
+        for a sample without a valid zone."""
+        if not self.valid[step].any():
+            return None
+        return self._zone_terms(states, step)
 
     def _refit_sigma(self, state: NDArray[np.float64], short: "BeamModel | None") -> float | None:
         """With ``refit_sigma``: the noise scale (:meth:`fitted_noise_scale`) at ``state``, after

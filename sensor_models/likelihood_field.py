@@ -360,20 +360,15 @@ class BoundLikelihoodField(BoundSensorModel):
         p = m.z_hit * p_hit + short + m.z_rand / self.r_field
         return p, m.z_hit * (1.0 - w) * gauss, r / sig
 
-    def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
-        """Over every sample's end points at ``state`` ``(3 + n,)``: the hit component's
-        responsibilities summed, and summed times the squared range residual in hit sigmas
-        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`'s E step)."""
-        x = np.asarray(state, dtype=float)[None]
-        total_w = total_wt2 = 0.0
-        for k in range(self.n_steps):  # a loop over samples (<= tens), each vectorized over end points
-            if self.points[k].shape[0] == 0:
-                continue
-            p, hit, t = (a[0] for a in self._terms(x, *self._field_inputs(x, k), k))
-            w = hit / np.maximum(p, 1e-300)
-            total_w += float(w.sum())
-            total_wt2 += float(np.sum(w * t * t))
-        return total_w, total_wt2
+    def hit_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...] | None:
+        """Every end point's probability, its hit-Gaussian part and its range residual in hit
+        sigmas at ``states`` (:meth:`_terms`; the E step of
+        :meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`); None for a sample
+        without an end point."""
+        if self.points[step].shape[0] == 0:
+            return None
+        x = np.asarray(states, dtype=float)
+        return self._terms(x, *self._field_inputs(x, step), step)
 
     def refit(self, state: NDArray[np.float64]) -> "LikelihoodFieldModel | None":
         """With ``refit_sigma``: the model with the noise scale fitted at ``state``
