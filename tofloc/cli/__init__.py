@@ -82,6 +82,8 @@ class _Signals:
             sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
             _thread.start_new_thread(_redeliver, (self, sig))  # not threading.Thread: its start() waits, here
             return
+        if self.received is not None and not debug_enabled():
+            return  # a finalizer of an object the interruption left half built (see _after_interruption)
         (self._previous_unraisable or sys.__unraisablehook__)(unraisable)
 
     def _on_int(self, signum: int, frame: object) -> None:
@@ -147,6 +149,16 @@ def _quiet_h5py_cleanup(unraisable: Any) -> None:
     sys.__unraisablehook__(unraisable)
 
 
+def _after_interruption(unraisable: Any) -> None:
+    """The unraisable-exception hook once a command was interrupted and the process exits.
+
+    Ctrl-C can land inside a library's constructor (llvmlite's ``OutputString.__init__``
+    while numba compiles, seen in CI), leaving an object whose ``__del__`` fails when the
+    interpreter tears down ("Exception ignored ... AttributeError" with a traceback, after
+    "interrupted"). Such errors are consequences of the interruption already reported, so
+    they are dropped (``--debug`` shows them)."""
+
+
 @contextlib.contextmanager
 def _restore_hook(previous: Any) -> Iterator[None]:
     try:
@@ -183,6 +195,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 rv = app(args=args, standalone_mode=False, prog_name="tofloc")
                 code = rv if isinstance(rv, int) else 0
+                if code == 130 and signals.received == signal.SIGINT:
+                    # typer >= 0.2x turns Ctrl-C into a silent exit code 130
+                    err_console.print("interrupted", highlight=False)
             except TofLocError as e:
                 if debug_enabled():
                     raise
@@ -217,6 +232,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             # the exit code into 1 (seen in CI); the atomic writers have already removed their
             # temporaries, so leave with the interruption's code now
             hard_exit = argv is None and _h5py_has_open_files()
+    if argv is None and signals.received is not None and not debug_enabled():
+        sys.unraisablehook = _after_interruption  # the process exits: teardown's finalizers
     if hard_exit:
         sys.stdout.flush()
         sys.stderr.flush()
