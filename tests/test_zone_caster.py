@@ -266,6 +266,53 @@ def test_compiled_rough_zone_pass_gives_numpy_s_readings(monkeypatch) -> None:
     np.testing.assert_array_equal(got.hit_fraction, ref.hit_fraction)
 
 
+def test_compiled_pass_cuts_the_raw_float32_lengths_like_the_float64_path(monkeypatch) -> None:
+    """The compiled pass reads Open3D's float32 ray lengths uncut (:meth:`Map.raycast_hits`)
+    and applies the ray-length cut itself: with a cut short enough to drop many hits
+    (centre rays and footprint sub-rays), its readings are the numpy path's (float64
+    lengths cut before use), misses at the same zones."""
+    p, truth = easy_problem(n_samples=2)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    poses = truth + np.random.default_rng(11).normal(size=(200, 3)) * np.array([0.05, 0.05, 0.2])
+    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
+    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    monkeypatch.setenv("TOFLOC_NUMBA", "1")
+    uncut = rays.cast(p.map, poses, 1)
+    t_c = p.map.raycast_distance(rays.cast_buffers(p.map, poses, 1)[0], max_range=caster.max_ray_length)
+    caster.max_ray_length = float(np.nanquantile(np.where(np.isfinite(t_c), t_c, np.nan), 0.5))  # half the hits
+    got = rays.cast(p.map, poses, 1)
+    monkeypatch.setenv("TOFLOC_NUMBA", "0")
+    ref = rays.cast(p.map, poses, 1)
+    assert np.isnan(got.reading).mean() > np.isnan(uncut.reading).mean() + 0.2  # the cut dropped returns
+    np.testing.assert_array_equal(np.isnan(got.reading), np.isnan(ref.reading))
+    np.testing.assert_allclose(got.reading, ref.reading, rtol=1e-8, atol=0)
+    np.testing.assert_array_equal(got.hit_fraction, ref.hit_fraction)
+
+
+@pytest.mark.parametrize("kind", ["mesh", "cloud"])
+def test_raycast_hits_are_the_uncut_float32_lengths_and_normals(kind: str) -> None:
+    """:meth:`Map.raycast_hits`: Open3D's float32 lengths, which cut at a range and
+    converted are :meth:`Map.raycast_distance`'s, and the normals
+    :meth:`Map.raycast_incidence` returns; a buffer of the wrong type is refused by name."""
+    p, _ = easy_problem(n_samples=1)
+    the_map = p.map if kind == "cloud" else Map.cuboid(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z",))
+    rng = np.random.default_rng(12)
+    d = rng.normal(size=(2, 250, 3))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = np.array([0.0, 0.0, 0.3]) + rng.normal(size=(2, 250, 3)) * 0.02
+    rays = np.ascontiguousarray(np.concatenate([o, d], axis=-1), dtype=np.float32)
+    t, n = the_map.raycast_hits(rays, normals=True)
+    assert t.dtype == np.float32 and t.shape == (2, 250) and n is not None and n.shape == (2, 250, 3)
+    cut = 0.3
+    assert ((t > cut) & np.isfinite(t)).mean() > 0.1  # hits beyond the cut, left in
+    np.testing.assert_array_equal(np.where(t <= cut, t.astype(float), np.inf), the_map.raycast_distance(rays, max_range=cut))
+    hit = np.isfinite(t)
+    np.testing.assert_array_equal(n[hit], the_map.raycast_incidence(rays, normals=True)[1][hit])
+    assert the_map.raycast_hits(rays)[1] is None
+    with pytest.raises(Exception, match="raycast_hits: expected C-contiguous float32"):
+        the_map.raycast_hits(rays.astype(np.float64))
+
+
 def test_footprint_tolerance_is_checked() -> None:
     rig, _ = _plane_rig("perpendicular")
     with pytest.raises(Exception, match="odd footprint"):

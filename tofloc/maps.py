@@ -1051,12 +1051,45 @@ class Map:
             return self._surface.raycast_distance(rays, max_range, nthreads=nthreads)
         return self._cast_buffer("raycast_distance", rays, max_range, nthreads)[0].reshape(rays.shape[:-1])
 
+    def raycast_hits(self, rays: NDArray[np.float32], *, nthreads: int | None = None,
+                     normals: bool = False) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+        """Open3D's answer as it comes, for compiled callers that cut and convert it
+        themselves (:class:`tofloc.zone_caster.ZoneCaster`'s compiled passes): the ray
+        lengths ``(...)`` in float32, inf on a miss, **no range cut**, and with ``normals``
+        the hit triangles' unit normals ``(..., 3)`` (float32, any sign, meaningless on a
+        miss), else ``None``. The same float32 lengths :meth:`raycast_distance` converts to
+        float64 and cuts (saves that copy and mask: ~0.8 ms per beam update of 1000
+        particles).
+
+        Parameters
+        ----------
+        rays : array (..., 6), float32, C-contiguous
+            Origins and unit directions (not checked nor normalized, as in
+            :meth:`raycast_distance`).
+        nthreads : int, optional
+            As in :meth:`raycast`.
+        normals : bool
+            Also return the hit triangles' normals.
+        """
+        if self._surface is not None:
+            return self._surface.raycast_hits(rays, nthreads=nthreads, normals=normals)
+        self._check_buffer("raycast_hits", rays)
+        o3d = _open3d()
+        ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=_threads(nthreads))
+        t = ans["t_hit"].numpy().reshape(rays.shape[:-1])
+        n = ans["primitive_normals"].numpy().reshape(rays.shape[:-1] + (3,)) if normals else None
+        return t, n
+
+    @staticmethod
+    def _check_buffer(caller: str, rays: NDArray[np.float32]) -> None:
+        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
+            raise ParameterError(f"{caller}: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+
     def _cast_buffer(self, caller: str, rays: NDArray[np.float32], max_range: float,
                      nthreads: int | None) -> tuple[NDArray[np.float64], dict[str, Any]]:
         """Open3D's cast of packed rays (checked: C-contiguous float32 ``(..., 6)``): the ray
         lengths ``(N,)`` as float64, inf on a miss or beyond ``max_range``, and Open3D's answer."""
-        if rays.dtype != np.float32 or rays.shape[-1] != 6 or not rays.flags.c_contiguous:
-            raise ParameterError(f"{caller}: expected C-contiguous float32 rays (..., 6), found {rays.dtype} {rays.shape}")
+        self._check_buffer(caller, rays)
         o3d = _open3d()
         ans = self._scene_obj().cast_rays(o3d.core.Tensor.from_numpy(rays.reshape(-1, 6)), nthreads=_threads(nthreads))
         t = ans["t_hit"].numpy().astype(np.float64)

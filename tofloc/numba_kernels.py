@@ -457,10 +457,11 @@ def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_
 
 @_jit_parallel
 def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading: Any, s_idx: Any, z_idx: Any,
-                       min_range: float, min_fraction: float, signal: bool, reading: Any,
+                       min_range: float, min_fraction: float, signal: bool, max_t: float, reading: Any,
                        fraction: Any) -> None:  # pragma: no cover - compiled
     """Readings and hit fractions ``(F,)`` of chosen zones from their sub-rays' hit lengths
-    ``t`` ``(F, n)`` (inf: no hit), the hit triangles' normals ``(F, n, 3)`` (float32) and
+    ``t`` ``(F, n)`` (float32 as the ray caster gives them, or float64; inf: no hit; a hit
+    beyond ``max_t`` is none), the hit triangles' normals ``(F, n, 3)`` (float32) and
     the rays ``(F, n, 6)`` (float32): the range cut on each sub-ray's reading and the
     weighted mean of :class:`tofloc.zone_caster.ZoneCaster` (``signal``: ``max(|cos i|,
     0.05) / max(t, 0.05)^2``, else equal weights)."""
@@ -472,9 +473,9 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
         acc = 0.0
         n_ret = 0
         for j in range(n):
-            tj = t[f, j]
+            tj = np.float64(t[f, j])
             r = tj * along[s, z, j]
-            if not (r >= min_range and r <= max_reading[s]):  # also a miss (inf, or nan)
+            if not (tj <= max_t and r >= min_range and r <= max_reading[s]):  # also a miss (inf, or nan)
                 continue
             n_ret += 1
             w = 1.0
@@ -548,9 +549,10 @@ def rough_zones(reading: Any, depth: Any, nbr: Any, w: Any, used: Any, nb: Any, 
 @_jit_parallel
 def rough_and_plane(t_centre: Any, along_centre: Any, min_range: float, max_reading: Any, tolerance: float,
                     depth: Any, nbr: Any, w: Any, used: Any, nb: Any, planar: Any, slope: Any, image: Any, dirs: Any,
-                    along: Any, min_fraction: float, signal: bool, rough: Any, reading: Any,
+                    along: Any, min_fraction: float, signal: bool, max_t: float, rough: Any, reading: Any,
                     fraction: Any) -> None:  # pragma: no cover - compiled
-    """From the centre rays' hit lengths ``t_centre`` ``(M, S, Z)`` (inf: miss): each
+    """From the centre rays' hit lengths ``t_centre`` ``(M, S, Z)`` (float32 as the ray
+    caster gives them, or float64; inf: miss; a hit beyond ``max_t`` is a miss): each
     zone's centre reading (``t * along_centre``, NaN unless in ``[min_range,
     max_reading]``: ``ZoneCaster._centre_readings``), :func:`rough_zones` of those (plus
     the zones with a return but no plane: ``planar`` false) and, for the smooth zones with
@@ -569,9 +571,10 @@ def rough_and_plane(t_centre: Any, along_centre: Any, min_range: float, max_read
         for m in range(b * M // n_blocks, (b + 1) * M // n_blocks):
             for s in range(S):  # ZoneCaster._centre_readings, compiled
                 for z in range(Z):
-                    tc = t_centre[m, s, z]
+                    tc = np.float64(t_centre[m, s, z])
                     r_c = tc * along_centre[s, z]
-                    centre[s, z] = r_c if (math.isfinite(tc) and r_c >= min_range and r_c <= max_reading[s]) else np.nan
+                    ok = math.isfinite(tc) and tc <= max_t and r_c >= min_range and r_c <= max_reading[s]
+                    centre[s, z] = r_c if ok else np.nan
             _inverse_depths(centre, depth, q)
             for s in range(S):
                 for z in range(Z):

@@ -393,7 +393,9 @@ class ZoneCaster:
         return centre, rough
 
     def cast_rough(self, the_map: Any, t_centre: FloatArray, footprints: Any) -> ZoneCast:
-        """Readings ``(..., S, Z)`` from the centre rays' hit distances ``t_centre`` and, for
+        """Readings ``(..., S, Z)`` from the centre rays' hit distances ``t_centre`` (float64,
+        or the ray caster's float32 as :meth:`tofloc.maps.Map.raycast_hits` gives them; a
+        length beyond :attr:`max_ray_length` is a miss) and, for
         the rough zones (:meth:`rough`), their whole footprint: ``footprints(idx)`` returns
         the sub-rays ``(F, n, 6)`` (float32, origins then unit directions in the map frame)
         of the zones ``idx`` (a tuple of index arrays, as :func:`numpy.nonzero` gives)."""
@@ -402,15 +404,18 @@ class ZoneCaster:
             # the smooth ones' footprints over their planes
             nbr, w, used, nb, depth, planar, slope, image = self._stencil
             shape = np.shape(t_centre)
-            t3 = np.ascontiguousarray(np.reshape(t_centre, (-1,) + shape[-2:]), dtype=float)
+            t_in = np.asarray(t_centre)
+            t3 = np.ascontiguousarray(np.reshape(t_in, (-1,) + shape[-2:]),
+                                      dtype=t_in.dtype if t_in.dtype in (np.float32, np.float64) else float)
             rough, reading, frac = np.empty(t3.shape, dtype=bool), np.empty(t3.shape), np.empty(t3.shape)
             numba_kernels.rough_and_plane(t3, self._along_centre, self.min_range, self.max_reading,
                                           self.footprint_tolerance, depth, nbr, w, used, nb, planar, slope, image,
                                           self.dirs_sensor, self.along, self.min_hit_fraction,
-                                          self.weighting == "signal", rough, reading, frac)
+                                          self.weighting == "signal", float(self.max_ray_length), rough, reading, frac)
             rough, reading, frac = (a.reshape(shape) for a in (rough, reading, frac))
         else:  # numpy, or every footprint cast (a negative tolerance)
-            centre, rough = self.centre_and_rough(t_centre)
+            t64 = np.asarray(t_centre, dtype=float)
+            centre, rough = self.centre_and_rough(np.where(t64 <= self.max_ray_length, t64, np.inf))
             if rough.all():
                 reading, frac = np.full(centre.shape, np.nan), np.zeros(centre.shape)
             else:
@@ -424,10 +429,11 @@ class ZoneCaster:
             s_i, z_i = idx[-2], idx[-1]
             rays = footprints(idx)
             if numba_kernels.enabled():  # one compiled pass from the hits' normals
-                t_f, n_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length, normals=True)
+                t_f, n_f = the_map.raycast_hits(rays, normals=True)  # float32, cut in the kernel
                 r_f, f_f = np.empty(s_i.size), np.empty(s_i.size)
                 numba_kernels.footprint_readings(t_f, n_f, rays, self.along, self.max_reading, s_i, z_i, self.min_range,
-                                                 self.min_hit_fraction, self.weighting == "signal", r_f, f_f)
+                                                 self.min_hit_fraction, self.weighting == "signal",
+                                                 float(self.max_ray_length), r_f, f_f)
             else:
                 t_f, cos_f = the_map.raycast_incidence(rays, max_range=self.max_ray_length)
                 r_f, f_f = self._weighted(t_f, None, None, self.along[s_i, z_i], self.max_reading[s_i][:, None], cos_f)[:2]
@@ -649,7 +655,11 @@ class PlanarZoneRays:
         if not geometry and caster.footprint_tolerance is not None:
             A, org = self._moves(poses, step, support_yaw)
             c = caster.n_sub // 2
-            t_c = the_map.raycast_distance(self._fill(A, org, self.dirs_tip[:, :, c : c + 1]), max_range=caster.max_ray_length)
+            centre = self._fill(A, org, self.dirs_tip[:, :, c : c + 1])
+            if numba_kernels.enabled():  # Open3D's float32 lengths: the compiled pass cuts and converts them
+                t_c = the_map.raycast_hits(centre)[0]
+            else:
+                t_c = the_map.raycast_distance(centre, max_range=caster.max_ray_length)
             return caster.cast_rough(the_map, t_c[..., 0], lambda idx: self._footprints(A, org, idx))
         if not geometry and not self.caster.needs_normals:
             return self.caster.cast_ray_buffer(the_map, self.ray_buffer(poses, step, support_yaw))
