@@ -157,6 +157,7 @@ def _after_interruption(unraisable: Any) -> None:
     interpreter tears down ("Exception ignored ... AttributeError" with a traceback, after
     "interrupted"). Such errors are consequences of the interruption already reported, so
     they are dropped (``--debug`` shows them)."""
+    return  # dropped: the interruption was reported, and the process is exiting
 
 
 @contextlib.contextmanager
