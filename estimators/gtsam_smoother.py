@@ -281,8 +281,9 @@ class GTSAMSmoother(Estimator):
         T = prior.T_map_base(cand)  # (M, 4, 4)
         p_m = p_b[None] @ np.swapaxes(T[:, :3, :3], -1, -2) + T[:, None, :3, 3]
         tau = self.gate_m
-        # farther than tau costs tau^2 either way; every core unless the process is limited (a pool's worker)
-        d, _ = problem.map.nearest(p_m, max_distance=tau, workers=kdtree_workers())
+        # farther than tau costs tau^2 either way; a grid of cells tau wide (compiled), else
+        # the KD-tree on every core unless the process is limited (a pool's worker)
+        d = problem.map.nearest_distance_within(p_m, tau, workers=kdtree_workers())
         cost = np.mean(np.minimum(d * d, tau * tau), axis=1)
         order = np.argsort(cost, kind="stable")
         picked: list[int] = []

@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from tofloc import numba_kernels
 from tofloc.atomic import atomic_path
 from tofloc.errors import ParameterError
 from tofloc.map_validation import (
@@ -235,6 +236,7 @@ class Map:
         self._surfel_radius_param = surfel_radius
         self._known_space: Any = None
         self._tree: cKDTree | None = None
+        self._bounded: dict[float, Any] = {}  # BoundedNearestGrid per radius, built on first use
         self._scene: Any = None
         self._face_normals: NDArray[np.float64] | None = None
         self._face_areas: NDArray[np.float64] | None = None
@@ -677,6 +679,7 @@ class Map:
         )
         m._spacing = self._spacing
         m._tree = self._tree
+        m._bounded = self._bounded  # the same points
         m._surface = surface
         return m
 
@@ -847,6 +850,38 @@ class Map:
         flat = np.ascontiguousarray(q.reshape(-1, 3), dtype=np.float32)
         d = self._scene_obj().compute_distance(o3d.core.Tensor(flat), nthreads=_threads(nthreads)).numpy()
         return d.astype(np.float64).reshape(q.shape[:-1])
+
+    def nearest_distance_within(self, query: ArrayLike, max_distance: float, *, workers: int = 1) -> NDArray[np.float64]:
+        """Distance to the nearest map point (cloud point or mesh vertex) of each query point
+        when below ``max_distance``, else inf: ``nearest(query, max_distance=...)[0]``, the
+        same values to the last bit, from a grid of cells as wide as ``max_distance``
+        (:class:`tofloc.bounded_nearest.BoundedNearestGrid`, built once per distance and
+        map, compiled; 2.3-3.5x faster than the KD-tree on the smoother's start scoring).
+        Without numba, or for a grid that would be too large, the KD-tree answers.
+
+        Parameters
+        ----------
+        query : array_like, shape (..., 3)
+        max_distance : float
+            Positive and finite (m).
+        workers : int
+            Threads of the KD-tree when it answers (the grid uses numba's threads).
+
+        Returns
+        -------
+        ndarray, shape (...)
+        """
+        from tofloc.bounded_nearest import BoundedNearestGrid, grid_applies
+
+        r = float(max_distance)
+        if not (math.isfinite(r) and r > 0):
+            raise ParameterError(f"{self.source}: nearest_distance_within: max_distance must be positive and finite, found {max_distance!r}")
+        grid = self._bounded.get(r)
+        if grid is None and numba_kernels.enabled():
+            grid = self._bounded[r] = BoundedNearestGrid(self.points, r)
+        if grid_applies(grid):
+            return grid.distances(as_query(query))
+        return self.nearest(query, workers=workers, max_distance=r)[0]
 
     def closest_surface_point(
         self, query: ArrayLike, *, nthreads: int | None = None
@@ -1125,6 +1160,7 @@ class Map:
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_tree"] = None
+        state["_bounded"] = {}
         state["_scene"] = None
         return state
 
@@ -1132,6 +1168,7 @@ class Map:
         self.__dict__.update(state)
         self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
         self.__dict__.setdefault("_known_space", None)
+        self.__dict__.setdefault("_bounded", {})
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
             a = getattr(self, name, None)
             if a is not None:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "gram_root_by_sample", "ROBUST_CODES",
-           "planar_inlier_count"]
+           "planar_inlier_count", "bounded_nearest_distance"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
@@ -894,3 +894,42 @@ def planar_inlier_count(X: Any, Y: Any, Z: Any, layer: Any, sub_z: Any, poses: A
     keep = [slice(0, int(n)) for n in n_left]
     return (counts.sum(axis=0), np.concatenate([left_p[b, keep[b]] for b in range(n_blocks)]),
             np.concatenate([left_m[b, keep[b]] for b in range(n_blocks)]))
+
+
+@_jit_parallel
+def bounded_nearest_distance(points: Any, start: Any, lo: Any, inv: float, dims: Any, query: Any, radius: float,
+                             out: Any) -> None:  # pragma: no cover - compiled
+    """Distance from each query ``(Q, 3)`` to its nearest point when closer than ``radius``,
+    else inf, into ``out`` ``(Q,)`` (:class:`tofloc.bounded_nearest.BoundedNearestGrid`):
+    ``points`` ``(N, 3)`` sorted by cell, cell ``c``'s points ``start[c]:start[c + 1]``,
+    cells of edge ``1 / inv >= radius`` from ``lo``, ``dims`` cells per axis (x-major), so
+    every point closer than ``radius`` lies in the 27 cells around the query's. The
+    distance is ``sqrt(dx^2 + dy^2 + dz^2)`` as scipy's KD-tree computes it (queries in
+    parallel; a non-finite query gets inf)."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    r2 = radius * radius
+    for i in _prange(query.shape[0]):
+        qx, qy, qz = query[i, 0], query[i, 1], query[i, 2]
+        out[i] = np.inf
+        fx = math.floor((qx - lo[0]) * inv)
+        fy = math.floor((qy - lo[1]) * inv)
+        fz = math.floor((qz - lo[2]) * inv)
+        # finite and within one cell of the grid (else no point is within radius)
+        if not (fx >= -1.0 and fx <= nx and fy >= -1.0 and fy <= ny and fz >= -1.0 and fz <= nz):
+            continue
+        cx, cy, cz = int(fx), int(fy), int(fz)
+        best = np.inf
+        for ix in range(max(cx - 1, 0), min(cx + 2, nx)):
+            for iy in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (ix * ny + iy) * nz
+                for iz in range(max(cz - 1, 0), min(cz + 2, nz)):
+                    c = base + iz
+                    for j in range(start[c], start[c + 1]):
+                        dx = qx - points[j, 0]
+                        dy = qy - points[j, 1]
+                        dz = qz - points[j, 2]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < best:
+                            best = d2
+        if best < r2:
+            out[i] = math.sqrt(best)
