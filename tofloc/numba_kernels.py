@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "parallel", "smoother_zone_rows", "gram_root_by_sample", "ROBUST_CODES",
-           "planar_inlier_count", "bounded_nearest_distance"]
+           "planar_inlier_count", "bounded_nearest_distance", "mean_shift_seeds"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
@@ -933,3 +933,44 @@ def bounded_nearest_distance(points: Any, start: Any, lo: Any, inv: float, dims:
                             best = d2
         if best < r2:
             out[i] = math.sqrt(best)
+
+
+@_jit_parallel
+def mean_shift_seeds(p: Any, w: Any, h: Any, seeds: Any, max_iter: int, tol: float) -> None:  # pragma: no cover - compiled
+    """Weighted mean shift of planar poses (:func:`tofloc.posterior_modes.cluster_poses`):
+    each seed ``(n, 3)`` moved in place by the Gaussian-kernel mean of the poses ``p``
+    ``(M, 3)`` with weights ``w`` and bandwidths ``h`` ``(3,)`` (the yaw difference
+    wrapped to ``[-pi, pi)``) until its step, in bandwidths, is at most ``tol`` or after
+    ``max_iter`` steps: numpy's iteration per seed (seeds in parallel; the sums over the
+    poses sequential, numpy's pairwise: the same seeds to ~1e-15)."""
+    two_pi = 2.0 * np.pi
+    M = p.shape[0]
+    h0, h1, h2 = h[0], h[1], h[2]
+    i0, i1, i2 = 1.0 / h0, 1.0 / h1, 1.0 / h2
+    inv_two_pi = 1.0 / two_pi
+    for i in _prange(seeds.shape[0]):
+        sx, sy, syaw = seeds[i, 0], seeds[i, 1], seeds[i, 2]
+        for _ in range(max_iter):
+            ks = 0.0
+            ax = 0.0
+            ay = 0.0
+            ayaw = 0.0
+            for j in range(M):
+                dx = (p[j, 0] - sx) * i0
+                dy = (p[j, 1] - sy) * i1
+                a = p[j, 2] - syaw
+                dyaw = (a - two_pi * math.floor((a + np.pi) * inv_two_pi)) * i2
+                k = w[j] * math.exp(-0.5 * (dx * dx + dy * dy + dyaw * dyaw))
+                ks += k
+                ax += k * dx
+                ay += k * dy
+                ayaw += k * dyaw
+            ks = max(ks, 1e-300)
+            stx, sty, styaw = ax / ks, ay / ks, ayaw / ks
+            sx = sx + stx * h0
+            sy = sy + sty * h1
+            b = syaw + styaw * h2
+            syaw = b - two_pi * math.floor((b + np.pi) / two_pi)
+            if not math.sqrt(stx * stx + sty * sty + styaw * styaw) > tol:
+                break
+        seeds[i, 0], seeds[i, 1], seeds[i, 2] = sx, sy, syaw

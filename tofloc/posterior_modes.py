@@ -31,7 +31,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tofloc import frames
+from tofloc import frames, numba_kernels
 from tofloc.errors import ParameterError
 
 __all__ = [
@@ -207,6 +207,17 @@ def cluster_poses(poses: ArrayLike, weights: ArrayLike | None = None,
     cdf = np.cumsum(w)
     q = (np.arange(n_seeds) + 0.5) / n_seeds
     seeds = p[np.unique(np.minimum(np.searchsorted(cdf, q * cdf[-1]), M - 1))].copy()
+    if numba_kernels.enabled():  # the same iteration per seed, compiled (no (seeds, M) temporaries)
+        numba_kernels.mean_shift_seeds(np.ascontiguousarray(p[:, :3]), np.ascontiguousarray(w), h, seeds, _MAX_ITER, _TOL)
+    else:
+        _mean_shift_numpy(p, w, h, seeds)
+    return _modes_from_seeds(p, w, h, seeds)
+
+
+def _mean_shift_numpy(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float64],
+                      seeds: NDArray[np.float64]) -> None:
+    """Move ``seeds`` ``(n, 3)`` in place by weighted mean shift (all seeds at once, each
+    stopped once its step in bandwidths is at most :data:`_TOL`)."""
     active = np.ones(seeds.shape[0], dtype=bool)
     for _ in range(_MAX_ITER):
         s = seeds[active]
@@ -225,15 +236,24 @@ def cluster_poses(poses: ArrayLike, weights: ArrayLike | None = None,
         active[idx[~moved]] = False
         if not active.any():
             break
+
+
+def _modes_from_seeds(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float64],
+                      seeds: NDArray[np.float64]) -> list[PosteriorMode]:
+    """The modes from converged seeds: merged (densest first, :data:`MERGE_RADIUS`), every
+    pose labelled by its nearest centre, shallow pairs merged, heaviest first."""
     # merge converged seeds (densest first)
     d_all = _scaled_diff(p[None, :, :], seeds[:, None, :], h)
     density = (w[None, :] * np.exp(-0.5 * np.sum(d_all * d_all, axis=-1))).sum(axis=1)
     order = np.argsort(-density, kind="stable")
-    centres: list[NDArray[np.float64]] = []
-    for i in order:
-        if not centres or np.min(np.linalg.norm(_scaled_diff(np.array(centres), seeds[i][None], h), axis=1)) > MERGE_RADIUS:
-            centres.append(seeds[i])
-    C = np.array(centres)
+    # D[i, j]: seed j's normalized distance from seed i, all pairs at once (the same values
+    # as one seed against the centres so far)
+    D = np.linalg.norm(_scaled_diff(seeds[None, :, :], seeds[:, None, :], h), axis=-1)
+    kept: list[int] = []
+    for i in order:  # greedy, densest first (<= MAX_SEEDS seeds)
+        if not kept or np.min(D[i, kept]) > MERGE_RADIUS:
+            kept.append(int(i))
+    C = seeds[kept]
     dist = np.linalg.norm(_scaled_diff(p[:, None, :], C[None, :, :], h), axis=-1)
     labels = _merge_shallow(p, w, h, C)[np.argmin(dist, axis=1)]
     C = C[: int(labels.max()) + 1]
