@@ -52,6 +52,12 @@ def test_queries_at_the_radius_and_non_finite_ones() -> None:
     assert np.isfinite(got[0]) and not np.isfinite(got[2]) and got[3] == 0.0
     bad = np.array([[np.nan, 0.0, 0.0], [np.inf, 0.2, 0.3], [0.1, -np.inf, 0.3]])
     assert np.isinf(grid.distances(bad)).all()
+    with pytest.raises(ParameterError, match=r"radius: expected a positive finite distance \(m\), found 0.0"):
+        bn.BoundedNearestGrid(pts, 0.0)
+    with pytest.raises(ParameterError, match=r"points: expected finite coordinates, shape \(N, 3\), found shape \(1, 2\)"):
+        bn.BoundedNearestGrid(pts[:, :2], r)
+    with pytest.raises(ParameterError, match="found shape \\(1, 3\\) with NaN or inf"):
+        bn.BoundedNearestGrid(np.array([[0.0, np.nan, 0.0]]), r)
 
 
 def test_map_method_uses_the_grid_or_the_kdtree_with_the_same_values(monkeypatch) -> None:

@@ -20,8 +20,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc import numba_kernels
+from tofloc.errors import ParameterError
 
-__all__ = ["BoundedNearestGrid", "MAX_CELLS"]
+__all__ = ["BoundedNearestGrid", "MAX_CELLS", "grid_applies"]
 
 #: Largest grid (cells) built; beyond it (a wide map and a small radius) the KD-tree answers.
 MAX_CELLS = 1 << 24
@@ -45,9 +46,10 @@ class BoundedNearestGrid:
     def __init__(self, points: ArrayLike, radius: float) -> None:
         p = np.ascontiguousarray(points, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
-            raise ValueError(f"BoundedNearestGrid: expected finite points (N, 3), found shape {p.shape}")
+            raise ParameterError(f"BoundedNearestGrid: points: expected finite coordinates, shape (N, 3), found shape {p.shape}"
+                                 + ("" if p.ndim != 2 or p.shape[1] != 3 else " with NaN or inf"))
         if not (math.isfinite(radius) and radius > 0):
-            raise ValueError(f"BoundedNearestGrid: radius must be positive and finite, found {radius!r}")
+            raise ParameterError(f"BoundedNearestGrid: radius: expected a positive finite distance (m), found {radius!r}")
         self.radius = float(radius)
         self.lo = p.min(axis=0) if p.shape[0] else np.zeros(3)
         self.inv = 1.0 / (self.radius * (1.0 + _CELL_MARGIN))
