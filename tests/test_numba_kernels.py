@@ -114,3 +114,65 @@ def test_smoother_zone_rows_agree_with_numpy(monkeypatch, kernel: str, stacked: 
     res = out["1"][0][0]
     assert np.array_equal(res[~args["inlier"]], args["out_const"][~args["inlier"]])  # gated zones: the constant
     assert math.isfinite(float(np.abs(res).max()))
+
+
+@needs_numba
+@pytest.mark.parametrize("footprint", [1, 3])
+def test_zone_caster_rays_are_the_einsums_bits(monkeypatch, footprint: int) -> None:
+    """The compiled rotation of the zones' sub-ray directions gives numpy's einsum's bits
+    (it adds the three products in einsum's order: another order differs in about a third
+    of the entries on random rotations, so the test sees a reordered sum)."""
+    from scipy.spatial.transform import Rotation
+
+    from tofloc.zone_caster import ZoneCaster
+
+    problem, _ = easy_problem()
+    caster = ZoneCaster(problem.rig, footprint=footprint)
+    S = problem.rig.n_sensors
+    rng = np.random.default_rng(4)
+    for lead in ((), (7,), (3, 5)):
+        T = np.tile(np.eye(4), lead + (S, 1, 1))
+        T[..., :3, :3] = Rotation.random(int(np.prod(lead, dtype=int)) * S, random_state=5).as_matrix().reshape(lead + (S, 3, 3))
+        T[..., :3, 3] = rng.normal(size=lead + (S, 3))
+        monkeypatch.setenv("TOFLOC_NUMBA", "1")
+        o_fast, d_fast = caster.rays(T)
+        monkeypatch.setenv("TOFLOC_NUMBA", "0")
+        o_slow, d_slow = caster.rays(T)
+        assert d_fast.shape == lead + caster.dirs_sensor.shape
+        np.testing.assert_array_equal(d_fast, d_slow)
+        np.testing.assert_array_equal(o_fast, o_slow)
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["mesh", "cloud", "cloud_with_surface"])
+def test_raycast_is_the_same_with_and_without_numba(monkeypatch, kind: str) -> None:
+    """``Map.raycast``'s compiled ray packing and hit unpacking give the numpy path's
+    lengths, normals (flipped toward the origin or not) and indices bit for bit, misses
+    and hits beyond the range cut included, and refuse the same bad directions."""
+    from tofloc.errors import ParameterError
+
+    box = Map.cuboid((0.8, 0.6, 0.5), (-0.4, -0.3, 0.0))
+    the_map = {"mesh": box, "cloud": box.sample_surface(3000, np.random.default_rng(0)),
+               "cloud_with_surface": box.sample_surface(3000, np.random.default_rng(0)).with_surface(box)}[kind]
+    rng = np.random.default_rng(6)
+    origins = np.array([0.0, 0.0, 0.25]) + rng.normal(scale=0.3, size=(400, 1, 3))  # inside and outside the box
+    directions = rng.normal(size=(400, 64, 3)) * rng.uniform(0.5, 2.0, size=(400, 64, 1))  # not unit
+    for kw in ({}, {"max_range": 0.35}, {"toward_origin": True}, {"toward_origin": True, "max_range": 0.35}):
+        monkeypatch.setenv("TOFLOC_NUMBA", "1")
+        fast = the_map.raycast(origins, directions, **kw)
+        monkeypatch.setenv("TOFLOC_NUMBA", "0")
+        slow = the_map.raycast(origins, directions, **kw)
+        hit = np.isfinite(slow.t)
+        assert 0.1 < hit.mean() < 0.95, kw  # misses, and hits cut by the range
+        np.testing.assert_array_equal(fast.t, slow.t)
+        np.testing.assert_array_equal(fast.index, slow.index)
+        np.testing.assert_array_equal(fast.normal, slow.normal)  # NaN on a miss in both
+        if kw.get("toward_origin"):
+            assert (np.einsum("...i,...i->...", fast.normal[hit], directions[hit]) <= 0).all()
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [np.inf, 0.0, 1.0]):
+        d = directions.copy()
+        d[5, 7] = bad
+        for flag in ("1", "0"):
+            monkeypatch.setenv("TOFLOC_NUMBA", flag)
+            with pytest.raises(ParameterError, match="finite, non-zero directions"):
+                the_map.raycast(origins, d)

@@ -1032,13 +1032,29 @@ class Map:
             raise ParameterError(f"raycast: max_range: expected > 0, found {max_range}")
         rays = np.empty(shape[:-1] + (6,), dtype=np.float32)
         rays[..., :3] = o
-        norm = np.linalg.norm(d, axis=-1, keepdims=True)
-        if not (np.isfinite(o).all() and np.isfinite(norm).all() and (norm > 0).all()):
-            raise ParameterError("raycast: expected finite origins and finite, non-zero directions")
-        rays[..., 3:] = d / norm
-        o3d = _open3d()
+        compiled = numba_kernels.enabled()
         flat = rays.reshape(-1, 6)
+        if compiled:  # one pass: no norm, quotient or mask temporaries (the same bits)
+            d_rows = np.ascontiguousarray(np.broadcast_to(d, shape).reshape(-1, 3))
+            if not np.isfinite(o).all() or numba_kernels.unit_ray_directions(d_rows, flat) > 0:
+                raise ParameterError("raycast: expected finite origins and finite, non-zero directions")
+        else:
+            norm = np.linalg.norm(d, axis=-1, keepdims=True)
+            if not (np.isfinite(o).all() and np.isfinite(norm).all() and (norm > 0).all()):
+                raise ParameterError("raycast: expected finite origins and finite, non-zero directions")
+            rays[..., 3:] = d / norm
+        o3d = _open3d()
         ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
+        table = self._face_normals if self.kind == "mesh" else self.normals
+        assert table is not None
+        if compiled:
+            t = np.empty(flat.shape[0])
+            index = np.empty(flat.shape[0], dtype=np.int64)
+            normal = np.empty((flat.shape[0], 3))
+            numba_kernels.ray_hits(ans["t_hit"].numpy(), ans["primitive_ids"].numpy(), mr,
+                                   np.ascontiguousarray(table, dtype=np.float64), 1 if self.kind == "mesh" else _SURFEL_TRIANGLES,
+                                   flat, bool(toward_origin), t, index, normal)
+            return RayHits(t=t.reshape(shape[:-1]), normal=normal.reshape(shape), index=index.reshape(shape[:-1]))
         t = ans["t_hit"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy()
         hit = (prim != _NO_HIT) & np.isfinite(t) & (t <= mr)
@@ -1046,11 +1062,8 @@ class Map:
         index = np.full(t.shape, -1, dtype=np.int64)
         if self.kind == "mesh":
             index[hit] = prim[hit].astype(np.int64)
-            table = self._face_normals
         else:
             index[hit] = prim[hit].astype(np.int64) // _SURFEL_TRIANGLES
-            table = self.normals
-        assert table is not None
         normal = np.full(t.shape + (3,), np.nan)
         normal[hit] = table[index[hit]]
         if toward_origin:
