@@ -161,3 +161,20 @@ def test_compiled_mean_shift_gives_numpy_s_modes_bit_for_bit(monkeypatch) -> Non
             np.testing.assert_array_equal(a.covariance, b.covariance)
             assert a.weight == b.weight
     assert min(n_modes) == 1 and max(n_modes) >= 3  # single and several modes both covered
+
+
+def test_the_per_axis_squared_distance_has_the_stacked_differences_bits() -> None:
+    """``_scaled_sq`` (one axis at a time) is the squared norm of ``_scaled_diff`` to the
+    last bit, yaw differences across the wrap included, in every orientation the mode
+    clustering uses it (poses against points, seeds against seeds, poses against centres)."""
+    from tofloc.posterior_modes import _scaled_diff, _scaled_sq
+
+    rng = np.random.default_rng(11)
+    p = np.column_stack([rng.normal(scale=0.05, size=500), rng.normal(scale=0.05, size=500),
+                         rng.uniform(-np.pi, np.pi, size=500)])  # yaw differences cross +-pi
+    x = p[rng.integers(0, 500, 40)] + rng.normal(scale=0.01, size=(40, 3))
+    h = np.array([0.013, 0.013, 0.07])
+    for a, b in ((p[None, :, :], x[:, None, :]), (x[None, :, :], x[:, None, :]), (p[:, None, :], x[None, :, :])):
+        d = _scaled_diff(a, b, h)
+        np.testing.assert_array_equal(_scaled_sq(a, b, h), np.sum(d * d, axis=-1))
+        np.testing.assert_array_equal(np.sqrt(_scaled_sq(a, b, h)), np.linalg.norm(d, axis=-1))

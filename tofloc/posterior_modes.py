@@ -132,6 +132,17 @@ def _scaled_diff(a: NDArray[np.float64], b: NDArray[np.float64], h: NDArray[np.f
     return d / h
 
 
+def _scaled_sq(a: NDArray[np.float64], b: NDArray[np.float64], h: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``sum((a - b)^2 / h^2)`` over the three axes, the yaw difference wrapped, broadcast
+    over leading axes: the squared norm of :func:`_scaled_diff`, with the same bits (the
+    same operations per axis, summed in the reduction's order), computed one axis at a time
+    (no ``(..., 3)`` temporaries nor strided yaw column: about 2x faster)."""
+    dx = (a[..., 0] - b[..., 0]) / h[0]
+    dy = (a[..., 1] - b[..., 1]) / h[1]
+    dyaw = _wrap(a[..., 2] - b[..., 2]) / h[2]
+    return dx * dx + dy * dy + dyaw * dyaw
+
+
 def _bandwidth(p: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
     mean_yaw = frames.circular_mean(p[:, 2], w)
     dev = np.column_stack([p[:, :2] - w @ p[:, :2], frames.wrap_angle(p[:, 2] - mean_yaw)])
@@ -144,8 +155,7 @@ def _bandwidth(p: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.flo
 
 def _density(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
     """Kernel density (unnormalized) of the weighted poses at points ``x`` ``(N, 3)``."""
-    d = _scaled_diff(p[None, :, :], x[:, None, :], h)
-    return (w[None, :] * np.exp(-0.5 * np.sum(d * d, axis=-1))).sum(axis=1)
+    return (w[None, :] * np.exp(-0.5 * _scaled_sq(p[None, :, :], x[:, None, :], h))).sum(axis=1)
 
 
 def _merge_shallow(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float64],
@@ -243,18 +253,17 @@ def _modes_from_seeds(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray
     """The modes from converged seeds: merged (densest first, :data:`MERGE_RADIUS`), every
     pose labelled by its nearest centre, shallow pairs merged, heaviest first."""
     # merge converged seeds (densest first)
-    d_all = _scaled_diff(p[None, :, :], seeds[:, None, :], h)
-    density = (w[None, :] * np.exp(-0.5 * np.sum(d_all * d_all, axis=-1))).sum(axis=1)
+    density = _density(p, w, h, seeds)
     order = np.argsort(-density, kind="stable")
     # D[i, j]: seed j's normalized distance from seed i, all pairs at once (the same values
     # as one seed against the centres so far)
-    D = np.linalg.norm(_scaled_diff(seeds[None, :, :], seeds[:, None, :], h), axis=-1)
+    D = np.sqrt(_scaled_sq(seeds[None, :, :], seeds[:, None, :], h))
     kept: list[int] = []
     for i in order:  # greedy, densest first (<= MAX_SEEDS seeds)
         if not kept or np.min(D[i, kept]) > MERGE_RADIUS:
             kept.append(int(i))
     C = seeds[kept]
-    dist = np.linalg.norm(_scaled_diff(p[:, None, :], C[None, :, :], h), axis=-1)
+    dist = np.sqrt(_scaled_sq(p[:, None, :], C[None, :, :], h))
     labels = _merge_shallow(p, w, h, C)[np.argmin(dist, axis=1)]
     C = C[: int(labels.max()) + 1]
     W, mean, cov = pose_mean_covariance(p, w, labels, C.shape[0])
