@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from tofloc import frames
+from tofloc import frames, numba_kernels
 from tofloc.maps import Map
 from tofloc.rig import Rig, Sensor
 from tofloc.testing import easy_problem
@@ -360,21 +360,41 @@ def test_rough_footprints_cast_in_pieces_give_the_same_readings(monkeypatch, num
     np.testing.assert_array_equal(got.hit_fraction, whole.hit_fraction)
 
 
-def test_cast_buffers_are_the_rays_the_cast_casts() -> None:
+@pytest.mark.parametrize("numba", ["1", "0"])
+def test_cast_buffers_are_the_rays_the_cast_casts(monkeypatch, numba: str) -> None:
     """What a benchmark times Embree on: the centre rays and the rough zones' footprints,
-    exactly the rays :meth:`PlanarZoneRays.cast` casts (their hits rebuild its readings)."""
+    exactly the rays :meth:`PlanarZoneRays.cast` casts (their hits rebuild its readings);
+    compiled, the footprints leave out the centre sub-ray, whose hit the cast reuses, and
+    the readings are the same bits as the numpy path's whole footprints."""
+    if numba == "1" and not numba_kernels.enabled():
+        pytest.skip("numba not installed (optional)")
+    monkeypatch.setenv("TOFLOC_NUMBA", numba)
     p, truth = easy_problem(n_samples=2)
     T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
     poses = truth + np.random.default_rng(6).normal(size=(100, 3)) * np.array([0.05, 0.05, 0.2])
     caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
     rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
     centre, feet = rays.cast_buffers(p.map, poses, 1)
-    assert centre.shape == (100, 3, 64, 1, 6) and feet.shape[1:] == (9, 6)
+    assert centre.shape == (100, 3, 64, 1, 6) and feet.shape[1:] == ((8, 6) if numba == "1" else (9, 6))
     t_c = p.map.raycast_distance(centre, max_range=caster.max_ray_length)[..., 0]
     rough = caster.centre_and_rough(t_c)[1]
     assert feet.shape[0] == rough.sum() > 0
-    got = caster.cast_rough(p.map, t_c, lambda idx: feet)
+    if numba == "1":
+        t32, n32 = p.map.raycast_hits(centre, normals=True)
+        got = caster.cast_rough(p.map, t32[..., 0], lambda idx: feet, centre_hits=(n32.reshape(-1, 3), centre.reshape(-1, 6)))
+        monkeypatch.setenv("TOFLOC_NUMBA", "0")  # the numpy path casts every footprint whole
+        whole = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift).cast_buffers(p.map, poses, 1)[1]
+        assert whole.shape[1:] == (9, 6)
+        np.testing.assert_array_equal(whole[:, [0, 1, 2, 3, 5, 6, 7, 8]], feet)  # the same sub-rays, the centre left out
+        np.testing.assert_array_equal(whole[:, 4], centre.reshape(-1, 6)[np.flatnonzero(rough)])
+        ref = rays.cast(p.map, poses, 1)
+        monkeypatch.setenv("TOFLOC_NUMBA", "1")
+    else:
+        got = caster.cast_rough(p.map, t_c, lambda idx: feet)
+        ref = got
     np.testing.assert_array_equal(got.reading, rays.cast(p.map, poses, 1).reading)
+    np.testing.assert_allclose(got.reading, ref.reading, rtol=1e-8, atol=0)  # compiled vs numpy (float32 vs 64 lengths)
+    np.testing.assert_array_equal(np.isnan(got.reading), np.isnan(ref.reading))
     full = PlanarZoneRays(ZoneCaster(p.rig, footprint=3), p.rig.T_tip_sensor, T_lift)
     assert len(full.cast_buffers(p.map, poses, 1)) == 1
 

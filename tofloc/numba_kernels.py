@@ -511,11 +511,13 @@ def ray_hits(t32: Any, prim: Any, max_range: float, table: Any, divisor: int, ra
 
 @_jit_parallel
 def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_idx: Any,
-                         out: Any) -> None:  # pragma: no cover - compiled
+                         out: Any, skip: int) -> None:  # pragma: no cover - compiled
     """The sub-rays of chosen zones (:meth:`tofloc.zone_caster.PlanarZoneRays.cast`'s rough
     zones): ``out[f, i]`` (float32) is the origin ``org[m, s]`` then ``A[m] @ dirs[s, z, i]``
     with ``m, s, z`` the ``f``-th entries of ``m_idx, s_idx, z_idx``; rotations ``A`` ``(M,
-    3, 3)``, origins ``(M, S, 3)``, unit directions ``(S, Z, n, 3)`` (zones in parallel)."""
+    3, 3)``, origins ``(M, S, 3)``, unit directions ``(S, Z, n, 3)`` (zones in parallel).
+    With ``skip >= 0`` sub-ray ``skip`` (the centre ray, already cast) is left out: ``out``
+    is ``(F, n - 1, 6)``."""
     n = dirs.shape[2]
     for f in _prange(m_idx.shape[0]):
         m = m_idx[f]
@@ -524,21 +526,32 @@ def footprint_ray_buffer(A: Any, org: Any, dirs: Any, m_idx: Any, s_idx: Any, z_
         ox = np.float32(org[m, s, 0])
         oy = np.float32(org[m, s, 1])
         oz = np.float32(org[m, s, 2])
+        k = 0
         for i in range(n):
-            _put_ray(out[f, i], ox, oy, oz, A, m, dirs[s, z, i])
+            if i == skip:
+                continue
+            _put_ray(out[f, k], ox, oy, oz, A, m, dirs[s, z, i])
+            k += 1
 
 
 @_jit_parallel
 def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading: Any, s_idx: Any, z_idx: Any,
                        min_range: float, min_fraction: float, signal: bool, max_t: float, reading: Any,
-                       fraction: Any) -> None:  # pragma: no cover - compiled
+                       fraction: Any, skip: int, t_c: Any, normals_c: Any, rays_c: Any, g_idx: Any) -> None:  # pragma: no cover - compiled
     """Readings and hit fractions ``(F,)`` of chosen zones from their sub-rays' hit lengths
     ``t`` ``(F, n)`` (float32 as the ray caster gives them, or float64; inf: no hit; a hit
     beyond ``max_t`` is none), the hit triangles' normals ``(F, n, 3)`` (float32) and
     the rays ``(F, n, 6)`` (float32): the range cut on each sub-ray's reading and the
     weighted mean of :class:`tofloc.zone_caster.ZoneCaster` (``signal``: ``max(|cos i|,
-    0.05) / max(t, 0.05)^2``, else equal weights)."""
-    F, n = t.shape
+    0.05) / max(t, 0.05)^2``, else equal weights).
+
+    With ``skip >= 0`` the sub-rays ``(F, n - 1)`` lack sub-ray ``skip``, the centre ray
+    cast before them: its length, normal and ray are row ``g_idx[f]`` of ``t_c`` ``(P,)``,
+    ``normals_c`` ``(P, 3)`` and ``rays_c`` ``(P, 6)``, taken in its place (the same ray,
+    so the same hit: the same sums in the same order). With ``skip = -1`` those four are
+    not read (pass empty arrays)."""
+    F = t.shape[0]
+    n = t.shape[1] + (1 if skip >= 0 else 0)
     for f in _prange(F):
         s = s_idx[f]
         z = z_idx[f]
@@ -546,15 +559,23 @@ def footprint_readings(t: Any, normals: Any, rays: Any, along: Any, max_reading:
         acc = 0.0
         n_ret = 0
         for j in range(n):
-            tj = np.float64(t[f, j])
+            if j == skip:
+                g = g_idx[f]
+                tj = np.float64(t_c[g])
+                nx, ny, nz = normals_c[g, 0], normals_c[g, 1], normals_c[g, 2]
+                dx, dy, dz = rays_c[g, 3], rays_c[g, 4], rays_c[g, 5]
+            else:
+                k = j - 1 if (skip >= 0 and j > skip) else j
+                tj = np.float64(t[f, k])
+                nx, ny, nz = normals[f, k, 0], normals[f, k, 1], normals[f, k, 2]
+                dx, dy, dz = rays[f, k, 3], rays[f, k, 4], rays[f, k, 5]
             r = tj * along[s, z, j]
             if not (tj <= max_t and r >= min_range and r <= max_reading[s]):  # also a miss (inf, or nan)
                 continue
             n_ret += 1
             w = 1.0
             if signal:
-                c = abs(np.float64(normals[f, j, 0]) * rays[f, j, 3] + np.float64(normals[f, j, 1]) * rays[f, j, 4]
-                        + np.float64(normals[f, j, 2]) * rays[f, j, 5])
+                c = abs(np.float64(nx) * dx + np.float64(ny) * dy + np.float64(nz) * dz)
                 w = _signal_weight(c, 1.0 / tj)
             wsum += w
             acc += w * r
