@@ -3,6 +3,8 @@ bounded-memory chunked log-likelihood the same numbers as one call."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,42 @@ def test_raycast_is_the_same_with_and_without_numba(monkeypatch, kind: str) -> N
             monkeypatch.setenv("TOFLOC_NUMBA", flag)
             with pytest.raises(ParameterError, match="finite, non-zero directions"):
                 the_map.raycast(origins, d)
+
+
+@needs_numba
+def test_kernels_called_from_many_threads_at_once_do_not_abort_the_process() -> None:
+    """numba's workqueue layer aborts the process when two threads launch parallel loops at
+    once (a Dask worker with two threads in one process did, in the fit check's ray casts):
+    off the main thread the kernels run their plain twins. In a child process, so that an
+    abort fails this test rather than killing the suite; the threads' answers equal the
+    main thread's (parallel) ones."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        from concurrent.futures import ThreadPoolExecutor
+        import numpy as np
+        from tofloc import numba_kernels
+        from tofloc.maps import Map
+        from tofloc.posterior_modes import cluster_poses
+        assert numba_kernels.enabled()
+        box = Map.cuboid((0.8, 0.6, 0.5), (-0.4, -0.3, 0.0))
+        rng = np.random.default_rng(0)
+        o = np.array([0.0, 0.0, 0.25]) + rng.normal(scale=0.05, size=(2000, 1, 3))
+        d = rng.normal(size=(2000, 64, 3))
+        poses = rng.normal(scale=[0.02, 0.02, 0.1], size=(1000, 3))
+        ref_t = box.raycast(o, d).t
+        ref_m = cluster_poses(poses)[0].mean
+        def work(i):
+            for _ in range(15):
+                assert np.array_equal(box.raycast(o, d).t, ref_t)
+                assert np.array_equal(cluster_poses(poses)[0].mean, ref_m)
+            return i
+        with ThreadPoolExecutor(4) as ex:
+            assert sorted(ex.map(work, range(8))) == list(range(8))
+        print("ok")
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "TOFLOC_NUMBA"}
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), (res.returncode, res.stderr[-2000:])

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+import types
 from typing import Any
 
 import numpy as np
@@ -52,8 +53,32 @@ def _jit_inline(fn: Any) -> Any:
     return fn if _nb is None else _nb.njit(cache=True, nogil=True, inline="always")(fn)
 
 
+class _ParallelKernel:
+    """A kernel with ``prange`` loops, compiled twice: with numba's parallel loops, used when
+    :func:`parallel` holds (the main thread of a process that may use every core), and as
+    a plain loop otherwise. numba's ``workqueue`` threading layer aborts the whole process
+    when two threads launch parallel loops at once (a Dask worker with several threads in
+    one process does); the plain twin never launches any. Each entry a kernel writes is
+    written once by one iteration, so both give the same numbers."""
+
+    def __init__(self, fn: Any) -> None:
+        assert _nb is not None
+        self.__wrapped__ = fn
+        self.__name__ = fn.__name__
+        self.__doc__ = fn.__doc__
+        self.parallel_version = _nb.njit(cache=True, nogil=True, parallel=True)(fn)
+        # a twin function of its own name, so that numba's on-disk cache keeps both
+        twin = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__, fn.__closure__)
+        twin.__qualname__ = fn.__qualname__ + "_serial"
+        twin.__module__ = fn.__module__
+        self.serial_version = _nb.njit(cache=True, nogil=True)(twin)
+
+    def __call__(self, *args: Any) -> Any:
+        return (self.parallel_version if parallel() else self.serial_version)(*args)
+
+
 def _jit_parallel(fn: Any) -> Any:
-    return fn if _nb is None else _nb.njit(cache=True, nogil=True, parallel=True)(fn)
+    return fn if _nb is None else _ParallelKernel(fn)
 
 
 _prange = range if _nb is None else _nb.prange
