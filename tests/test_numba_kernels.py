@@ -176,8 +176,13 @@ def test_raycast_is_the_same_with_and_without_numba(monkeypatch, kind: str) -> N
         d[5, 7] = bad
         for flag in ("1", "0"):
             monkeypatch.setenv("TOFLOC_NUMBA", flag)
-            with pytest.raises(ParameterError, match="finite, non-zero directions"):
+            with pytest.raises(ParameterError, match=r"finite, non-zero directions; directions\[5, 7\] is") as err:
                 the_map.raycast(origins, d)
+            assert (the_map.surface or the_map).source in str(err.value)  # the mesh cast against
+    bad_o = origins.copy()
+    bad_o[3, 0, 1] = np.nan
+    with pytest.raises(ParameterError, match=r"origins\[3, 0\] is \[.*nan"):
+        the_map.raycast(bad_o, directions)
 
 
 @needs_numba

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tofloc import frames, numba_kernels
+from tofloc.errors import ParameterError
 from tofloc.maps import Map
 from tofloc.rig import Rig, Sensor
 from tofloc.testing import easy_problem
@@ -436,3 +437,23 @@ def test_explicit_zone_tables_have_no_footprint_in_the_beam_model() -> None:
     assert caster.n_sub == 1 and caster.footprint_tolerance is None
     centre = BeamModel(sub_rays=1).bind(explicit).expected(truth[None], 0)[0]
     np.testing.assert_array_equal(BeamModel().bind(explicit).expected(truth[None], 0)[0], centre)
+
+
+def test_centre_hits_are_refused_when_they_cannot_be_used(monkeypatch) -> None:
+    """``cast_rough``'s reused centre hits: a wrong shape names both shapes and the zones
+    expected; without the compiled kernels they are refused, not ignored."""
+    p, truth = easy_problem(n_samples=2)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    poses = truth + np.random.default_rng(6).normal(size=(10, 3)) * np.array([0.05, 0.05, 0.2])
+    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
+    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    monkeypatch.setenv("TOFLOC_NUMBA", "1")
+    if not numba_kernels.enabled():
+        pytest.skip("numba not installed (optional)")
+    centre, feet = rays.cast_buffers(p.map, poses, 1)
+    t32, n32 = p.map.raycast_hits(centre, normals=True)
+    with pytest.raises(ParameterError, match=r"centre_hits: expected normals \(1920, 3\) and rays \(1920, 6\).*found \(1919, 3\)"):
+        caster.cast_rough(p.map, t32[..., 0], lambda idx: feet, centre_hits=(n32.reshape(-1, 3)[1:], centre.reshape(-1, 6)))
+    monkeypatch.setenv("TOFLOC_NUMBA", "0")
+    with pytest.raises(ParameterError, match="centre_hits: expected None without the compiled kernels"):
+        caster.cast_rough(p.map, t32[..., 0], lambda idx: feet, centre_hits=(n32.reshape(-1, 3), centre.reshape(-1, 6)))

@@ -1037,11 +1037,11 @@ class Map:
         if compiled:  # one pass: no norm, quotient or mask temporaries (the same bits)
             d_rows = np.ascontiguousarray(np.broadcast_to(d, shape).reshape(-1, 3))
             if not np.isfinite(o).all() or numba_kernels.unit_ray_directions(d_rows, flat) > 0:
-                raise ParameterError("raycast: expected finite origins and finite, non-zero directions")
+                self._refuse_rays(o, d)
         else:
             norm = np.linalg.norm(d, axis=-1, keepdims=True)
             if not (np.isfinite(o).all() and np.isfinite(norm).all() and (norm > 0).all()):
-                raise ParameterError("raycast: expected finite origins and finite, non-zero directions")
+                self._refuse_rays(o, d)
             rays[..., 3:] = d / norm
         o3d = _open3d()
         ans = self._scene_obj().cast_rays(o3d.core.Tensor(flat), nthreads=_threads(nthreads))
@@ -1073,6 +1073,19 @@ class Map:
             sub[back] *= -1.0
             normal[hit] = sub
         return RayHits(t=t.reshape(shape[:-1]), normal=normal.reshape(shape), index=index.reshape(shape[:-1]))
+
+    def _refuse_rays(self, o: NDArray[np.float64], d: NDArray[np.float64]) -> None:
+        """Raise the error of :meth:`raycast` naming the first bad origin or direction."""
+        bad_o = np.argwhere(~np.isfinite(o).all(axis=-1))
+        if bad_o.size:
+            i = tuple(int(v) for v in bad_o[0])
+            raise ParameterError(f"{self.source}: raycast: expected finite origins and finite, non-zero directions; "
+                                 f"origins{list(i)} is {o[i].tolist()}")
+        with np.errstate(over="ignore", invalid="ignore"):
+            n = np.linalg.norm(d, axis=-1)
+        i = tuple(int(v) for v in np.argwhere(~(np.isfinite(n) & (n > 0)))[0])
+        raise ParameterError(f"{self.source}: raycast: expected finite origins and finite, non-zero directions; "
+                             f"directions{list(i)} is {d[i].tolist()}")
 
     def raycast_distance(self, rays: NDArray[np.float32], max_range: float = np.inf, *,
                          nthreads: int | None = None) -> NDArray[np.float64]:

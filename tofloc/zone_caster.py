@@ -413,7 +413,8 @@ class ZoneCaster:
         out (``(F, n - 1, 6)``) and its hit is taken from these: the same ray, so the same
         readings, with a ninth fewer rays cast (3 x 3 footprints)."""
         if centre_hits is not None and not numba_kernels.enabled():
-            raise ParameterError("cast_rough: centre_hits needs the compiled kernels (numba)")
+            raise ParameterError("cast_rough: centre_hits: expected None without the compiled kernels (numba missing "
+                                 "or TOFLOC_NUMBA=0), found the centre rays' hits")
         if numba_kernels.enabled() and self.footprint_tolerance is not None and self.footprint_tolerance >= 0:
             # one compiled pass from the hit lengths: the centre readings, the rough zones, and
             # the smooth ones' footprints over their planes
@@ -441,8 +442,8 @@ class ZoneCaster:
             skip, t_cf = self.n_sub // 2, np.ascontiguousarray(t_centre).reshape(-1)
             n_cf, r_cf = (np.ascontiguousarray(a) for a in centre_hits)
             if n_cf.shape != (t_cf.size, 3) or r_cf.shape != (t_cf.size, 6):
-                raise ParameterError(f"cast_rough: centre_hits must be shaped ({t_cf.size}, 3) and ({t_cf.size}, 6), "
-                                     f"got {n_cf.shape} and {r_cf.shape}")
+                raise ParameterError(f"cast_rough: centre_hits: expected normals ({t_cf.size}, 3) and rays ({t_cf.size}, 6), "
+                                     f"one per zone of t_centre {np.shape(t_centre)}, found {n_cf.shape} and {r_cf.shape}")
         flat = np.flatnonzero(rough)  # np.nonzero's order; one index array, unravelled below (3x faster)
         piece = self.footprint_piece_zones
         for lo in range(0, flat.size, piece):  # bounded memory: at most `piece` footprints at once
@@ -648,7 +649,8 @@ class PlanarZoneRays:
                                                n // 2 if skip_centre else -1)
             return out
         if skip_centre:
-            raise ParameterError("skip_centre needs the compiled kernels (numba)")
+            raise ParameterError("PlanarZoneRays footprints: skip_centre: expected False without the compiled kernels "
+                                 "(numba missing or TOFLOC_NUMBA=0), found True")
         Am, d = A[m], self.dirs_tip[s, z]  # (F, 3, 3), (F, n, 3)
         out = np.empty(d.shape[:-1] + (6,), dtype=np.float32)
         out[..., :3] = org[m, s][:, None, :]
