@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,6 +18,17 @@ from tofloc.rig import Rig, Sensor
 from tofloc.testing import easy_problem
 from tofloc.zone_caster import PlanarZoneRays, ZoneCaster, subray_directions
 
+
+
+def _rough_zone_rays(seed: int, n: int) -> tuple[Any, np.ndarray, np.ndarray, ZoneCaster, PlanarZoneRays]:
+    """The easy problem's second sample cast with 3 x 3 footprints on rough zones (1 cm):
+    the problem, its lifted tip poses, ``n`` poses scattered about the truth (5 cm, 0.2 rad;
+    ``seed``), the caster and its planar rays."""
+    p, truth = easy_problem(n_samples=2)
+    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    poses = truth + np.random.default_rng(seed).normal(size=(n, 3)) * np.array([0.05, 0.05, 0.2])
+    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
+    return p, T_lift, poses, caster, PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
 
 def _consumers(p, truth: np.ndarray, footprint: int) -> dict[str, np.ndarray]:
     """Expected readings ``(K, S, Z)`` of problem ``p`` at ``truth`` from every consumer."""
@@ -272,11 +284,7 @@ def test_compiled_pass_cuts_the_raw_float32_lengths_like_the_float64_path(monkey
     and applies the ray-length cut itself: with a cut short enough to drop many hits
     (centre rays and footprint sub-rays), its readings are the numpy path's (float64
     lengths cut before use), misses at the same zones."""
-    p, truth = easy_problem(n_samples=2)
-    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
-    poses = truth + np.random.default_rng(11).normal(size=(200, 3)) * np.array([0.05, 0.05, 0.2])
-    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
-    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    p, T_lift, poses, caster, rays = _rough_zone_rays(seed=11, n=200)
     monkeypatch.setenv("TOFLOC_NUMBA", "1")
     uncut = rays.cast(p.map, poses, 1)
     t_c = p.map.raycast_distance(rays.cast_buffers(p.map, poses, 1)[0], max_range=caster.max_ray_length)
@@ -347,11 +355,7 @@ def test_rough_footprints_cast_in_pieces_give_the_same_readings(monkeypatch, num
     import tofloc.zone_caster as zc
 
     monkeypatch.setenv("TOFLOC_NUMBA", numba)
-    p, truth = easy_problem(n_samples=2)
-    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
-    poses = truth + np.random.default_rng(9).normal(size=(60, 3)) * np.array([0.05, 0.05, 0.2])
-    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
-    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    p, T_lift, poses, caster, rays = _rough_zone_rays(seed=9, n=60)
     whole = rays.cast(p.map, poses, 1)
     n_rough = rays.cast_buffers(p.map, poses, 1)[1].shape[0]
     monkeypatch.setattr(zc, "FOOTPRINT_PIECE_BYTES", 64 * 9 * 7)  # 7 zones per piece
@@ -370,11 +374,7 @@ def test_cast_buffers_are_the_rays_the_cast_casts(monkeypatch, numba: str) -> No
     if numba == "1" and not numba_kernels.enabled():
         pytest.skip("numba not installed (optional)")
     monkeypatch.setenv("TOFLOC_NUMBA", numba)
-    p, truth = easy_problem(n_samples=2)
-    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
-    poses = truth + np.random.default_rng(6).normal(size=(100, 3)) * np.array([0.05, 0.05, 0.2])
-    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
-    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    p, T_lift, poses, caster, rays = _rough_zone_rays(seed=6, n=100)
     centre, feet = rays.cast_buffers(p.map, poses, 1)
     assert centre.shape == (100, 3, 64, 1, 6) and feet.shape[1:] == ((8, 6) if numba == "1" else (9, 6))
     t_c = p.map.raycast_distance(centre, max_range=caster.max_ray_length)[..., 0]
@@ -442,11 +442,7 @@ def test_explicit_zone_tables_have_no_footprint_in_the_beam_model() -> None:
 def test_centre_hits_are_refused_when_they_cannot_be_used(monkeypatch) -> None:
     """``cast_rough``'s reused centre hits: a wrong shape names both shapes and the zones
     expected; without the compiled kernels they are refused, not ignored."""
-    p, truth = easy_problem(n_samples=2)
-    T_lift = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
-    poses = truth + np.random.default_rng(6).normal(size=(10, 3)) * np.array([0.05, 0.05, 0.2])
-    caster = ZoneCaster(p.rig, footprint=3, footprint_tolerance=0.01)
-    rays = PlanarZoneRays(caster, p.rig.T_tip_sensor, T_lift)
+    p, T_lift, poses, caster, rays = _rough_zone_rays(seed=6, n=10)
     monkeypatch.setenv("TOFLOC_NUMBA", "1")
     if not numba_kernels.enabled():
         pytest.skip("numba not installed (optional)")
