@@ -186,6 +186,63 @@ def test_raycast_is_the_same_with_and_without_numba(monkeypatch, kind: str) -> N
 
 
 @needs_numba
+def test_loop_twins_launch_no_parallel_loop() -> None:
+    """The plain-loop twins (``numba_kernels._loop_twin``) go through numba's parallel
+    pipeline with ``prange`` read as ``range``; an array expression in a kernel would still
+    become a parallel loop there, launched from any thread (the abort above). In a child
+    process: the beam and likelihood-field updates, ray casts and mode clustering run off
+    the main thread (so on the twins, giving the main thread's numbers), then every twin
+    built is compiled again, uncached, for each signature it ran with, and its IR must hold
+    no parallel loop."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        from concurrent.futures import ThreadPoolExecutor
+        import numba
+        import numpy as np
+        from numba.parfors.parfor import Parfor
+        from tofloc import numba_kernels
+        from tofloc.bench import _states
+        from tofloc.posterior_modes import cluster_poses
+        from tofloc.registry import ESTIMATORS
+        from tofloc.testing import easy_problem
+        problem, _ = easy_problem(n_samples=2)
+        work = []
+        for name in ("beam_pf", "likelihood_field_pf"):
+            bound = ESTIMATORS.load(name)(n_particles=300).make_sensor_model().bind(problem)
+            x = _states(bound, 300, problem)
+            work.append(lambda b=bound, x=x: b.log_likelihood(x, 1))
+        o = np.array([0.0, 0.0, 0.25]) + np.random.default_rng(0).normal(scale=0.05, size=(500, 1, 3))
+        d = np.random.default_rng(1).normal(size=(500, 16, 3))
+        work.append(lambda: problem.map.raycast(o, d).t)
+        poses = np.random.default_rng(2).normal(scale=[0.02, 0.02, 0.1], size=(800, 3))
+        work.append(lambda: cluster_poses(poses)[0].mean)
+        ref = [w() for w in work]  # main thread: the parallel versions
+        with ThreadPoolExecutor(1) as ex:
+            got = list(ex.map(lambda w: w(), work))
+        for a, b in zip(ref, got):
+            assert np.array_equal(a, b, equal_nan=True)
+        checked = []
+        for name, k in vars(numba_kernels).items():
+            if isinstance(k, numba_kernels._ParallelKernel) and k._loop is not None:
+                fresh = numba.njit(nogil=True, parallel=True)(k._loop.py_func)
+                for sig in k._loop.signatures:
+                    fresh.compile(sig)
+                    ir = fresh.overloads[sig].metadata["parfor_diagnostics"].func_ir
+                    assert not any(isinstance(st, Parfor) for blk in ir.blocks.values() for st in blk.body), name
+                checked.append(name)
+        assert {"rough_and_plane", "footprint_readings", "footprint_ray_buffer", "planar_ray_buffer", "mean_shift_seeds",
+                "ray_hits"} <= set(checked), checked
+        print("ok", len(checked))
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "TOFLOC_NUMBA"}
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
+    assert res.returncode == 0 and "ok" in res.stdout, (res.returncode, res.stdout[-500:], res.stderr[-2000:])
+
+
+@needs_numba
 def test_kernels_called_from_many_threads_at_once_do_not_abort_the_process() -> None:
     """numba's workqueue layer aborts the process when two threads launch parallel loops at
     once (a Dask worker with two threads in one process did, in the fit check's ray casts):
