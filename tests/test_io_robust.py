@@ -501,8 +501,8 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
     """Ctrl-C while the CLI, then open3d and the simulator load, then while simulating: exit
     130, no traceback, and all or nothing on disk. The simulation takes ~2-3 s, so the last
     delay may land after the three files were renamed into place (while the summary table
-    prints): then they must be the complete, readable set, never a part of it or a
-    temporary."""
+    prints), or after the command ended (exit 0): then they must be the complete, readable
+    set, never a part of it or a temporary."""
     entry = "import sys; from tofloc.cli import main; sys.exit(main())"  # what the `tofloc` script runs
     for delay in (0.6, 1.2, 2.5):
         folder = tmp_path / f"after_{delay}s"
@@ -512,11 +512,13 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
         time.sleep(delay)
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=60)
-        assert p.returncode == 130 and "Traceback" not in err, (delay, p.returncode, err[-1500:])
+        # at the last delay a fast machine may have ended the whole command first (exit 0)
+        codes = (130, 0) if delay == 2.5 else (130,)
+        assert p.returncode in codes and "Traceback" not in err, (delay, p.returncode, err[-1500:])
         left = sorted(q.name for q in folder.iterdir())
         assert left in ([], ["x.cad.ply", "x.h5", "x.map.ply"]), (delay, left)
-        if left:
-            assert read_log(folder / "x.h5").n_samples > 0
+        if left or p.returncode == 0:
+            assert left and read_log(folder / "x.h5").n_samples > 0, (delay, p.returncode, left)
 
 
 def test_finalizers_failing_at_teardown_after_ctrl_c_stay_quiet(tmp_path: Path) -> None:
