@@ -8,3 +8,8 @@ live in the top-level packages ``estimators``, ``sensor_models`` and ``evaluatio
 """
 
 __version__ = "0.1.0"
+
+# before anything imports Open3D: the newer TBB runtime serves Open3D and numba alike
+from tofloc.tbb_runtime import preload as _preload_tbb
+
+_preload_tbb()

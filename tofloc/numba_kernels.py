@@ -34,8 +34,13 @@ __all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_li
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
     import numba as _nb
 
-    if "NUMBA_THREADING_LAYER" not in os.environ:  # numba's own pool: no TBB/OpenMP probing beside Open3D's
-        _nb.config.THREADING_LAYER = "workqueue"
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        from tofloc.tbb_runtime import loaded as _tbb_loaded
+
+        # TBB when the tbb package's runtime was loaded before Open3D's (tofloc.tbb_runtime:
+        # fork- and thread-safe, the caller takes part), else numba's own pool; never
+        # OpenMP (GNU OpenMP is not fork-safe) and no probing beside Open3D's runtime
+        _nb.config.THREADING_LAYER = "tbb" if _tbb_loaded() else "workqueue"
     # the plain-loop twins (_loop_twin) go through the parallel pipeline on purpose and
     # have no parallel loop, which numba reports at their first compilation: expected here
     warnings.filterwarnings("ignore", message="\nThe keyword argument 'parallel=True' was specified but no transformation",
