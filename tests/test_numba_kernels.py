@@ -279,3 +279,54 @@ def test_kernels_called_from_many_threads_at_once_do_not_abort_the_process() -> 
     env = {k: v for k, v in os.environ.items() if k != "TOFLOC_NUMBA"}
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
     assert res.returncode == 0 and res.stdout.strip().endswith("ok"), (res.returncode, res.stderr[-2000:])
+
+
+@needs_numba
+@pytest.mark.parametrize("case", ["tofloc_first", "open3d_first", "switched_off"])
+def test_threading_layer_is_tbb_only_when_its_runtime_came_first(case: str) -> None:
+    """``import tofloc`` loads the tbb package's TBB runtime before Open3D's older one
+    (tofloc.tbb_runtime), and the kernels then run on numba's TBB layer; when Open3D was
+    imported first, or with TOFLOC_TBB=0, nothing is loaded and numba's workqueue layer
+    runs them, with no warning either way. A fork after parallel loops still runs them
+    (TBB and workqueue are fork-safe; GNU OpenMP, never chosen, is not). In child
+    processes: a process loads its TBB once."""
+    import importlib.metadata
+    import subprocess
+    import sys
+    import textwrap
+
+    try:
+        importlib.metadata.distribution("tbb")
+        has_tbb = True
+    except importlib.metadata.PackageNotFoundError:
+        has_tbb = False
+    if not has_tbb and case == "tofloc_first":
+        pytest.skip("the tbb package is not installed (tofloc[fast] brings it)")
+    script = textwrap.dedent(f"""
+        import os, warnings
+        warnings.simplefilter("error")
+        if {case!r} == "open3d_first":
+            import open3d
+        import numba
+        import numpy as np
+        import tofloc
+        from tofloc import tbb_runtime
+        from tofloc.maps import Map
+        box = Map.cuboid((0.8, 0.6, 0.5), (-0.4, -0.3, 0.0))
+        rng = np.random.default_rng(0)
+        o = np.array([0.0, 0.0, 0.25]) + rng.normal(scale=0.05, size=(2000, 1, 3))
+        d = rng.normal(size=(2000, 64, 3))
+        ref = box.raycast(o, d).t
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0 if np.array_equal(box.raycast(o, d).t, ref) else 3)
+        assert os.waitpid(pid, 0)[1] == 0
+        print(numba.threading_layer(), tbb_runtime.loaded() is not None)
+    """)
+    env = {k: v for k, v in os.environ.items() if k not in ("TOFLOC_NUMBA", "NUMBA_THREADING_LAYER", "TOFLOC_TBB")}
+    if case == "switched_off":
+        env["TOFLOC_TBB"] = "0"
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env)
+    assert res.returncode == 0, (res.returncode, res.stderr[-2000:])
+    expected = "tbb True" if case == "tofloc_first" else "workqueue False"
+    assert res.stdout.strip().splitlines()[-1] == expected, res.stdout
