@@ -40,7 +40,11 @@ try:  # pragma: no cover - exercised when numba is installed (the test extra has
         # TBB when the tbb package's runtime was loaded before Open3D's (tofloc.tbb_runtime:
         # fork- and thread-safe, the caller takes part), else numba's own pool; never
         # OpenMP (GNU OpenMP is not fork-safe) and no probing beside Open3D's runtime
-        _nb.config.THREADING_LAYER = "tbb" if _tbb_loaded() else "workqueue"
+        if _tbb_loaded():  # workqueue still behind it, should the TBB layer fail to start
+            _nb.config.THREADING_LAYER_PRIORITY = ["tbb", "workqueue", "omp"]  # omp never reached: workqueue always loads
+            _nb.config.THREADING_LAYER = "default"
+        else:
+            _nb.config.THREADING_LAYER = "workqueue"
     # the plain-loop twins (_loop_twin) go through the parallel pipeline on purpose and
     # have no parallel loop, which numba reports at their first compilation: expected here
     warnings.filterwarnings("ignore", message="\nThe keyword argument 'parallel=True' was specified but no transformation",

@@ -11,8 +11,9 @@ and the two workers of a 2-core machine could share one core: a beam update swun
 between ~25 and ~32 ms from one process to the next; with the TBB layer it stayed at
 23.3-24.2 ms, every log-likelihood bit-identical (docs/speed.md, section 15).
 
-Nothing is loaded when Open3D was imported first (too late: its runtime is in), when the
-``tbb`` package is missing, off Linux, or with ``TOFLOC_TBB=0``; then
+Nothing is loaded when Open3D (or anything else with a ``libtbb.so.12``) was loaded
+first (too late: its runtime is in), when the ``tbb`` package is missing, off Linux, or
+with ``TOFLOC_TBB=0``; then
 :mod:`tofloc.numba_kernels` keeps numba's ``workqueue`` layer.
 """
 
@@ -36,7 +37,7 @@ def preload() -> str | None:
     if _LOADED is not None:
         return _LOADED
     if (not sys.platform.startswith("linux") or os.environ.get("TOFLOC_TBB", "1") == "0"
-            or "open3d" in sys.modules):
+            or "open3d" in sys.modules or _tbb_in_process()):
         return None
     import ctypes
     import importlib.metadata
@@ -58,6 +59,16 @@ def preload() -> str | None:
         return None
     _LOADED = os.path.realpath(path)
     return _LOADED
+
+
+def _tbb_in_process() -> bool:
+    """Whether some ``libtbb.so.12`` is already mapped into this process (another library
+    brought its own): loading a second one would leave numba's layer on the first."""
+    try:
+        with open("/proc/self/maps", encoding="ascii", errors="replace") as fh:
+            return any("libtbb.so.12" in line for line in fh)
+    except OSError:
+        return True  # cannot tell: load nothing
 
 
 def loaded() -> str | None:
