@@ -282,11 +282,12 @@ def test_kernels_called_from_many_threads_at_once_do_not_abort_the_process() -> 
 
 
 @needs_numba
-@pytest.mark.parametrize("case", ["tofloc_first", "open3d_first", "switched_off"])
+@pytest.mark.parametrize("case", ["tofloc_first", "open3d_first", "other_tbb_first", "switched_off"])
 def test_threading_layer_is_tbb_only_when_its_runtime_came_first(case: str) -> None:
     """``import tofloc`` loads the tbb package's TBB runtime before Open3D's older one
     (tofloc.tbb_runtime), and the kernels then run on numba's TBB layer; when Open3D was
-    imported first, or with TOFLOC_TBB=0, nothing is loaded and numba's workqueue layer
+    imported first, another library mapped a libtbb.so.12 first (Open3D's own file,
+    loaded without Open3D), or with TOFLOC_TBB=0, nothing is loaded and numba's workqueue layer
     runs them, with no warning either way. A fork after parallel loops still runs them
     (TBB and workqueue are fork-safe; GNU OpenMP, never chosen, is not). In child
     processes: a process loads its TBB once."""
@@ -307,6 +308,10 @@ def test_threading_layer_is_tbb_only_when_its_runtime_came_first(case: str) -> N
         warnings.simplefilter("error")
         if {case!r} == "open3d_first":
             import open3d
+        if {case!r} == "other_tbb_first":  # an older libtbb.so.12 mapped by another library
+            import ctypes, importlib.util
+            folder = importlib.util.find_spec("open3d").submodule_search_locations[0]
+            ctypes.CDLL(os.path.join(folder, "libtbb.so.12"), mode=ctypes.RTLD_GLOBAL)
         import numba
         import numpy as np
         import tofloc
