@@ -45,6 +45,7 @@ error of different starts is comparable.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,10 +63,26 @@ __all__ = [
     "make_sample_factor",
     "make_stacked_factor",
     "compress_rows",
+    "CallbackClock",
 ]
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
 FloatArray = NDArray[np.float64]
+
+
+class CallbackClock:
+    """Seconds spent inside the zone factors' Python callbacks (GTSAM calls them from its
+    C++ optimizer), summed over every factor given this clock, and their number."""
+
+    __slots__ = ("seconds", "calls")
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self.calls = 0
+
+    def add(self, seconds: float) -> None:
+        self.seconds += seconds
+        self.calls += 1
 
 
 def robust_loss(e: FloatArray, kernel: str, k: float) -> FloatArray:
@@ -294,14 +311,23 @@ def make_sample_factor(
     R_tilt: FloatArray,
     kernel: str,
     k: float,
+    clock: CallbackClock | None = None,
 ) -> object:
-    """One ``gtsam.CustomFactor`` with the stacked residuals of a sample (unit noise: whitened inside)."""
+    """One ``gtsam.CustomFactor`` with the stacked residuals of a sample (unit noise: whitened
+    inside); ``clock`` (optional) sums the time spent in its callbacks."""
     import gtsam
 
     keys = [key_base, key_conf] + [kk for kk in (key_rig, key_bias) if kk is not None]
     eye = np.eye(4)
 
     def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
+        t0 = time.perf_counter()
+        res = _error(values, H)
+        if clock is not None:
+            clock.add(time.perf_counter() - t0)
+        return res
+
+    def _error(values: object, H: list | None) -> FloatArray:
         P = values.atPose2(key_base)  # type: ignore[attr-defined]
         xyyaw = np.array([P.x(), P.y(), P.theta()])
         C = values.atPose3(key_conf).matrix()  # type: ignore[attr-defined]
@@ -419,6 +445,7 @@ def make_stacked_factor(
     key_bias: int | None,
     z: float,
     R_tilt: FloatArray,
+    clock: CallbackClock | None = None,
 ) -> object:
     """ONE ``gtsam.CustomFactor`` for the zones of every sample: keys the base, every
     configuration, the support and the bias; one stacked evaluation per linearization and
@@ -427,7 +454,8 @@ def make_stacked_factor(
     zone), so that GTSAM's elimination sees a small dense block, not one row per zone with
     mostly zero Jacobians. Its cost ``0.5 |e|^2`` equals the per-sample factors' and its
     linearization gives their Gauss-Newton system (to rounding). Without Jacobians it
-    returns ``(|e|, 0, ..., 0)``: the same cost (GTSAM reads only the norm there)."""
+    returns ``(|e|, 0, ..., 0)``: the same cost (GTSAM reads only the norm there).
+    ``clock`` (optional) sums the time spent in its callbacks."""
     import gtsam
 
     eye = np.eye(4)
@@ -437,6 +465,13 @@ def make_stacked_factor(
     keys = [key_base] + list(keys_conf) + [kk for kk in (key_rig, key_bias) if kk is not None]
 
     def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
+        t0 = time.perf_counter()
+        res = _error(values, H)
+        if clock is not None:
+            clock.add(time.perf_counter() - t0)
+        return res
+
+    def _error(values: object, H: list | None) -> FloatArray:
         P = values.atPose2(key_base)  # type: ignore[attr-defined]
         xyyaw = np.array([P.x(), P.y(), P.theta()])
         C = np.stack([values.atPose3(kc).matrix() for kc in keys_conf])  # type: ignore[attr-defined]

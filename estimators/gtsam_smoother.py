@@ -78,6 +78,7 @@ solve's within tolerance (tested).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -335,9 +336,11 @@ class GTSAMSmoother(Estimator):
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         from gtsam.symbol_shorthand import D as Dk, X as Xk
 
+        t_start = time.perf_counter()
         graph = SmootherGraph(self, problem)
         meas0 = measurements(problem)
         starts = self.starts(problem, meas0, rng)
+        starts_s = time.perf_counter() - t_start
         runs: list[dict[str, Any]] = []
         best: dict[str, Any] | None = None
         best_i = -1
@@ -371,11 +374,14 @@ class GTSAMSmoother(Estimator):
         if best is None:
             diag["indeterminant"] = True
             diag["message"] = "every start failed with an indeterminant linear system: returning the prior"
+            diag["time_s"] = {"starts": starts_s, **graph.timing()}
             return Estimate(pose=problem.prior.mean, covariance=problem.prior.covariance, diagnostics=diag)
         values = best["values"]
         P = values.atPose2(Xk(0))
         pose = np.array([P.x(), P.y(), P.theta()])
+        t_cov = time.perf_counter()
         cov, cov_note = self._covariance(best, values, problem)
+        diag["time_s"] = {"starts": starts_s, **graph.timing(), "covariance": time.perf_counter() - t_cov}
         inl = np.concatenate([m.inlier for m in best["meas"]])
         diag.update(
             best_start=best_i, iterations=best["iterations"], rounds=best["rounds"], final_error=best["error"],

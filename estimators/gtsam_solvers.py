@@ -17,13 +17,15 @@ association (:mod:`estimators.gtsam_association`) and optimization from one star
 from __future__ import annotations
 
 import math
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from estimators.gtsam_association import associate
-from estimators.gtsam_factors import SampleMeasurement, StackedMeasurements, make_sample_factor, make_stacked_factor
+from estimators.gtsam_factors import (CallbackClock, SampleMeasurement, StackedMeasurements, make_sample_factor,
+                                      make_stacked_factor)
 from tofloc import frames
 from tofloc.problem import Problem
 
@@ -83,6 +85,11 @@ class SmootherGraph:
         self.stacked = bool(getattr(est, "stacked_factor", True))
         #: configurations held and their covariance added to the zones' variance (else estimated)
         self.marginalize = est.marginalizes(problem)
+        #: time (s) in the zone factors' callbacks, in data association and in the solves
+        #: (association included) of this graph so far: :meth:`timing`
+        self.clock = CallbackClock()
+        self.association_s = 0.0
+        self.solve_s = 0.0
 
     # -- pieces ----------------------------------------------------------------------------------
     def config_noise(self, k: int) -> Any:
@@ -125,7 +132,7 @@ class SmootherGraph:
         from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
 
         return make_sample_factor(m, Xk(0), Ck(k), Dk(0) if self.use_rig else None, Bk(0) if self.use_bias else None,
-                                  self.problem.prior.z, self.R_tilt, self.est.robust, self.est.robust_k)
+                                  self.problem.prior.z, self.R_tilt, self.est.robust, self.est.robust_k, self.clock)
 
     def zone_factors(self, meas: list[SampleMeasurement]) -> list[Any]:
         """The zone factors of the associated samples: one stacked factor, or one per sample."""
@@ -135,7 +142,7 @@ class SmootherGraph:
             return [self.factor(m, k) for k, m in enumerate(meas)]
         st = StackedMeasurements(meas, self.est.robust, self.est.robust_k)
         return [make_stacked_factor(st, Xk(0), [Ck(k) for k in range(len(meas))], Dk(0) if self.use_rig else None,
-                                    Bk(0) if self.use_bias else None, self.problem.prior.z, self.R_tilt)]
+                                    Bk(0) if self.use_bias else None, self.problem.prior.z, self.R_tilt, self.clock)]
 
     def read(self, values: Any, K: int) -> tuple[FloatArray, list[FloatArray], FloatArray]:
         """``(x, y, yaw)``, the ``K`` configurations and ``D`` from GTSAM values."""
@@ -179,8 +186,19 @@ class SmootherGraph:
                   bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
         est, cov = self.est, self.problem.T_base_tip_cov
         config_cov = None if cov is None or not self.marginalize else cov
-        return associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
-                         information_scale=est.information_scale, gate_sigmas=est.gate_sigmas, config_cov=config_cov)
+        t0 = time.perf_counter()
+        out = associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
+                        information_scale=est.information_scale, gate_sigmas=est.gate_sigmas, config_cov=config_cov)
+        self.association_s += time.perf_counter() - t0
+        return out
+
+    def timing(self) -> dict[str, float | int]:
+        """Where this graph's solves spent their time so far (s): ``association`` (the data
+        association rounds), ``factor_callbacks`` (inside the zone factors' Python
+        callbacks, ``callbacks`` of them), ``gtsam`` (the rest of the solves: GTSAM's own
+        linearization, elimination and bookkeeping, the graphs' assembly)."""
+        return {"association": self.association_s, "factor_callbacks": self.clock.seconds, "callbacks": self.clock.calls,
+                "gtsam": max(self.solve_s - self.association_s - self.clock.seconds, 0.0)}
 
     def pose_change(self, a: Any, b: Any, K: int) -> float:
         """Largest change of any variable's matrix entries between two GTSAM value sets."""
@@ -201,8 +219,18 @@ class SmootherGraph:
         profiled over them at that base pose (:meth:`estimators.gtsam_smoother.GTSAMSmoother.log_target`).
         ``finished``: the base poses ``(x, y, yaw)`` other starts converged to; once a round
         leaves this start within :data:`MERGE_M` and :data:`MERGE_RAD` of one of them, it
-        stops there (``"merged"``: that pose's index): it is in that start's basin.
+        stops there (``"merged"``: that pose's index): it is in that start's basin. The
+        time taken is added to :meth:`timing`.
         """
+        t0 = time.perf_counter()
+        try:
+            return self._solve_batch(meas, start, fix_base, finished)
+        finally:
+            self.solve_s += time.perf_counter() - t0
+
+    def _solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False,
+                     finished: list[FloatArray] | None = None) -> dict[str, Any]:
+        """The body of :meth:`solve_batch`."""
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
 
@@ -247,6 +275,14 @@ class SmootherGraph:
 
     # -- incremental solve -----------------------------------------------------------------------
     def solve_isam2(self, meas0: list[SampleMeasurement], start: FloatArray) -> dict[str, Any]:
+        """:meth:`_solve_isam2`, its time added to :meth:`timing`."""
+        t0 = time.perf_counter()
+        try:
+            return self._solve_isam2(meas0, start)
+        finally:
+            self.solve_s += time.perf_counter() - t0
+
+    def _solve_isam2(self, meas0: list[SampleMeasurement], start: FloatArray) -> dict[str, Any]:
         """Samples added one at a time to ISAM2; after each, every sample's association is
         refreshed (changed factors removed and re-added) until it settles."""
         import gtsam

@@ -57,6 +57,14 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     g = doc["gtsam"]
     assert _seconds(g["per_sample_factor_s"]) and _seconds(g["stacked_factor_s"]) and _seconds(g["speedup"])
     assert 0.0 <= g["max_abs_diff"] < 1e-9
+    parts = g["parts_s"]
+    assert set(parts) == {"per_sample", "stacked"}
+    for label, part in parts.items():
+        assert set(part) == {"starts", "association", "factor_callbacks", "callbacks", "gtsam", "covariance"}, label
+        assert all(_seconds(v) for k, v in part.items() if k != "callbacks") and part["callbacks"] > 0, label
+    # one callback per linearization or error evaluation, one factor per sample (10) or one in all
+    assert parts["per_sample"]["callbacks"] == 10 * parts["stacked"]["callbacks"]
+    assert _seconds(g["speedup_bound"]) and g["speedup_bound"] > g["speedup"]
     assert _seconds(g["merged_starts_s"]) and g["merged_speedup"] == pytest.approx(g["stacked_factor_s"] / g["merged_starts_s"])
     from estimators.gtsam_solvers import MERGE_M, MERGE_RAD
 
@@ -117,6 +125,7 @@ def test_bench_command_writes_the_json_and_shows_the_tables(bench, monkeypatch, 
     assert "gtsam_smoother k = 10" in shown and "paper run" in shown and "ray cast" in shown
     assert "as long on 2 workers as on one thread" in " ".join(shown.split())  # rich wraps lines
     assert "timed alternately with it" in " ".join(shown.split())
+    assert "a free factor would give" in " ".join(shown.split())
 
 
 def test_a_failing_peak_rss_child_raises_with_its_output() -> None:

@@ -186,6 +186,12 @@ def test_stacked_and_per_sample_solves_give_the_same_estimate(easy4, declare: bo
     np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=1e-15)
     assert a.diagnostics["final_error"] == pytest.approx(b.diagnostics["final_error"], rel=1e-9, abs=1e-12)
     assert a.diagnostics["iterations"] == b.diagnostics["iterations"]
+    # where the time went: the same solves, one callback per evaluation of each factor
+    # (one factor, or one per sample), every part measured
+    ta, tb = a.diagnostics["time_s"], b.diagnostics["time_s"]
+    assert set(ta) == set(tb) == {"starts", "association", "factor_callbacks", "callbacks", "gtsam", "covariance"}
+    assert tb["callbacks"] == p.n_samples * ta["callbacks"] > 0
+    assert all(v > 0 for v in ta.values()) and all(v > 0 for v in tb.values())
 
 
 def test_merged_starts_stop_in_a_finished_basin_and_are_no_mode(easy4) -> None:
@@ -241,6 +247,7 @@ def test_isam2_matches_batch(easy4) -> None:
     assert np.all(np.abs(diff) < 0.1 * sd), (diff, sd)
     np.testing.assert_allclose(b.covariance, a.covariance, rtol=0.05, atol=1e-3 * sd.max() ** 2)
     assert b.diagnostics["incremental"] and not a.diagnostics["incremental"]
+    assert b.diagnostics["time_s"]["callbacks"] > 0 and b.diagnostics["time_s"]["association"] > 0
 
 
 def test_range_residual_agrees_with_point_to_plane(easy4) -> None:
