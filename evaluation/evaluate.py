@@ -386,8 +386,9 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     (mean, median, n: the trials with a defined NEES; see the module doc), ``widened`` (trials
     whose fit check failed, their covariance widened by the prior's), the median ``runtime_s``
     and ``failure_causes`` (counts of the failed trials by cause, ``{"model", "search",
-    "unattributed"}``: :func:`evaluation.failure_cause.count_causes`) and ``detection``
-    (:func:`detection_summary`) (those the records have)."""
+    "unattributed"}``: :func:`evaluation.failure_cause.count_causes`), ``detection``
+    (:func:`detection_summary`) and ``cross_check`` (:func:`evaluation.cross_check.cross_check_summary`)
+    (those the records have)."""
     n = len(records)
     fails = sum(is_failure(r) for r in records)
     out: dict[str, Any] = {
@@ -413,6 +414,11 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     det = detection_summary(records)
     if det is not None:
         out["detection"] = det
+    from evaluation.cross_check import cross_check_summary
+
+    cc = cross_check_summary(records)
+    if cc is not None:
+        out["cross_check"] = cc
     return out
 
 

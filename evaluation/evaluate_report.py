@@ -62,6 +62,30 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     return out + [""]
 
 
+def cross_check_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The section "Whose optimum": per estimator, the trials some estimators failed and others
+    did not, and among them those where its own target ranks a failed answer above every
+    successful one (:mod:`evaluation.cross_check`); empty when none was checked."""
+    rows = [(e, s["cross_check"]) for e, s in doc["summary"].items() if s.get("cross_check")]
+    if not rows:
+        return []
+    out = [
+        "## Whose optimum",
+        "",
+        "On the trials where some estimators failed and others did not, each estimator's own target "
+        "(prior plus likelihood; the smoother's graph) scored every estimator's answer "
+        "(evaluation/cross_check.py). A success whose target ranks another's failed answer first "
+        "owes it to its search, not its model.",
+        "",
+        "| estimator | failures | trials checked | target ranks a failed answer first | of which its own failures |",
+        "|---|---|---|---|---|",
+    ]
+    for e, c in rows:
+        out.append(f"| {e} | {doc['summary'][e]['failures']} | {c['decided']} | {c['ranks_failure_first']} | "
+                   f"{c['own_failures']} |")
+    return out + [""]
+
+
 def _span(v: Any, fmt: str) -> str:
     lo, hi = v
     return format(lo, fmt) if lo == hi else f"{format(lo, fmt)}-{format(hi, fmt)}"
@@ -120,6 +144,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "",
     ]
     lines += detection_lines(doc)
+    lines += cross_check_lines(doc)
     lines += [
         "## Ratios to the oracle floor",
         "",

@@ -79,6 +79,7 @@ __all__ = [
     "make_estimator",
     "run_trial",
     "solve_trial",
+    "trial_problem",
     "TrialOutcome",
     "warm_up",
     "make_tasks",
@@ -448,24 +449,47 @@ class TrialOutcome:
     selection: Any = None
 
 
+def trial_problem(context: TrialContext, task: TrialTask, est: Estimator) -> tuple[Any, NDArray[np.intp], Any]:
+    """The problem ``est`` solves in the trial ``task`` with samples drawn at random (its
+    seed's samples and prior, ``est``'s calibration), the samples and their truth: what
+    :func:`solve_trial` builds before it runs the estimator. Another estimator's answer to
+    the same trial can be scored under ``est``'s target on it (:mod:`evaluation.cross_check`).
+
+    Returns
+    -------
+    problem : tofloc.problem.Problem
+    indices : int array
+    truth : ndarray (4, 4) or None
+    """
+    if task.selection != "random":
+        raise ParameterError(f"trial_problem: the samples of selection {task.selection!r} depend on the estimator's own answers")
+    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
+    truth_T = context.truth(idx)
+    prior = task.prior.make(truth_T, normals, context.map)
+    problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics,
+                               context.calibration_for(est), context.valid_statuses)
+    return problem, idx, truth_T
+
+
 def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     """Draw a trial's samples and prior, run its estimator and check the fit (the work of
     :func:`run_trial`; also used to re-run one trial for a plot: same seed, same numbers)."""
     from tofloc.fit_check import check_fit, widen_if_unfit
 
-    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
-    truth_T = context.truth(idx)
-    prior = task.prior.make(truth_T, normals, context.map)
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
     calibration = context.calibration_for(est)
     chosen = None
-    if task.selection != "random":  # the same prior, samples chosen in turn by the policy
+    if task.selection == "random":
+        problem, idx, truth_T = trial_problem(context, task, est)
+    else:  # the same prior, samples chosen in turn by the policy
         from evaluation.sequential_selection import choose_sequentially
 
+        idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
+        prior = task.prior.make(context.truth(idx), normals, context.map)
         chosen = choose_sequentially(context, task, est, prior, calibration)
         idx, truth_T = chosen.indices, context.truth(chosen.indices)
-    problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
-                               context.valid_statuses)
+        problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
+                                   context.valid_statuses)
     setup_s = warm_up(est, task, problem, context)
     _, est_rng = trial_rngs(task.seed)
     result = est.estimate(problem, est_rng)
@@ -551,6 +575,9 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
     }
     if out.selection is not None:
         record["selection"] = out.selection.to_json()
+    state = result.diagnostics.get("state") if isinstance(result.diagnostics, Mapping) else None
+    if state:  # the nuisances' estimates (their means score the estimate again: log_target)
+        record["state"] = jsonable(state)
     refit = result.diagnostics.get("refit") if isinstance(result.diagnostics, Mapping) else None
     if refit is not None:  # a sensor model refitted to the trial's data (a second pass of the filter)
         record["refit"] = jsonable(refit)

@@ -58,8 +58,9 @@ def run(logs: list[Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def _untimed(record: dict) -> dict:
-    """A trial record without its timings (runtime_s; setup_s, which depends on what the process ran before)."""
-    return {k: v for k, v in record.items() if k not in ("runtime_s", "setup_s")}
+    """A trial record without its timings (runtime_s; setup_s, which depends on what the process ran
+    before) and without the cross-check `tofloc evaluate` adds once every estimator has answered."""
+    return {k: v for k, v in record.items() if k not in ("runtime_s", "setup_s", "cross_check")}
 
 
 def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str, str]:
@@ -497,3 +498,87 @@ def test_one_dask_scatter_for_several_logs_matches_inline(run: dict) -> None:
     for label, by_est in got.items():
         for a, b in zip(by_est["beam_pf"], doc["logs"][label]["estimators"]["beam_pf"]["records"]):
             assert _untimed(a) == _untimed(b)
+
+
+# -- whose optimum: every estimator's target at every answer -------------------------------------
+
+from dataclasses import dataclass  # noqa: E402
+
+from tofloc.problem import Estimate, Estimator  # noqa: E402
+
+_FAR = np.array([0.5, 0.0, 0.0])  # a failed answer: half a metre from the prior mean
+
+
+@dataclass(frozen=True, eq=False)
+class _FarTest(Estimator):
+    """Answers half a metre off the prior mean (with a ``paper`` prior: off the truth); its
+    target prefers that answer."""
+
+    name = "far_test"
+
+    def _estimate(self, problem, rng):
+        return Estimate(pose=problem.prior.mean + _FAR, covariance=np.eye(3) * 1e-4)
+
+    def log_target(self, problem, poses, estimate):
+        return -np.sum((np.atleast_2d(poses)[:, :2] - (problem.prior.mean + _FAR)[:2]) ** 2, axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class _LuckyTest(_FarTest):
+    """Answers the prior mean (the truth: a success), although its target prefers the far answer."""
+
+    name = "lucky_test"
+
+    def _estimate(self, problem, rng):
+        return Estimate(pose=problem.prior.mean.copy(), covariance=np.eye(3) * 1e-4)
+
+
+@dataclass(frozen=True, eq=False)
+class _HonestTest(_LuckyTest):
+    """Answers the prior mean, and its target prefers it."""
+
+    name = "honest_test"
+
+    def log_target(self, problem, poses, estimate):
+        return -np.sum((np.atleast_2d(poses)[:, :2] - problem.prior.mean[:2]) ** 2, axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class _BlindTest(_LuckyTest):
+    """Answers the prior mean and has no target to score answers with."""
+
+    name = "blind_test"
+    log_target = None  # type: ignore[assignment]
+
+
+def test_cross_check_tells_a_lucky_search_from_a_model(logs: list[Path], tmp_path: Path) -> None:
+    """On every trial (a prior centred on the truth) one estimator fails and three succeed:
+    the one whose target prefers the failed answer is counted, the one whose target prefers
+    its own right answer is not, the failed one counts its own failure, and one without a
+    target is not checked; the scores are its target's differences to its own answer."""
+    from tofloc import api
+    from tofloc.registry import ESTIMATORS
+
+    plugins = (_FarTest, _LuckyTest, _HonestTest, _BlindTest)
+    for cls in plugins:
+        ESTIMATORS.register(cls.name, cls)
+    try:
+        res = api.evaluate(logs[:1], [c.name for c in plugins], out=tmp_path / "out", trials=2, samples=3,
+                           prior_mode="paper", workers=1)
+    finally:
+        for cls in plugins:
+            ESTIMATORS.unregister(cls.name)
+    s = res.document["summary"]
+    assert s["far_test"]["failures"] == 2 and all(s[c.name]["failures"] == 0 for c in plugins[1:])
+    assert s["far_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 2, "own_failures": 2}
+    assert s["lucky_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 2, "own_failures": 0}
+    assert s["honest_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 0, "own_failures": 0}
+    assert "cross_check" not in s["blind_test"]
+    rec = res.document["logs"]["paper"]["estimators"]["lucky_test"]["records"][0]
+    assert rec["cross_check"]["scores"]["lucky_test"] == 0.0
+    assert rec["cross_check"]["scores"]["far_test"] == pytest.approx(0.25)  # 0 - (-(0.5 m)^2)
+    assert rec["cross_check"]["scores"]["honest_test"] == 0.0  # the same answer
+    honest = res.document["logs"]["paper"]["estimators"]["honest_test"]["records"][0]["cross_check"]
+    assert honest["scores"]["far_test"] == pytest.approx(-0.25) and not honest["ranks_failure_first"]
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "## Whose optimum" in table and "| lucky_test | 0 | 2 | 2 | 0 |" in table

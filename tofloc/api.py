@@ -810,7 +810,8 @@ def evaluate(
     plot_failures: int = 0,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
-    trial's oracle floor; ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
+    trial's oracle floor, each estimator's target checked at every estimator's answer where
+    some failed and some did not (:mod:`evaluation.cross_check`); ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
     in ``out`` (finished batches in ``out/partial``, reused by a rerun), and with
     ``plot_failures`` a picture of each of the first failed trials in ``out/failures``.
 
@@ -901,6 +902,12 @@ def evaluate(
         selection=selection,
         on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
     )
+    if selection == "random" and len(names) > 1:  # every estimator's target at every answer
+        from evaluation.cross_check import cross_check
+        from evaluation.evaluate import TIP_SOURCE
+
+        cross_check(entries, specs, records, trials=trials, prior=prior, tip_source=TIP_SOURCE,
+                    on_progress=lambda d, t: reporter.progress(d, t, "cross-check of the answers"))
     doc = results_document(
         entries, specs, records, oracle, trials=trials, samples=samples, seed=seed, prior=prior,
         extra={
