@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -301,6 +302,20 @@ class SampleMeasurement:
                           R_tilt, C[:3, :3], C[:3, 3], None, D, kernel, k, jacobians)
 
 
+def _timed_callback(body: Callable[[object, list | None], FloatArray], clock: CallbackClock | None) -> Callable[..., FloatArray]:
+    """The ``gtsam.CustomFactor`` callback ``error(this, values, H)`` that returns
+    ``body(values, H)``, its time added to ``clock`` (when given)."""
+
+    def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
+        t0 = time.perf_counter()
+        res = body(values, H)
+        if clock is not None:
+            clock.add(time.perf_counter() - t0)
+        return res
+
+    return error
+
+
 def make_sample_factor(
     meas: SampleMeasurement,
     key_base: int,
@@ -320,13 +335,6 @@ def make_sample_factor(
     keys = [key_base, key_conf] + [kk for kk in (key_rig, key_bias) if kk is not None]
     eye = np.eye(4)
 
-    def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
-        t0 = time.perf_counter()
-        res = _error(values, H)
-        if clock is not None:
-            clock.add(time.perf_counter() - t0)
-        return res
-
     def _error(values: object, H: list | None) -> FloatArray:
         P = values.atPose2(key_base)  # type: ignore[attr-defined]
         xyyaw = np.array([P.x(), P.y(), P.theta()])
@@ -345,7 +353,7 @@ def make_sample_factor(
                 H[i] = Hbias
         return res
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(meas.size), keys, error)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(meas.size), keys, _timed_callback(_error, clock))
 
 
 class StackedMeasurements:
@@ -464,13 +472,6 @@ def make_stacked_factor(
     rows = K * (m + 1)
     keys = [key_base] + list(keys_conf) + [kk for kk in (key_rig, key_bias) if kk is not None]
 
-    def error(this: object, values: object, H: list | None) -> FloatArray:  # gtsam callback
-        t0 = time.perf_counter()
-        res = _error(values, H)
-        if clock is not None:
-            clock.add(time.perf_counter() - t0)
-        return res
-
     def _error(values: object, H: list | None) -> FloatArray:
         P = values.atPose2(key_base)  # type: ignore[attr-defined]
         xyyaw = np.array([P.x(), P.y(), P.theta()])
@@ -497,4 +498,4 @@ def make_stacked_factor(
             H[i] = np.ascontiguousarray(R[:, :, c : c + 1].reshape(rows, 1))
         return e.reshape(rows)
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, error)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, _timed_callback(_error, clock))

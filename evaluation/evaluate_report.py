@@ -47,18 +47,19 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     def frac(a: int, b: int) -> str:
         return f"{a}/{b}" + (f" ({a / b:.0%})" if b else "")
 
-    out = [
-        "## Knowing when it is lost",
-        "",
+    return _section(
+        "Knowing when it is lost",
         "A trial is flagged when its data-fit check fails (tofloc/fit_check.py; its covariance is then widened) "
         "or its posterior is ambiguous (tofloc/posterior_modes.py): the warnings a user gets without the truth.",
-        "",
-        "| estimator | failures flagged | by the fit check | good trials flagged (false alarms) |",
-        "|---|---|---|---|",
-    ]
-    for e, d in rows:
-        out.append(f"| {e} | {frac(d['failures_flagged'], d['failures'])} | {frac(d['failures_fit'], d['failures'])} | "
-                   f"{frac(d['successes_flagged'], d['successes'])} |")
+        ["estimator", "failures flagged", "by the fit check", "good trials flagged (false alarms)"],
+        [[e, frac(d["failures_flagged"], d["failures"]), frac(d["failures_fit"], d["failures"]),
+          frac(d["successes_flagged"], d["successes"])] for e, d in rows])
+
+
+def _section(title: str, text: str, header: list[str], rows: list[list[Any]]) -> list[str]:
+    """A markdown section: ``## title``, a paragraph and a table."""
+    out = [f"## {title}", "", text, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(v) for v in row) + " |" for row in rows]
     return out + [""]
 
 
@@ -69,21 +70,14 @@ def cross_check_lines(doc: Mapping[str, Any]) -> list[str]:
     rows = [(e, s["cross_check"]) for e, s in doc["summary"].items() if s.get("cross_check")]
     if not rows:
         return []
-    out = [
-        "## Whose optimum",
-        "",
+    return _section(
+        "Whose optimum",
         "On the trials where some estimators failed and others did not, each estimator's own target "
         "(prior plus likelihood; the smoother's graph) scored every estimator's answer "
         "(evaluation/cross_check.py). A success whose target ranks another's failed answer first "
         "owes it to its search, not its model.",
-        "",
-        "| estimator | failures | trials checked | target ranks a failed answer first | of which its own failures |",
-        "|---|---|---|---|---|",
-    ]
-    for e, c in rows:
-        out.append(f"| {e} | {doc['summary'][e]['failures']} | {c['decided']} | {c['ranks_failure_first']} | "
-                   f"{c['own_failures']} |")
-    return out + [""]
+        ["estimator", "failures", "trials checked", "target ranks a failed answer first", "of which its own failures"],
+        [[e, doc["summary"][e]["failures"], c["decided"], c["ranks_failure_first"], c["own_failures"]] for e, c in rows])
 
 
 def _span(v: Any, fmt: str) -> str:

@@ -582,3 +582,8 @@ def test_cross_check_tells_a_lucky_search_from_a_model(logs: list[Path], tmp_pat
     assert honest["scores"]["far_test"] == pytest.approx(-0.25) and not honest["ranks_failure_first"]
     table = (tmp_path / "out" / "table.md").read_text()
     assert "## Whose optimum" in table and "| lucky_test | 0 | 2 | 2 | 0 |" in table
+    from tofloc.cli.cmd_evaluate import cross_check_line
+
+    line = cross_check_line(res.document)
+    assert "far_test 2/2 (0 not its own failures)" in line and "lucky_test 2/2 (2 not its own failures)" in line
+    assert "honest_test 0/2" in line and "blind_test" not in line

@@ -89,9 +89,9 @@ def evaluate(
             plot_failures=plot_failures,
         )
     console.print(summary_table(run.document))
-    line = detection_line(run.document)
-    if line:
-        console.print(line, highlight=False, soft_wrap=True)
+    for line in (detection_line(run.document), cross_check_line(run.document)):
+        if line:
+            console.print(line, highlight=False, soft_wrap=True)
     for p in run.paths:
         err_console.print(f"wrote {p}", highlight=False)
 
@@ -113,6 +113,20 @@ def detection_line(doc: dict[str, Any]) -> str:
         if d and d["failures"]:
             parts.append(f"{name} {d['failures_flagged']}/{d['failures']} ({d['successes_flagged']} false alarms)")
     return ("failures flagged by their own warnings: " + ", ".join(parts) + " (table.md: Knowing when it is lost)") if parts else ""
+
+
+def cross_check_line(doc: dict[str, Any]) -> str:
+    """One line: per estimator, on the trials some estimators failed and others did not, how
+    many times its own target ranked a failed answer first, and how many of those it did not
+    fail itself (its search's luck, not its model) ("" when none was checked)."""
+    parts = []
+    for name, s in doc["summary"].items():
+        c = s.get("cross_check")
+        if c:
+            parts.append(f"{name} {c['ranks_failure_first']}/{c['decided']} ({c['ranks_failure_first'] - c['own_failures']} "
+                         "not its own failures)")
+    return ("targets ranking a failed answer first, on trials some estimators failed: " + ", ".join(parts)
+            + " (table.md: Whose optimum)") if parts else ""
 
 
 def summary_table(doc: dict[str, Any]) -> Table:
