@@ -20,8 +20,9 @@ holding its nuisances and refitted model at its own estimate's
     "cross_check": {"scores": {estimator: log target - log target at its own answer},
                     "ranks_failure_first": best score of the failed answers >= best of the successful ones}
 
-``None`` when the trial is not decided or the estimator has no target. Summary
-(:func:`cross_check_summary`): ``decided`` trials and ``ranks_failure_first`` among them.
+``None`` when the trial is not decided or the estimator has no target; ``{"error": ...}``
+when its target raised (the run goes on). Summary (:func:`cross_check_summary`):
+``decided`` trials and ``ranks_failure_first`` among them.
 """
 
 from __future__ import annotations
@@ -100,9 +101,13 @@ def cross_check(
             if not callable(score):
                 continue
             task = TrialTask(f"{en.label}/{s.name}", s.name, s.cls, dict(s.params), tip_source, prior, en.k, t, seed, "random")
-            problem = trial_problem(en.context, task, ests[s.name])[0]
             own = answers[s.name]
-            lt = np.asarray(score(problem, poses, _estimate_of(own)), dtype=float)
+            try:
+                problem = trial_problem(en.context, task, ests[s.name])[0]
+                lt = np.asarray(score(problem, poses, _estimate_of(own)), dtype=float).reshape(len(names))
+            except Exception as e:  # noqa: BLE001 - a plug-in's target that fails costs its check, not the run
+                own["cross_check"] = {"error": f"{type(e).__name__}: {e}"}
+                continue
             rel = lt - lt[names.index(s.name)]
             best_fail, best_ok = np.max(lt[failed]), np.max(lt[~failed])
             own["cross_check"] = {"scores": {n: jsonable(float(v)) for n, v in zip(names, rel)},
@@ -118,7 +123,7 @@ def cross_check_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] 
     trials this estimator itself failed); None when no record was checked."""
     from evaluation.evaluate import is_failure
 
-    checked = [r for r in records if isinstance(r.get("cross_check"), Mapping)]
+    checked = [r for r in records if isinstance(r.get("cross_check"), Mapping) and "ranks_failure_first" in r["cross_check"]]
     if not checked:
         return None
     first = [r for r in checked if r["cross_check"]["ranks_failure_first"]]

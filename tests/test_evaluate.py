@@ -551,15 +551,26 @@ class _BlindTest(_LuckyTest):
     log_target = None  # type: ignore[assignment]
 
 
+@dataclass(frozen=True, eq=False)
+class _BrokenTest(_LuckyTest):
+    """Answers the prior mean; its target raises."""
+
+    name = "broken_test"
+
+    def log_target(self, problem, poses, estimate):
+        raise ValueError("no target today")
+
+
 def test_cross_check_tells_a_lucky_search_from_a_model(logs: list[Path], tmp_path: Path) -> None:
-    """On every trial (a prior centred on the truth) one estimator fails and three succeed:
+    """On every trial (a prior centred on the truth) one estimator fails and four succeed:
     the one whose target prefers the failed answer is counted, the one whose target prefers
-    its own right answer is not, the failed one counts its own failure, and one without a
-    target is not checked; the scores are its target's differences to its own answer."""
+    its own right answer is not, the failed one counts its own failure, one without a
+    target is not checked, and one whose target raises has the error in its records; the
+    scores are its target's differences to its own answer."""
     from tofloc import api
     from tofloc.registry import ESTIMATORS
 
-    plugins = (_FarTest, _LuckyTest, _HonestTest, _BlindTest)
+    plugins = (_FarTest, _LuckyTest, _HonestTest, _BlindTest, _BrokenTest)
     for cls in plugins:
         ESTIMATORS.register(cls.name, cls)
     try:
@@ -573,7 +584,9 @@ def test_cross_check_tells_a_lucky_search_from_a_model(logs: list[Path], tmp_pat
     assert s["far_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 2, "own_failures": 2}
     assert s["lucky_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 2, "own_failures": 0}
     assert s["honest_test"]["cross_check"] == {"decided": 2, "ranks_failure_first": 0, "own_failures": 0}
-    assert "cross_check" not in s["blind_test"]
+    assert "cross_check" not in s["blind_test"] and "cross_check" not in s["broken_test"]
+    broken = res.document["logs"]["paper"]["estimators"]["broken_test"]["records"]
+    assert all(r["cross_check"] == {"error": "ValueError: no target today"} for r in broken)  # the run went on
     rec = res.document["logs"]["paper"]["estimators"]["lucky_test"]["records"][0]
     assert rec["cross_check"]["scores"]["lucky_test"] == 0.0
     assert rec["cross_check"]["scores"]["far_test"] == pytest.approx(0.25)  # 0 - (-(0.5 m)^2)
