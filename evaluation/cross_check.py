@@ -31,7 +31,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from evaluation.trials import TrialTask, jsonable, make_estimator, trial_problem
+from evaluation.trials import TrialTask, jsonable, make_estimator, trial_problem, trial_seed
 from tofloc.problem import Estimate
 
 __all__ = ["cross_check", "cross_check_summary", "decided"]
@@ -95,7 +95,7 @@ def cross_check(
 
         poses = np.array([answers[n]["estimate"][:3] for n in names], dtype=float)
         failed = np.array([is_failure(answers[n]) for n in names])
-        seed = en.trial_seeds(trials)[t]
+        seed = trial_seed(en.seed, en.k, t)  # the trial's own seed (EvalLog.trial_seeds)
         for s in specs:
             score = getattr(ests[s.name], "log_target", None)
             if not callable(score):

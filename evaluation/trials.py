@@ -462,13 +462,19 @@ def trial_problem(context: TrialContext, task: TrialTask, est: Estimator) -> tup
     truth : ndarray (4, 4) or None
     """
     if task.selection != "random":
-        raise ParameterError(f"trial_problem: the samples of selection {task.selection!r} depend on the estimator's own answers")
-    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
-    truth_T = context.truth(idx)
-    prior = task.prior.make(truth_T, normals, context.map)
+        raise ParameterError(f"trial_problem: task selection {task.selection!r}: expected 'random' (a policy's samples "
+                             "depend on the estimator's own answers)")
+    idx, truth_T, prior = _drawn(context, task)
     problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics,
                                context.calibration_for(est), context.valid_statuses)
     return problem, idx, truth_T
+
+
+def _drawn(context: TrialContext, task: TrialTask) -> tuple[NDArray[np.intp], Any, Any]:
+    """A trial's drawn samples, their truth and its prior (from the trial's seed)."""
+    idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
+    truth_T = context.truth(idx)
+    return idx, truth_T, task.prior.make(truth_T, normals, context.map)
 
 
 def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
@@ -484,8 +490,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     else:  # the same prior, samples chosen in turn by the policy
         from evaluation.sequential_selection import choose_sequentially
 
-        idx, normals = draw_samples_and_prior(context.pool.indices, task.k, task.seed)
-        prior = task.prior.make(context.truth(idx), normals, context.map)
+        prior = _drawn(context, task)[2]
         chosen = choose_sequentially(context, task, est, prior, calibration)
         idx, truth_T = chosen.indices, context.truth(chosen.indices)
         problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,

@@ -600,3 +600,26 @@ def test_cross_check_tells_a_lucky_search_from_a_model(logs: list[Path], tmp_pat
     line = cross_check_line(res.document)
     assert "far_test 2/2 (0 not its own failures)" in line and "lucky_test 2/2 (2 not its own failures)" in line
     assert "honest_test 0/2" in line and "blind_test" not in line
+
+
+def test_trial_problem_is_the_problem_the_trial_solves(logs: list[Path]) -> None:
+    """The cross-check scores answers on the problem `solve_trial` builds: the same samples,
+    prior and configurations; a trial whose samples a policy chose is refused, naming the
+    field and what was expected."""
+    from evaluation.evaluate import TIP_SOURCE, prepare_logs
+    from evaluation.trials import TrialTask, make_estimator, solve_trial, trial_problem
+    from tofloc.errors import ParameterError
+    from tofloc.registry import ESTIMATORS
+
+    en = prepare_logs(logs[:1], samples=3, seed=5)[0]
+    cls = ESTIMATORS.load("icp_pf")
+    task = TrialTask("g", "icp_pf", cls, {"n_particles": 50}, TIP_SOURCE, PriorSpec("offset"), 3, 1, en.trial_seeds(2)[1])
+    problem, idx, truth = trial_problem(en.context, task, make_estimator(cls, task.params))
+    solved = solve_trial(en.context, task)
+    np.testing.assert_array_equal(idx, solved.indices)
+    np.testing.assert_array_equal(truth, solved.truth)
+    np.testing.assert_array_equal(problem.prior.mean, solved.problem.prior.mean)
+    np.testing.assert_array_equal(problem.T_base_tip, solved.problem.T_base_tip)
+    np.testing.assert_array_equal(problem.distance_m, solved.problem.distance_m)
+    with pytest.raises(ParameterError, match=r"task selection 'active': expected 'random'"):
+        trial_problem(en.context, dc.replace(task, selection="active"), make_estimator(cls, task.params))
