@@ -72,10 +72,12 @@ normalized weighted mean (circular mean for the yaw): ``point_estimate = "mean"`
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -370,6 +372,56 @@ class ParticleFilter(Estimator):
                                                                for f in dataclasses.fields(refitted)}}
         return second
 
+    def estimate_prefixes(self, problem: Problem, rng: np.random.Generator, ks: Sequence[int]) -> list[Estimate] | None:
+        """The estimates after the first ``k`` samples, for each ``k`` in ``ks``, from ONE pass
+        over the problem: each is, bit for bit, what :meth:`estimate` returns on
+        ``problem.subset(slice(0, k))`` with a generator in ``rng``'s state (the filter's
+        steps do not look ahead: the k-th sample's update ends, before the resampling for
+        the next one, exactly where a pass over k samples ends). ``runtime_s`` is each
+        estimate's time from the start of the pass. ``tofloc paper``'s nested trials read
+        the error against k off one pass (:mod:`evaluation.trials`).
+
+        Returns None when the answer after k samples cannot be read off a longer pass: a
+        sensor model that refits itself at the first estimate (:meth:`SensorModel.refits`).
+
+        Raises
+        ------
+        ParameterError
+            A ``k`` outside ``[1, problem.n_samples]``.
+        ProblemError
+            A prefix without a valid zone.
+        """
+        if not isinstance(rng, np.random.Generator):
+            raise ParameterError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        wanted = sorted({int(k) for k in ks})
+        if not wanted or wanted[0] < 1 or wanted[-1] > problem.n_samples:
+            raise ParameterError(f"estimate_prefixes: expected sample counts in [1, {problem.n_samples}], got {list(ks)!r}")
+        problem.subset(slice(0, wanted[0])).require_valid_zones()
+        t0 = time.perf_counter()
+        model = self.make_sensor_model()
+        if model.refits():
+            return None
+        bound = model.bind(problem)
+        if bound.n_steps != problem.n_samples:
+            return None  # a model whose steps are not the samples
+        if not bound.derived_params():
+            reports = self._pass(problem, model, bound, rng, wanted, t0)[1]
+            return [reports[k] for k in wanted]
+        # parameters chosen from the data: what each prefix alone chooses, one pass per choice
+        groups: dict[str, tuple[dict[str, Any], list[int]]] = {}
+        for k in wanted:
+            derived = model.bind(problem.subset(slice(0, k))).derived_params()
+            groups.setdefault(repr(sorted(derived.items())), (derived, []))[1].append(k)
+        out: dict[int, Estimate] = {}
+        start = copy.deepcopy(rng)
+        for i, (derived, ks_group) in enumerate(groups.values()):
+            fixed = dataclasses.replace(model, **derived)
+            gen = rng if i == len(groups) - 1 else copy.deepcopy(start)
+            if gen is rng:
+                rng.bit_generator.state = start.bit_generator.state
+            out.update(self._pass(problem, fixed, fixed.bind(problem), gen, ks_group, t0)[1])
+        return [out[k] for k in wanted]
+
     def log_target(self, problem: Problem, poses: NDArray[np.float64], estimate: Estimate) -> NDArray[np.float64]:
         """The log of what the filter's final weighted particles stand for, up to a constant,
         at planar poses ``(M, 3)``: the prior's log density plus, for a ``"bayes"`` model,
@@ -401,7 +453,18 @@ class ParticleFilter(Estimator):
 
     def _filter(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator) -> Estimate:
         """One pass of the filter over the problem's samples with a bound sensor model."""
+        return self._pass(problem, model, bound, rng, ())[0]
+
+    def _pass(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator,
+              report: Sequence[int], t0: float = 0.0) -> tuple[Estimate, dict[int, Estimate]]:
+        """One pass of the filter; also the estimate after each of the first ``k`` samples
+        for ``k`` in ``report`` (its ``runtime_s`` the time since ``t0``), taken where a
+        pass over those samples alone would end: after the k-th update, before the
+        resampling that prepares the next one."""
         from tofloc.problem import Prior
+
+        reports: dict[int, Estimate] = {}
+        want = {int(k) for k in report}
 
         state = tuple(bound.state)
         adapt = self.kld == "always" or (self.kld == "global" and problem.prior.is_global)
@@ -476,11 +539,25 @@ class ParticleFilter(Estimator):
             ess.append(effective_sample_size(w))
             counts.append(int(particles.shape[0]))
             last = k == bound.n_steps - 1
+            if not last and k + 1 in want:  # what a pass over the first k + 1 samples returns
+                reports[k + 1] = self._finish(particles, w, state, model, adapt, ess, resampled + [False], stages, counts,
+                                              scored, recovery)
+                reports[k + 1].runtime_s = time.perf_counter() - t0
             do = (not last) and ess[-1] < self.resample_threshold * particles.shape[0]
             resampled.append(bool(do))
             if do:
                 particles = self._resample(particles, w, floors, adapt, rng)
                 log_w = np.zeros(particles.shape[0])
+        final = self._finish(particles, w, state, model, adapt, ess, resampled, stages, counts, scored, recovery)
+        if bound.n_steps in want:
+            reports[bound.n_steps] = final
+            final.runtime_s = time.perf_counter() - t0
+        return final, reports
+
+    def _finish(self, particles: NDArray[np.float64], w: NDArray[np.float64], state: tuple[Any, ...], model: SensorModel,
+                adapt: bool, ess: list[float], resampled: list[bool], stages: list[int], counts: list[int],
+                scored: list[int], recovery: dict[str, Any]) -> Estimate:
+        """The estimate of weighted particles and the pass's diagnostics so far (copied)."""
         pose, cov, modes = self._point_estimate(particles, w)
         state_diag = {}
         for i, v in enumerate(state):
@@ -490,20 +567,20 @@ class ParticleFilter(Estimator):
                                   "source": v.source}
         diagnostics: dict[str, Any] = {
             "state": state_diag,
-            "ess": ess,
-            "resampled": resampled,
-            "stages": stages,
+            "ess": list(ess),
+            "resampled": list(resampled),
+            "stages": list(stages),
             "particles": particles,
             "weights": w,
             "sensor_model": model.name,
-            "n_particles": counts,
-            "n_scored": scored,
+            "n_particles": list(counts),
+            "n_scored": list(scored),
             "kld": adapt,
         }
         if modes is not None:
             diagnostics["modes"] = modes
         if self.recovery:
-            diagnostics["recovery"] = recovery
+            diagnostics["recovery"] = {key: list(v) for key, v in recovery.items()}
         return Estimate(pose=pose, covariance=cov, diagnostics=diagnostics)
 
     def _point_estimate(self, particles: NDArray[np.float64], w: NDArray[np.float64]

@@ -207,26 +207,38 @@ def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int])
     return {"per_k": per_k, "overall": overall}
 
 
-def paired_comparison(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def paired_comparison(a: Sequence[Mapping[str, Any]], b: Sequence[Mapping[str, Any]], by_trial: bool = False) -> dict[str, Any]:
     """Compare two runs trial by trial (paired by ``(k, trial)``: the same samples and prior).
+
+    Parameters
+    ----------
+    a, b : sequences of trial records
+    by_trial : bool
+        Nested trials (:mod:`evaluation.trials`, "Designs"): the trials of one trial number
+        share their samples along k, so their differences are not independent; each trial
+        number's differences are averaged over k first and the test runs on those means
+        (``n`` = the trial count).
 
     Returns
     -------
     dict
-        For ``e_x_m`` and ``e_gamma_deg``: ``n`` pairs, ``mean_diff`` (a - b) and the
-        two-sided Wilcoxon signed-rank ``p_value`` (None when every difference is 0 or
-        fewer than 2 pairs).
+        For ``e_x_m`` and ``e_gamma_deg``: ``n`` pairs (or trial means), ``mean_diff`` (a - b)
+        and the two-sided Wilcoxon signed-rank ``p_value`` (None when every difference is 0
+        or fewer than 2 pairs); ``unit``: ``"k, trial"`` or ``"trial"``.
     """
     from scipy.stats import wilcoxon
 
     ib = {(int(r["k"]), int(r["trial"])): r for r in b}
     pairs = [(r, ib[(int(r["k"]), int(r["trial"]))]) for r in a if (int(r["k"]), int(r["trial"])) in ib]
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"unit": "trial" if by_trial else "k, trial"}
     for key in ERROR_KEYS:
         x = _values([p[0] for p in pairs], key)
         y = _values([p[1] for p in pairs], key)
         ok = np.isfinite(x) & np.isfinite(y)
         d = x[ok] - y[ok]
+        if by_trial and d.size:
+            t = np.array([int(p[0]["trial"]) for p in pairs])[ok]
+            d = np.array([d[t == u].mean() for u in np.unique(t)])
         p_value = None
         if d.size >= 2 and np.any(d != 0):
             try:
@@ -344,7 +356,9 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
             "",
             "## k-NN against motion capture (paired by trial)",
             "",
-            "Mean difference knn - mocap and the two-sided Wilcoxon signed-rank p-value over the same trials.",
+            "Mean difference knn - mocap and the two-sided Wilcoxon signed-rank p-value over the same trials"
+            + (" (nested trials share their samples along k: each trial's differences are averaged over k first, "
+               "and the test runs on those trial means)." if doc.get("design") == "nested" else "."),
             "",
             "| estimator | prior | e_x diff (m) | p | e_gamma diff (deg) | p |",
             "|---|---|---|---|---|---|",
@@ -477,9 +491,10 @@ def results_document(
     for (est, tip, mode), recs in records.items():
         results.setdefault(est, {}).setdefault(tip, {})[mode] = group_summary(recs, k_values)
     comparisons: dict[str, dict[str, Any]] = {}
+    nested = bool(extra) and (extra or {}).get("design") == "nested"
     for (est, tip, mode), recs in records.items():
         if tip == "knn" and (est, "mocap", mode) in records:
-            comparisons.setdefault(est, {})[mode] = paired_comparison(recs, records[(est, "mocap", mode)])
+            comparisons.setdefault(est, {})[mode] = paired_comparison(recs, records[(est, "mocap", mode)], by_trial=nested)
     doc: dict[str, Any] = {
         "paper": PAPER_TABLE_I,
         "trials": int(trials),

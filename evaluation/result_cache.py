@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 
 from evaluation.executors import run_tasks
 from evaluation.priors import PriorSpec
+from tofloc.errors import ParameterError
 from evaluation.trials import (
     TrialContext,
     TrialTask,
@@ -181,6 +182,7 @@ def run_batches(
     partial_dir: Any | None = None,
     on_progress: Callable[[int, int], None] | None = None,
     on_batch: Callable[[Batch, list[dict[str, Any]], bool], None] | None = None,
+    design: str = "independent",
 ) -> dict[str, list[dict[str, Any]]]:
     """Run every batch (all their trials in one pool of workers), saving each as it ends.
 
@@ -207,6 +209,10 @@ def run_batches(
         ``on_progress(done, total)`` over the trials that actually run.
     on_batch : callable, optional
         ``on_batch(batch, records, reused)`` when a batch is complete.
+    design : {"independent", "nested"}
+        How the trials of different k relate (:mod:`evaluation.trials`, "Designs"); the
+        records are the same either way, ordered by k, then trial. Part of the saved
+        batches' key (``"nested"`` only: independent batches keep their earlier keys).
 
     Returns
     -------
@@ -229,6 +235,8 @@ def run_batches(
         }
         if b.selection != "random":  # random keeps the keys batches were saved under before policies existed
             key_fields["selection"] = b.selection
+        if design != "independent":  # idem before designs existed
+            key_fields["design"] = design
         key = fingerprint_arrays(extra=key_fields)
         if partial_dir is not None:
             path = _partial_path(partial_dir, b.group)
@@ -243,10 +251,13 @@ def run_batches(
                 continue
         todo.append((b, key))
 
+    if design == "nested" and len(set(int(k) for k in k_values)) != len(k_values):
+        raise ParameterError(f"design 'nested': expected distinct k values, got {list(k_values)!r}")
     tasks: list[TrialTask] = []
     for b, _ in todo:
         tasks += make_tasks(b.group, b.estimator, b.estimator_cls, b.params, b.tip_source, b.prior, k_values, trials, seed,
-                            b.selection)
+                            b.selection, design)
+    position = {int(k): i for i, k in enumerate(k_values)}
     expected = len(k_values) * trials
     collected: dict[str, dict[int, dict[str, Any]]] = {b.group: {} for b, _ in todo}
     keys = {b.group: (b, key) for b, key in todo}
@@ -255,7 +266,11 @@ def run_batches(
     def on_result(i: int, rec: dict[str, Any]) -> None:
         nonlocal n_done
         group = tasks[i].group
-        collected[group][i] = rec
+        if tasks[i].prefixes:  # a nested trial: its records go where the independent design puts them
+            for r in rec["prefix_records"]:
+                collected[group][position[int(r["k"])] * trials + tasks[i].trial] = r
+        else:
+            collected[group][i] = rec
         n_done += 1
         if on_progress is not None:
             on_progress(n_done, len(tasks))

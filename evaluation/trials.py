@@ -22,6 +22,24 @@ so two estimators (or ``mocap`` and ``knn``, or the two prior modes) see identic
 samples and, for a given mode, identical priors: their errors can be compared trial by
 trial.
 
+Designs
+-------
+``independent`` (the paper's wording: 50 trials per k, each drawing its own samples and
+prior): one task per ``(k, trial)`` with the seed above. ``nested`` (the default of
+``tofloc paper``): one task per trial, seeded as the largest k's trial
+(``trial_seed(seed, k_max, trial)``), draws ``k_max`` samples and the prior once, and the
+trial with ``k`` samples uses the first ``k`` of them and that prior. Each k's trials are
+still independent random draws of k samples (the first k of a random draw are a random
+draw), so every per-k figure estimates the same quantity; the trials at different k of
+one trial number share samples, which pairs them along k as the seeds pair them across
+estimators. The trials at ``k_max`` are exactly the independent design's. A particle filter
+answers every k from one pass over the ``k_max`` samples
+(:meth:`estimators.particle_filter.ParticleFilter.estimate_prefixes`, each answer bit for
+bit the one a pass over the first k samples gives, tested); any other estimator solves
+each prefix on its own with a fresh estimator generator from the trial's seed. Records
+are the same in both designs (``seed`` is the trial's seed, the one of ``k_max`` in the
+nested design).
+
 The pool
 --------
 Samples come from the k-NN model's held-out validation split when a kinematics model
@@ -84,6 +102,10 @@ __all__ = [
     "warm_up",
     "make_tasks",
     "jsonable",
+    "DESIGNS",
+    "SEED_DERIVATION_NESTED",
+    "solve_nested",
+    "trial_record",
 ]
 
 #: A log whose ``/truth/T_map_base`` moves more than this over the pool is refused: the
@@ -95,6 +117,13 @@ SEED_DERIVATION = (
     "trial seed = SeedSequence([seed, k, trial]).generate_state(1, uint32)[0]; "
     "draw_rng, estimator_rng = default_rng(SeedSequence(trial seed).spawn(2)); "
     "draw_rng: choice(pool, k, replace=False) then normal(size=3) for the prior offset"
+)
+#: The same for the nested design (evaluation.trials, "Designs").
+SEED_DERIVATION_NESTED = (
+    "nested design: trial seed = SeedSequence([seed, k_max, trial]).generate_state(1, uint32)[0] for every k; "
+    "draw_rng, estimator_rng = default_rng(SeedSequence(trial seed).spawn(2)); "
+    "draw_rng: choice(pool, k_max, replace=False) then normal(size=3) for the prior offset; "
+    "the trial with k samples uses the first k drawn and that prior"
 )
 
 
@@ -278,6 +307,10 @@ class TrialTask:
         The selection policy (:data:`tofloc.registry.SELECTION_POLICIES`): ``"random"``
         draws the ``k`` samples at once (the protocol); another chooses them in turn
         (:mod:`evaluation.sequential_selection`).
+    prefixes : tuple of int
+        Empty: one trial with ``k`` samples. Otherwise a nested trial (the module doc):
+        ``k`` is the largest of them, and the task answers with one record per prefix
+        (:func:`run_trial`).
     """
 
     group: str
@@ -290,6 +323,11 @@ class TrialTask:
     trial: int
     seed: int
     selection: str = "random"
+    prefixes: tuple[int, ...] = ()
+
+
+#: How the trials of different k relate (the module doc, "Designs").
+DESIGNS = ("nested", "independent")
 
 
 @dataclass(eq=False)
@@ -438,6 +476,9 @@ class TrialOutcome:
         One-off set-up paid before the trial (:func:`warm_up`).
     has_context_calibration : bool
         Whether the problem carries the context's calibration (the Cramér-Rao bound's).
+    work_s : float, optional
+        A nested trial's answer: the estimator time it added to its trial (from the
+        previous answer of the same pass, or its own run's); None otherwise.
     """
 
     problem: Any
@@ -447,6 +488,7 @@ class TrialOutcome:
     setup_s: float
     has_context_calibration: bool
     selection: Any = None
+    work_s: float | None = None
 
 
 def trial_problem(context: TrialContext, task: TrialTask, est: Estimator) -> tuple[Any, NDArray[np.intp], Any]:
@@ -504,8 +546,45 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration, chosen)
 
 
+def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
+    """The outcomes of a nested trial (``task.prefixes``, the module doc), one per prefix in
+    increasing order: each the outcome :func:`solve_trial` gives for the first k samples of
+    the trial's draw, with its prior (a particle filter's answers from one pass)."""
+    from tofloc.fit_check import check_fit, widen_if_unfit
+
+    if task.selection != "random":
+        raise ParameterError(f"nested trials: task selection {task.selection!r}: expected 'random'")
+    ks = sorted({int(k) for k in task.prefixes})
+    if not ks or ks[0] < 1 or ks[-1] != task.k:
+        raise ParameterError(f"nested trials: expected prefixes in [1, k={task.k}] ending at k, got {list(task.prefixes)!r}")
+    est = make_estimator(task.estimator_cls, task.params, task.estimator)
+    calibration = context.calibration_for(est)
+    idx, _, prior = _drawn(context, task)
+    problems = [problem_from_log(context.log, idx[:k], context.map, prior, task.tip_source, context.kinematics, calibration,
+                                 context.valid_statuses) for k in ks]
+    setup_s = warm_up(est, task, problems[-1], context)
+    prefixes = getattr(est, "estimate_prefixes", None)
+    results = None if prefixes is None else prefixes(problems[-1], trial_rngs(task.seed)[1], ks)
+    if results is None:  # each prefix on its own, from the generator a trial of its own would get
+        results = [est.estimate(p, trial_rngs(task.seed)[1]) for p in problems]
+        work = [float(r.runtime_s) for r in results]
+    else:  # one pass: each answer's time counts from the pass's start
+        times = [float(r.runtime_s) for r in results]
+        work = [t - prev for t, prev in zip(times, [0.0] + times[:-1])]
+    out = []
+    for i, (k, problem, result) in enumerate(zip(ks, problems, results)):
+        if hasattr(problem.map, "raycast"):
+            result.fit = check_fit(problem, result)
+            widen_if_unfit(problem, result)
+        out.append(TrialOutcome(problem, result, context.truth(idx[:k]), idx[:k], setup_s if i == 0 else 0.0,
+                                calibration is context.calibration, work_s=work[i]))
+    return out
+
+
 def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
-    """Run one trial; returns its JSON record.
+    """Run one trial; returns its JSON record (a nested trial, ``task.prefixes``:
+    ``{"prefix_records": [record, ...]}``, one per prefix in increasing k, each the record
+    described below with its own ``k``).
 
     Returns
     -------
@@ -519,7 +598,10 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         declares no truth covariance), ``nees_model`` (``nees`` with the estimator's own
         covariance, before :func:`tofloc.fit_check.widen_if_unfit`), ``covariance_widened``
         (whether the fit check failed and the prior's covariance was added), ``runtime_s`` (the
-        estimator's own time on the trial, without one-off set-up), ``setup_s`` (the
+        estimator's own time on the trial, without one-off set-up; a nested trial's answer
+        read off a pass: the time from the pass's start), ``work_s`` (nested trials only:
+        the estimator time the answer added to its trial, from the previous answer of its
+        pass; the sum over a trial's records is the trial's estimator time), ``setup_s`` (the
         one-off set-up this trial paid before it ran: :func:`warm_up`; near 0 for every
         trial but the first of its estimator, parameters and map in a process),
         ``crlb``: ``{"position_m", "yaw_deg", "reason"}``, sqrt of the Cramér-Rao bound at
@@ -543,9 +625,18 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         (``"model"``) or not (``"search"``), :func:`evaluation.failure_cause.failure_cause`;
         None for a trial that did not fail or has no truth.
     """
+    if task.prefixes:
+        import dataclasses
+
+        return {"prefix_records": [trial_record(context, dataclasses.replace(task, k=len(out.indices), prefixes=()), out)
+                                   for out in solve_nested(context, task)]}
+    return trial_record(context, task, solve_trial(context, task))
+
+
+def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> dict[str, Any]:
+    """The JSON record of a solved trial (:func:`run_trial`)."""
     from tofloc.posterior_modes import is_ambiguous, modes_of_estimate
 
-    out = solve_trial(context, task)
     problem, result, truth_T, idx = out.problem, out.estimate, out.truth, out.indices
     prior = problem.prior
     modes = modes_of_estimate(result)
@@ -578,6 +669,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         "truth_mode": None,
         "failure_cause": None,
     }
+    if out.work_s is not None:  # a nested trial's answer: what it added to its trial's estimator time
+        record["work_s"] = float(out.work_s)
     if out.selection is not None:
         record["selection"] = out.selection.to_json()
     state = result.diagnostics.get("state") if isinstance(result.diagnostics, Mapping) else None
@@ -634,11 +727,22 @@ def make_tasks(
     trials: int,
     seed: int,
     selection: str = "random",
+    design: str = "independent",
 ) -> list[TrialTask]:
     """The tasks of one batch: every ``k`` in ``k_values`` times ``trials`` trials, samples
-    chosen by the policy ``selection``."""
+    chosen by the policy ``selection``; with ``design="nested"`` one task per trial that
+    answers every k (the module doc, "Designs")."""
     if not isinstance(trials, int) or trials < 1:
         raise ParameterError(f"trials must be an integer >= 1, got {trials!r}")
+    if design not in DESIGNS:
+        raise ParameterError(f"design: expected one of {', '.join(DESIGNS)}, got {design!r}")
+    if design == "nested":
+        if selection != "random":
+            raise ParameterError(f"design 'nested' needs selection 'random' (a policy chooses each trial's samples in turn), "
+                                 f"got {selection!r}")
+        ks = tuple(sorted({int(k) for k in k_values}))
+        return [TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, ks[-1], t,
+                          trial_seed(seed, ks[-1], t), selection, ks) for t in range(trials)]
     return [
         TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, int(k), t, trial_seed(seed, int(k), t),
                   selection)

@@ -123,6 +123,16 @@ class BoundSensorModel(ABC):
         ``-inf`` is allowed (a state the data exclude); NaN is not.
         """
 
+    def derived_params(self) -> dict[str, Any]:
+        """The model parameters this binding chose from the problem's data (name -> value;
+        e.g. the likelihood field's ``r_field`` from the zones' sigmas): the model with them
+        set (``dataclasses.replace``) binds any problem as this binding did. A binding to
+        the first k samples of a problem may choose differently from one to all of them, so
+        a filter that reads the answer after k samples off a longer pass fixes them first
+        (:meth:`estimators.particle_filter.ParticleFilter.estimate_prefixes`). A plug-in
+        model that derives parameters from the data must name them here. Default: none."""
+        return {}
+
     def refit(self, state: NDArray[np.float64]) -> "SensorModel | None":
         """A model whose data-dependent parameters are fitted to this problem's own readings
         at ``state`` ``(3 + len(state),)`` (a first estimate), or None when the model fits
@@ -257,6 +267,14 @@ class SensorModel(ABC):
     @abstractmethod
     def bind(self, problem: Problem) -> BoundSensorModel:
         """Precompute what scoring ``problem`` needs; must not mutate it."""
+
+    def refits(self) -> bool:
+        """Whether its bound model may refit itself to a problem's readings at a first
+        estimate (:meth:`BoundSensorModel.refit`): a filter's answer after k samples then
+        depends on those k samples' refit, and cannot be read off one pass over more
+        samples (:meth:`estimators.particle_filter.ParticleFilter.estimate_prefixes`).
+        Default: any of the parameters ``refit_short``, ``refit_sigma`` set."""
+        return bool(getattr(self, "refit_short", False) or getattr(self, "refit_sigma", False))
 
     def get_params(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}

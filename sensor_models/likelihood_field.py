@@ -211,6 +211,10 @@ class BoundLikelihoodField(BoundSensorModel):
         self.configuration_cov = [None if cov is None or not np.all(np.isfinite(cov[k])) else cov[k]
                                   for k in range(self.n_steps)]
 
+    def derived_params(self) -> dict[str, Any]:
+        """``r_field`` when it was chosen from the zones' sigmas (``r_field=None``)."""
+        return {} if self.model.r_field is not None else {"r_field": self.r_field}
+
     def _surface_at_reference(self, states: NDArray[np.float64], step: int) -> tuple[
             NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
         """Step ``step``'s end points seen from :func:`~sensor_models.base.reference_pose`

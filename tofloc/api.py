@@ -479,6 +479,7 @@ def paper(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
+    design: str | None = None,
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
     prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
@@ -496,12 +497,18 @@ def paper(
     written to ``out/config.toml`` (``--config`` reads it back). ``selection`` names the
     policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in turn,
     :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
+    ``design`` says how the trials of different k relate (:mod:`evaluation.trials`,
+    "Designs"): ``"nested"`` (the default with random selection: each trial draws
+    ``max(k)`` samples and a prior once, the trial with k samples uses the first k; a
+    particle filter answers every k from one pass) or ``"independent"`` (each ``(k, trial)``
+    draws its own; the default with a selection policy), recorded as ``results.json``'s
+    ``design``.
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
     from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
     from evaluation.result_cache import Batch, run_batches
-    from evaluation.trials import SEED_DERIVATION, TrialContext, jsonable, sample_pool
+    from evaluation.trials import DESIGNS, SEED_DERIVATION, SEED_DERIVATION_NESTED, TrialContext, jsonable, sample_pool
     from tofloc.provenance import provenance
 
     names = list(estimators)
@@ -534,6 +541,13 @@ def paper(
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
     check_selection(selection)
+    if design is None:
+        design = "nested" if selection == "random" else "independent"
+    if design not in DESIGNS:
+        raise ParameterError(f"design: expected one of {', '.join(DESIGNS)}, got {design!r}")
+    if design == "nested" and selection != "random":
+        raise ParameterError(f"design 'nested' needs selection 'random' (a policy chooses each trial's samples in turn), "
+                             f"got {selection!r}")
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
@@ -579,14 +593,16 @@ def paper(
                            map_tolerance_m=data.map_tolerance_m, footprint_calibrations=footprint_cals)
     batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
                for n in names for tip in tips for prior in priors]
-    n_tasks = len(batches) * len(k_values) * trials
+    n_tasks = len(batches) * (1 if design == "nested" else len(k_values)) * trials
     n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
-    label = f"{len(batches)} batches x {len(k_values)} k x {trials} trials"
+    label = (f"{len(batches)} batches x {trials} nested trials (k = {', '.join(map(str, k_values))})" if design == "nested"
+             else f"{len(batches)} batches x {len(k_values)} k x {trials} trials")
     warming = _warm_plotting(n_workers, scheduler)
     by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
                            on_progress=lambda d, t: reporter.progress(d, t, label),
                            on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
-                                                                          f"({len(recs)} trials)"))
+                                                                          f"({len(recs)} trials)"),
+                           design=design)
     records = {(b.estimator, b.tip_source, b.prior.mode): by_group[b.group] for b in batches}
     doc = results_document(
         records, k_values, trials, seed,
@@ -597,6 +613,7 @@ def paper(
                       "specs": {p.mode: p.to_json() for p in priors}},
             "tip_sources": tips,
             "selection": selection,
+            "design": design,
             "k_values": k_values,
             "scenario": scenario,
             "rig_variant": rig_variant,
@@ -606,7 +623,8 @@ def paper(
             "kinematics": {"path": str(out_dir / KNN_NAME), "k": int(data.kinematics.k),
                            "n_validation": int(data.kinematics.validation_indices.size)},
             "pool": pool.to_json(),
-            "seeds": {"seed": seed, "derivation": SEED_DERIVATION, "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
+            "seeds": {"seed": seed, "derivation": SEED_DERIVATION_NESTED if design == "nested" else SEED_DERIVATION,
+                      "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
             "calibration": cal_path,
             **({"footprint_calibrations": footprint_paths} if footprint_paths else {}),
             "wall_time_s": round(time.perf_counter() - t0, 3),

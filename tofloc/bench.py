@@ -358,14 +358,15 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
 
 
 def _trial_seconds(partial_dir: str) -> float:
-    """The trials' own time (``runtime_s`` plus ``setup_s``) summed over every record a
-    ``paper`` run left in its ``partial`` folder."""
+    """The trials' own time (``work_s``, or ``runtime_s`` where a record has none, plus
+    ``setup_s``; nested trials' answers read off one pass count each their increment)
+    summed over every record a ``paper`` run left in its ``partial`` folder."""
     total = 0.0
     for name in sorted(os.listdir(partial_dir)):
         if name.endswith(".json"):
             with open(os.path.join(partial_dir, name), encoding="utf-8") as fh:
                 for rec in json.load(fh)["records"]:
-                    total += float(rec["runtime_s"]) + float(rec.get("setup_s") or 0.0)
+                    total += float(rec.get("work_s", rec["runtime_s"])) + float(rec.get("setup_s") or 0.0)
     return total
 
 

@@ -18,14 +18,17 @@ Plug-in authors run them on their own plug-ins::
 Estimator checks: same seed -> same result; inputs not mutated; result contract (finite
 pose, yaw in (-pi, pi], symmetric PSD covariance, runtime recorded); convergence on an
 easy noise-free problem; a problem with no valid zone raises :class:`ProblemError`; the
-parameters round-trip through ``get_params``; a non-Generator ``rng`` is refused.
+parameters round-trip through ``get_params``; a non-Generator ``rng`` is refused; answers
+after the first k samples read off one pass (``estimate_prefixes``) equal runs on those k
+samples alone.
 
 Sensor-model checks: the interface is declared (``weight_update``, ``nuisances``,
 ``uses_calibration``); log-likelihoods have shape ``(M,)`` and no NaN; a batch equals one
 state at a time; the problem is not mutated; the declared state is honoured (no columns
 unless the problem declares a nuisance the model supports, then exactly those, in the
 declared order, and they change the score); the score peaks near the truth on noise-free
-data; the parameters round-trip.
+data; the parameters round-trip; bound to the first k samples a model scores them as it
+does bound to all of them with what it derived from the data fixed (``derived_params``).
 
 A plug-in that fails a check on purpose (a baseline that does not converge, say) says so:
 ``expected_check_failures = {"check_converges_on_easy_problem": "why"}`` as a class
@@ -185,6 +188,28 @@ def check_prepare_changes_no_number(est: Estimator) -> None:
     _assert_same(a, est.estimate(p, np.random.default_rng(7)))
 
 
+def check_prefix_answers_are_short_runs(est: Estimator) -> None:
+    """An estimator that answers after each of the first k samples from one pass
+    (``estimate_prefixes``, e.g. every particle filter) gives, for each k, exactly what
+    :meth:`~tofloc.problem.Estimator.estimate` gives on those k samples alone with a
+    generator of the same seed (``tofloc paper``'s nested trials rely on it). Estimators
+    without it answer each prefix with its own run, nothing to check."""
+    prefixes = getattr(est, "estimate_prefixes", None)
+    if prefixes is None:
+        return
+    p, _ = easy_problem(n_samples=4)
+    ks = [1, 3, 4]
+    got = prefixes(p, np.random.default_rng(9), ks)
+    if got is None:  # declined (e.g. a model that refits itself): each prefix runs on its own
+        return
+    assert len(got) == len(ks), f"{len(got)} answers for {len(ks)} prefixes"
+    for k, a in zip(ks, got):
+        b = est.estimate(p.subset(slice(0, k)), np.random.default_rng(9))
+        np.testing.assert_array_equal(a.pose, b.pose, err_msg=f"after {k} samples")
+        np.testing.assert_array_equal(a.covariance, b.covariance, err_msg=f"after {k} samples")
+        assert a.runtime_s > 0.0
+
+
 CHECKS: list[Callable[[Estimator], None]] = [
     check_rng_must_be_generator,
     check_no_valid_zone_is_an_error,
@@ -194,6 +219,7 @@ CHECKS: list[Callable[[Estimator], None]] = [
     check_inputs_not_mutated,
     check_params_round_trip,
     check_converges_on_easy_problem,
+    check_prefix_answers_are_short_runs,
 ]
 
 
@@ -356,6 +382,23 @@ def check_model_params_round_trip(model: Any) -> None:
     np.testing.assert_array_equal(a.log_likelihood(_states(a, truth[None]), 0), b.log_likelihood(_states(b, truth[None]), 0))
 
 
+def check_model_scores_a_prefix_as_the_whole(model: Any) -> None:
+    """Bound to the first k samples, the model scores each of them as the model with that
+    binding's :meth:`~sensor_models.base.BoundSensorModel.derived_params` set scores them
+    bound to every sample: what it chooses from the data it declares, and a step's score
+    does not look at later samples (a filter reads its answer after k samples off one pass)."""
+    import dataclasses
+
+    p, truth = easy_problem(n_samples=3)
+    short = model.bind(p.subset(slice(0, 2)))
+    derived = short.derived_params()
+    whole = (dataclasses.replace(model, **derived) if derived else model).bind(p)
+    poses = truth + np.random.default_rng(2).normal(size=(6, 3)) * np.array([0.02, 0.02, 0.03])
+    for k in range(2):
+        np.testing.assert_array_equal(short.log_likelihood(_states(short, poses), k),
+                                      whole.log_likelihood(_states(whole, poses), k), err_msg=f"step {k}")
+
+
 SENSOR_MODEL_CHECKS: list[Callable[[Any], None]] = [
     check_model_interface,
     check_model_output_shape,
@@ -364,4 +407,5 @@ SENSOR_MODEL_CHECKS: list[Callable[[Any], None]] = [
     check_model_honours_the_declared_state,
     check_model_peaks_near_the_truth,
     check_model_params_round_trip,
+    check_model_scores_a_prefix_as_the_whole,
 ]

@@ -65,6 +65,11 @@ def paper(
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
                                   "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
+    design: Optional[str] = typer.Option(
+        None, "--design", help="How the trials of different k relate: nested (each trial draws max(k) samples and a prior "
+        "once; the trial with k samples uses the first k, and a particle filter answers every k from one pass) or "
+        "independent (every k draws its own). Default: nested with random selection, independent with a policy. The "
+        "trials at max(k) are the same in both (docs/evaluation.md, 'Nested trials')."),
     calibrate: Optional[bool] = typer.Option(
         None, "--calibrate/--no-calibrate",
         help="Calibrate the sensor model (support rotation with its uncertainty, each sensor's mounting, then EM) on a "
@@ -119,6 +124,7 @@ def paper(
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
             prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
+            design=design,
         )
     _print(run.document)
     for p in run.paths:
