@@ -378,11 +378,18 @@ class ParticleFilter(Estimator):
         ``problem.subset(slice(0, k))`` with a generator in ``rng``'s state (the filter's
         steps do not look ahead: the k-th sample's update ends, before the resampling for
         the next one, exactly where a pass over k samples ends). ``runtime_s`` is each
-        estimate's time from the start of the pass. ``tofloc paper``'s nested trials read
+        estimate's time from the start of the call (of its pass, unless a parameter the
+        model derives from the data splits the samples into passes, below). ``tofloc paper``'s nested trials read
         the error against k off one pass (:mod:`evaluation.trials`).
 
+        A parameter the sensor model chooses from the data
+        (:meth:`~sensor_models.base.BoundSensorModel.derived_params`, e.g. the likelihood
+        field's ``r_field``) is chosen as the first k samples alone would choose it: the
+        prefixes that choose alike share a pass with it fixed, each pass starting from
+        ``rng``'s state.
+
         Returns None when the answer after k samples cannot be read off a longer pass: a
-        sensor model that refits itself at the first estimate (:meth:`SensorModel.refits`).
+        sensor model that refits itself at the first estimate (:meth:`sensor_models.base.SensorModel.refits`).
 
         Raises
         ------

@@ -568,9 +568,12 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     if results is None:  # each prefix on its own, from the generator a trial of its own would get
         results = [est.estimate(p, trial_rngs(task.seed)[1]) for p in problems]
         work = [float(r.runtime_s) for r in results]
-    else:  # one pass: each answer's time counts from the pass's start
-        times = [float(r.runtime_s) for r in results]
-        work = [t - prev for t, prev in zip(times, [0.0] + times[:-1])]
+    else:  # answers read off passes: each one's time counts from the call's start
+        times = np.array([float(r.runtime_s) for r in results])
+        order = np.argsort(times, kind="stable")
+        work = [0.0] * len(times)
+        for i, j in enumerate(order):
+            work[j] = float(times[j] - (times[order[i - 1]] if i else 0.0))
     out = []
     for i, (k, problem, result) in enumerate(zip(ks, problems, results)):
         if hasattr(problem.map, "raycast"):
