@@ -379,8 +379,9 @@ class ParticleFilter(Estimator):
         steps do not look ahead: the k-th sample's update ends, before the resampling for
         the next one, exactly where a pass over k samples ends). ``runtime_s`` is each
         estimate's time from the start of the call (of its pass, unless a parameter the
-        model derives from the data splits the samples into passes, below). ``tofloc paper``'s nested trials read
-        the error against k off one pass (:mod:`evaluation.trials`).
+        model derives from the data splits the samples into passes, below). The pass
+        stops at the largest ``k``. ``tofloc paper``'s nested trials read the error
+        against k off one pass (:mod:`evaluation.trials`).
 
         A parameter the sensor model chooses from the data
         (:meth:`~sensor_models.base.BoundSensorModel.derived_params`, e.g. the likelihood
@@ -405,6 +406,8 @@ class ParticleFilter(Estimator):
             raise ParameterError(f"estimate_prefixes: expected sample counts in [1, {problem.n_samples}], got {list(ks)!r}")
         problem.subset(slice(0, wanted[0])).require_valid_zones()
         t0 = time.perf_counter()
+        if wanted[-1] < problem.n_samples:  # no sample after the last answer is needed
+            problem = problem.subset(slice(0, wanted[-1]))
         model = self.make_sensor_model()
         if model.refits():
             return None

@@ -512,12 +512,17 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
         time.sleep(delay)
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=60)
-        # at the last delay a fast machine may have ended the whole command first (exit 0)
-        codes = (130, 0) if delay == 2.5 else (130,)
+        # at the last delay a fast machine may have ended the whole command first (exit 0), or
+        # the signal may land while the interpreter shuts down, after the command ended: Python
+        # restores the default handler then and the process dies of the signal (-SIGINT, seen
+        # once in a full suite run), with every file in place
+        codes = (130, 0, -signal.SIGINT) if delay == 2.5 else (130,)
         assert p.returncode in codes and "Traceback" not in err, (delay, p.returncode, err[-1500:])
         left = sorted(q.name for q in folder.iterdir())
         assert left in ([], ["x.cad.ply", "x.h5", "x.map.ply"]), (delay, left)
-        if left or p.returncode == 0:
+        if p.returncode == -signal.SIGINT:
+            assert left, (delay, "killed by the signal before the command ended")
+        if left or p.returncode in (0, -signal.SIGINT):
             assert left and read_log(folder / "x.h5").n_samples > 0, (delay, p.returncode, left)
 
 

@@ -35,6 +35,9 @@ def test_one_pass_answers_every_prefix_as_its_own_pass(est) -> None:
     p, _ = easy_problem(n_samples=5, prior_offset=(0.03, -0.02, 0.05))
     ks = [1, 2, 3, 5]
     got = est.estimate_prefixes(p, np.random.default_rng(4), ks)
+    # a pass that stops before the last sample answers the same
+    short = est.estimate_prefixes(p, np.random.default_rng(4), [2, 3])
+    np.testing.assert_array_equal(short[1].pose, got[2].pose)
     for k, a in zip(ks, got):
         b = est.estimate(p.subset(slice(0, k)), np.random.default_rng(4))
         np.testing.assert_array_equal(a.pose, b.pose)
