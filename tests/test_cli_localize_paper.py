@@ -210,6 +210,15 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     assert "e_x (mm)" in stdout and "30.0 ± 7.6" in stdout  # the console in millimetres
     assert (out / "knn.npz").is_file()
     assert "Table I" in stdout and "icp_pf" in stdout
+    # nested trials by default: the design recorded and named, each k = 1 trial on the first
+    # sample of its k = 2 trial's draw, with its prior; the knn-vs-mocap test on trial means
+    assert doc["design"] == "nested" and "nested" in doc["seeds"]["derivation"] and "nested" in stdout
+    by = {(r["k"], r["trial"]): r for r in part["records"]}
+    for t in range(2):
+        assert by[(1, t)]["sample_indices"] == by[(2, t)]["sample_indices"][:1]
+        assert by[(1, t)]["prior_mean"] == by[(2, t)]["prior_mean"] and by[(1, t)]["seed"] == by[(2, t)]["seed"]
+    assert doc["comparisons"]["icp_pf"]["paper"]["unit"] == "trial"
+    assert doc["comparisons"]["icp_pf"]["paper"]["e_x_m"]["n"] == 2
 
     # rerun with the same arguments: every batch comes from partial/, nothing is recomputed
     mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "partial").iterdir()}

@@ -136,7 +136,10 @@ def _print(doc: dict[str, Any]) -> None:
     columns), e_x in millimetres, e_γ in degrees, and the mean sqrt(CRLB) of the same trials."""
     ks = doc.get("k_values") or list(range(1, doc["k_max"] + 1))
     span = f"k = {ks[0]}..{ks[-1]}" if ks == list(range(ks[0], ks[-1] + 1)) else f"k in {ks}"
-    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k",
+    design = doc.get("design")
+    drawn = (" (nested: a trial's k samples are the first k of one draw)" if design == "nested"
+             else " (a draw per k)" if design == "independent" else "")
+    t = Table(title=f"mean ± std over {span}, {doc['trials']} trials per k{drawn}",
               caption="√CRLB: the mean sqrt(Cramér-Rao bound) of the same trials, position mm / yaw deg",
               box=box.SIMPLE_HEAD)
     widest = max([len("paper, Table I"), *(len(e) for e in doc["results"])])
