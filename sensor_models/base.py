@@ -273,8 +273,8 @@ class SensorModel(ABC):
         estimate (:meth:`BoundSensorModel.refit`): a filter's answer after k samples then
         depends on those k samples' refit, and cannot be read off one pass over more
         samples (:meth:`estimators.particle_filter.ParticleFilter.estimate_prefixes`).
-        Default: any of the parameters ``refit_short``, ``refit_sigma`` set."""
-        return bool(getattr(self, "refit_short", False) or getattr(self, "refit_sigma", False))
+        Default: any of the parameters ``refit_short``, ``refit_sigma``, ``refit_correlation`` set."""
+        return any(bool(getattr(self, n, False)) for n in ("refit_short", "refit_sigma", "refit_correlation"))
 
     def get_params(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else {}

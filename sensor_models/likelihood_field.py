@@ -50,13 +50,35 @@ from tofloc.problem import Problem
 from tofloc.surface_field import MAX_FIELD_CELLS, SurfaceField, surface_field_for
 from tofloc.zone_caster import rotate_z
 
-__all__ = ["SurfaceField", "surface_field_for", "MAX_FIELD_CELLS", "auto_r_field", "LikelihoodFieldModel", "BoundLikelihoodField"]
+__all__ = ["SurfaceField", "surface_field_for", "MAX_FIELD_CELLS", "auto_r_field", "place_weights", "LikelihoodFieldModel", "BoundLikelihoodField"]
 
 #: The automatic ``r_field`` is the smallest of these (m) at least :data:`R_FIELD_SIGMAS` times
 #: the 99th percentile of the problem's zone sigmas (a few levels, so that the per-map cache
 #: is shared across problems).
 R_FIELD_LEVELS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 R_FIELD_SIGMAS = 4.0
+
+
+def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) -> list[NDArray[np.float64] | None]:
+    """Per sample, each end point's weight ``1 / (1 + n rho)``, ``n`` the end points of the
+    same and earlier samples (itself excluded) within ``radius`` of it in the plane of
+    ``points`` (per sample ``(P_k, 3)``, the base frame at the configurations): Kish's
+    design effect for residuals correlated ``rho`` within a place. Counting only earlier
+    samples keeps a sample's weights independent of later ones (a filter's answer after k
+    samples reads off a longer pass). All None when ``rho`` is 0."""
+    if rho <= 0 or not points:
+        return [None] * len(points)
+    from scipy.spatial import cKDTree
+
+    out: list[NDArray[np.float64] | None] = []
+    seen = np.zeros((0, 2))
+    for p in points:
+        xy = np.asarray(p, dtype=float)[:, :2]
+        upto = np.vstack([seen, xy])
+        n = cKDTree(upto).query_ball_point(xy, radius, return_length=True) - 1 if upto.shape[0] else np.zeros(0)
+        out.append(1.0 / (1.0 + rho * np.asarray(n, dtype=float)))
+        seen = upto
+    return out
 
 
 def auto_r_field(sigma: NDArray[np.float64]) -> float:
@@ -114,6 +136,21 @@ class LikelihoodFieldModel(SensorModel):
         given scale, at most 3x it, not where the data do not fit the map) and run the filter
         again with it when it rises by more than 5 %. False (the default): the sigma as
         calibrated (docs/sensor-models.md, "A noise scale fitted to each problem's own data").
+    place_correlation : float
+        In [0, 1]: how correlated the residuals of end points at one place are (one wall
+        patch seen again and again by a scan's samples shares the map's error there). Each
+        end point's log-likelihood is weighted by ``1 / (1 + n rho)``, ``n`` the end points
+        of the same and earlier samples within ``place_radius`` of it in the base frame
+        (at the configurations; the weights do not depend on the pose), Kish's design
+        effect: ``rho = 1`` counts each place about once, 0 (the default) is the product of
+        independent end points (docs/sensor-models.md, "Correlated places").
+    place_radius : float
+        Radius (m) of a place.
+    refit_correlation : bool
+        Fit ``place_correlation`` to each problem's own residuals at the filter's first
+        estimate (the correlation of the normalized residuals of end point pairs within
+        ``place_radius`` from different samples, clipped to [0, 1]) and run the filter again
+        with it when it is at least 0.05. False (the default): ``place_correlation`` as given.
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -132,6 +169,9 @@ class LikelihoodFieldModel(SensorModel):
     min_incidence_cos: float = 0.25
     sigma_scale: float = 1.0
     refit_sigma: bool = False
+    place_correlation: float = 0.0
+    place_radius: float = 0.05
+    refit_correlation: bool = False
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_short", "z_rand"):
@@ -143,7 +183,7 @@ class LikelihoodFieldModel(SensorModel):
         if abs(total - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
-        for flag in ("configuration_cov", "refit_sigma"):
+        for flag in ("configuration_cov", "refit_sigma", "refit_correlation"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"likelihood_field.{flag} must be true or false, got {getattr(self, flag)!r}")
         g = self.sigma_scale
@@ -152,6 +192,10 @@ class LikelihoodFieldModel(SensorModel):
         c = self.min_incidence_cos
         if not isinstance(c, (int, float)) or isinstance(c, bool) or not math.isfinite(c) or not 0.05 <= c <= 1:
             raise ParameterError(f"likelihood_field.min_incidence_cos must be in [0.05, 1], got {c!r}")
+        for n, lo, hi in (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0)):
+            v = getattr(self, n)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
+                raise ParameterError(f"likelihood_field.{n} must be in [{lo}, {hi}], got {v!r}")
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"likelihood_field.unknown_weight must be in [0, 1], got {u!r}")
@@ -206,6 +250,9 @@ class BoundLikelihoodField(BoundSensorModel):
         #: the field's clipping distance (m): the parameter, or chosen from the zone sigmas
         self.r_field = model.r_field if model.r_field is not None else auto_r_field(sigma[valid])
         self.field = surface_field_for(problem.map, model.cell, self.r_field)
+        #: per sample, each end point's weight (None: every end point counts 1), see
+        #: ``place_correlation``
+        self.place_weights = place_weights(self.points, model.place_radius, model.place_correlation)
         cov = problem.T_base_tip_cov if model.configuration_cov else None
         #: per sample, the configuration covariance (6, 6), or None when exact/unknown
         self.configuration_cov = [None if cov is None or not np.all(np.isfinite(cov[k])) else cov[k]
@@ -344,7 +391,9 @@ class BoundLikelihoodField(BoundSensorModel):
         gradient, floored by ``min_incidence_cos``): the beam model's ray cast, linearized.
         With ``cos(beta) = 1`` (``min_incidence_cos = 1``) it is Thrun's end-point model,
         which counts a zone meeting a wall at 60 deg as a quarter of its information."""
-        return self.model.temper * np.log(self._terms(states, d, unknown, cos_in, step)[0]).sum(axis=1)
+        log_p = np.log(self._terms(states, d, unknown, cos_in, step)[0])
+        w = self.place_weights[step]
+        return self.model.temper * (log_p.sum(axis=1) if w is None else log_p @ w)
 
     def _terms(self, states: NDArray[np.float64], d: NDArray[np.float64], unknown: NDArray[np.bool_] | None,
                cos_in: NDArray[np.float64] | None, step: int) -> tuple[NDArray[np.float64], ...]:
@@ -376,11 +425,51 @@ class BoundLikelihoodField(BoundSensorModel):
 
     def refit(self, state: NDArray[np.float64]) -> "LikelihoodFieldModel | None":
         """With ``refit_sigma``: the model with the noise scale fitted at ``state``
-        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`), or None."""
-        if not self.model.refit_sigma:
+        (:meth:`sensor_models.base.BoundSensorModel.fitted_noise_scale`); with
+        ``refit_correlation``: with ``place_correlation`` fitted there
+        (:meth:`fitted_place_correlation`); None when neither changes the model."""
+        changes: dict[str, Any] = {}
+        if self.model.refit_sigma:
+            scale = self.fitted_noise_scale(state)
+            if scale is not None:
+                changes["sigma_scale"] = scale
+        if self.model.refit_correlation:
+            rho = self.fitted_place_correlation(state)
+            if rho is not None:
+                changes["place_correlation"] = rho
+        if not changes:
             return None
-        scale = self.fitted_noise_scale(state)
-        return None if scale is None else dataclasses.replace(self.model, sigma_scale=scale, refit_sigma=False)
+        return dataclasses.replace(self.model, refit_sigma=False, refit_correlation=False, **changes)
+
+    def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
+        """The correlation of the problem's normalized residuals (in hit sigmas, clipped to
+        +-3) over the pairs of end points of different samples within ``place_radius`` of
+        each other in the base frame, at ``state``: ``sum r_i r_j / sqrt(sum r_i^2 sum
+        r_j^2)`` over the pairs, clipped to [0, 1]; None below 0.05 (no change) or without
+        such pairs. Uncentered on purpose: a place where the map is off by the same amount
+        for every sample that sees it is the correlation this measures."""
+        from scipy.spatial import cKDTree
+
+        x = np.asarray(state, dtype=float)[None]
+        res, xy, sample = [], [], []
+        for k in range(self.n_steps):
+            t = self.hit_terms(x, k)
+            if t is None:
+                continue
+            res.append(np.clip(np.nan_to_num(t[2][0], nan=0.0), -3.0, 3.0))
+            xy.append(self.points[k][:, :2])
+            sample.append(np.full(self.points[k].shape[0], k))
+        if not res:
+            return None
+        r, pts, smp = np.concatenate(res), np.concatenate(xy), np.concatenate(sample)
+        pairs = cKDTree(pts).query_pairs(self.model.place_radius, output_type="ndarray")
+        pairs = pairs[smp[pairs[:, 0]] != smp[pairs[:, 1]]]
+        if pairs.shape[0] == 0:
+            return None
+        a, b = r[pairs[:, 0]], r[pairs[:, 1]]
+        den = math.sqrt(float(a @ a) * float(b @ b))
+        rho = min(max(float(a @ b) / den, 0.0), 1.0) if den > 0 else 0.0
+        return rho if rho >= 0.05 else None
 
     def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model

@@ -228,3 +228,55 @@ def test_likelihood_field_refit_sigma_finds_how_much_noisier_the_sensor_is(facto
         LikelihoodFieldModel(refit_sigma="no")
     with pytest.raises(ParameterError, match=r"likelihood_field.sigma_scale must be in \[0.1, 10\]"):
         LikelihoodFieldModel(sigma_scale=20.0)
+
+
+def test_place_weights_count_the_same_and_earlier_samples() -> None:
+    """Kish's weight 1 / (1 + n rho): n the end points within the radius among the same
+    and earlier samples (not later ones: a prefix scores as the whole), none at rho = 0."""
+    from sensor_models.likelihood_field import place_weights
+
+    pts = [np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [1.01, 0.0, 0.3]]),  # two near points in sample 0
+           np.array([[0.01, 0.0, 0.0], [5.0, 5.0, 0.0]])]
+    w = place_weights(pts, 0.05, 0.5)
+    np.testing.assert_allclose(w[0], [1.0, 1 / 1.5, 1 / 1.5])  # z is ignored: a place is planar
+    np.testing.assert_allclose(w[1], [1 / 1.5, 1.0])  # near the first point of sample 0; far from all
+    assert place_weights(pts, 0.05, 0.0) == [None, None]
+    assert [x.tolist() for x in place_weights(pts[:1], 0.05, 0.5)] == [w[0].tolist()]  # a prefix: the same
+
+
+def test_place_correlation_weighs_each_end_point_and_is_refitted() -> None:
+    """With place_correlation the sample's score is the weighted sum of its end points'
+    tempered log-probabilities; a filter reads its answers after k samples off one pass with
+    it; refit_correlation fits it from residuals that agree within places (a pose 1.5 cm
+    off makes every place's residuals share a sign) and hands the model to a second pass."""
+    from estimators.particle_filter import LikelihoodFieldPF
+    from tofloc.testing import check_model_scores_a_prefix_as_the_whole
+
+    p, truth = easy_problem(n_samples=4)
+    plain, weighted = LikelihoodFieldModel().bind(p), LikelihoodFieldModel(place_correlation=1.0).bind(p)
+    states = truth + np.random.default_rng(3).normal(size=(5, 3)) * np.array([0.01, 0.01, 0.02])
+    x = np.asarray(states, dtype=float)
+    for k in (0, 3):
+        log_p = np.log(plain._terms(x, *plain._field_inputs(x, k), k)[0])
+        w = weighted.place_weights[k]
+        assert w.min() < 1.0 or k == 0
+        np.testing.assert_allclose(weighted.log_likelihood(states, k), 0.25 * log_p @ w, rtol=1e-10)
+    assert plain.place_weights == [None] * 4
+    check_model_scores_a_prefix_as_the_whole(LikelihoodFieldModel(place_correlation=1.0))
+    est = LikelihoodFieldPF(n_particles=100, sensor_model_params={"place_correlation": 0.5})
+    got = est.estimate_prefixes(p, np.random.default_rng(1), [2, 4])
+    for k, a in zip((2, 4), got):
+        np.testing.assert_array_equal(a.pose, est.estimate(p.subset(slice(0, k)), np.random.default_rng(1)).pose)
+    # the refit: correlated residuals at a pose off the truth
+    fit = LikelihoodFieldModel(refit_correlation=True).bind(p)
+    off = np.array([truth[0] + 0.015, truth[1], truth[2]])
+    rho = fit.fitted_place_correlation(off)
+    assert rho is not None and 0.5 < rho <= 1.0
+    refitted = fit.refit(off)
+    assert refitted.place_correlation == rho and not refitted.refit_correlation
+    assert LikelihoodFieldModel(refit_correlation=True).refits()
+    assert LikelihoodFieldPF(n_particles=50, sensor_model_params={"refit_correlation": True}).estimate_prefixes(
+        p, np.random.default_rng(0), [1]) is None
+    for bad in ({"place_correlation": 1.5}, {"place_radius": 0.0}, {"refit_correlation": 1}):
+        with pytest.raises(ParameterError, match="likelihood_field"):
+            LikelihoodFieldModel(**bad)
