@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from tofloc.problem import Problem
 
-__all__ = ["NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose"]
+__all__ = ["NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -106,6 +106,29 @@ def reference_pose(states: NDArray[np.float64]) -> NDArray[np.float64]:
     pose, such as a configuration's effect on a reading, are evaluated once for all)."""
     x = np.asarray(states, dtype=float)
     return np.array([np.median(x[:, 0]), np.median(x[:, 1]), np.arctan2(np.mean(np.sin(x[:, 2])), np.mean(np.cos(x[:, 2])))])
+
+
+def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) -> list[NDArray[np.float64] | None]:
+    """Per sample, each end point's weight ``1 / (1 + n rho)``, ``n`` the end points of the
+    same and earlier samples (itself excluded) within ``radius`` of it in the plane of
+    ``points`` (per sample ``(P_k, 3)``, the base frame at the configurations): Kish's
+    design effect for residuals correlated ``rho`` within a place. Counting only earlier
+    samples keeps a sample's weights independent of later ones (a filter's answer after k
+    samples reads off a longer pass). All None when ``rho`` is 0."""
+    if rho <= 0 or not points:
+        return [None] * len(points)
+    from scipy.spatial import cKDTree
+
+    out: list[NDArray[np.float64] | None] = []
+    seen = np.zeros((0, 2))
+    for p in points:
+        xy = np.asarray(p, dtype=float)[:, :2]
+        upto = np.vstack([seen, xy])
+        n = cKDTree(upto).query_ball_point(xy, radius, return_length=True) - 1 if upto.shape[0] else np.zeros(0)
+        out.append(1.0 / (1.0 + rho * np.asarray(n, dtype=float)))
+        seen = upto
+    return out
+
 
 
 class BoundSensorModel(ABC):

@@ -67,6 +67,7 @@ from sensor_models.base import (
     BoundSensorModel,
     SensorModel,
     declared_state,
+    place_weights,
     reference_pose,
 )
 from tofloc import numba_kernels
@@ -268,6 +269,15 @@ class BeamModel(SensorModel):
         (:func:`tofloc.configuration_uncertainty.range_variance`, evaluated at
         :func:`sensor_models.base.reference_pose` of the states, once per call). False: the
         configurations are taken as exact.
+    place_correlation : float
+        In [0, 1]: each valid zone's log-probability weighted by ``1 / (1 + n rho)``, ``n``
+        the readings of the same and earlier samples within ``place_radius`` of its end
+        point in the base frame (:func:`sensor_models.base.place_weights`, as the
+        likelihood field's; docs/sensor-models.md, "Correlated places"). 0 (the default):
+        the product of independent zones. With it the zones are scored by the numpy path
+        (about 3x the fused kernel's time).
+    place_radius : float
+        Radius (m) of a place.
     """
 
     name: ClassVar[str] = "beam"
@@ -287,6 +297,8 @@ class BeamModel(SensorModel):
     sigma_scale: float = 1.0
     refit_sigma: bool = False
     configuration_cov: bool = True
+    place_correlation: float = 0.0
+    place_radius: float = 0.05
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
@@ -301,6 +313,10 @@ class BeamModel(SensorModel):
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
+        for n, lo, hi in (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0)):
+            v = getattr(self, n)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
+                raise ParameterError(f"beam.{n} must be in [{lo}, {hi}], got {v!r}")
         if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
             raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
         v = self.outlier_floor
@@ -358,6 +374,16 @@ class BoundBeamModel(BoundSensorModel):
         self.zone_dirs_tip = u / np.linalg.norm(u, axis=-1, keepdims=True)
         #: per-zone constants of the fused kernel (:meth:`log_likelihood`), None when it does not apply
         self.fused = _fused_constants(self)
+        #: each zone's weight (K, S, Z) (``place_correlation``), None when every zone counts 1
+        self.zone_weights: NDArray[np.float64] | None = None
+        if model.place_correlation > 0:
+            T = T_lift_tip  # (K, 4, 4): the base frame at the configurations
+            lifted = np.einsum("kij,kszj->kszi", T[:, :3, :3], self.points_tip) + T[:, None, None, :3, 3]
+            w = place_weights([lifted[k][self.valid[k]] for k in range(self.n_steps)], model.place_radius,
+                              model.place_correlation)
+            self.zone_weights = np.ones(self.valid.shape)
+            for k in range(self.n_steps):
+                self.zone_weights[k][self.valid[k]] = w[k]
 
     def temporaries_per_state(self) -> int:
         """Bytes of temporaries per state: the zones' (:data:`~sensor_models.base.TEMP_BYTES_PER_ZONE`
@@ -575,6 +601,9 @@ class BoundBeamModel(BoundSensorModel):
         fits it (:func:`_fused_constants`), else the sum of :meth:`zone_log_likelihood`; the
         two agree to ~1e-13 relative (the kernel sums the zones in order, numpy pairwise,
         and libm's ``exp``/``log``/``erfc`` may differ from numpy's and scipy's by an ulp)."""
+        if self.zone_weights is not None:  # places weighted (place_correlation): the numpy path
+            ll = (self.zone_log_likelihood(states, step) * self.zone_weights[step][None]).sum(axis=(1, 2))
+            return self.model.temper * ll
         if self.fused is not None and numba_kernels.enabled():
             return self._log_likelihood_fused(np.asarray(states, dtype=float), step)
         ll = self.zone_log_likelihood(states, step).sum(axis=(1, 2))

@@ -41,7 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state, reference_pose
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_weights, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
@@ -57,28 +57,6 @@ __all__ = ["SurfaceField", "surface_field_for", "MAX_FIELD_CELLS", "auto_r_field
 #: is shared across problems).
 R_FIELD_LEVELS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 R_FIELD_SIGMAS = 4.0
-
-
-def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) -> list[NDArray[np.float64] | None]:
-    """Per sample, each end point's weight ``1 / (1 + n rho)``, ``n`` the end points of the
-    same and earlier samples (itself excluded) within ``radius`` of it in the plane of
-    ``points`` (per sample ``(P_k, 3)``, the base frame at the configurations): Kish's
-    design effect for residuals correlated ``rho`` within a place. Counting only earlier
-    samples keeps a sample's weights independent of later ones (a filter's answer after k
-    samples reads off a longer pass). All None when ``rho`` is 0."""
-    if rho <= 0 or not points:
-        return [None] * len(points)
-    from scipy.spatial import cKDTree
-
-    out: list[NDArray[np.float64] | None] = []
-    seen = np.zeros((0, 2))
-    for p in points:
-        xy = np.asarray(p, dtype=float)[:, :2]
-        upto = np.vstack([seen, xy])
-        n = cKDTree(upto).query_ball_point(xy, radius, return_length=True) - 1 if upto.shape[0] else np.zeros(0)
-        out.append(1.0 / (1.0 + rho * np.asarray(n, dtype=float)))
-        seen = upto
-    return out
 
 
 def auto_r_field(sigma: NDArray[np.float64]) -> float:

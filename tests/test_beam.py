@@ -388,3 +388,33 @@ def test_beam_pf_runs_again_with_the_fitted_noise_scale() -> None:
     # the widened density: a covariance that owns the noise (larger than the calibrated one's)
     assert np.linalg.det(r.covariance) > np.linalg.det(plain.covariance)
     assert np.hypot(*(r.pose[:2] - truth[:2])) < 0.05
+
+
+def test_place_correlation_weighs_each_zone_by_its_place() -> None:
+    """With place_correlation the sample's score is the weighted sum of its zones'
+    tempered log-probabilities (weights from sensor_models.base.place_weights over the
+    end points in the base frame), a prefix scores as the whole, and 0 changes nothing."""
+    import numpy as np
+
+    from sensor_models.base import place_weights
+    from sensor_models.beam import BeamModel
+    from tofloc.testing import check_model_scores_a_prefix_as_the_whole, easy_problem
+
+    p, truth = easy_problem(n_samples=3)
+    plain, weighted = BeamModel().bind(p), BeamModel(place_correlation=0.5).bind(p)
+    assert plain.zone_weights is None
+    W = weighted.zone_weights
+    assert W.shape == p.valid.shape and np.all(W[~p.valid] == 1.0) and W[p.valid].min() < 1.0
+    T = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
+    pts = np.einsum("kij,kszj->kszi", T[:, :3, :3], p.rig.points_in_tip(np.where(p.valid, p.distance_m, np.nan))) \
+        + T[:, None, None, :3, 3]
+    expected = place_weights([pts[k][p.valid[k]] for k in range(3)], 0.05, 0.5)
+    for k in range(3):
+        np.testing.assert_allclose(W[k][p.valid[k]], expected[k])
+    states = truth + np.random.default_rng(0).normal(size=(4, 3)) * np.array([0.01, 0.01, 0.02])
+    for k in (0, 2):
+        zl = plain.zone_log_likelihood(states, k)
+        np.testing.assert_allclose(weighted.log_likelihood(states, k), 0.25 * (zl * W[k][None]).sum(axis=(1, 2)), rtol=1e-12)
+    check_model_scores_a_prefix_as_the_whole(BeamModel(place_correlation=1.0))
+    with pytest.raises(ParameterError, match="beam.place_correlation"):
+        BeamModel(place_correlation=-0.1)
