@@ -271,7 +271,7 @@ class BeamModel(SensorModel):
         configurations are taken as exact.
     place_correlation : float
         In [0, 1]: each valid zone's log-probability weighted by ``1 / (1 + n rho)``, ``n``
-        the readings of the same and earlier samples within ``place_radius`` of its end
+        the readings of earlier samples within ``place_radius`` of its end
         point in the base frame (:func:`sensor_models.base.place_weights`, as the
         likelihood field's; docs/sensor-models.md, "Correlated places"). 0 (the default):
         the product of independent zones. With it the zones are scored by the numpy path

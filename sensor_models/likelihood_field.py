@@ -118,7 +118,7 @@ class LikelihoodFieldModel(SensorModel):
         In [0, 1]: how correlated the residuals of end points at one place are (one wall
         patch seen again and again by a scan's samples shares the map's error there). Each
         end point's log-likelihood is weighted by ``1 / (1 + n rho)``, ``n`` the end points
-        of the same and earlier samples within ``place_radius`` of it in the base frame
+        of earlier samples within ``place_radius`` of it in the base frame
         (at the configurations; the weights do not depend on the pose), Kish's design
         effect: ``rho = 1`` counts each place about once, 0 (the default) is the product of
         independent end points (docs/sensor-models.md, "Correlated places").

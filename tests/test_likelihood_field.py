@@ -230,18 +230,20 @@ def test_likelihood_field_refit_sigma_finds_how_much_noisier_the_sensor_is(facto
         LikelihoodFieldModel(sigma_scale=20.0)
 
 
-def test_place_weights_count_the_same_and_earlier_samples() -> None:
-    """Kish's weight 1 / (1 + n rho): n the end points within the radius among the same
-    and earlier samples (not later ones: a prefix scores as the whole), none at rho = 0."""
-    from sensor_models.likelihood_field import place_weights
+def test_place_weights_count_earlier_samples() -> None:
+    """Kish's weight 1 / (1 + n rho): n the end points of earlier samples within the radius
+    (not the same sample's, not later ones: a prefix scores as the whole), none at rho = 0."""
+    from sensor_models.base import place_weights
 
     pts = [np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [1.01, 0.0, 0.3]]),  # two near points in sample 0
-           np.array([[0.01, 0.0, 0.0], [5.0, 5.0, 0.0]])]
+           np.array([[0.01, 0.0, 0.0], [1.0, 0.02, 0.0], [5.0, 5.0, 0.0]]),
+           np.array([[1.0, 0.0, 0.0]])]
     w = place_weights(pts, 0.05, 0.5)
-    np.testing.assert_allclose(w[0], [1.0, 1 / 1.5, 1 / 1.5])  # z is ignored: a place is planar
-    np.testing.assert_allclose(w[1], [1 / 1.5, 1.0])  # near the first point of sample 0; far from all
-    assert place_weights(pts, 0.05, 0.0) == [None, None]
-    assert [x.tolist() for x in place_weights(pts[:1], 0.05, 0.5)] == [w[0].tolist()]  # a prefix: the same
+    np.testing.assert_allclose(w[0], [1.0, 1.0, 1.0])  # the first sample to see a place counts fully
+    np.testing.assert_allclose(w[1], [1 / 1.5, 1 / 2.0, 1.0])  # z is ignored: a place is planar
+    np.testing.assert_allclose(w[2], [1 / 2.5])  # two of sample 0 and one of sample 1 nearby
+    assert place_weights(pts, 0.05, 0.0) == [None, None, None]
+    assert [x.tolist() for x in place_weights(pts[:2], 0.05, 0.5)] == [w[0].tolist(), w[1].tolist()]  # a prefix
 
 
 def test_place_correlation_weighs_each_end_point_and_is_refitted() -> None:
@@ -259,7 +261,7 @@ def test_place_correlation_weighs_each_end_point_and_is_refitted() -> None:
     for k in (0, 3):
         log_p = np.log(plain._terms(x, *plain._field_inputs(x, k), k)[0])
         w = weighted.place_weights[k]
-        assert w.min() < 1.0 or k == 0
+        assert (w.min() < 1.0) == (k > 0)  # the first sample counts fully
         np.testing.assert_allclose(weighted.log_likelihood(states, k), 0.25 * log_p @ w, rtol=1e-10)
     assert plain.place_weights == [None] * 4
     check_model_scores_a_prefix_as_the_whole(LikelihoodFieldModel(place_correlation=1.0))
