@@ -491,7 +491,7 @@ def results_document(
     for (est, tip, mode), recs in records.items():
         results.setdefault(est, {}).setdefault(tip, {})[mode] = group_summary(recs, k_values)
     comparisons: dict[str, dict[str, Any]] = {}
-    nested = bool(extra) and (extra or {}).get("design") == "nested"
+    nested = (extra or {}).get("design") == "nested"
     for (est, tip, mode), recs in records.items():
         if tip == "knn" and (est, "mocap", mode) in records:
             comparisons.setdefault(est, {})[mode] = paired_comparison(recs, records[(est, "mocap", mode)], by_trial=nested)

@@ -59,7 +59,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Iterable, Mapping
 
 import numpy as np
@@ -629,9 +629,7 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         None for a trial that did not fail or has no truth.
     """
     if task.prefixes:
-        import dataclasses
-
-        return {"prefix_records": [trial_record(context, dataclasses.replace(task, k=len(out.indices), prefixes=()), out)
+        return {"prefix_records": [trial_record(context, replace(task, k=len(out.indices), prefixes=()), out)
                                    for out in solve_nested(context, task)]}
     return trial_record(context, task, solve_trial(context, task))
 

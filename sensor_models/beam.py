@@ -70,7 +70,7 @@ from sensor_models.base import (
     place_weights,
     reference_pose,
 )
-from tofloc import numba_kernels
+from tofloc import frames, numba_kernels
 from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_in, check_int
@@ -377,8 +377,8 @@ class BoundBeamModel(BoundSensorModel):
         #: each zone's weight (K, S, Z) (``place_correlation``), None when every zone counts 1
         self.zone_weights: NDArray[np.float64] | None = None
         if model.place_correlation > 0:
-            T = T_lift_tip  # (K, 4, 4): the base frame at the configurations
-            lifted = np.einsum("kij,kszj->kszi", T[:, :3, :3], self.points_tip) + T[:, None, None, :3, 3]
+            # the end points in the base frame at the configurations (K, S, Z, 3)
+            lifted = frames.transform_points(T_lift_tip[:, None], self.points_tip)
             w = place_weights([lifted[k][self.valid[k]] for k in range(self.n_steps)], model.place_radius,
                               model.place_correlation)
             self.zone_weights = np.ones(self.valid.shape)

@@ -405,9 +405,9 @@ def test_place_correlation_weighs_each_zone_by_its_place() -> None:
     assert plain.zone_weights is None
     W = weighted.zone_weights
     assert W.shape == p.valid.shape and np.all(W[~p.valid] == 1.0) and W[p.valid].min() < 1.0
-    T = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip
-    pts = np.einsum("kij,kszj->kszi", T[:, :3, :3], p.rig.points_in_tip(np.where(p.valid, p.distance_m, np.nan))) \
-        + T[:, None, None, :3, 3]
+    T = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip  # (K, 4, 4): the base frame at the configurations
+    tip = p.rig.points_in_tip(np.where(p.valid, p.distance_m, np.nan))  # (K, S, Z, 3)
+    pts = np.stack([tip[k] @ T[k, :3, :3].T + T[k, :3, 3] for k in range(3)])  # written out, not the model's helper
     expected = place_weights([pts[k][p.valid[k]] for k in range(3)], 0.05, 0.5)
     for k in range(3):
         np.testing.assert_allclose(W[k][p.valid[k]], expected[k])

@@ -232,6 +232,10 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
 def test_paper_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(capsys, ["paper", "--estimators", "nope", "--out", str(tmp_path / "x")])
     assert code == 2 and "unknown estimator 'nope'" in err and len(err.strip().splitlines()) == 1
+    code, _, err = _run(capsys, ["paper", "--design", "sideways", "--out", str(tmp_path / "x")])
+    assert code == 2 and "--design expects nested or independent, got 'sideways'" in err
+    code, _, err = _run(capsys, ["paper", "--design", "nested", "--selection", "active", "--out", str(tmp_path / "x")])
+    assert code == 2 and "--design nested needs --selection random" in err and "--selection active" in err
     code, _, err = _run(capsys, ["paper", "--trials", "0", "--out", str(tmp_path / "x")])
     assert code == 2 and "--trials" in err
     assert not (tmp_path / "x").exists()  # nothing made before the arguments were checked

@@ -111,6 +111,11 @@ def paper(
     if not modes or any(m not in ("paper", "offset", "global") for m in modes) or len(set(modes)) != len(modes):
         raise ParameterError(f"--prior-modes expects distinct names among paper, offset, global; got {prior_modes!r}")
     rect = parse_region_option(region, modes)
+    if design is not None and design not in ("nested", "independent"):
+        raise ParameterError(f"--design expects nested or independent, got {design!r}")
+    if design == "nested" and selection != "random":
+        raise ParameterError(f"--design nested needs --selection random (a policy chooses each trial's samples in turn); "
+                             f"got --selection {selection}")
     if rig_variant is not None and rig_variant not in ("exact", "perturbed"):
         raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
     if out.exists() and not out.is_dir():
