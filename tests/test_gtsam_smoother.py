@@ -16,6 +16,7 @@ from estimators.gtsam_factors import (  # noqa: E402
     SampleMeasurement,
     StackedMeasurements,
     compress_rows,
+    compress_schur,
     make_sample_factor,
     make_stacked_factor,
     robust_loss,
@@ -147,7 +148,8 @@ def test_stacked_factor_equals_the_per_sample_factors(monkeypatch, numba: str) -
         np.testing.assert_allclose(g_b, g_a, rtol=0, atol=1e-10 * max(1.0, np.max(np.abs(g_a))))
         assert e_b == pytest.approx(e_a, rel=1e-12) and e_a > 0
         assert stacked.error(v) == pytest.approx(e_a, rel=1e-12)  # the cost without Jacobians
-        assert stacked.dim() == 4 * 17  # 3 + 6 + 6 + 1 columns, plus the residual, per sample
+        # compress_schur: 6 rows per sample (its configuration), then 3 + 6 + 1 shared columns plus the residual
+        assert stacked.dim() == 4 * 6 + 11
 
 
 def test_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
@@ -169,6 +171,38 @@ def test_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
             Ak = A[st.bounds[k] : st.bounds[k + 1]]
             Wk = np.concatenate([W[k], w[k][:, None]], axis=1)
             np.testing.assert_allclose(Wk.T @ Wk, Ak.T @ Ak, rtol=0, atol=1e-10 * np.max(np.abs(Ak.T @ Ak)))
+
+
+def test_schur_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
+    """:func:`compress_schur` on random rows (each sample's own 6 columns first): its rows,
+    each sample's own and the shared ones stacked, have the Gram matrix of all rows (the
+    Gauss-Newton matrix, gradient and |e|^2) to rounding, compiled (Cholesky) and numpy
+    (QR), with a sample of fewer rows than columns, a rank-deficient one (two identical
+    columns) and an empty one; the shared rows are zero in the own columns' place."""
+    rng = np.random.default_rng(4)
+    meas = [_random_measurement(rng, n) for n in (30, 4, 0, 12)]
+    st = StackedMeasurements(meas, "huber", 1.0)
+    K, n_own, c = 4, 6, 11  # own 6, shared 4, residual
+    A = rng.normal(size=(st.size, c))
+    A[:, 8] = A[:, 7]
+    # the whole system: every sample's own columns apart, the shared ones together
+    full = np.zeros((st.size, K * n_own + c - n_own))
+    for k in range(K):
+        sl = slice(st.bounds[k], st.bounds[k + 1])
+        full[sl, k * n_own : (k + 1) * n_own] = A[sl, :n_own]
+    full[:, K * n_own :] = A[:, n_own:]
+    G = full.T @ full
+    for flag in ("1", "0"):
+        monkeypatch.setenv("TOFLOC_NUMBA", flag)
+        own, shared = compress_schur(st, A, n_own)
+        assert own.shape == (K, n_own, c) and shared.shape == (c - n_own, c - n_own)
+        W = np.zeros((K * n_own + c - n_own, full.shape[1]))
+        for k in range(K):
+            W[k * n_own : (k + 1) * n_own, k * n_own : (k + 1) * n_own] = own[k, :, :n_own]
+            W[k * n_own : (k + 1) * n_own, K * n_own :] = own[k, :, n_own:]
+        W[K * n_own :, K * n_own :] = shared
+        np.testing.assert_allclose(W.T @ W, G, rtol=0, atol=1e-10 * np.max(np.abs(G)))
+        assert np.all(own[2] == 0.0)  # the empty sample
 
 
 @pytest.mark.parametrize("declare", [False, True])

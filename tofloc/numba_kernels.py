@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "gram_root_by_sample", "ROBUST_CODES",
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "gram_root_by_sample", "gram_root_schur", "ROBUST_CODES",
            "planar_inlier_count", "bounded_nearest_distance", "mean_shift_seeds"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
@@ -789,6 +789,71 @@ def _pose_row(H: Any, i: int, x: float, y: float, z: float, a: float, b: float, 
     H[i, 5] = c * w
 
 
+@_jit_inline
+def _cholesky_rows(G: Any, tiny: float, W: Any) -> None:  # pragma: no cover - compiled
+    """Upper triangular ``W`` ``(c, c)`` with ``W^T W = G`` (Cholesky, rows in order); a pivot not
+    above ``tiny`` times the largest diagonal entry of ``G`` gives a zero row."""
+    c = G.shape[0]
+    scale = 0.0
+    for i in range(c):
+        scale = max(scale, G[i, i])
+    for i in range(c):
+        for j in range(c):
+            W[i, j] = 0.0
+    for i in range(c):
+        d = G[i, i]
+        for t in range(i):
+            d -= W[t, i] * W[t, i]
+        if not d > tiny * scale:
+            continue  # a zero row
+        rii = math.sqrt(d)
+        W[i, i] = rii
+        for j in range(i + 1, c):
+            v = G[i, j]
+            for t in range(i):
+                v -= W[t, i] * W[t, j]
+            W[i, j] = v / rii
+
+
+@_jit
+def gram_root_schur(A: Any, bounds: Any, n_own: int, tiny: float, own: Any, shared: Any) -> None:  # pragma: no cover - compiled
+    """Rows equivalent to ``A`` ``(N, c)`` whose first ``n_own`` columns belong to each sample
+    alone (rows ``bounds[k]:bounds[k + 1]`` are sample ``k``'s) and whose other columns all
+    samples share: per sample the Cholesky factor ``W_k`` of its Gram matrix (a BLAS
+    product, then :func:`_cholesky_rows`); its first ``n_own`` rows into ``own[k]``
+    ``(n_own, c)``; its other rows are zero in the own columns, and their Gram matrices,
+    summed over the samples, have the factor ``shared`` ``(c - n_own, c - n_own)`` (the
+    shared columns). ``sum_k own[k]^T own[k] + shared^T shared`` (shared placed in its
+    columns) is ``A^T A``: ``n_own K + c - n_own`` rows in place of ``N``."""
+    K = bounds.shape[0] - 1
+    c = A.shape[1]
+    m = c - n_own
+    G = np.empty((c, c))
+    W = np.empty((c, c))
+    S = np.zeros((m, m))
+    for k in range(K):
+        if bounds[k + 1] > bounds[k]:
+            Ak = A[bounds[k] : bounds[k + 1]]
+            G[:, :] = np.dot(Ak.T, Ak)  # BLAS
+        else:
+            G[:, :] = 0.0
+        _cholesky_rows(G, tiny, W)
+        for i in range(n_own):
+            for j in range(c):
+                own[k, i, j] = W[i, j]
+        for i in range(n_own, c):
+            for a in range(n_own, c):
+                wa = W[i, a]
+                if wa == 0.0:
+                    continue
+                for b in range(a, c):
+                    S[a - n_own, b - n_own] += wa * W[i, b]
+    for a in range(m):
+        for b in range(a):
+            S[a, b] = S[b, a]
+    _cholesky_rows(S, tiny, shared)
+
+
 @_jit
 def gram_root_by_sample(A: Any, bounds: Any, tiny: float, out: Any) -> None:  # pragma: no cover - compiled
     """Per sample ``k`` (rows ``bounds[k]:bounds[k + 1]`` of ``A`` ``(N, c)``), an upper
@@ -858,25 +923,27 @@ def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_con
         e = (nx * (mx - q[i, 0]) + ny * (my - q[i, 1]) + nz * (mz - q[i, 2])) / s_[i]
         a = abs(e)
         sg = -1.0 if e < 0 else 1.0
+        # the transformed residual; its derivative only where the Jacobians are wanted
         if kernel == 2:
-            er, de = e, 1.0
+            er = e
         elif kernel == 0:
-            if a <= k:
-                er, de = e, 1.0
-            else:
-                er = sg * math.sqrt(max(2.0 * k * a - k * k, 0.0))
-                de = k / math.sqrt(max(2.0 * k * a - k * k, 1e-300))
+            er = e if a <= k else sg * math.sqrt(max(2.0 * k * a - k * k, 0.0))
         else:
             x = (e / k) ** 2
             lg = math.log1p(x)
             er = sg * k * math.sqrt(lg)
+        res[i] = er if inlier[i] else out_const[i]
+        if not jacobians:
+            continue
+        if kernel == 2:
+            de = 1.0
+        elif kernel == 0:
+            de = 1.0 if a <= k else k / math.sqrt(max(2.0 * k * a - k * k, 1e-300))
+        else:
             if x < 1e-8:
                 de = 1.0 - 0.75 * x
             else:
                 de = (a / (1.0 + x)) / (k * math.sqrt(lg))
-        res[i] = er if inlier[i] else out_const[i]
-        if not jacobians:
-            continue
         w = de / s_[i] if inlier[i] else 0.0
         # base: Rz^T n, and the base-frame point tilted
         ax = nx * c + ny * s
