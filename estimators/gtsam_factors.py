@@ -595,12 +595,23 @@ def make_stacked_factor(
         C = np.stack([values.atPose3(kc).matrix() for kc in keys_conf])  # type: ignore[attr-defined]
         return C, (values.atPose3(key_rig).matrix() if key_rig is not None else eye)  # type: ignore[attr-defined]
 
+    # the rows of the last evaluation and the values they were taken at: Levenberg-Marquardt
+    # evaluates the error at a step's values and, when it keeps the step, linearizes at the
+    # same values next, so every evaluation computes the Jacobian rows too (the residuals
+    # are the same numbers either way) and a linearization at those values reuses them
+    last: dict[str, FloatArray] = {}
+
     def _error(values: object, H: list | None) -> FloatArray:
         P = values.atPose2(key_base)  # type: ignore[attr-defined]
         xyyaw = np.array([P.x(), P.y(), P.theta()])
         C, D = _poses(values)
         bias = values.atVector(key_bias) if key_bias is not None else None  # type: ignore[attr-defined]
-        A = stacked.system_rows(xyyaw, z, R_tilt, C, D, bias, key_rig is not None, jacobians=H is not None, own_first=True)
+        state = np.concatenate([xyyaw, C.ravel(), D.ravel()] + ([np.asarray(bias, dtype=float)] if bias is not None else []))
+        if "state" in last and np.array_equal(state, last["state"]):
+            A = last["A"]
+        else:
+            A = stacked.system_rows(xyyaw, z, R_tilt, C, D, bias, key_rig is not None, jacobians=True, own_first=True)
+            last["state"], last["A"] = state, A
         if H is None:
             res = np.ascontiguousarray(A[:, m])
             out = np.zeros(rows)
