@@ -173,6 +173,44 @@ def test_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
             np.testing.assert_allclose(Wk.T @ Wk, Ak.T @ Ak, rtol=0, atol=1e-10 * np.max(np.abs(Ak.T @ Ak)))
 
 
+def test_stacked_factor_reuses_rows_only_at_the_same_values() -> None:
+    """The stacked factor keeps the rows of its last evaluation for a linearization at the
+    same values: after an evaluation at other values its linearization is a fresh
+    factor's, bit for bit, and at the same values too."""
+    from gtsam.symbol_shorthand import C, D, X
+
+    rng = np.random.default_rng(8)
+    meas = [_random_measurement(rng, n) for n in (25, 18)]
+    R_tilt = np.eye(3)
+
+    def factor() -> Any:
+        return make_stacked_factor(StackedMeasurements(meas, "cauchy", 2.0), X(0), [C(0), C(1)], D(0), None, 0.4, R_tilt)
+
+    def values(scale: float) -> Any:
+        v = gtsam.Values()
+        v.insert(X(0), gtsam.Pose2(0.1 * scale, -0.05, 0.2 * scale))
+        for k in range(2):
+            v.insert(C(k), gtsam.Pose3(gtsam.Rot3.RzRyRx(0.1 * scale, 0.0, 0.05 * k), np.array([0.01 * k, 0.0, 0.02])))
+        v.insert(D(0), gtsam.Pose3())
+        return v
+
+    def system(f: Any, v: Any) -> tuple[np.ndarray, np.ndarray]:
+        g = gtsam.GaussianFactorGraph()
+        g.push_back(f.linearize(v))
+        A, b = g.jacobian()
+        return np.asarray(A), np.asarray(b)
+
+    v1, v2 = values(1.0), values(-0.5)
+    reused = factor()
+    assert reused.error(v1) == factor().error(v1)
+    for v in (v2, v1):  # another state than the cached one, then the cached one
+        reused.error(v1)
+        A, b = system(reused, v)
+        A0, b0 = system(factor(), v)
+        assert np.array_equal(A, A0) and np.array_equal(b, b0)
+        assert reused.error(v) == factor().error(v)
+
+
 def test_schur_compressed_rows_keep_the_normal_equations(monkeypatch) -> None:
     """:func:`compress_schur` on random rows (each sample's own 6 columns first): its rows,
     each sample's own and the shared ones stacked, have the Gram matrix of all rows (the
