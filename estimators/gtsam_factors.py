@@ -195,9 +195,11 @@ def _zone_rows_compiled(
     p_tip: FloatArray, n: FloatArray, q: FloatArray, s_: FloatArray, inlier: NDArray[np.bool_], out_const: FloatArray,
     d: FloatArray, v_tip: FloatArray, xyyaw: FloatArray, R_tilt: FloatArray, RC: FloatArray, tC: FloatArray,
     rows: NDArray[np.intp] | None, D: FloatArray, kernel: str, k: float, jacobians: bool, T_mb: FloatArray,
+    out: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray | None, FloatArray | None, FloatArray | None, FloatArray | None]:
     """:func:`_zone_rows` by the compiled kernel :func:`tofloc.numba_kernels.smoother_zone_rows`
-    (one pass over the rows, no temporaries; the same numbers to rounding, tested)."""
+    (one pass over the rows, no temporaries; the same numbers to rounding, tested). ``out``:
+    the arrays ``(res, Hb, Hc, Hd, Hbias)`` to write into (views of one array allowed)."""
     N = p_tip.shape[0]
     if kernel not in numba_kernels.ROBUST_CODES:
         raise ValueError(f"unknown robust kernel {kernel!r}, expected one of {ROBUST_KERNELS}")
@@ -207,10 +209,12 @@ def _zone_rows_compiled(
         RC3, tC2, idx = RC, tC, rows
     R_mb_RC = T_mb[:3, :3] @ RC3  # (K, 3, 3) per sample, as the numpy code
     f = np.ascontiguousarray
-    res = np.empty(N)
-    if jacobians:
-        Hb, Hc, Hd, Hbias = np.empty((N, 3)), np.empty((N, 6)), np.empty((N, 6)), np.empty((N, 1))
+    if out is not None:
+        res, Hb, Hc, Hd, Hbias = out
+    elif jacobians:
+        res, Hb, Hc, Hd, Hbias = np.empty(N), np.empty((N, 3)), np.empty((N, 6)), np.empty((N, 6)), np.empty((N, 1))
     else:
+        res = np.empty(N)
         Hb = Hc = Hd = Hbias = np.empty((0, 6))
     c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
     numba_kernels.smoother_zone_rows(
@@ -429,21 +433,13 @@ class StackedMeasurements:
             assert Hb is not None and Hc is not None and Hd is not None and Hbias is not None
             first = [Hc, Hb] if own_first else [Hb, Hc]
             return np.concatenate(first + ([Hd] if rig else []) + ([Hbias] if bias is not None else []) + [res[:, None]], axis=1)
-        if self.kernel not in numba_kernels.ROBUST_CODES:
-            raise ValueError(f"unknown robust kernel {self.kernel!r}, expected one of {ROBUST_KERNELS}")
         A = np.empty((N, m + 1))
         Hd = A[:, 9:15] if rig else np.empty((N, 6))
         Hbias = A[:, m - 1 : m] if bias is not None else np.empty((N, 1))
         p_tip = self.p_tip if bias is None else self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
-        T_mb = _T_map_base(xyyaw, z, R_tilt)
-        RC3 = np.ascontiguousarray(C[:, :3, :3])
-        R_mb_RC = T_mb[:3, :3] @ RC3  # per sample, as the numpy code
-        c, s = math.cos(xyyaw[2]), math.sin(xyyaw[2])
-        numba_kernels.smoother_zone_rows(
-            p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, np.ascontiguousarray(T_mb[:3, :3]),
-            np.ascontiguousarray(T_mb[:3, 3]), c, s, np.ascontiguousarray(R_tilt, dtype=float), RC3,
-            np.ascontiguousarray(C[:, :3, 3]), R_mb_RC, self.sample_idx, np.ascontiguousarray(D, dtype=float),
-            numba_kernels.ROBUST_CODES[self.kernel], self.k, bool(jacobians), A[:, m], A[:, cb], A[:, cc], Hd, Hbias)
+        _zone_rows_compiled(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, R_tilt,
+                            C[:, :3, :3], C[:, :3, 3], self.sample_idx, D, self.kernel, self.k, jacobians,
+                            _T_map_base(xyyaw, z, R_tilt), out=(A[:, m], A[:, cb], A[:, cc], Hd, Hbias))
         return A
 
     def evaluate(

@@ -815,6 +815,17 @@ def _cholesky_rows(G: Any, tiny: float, W: Any) -> None:  # pragma: no cover - c
             W[i, j] = v / rii
 
 
+@_jit_inline
+def _sample_gram(A: Any, bounds: Any, k: int, G: Any) -> None:  # pragma: no cover - compiled
+    """The Gram matrix of sample ``k``'s rows ``A[bounds[k]:bounds[k + 1]]`` into ``G`` (a BLAS
+    product; zero for a sample without rows)."""
+    if bounds[k + 1] > bounds[k]:
+        Ak = A[bounds[k] : bounds[k + 1]]
+        G[:, :] = np.dot(Ak.T, Ak)  # BLAS
+    else:
+        G[:, :] = 0.0
+
+
 @_jit
 def gram_root_schur(A: Any, bounds: Any, n_own: int, tiny: float, own: Any, shared: Any) -> None:  # pragma: no cover - compiled
     """Rows equivalent to ``A`` ``(N, c)`` whose first ``n_own`` columns belong to each sample
@@ -832,11 +843,7 @@ def gram_root_schur(A: Any, bounds: Any, n_own: int, tiny: float, own: Any, shar
     W = np.empty((c, c))
     S = np.zeros((m, m))
     for k in range(K):
-        if bounds[k + 1] > bounds[k]:
-            Ak = A[bounds[k] : bounds[k + 1]]
-            G[:, :] = np.dot(Ak.T, Ak)  # BLAS
-        else:
-            G[:, :] = 0.0
+        _sample_gram(A, bounds, k, G)
         _cholesky_rows(G, tiny, W)
         for i in range(n_own):
             for j in range(c):
@@ -865,31 +872,8 @@ def gram_root_by_sample(A: Any, bounds: Any, tiny: float, out: Any) -> None:  # 
     c = A.shape[1]
     G = np.empty((c, c))
     for k in range(K):
-        if bounds[k + 1] > bounds[k]:
-            Ak = A[bounds[k] : bounds[k + 1]]
-            G[:, :] = np.dot(Ak.T, Ak)  # BLAS
-        else:
-            G[:, :] = 0.0
-        scale = 0.0
-        for i in range(c):
-            scale = max(scale, G[i, i])
-        W = out[k]
-        for i in range(c):
-            for j in range(c):
-                W[i, j] = 0.0
-        for i in range(c):
-            d = G[i, i]
-            for t in range(i):
-                d -= W[t, i] * W[t, i]
-            if not d > tiny * scale:
-                continue  # a zero row
-            rii = math.sqrt(d)
-            W[i, i] = rii
-            for j in range(i + 1, c):
-                v = G[i, j]
-                for t in range(i):
-                    v -= W[t, i] * W[t, j]
-                W[i, j] = v / rii
+        _sample_gram(A, bounds, k, G)
+        _cholesky_rows(G, tiny, out[k])
 
 
 @_jit
