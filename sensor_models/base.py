@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from tofloc.problem import Problem
 
-__all__ = ["NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
+__all__ = ["place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -130,6 +130,35 @@ def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) 
         out.append(1.0 / (1.0 + rho * np.asarray(n, dtype=float)))
         seen = np.vstack([seen, xy])
     return out
+
+
+def place_correlation_of(residuals: list[NDArray[np.float64]], points: list[NDArray[np.float64]],
+                         radius: float) -> float | None:
+    """The correlation of normalized residuals at one place: per sample ``k`` the residuals
+    ``(P_k,)`` (in hit sigmas) of its end points ``(P_k, 3)`` (base frame at the
+    configurations); over the pairs of end points of DIFFERENT samples within ``radius`` of
+    each other in the plane, ``sum r_i r_j / sqrt(sum r_i^2 sum r_j^2)`` with the residuals
+    clipped to +-3 (NaN as 0), clipped to [0, 1]; None below 0.05 (no change) or without such
+    pairs. Uncentered on purpose: a place where the map is off by the same amount for every
+    sample that sees it is the correlation this measures (``refit_correlation`` of the
+    likelihood field and the beam model; docs/sensor-models.md, "Correlated places")."""
+    from scipy.spatial import cKDTree
+
+    if not residuals:
+        return None
+    r = np.concatenate([np.clip(np.nan_to_num(np.asarray(x, dtype=float), nan=0.0), -3.0, 3.0) for x in residuals])
+    pts = np.concatenate([np.asarray(x, dtype=float)[:, :2] for x in points])
+    smp = np.concatenate([np.full(np.asarray(x).shape[0], k) for k, x in enumerate(points)])
+    if r.shape[0] != pts.shape[0]:
+        raise ValueError(f"place_correlation_of: {r.shape[0]} residuals for {pts.shape[0]} end points")
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    pairs = pairs[smp[pairs[:, 0]] != smp[pairs[:, 1]]]
+    if pairs.shape[0] == 0:
+        return None
+    a, b = r[pairs[:, 0]], r[pairs[:, 1]]
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    rho = min(max(float(a @ b) / den, 0.0), 1.0) if den > 0 else 0.0
+    return rho if rho >= 0.05 else None
 
 
 class BoundSensorModel(ABC):

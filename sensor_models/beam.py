@@ -67,6 +67,7 @@ from sensor_models.base import (
     BoundSensorModel,
     SensorModel,
     declared_state,
+    place_correlation_of,
     place_weights,
     reference_pose,
 )
@@ -278,6 +279,13 @@ class BeamModel(SensorModel):
         (about 3x the fused kernel's time).
     place_radius : float
         Radius (m) of a place.
+    refit_correlation : bool
+        Fit ``place_correlation`` to each problem's own residuals at the filter's first
+        estimate (:meth:`BoundBeamModel.fitted_place_correlation`: the correlation of the
+        valid zones' residuals in hit sigmas over pairs of end points within
+        ``place_radius`` from different samples, clipped to [0, 1], as the likelihood
+        field's) and run the filter again with it when it is at least 0.05. False (the
+        default): ``place_correlation`` as given.
     """
 
     name: ClassVar[str] = "beam"
@@ -299,12 +307,13 @@ class BeamModel(SensorModel):
     configuration_cov: bool = True
     place_correlation: float = 0.0
     place_radius: float = 0.05
+    refit_correlation: bool = False
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
-        for flag in ("configuration_cov", "refit_short", "refit_sigma"):
+        for flag in ("configuration_cov", "refit_short", "refit_sigma", "refit_correlation"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"beam.{flag} must be true or false, got {getattr(self, flag)!r}")
         g = self.sigma_scale
@@ -376,11 +385,15 @@ class BoundBeamModel(BoundSensorModel):
         self.fused = _fused_constants(self)
         #: each zone's weight (K, S, Z) (``place_correlation``), None when every zone counts 1
         self.zone_weights: NDArray[np.float64] | None = None
+        #: per sample, the valid zones' end points in the base frame at the configurations
+        #: (the places of ``place_correlation``), None when neither it nor its refit is on
+        self.place_points: list[NDArray[np.float64]] | None = None
+        if model.place_correlation > 0 or model.refit_correlation:
+            lifted = frames.transform_points(T_lift_tip[:, None], self.points_tip)  # (K, S, Z, 3)
+            self.place_points = [lifted[k][self.valid[k]] for k in range(self.n_steps)]
         if model.place_correlation > 0:
-            # the end points in the base frame at the configurations (K, S, Z, 3)
-            lifted = frames.transform_points(T_lift_tip[:, None], self.points_tip)
-            w = place_weights([lifted[k][self.valid[k]] for k in range(self.n_steps)], model.place_radius,
-                              model.place_correlation)
+            assert self.place_points is not None
+            w = place_weights(self.place_points, model.place_radius, model.place_correlation)
             self.zone_weights = np.ones(self.valid.shape)
             for k in range(self.n_steps):
                 self.zone_weights[k][self.valid[k]] = w[k]
@@ -549,15 +562,39 @@ class BoundBeamModel(BoundSensorModel):
         clipped to [the given scale, :data:`REFIT_SIGMA_MAX` times it]; kept when it rises by
         more than 5 %, and not fitted where the data do not fit the map (the same guard: on
         the leave-one-drone-out recordings, without it, the scale rose at estimates already
-        off and moved two trials of drone 3 node 2 from 7 to 14 cm)."""
+        off and moved two trials of drone 3 node 2 from 7 to 14 cm).
+
+        With ``refit_correlation``: ``place_correlation`` fitted at ``state``
+        (:meth:`fitted_place_correlation`, with the mixture and scale the model is bound
+        with), kept when it is at least 0.05."""
         short = self._refit_short(state)
         sigma = self._refit_sigma(state, short)
-        if short is None and sigma is None:
+        rho = self.fitted_place_correlation(state) if self.model.refit_correlation else None
+        if short is None and sigma is None and rho is None:
             return None
         model = short if short is not None else self.model
         if sigma is not None:
             model = dataclasses.replace(model, sigma_scale=sigma)
-        return dataclasses.replace(model, refit_short=False, refit_sigma=False)
+        if rho is not None:
+            model = dataclasses.replace(model, place_correlation=rho)
+        return dataclasses.replace(model, refit_short=False, refit_sigma=False, refit_correlation=False)
+
+    def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
+        """With ``refit_correlation`` (else None): the correlation of the valid zones'
+        residuals in hit sigmas at ``state`` over pairs of their end points within
+        ``place_radius`` from different samples (:func:`sensor_models.base.place_correlation_of`;
+        None below 0.05 or without such pairs), with this model's mixture and scale."""
+        if self.place_points is None:
+            return None
+        x = np.asarray(state, dtype=float)[None]
+        res, pts = [], []
+        for k in range(self.n_steps):
+            t = self.hit_terms(x, k)
+            if t is None:
+                continue
+            res.append(t[2][0][self.valid[k]])
+            pts.append(self.place_points[k])
+        return place_correlation_of(res, pts, self.model.place_radius)
 
     def hit_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...] | None:
         """Every zone's probability, its hit-Gaussian part (0 without a valid reading) and

@@ -41,7 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_weights, reference_pose
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_correlation_of, place_weights, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
@@ -420,34 +420,19 @@ class BoundLikelihoodField(BoundSensorModel):
         return dataclasses.replace(self.model, refit_sigma=False, refit_correlation=False, **changes)
 
     def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
-        """The correlation of the problem's normalized residuals (in hit sigmas, clipped to
-        +-3) over the pairs of end points of different samples within ``place_radius`` of
-        each other in the base frame, at ``state``: ``sum r_i r_j / sqrt(sum r_i^2 sum
-        r_j^2)`` over the pairs, clipped to [0, 1]; None below 0.05 (no change) or without
-        such pairs. Uncentered on purpose: a place where the map is off by the same amount
-        for every sample that sees it is the correlation this measures."""
-        from scipy.spatial import cKDTree
-
+        """The correlation of the problem's normalized residuals (in hit sigmas) over the
+        pairs of end points of different samples within ``place_radius`` of each other in
+        the base frame, at ``state`` (:func:`sensor_models.base.place_correlation_of`:
+        uncentered, clipped to [0, 1]; None below 0.05 or without such pairs)."""
         x = np.asarray(state, dtype=float)[None]
-        res, xy, sample = [], [], []
+        res, pts = [], []
         for k in range(self.n_steps):
             t = self.hit_terms(x, k)
             if t is None:
                 continue
-            res.append(np.clip(np.nan_to_num(t[2][0], nan=0.0), -3.0, 3.0))
-            xy.append(self.points[k][:, :2])
-            sample.append(np.full(self.points[k].shape[0], k))
-        if not res:
-            return None
-        r, pts, smp = np.concatenate(res), np.concatenate(xy), np.concatenate(sample)
-        pairs = cKDTree(pts).query_pairs(self.model.place_radius, output_type="ndarray")
-        pairs = pairs[smp[pairs[:, 0]] != smp[pairs[:, 1]]]
-        if pairs.shape[0] == 0:
-            return None
-        a, b = r[pairs[:, 0]], r[pairs[:, 1]]
-        den = math.sqrt(float(a @ a) * float(b @ b))
-        rho = min(max(float(a @ b) / den, 0.0), 1.0) if den > 0 else 0.0
-        return rho if rho >= 0.05 else None
+            res.append(t[2][0])
+            pts.append(self.points[k])
+        return place_correlation_of(res, pts, self.model.place_radius)
 
     def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model

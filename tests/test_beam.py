@@ -418,3 +418,45 @@ def test_place_correlation_weighs_each_zone_by_its_place() -> None:
     check_model_scores_a_prefix_as_the_whole(BeamModel(place_correlation=1.0))
     with pytest.raises(ParameterError, match="beam.place_correlation"):
         BeamModel(place_correlation=-0.1)
+
+
+def test_refit_correlation_fits_the_places_residual_correlation() -> None:
+    """refit_correlation fits place_correlation from the valid zones' residuals (a pose
+    1.5 cm off makes every place's residuals share a sign; at the truth they agree less),
+    hands the refitted model to a second pass (the filter says so in its diagnostics),
+    and a filter with it declines the nested one-pass answers; the pair correlation is the
+    shared sensor_models.base.place_correlation_of, computed here by hand."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from estimators.particle_filter import BeamPF
+    from sensor_models.base import place_correlation_of
+    from sensor_models.beam import BeamModel
+    from tofloc.testing import easy_problem
+
+    p, truth = easy_problem(n_samples=4)
+    fit = BeamModel(refit_correlation=True).bind(p)
+    off = np.array([truth[0] + 0.015, truth[1], truth[2]])
+    rho_off, rho_truth = fit.fitted_place_correlation(off), fit.fitted_place_correlation(np.asarray(truth, dtype=float))
+    assert rho_off is not None and 0.5 < rho_off <= 1.0
+    assert rho_truth is None or rho_truth < rho_off
+    # by hand: the residuals of the valid zones, pairs of different samples within 5 cm
+    res = [np.clip(np.nan_to_num(fit.hit_terms(off[None], k)[2][0][p.valid[k]]), -3, 3) for k in range(4)]
+    pts = [fit.place_points[k][:, :2] for k in range(4)]
+    r, xy = np.concatenate(res), np.concatenate(pts)
+    smp = np.concatenate([np.full(len(x), k) for k, x in enumerate(pts)])
+    pairs = np.array(sorted(cKDTree(xy).query_pairs(0.05)))
+    pairs = pairs[smp[pairs[:, 0]] != smp[pairs[:, 1]]]
+    a, b = r[pairs[:, 0]], r[pairs[:, 1]]
+    assert rho_off == pytest.approx(min(1.0, (a @ b) / np.sqrt((a @ a) * (b @ b))), rel=1e-12)
+    assert place_correlation_of(res, fit.place_points, 0.05) == pytest.approx(rho_off, rel=1e-12)
+    refitted = fit.refit(off)
+    assert refitted.place_correlation == rho_off and not refitted.refit_correlation
+    assert BeamModel().bind(p).fitted_place_correlation(off) is None  # not asked for
+    assert BeamModel(refit_correlation=True).refits()
+    est = BeamPF(n_particles=60, sensor_model_params={"refit_correlation": True})
+    assert est.estimate_prefixes(p, np.random.default_rng(0), [1]) is None
+    refit = est.estimate(p, np.random.default_rng(0)).diagnostics["refit"]["sensor_model_params"]
+    assert 0.05 <= refit["place_correlation"] <= 1.0 and refit["refit_correlation"] is False
+    with pytest.raises(ParameterError, match="beam.refit_correlation"):
+        BeamModel(refit_correlation=1)
