@@ -213,6 +213,36 @@ class BoundSensorModel(ABC):
         when the sample has nothing to fit. Models without one raise NotImplementedError."""
         raise NotImplementedError(f"{type(self).__name__} has no hit density to fit a noise scale to")
 
+    def places(self) -> list[NDArray[np.float64]] | None:
+        """Per sample, the end points ``(P_k, 3)`` whose residuals :meth:`place_residuals`
+        gives, in the base frame at the configurations (the places of a model's
+        ``place_correlation``); None (the default) when the model has none."""
+        return None
+
+    def place_residuals(self, residuals: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """Sample ``step``'s residuals in hit sigmas from :meth:`hit_terms` (one state's),
+        in the order of :meth:`places` (default: as they come)."""
+        return residuals
+
+    def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
+        """The correlation of the problem's residuals in hit sigmas (:meth:`hit_terms`) at
+        ``state`` over pairs of end points (:meth:`places`) of different samples within the
+        model's ``place_radius`` of each other (:func:`place_correlation_of`: uncentered,
+        clipped to [0, 1]; None below 0.05, without such pairs, or without places): what
+        ``refit_correlation`` fits."""
+        places = self.places()
+        if places is None:
+            return None
+        x = np.asarray(state, dtype=float)[None]
+        res, pts = [], []
+        for k in range(self.n_steps):
+            t = self.hit_terms(x, k)
+            if t is None:
+                continue
+            res.append(self.place_residuals(t[2][0], k))
+            pts.append(places[k])
+        return place_correlation_of(res, pts, float(getattr(self.model, "place_radius")))
+
     def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
         """Over every sample's zones at ``state`` ``(3 + n,)`` (:meth:`hit_terms`): the hit
         component's responsibilities ``w = hit / p`` summed, and ``w t^2`` summed (``t`` the

@@ -67,7 +67,6 @@ from sensor_models.base import (
     BoundSensorModel,
     SensorModel,
     declared_state,
-    place_correlation_of,
     place_weights,
     reference_pose,
 )
@@ -281,11 +280,11 @@ class BeamModel(SensorModel):
         Radius (m) of a place.
     refit_correlation : bool
         Fit ``place_correlation`` to each problem's own residuals at the filter's first
-        estimate (:meth:`BoundBeamModel.fitted_place_correlation`: the correlation of the
-        valid zones' residuals in hit sigmas over pairs of end points within
-        ``place_radius`` from different samples, clipped to [0, 1], as the likelihood
-        field's) and run the filter again with it when it is at least 0.05. False (the
-        default): ``place_correlation`` as given.
+        estimate (:meth:`sensor_models.base.BoundSensorModel.fitted_place_correlation`:
+        the correlation of the valid zones' residuals in hit sigmas over pairs of end
+        points within ``place_radius`` from different samples, clipped to [0, 1], as the
+        likelihood field's) and run the filter again with it when it is at least 0.05.
+        False (the default): ``place_correlation`` as given.
     """
 
     name: ClassVar[str] = "beam"
@@ -565,8 +564,8 @@ class BoundBeamModel(BoundSensorModel):
         off and moved two trials of drone 3 node 2 from 7 to 14 cm).
 
         With ``refit_correlation``: ``place_correlation`` fitted at ``state``
-        (:meth:`fitted_place_correlation`, with the mixture and scale the model is bound
-        with), kept when it is at least 0.05."""
+        (:meth:`sensor_models.base.BoundSensorModel.fitted_place_correlation`, with the
+        mixture and scale the model is bound with), kept when it is at least 0.05."""
         short = self._refit_short(state)
         sigma = self._refit_sigma(state, short)
         rho = self.fitted_place_correlation(state) if self.model.refit_correlation else None
@@ -579,22 +578,13 @@ class BoundBeamModel(BoundSensorModel):
             model = dataclasses.replace(model, place_correlation=rho)
         return dataclasses.replace(model, refit_short=False, refit_sigma=False, refit_correlation=False)
 
-    def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
-        """With ``refit_correlation`` (else None): the correlation of the valid zones'
-        residuals in hit sigmas at ``state`` over pairs of their end points within
-        ``place_radius`` from different samples (:func:`sensor_models.base.place_correlation_of`;
-        None below 0.05 or without such pairs), with this model's mixture and scale."""
-        if self.place_points is None:
-            return None
-        x = np.asarray(state, dtype=float)[None]
-        res, pts = [], []
-        for k in range(self.n_steps):
-            t = self.hit_terms(x, k)
-            if t is None:
-                continue
-            res.append(t[2][0][self.valid[k]])
-            pts.append(self.place_points[k])
-        return place_correlation_of(res, pts, self.model.place_radius)
+    def places(self) -> list[NDArray[np.float64]] | None:
+        """The valid zones' end points per sample (``place_correlation``, ``refit_correlation``)."""
+        return self.place_points
+
+    def place_residuals(self, residuals: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        """The valid zones' residuals ``(S, Z) -> (P_k,)``."""
+        return residuals[self.valid[step]]
 
     def hit_terms(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], ...] | None:
         """Every zone's probability, its hit-Gaussian part (0 without a valid reading) and

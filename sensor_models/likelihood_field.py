@@ -41,7 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_correlation_of, place_weights, reference_pose
+from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_weights, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
@@ -419,20 +419,9 @@ class BoundLikelihoodField(BoundSensorModel):
             return None
         return dataclasses.replace(self.model, refit_sigma=False, refit_correlation=False, **changes)
 
-    def fitted_place_correlation(self, state: NDArray[np.float64]) -> float | None:
-        """The correlation of the problem's normalized residuals (in hit sigmas) over the
-        pairs of end points of different samples within ``place_radius`` of each other in
-        the base frame, at ``state`` (:func:`sensor_models.base.place_correlation_of`:
-        uncentered, clipped to [0, 1]; None below 0.05 or without such pairs)."""
-        x = np.asarray(state, dtype=float)[None]
-        res, pts = [], []
-        for k in range(self.n_steps):
-            t = self.hit_terms(x, k)
-            if t is None:
-                continue
-            res.append(t[2][0])
-            pts.append(self.points[k])
-        return place_correlation_of(res, pts, self.model.place_radius)
+    def places(self) -> list[NDArray[np.float64]] | None:
+        """The end points per sample in the base frame (``refit_correlation``)."""
+        return self.points
 
     def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
