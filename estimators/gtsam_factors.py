@@ -17,12 +17,12 @@ robustified residuals of every zone and their Jacobians with respect to
 
 :class:`StackedMeasurements` concatenates every sample's zones and association once per
 association round, and :func:`make_stacked_factor` makes ONE factor of them: one
-vectorized pass over every zone and one Python callback per linearization, each
-sample's rows compressed to ``m + 1`` equivalent ones (:func:`compress_rows`: the same
-Gauss-Newton system and cost; :func:`compress_schur` then takes out the configuration
-columns each sample alone has, so that all samples' other rows compress together). The per-sample factor, :func:`make_sample_factor`, stays
-for ISAM2, which replaces single samples' factors, and for comparison: the two give the
-same cost, gradient and Gauss-Newton matrix to rounding.
+vectorized pass over every zone and one Python callback per linearization, the rows
+compressed to the few of the same Gauss-Newton system and cost (:func:`compress_schur`:
+each sample's configuration rows apart, all samples' other rows together;
+:func:`compress_rows` compresses each sample on its own). The per-sample factor,
+:func:`make_sample_factor`, stays for ISAM2, which replaces single samples' factors, and
+for comparison: the two give the same cost, gradient and Gauss-Newton matrix to rounding.
 
 Residual of a zone ``i`` with point ``p_i`` (map frame) and associated plane ``(q_i, n_i)``::
 
@@ -511,7 +511,7 @@ def compress_schur(stacked: StackedMeasurements, A: FloatArray, n_own: int = OWN
     ``n_own:``). Stacked, the ``K n_own + c - n_own`` rows have the Gram matrix of ``A``
     (the same Gauss-Newton system and cost, to rounding): 70 rows for 10 samples with the
     support, where :func:`compress_rows` gives 160, and GTSAM's dense elimination of the
-    factor takes about two thirds of the time (``tofloc bench``). The compiled kernel uses
+    factor takes about two thirds of the time (docs/speed.md, section 18). The compiled kernel uses
     Cholesky factors of Gram matrices (:func:`tofloc.numba_kernels.gram_root_schur`), the
     numpy fallback QR decompositions.
 
