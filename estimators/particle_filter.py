@@ -90,12 +90,15 @@ from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 
 __all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step",
-           "KLD_MODES", "POINT_ESTIMATES", "pose_bins"]
+           "KLD_MODES", "POINT_ESTIMATES", "SCHEDULES", "BatchLikelihood", "pose_bins"]
 
 #: When the particle count adapts (KLD sampling): with a global prior only, always, never.
 KLD_MODES = ("global", "always", "off")
 #: What the estimate is: the heaviest mode of the particles, or their weighted mean (the paper's).
 POINT_ESTIMATES = ("best_mode", "mean")
+#: How the samples enter: one after the other (a sequential filter), or all at once (one
+#: tempered step over their summed log-likelihood: an SMC sampler for the static base).
+SCHEDULES = ("sequential", "batch")
 
 
 def weighted_pose_stats(particles: NDArray[np.float64], weights: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -140,6 +143,30 @@ def anneal_step(log_w: NDArray[np.float64], ll: NDArray[np.float64], remaining: 
         if hi - lo < 0.02:
             break
     return math.exp(lo)
+
+
+class BatchLikelihood:
+    """A bound sensor model seen as ONE step whose log-likelihood is the sum of every
+    sample's (``schedule = "batch"``): the filter then tempers the whole data set from the
+    prior to the posterior in progressive-correction stages, resampling and roughening
+    between them, instead of taking the samples one after the other. Everything else is
+    the bound model's."""
+
+    def __init__(self, bound: Any) -> None:
+        self.bound = bound
+        self.n_steps = 1
+        self.state = bound.state
+
+    def log_likelihood_chunked(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
+        if step != 0:
+            raise IndexError(f"a batch likelihood has one step, asked for step {step}")
+        out = self.bound.log_likelihood_chunked(states, 0)
+        for k in range(1, self.bound.n_steps):
+            out = out + self.bound.log_likelihood_chunked(states, k)
+        return out
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.bound, name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,6 +218,16 @@ class ParticleFilter(Estimator):
         Where recovery draws from (the problem's prior when it is global; else required
         with recovery: the map's free space, :func:`tofloc.free_space.free_space_of`, is
         drawn at the prior's height when not given).
+    schedule : {"sequential", "batch"}
+        ``"sequential"`` (the default): one sample after the other, each annealed on its
+        own. ``"batch"``: the base is static, so every sample's log-likelihood can enter at
+        once: one step over their sum (:class:`BatchLikelihood`), tempered in progressive
+        correction stages of ``anneal_ess`` (an SMC sampler from the prior to the whole
+        posterior, Del Moral, Doucet and Jasra 2006), at most ``max_stages``. The early
+        samples then cannot commit the particles to a region the later ones would have
+        ruled out; it costs every sample's model call at each stage. Needs a ``"bayes"``
+        model and ``anneal_ess > 0``; no recovery; no answers read off a pass per prefix
+        (:meth:`estimate_prefixes` declines).
     """
 
     name: ClassVar[str] = "pf"
@@ -216,9 +253,11 @@ class ParticleFilter(Estimator):
     recovery_alpha_slow: float = 0.0
     recovery_alpha_fast: float = 0.0
     recovery_free_space: Any = None
+    schedule: str = "sequential"
 
     def __post_init__(self) -> None:
         check_int("n_particles", self.n_particles, 1, 10_000_000)
+        check_in("schedule", self.schedule, SCHEDULES)
         check_in("kld", self.kld, KLD_MODES)
         check_in("point_estimate", self.point_estimate, POINT_ESTIMATES)
         if self.min_particles is not None:
@@ -265,6 +304,9 @@ class ParticleFilter(Estimator):
         if self.anneal_ess > 0 and model.weight_update != "bayes":
             raise ParameterError(f"anneal_ess > 0 needs a sensor model with weight_update 'bayes'; {model.name!r} "
                                  f"has {model.weight_update!r}")
+        if self.schedule == "batch" and (model.weight_update != "bayes" or not self.anneal_ess > 0 or self.recovery):
+            raise ParameterError(f"schedule 'batch' needs a sensor model with weight_update 'bayes' ({model.name!r} has "
+                                 f"{model.weight_update!r}), anneal_ess > 0 (got {self.anneal_ess!r}) and no recovery")
 
     def make_sensor_model(self) -> SensorModel:
         """The configured sensor model (an object as given, or built from the registry)."""
@@ -390,7 +432,8 @@ class ParticleFilter(Estimator):
         ``rng``'s state.
 
         Returns None when the answer after k samples cannot be read off a longer pass: a
-        sensor model that refits itself at the first estimate (:meth:`sensor_models.base.SensorModel.refits`).
+        sensor model that refits itself at the first estimate (:meth:`sensor_models.base.SensorModel.refits`),
+        or ``schedule = "batch"`` (every sample enters at once).
 
         Raises
         ------
@@ -409,7 +452,7 @@ class ParticleFilter(Estimator):
         if wanted[-1] < problem.n_samples:  # no sample after the last answer is needed
             problem = problem.subset(slice(0, wanted[-1]))
         model = self.make_sensor_model()
-        if model.refits():
+        if model.refits() or self.schedule == "batch":
             return None
         bound = model.bind(problem)
         if bound.n_steps != problem.n_samples:
@@ -462,8 +505,9 @@ class ParticleFilter(Estimator):
         return out
 
     def _filter(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator) -> Estimate:
-        """One pass of the filter over the problem's samples with a bound sensor model."""
-        return self._pass(problem, model, bound, rng, ())[0]
+        """One pass of the filter over the problem's samples with a bound sensor model (all
+        at once with ``schedule = "batch"``)."""
+        return self._pass(problem, model, BatchLikelihood(bound) if self.schedule == "batch" else bound, rng, ())[0]
 
     def _pass(self, problem: Problem, model: SensorModel, bound: Any, rng: np.random.Generator,
               report: Sequence[int], t0: float = 0.0) -> tuple[Estimate, dict[int, Estimate]]:
