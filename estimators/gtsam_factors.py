@@ -468,7 +468,7 @@ class StackedMeasurements:
 GRAM_TINY = 1e-14
 
 
-def compress_rows(stacked: StackedMeasurements, res: FloatArray | None, blocks: list[FloatArray]) -> tuple[FloatArray, FloatArray]:
+def compress_rows(stacked: StackedMeasurements, res: FloatArray, blocks: list[FloatArray]) -> tuple[FloatArray, FloatArray]:
     """Per sample ``k``, ``m + 1`` rows ``[W_k | w_k]`` equivalent to its zones' rows
     ``[J_k | e_k]``: ``W_k^T W_k = J_k^T J_k``, ``W_k^T w_k = J_k^T e_k`` and ``|w_k| =
     |e_k|`` (the same Gauss-Newton system and the same cost, to rounding). ``blocks`` are
@@ -477,10 +477,8 @@ def compress_rows(stacked: StackedMeasurements, res: FloatArray | None, blocks: 
     Cholesky factor of the Gram matrix ``G_k = [J_k | e_k]^T [J_k | e_k]``
     (:func:`tofloc.numba_kernels.gram_root_by_sample`, directions the rows leave free give
     zero rows); the numpy fallback ``sqrt(l) V^T`` from ``G_k = V diag(l) V^T``.
-    ``res`` None: ``blocks`` is one array ``[J | e]`` ``(N, m + 1)`` already side by side
-    (:meth:`StackedMeasurements.system_rows`).
     Returns ``W`` ``(K, m + 1, m)`` and ``w`` ``(K, m + 1)``."""
-    A = blocks[0] if res is None else np.concatenate(blocks + [res[:, None]], axis=1)
+    A = np.concatenate(blocks + [res[:, None]], axis=1)
     b = stacked.bounds
     K, c = len(stacked.sizes), A.shape[1]
     if numba_kernels.enabled():

@@ -306,7 +306,9 @@ class ParticleFilter(Estimator):
                                  f"has {model.weight_update!r}")
         if self.schedule == "batch" and (model.weight_update != "bayes" or not self.anneal_ess > 0 or self.recovery):
             raise ParameterError(f"schedule 'batch' needs a sensor model with weight_update 'bayes' ({model.name!r} has "
-                                 f"{model.weight_update!r}), anneal_ess > 0 (got {self.anneal_ess!r}) and no recovery")
+                                 f"{model.weight_update!r}), anneal_ess > 0 (got {self.anneal_ess!r}) and no recovery "
+                                 f"(recovery_alpha_slow / _fast 0, got {self.recovery_alpha_slow!r} / "
+                                 f"{self.recovery_alpha_fast!r})")
 
     def make_sensor_model(self) -> SensorModel:
         """The configured sensor model (an object as given, or built from the registry)."""

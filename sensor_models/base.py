@@ -233,6 +233,10 @@ class BoundSensorModel(ABC):
         places = self.places()
         if places is None:
             return None
+        radius = getattr(getattr(self, "model", None), "place_radius", None)
+        if radius is None:
+            raise NotImplementedError(f"{type(self).__name__} has places() but its model has no place_radius "
+                                      "(the radius, in metres, within which end points are one place)")
         x = np.asarray(state, dtype=float)[None]
         res, pts = [], []
         for k in range(self.n_steps):
@@ -241,7 +245,7 @@ class BoundSensorModel(ABC):
                 continue
             res.append(self.place_residuals(t[2][0], k))
             pts.append(places[k])
-        return place_correlation_of(res, pts, float(getattr(self.model, "place_radius")))
+        return place_correlation_of(res, pts, float(radius))
 
     def hit_moments(self, state: NDArray[np.float64]) -> tuple[float, float]:
         """Over every sample's zones at ``state`` ``(3 + n,)`` (:meth:`hit_terms`): the hit

@@ -460,3 +460,9 @@ def test_refit_correlation_fits_the_places_residual_correlation() -> None:
     assert 0.05 <= refit["place_correlation"] <= 1.0 and refit["refit_correlation"] is False
     with pytest.raises(ParameterError, match="beam.refit_correlation"):
         BeamModel(refit_correlation=1)
+    # a model with places but no radius says what is missing
+    import types
+
+    fit.model = types.SimpleNamespace()
+    with pytest.raises(NotImplementedError, match="BoundBeamModel has places\\(\\) but its model has no place_radius"):
+        fit.fitted_place_correlation(off)
