@@ -228,6 +228,14 @@ class ParticleFilter(Estimator):
         ruled out; it costs every sample's model call at each stage. Needs a ``"bayes"``
         model and ``anneal_ess > 0``; no recovery; no answers read off a pass per prefix
         (:meth:`estimate_prefixes` declines).
+    move_steps : int
+        With ``schedule = "batch"``: Metropolis-Hastings moves after each intermediate
+        stage's resampling (resample-move, Gilks and Berzuini 2001), each a Gaussian random
+        walk over every state column with the particles' covariance times ``2.38^2 / D``
+        (plus the jitter floors), accepted against the stage's target (prior times the
+        likelihood tempered so far), so the particles that resampling duplicated spread
+        over that target instead of staying where the prior's draws happened to fall. Each
+        move costs one model call per particle. 0 (the default): none.
     """
 
     name: ClassVar[str] = "pf"
@@ -254,9 +262,11 @@ class ParticleFilter(Estimator):
     recovery_alpha_fast: float = 0.0
     recovery_free_space: Any = None
     schedule: str = "sequential"
+    move_steps: int = 0
 
     def __post_init__(self) -> None:
         check_int("n_particles", self.n_particles, 1, 10_000_000)
+        check_int("move_steps", self.move_steps, 0, 100)
         check_in("schedule", self.schedule, SCHEDULES)
         check_in("kld", self.kld, KLD_MODES)
         check_in("point_estimate", self.point_estimate, POINT_ESTIMATES)
@@ -309,6 +319,9 @@ class ParticleFilter(Estimator):
                                  f"{model.weight_update!r}), anneal_ess > 0 (got {self.anneal_ess!r}) and no recovery "
                                  f"(recovery_alpha_slow / _fast 0, got {self.recovery_alpha_slow!r} / "
                                  f"{self.recovery_alpha_fast!r})")
+        if self.move_steps and self.schedule != "batch":
+            raise ParameterError(f"move_steps > 0 (got {self.move_steps!r}) needs schedule 'batch' (got {self.schedule!r}): "
+                                 "a sequential stage's target holds every earlier sample, which a move would re-score")
 
     def make_sensor_model(self) -> SensorModel:
         """The configured sensor model (an object as given, or built from the registry)."""
@@ -534,6 +547,7 @@ class ParticleFilter(Estimator):
         counts: list[int] = []
         scored: list[int] = []
         recovery: dict[str, Any] = {"log_w_avg": [], "w_fast_over_slow": [], "injected": []}
+        acceptance: list[float] = []
         global_prior = None
         w_slow = w_fast = 0.0
         valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
@@ -587,6 +601,11 @@ class ParticleFilter(Estimator):
                     ll = bound.log_likelihood_chunked(particles, k)
                     n_scored += particles.shape[0]
                     n_stages += 1
+                    if self.move_steps:
+                        particles, ll, rate = self._move(problem, bound, state, particles, ll, 1.0 - remaining, k,
+                                                         floors, rng)
+                        n_scored += self.move_steps * particles.shape[0]
+                        acceptance.append(rate)
             else:
                 log_w = log_w + ll
             stages.append(n_stages)
@@ -605,10 +624,48 @@ class ParticleFilter(Estimator):
                 particles = self._resample(particles, w, floors, adapt, rng)
                 log_w = np.zeros(particles.shape[0])
         final = self._finish(particles, w, state, model, adapt, ess, resampled, stages, counts, scored, recovery)
+        if self.move_steps:
+            final.diagnostics["move_acceptance"] = list(acceptance)
         if bound.n_steps in want:
             reports[bound.n_steps] = final
             final.runtime_s = time.perf_counter() - t0
         return final, reports
+
+    def _move(self, problem: Problem, bound: Any, state: tuple[Any, ...], particles: NDArray[np.float64],
+              ll: NDArray[np.float64], phi: float, k: int, floors: NDArray[np.float64], rng: np.random.Generator
+              ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+        """``move_steps`` Metropolis-Hastings random-walk moves of every particle, each leaving
+        ``prior x L_k^phi`` invariant (``ll``: ``log L_k`` at ``particles``); the proposal is
+        Gaussian with the particles' covariance (yaw about its circular mean) times
+        ``2.38^2 / D`` plus the squared jitter floors. Returns the moved particles, their
+        log-likelihoods and the share of proposals accepted."""
+        M, D = particles.shape
+
+        def log_prior(p: NDArray[np.float64]) -> NDArray[np.float64]:
+            out = problem.prior.log_density(p[:, :3])
+            for i, v in enumerate(state):
+                out = out + v.log_prior(p[:, 3 + i])
+            return out
+
+        dev = particles - particles.mean(axis=0)
+        dev[:, 2] = frames.wrap_angle(particles[:, 2] - frames.circular_mean(particles[:, 2]))
+        cov = (dev.T @ dev) / M * (2.38 ** 2 / D) + np.diag(floors ** 2)
+        root = np.linalg.cholesky(cov + 1e-18 * np.eye(D))
+        lp = log_prior(particles)
+        accepted = 0
+        for _ in range(self.move_steps):
+            proposal = particles + rng.normal(size=(M, D)) @ root.T
+            proposal[:, 2] = frames.wrap_angle(proposal[:, 2])
+            lp_new = log_prior(proposal)
+            ll_new = bound.log_likelihood_chunked(proposal, k)
+            with np.errstate(invalid="ignore"):
+                log_ratio = (lp_new + phi * ll_new) - (lp + phi * ll)
+            take = np.log(rng.random(M)) < np.nan_to_num(log_ratio, nan=-np.inf)
+            particles = np.where(take[:, None], proposal, particles)
+            ll = np.where(take, ll_new, ll)
+            lp = np.where(take, lp_new, lp)
+            accepted += int(take.sum())
+        return particles, ll, accepted / (M * self.move_steps)
 
     def _finish(self, particles: NDArray[np.float64], w: NDArray[np.float64], state: tuple[Any, ...], model: SensorModel,
                 adapt: bool, ess: list[float], resampled: list[bool], stages: list[int], counts: list[int],
