@@ -339,6 +339,11 @@ class ParticleFilter(Estimator):
         except TypeError as e:
             raise ParameterError(f"sensor model {self.sensor_model!r}: {e}") from None
 
+    def sensor_model_for(self, problem: Problem) -> SensorModel:
+        """The configured sensor model with its data-dependent defaults decided for
+        ``problem`` (:meth:`sensor_models.base.SensorModel.for_problem`)."""
+        return self.make_sensor_model().for_problem(problem)
+
     def uses_calibration(self) -> bool:
         return bool(self.make_sensor_model().uses_calibration)
 
@@ -407,7 +412,7 @@ class ParticleFilter(Estimator):
         """Bind the sensor model to ``problem`` (its per-map caches are built then: a
         likelihood field's clipping distance, for one, follows the problem's zone sigmas,
         so a one-sample problem may need another field than the trial's)."""
-        self.make_sensor_model().bind(problem)
+        self.sensor_model_for(problem).bind(problem)
 
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         """One pass of the filter; when its sensor model refits itself to the problem's data
@@ -415,7 +420,7 @@ class ParticleFilter(Estimator):
         beam model's short-reading weight), a second pass with the refitted model, from the
         prior again and the generator where the first left it (its estimate is returned;
         ``diagnostics["refit"]`` holds the first pass's estimate and the refitted model)."""
-        model = self.make_sensor_model()
+        model = self.sensor_model_for(problem)
         bound = model.bind(problem)
         first = self._filter(problem, model, bound, rng)
         diag = first.diagnostics
@@ -466,7 +471,7 @@ class ParticleFilter(Estimator):
         t0 = time.perf_counter()
         if wanted[-1] < problem.n_samples:  # no sample after the last answer is needed
             problem = problem.subset(slice(0, wanted[-1]))
-        model = self.make_sensor_model()
+        model = self.sensor_model_for(problem)
         if model.refits() or self.schedule == "batch":
             return None
         bound = model.bind(problem)
@@ -503,7 +508,7 @@ class ParticleFilter(Estimator):
         estimate is what the model prefers or what the search missed
         (:mod:`evaluation.failure_cause`).
         """
-        model = self.make_sensor_model()
+        model = self.sensor_model_for(problem)
         diag = estimate.diagnostics if isinstance(estimate.diagnostics, Mapping) else {}
         refit = diag.get("refit")
         if refit is not None:

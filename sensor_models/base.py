@@ -355,12 +355,29 @@ class SensorModel(ABC):
     def bind(self, problem: Problem) -> BoundSensorModel:
         """Precompute what scoring ``problem`` needs; must not mutate it."""
 
+    def for_problem(self, problem: Problem) -> "SensorModel":
+        """This model with its data-dependent defaults decided for ``problem``.
+
+        ``refit_correlation = "auto"`` (beam, likelihood field) becomes True on a map built
+        from scans (one that carries its known space, :attr:`tofloc.maps.Map.known_space`,
+        as the nano-swarm importer's maps do): such a map's errors are places, a wall it
+        lacks or misplaces, that every sample seeing the place meets again, so the zones'
+        errors there are correlated and the correlation is fitted from the problem's own
+        residuals; on any other map (a CAD mesh, the simulator's scenes) False. Every
+        other model is returned as it is. :meth:`bind` applies it, and so does a filter
+        before it asks :meth:`refits`."""
+        if getattr(self, "refit_correlation", None) == "auto" and dataclasses.is_dataclass(self):
+            scanned = getattr(problem.map, "known_space", None) is not None
+            return dataclasses.replace(self, refit_correlation=scanned)  # type: ignore[type-var]
+        return self
+
     def refits(self) -> bool:
         """Whether its bound model may refit itself to a problem's readings at a first
         estimate (:meth:`BoundSensorModel.refit`): a filter's answer after k samples then
         depends on those k samples' refit, and cannot be read off one pass over more
         samples (:meth:`estimators.particle_filter.ParticleFilter.estimate_prefixes`).
-        Default: any of the parameters ``refit_short``, ``refit_sigma``, ``refit_correlation`` set."""
+        Default: any of the parameters ``refit_short``, ``refit_sigma``, ``refit_correlation`` set
+        (an undecided ``"auto"`` counts: decide it first with :meth:`for_problem`)."""
         return any(bool(getattr(self, n, False)) for n in ("refit_short", "refit_sigma", "refit_correlation"))
 
     def get_params(self) -> dict[str, Any]:

@@ -278,13 +278,15 @@ class BeamModel(SensorModel):
         (about 3x the fused kernel's time).
     place_radius : float
         Radius (m) of a place.
-    refit_correlation : bool
-        Fit ``place_correlation`` to each problem's own residuals at the filter's first
+    refit_correlation : bool or "auto"
+        True: fit ``place_correlation`` to each problem's own residuals at the filter's first
         estimate (:meth:`sensor_models.base.BoundSensorModel.fitted_place_correlation`:
         the correlation of the valid zones' residuals in hit sigmas over pairs of end
         points within ``place_radius`` from different samples, clipped to [0, 1], as the
         likelihood field's) and run the filter again with it when it is at least 0.05.
-        False (the default): ``place_correlation`` as given.
+        False: ``place_correlation`` as given. ``"auto"`` (the default): True on a map built
+        from scans (it carries its known space), False on any other
+        (:meth:`sensor_models.base.SensorModel.for_problem`).
     """
 
     name: ClassVar[str] = "beam"
@@ -306,13 +308,15 @@ class BeamModel(SensorModel):
     configuration_cov: bool = True
     place_correlation: float = 0.0
     place_radius: float = 0.05
-    refit_correlation: bool = False
+    refit_correlation: bool | str = "auto"
 
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
-        for flag in ("configuration_cov", "refit_short", "refit_sigma", "refit_correlation"):
+        if not (isinstance(self.refit_correlation, bool) or (isinstance(self.refit_correlation, str) and self.refit_correlation == "auto")):
+            raise ParameterError(f"beam.refit_correlation must be true, false or \"auto\", got {self.refit_correlation!r}")
+        for flag in ("configuration_cov", "refit_short", "refit_sigma"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"beam.{flag} must be true or false, got {getattr(self, flag)!r}")
         g = self.sigma_scale
@@ -341,7 +345,8 @@ class BeamModel(SensorModel):
         return int(self.sub_rays)
 
     def bind(self, problem: Problem) -> "BoundBeamModel":
-        return BoundBeamModel(self, problem)
+        model = self.for_problem(problem)  # refit_correlation "auto" decided by the map
+        return BoundBeamModel(model, problem)
 
 
 class BoundBeamModel(BoundSensorModel):

@@ -124,11 +124,13 @@ class LikelihoodFieldModel(SensorModel):
         independent end points (docs/sensor-models.md, "Correlated places").
     place_radius : float
         Radius (m) of a place.
-    refit_correlation : bool
-        Fit ``place_correlation`` to each problem's own residuals at the filter's first
+    refit_correlation : bool or "auto"
+        True: fit ``place_correlation`` to each problem's own residuals at the filter's first
         estimate (the correlation of the normalized residuals of end point pairs within
         ``place_radius`` from different samples, clipped to [0, 1]) and run the filter again
-        with it when it is at least 0.05. False (the default): ``place_correlation`` as given.
+        with it when it is at least 0.05. False: ``place_correlation`` as given. ``"auto"``
+        (the default): True on a map built from scans (it carries its known space), False
+        on any other (:meth:`sensor_models.base.SensorModel.for_problem`).
     """
 
     name: ClassVar[str] = "likelihood_field"
@@ -149,7 +151,7 @@ class LikelihoodFieldModel(SensorModel):
     refit_sigma: bool = False
     place_correlation: float = 0.0
     place_radius: float = 0.05
-    refit_correlation: bool = False
+    refit_correlation: bool | str = "auto"
 
     def __post_init__(self) -> None:
         for n in ("z_hit", "z_short", "z_rand"):
@@ -161,7 +163,9 @@ class LikelihoodFieldModel(SensorModel):
         if abs(total - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
-        for flag in ("configuration_cov", "refit_sigma", "refit_correlation"):
+        if not (isinstance(self.refit_correlation, bool) or (isinstance(self.refit_correlation, str) and self.refit_correlation == "auto")):
+            raise ParameterError(f"likelihood_field.refit_correlation must be true, false or \"auto\", got {self.refit_correlation!r}")
+        for flag in ("configuration_cov", "refit_sigma"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"likelihood_field.{flag} must be true or false, got {getattr(self, flag)!r}")
         g = self.sigma_scale
@@ -185,7 +189,8 @@ class LikelihoodFieldModel(SensorModel):
                 raise ParameterError(f"likelihood_field.{n} must be in [{lo}, {hi}] m, got {v!r}")
 
     def bind(self, problem: Problem) -> "BoundLikelihoodField":
-        return BoundLikelihoodField(self, problem)
+        model = self.for_problem(problem)  # refit_correlation "auto" decided by the map
+        return BoundLikelihoodField(model, problem)
 
 
 class BoundLikelihoodField(BoundSensorModel):

@@ -466,3 +466,40 @@ def test_refit_correlation_fits_the_places_residual_correlation() -> None:
     fit.model = types.SimpleNamespace()
     with pytest.raises(NotImplementedError, match="BoundBeamModel has places\\(\\) but its model has no place_radius"):
         fit.fitted_place_correlation(off)
+
+
+@pytest.mark.parametrize("model_name", ["beam", "likelihood_field"])
+def test_refit_correlation_auto_follows_the_map(model_name: str) -> None:
+    """refit_correlation = "auto" (the default) is decided by the problem's map: fitted on
+    a map built from scans (one that carries its known space), off on any other (the CAD
+    meshes and simulated scenes keep their answers and their one-pass nested trials); an
+    undecided model says it may refit; a filter decides it before it asks."""
+    import dataclasses
+
+    import numpy as np
+
+    from estimators.particle_filter import BeamPF, LikelihoodFieldPF
+    from tofloc.known_space import KnownSpace
+    from tofloc.registry import SENSOR_MODELS
+    from tofloc.testing import easy_problem
+
+    p, truth = easy_problem(n_samples=3)
+    lo, hi = (np.asarray(b, dtype=float) for b in p.map.bounds())
+    cell = 0.05
+    grid = np.ones((int(np.ceil((hi[0] - lo[0] + 0.4) / cell)), int(np.ceil((hi[1] - lo[1] + 0.4) / cell))), dtype=bool)
+    scanned = dataclasses.replace(p, map=p.map.with_known_space(KnownSpace(lo[:2] - 0.2, cell, np.array([lo[2] - 0.1, hi[2] + 0.1]), grid)))
+    model = SENSOR_MODELS.load(model_name)()
+    assert model.refit_correlation == "auto" and model.refits()
+    assert model.for_problem(p).refit_correlation is False and not model.for_problem(p).refits()
+    assert model.for_problem(scanned).refit_correlation is True
+    assert model.bind(p).model.refit_correlation is False and model.bind(scanned).model.refit_correlation is True
+    assert model_name != "beam" or model.bind(p).place_points is None  # nothing built for a refit that will not come
+    pf = (BeamPF if model_name == "beam" else LikelihoodFieldPF)(n_particles=60)
+    assert pf.estimate_prefixes(p, np.random.default_rng(0), [1, 2]) is not None  # one pass on a mesh
+    assert pf.estimate_prefixes(scanned, np.random.default_rng(0), [1, 2]) is None  # refits on a scan map
+    off = pf.estimate(p, np.random.default_rng(5))
+    assert "refit" not in off.diagnostics
+    np.testing.assert_array_equal(off.pose, (BeamPF if model_name == "beam" else LikelihoodFieldPF)(
+        n_particles=60, sensor_model_params={"refit_correlation": False}).estimate(p, np.random.default_rng(5)).pose)
+    with pytest.raises(ParameterError, match=f"{model_name}.refit_correlation must be true, false or"):
+        SENSOR_MODELS.load(model_name)(refit_correlation="yes")
