@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -419,7 +420,29 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     cc = cross_check_summary(records)
     if cc is not None:
         out["cross_check"] = cc
+    ref = refit_summary(records)
+    if ref is not None:
+        out["refit"] = ref
     return out
+
+
+def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """How often a sensor model was refitted to a trial's own data (a second pass of the
+    filter, the record's ``refit``) and what it fitted: ``{"trials", "of", "params"}``,
+    ``params`` the median, 10th and 90th percentile of every numeric parameter of the
+    refitted models whose value differs between trials (those fitted per trial, e.g.
+    ``place_correlation``). None when no record was refitted."""
+    refits = [r["refit"] for r in records if isinstance(r.get("refit"), Mapping)]
+    if not refits:
+        return None
+    values: dict[str, list[float]] = {}
+    for ref in refits:
+        for key, v in (ref.get("sensor_model_params") or {}).items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v)):
+                values.setdefault(key, []).append(float(v))
+    params = {key: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))}
+              for key, v in sorted(values.items()) if len(v) == len(refits) and np.ptp(v) > 0}
+    return {"trials": len(refits), "of": len(records), "params": params}
 
 
 def is_flagged(record: Mapping[str, Any]) -> bool:

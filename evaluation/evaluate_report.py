@@ -56,6 +56,26 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
           frac(d["successes_flagged"], d["successes"])] for e, d in rows])
 
 
+def refit_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The section "Models refitted to each trial's data": per estimator, the trials whose
+    sensor model was refitted at a first estimate and the parameters fitted (median and
+    10-90 % range); empty when none was."""
+    rows = [(e, s["refit"]) for e, s in doc["summary"].items() if s.get("refit")]
+    if not rows:
+        return []
+
+    def fitted(params: Mapping[str, Any]) -> str:
+        return "; ".join(f"{k} {v['median']:.3g} ({v['p10']:.3g}-{v['p90']:.3g})" for k, v in params.items()) or "none varies"
+
+    return _section(
+        "Models refitted to each trial's data",
+        "A sensor model that refits itself (e.g. the place correlation fitted on a map built from scans, "
+        "`refit_correlation`, docs/sensor-models.md) runs the filter a second time with the parameters fitted "
+        "at the first estimate: the trials that did and what they fitted (median, 10-90 %).",
+        ["estimator", "trials refitted", "fitted parameters"],
+        [[e, f"{r['trials']}/{r['of']}", fitted(r["params"])] for e, r in rows])
+
+
 def _section(title: str, text: str, header: list[str], rows: list[list[Any]]) -> list[str]:
     """A markdown section: ``## title``, a paragraph and a table."""
     out = [f"## {title}", "", text, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -139,6 +159,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     ]
     lines += detection_lines(doc)
     lines += cross_check_lines(doc)
+    lines += refit_lines(doc)
     lines += [
         "## Ratios to the oracle floor",
         "",

@@ -429,6 +429,33 @@ def test_a_log_without_truth_is_refused_naming_it(logs: list[Path], tmp_path: Pa
 
 @pytest.mark.slow  # ~22 s: skipped by `make test-fast`
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
+def test_refit_summary_reports_what_was_fitted_per_trial() -> None:
+    """The trials whose model was refitted, and the median and 10-90 % of the parameters
+    that differ between them (those fitted per trial; a parameter equal in every refit is
+    configuration, a bool is not a number); none without refits."""
+    from evaluation.evaluate import refit_summary
+    from evaluation.evaluate_report import refit_lines
+
+    def rec(rho: float | None) -> dict:
+        r: dict = {"e_x_m": 0.01, "e_gamma_deg": 1.0}
+        if rho is not None:
+            r["refit"] = {"first_pose": [0, 0, 0], "sensor_model_params": {"place_correlation": rho, "place_radius": 0.05,
+                                                                           "refit_correlation": False, "mixture": None}}
+        return r
+
+    recs = [rec(0.2), rec(0.4), rec(None), rec(0.9), rec(0.6)]
+    got = refit_summary(recs)
+    assert got is not None and got["trials"] == 4 and got["of"] == 5 and list(got["params"]) == ["place_correlation"]
+    rho = np.array([0.2, 0.4, 0.9, 0.6])
+    assert got["params"]["place_correlation"] == pytest.approx(
+        {"median": 0.5, "p10": float(np.percentile(rho, 10)), "p90": float(np.percentile(rho, 90))})
+    assert error_summary(recs)["refit"] == got
+    assert refit_summary([rec(None)]) is None and "refit" not in error_summary([rec(None)])
+    lines = refit_lines({"summary": {"beam_pf": error_summary(recs), "icp_pf": error_summary([rec(None)])}})
+    assert lines[0] == "## Models refitted to each trial's data"
+    assert "| beam_pf | 4/5 | place_correlation 0.5 (0.26-0.81) |" in lines and not any(ln.startswith("| icp_pf") for ln in lines)
+
+
 def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(capsys, ["import", "nanoswarm", str(FOUR), "--out", str(tmp_path / "four")])
     assert code == 0, err
@@ -452,6 +479,15 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert 0.5 < o["e_gamma_deg"]["median"] < 1.5 and o["not_converged"] == 0
     per_log = [lg["oracle"]["summary"]["e_x_m"]["median"] for lg in doc["logs"].values()]
     assert min(per_log) > 0.005 and max(per_log) < 0.08, per_log
+    # the importer's maps are built from scans (they carry their known space): the likelihood
+    # field fits its place correlation on them by default and says so (docs/sensor-models.md)
+    out = tmp_path / "eval-lf"
+    code, _, err = _run(capsys, ["evaluate", str(tmp_path / "four" / "drone1-node001.h5"), "--estimators", "likelihood_field_pf",
+                                 "--trials", "2", "--param", "n_particles=300", "--workers", "1", "--out", str(out)])
+    assert code == 0, err
+    ref = json.loads((out / "results.json").read_text())["summary"]["likelihood_field_pf"]["refit"]
+    assert ref["trials"] == ref["of"] == 2 and 0.05 <= ref["params"]["place_correlation"]["median"] <= 1.0, ref
+    assert "## Models refitted to each trial's data" in (out / "table.md").read_text()
 
 
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
