@@ -419,7 +419,8 @@ class ParticleFilter(Estimator):
         at that pass's estimate (:meth:`sensor_models.base.BoundSensorModel.refit`, e.g. the
         beam model's short-reading weight), a second pass with the refitted model, from the
         prior again and the generator where the first left it (its estimate is returned;
-        ``diagnostics["refit"]`` holds the first pass's estimate and the refitted model)."""
+        ``diagnostics["refit"]`` holds the first pass's estimate and the refitted model's
+        parameters that differ from the configured model's, ``"sensor_model_params"``)."""
         model = self.sensor_model_for(problem)
         bound = model.bind(problem)
         first = self._filter(problem, model, bound, rng)
@@ -429,9 +430,12 @@ class ParticleFilter(Estimator):
         if refitted is None:
             return first
         second = self._filter(problem, refitted, refitted.bind(problem), rng)
+        # what the refit changed (JSON-safe, unlike a full parameter set with an infinite
+        # hit_dof): the model it ends with is the configured one with these replaced
+        changed = {f.name: getattr(refitted, f.name) for f in dataclasses.fields(refitted)
+                   if getattr(refitted, f.name) != getattr(model, f.name)}
         second.diagnostics["refit"] = {"first_pose": np.asarray(first.pose, dtype=float).tolist(),
-                                       "sensor_model_params": {f.name: getattr(refitted, f.name)
-                                                               for f in dataclasses.fields(refitted)}}
+                                       "sensor_model_params": changed}
         return second
 
     def estimate_prefixes(self, problem: Problem, rng: np.random.Generator, ks: Sequence[int]) -> list[Estimate] | None:
@@ -511,8 +515,8 @@ class ParticleFilter(Estimator):
         model = self.sensor_model_for(problem)
         diag = estimate.diagnostics if isinstance(estimate.diagnostics, Mapping) else {}
         refit = diag.get("refit")
-        if refit is not None:
-            model = type(model)(**dict(refit["sensor_model_params"]))
+        if refit is not None:  # the configured model with what the refit changed
+            model = dataclasses.replace(model, **dict(refit["sensor_model_params"]))
         bound = model.bind(problem)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         extra = [estimate.nuisance_mean(v.name) for v in bound.state]

@@ -456,8 +456,23 @@ def test_refit_correlation_fits_the_places_residual_correlation() -> None:
     assert BeamModel(refit_correlation=True).refits()
     est = BeamPF(n_particles=60, sensor_model_params={"refit_correlation": True})
     assert est.estimate_prefixes(p, np.random.default_rng(0), [1]) is None
-    refit = est.estimate(p, np.random.default_rng(0)).diagnostics["refit"]["sensor_model_params"]
+    answer = est.estimate(p, np.random.default_rng(0))
+    refit = answer.diagnostics["refit"]["sensor_model_params"]
     assert 0.05 <= refit["place_correlation"] <= 1.0 and refit["refit_correlation"] is False
+    # what the refit changed, nothing else: it survives a results.json (hit_dof = inf would
+    # not) and the target the cross-check reads back from the record is the filter's own
+    import json
+
+    from evaluation.cross_check import _estimate_of
+    from evaluation.trials import jsonable  # what the trial records go through
+
+    assert set(refit) == {"place_correlation", "refit_correlation"}
+    record = json.loads(json.dumps(jsonable({"estimate": answer.pose, "covariance": answer.covariance,
+                                             "refit": answer.diagnostics["refit"]}), allow_nan=False))
+    poses = truth + np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.02]])
+    np.testing.assert_array_equal(est.log_target(p, poses, _estimate_of(record)), est.log_target(p, poses, answer))
+    assert not np.allclose(est.log_target(p, poses, answer), BeamPF(n_particles=60).log_target(p, poses, answer.__class__(
+        pose=answer.pose, covariance=answer.covariance)))
     with pytest.raises(ParameterError, match="beam.refit_correlation"):
         BeamModel(refit_correlation=1)
     # a model with places but no radius says what is missing
