@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
 __all__ = ["place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
@@ -106,6 +107,13 @@ def reference_pose(states: NDArray[np.float64]) -> NDArray[np.float64]:
     pose, such as a configuration's effect on a reading, are evaluated once for all)."""
     x = np.asarray(states, dtype=float)
     return np.array([np.median(x[:, 0]), np.median(x[:, 1]), np.arctan2(np.mean(np.sin(x[:, 2])), np.mean(np.cos(x[:, 2])))])
+
+
+def check_bool_or_auto(name: str, value: object) -> None:
+    """Refuse a parameter that must be True, False or ``"auto"`` (decided per problem by
+    :meth:`SensorModel.for_problem`), naming it."""
+    if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
+        raise ParameterError(f"{name} must be true, false or \"auto\", got {value!r}")
 
 
 def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) -> list[NDArray[np.float64] | None]:

@@ -66,6 +66,7 @@ from sensor_models.base import (
     TEMP_BYTES_PER_ZONE,
     BoundSensorModel,
     SensorModel,
+    check_bool_or_auto,
     declared_state,
     place_weights,
     reference_pose,
@@ -314,8 +315,7 @@ class BeamModel(SensorModel):
         if self.mixture is not None:
             _as_mixture(self.mixture)
         check_in("beam.short_support", self.short_support, ("range", "expected"))
-        if not (isinstance(self.refit_correlation, bool) or (isinstance(self.refit_correlation, str) and self.refit_correlation == "auto")):
-            raise ParameterError(f"beam.refit_correlation must be true, false or \"auto\", got {self.refit_correlation!r}")
+        check_bool_or_auto("beam.refit_correlation", self.refit_correlation)
         for flag in ("configuration_cov", "refit_short", "refit_sigma"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"beam.{flag} must be true or false, got {getattr(self, flag)!r}")

@@ -41,7 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, declared_state, place_weights, reference_pose
+from sensor_models.base import BoundSensorModel, SensorModel, check_bool_or_auto, declared_state, place_weights, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
@@ -163,8 +163,7 @@ class LikelihoodFieldModel(SensorModel):
         if abs(total - 1.0) > 1e-6:
             raise ParameterError(f"likelihood_field.z_hit + z_short + z_rand must sum to 1, got {total:.6g}")
         check_temper("likelihood_field", self.temper)
-        if not (isinstance(self.refit_correlation, bool) or (isinstance(self.refit_correlation, str) and self.refit_correlation == "auto")):
-            raise ParameterError(f"likelihood_field.refit_correlation must be true, false or \"auto\", got {self.refit_correlation!r}")
+        check_bool_or_auto("likelihood_field.refit_correlation", self.refit_correlation)
         for flag in ("configuration_cov", "refit_sigma"):
             if not isinstance(getattr(self, flag), bool):
                 raise ParameterError(f"likelihood_field.{flag} must be true or false, got {getattr(self, flag)!r}")
