@@ -428,10 +428,10 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
     """How often a sensor model was refitted to a trial's own data (a second pass of the
-    filter, the record's ``refit``) and what it fitted: ``{"trials", "of", "params"}``,
-    ``params`` the median, 10th and 90th percentile of every numeric parameter of the
-    refitted models whose value differs between trials (those fitted per trial, e.g.
-    ``place_correlation``). None when no record was refitted."""
+    filter, the record's ``refit``, which holds the parameters the refit changed) and what
+    it fitted: ``{"trials", "of", "params"}``, ``params`` per numeric parameter a refit
+    changed (e.g. ``place_correlation``) the trials that changed it (``n``) and the median,
+    10th and 90th percentile of its fitted values. None when no record was refitted."""
     refits = [r["refit"] for r in records if isinstance(r.get("refit"), Mapping)]
     if not refits:
         return None
@@ -440,8 +440,8 @@ def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None
         for key, v in (ref.get("sensor_model_params") or {}).items():
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v)):
                 values.setdefault(key, []).append(float(v))
-    params = {key: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))}
-              for key, v in sorted(values.items()) if len(v) == len(refits) and np.ptp(v) > 0}
+    params = {key: {"n": len(v), "median": float(np.median(v)), "p10": float(np.percentile(v, 10)),
+                    "p90": float(np.percentile(v, 90))} for key, v in sorted(values.items())}
     return {"trials": len(refits), "of": len(records), "params": params}
 
 

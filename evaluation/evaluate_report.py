@@ -63,17 +63,29 @@ def refit_lines(doc: Mapping[str, Any]) -> list[str]:
     rows = [(e, s["refit"]) for e, s in doc["summary"].items() if s.get("refit")]
     if not rows:
         return []
-
-    def fitted(params: Mapping[str, Any]) -> str:
-        return "; ".join(f"{k} {v['median']:.3g} ({v['p10']:.3g}-{v['p90']:.3g})" for k, v in params.items()) or "none varies"
-
     return _section(
         "Models refitted to each trial's data",
         "A sensor model that refits itself (e.g. the place correlation fitted on a map built from scans, "
         "`refit_correlation`, docs/sensor-models.md) runs the filter a second time with the parameters fitted "
-        "at the first estimate: the trials that did and what they fitted (median, 10-90 %).",
+        "at the first estimate: the trials that did and what they fitted (median, 10-90 %; the trials that "
+        "changed a parameter when not all did).",
         ["estimator", "trials refitted", "fitted parameters"],
-        [[e, f"{r['trials']}/{r['of']}", fitted(r["params"])] for e, r in rows])
+        [[e, f"{r['trials']}/{r['of']}", fitted_parameters(r)] for e, r in rows])
+
+
+def fitted_parameters(refit: Mapping[str, Any]) -> str:
+    """One line of what the refits fitted (:func:`evaluation.evaluate.refit_summary`): per
+    parameter its median, the 10-90 % range when the values differ, and how many trials
+    changed it when not every refitted trial did."""
+    out = []
+    for k, v in refit["params"].items():
+        text = f"{k} {v['median']:.3g}"
+        if v["p10"] != v["p90"]:
+            text += f" ({v['p10']:.3g}-{v['p90']:.3g})"
+        if v["n"] != refit["trials"]:
+            text += f" in {v['n']} trial(s)"
+        out.append(text)
+    return "; ".join(out) or "no numeric parameter"
 
 
 def _section(title: str, text: str, header: list[str], rows: list[list[Any]]) -> list[str]:

@@ -430,30 +430,33 @@ def test_a_log_without_truth_is_refused_naming_it(logs: list[Path], tmp_path: Pa
 @pytest.mark.slow  # ~22 s: skipped by `make test-fast`
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
 def test_refit_summary_reports_what_was_fitted_per_trial() -> None:
-    """The trials whose model was refitted, and the median and 10-90 % of the parameters
-    that differ between them (those fitted per trial; a parameter equal in every refit is
-    configuration, a bool is not a number); none without refits."""
+    """The trials whose model was refitted, and per numeric parameter a refit changed (the
+    record holds those; a bool is not a number) how many trials changed it and the median
+    and 10-90 % of its values; none without refits; the table's line says the same."""
     from evaluation.evaluate import refit_summary
-    from evaluation.evaluate_report import refit_lines
+    from evaluation.evaluate_report import fitted_parameters, refit_lines
 
-    def rec(rho: float | None) -> dict:
+    def rec(rho: float | None, scale: float | None = None) -> dict:
         r: dict = {"e_x_m": 0.01, "e_gamma_deg": 1.0}
         if rho is not None:
-            r["refit"] = {"first_pose": [0, 0, 0], "sensor_model_params": {"place_correlation": rho, "place_radius": 0.05,
-                                                                           "refit_correlation": False, "mixture": None}}
+            changed = {"place_correlation": rho, "refit_correlation": False}
+            r["refit"] = {"first_pose": [0, 0, 0], "sensor_model_params": changed | ({} if scale is None else {"sigma_scale": scale})}
         return r
 
-    recs = [rec(0.2), rec(0.4), rec(None), rec(0.9), rec(0.6)]
+    recs = [rec(0.2), rec(0.4, 1.3), rec(None), rec(0.9), rec(0.6)]
     got = refit_summary(recs)
-    assert got is not None and got["trials"] == 4 and got["of"] == 5 and list(got["params"]) == ["place_correlation"]
+    assert got is not None and got["trials"] == 4 and got["of"] == 5 and list(got["params"]) == ["place_correlation", "sigma_scale"]
     rho = np.array([0.2, 0.4, 0.9, 0.6])
     assert got["params"]["place_correlation"] == pytest.approx(
-        {"median": 0.5, "p10": float(np.percentile(rho, 10)), "p90": float(np.percentile(rho, 90))})
+        {"n": 4, "median": 0.5, "p10": float(np.percentile(rho, 10)), "p90": float(np.percentile(rho, 90))})
+    assert got["params"]["sigma_scale"] == {"n": 1, "median": 1.3, "p10": 1.3, "p90": 1.3}
+    assert fitted_parameters(got) == "place_correlation 0.5 (0.26-0.81); sigma_scale 1.3 in 1 trial(s)"
     assert error_summary(recs)["refit"] == got
     assert refit_summary([rec(None)]) is None and "refit" not in error_summary([rec(None)])
     lines = refit_lines({"summary": {"beam_pf": error_summary(recs), "icp_pf": error_summary([rec(None)])}})
     assert lines[0] == "## Models refitted to each trial's data"
-    assert "| beam_pf | 4/5 | place_correlation 0.5 (0.26-0.81) |" in lines and not any(ln.startswith("| icp_pf") for ln in lines)
+    assert "| beam_pf | 4/5 | place_correlation 0.5 (0.26-0.81); sigma_scale 1.3 in 1 trial(s) |" in lines
+    assert not any(ln.startswith("| icp_pf") for ln in lines)
 
 
 def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -488,6 +491,11 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     ref = json.loads((out / "results.json").read_text())["summary"]["likelihood_field_pf"]["refit"]
     assert ref["trials"] == ref["of"] == 2 and 0.05 <= ref["params"]["place_correlation"]["median"] <= 1.0, ref
     assert "## Models refitted to each trial's data" in (out / "table.md").read_text()
+    code, _, err = _run(capsys, ["localize", str(tmp_path / "four" / "drone1-node001.h5"), "--estimator", "likelihood_field_pf",
+                                 "--samples", "all", "--param", "n_particles=300"])
+    assert code == 0, err
+    assert "note: the sensor model refitted itself to the data at a first estimate in 1 of 1 trial(s) and ran again: " \
+           "place_correlation 0." in " ".join(err.split()), err
 
 
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")

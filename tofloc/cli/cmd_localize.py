@@ -253,6 +253,14 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
     if n_amb:
         err_console.print(f"note: {n_amb} of {len(recs)} trial(s) have an ambiguous posterior (a second mode holds more "
                           "than 10 % of the weight; see `modes` in --json)", highlight=False, markup=False)
+    from evaluation.evaluate import refit_summary
+    from evaluation.evaluate_report import fitted_parameters
+
+    ref = refit_summary(recs)
+    if ref is not None:
+        err_console.print(f"note: the sensor model refitted itself to the data at a first estimate in {ref['trials']} of "
+                          f"{ref['of']} trial(s) and ran again: {fitted_parameters(ref)} (see `refit` in --json)",
+                          highlight=False, markup=False)
 
 
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
