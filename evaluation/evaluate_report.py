@@ -40,7 +40,7 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     """The section "Knowing when it is lost": per estimator, how many of its failures its own
     warnings flagged (the fit check, an ambiguous posterior) and how many good trials they
     flagged too (false alarms); empty when no estimator's records carry the warnings."""
-    rows = [(e, s["detection"]) for e, s in doc["summary"].items() if s.get("detection")]
+    rows = _summary_rows(doc, "detection")
     if not rows:
         return []
 
@@ -60,7 +60,7 @@ def refit_lines(doc: Mapping[str, Any]) -> list[str]:
     """The section "Models refitted to each trial's data": per estimator, the trials whose
     sensor model was refitted at a first estimate and the parameters fitted (median and
     10-90 % range); empty when none was."""
-    rows = [(e, s["refit"]) for e, s in doc["summary"].items() if s.get("refit")]
+    rows = _summary_rows(doc, "refit")
     if not rows:
         return []
     return _section(
@@ -88,6 +88,11 @@ def fitted_parameters(refit: Mapping[str, Any]) -> str:
     return "; ".join(out) or "no numeric parameter"
 
 
+def _summary_rows(doc: Mapping[str, Any], key: str) -> list[tuple[str, Any]]:
+    """``(estimator, summary[key])`` for the estimators whose summary has ``key``."""
+    return [(e, s[key]) for e, s in doc["summary"].items() if s.get(key)]
+
+
 def _section(title: str, text: str, header: list[str], rows: list[list[Any]]) -> list[str]:
     """A markdown section: ``## title``, a paragraph and a table."""
     out = [f"## {title}", "", text, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -99,7 +104,7 @@ def cross_check_lines(doc: Mapping[str, Any]) -> list[str]:
     """The section "Whose optimum": per estimator, the trials some estimators failed and others
     did not, and among them those where its own target ranks a failed answer above every
     successful one (:mod:`evaluation.cross_check`); empty when none was checked."""
-    rows = [(e, s["cross_check"]) for e, s in doc["summary"].items() if s.get("cross_check")]
+    rows = _summary_rows(doc, "cross_check")
     if not rows:
         return []
     return _section(
