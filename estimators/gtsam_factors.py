@@ -152,6 +152,14 @@ def _T_map_base(xyyaw: FloatArray, z: float, R_tilt: FloatArray) -> FloatArray:
     return T
 
 
+def _bias_corrected(p_tip: FloatArray, d: FloatArray, v_tip: FloatArray, bias: FloatArray | None) -> FloatArray:
+    """Zone points in the tip frame with the relative range-bias correction ``b`` (a
+    1-vector, or None for none) applied: each point moved by ``-b d`` along its ray ``v``."""
+    if bias is None:
+        return p_tip
+    return p_tip - (float(bias[0]) * d)[:, None] * v_tip
+
+
 def _zone_rows(
     p_tip: FloatArray, n: FloatArray, q: FloatArray, s_: FloatArray, inlier: NDArray[np.bool_], out_const: FloatArray,
     d: FloatArray, v_tip: FloatArray, xyyaw: FloatArray, z: float, R_tilt: FloatArray, RC: FloatArray, tC: FloatArray,
@@ -286,9 +294,7 @@ class SampleMeasurement:
 
     def points(self, bias: FloatArray | None = None) -> FloatArray:
         """Zone points in the tip frame with the relative range-bias correction ``b`` (a 1-vector) applied."""
-        if bias is None:
-            return self.p_tip
-        return self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
+        return _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
 
     def evaluate(
         self,
@@ -436,7 +442,7 @@ class StackedMeasurements:
         A = np.empty((N, m + 1))
         Hd = A[:, 9:15] if rig else np.empty((N, 6))
         Hbias = A[:, m - 1 : m] if bias is not None else np.empty((N, 1))
-        p_tip = self.p_tip if bias is None else self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
+        p_tip = _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
         _zone_rows_compiled(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, R_tilt,
                             C[:, :3, :3], C[:, :3, 3], self.sample_idx, D, self.kernel, self.k, jacobians,
                             _T_map_base(xyyaw, z, R_tilt), out=(A[:, m], A[:, cb], A[:, cc], Hd, Hbias))
@@ -458,7 +464,7 @@ class StackedMeasurements:
         of every sample, stacked.
 
         ``C`` is ``(K, 4, 4)``: the configurations of the samples."""
-        p_tip = self.p_tip if bias is None else self.p_tip - (float(bias[0]) * self.d)[:, None] * self.v_tip
+        p_tip = _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
         return _zone_rows(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, z, R_tilt,
                           C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians)
 

@@ -145,6 +145,15 @@ def anneal_step(log_w: NDArray[np.float64], ll: NDArray[np.float64], remaining: 
     return math.exp(lo)
 
 
+def _log_prior(problem: Problem, state: Sequence[Any], states: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The log prior density ``(M,)`` of filter states ``(M, 3 + len(state))``: the
+    problem's prior of the planar pose plus each declared nuisance's own prior."""
+    out = problem.prior.log_density(states[:, :3])
+    for i, v in enumerate(state):
+        out = out + v.log_prior(states[:, 3 + i])
+    return out
+
+
 class BatchLikelihood:
     """A bound sensor model seen as ONE step whose log-likelihood is the sum of every
     sample's (``schedule = "batch"``): the filter then tempers the whole data set from the
@@ -521,7 +530,7 @@ class ParticleFilter(Estimator):
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         extra = [estimate.nuisance_mean(v.name) for v in bound.state]
         states = np.column_stack([P] + [np.full(P.shape[0], x) for x in extra]) if extra else P
-        out = problem.prior.log_density(P) + sum(v.log_prior(x) for v, x in zip(bound.state, extra))
+        out = _log_prior(problem, bound.state, states)
         if model.weight_update == "replace":
             return out + bound.log_likelihood_chunked(states, bound.n_steps - 1)
         for k in range(bound.n_steps):
@@ -650,22 +659,16 @@ class ParticleFilter(Estimator):
         log-likelihoods and the share of proposals accepted."""
         M, D = particles.shape
 
-        def log_prior(p: NDArray[np.float64]) -> NDArray[np.float64]:
-            out = problem.prior.log_density(p[:, :3])
-            for i, v in enumerate(state):
-                out = out + v.log_prior(p[:, 3 + i])
-            return out
-
         dev = particles - particles.mean(axis=0)
         dev[:, 2] = frames.wrap_angle(particles[:, 2] - frames.circular_mean(particles[:, 2]))
         cov = (dev.T @ dev) / M * (2.38 ** 2 / D) + np.diag(floors ** 2)
         root = np.linalg.cholesky(cov + 1e-18 * np.eye(D))
-        lp = log_prior(particles)
+        lp = _log_prior(problem, state, particles)
         accepted = 0
         for _ in range(self.move_steps):
             proposal = particles + rng.normal(size=(M, D)) @ root.T
             proposal[:, 2] = frames.wrap_angle(proposal[:, 2])
-            lp_new = log_prior(proposal)
+            lp_new = _log_prior(problem, state, proposal)
             ll_new = bound.log_likelihood_chunked(proposal, k)
             with np.errstate(invalid="ignore"):
                 log_ratio = (lp_new + phi * ll_new) - (lp + phi * ll)

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
-__all__ = ["place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
+__all__ = ["check_bool_or_auto", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
