@@ -99,6 +99,8 @@ POINT_ESTIMATES = ("best_mode", "mean")
 #: How the samples enter: one after the other (a sequential filter), or all at once (one
 #: tempered step over their summed log-likelihood: an SMC sampler for the static base).
 SCHEDULES = ("sequential", "batch")
+#: When the answer is checked for other basins (:mod:`estimators.basin_check`): with a global prior only, or never.
+BASIN_CHECK_MODES = ("global", "off")
 
 
 def weighted_pose_stats(particles: NDArray[np.float64], weights: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -245,6 +247,15 @@ class ParticleFilter(Estimator):
         likelihood tempered so far), so the particles that resampling duplicated spread
         over that target instead of staying where the prior's draws happened to fall. Each
         move costs one model call per particle. 0 (the default): none.
+    basin_check : {"global", "off"}
+        ``"global"`` (the default): with a global prior and a ``"bayes"`` model that splits
+        its likelihood into zones, the answer is checked for other places that explain
+        the data about as well (:mod:`estimators.basin_check`: the coarse search's basins,
+        climbed, each weighed against the filter's by Vuong's test with the zones of one
+        place as one cluster); the heaviest basin is the answer, the others are its
+        modes, and an ambiguous answer's covariance covers them
+        (``diagnostics["basin_check"]``). The filter then answers each prefix by its own
+        pass (:meth:`estimate_prefixes` declines). ``"off"``: the filter's answer as it is.
     """
 
     name: ClassVar[str] = "pf"
@@ -272,11 +283,13 @@ class ParticleFilter(Estimator):
     recovery_free_space: Any = None
     schedule: str = "sequential"
     move_steps: int = 0
+    basin_check: str = "global"
 
     def __post_init__(self) -> None:
         check_int("n_particles", self.n_particles, 1, 10_000_000)
         check_int("move_steps", self.move_steps, 0, 100)
         check_in("schedule", self.schedule, SCHEDULES)
+        check_in("basin_check", self.basin_check, BASIN_CHECK_MODES)
         check_in("kld", self.kld, KLD_MODES)
         check_in("point_estimate", self.point_estimate, POINT_ESTIMATES)
         if self.min_particles is not None:
@@ -431,21 +444,72 @@ class ParticleFilter(Estimator):
         ``diagnostics["refit"]`` holds the first pass's estimate and the refitted model's
         parameters that differ from the configured model's, ``"sensor_model_params"``)."""
         model = self.sensor_model_for(problem)
+        check_rng = self._basin_generator(problem, model, rng)  # from rng's state, before the pass draws
         bound = model.bind(problem)
         first = self._filter(problem, model, bound, rng)
-        diag = first.diagnostics
         state = np.concatenate([np.asarray(first.pose, dtype=float)[:3], [first.nuisance_mean(v.name) for v in bound.state]])
         refitted = bound.refit(state)
         if refitted is None:
-            return first
-        second = self._filter(problem, refitted, refitted.bind(problem), rng)
+            return self._check_basins(problem, bound, first, check_rng)
+        bound2 = refitted.bind(problem)
+        second = self._filter(problem, refitted, bound2, rng)
         # what the refit changed (JSON-safe, unlike a full parameter set with an infinite
         # hit_dof): the model it ends with is the configured one with these replaced
         changed = {f.name: getattr(refitted, f.name) for f in dataclasses.fields(refitted)
                    if getattr(refitted, f.name) != getattr(model, f.name)}
         second.diagnostics["refit"] = {"first_pose": np.asarray(first.pose, dtype=float).tolist(),
                                        "sensor_model_params": changed}
-        return second
+        return self._check_basins(problem, bound2, second, check_rng)
+
+    def _basin_generator(self, problem: Problem, model: SensorModel, rng: np.random.Generator
+                         ) -> np.random.Generator | None:
+        """The generator of the basin check (``basin_check``), or None when it does not
+        apply: seeded from a hash of ``rng``'s state without drawing from it, so the
+        filter's own draws are those of an estimate without the check."""
+        if self.basin_check == "off" or not problem.prior.is_global or model.weight_update != "bayes":
+            return None
+        import hashlib
+
+        digest = hashlib.sha256(repr(rng.bit_generator.state).encode()).digest()
+        return np.random.default_rng(np.frombuffer(digest, dtype=np.uint32))
+
+    def _check_basins(self, problem: Problem, bound: Any, estimate: Estimate, rng: np.random.Generator | None) -> Estimate:
+        """``estimate`` after the basin check (:mod:`estimators.basin_check`): the answer's
+        pose (the filter's unless the check rules its basin out), the modes of every basin
+        (the answer's first), the mixture's covariance when ambiguous; unchanged without a
+        generator (the check does not apply)."""
+        if rng is None:
+            return estimate
+        from estimators.basin_check import check_basins
+        from tofloc.posterior_modes import PosteriorMode
+
+        extra = [estimate.nuisance_mean(v.name) for v in bound.state]
+        result = check_basins(problem, bound, np.asarray(estimate.pose, dtype=float), np.asarray(estimate.covariance, dtype=float),
+                              extra, rng)
+        diag = estimate.diagnostics
+        diag["basin_check"] = {"filter_pose": np.asarray(estimate.pose, dtype=float).tolist(), **result.to_json()}
+        if len(result.basins) < 2:
+            return estimate
+        # the filter's own modes (a multimodal cloud) share its basin's weight
+        own = diag.get("modes") or [PosteriorMode(np.asarray(estimate.pose, dtype=float).copy(),
+                                                 np.asarray(estimate.covariance, dtype=float).copy(), 1.0)]
+        w_filter = next(b.weight for b in result.basins if b.filter_basin)
+        answer = result.answer
+        assert answer is not None
+        own_modes = [PosteriorMode(m.mean.copy(), m.covariance.copy(), m.weight * w_filter) for m in own]
+        others = [b for b in result.basins if not b.filter_basin and b is not answer]
+        first = own_modes if not result.moved else [PosteriorMode(answer.pose.copy(), answer.covariance.copy(), answer.weight)]
+        rest = ([] if not result.moved else own_modes) + [PosteriorMode(b.pose.copy(), b.covariance.copy(), b.weight) for b in others]
+        diag["modes"] = first + sorted(rest, key=lambda m: -m.weight)  # the answer's first
+        if result.moved:
+            estimate.pose = answer.pose.copy()
+        if result.ambiguous:
+            cov = result.covariance()
+            assert cov is not None
+            estimate.covariance = cov
+        elif result.moved:
+            estimate.covariance = answer.covariance.copy()
+        return estimate
 
     def estimate_prefixes(self, problem: Problem, rng: np.random.Generator, ks: Sequence[int]) -> list[Estimate] | None:
         """The estimates after the first ``k`` samples, for each ``k`` in ``ks``, from ONE pass
@@ -466,7 +530,8 @@ class ParticleFilter(Estimator):
 
         Returns None when the answer after k samples cannot be read off a longer pass: a
         sensor model that refits itself at the first estimate (:meth:`sensor_models.base.SensorModel.refits`),
-        or ``schedule = "batch"`` (every sample enters at once).
+        or ``schedule = "batch"`` (every sample enters at once), or a basin check
+        (``basin_check`` with a global prior: each answer is checked on its own samples).
 
         Raises
         ------
@@ -485,7 +550,7 @@ class ParticleFilter(Estimator):
         if wanted[-1] < problem.n_samples:  # no sample after the last answer is needed
             problem = problem.subset(slice(0, wanted[-1]))
         model = self.sensor_model_for(problem)
-        if model.refits() or self.schedule == "batch":
+        if model.refits() or self.schedule == "batch" or self._basin_generator(problem, model, rng) is not None:
             return None
         bound = model.bind(problem)
         if bound.n_steps != problem.n_samples:

@@ -680,6 +680,9 @@ def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> d
     refit = result.diagnostics.get("refit") if isinstance(result.diagnostics, Mapping) else None
     if refit is not None:  # a sensor model refitted to the trial's data (a second pass of the filter)
         record["refit"] = jsonable(refit)
+    basins = result.diagnostics.get("basin_check") if isinstance(result.diagnostics, Mapping) else None
+    if basins is not None:  # other places checked after a global start (estimators/basin_check.py)
+        record["basin_check"] = jsonable(basins)
     if truth_T is not None:
         truth = base_pose_parts(truth_T)[0]
         record["truth"] = jsonable(truth)

@@ -221,6 +221,18 @@ class BoundSensorModel(ABC):
         when the sample has nothing to fit. Models without one raise NotImplementedError."""
         raise NotImplementedError(f"{type(self).__name__} has no hit density to fit a noise scale to")
 
+    def unit_log_likelihoods(self, states: NDArray[np.float64], step: int
+                             ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """Sample ``step``'s log-likelihood split into its units (zones, or end points): at
+        ``states`` ``(M, 3 + n)`` each unit's untempered log-probability times its weight
+        (``place_correlation``), ``(M, U)``, which sum, times ``temper``, to
+        :meth:`log_likelihood` (to rounding); and each unit's place ``(U, 2)``: x, y in the
+        base frame at the configurations, where the unit looked (the same for every state).
+        A test that weighs two poses zone by zone, with zones of one place counted as one
+        cluster, needs both (:mod:`estimators.basin_check`). None (the default): the model
+        does not split its likelihood."""
+        return None
+
     def places(self) -> list[NDArray[np.float64]] | None:
         """Per sample, the end points ``(P_k, 3)`` whose residuals :meth:`place_residuals`
         gives, in the base frame at the configurations (the places of a model's

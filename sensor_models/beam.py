@@ -472,6 +472,19 @@ class BoundBeamModel(BoundSensorModel):
             expected = expected * (1.0 + scale[:, None, None])
         return expected, cast.hit_fraction
 
+    def unit_log_likelihoods(self, states: NDArray[np.float64], step: int
+                             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Every zone's weighted log-probability ``(M, S * Z)`` (:meth:`zone_log_likelihood`;
+        0 for dropped zones) and its place ``(S * Z, 2)``: its reading's end point in the
+        base frame, a zone without one at its sensor's maximum range along its ray."""
+        ll = self.zone_log_likelihood(np.asarray(states, dtype=float), step)
+        if self.zone_weights is not None:
+            ll = ll * self.zone_weights[step][None]
+        rig = self.problem.rig
+        dist = np.where(self.valid[step], self.problem.distance_m[step], np.broadcast_to(rig.max_range_m[:, None], self.valid[step].shape))
+        places = rig.points_in_base(dist[None], self.problem.T_base_tip[step][None])[0]
+        return ll.reshape(ll.shape[0], -1), places[..., :2].reshape(-1, 2)
+
     def zone_log_likelihood(self, states: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Untempered log-probability of every zone ``(M, S, Z)`` (0 for dropped zones)."""
         return np.log(np.maximum(self._zone_terms(states, step)[0], _LOG_TINY))

@@ -427,6 +427,18 @@ class BoundLikelihoodField(BoundSensorModel):
         """The end points per sample in the base frame (``refit_correlation``)."""
         return self.points
 
+    def unit_log_likelihoods(self, states: NDArray[np.float64], step: int
+                             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Each end point's weighted log-probability ``(M, P)`` (:meth:`_terms`, the numpy
+        path) and its place ``(P, 2)`` (the end point in the base frame, lifted by the
+        prior's height and tilt)."""
+        x = np.asarray(states, dtype=float)
+        if self.points[step].shape[0] == 0:
+            return np.zeros((x.shape[0], 0)), np.zeros((0, 2))
+        ll = np.log(self._terms(x, *self._field_inputs(x, step), step)[0])
+        w = self.place_weights[step]
+        return (ll if w is None else ll * w[None, :]), self.points[step][:, :2].copy()
+
     def _log_likelihood_fused(self, x: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         m = self.model
         M, P = x.shape[0], self.points[step].shape[0]

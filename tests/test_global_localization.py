@@ -316,6 +316,11 @@ def test_localize_global_writes_modes_and_found(paper_log: Path, tmp_path: Path,
     assert isinstance(t["found"], bool) and t["modes"] and "ambiguous" in t
     assert t["found"] == (t["e_x_m"] <= 0.01 and t["e_gamma_deg"] <= 1.0)
     assert doc["summary"]["found"]["n"] == 1
+    # the basin check's record (estimators/basin_check.py): the filter's answer and every basin weighed
+    check = t["basin_check"]
+    assert len(check["filter_pose"]) == 3 and check["basins"] and not check["reason"]
+    assert sum(b["weight"] for b in check["basins"]) == pytest.approx(1.0)
+    assert sum(b["filter_basin"] for b in check["basins"]) == 1 and (t["ambiguous"] or not check["ambiguous"])
     # --region without the global prior, and a bad region: one line, exit 2
     for extra in (["--region", "-0.2,0.2,-0.2,0.2"], ["--prior-mode", "global", "--region", "0,1,2"]):
         code = main(["localize", str(paper_log), "--estimator", "likelihood_field_pf", "--trials", "1", *extra])

@@ -18,7 +18,8 @@ one mode, and every pose joins its nearest mode. Each mode reports the weight it
 its weighted mean (circular for yaw) and its covariance (yaw deviations wrapped about
 that mean). Cost: ``O(seeds x poses)`` per iteration, vectorized.
 
-The answer is *ambiguous* (:func:`is_ambiguous`) when a mode other than the heaviest
+The answer is *ambiguous* (:func:`is_ambiguous`) when a mode other than the answer's (the
+first listed, the heaviest but after a basin check that kept a filter's answer)
 holds more than :data:`AMBIGUOUS_SHARE` of the weight.
 """
 
@@ -340,9 +341,13 @@ def modes_of_estimate(estimate: Any) -> list[PosteriorMode]:
 
 
 def is_ambiguous(modes: Sequence[PosteriorMode] | None, share: float = AMBIGUOUS_SHARE) -> bool:
-    """Whether a mode other than the heaviest holds more than ``share`` of the weight."""
+    """Whether a mode other than the answer's holds more than ``share`` of the weight. The
+    answer's mode is the first listed: the heaviest (:func:`cluster_poses` and the
+    estimators list them heaviest first), except after a basin check that kept the
+    filter's answer against a heavier basin (:mod:`estimators.basin_check`), which lists
+    the answer's mode first."""
     if not 0 < share < 1:
         raise ParameterError(f"share must be in (0, 1), got {share!r}")
     if not modes or len(modes) < 2:
         return False
-    return sorted((m.weight for m in modes), reverse=True)[1] > share
+    return max(m.weight for m in modes[1:]) > share
