@@ -487,7 +487,8 @@ class ParticleFilter(Estimator):
         result = check_basins(problem, bound, np.asarray(estimate.pose, dtype=float), np.asarray(estimate.covariance, dtype=float),
                               extra, rng)
         diag = estimate.diagnostics
-        diag["basin_check"] = {"filter_pose": np.asarray(estimate.pose, dtype=float).tolist(), **result.to_json()}
+        diag["basin_check"] = {"filter_pose": np.asarray(estimate.pose, dtype=float).tolist(),
+                               "filter_covariance": np.asarray(estimate.covariance, dtype=float).tolist(), **result.to_json()}
         if len(result.basins) < 2:
             return estimate
         # the filter's own modes (a multimodal cloud) share its basin's weight

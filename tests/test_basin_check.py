@@ -101,6 +101,7 @@ def test_a_mirror_image_is_found_and_covered() -> None:
     # without the check: the filter's own answer, one place, confidently
     off = dataclasses.replace(est, basin_check="off").estimate(p, np.random.default_rng(0))
     np.testing.assert_array_equal(off.pose, check["filter_pose"])  # the check draws nothing from the filter's generator
+    np.testing.assert_array_equal(off.covariance, check["filter_covariance"])
     assert "basin_check" not in off.diagnostics
     assert not is_ambiguous(off.diagnostics.get("modes")) and min(nees(ROOM_TRUTH, off.pose, off.covariance),
                                                                   nees(mirror, off.pose, off.covariance)) < chi2.ppf(0.99, 3)
