@@ -66,8 +66,9 @@ from numpy.typing import NDArray
 from scipy.special import log_ndtr
 
 from estimators.global_search import DISTINCT_M, DISTINCT_RAD, coarse_modes
+from sensor_models.base import held_states
 from tofloc import frames
-from tofloc.posterior_modes import AMBIGUOUS_SHARE, SADDLE_RATIO, PosteriorMode
+from tofloc.posterior_modes import AMBIGUOUS_SHARE, SADDLE_RATIO, PosteriorMode, segment_poses
 from tofloc.problem import Problem
 
 __all__ = ["Basin", "BasinCheck", "check_basins", "vuong_z", "CLIMB_STEP_M", "CLIMB_STEP_RAD", "DEFAULT_PLACE_M"]
@@ -81,7 +82,6 @@ _CLIMB_HALVINGS = 3
 _CLIMB_MAX_ITER = 40
 #: Side (m) of a place for a model without ``place_radius``.
 DEFAULT_PLACE_M = 0.1
-_SEGMENT_POINTS = 9
 _STENCIL = np.stack(np.meshgrid(*(np.array([-1.0, 0.0, 1.0]),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
@@ -183,10 +183,6 @@ def _delta(a: FloatArray, b: FloatArray) -> FloatArray:
     return d
 
 
-def _states(P: FloatArray, extra: Sequence[float]) -> FloatArray:
-    return np.column_stack([P] + [np.full(P.shape[0], float(x)) for x in extra]) if len(extra) else P
-
-
 def _target(problem: Problem, bound: Any, P: FloatArray, extra: Sequence[float]) -> FloatArray:
     """The filter's target ``(M,)`` at planar poses ``(M, 3)``, the nuisances held at
     ``extra``: every sample's log-likelihood (tempered and weighted as the filter weights
@@ -195,7 +191,7 @@ def _target(problem: Problem, bound: Any, P: FloatArray, extra: Sequence[float])
     millimetres outside it impossible to weigh."""
     P = np.atleast_2d(np.asarray(P, dtype=float))
     out = np.zeros(P.shape[0])
-    S = _states(P, extra)
+    S = held_states(P, extra)
     for k in range(bound.n_steps):
         out = out + bound.log_likelihood_chunked(S, k)
     return np.where(np.isnan(out), -np.inf, out)
@@ -235,10 +231,7 @@ def _one_basin(problem: Problem, bound: Any, a: FloatArray, b: FloatArray, ta: f
     d = _delta(b, a)
     if (d[0] ** 2 + d[1] ** 2) / DISTINCT_M ** 2 + d[2] ** 2 / DISTINCT_RAD ** 2 <= 1.0:
         return True
-    t = np.linspace(0.0, 1.0, _SEGMENT_POINTS + 2)[1:-1]
-    P = a[None, :] + t[:, None] * d[None, :]
-    P[:, 2] = frames.wrap_angle(P[:, 2])
-    along = _target(problem, bound, P, extra)
+    along = _target(problem, bound, segment_poses(a, b), extra)
     return bool(along.min() >= min(ta, tb) + math.log(SADDLE_RATIO))
 
 
@@ -267,7 +260,7 @@ def vuong_z(d: FloatArray, places: FloatArray, cell: float) -> float:
 
 def _units(bound: Any, pose: FloatArray, extra: Sequence[float]) -> tuple[FloatArray, FloatArray] | None:
     """Every sample's weighted unit log-likelihoods at ``pose`` and their places, concatenated."""
-    S = _states(np.asarray(pose, dtype=float)[None, :], extra)
+    S = held_states(np.asarray(pose, dtype=float)[None, :], extra)
     lls, places = [], []
     for k in range(bound.n_steps):
         u = bound.unit_log_likelihoods(S, k)

@@ -84,7 +84,7 @@ from numpy.typing import NDArray
 
 from estimators.global_search import pose_bins
 from estimators.resampling import RESAMPLERS, effective_sample_size, kld_resample, normalize_log_weights
-from sensor_models.base import WEIGHT_UPDATES, SensorModel
+from sensor_models.base import WEIGHT_UPDATES, SensorModel, held_states
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
@@ -595,7 +595,7 @@ class ParticleFilter(Estimator):
         bound = model.bind(problem)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         extra = [estimate.nuisance_mean(v.name) for v in bound.state]
-        states = np.column_stack([P] + [np.full(P.shape[0], x) for x in extra]) if extra else P
+        states = held_states(P, extra)
         out = _log_prior(problem, bound.state, states)
         if model.weight_update == "replace":
             return out + bound.log_likelihood_chunked(states, bound.n_steps - 1)

@@ -29,7 +29,7 @@ import dataclasses
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
-__all__ = ["check_bool_or_auto", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
+__all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -107,6 +107,14 @@ def reference_pose(states: NDArray[np.float64]) -> NDArray[np.float64]:
     pose, such as a configuration's effect on a reading, are evaluated once for all)."""
     x = np.asarray(states, dtype=float)
     return np.array([np.median(x[:, 0]), np.median(x[:, 1]), np.arctan2(np.mean(np.sin(x[:, 2])), np.mean(np.cos(x[:, 2])))])
+
+
+def held_states(poses: NDArray[np.float64], values: Sequence[float]) -> NDArray[np.float64]:
+    """Filter states ``(M, 3 + n)``: planar poses ``(M, 3)`` with each declared nuisance
+    held at one of ``values`` (``n`` of them, in the model's column order); the poses as
+    they are when there is none."""
+    P = np.atleast_2d(np.asarray(poses, dtype=float))
+    return np.column_stack([P] + [np.full(P.shape[0], float(x)) for x in values]) if len(values) else P
 
 
 def check_bool_or_auto(name: str, value: object) -> None:

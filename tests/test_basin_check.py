@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimators.basin_check import check_basins, vuong_z
+from estimators.basin_check import Basin, BasinCheck, check_basins, vuong_z
 from estimators.particle_filter import BeamPF, LikelihoodFieldPF
 from evaluation.metrics import nees
 from sensor_models.beam import BeamModel
 from sensor_models.likelihood_field import LikelihoodFieldModel
 from tofloc import frames
+from tofloc.errors import ParameterError
 from tofloc.free_space import free_space_of
 from tofloc.maps import Map
 from tofloc.posterior_modes import AMBIGUOUS_SHARE, is_ambiguous
@@ -144,7 +145,7 @@ def test_the_check_applies_to_global_priors_and_bayes_models_only() -> None:
 
     icp = ICPScorePF(max_particles=2000).estimate(pg, np.random.default_rng(0))  # a "replace" model: not checked
     assert "basin_check" not in icp.diagnostics
-    with pytest.raises(Exception, match="basin_check"):
+    with pytest.raises(ParameterError, match=r"basin_check must be one of \['global', 'off'\], got 'sometimes'"):
         LikelihoodFieldPF(basin_check="sometimes")
 
 
@@ -156,3 +157,33 @@ def test_an_answer_kept_against_a_heavier_basin_is_ambiguous() -> None:
     kept = [PosteriorMode(np.zeros(3), np.eye(3), 0.02), PosteriorMode(np.ones(3), np.eye(3), 0.98)]
     assert is_ambiguous(kept)
     assert not is_ambiguous([PosteriorMode(np.zeros(3), np.eye(3), 0.95), PosteriorMode(np.ones(3), np.eye(3), 0.05)])
+
+
+def _basin(pose: tuple[float, float, float], log_target: float, z: float, weight: float, own: bool = False) -> Basin:
+    return Basin(np.array(pose, dtype=float), np.eye(3) * 0.01, log_target, z, weight, own)
+
+
+def test_the_answer_moves_only_when_test_and_target_both_rule_the_filters_basin_out() -> None:
+    own = _basin((0.0, 0.0, 0.0), -23.4, 0.0, 0.018, own=True)
+    # the target prefers the other basin 55 to 1, the test only 4 to 1 (z = -0.87): kept, ambiguous
+    model_only = BasinCheck([_basin((-1.0, 2.0, 1.5), -19.4, -0.87, 0.982), own])
+    assert model_only.answer is own and not model_only.moved and model_only.ambiguous
+    # the test prefers it beyond 9 to 1 (z = -3) but the target only 4.5 to 1: kept
+    test_only = BasinCheck([_basin((-1.0, 2.0, 1.5), -21.9, -3.0, 0.99), own])
+    assert test_only.answer is own and not test_only.moved
+    # both beyond 9 to 1: moved to it
+    both = BasinCheck([_basin((-1.0, 2.0, 1.5), -20.0, -3.0, 0.99), own])
+    assert both.moved and both.answer is both.basins[0]
+    assert not BasinCheck([own]).ambiguous and BasinCheck([]).answer is None and BasinCheck([]).covariance() is None
+
+
+def test_an_ambiguous_answers_covariance_is_the_mixtures_second_moment_about_it() -> None:
+    own = _basin((1.0, 2.0, 3.1), 0.0, 0.0, 0.5, own=True)
+    other = _basin((2.0, 2.0, -3.1), -0.1, 0.5, 0.4)  # the yaw offset wraps: 2 pi - 6.2
+    faint = _basin((5.0, 5.0, 0.0), -9.0, 3.0, 0.1)  # at most AMBIGUOUS_SHARE: left out
+    cov = BasinCheck([own, other, faint]).covariance()
+    dv = np.array([1.0, 0.0, 2.0 * math.pi - 6.2])
+    expected = np.eye(3) * 0.01 + (0.4 / 0.9) * np.outer(dv, dv)
+    np.testing.assert_allclose(cov, expected, rtol=1e-12, atol=1e-15)
+    # alone, the answer keeps its own covariance
+    np.testing.assert_array_equal(BasinCheck([own, faint]).covariance(), own.covariance)

@@ -45,6 +45,8 @@ __all__ = [
     "MAX_SEEDS",
     "MERGE_RADIUS",
     "SADDLE_RATIO",
+    "SEGMENT_POINTS",
+    "segment_poses",
     "cluster_poses",
     "pose_mean_covariance",
     "modes_from_starts",
@@ -69,7 +71,8 @@ MERGE_RADIUS = 1.0
 SADDLE_RATIO = 0.5
 _MAX_ITER = 100
 _TOL = 1e-2
-_SEGMENT_POINTS = 9
+#: Poses inside a segment between two modes where a valley is looked for.
+SEGMENT_POINTS = 9
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,18 @@ def _density(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float
     return (w[None, :] * np.exp(-0.5 * _scaled_sq(p[None, :, :], x[:, None, :], h))).sum(axis=1)
 
 
+def segment_poses(a: ArrayLike, b: ArrayLike, n: int = SEGMENT_POINTS) -> NDArray[np.float64]:
+    """``n`` poses evenly inside each segment from planar poses ``a`` to ``b`` (``(..., 3)``
+    each; the yaw along the shorter turn, not wrapped): ``(..., n, 3)``, the ends excluded.
+    Where a valley between two modes would be (the particle cloud's modes here, a
+    filter's basins in :mod:`estimators.basin_check`)."""
+    a = np.asarray(a, dtype=float)
+    step = np.asarray(b, dtype=float) - a
+    step[..., 2] = frames.wrap_angle(step[..., 2])
+    t = np.linspace(0.0, 1.0, int(n) + 2)[1:-1]
+    return a[..., None, :] + t[:, None] * step[..., None, :]
+
+
 def _merge_shallow(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np.float64],
                    C: NDArray[np.float64]) -> NDArray[np.intp]:
     """New labels ``(G,)`` (0..G'-1) of the centres ``C`` after merging every pair with no
@@ -168,11 +183,8 @@ def _merge_shallow(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray[np
     if G > 1:
         peak = _density(p, w, h, C)
         i, j = np.triu_indices(G, 1)
-        t = np.linspace(0.0, 1.0, _SEGMENT_POINTS + 2)[1:-1]
-        step = C[j] - C[i]
-        step[:, 2] = frames.wrap_angle(step[:, 2])
-        pts = C[i][:, None, :] + t[None, :, None] * step[:, None, :]  # (pairs, T, 3)
-        dens = _density(p, w, h, pts.reshape(-1, 3)).reshape(len(i), t.size)
+        pts = segment_poses(C[i], C[j])  # (pairs, T, 3)
+        dens = _density(p, w, h, pts.reshape(-1, 3)).reshape(len(i), -1)
         shallow = dens.min(axis=1) >= SADDLE_RATIO * np.minimum(peak[i], peak[j])
 
         def find(a: int) -> int:
