@@ -118,11 +118,12 @@ def test_cli_plot_compares_saved_results(tmp_path: Path, capsys: pytest.CaptureF
         (tmp_path / run).mkdir()
         (tmp_path / run / "results.json").write_text(json.dumps(_paper_doc()))
     (tmp_path / "loc.json").write_text(json.dumps(_localize_doc()))
-    out = tmp_path / "cmp"
+    out = tmp_path / ("cmp-" + "x" * 100)  # a path longer than the 80 columns of a piped stderr
     code = main(["plot", str(tmp_path / "a" / "results.json"), str(tmp_path / "b" / "results.json"), str(tmp_path / "loc.json"),
                  "--out", str(out)])
     cap = capsys.readouterr()
     assert code == 0, cap.err
+    assert f"wrote {out / 'nees.png'}\n" in cap.err  # messages are not folded at the console's width
     for name in ("errors_vs_k.png", "nees.png"):
         assert (out / name).read_bytes()[:8] == PNG
     md = (out / "comparison.md").read_text()

@@ -44,3 +44,14 @@ def test_make_test_fast_skips_the_slow_tests() -> None:
     readme = (ROOT / "README.md").read_text()
     sentence = re.search(r"`make test-fast` skips the (\d+) tests marked `slow`", readme)
     assert sentence and int(sentence.group(1)) == slow, "the README's count of slow tests is out of date"
+
+
+def test_make_test_runs_the_suite_in_worker_processes() -> None:
+    make = (ROOT / "Makefile").read_text()
+    workers = re.search(r"^PYTEST_WORKERS\s*:=\s*(.*)$", make, flags=re.M)
+    assert workers and "-n $(TEST_WORKERS) --dist loadfile" in workers.group(1)
+    for target in ("test", "test-fast"):
+        recipe = re.search(rf"^{target}:.*\n((?:\t.*\n)+)", make, flags=re.M)
+        assert recipe and "$(PYTEST_WORKERS)" in recipe.group(1), target
+    test_extra = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["test"]
+    assert any(d.startswith("pytest-xdist") for d in test_extra)

@@ -33,9 +33,12 @@ app = typer.Typer(
     rich_markup_mode="rich",
 )
 
-#: Results and tables go to stdout; progress and messages to stderr.
+#: Results and tables go to stdout; progress and messages to stderr. Messages are not
+#: wrapped at the console's width (80 columns when stderr is a pipe or a file): a path in
+#: "wrote PATH" or in a one-line error stays whole, for the terminal to fold and for
+#: scripts to read.
 console = Console()
-err_console = Console(stderr=True)
+err_console = Console(stderr=True, soft_wrap=True)
 
 _state = {"debug": os.environ.get("TOFLOC_DEBUG", "") not in ("", "0")}
 
