@@ -46,7 +46,7 @@ from tofloc import map_cache
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.problem import Estimator
 
-__all__ = ["run_tasks", "warm_caches", "start_server", "dask_setup", "workers_on_this_machine", "WorkerPool", "Contexts", "PRELOAD",
+__all__ = ["run_tasks", "warm_caches", "start_server", "server_environment", "dask_setup", "workers_on_this_machine", "WorkerPool", "Contexts", "PRELOAD",
            "DEFAULT_START_METHOD"]
 
 #: Modules the fork server imports once for every local worker (import only: no threads,
@@ -203,8 +203,40 @@ def start_server(start_method: str = DEFAULT_START_METHOD) -> Any:
         ctx.set_forkserver_preload(["__main__", *PRELOAD])
         from multiprocessing import forkserver
 
-        forkserver.ensure_running()
+        saved = {k: os.environ.get(k) for k in _SERVER_ENVIRONMENT}
+        os.environ.update(server_environment())
+        try:
+            forkserver.ensure_running()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
     return ctx
+
+
+#: What :func:`server_environment` sets while the fork server starts.
+_SERVER_ENVIRONMENT = ("PYTHONPATH", "PYTHONSAFEPATH")
+
+
+def server_environment() -> dict[str, str]:
+    """The environment variables under which the fork server starts, so that it imports
+    :data:`PRELOAD` from where this process imports them: ``PYTHONPATH`` = this process's
+    ``sys.path`` in order (``""`` as the current directory's absolute path) and
+    ``PYTHONSAFEPATH=1``, which keeps the server's interpreter (``python -c``) from putting
+    the current directory first.
+
+    Without them, on Python before 3.12.8 / 3.13.1 (CPython issue gh-117378: the server
+    ignores the ``sys_path`` it is sent), the server resolves its preloaded imports against
+    the current directory first: run from a folder that holds a package named like ours
+    (``evaluation/``, ``estimators/``, a checkout of another version of tofloc), the
+    workers run that code while this process runs the installed one. The workers inherit
+    both variables (and pass them on to their own subprocesses)."""
+    import sys
+
+    path = [os.path.abspath(p) if p else os.getcwd() for p in sys.path if isinstance(p, str)]
+    return {"PYTHONPATH": os.pathsep.join(path), "PYTHONSAFEPATH": "1"}
 
 
 class WorkerPool:

@@ -426,6 +426,39 @@ if __name__ == "__main__":
     assert "records 3 True" in out.stdout, out.stdout
 
 
+def test_workers_import_what_this_process_imports_whatever_the_current_folder(tmp_path: Path) -> None:
+    """Run from a folder that holds a package named like one of ours, the fork server's
+    preloaded imports (and so every local worker) still come from where this process
+    imports them (CPython gh-117378: before 3.12.8 the server put the current folder first)."""
+    here = tmp_path / "cwd"
+    (here / "evaluation").mkdir(parents=True)
+    (here / "evaluation" / "__init__.py").write_text("SHADOW = True\n")
+    script = tmp_path / "bin" / "probe.py"
+    script.parent.mkdir()
+    script.write_text("""
+import concurrent.futures as cf
+import os
+
+if __name__ == "__main__":
+    import evaluation.trials
+    from evaluation.executors import start_server
+
+    ctx = start_server("forkserver")
+    with cf.ProcessPoolExecutor(1, mp_context=ctx) as ex:
+        print("parent", evaluation.trials.__file__)
+        print("worker", ex.submit(eval, "__import__('evaluation').__file__").result())
+        print("worker", ex.submit(eval, "__import__('evaluation.trials').trials.__file__").result())
+    print("environment", os.environ.get("PYTHONSAFEPATH"))
+""")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=here)
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = dict(line.split(" ", 1) for line in out.stdout.splitlines() if line.startswith(("parent", "environment")))
+    workers = [line.split(" ", 1)[1] for line in out.stdout.splitlines() if line.startswith("worker")]
+    package = str(Path(lines["parent"]).parent)
+    assert package != str(here / "evaluation") and workers == [str(Path(package) / "__init__.py"), lines["parent"]], out.stdout
+    assert lines["environment"] == "None"  # this process's environment is restored
+
+
 def _grid_builds_seen(records: list[dict[str, Any]]) -> list[float]:
     return [round(r["estimate"][0] - r["prior_mean"][0], 9) for r in records]
 
