@@ -13,7 +13,13 @@ A failed trial (:func:`evaluation.evaluate.is_failure`) has two possible causes:
 from the truth's declared uncertainty (``/truth/T_map_base_cov``; without one, the truth
 alone), the nuisances held at the estimate's values: the best of them stands for the
 target's local maximum at the truth (a truth known to 2 deg is not the model's optimum to
-2 deg). Draws use a generator seeded from the trial's seed, so a record is reproducible.
+2 deg). "Near the estimate" is the estimate and as many poses drawn around it from the
+same covariance: the two places are searched alike, so that an estimate which is not
+itself a maximum of the target (a particle filter's posterior mean, on a broad or curved
+posterior) is not taken for a search failure when its neighbourhood scores higher than the
+truth's (until 2026-12-04 the estimate's own value was compared with the truth's best,
+which counted such trials as ``"search"``). Draws use a generator seeded from the trial's
+seed, so a record is reproducible.
 An estimator whose target is costly to evaluate says how many poses it is asked for
 (``target_candidates``: the GTSAM smoother, one profiled solve a pose, 20).
 
@@ -41,15 +47,26 @@ TRUTH_CANDIDATES = 1000
 CAUSES = ("model", "search")
 
 
-def _candidates(truth: NDArray[np.float64], truth_cov: NDArray[np.float64] | None, seed: int, n: int) -> NDArray[np.float64]:
-    if truth_cov is None or n <= 1:
-        return truth[None, :].copy()
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED]))
-    C = np.asarray(truth_cov, dtype=float)
-    draws = rng.multivariate_normal(truth, C, size=n - 1, method="eigh")
-    P = np.vstack([truth[None, :], draws])
+def _candidates(centre: NDArray[np.float64], cov: NDArray[np.float64] | None, seed: int, n: int,
+                stream: int = 0) -> NDArray[np.float64]:
+    """``centre`` and ``n - 1`` draws around it from ``cov`` (the centre alone without one);
+    ``stream`` 0 for the truth's, 1 for the estimate's."""
+    if cov is None or n <= 1:
+        return centre[None, :].copy()
+    key = [int(seed), 0x5EED] if stream == 0 else [int(seed), 0x5EED, int(stream)]
+    rng = np.random.default_rng(np.random.SeedSequence(key))
+    C = np.asarray(cov, dtype=float)
+    draws = rng.multivariate_normal(centre, C, size=n - 1, method="eigh")
+    P = np.vstack([centre[None, :], draws])
     P[:, 2] = frames.wrap_angle(P[:, 2])
     return P
+
+
+def _best(score: Any, problem: Any, estimate: Any, P: NDArray[np.float64]) -> tuple[int, float]:
+    t = np.asarray(score(problem, P, estimate), dtype=float)
+    finite = np.where(np.isfinite(t), t, -np.inf)
+    i = int(np.argmax(finite))
+    return i, float(finite[i])
 
 
 def failure_cause(estimator: Any, problem: Any, estimate: Any, truth: ArrayLike,
@@ -74,27 +91,33 @@ def failure_cause(estimator: Any, problem: Any, estimate: Any, truth: ArrayLike,
     Returns
     -------
     dict
-        ``cause`` (``"model"``, ``"search"`` or None), and with a cause: ``log_target_estimate``,
-        ``log_target_near_truth`` (the best candidate's), ``best_near_truth`` ``[x, y, yaw]``
-        and ``candidates``; without one, ``reason``.
+        ``cause`` (``"model"``, ``"search"`` or None), and with a cause: ``log_target_estimate``
+        (at the estimate itself), ``log_target_near_estimate`` and ``best_near_estimate``
+        ``[x, y, yaw]`` (the best of the estimate's neighbourhood, the estimate included),
+        ``log_target_near_truth`` and ``best_near_truth`` (the truth's) and ``candidates``
+        (per neighbourhood); without one, ``reason``. The cause is ``"model"`` when the
+        estimate's neighbourhood scores at least as high as the truth's.
     """
     score = getattr(estimator, "log_target", None)
     if not callable(score):
         return {"cause": None, "reason": f"{type(estimator).__name__} does not evaluate its target (no log_target)"}
     t = np.asarray(truth, dtype=float)[:3]
+    e = np.asarray(estimate.pose, dtype=float)[:3]
     n = int(getattr(estimator, "target_candidates", TRUTH_CANDIDATES))
-    cand = _candidates(t, None if truth_cov is None else np.asarray(truth_cov, dtype=float), seed, n)
-    at_truth = np.asarray(score(problem, cand, estimate), dtype=float)
-    at_est = float(np.asarray(score(problem, np.asarray(estimate.pose, dtype=float)[None, :3], estimate), dtype=float)[0])
-    finite = np.where(np.isfinite(at_truth), at_truth, -np.inf)
-    best = int(np.argmax(finite))
-    near = float(finite[best])
-    if not (np.isfinite(at_est) or np.isfinite(near)):
-        return {"cause": None, "reason": "the estimator's target is -inf at its estimate and near the truth",
+    C = None if truth_cov is None else np.asarray(truth_cov, dtype=float)
+    cand = _candidates(t, C, seed, n)
+    cand_e = _candidates(e, C, seed, n, stream=1)
+    best, near = _best(score, problem, estimate, cand)
+    best_e, near_e = _best(score, problem, estimate, cand_e)  # row 0: the estimate itself
+    at_est = float(np.asarray(score(problem, e[None, :], estimate), dtype=float)[0])
+    if not (np.isfinite(near_e) or np.isfinite(near)):
+        return {"cause": None, "reason": "the estimator's target is -inf near its estimate and near the truth",
                 "candidates": int(cand.shape[0])}
     return {
-        "cause": "model" if at_est >= near else "search",
+        "cause": "model" if near_e >= near else "search",
         "log_target_estimate": at_est if np.isfinite(at_est) else None,
+        "log_target_near_estimate": near_e if np.isfinite(near_e) else None,
+        "best_near_estimate": [float(v) for v in cand_e[best_e]],
         "log_target_near_truth": near if np.isfinite(near) else None,
         "best_near_truth": [float(v) for v in cand[best]],
         "candidates": int(cand.shape[0]),

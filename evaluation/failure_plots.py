@@ -45,7 +45,9 @@ def _title(label: str, name: str, rec: Mapping[str, Any], same: bool) -> str:
     if cause is None:
         why = f"cause unattributed ({fc.get('reason', 'not recorded')})"
     else:
-        why = (f"cause: {cause} (the estimator's log target {_num(fc.get('log_target_estimate'))} at its estimate, "
+        near = fc.get("log_target_near_estimate")
+        around = "" if near is None else f", {_num(near)} near it"
+        why = (f"cause: {cause} (the estimator's log target {_num(fc.get('log_target_estimate'))} at its estimate{around}, "
                f"{_num(fc.get('log_target_near_truth'))} near the truth)")
     title = (f"{name} on {label}, trial {rec['trial']}: FAILED, e_x {1000 * float(rec['e_x_m']):.0f} mm, "
              f"e_gamma {float(rec['e_gamma_deg']):.1f} deg; {why}")

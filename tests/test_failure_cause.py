@@ -130,6 +130,39 @@ def test_an_uncertain_truth_is_searched_around_reproducibly(sim: dict) -> None:
     assert failure_cause(GTSAMSmoother(), sim["problem"], off, truth, C, seed=7)["candidates"] == GTSAMSmoother.target_candidates
 
 
+class _TwoPeaks:
+    """A target with a peak of height 0 at ``a`` and one of height -5 at ``b`` (planar
+    Gaussians of 1 cm and 1 deg), for the cause's rule alone."""
+
+    def __init__(self, a: np.ndarray, b: np.ndarray) -> None:
+        self.a, self.b = a, b
+
+    def log_target(self, problem: object, poses: np.ndarray, estimate: Estimate) -> np.ndarray:
+        s = np.array([0.01, 0.01, math.radians(1.0)])
+        da = np.sum(((np.atleast_2d(poses) - self.a) / s) ** 2, axis=1)
+        db = np.sum(((np.atleast_2d(poses) - self.b) / s) ** 2, axis=1)
+        return np.maximum(-0.5 * da, -5.0 - 0.5 * db)
+
+
+def test_the_estimates_neighbourhood_is_searched_like_the_truths() -> None:
+    """An estimate 4 cm from the target's best peak (its own value -8, below the truth's
+    peak, -5) in a neighbourhood that reaches that peak: the model's failure, not the
+    search's; the estimate's own value and both neighbourhoods' best are recorded. Without
+    a declared truth uncertainty both places are single points, as before."""
+    truth = np.array([1.0, 2.0, 0.3])
+    peak = truth + [0.5, 0.0, 0.0]
+    est = Estimate(pose=peak + [0.04, 0.0, 0.0], covariance=np.eye(3))
+    C = np.diag([0.02**2, 0.02**2, math.radians(2.0) ** 2])
+    r = failure_cause(_TwoPeaks(peak, truth), None, est, truth, C, seed=3)
+    assert r["log_target_estimate"] == pytest.approx(-8.0)
+    assert r["log_target_near_truth"] > -5.5 and r["log_target_near_estimate"] > r["log_target_near_truth"]
+    assert np.hypot(*(np.asarray(r["best_near_estimate"][:2]) - peak[:2])) < 0.03
+    assert r["cause"] == "model" and r == failure_cause(_TwoPeaks(peak, truth), None, est, truth, C, seed=3)
+    point = failure_cause(_TwoPeaks(peak, truth), None, est, truth, None, seed=3)
+    assert point["cause"] == "search" and point["log_target_near_estimate"] == pytest.approx(-8.0)
+    assert point["best_near_estimate"] == pytest.approx(list(est.pose)) and point["candidates"] == 1
+
+
 def test_an_estimator_without_a_target_is_unattributed_and_counts_add_up(sim: dict) -> None:
     class Opaque:
         pass
