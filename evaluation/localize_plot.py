@@ -239,7 +239,9 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     verdict = ("the data fit the map at the estimate" if fit.ok else f"NOT OK: {fit.reason}")
     line2 = (f"fit: statistic {fit.statistic:.2f} (threshold {fit.threshold:.2f}), outliers {100 * fit.outlier_fraction:.0f} % "
              f"(threshold {100 * fit.outlier_threshold:.0f} %): {verdict}")
-    fig.suptitle((title + "\n" if title else "") + _wrap_text(line2, 150), fontsize=10)
+    # wrapped to the figure's width (about 130 characters of 10-point text across 12 inches)
+    heading = "\n".join(([_wrap_text(title, 130)] if title else []) + [_wrap_text(line2, 130)])
+    fig.suptitle(heading, fontsize=10)
     handles, labels = ax.get_legend_handles_labels()
     h2, l2 = axz.get_legend_handles_labels()
     for h, lab in zip(h2, l2):
@@ -247,7 +249,8 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
             handles.append(h)
             labels.append(lab)
     fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8.5, frameon=False)
-    fig.subplots_adjust(left=0.06, right=0.98, top=0.86, bottom=0.25, wspace=0.2)
+    lines = heading.count("\n") + 1  # 0.19 inch a line of the heading, 0.15 inch above it
+    fig.subplots_adjust(left=0.06, right=0.98, top=min(0.86, 1.0 - (0.15 + 0.19 * lines + 0.3) / 6.8), bottom=0.25, wspace=0.2)
     return _write_png(fig, path)
 
 

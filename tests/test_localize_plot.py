@@ -44,3 +44,33 @@ def test_the_plot_is_written(tmp_path) -> None:
     out = plot_localization(tmp_path / "p.png", p, est, truth=np.array([0.001, 0.0, 0.0]), title="test")
     data = out.read_bytes()
     assert data[:4] == b"\x89PNG" and 10_000 < len(data) < 400_000
+
+
+def test_a_long_title_is_wrapped_inside_the_figure(tmp_path, monkeypatch) -> None:
+    """A failure's title (estimator, log, errors, its cause with three log targets) runs to
+    ~250 characters: it is wrapped, and every line stays inside the figure, above the axes."""
+    import evaluation.localize_plot as lp
+
+    seen = {}
+
+    def keep(fig, path):
+        seen["fig"] = fig
+        return path
+
+    monkeypatch.setattr(lp, "_write_png", keep)
+    box = Map.cuboid(open_faces=())
+    rig = Rig((Sensor(name="a", resolution=(1, 1), distance="radial", zone_directions=np.array([[0.0, 0.0, 1.0]])),))
+    p = Problem(rig=rig, distance_m=np.full((1, 1, 1), 0.35), status=np.full((1, 1, 1), 5, np.uint8),
+                T_base_tip=np.eye(4)[None], map=box, prior=Prior(np.zeros(3), np.array([0.1, 0.1, 0.2]), z=0.3))
+    est = Estimate(pose=np.zeros(3), covariance=np.diag([1e-4, 1e-4, 1e-3]))
+    title = ("beam_pf on drone3-node002, trial 0: FAILED, e_x 178 mm, e_gamma 9.3 deg; cause: model (the estimator's "
+             "log target -142.7 at its estimate, -132.2 near it, -136.2 near the truth) " + "x" * 60)
+    lp.plot_localization(tmp_path / "p.png", p, est, truth=np.array([0.05, 0.0, 0.0]), title=title)
+    fig = seen["fig"]
+    renderer = fig.canvas.get_renderer()
+    heading = fig._suptitle
+    box_px = heading.get_window_extent(renderer)
+    assert box_px.x0 >= 0 and box_px.x1 <= fig.bbox.width and box_px.y1 <= fig.bbox.height
+    assert all(len(line) <= 130 for line in heading.get_text().splitlines()) and "near the truth" in heading.get_text()
+    top_of_axes = max(a.get_tightbbox(renderer).y1 for a in fig.axes)
+    assert top_of_axes <= box_px.y0 + 1
