@@ -39,6 +39,18 @@ def _num(v: Any) -> str:
     return "-inf" if v is None else f"{float(v):.1f}"  # a record stores a non-finite target as null
 
 
+def _marks(rec: Mapping[str, Any]) -> list[tuple[str, list[float]]]:
+    """The failure cause's best pose near the estimate and near the truth, with their log
+    targets, for the plot (none without a cause)."""
+    fc = rec.get("failure_cause") or {}
+    out = []
+    for key, value, what in (("best_near_estimate", "log_target_near_estimate", "best near the estimate"),
+                             ("best_near_truth", "log_target_near_truth", "best near the truth")):
+        if fc.get(key) is not None:
+            out.append((f"{what}: log target {_num(fc.get(value))}", list(fc[key])))
+    return out
+
+
 def _title(label: str, name: str, rec: Mapping[str, Any], same: bool) -> str:
     fc = rec.get("failure_cause") or {}
     cause = fc.get("cause")
@@ -112,7 +124,7 @@ def plot_failures(
                                 rtol=0.0, atol=1e-9))
         written.append(plot_localization(out_dir / failure_plot_name(label, name, rec["trial"]), out.problem, out.estimate,
                                          np.asarray(rec["truth"], dtype=float), title=_title(label, name, rec, same),
-                                         zones_at_truth=True))
+                                         zones_at_truth=True, marks=_marks(rec)))
         if on_progress is not None:
             on_progress(i + 1, len(todo))
     return written

@@ -24,16 +24,18 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from evaluation.error_plots import _write_png
 from tofloc import frames
 
 __all__ = ["SLICE_HALF_HEIGHT_M", "plot_localization", "map_section", "ellipse_scale"]
 
+#: Markers and colours of :func:`plot_localization`'s ``marks``, in order.
+MARK_STYLES = (("x", "tab:brown"), ("+", "tab:cyan"), ("1", "tab:olive"))
 #: A point-cloud map is drawn from its points within this height of the base (m).
 SLICE_HALF_HEIGHT_M = 0.05
 #: The estimate's ellipse is scaled until its major semi-axis is at least this share of the view.
@@ -85,7 +87,8 @@ def _ellipse(center: NDArray[np.float64], cov: NDArray[np.float64], n_sigma: flo
 
 
 def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDArray[np.float64] | None = None,
-                      title: str = "", zones_at_truth: bool = False) -> Path:
+                      title: str = "", zones_at_truth: bool = False,
+                      marks: Sequence[tuple[str, ArrayLike]] = ()) -> Path:
     """Draw one localization (see the module doc) into ``path`` (PNG, written atomically).
 
     Parameters
@@ -101,6 +104,9 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         Also place every valid zone at the truth (blue rings in the top view): where the
         data and the map disagree there (walls the map lacks, a map surface the readings
         pass through) is what a wrong estimate may have been preferred for.
+    marks : sequence of (str, array (3,))
+        Further poses ``(x, y, yaw)`` to draw, each with its legend label (at most as many
+        as :data:`MARK_STYLES`; e.g. a failure's best poses near the estimate and near the truth).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
@@ -219,6 +225,10 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
             if zoom or len(modes) > 1:
                 a.annotate(f"{100 * m.weight:.0f} %", m.mean[:2], xytext=(7, 7), textcoords="offset points", fontsize=9,
                            color="tab:purple")
+        for (label, mark), (marker, color) in zip(marks, MARK_STYLES):
+            q = np.asarray(mark, dtype=float)
+            a.plot(q[0], q[1], marker, color=color, ms=11 if zoom else 9, mew=2.0, label=None if zoom else label, zorder=8)
+            a.plot([q[0], q[0] + 0.7 * L * math.cos(q[2])], [q[1], q[1] + 0.7 * L * math.sin(q[2])], "-", color=color, lw=1.5)
         k = 1.0 if zoom else scale
         ec = _ellipse(pose[:2], cov_xy, 2.0, k)
         a.plot(ec[:, 0], ec[:, 1], "-", color="tab:red", lw=1.8,

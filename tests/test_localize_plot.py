@@ -74,3 +74,18 @@ def test_a_long_title_is_wrapped_inside_the_figure(tmp_path, monkeypatch) -> Non
     assert all(len(line) <= 130 for line in heading.get_text().splitlines()) and "near the truth" in heading.get_text()
     top_of_axes = max(a.get_tightbbox(renderer).y1 for a in fig.axes)
     assert top_of_axes <= box_px.y0 + 1
+    # a failure's two best poses (failure_cause) drawn in both panels, labelled once
+    from evaluation.failure_plots import _marks
+
+    rec = {"failure_cause": {"cause": "model", "best_near_estimate": [0.01, 0.0, 0.1], "log_target_near_estimate": -1.5,
+                             "best_near_truth": [0.05, 0.01, 0.0], "log_target_near_truth": -4.5}}
+    marks = _marks(rec)
+    assert [m[0] for m in marks] == ["best near the estimate: log target -1.5", "best near the truth: log target -4.5"]
+    lp.plot_localization(tmp_path / "q.png", p, est, truth=np.array([0.05, 0.0, 0.0]), title="t", marks=marks)
+    fig = seen["fig"]
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels.count("best near the estimate: log target -1.5") == 1 and "best near the truth: log target -4.5" in labels
+    for a in fig.axes:  # the marker at each pose, in both panels
+        xy = {tuple(np.round(line.get_xydata()[0], 6)) for line in a.get_lines() if len(line.get_xydata()) == 1}
+        assert (0.01, 0.0) in xy and (0.05, 0.01) in xy
+    assert _marks({"failure_cause": None}) == [] and _marks({}) == []
