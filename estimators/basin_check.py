@@ -168,19 +168,13 @@ class BasinCheck:
         ref = keep[0].pose
         cov = np.zeros((3, 3))
         for wi, b in zip(w, keep):
-            dv = _delta(b.pose, ref)
+            dv = frames.planar_difference(b.pose, ref)
             cov += wi * (b.covariance + np.outer(dv, dv))
         return cov
 
     def to_json(self) -> dict[str, Any]:
         return {"basins": [b.to_json() for b in self.basins], "moved": self.moved, "ambiguous": self.ambiguous,
                 "reason": self.reason}
-
-
-def _delta(a: FloatArray, b: FloatArray) -> FloatArray:
-    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    d[2] = frames.wrap_angle(d[2])
-    return d
 
 
 def _target(problem: Problem, bound: Any, P: FloatArray, extra: Sequence[float]) -> FloatArray:
@@ -228,7 +222,7 @@ def _one_basin(problem: Problem, bound: Any, a: FloatArray, b: FloatArray, ta: f
     """Whether poses ``a`` and ``b`` (targets ``ta``, ``tb``) are one basin: close, or no
     valley between them (the target along the segment stays above ``SADDLE_RATIO`` of the
     lower end)."""
-    d = _delta(b, a)
+    d = frames.planar_difference(b, a)
     if (d[0] ** 2 + d[1] ** 2) / DISTINCT_M ** 2 + d[2] ** 2 / DISTINCT_RAD ** 2 <= 1.0:
         return True
     along = _target(problem, bound, segment_poses(a, b), extra)

@@ -252,8 +252,9 @@ class ParticleFilter(Estimator):
         its likelihood into zones, the answer is checked for other places that explain
         the data about as well (:mod:`estimators.basin_check`: the coarse search's basins,
         climbed, each weighed against the filter's by Vuong's test with the zones of one
-        place as one cluster); the heaviest basin is the answer, the others are its
-        modes, and an ambiguous answer's covariance covers them
+        place as one cluster); the answer stays the filter's unless another basin has
+        9 to 1 against it by that test and by the filter's own target, the other basins
+        are its modes, and an ambiguous answer's covariance covers them
         (``diagnostics["basin_check"]``). The filter then answers each prefix by its own
         pass (:meth:`estimate_prefixes` declines). ``"off"``: the filter's answer as it is.
     """

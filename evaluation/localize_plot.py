@@ -112,8 +112,12 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
 
+    from tofloc.errors import ParameterError
     from tofloc.fit_check import check_fit, nuisance_means, zone_residuals
     from tofloc.posterior_modes import modes_of_estimate
+
+    if len(marks) > len(MARK_STYLES):
+        raise ParameterError(f"plot_localization draws at most {len(MARK_STYLES)} marks (MARK_STYLES), got {len(marks)}")
 
     fit = estimate.fit if estimate.fit is not None else check_fit(problem, estimate)
     prior = problem.prior

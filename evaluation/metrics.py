@@ -87,10 +87,7 @@ def yaw_error_deg(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.float64]:
 
 def pose_errors(truth: ArrayLike, estimate: ArrayLike) -> NDArray[np.float64]:
     """Signed error vectors ``(x_t - x_e, y_t - y_e, wrap(yaw_t - yaw_e))``, shape ``(..., 3)``."""
-    t, e = _poses(truth, "truth"), _poses(estimate, "estimate")
-    d = t - e
-    d[..., 2] = frames.wrap_angle(d[..., 2])
-    return d
+    return frames.planar_difference(_poses(truth, "truth"), _poses(estimate, "estimate"))
 
 
 def nees(truth: ArrayLike, estimate: ArrayLike, covariance: ArrayLike) -> NDArray[np.float64]:

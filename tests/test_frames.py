@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -77,3 +78,17 @@ def test_quaternion_and_circular_mean() -> None:
     assert abs(abs(m) - np.pi) < 1e-12
     m = frames.circular_mean(np.array([0.0, 1.0]), np.array([3.0, 1.0]))
     assert 0.0 < m < 0.5
+
+
+def test_planar_difference_wraps_the_yaw_and_broadcasts() -> None:
+    d = frames.planar_difference([1.0, 2.0, 3.1], [0.5, 2.5, -3.1])
+    np.testing.assert_allclose(d, [0.5, -0.5, 6.2 - 2 * np.pi], rtol=0, atol=1e-15)  # the shorter turn, -0.083 rad
+    many = frames.planar_difference(np.zeros((4, 2, 3)), [0.0, 0.0, np.pi])
+    assert many.shape == (4, 2, 3) and np.all(many[..., 2] == np.pi)  # -pi wraps to +pi: the interval is (-pi, pi]
+    # the metrics' signed error and the prior's density use it
+    from evaluation.metrics import pose_errors
+
+    t = np.array([[0.1, 0.2, -3.0], [1.0, -1.0, 0.5]])
+    e = np.array([[0.0, 0.25, 3.0], [1.5, -1.0, 0.4]])
+    np.testing.assert_array_equal(pose_errors(t, e), frames.planar_difference(t, e))
+    assert pose_errors(t, e)[0, 2] == pytest.approx(2 * np.pi - 6.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from evaluation.localize_plot import SLICE_HALF_HEIGHT_M, ellipse_scale, map_section, plot_localization
 from tofloc.maps import Map
@@ -89,3 +90,7 @@ def test_a_long_title_is_wrapped_inside_the_figure(tmp_path, monkeypatch) -> Non
         xy = {tuple(np.round(line.get_xydata()[0], 6)) for line in a.get_lines() if len(line.get_xydata()) == 1}
         assert (0.01, 0.0) in xy and (0.05, 0.01) in xy
     assert _marks({"failure_cause": None}) == [] and _marks({}) == []
+    from tofloc.errors import ParameterError
+
+    with pytest.raises(ParameterError, match=r"^plot_localization draws at most 3 marks \(MARK_STYLES\), got 4$"):
+        lp.plot_localization(tmp_path / "r.png", p, est, marks=[("m", [0.0, 0.0, 0.0])] * 4)

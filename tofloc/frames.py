@@ -17,6 +17,7 @@ FloatArray = NDArray[np.float64]
 
 __all__ = [
     "wrap_angle",
+    "planar_difference",
     "rot_z",
     "se3",
     "se3_from_xyyaw",
@@ -38,6 +39,14 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
     w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
     # mod maps +pi to -pi; the documented interval is (-pi, pi]
     return np.where(w <= -np.pi, w + 2.0 * np.pi, w)
+
+
+def planar_difference(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a - b`` of planar poses ``(..., 3)`` (leading axes broadcast), the yaw difference
+    wrapped into ``(-pi, pi]``: the shorter turn from ``b`` to ``a``."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    d[..., 2] = wrap_angle(d[..., 2])
+    return d
 
 
 def rot_z(yaw: ArrayLike) -> FloatArray:

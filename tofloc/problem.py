@@ -120,9 +120,7 @@ class Prior:
         if self.free_space is not None:
             inside = self.free_space.contains(p[:, :2])
             return np.where(inside, -math.log(self.free_space.area * 2.0 * math.pi), -np.inf)
-        d = p[:, :3] - self.mean
-        d[:, 2] = frames.wrap_angle(d[:, 2])
-        z = d / self.sigma
+        z = frames.planar_difference(p[:, :3], self.mean) / self.sigma
         return -0.5 * np.sum(z * z, axis=1) - math.log((2.0 * math.pi) ** 1.5 * float(np.prod(self.sigma)))
 
     def sample(self, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
