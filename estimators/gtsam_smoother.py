@@ -132,6 +132,8 @@ class GTSAMSmoother(Estimator):
         plane and ``map_sigma``): a far, noisy zone is not an outlier for its noise (the
         5 cm of ``gate_m`` are 0.7 sigma of a VL53L5CX reading at 1.7 m).
     gate_rounds : int
+        Rounds over which the gate shrinks from ``gate_start_m`` to ``gate_m`` (0: ``gate_m``
+        from the first round).
     n_starts : int
         Levenberg-Marquardt starts per estimate.
     n_candidates : int

@@ -169,6 +169,22 @@ def test_list_params_shows_defaults_and_meaning(capsys: pytest.CaptureFixture[st
     assert "no estimator or sensor model named 'nope'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("kind", ["estimator", "sensor model"])
+def test_every_builtin_parameter_is_described(kind: str) -> None:
+    """`tofloc list --params` shows each parameter's meaning from the class docstring:
+    a parameter missing there is printed as "(not described)" (gtsam_smoother's
+    ``gate_rounds`` was)."""
+    from tofloc.param_docs import parameter_docs
+    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+
+    registry = ESTIMATORS if kind == "estimator" else SENSOR_MODELS
+    builtin = [spec.name for spec, _ in registry.status() if spec.origin == "builtin"]
+    assert len(builtin) >= 3
+    missing = {name: [d.name for d in parameter_docs(registry.load(name)) if d.meaning == "(not described)"]
+               for name in builtin}
+    assert missing == {name: [] for name in builtin}
+
+
 def test_numpydoc_parameters() -> None:
     from tofloc.param_docs import numpydoc_parameters
 
