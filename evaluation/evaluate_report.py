@@ -1,5 +1,5 @@
-"""The files of ``tofloc evaluate`` besides ``results.json``: ``table.md``, ``errors_cdf.png``
-and ``nees.png`` (written atomically, PNGs with the Agg canvas)."""
+"""The files of ``tofloc evaluate`` besides ``results.json``: ``table.md``, ``errors_cdf.png``,
+``nees.png`` and ``errors_by_log.png`` (written atomically, PNGs with the Agg canvas)."""
 
 from __future__ import annotations
 
@@ -8,11 +8,15 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "truth_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "CHI2_3_BAND"]
+__all__ = ["table_markdown", "truth_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+           "errors_by_log_figure", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
 #: estimator's NEES lies in it 95 % of the time).
 CHI2_3_BAND = (0.2158, 9.3484)
+#: Rows (logs) ``errors_by_log.png`` draws at most: beyond, the logs with the largest
+#: errors relative to the failure thresholds.
+MAX_LOG_ROWS = 60
 
 
 def _f(v: Any, fmt: str, scale: float = 1.0) -> str:
@@ -333,3 +337,82 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
     ax.set_title(title, fontsize=11)
     fig.tight_layout()
     return _write_png(fig, path)
+
+
+def _log_medians(doc: Mapping[str, Any]) -> tuple[list[str], list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """Per log (rows) and column (the oracle floor, then each estimator): median e_x (m),
+    median e_gamma (deg) (NaN where no trial gave one) and the failed trials' count."""
+    columns = ["oracle floor", *doc["summary"]]
+    labels = list(doc["logs"])
+    shape = (len(labels), len(columns))
+    e_x, e_g, failed = np.full(shape, np.nan), np.full(shape, np.nan), np.zeros(shape, dtype=int)
+    for i, label in enumerate(labels):
+        lg = doc["logs"][label]
+        for j, col in enumerate(columns):
+            s = lg["oracle"]["summary"] if j == 0 else lg["estimators"][col]["summary"]
+            for arr, key in ((e_x, "e_x_m"), (e_g, "e_gamma_deg")):
+                v = (s.get(key) or {}).get("median")
+                arr[i, j] = np.nan if v is None else float(v)
+            failed[i, j] = int(s.get("failures") or 0)
+    return labels, columns, e_x, e_g, failed
+
+
+def errors_by_log_figure(doc: Mapping[str, Any]) -> Any:
+    """The figure of :func:`plot_errors_by_log` (a matplotlib ``Figure`` on the Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib import colormaps
+    from matplotlib.colors import LogNorm
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+
+    labels, columns, e_x, e_g, failed = _log_medians(doc)
+    fail = doc["failure"]
+    n_logs = len(labels)
+    rows = np.arange(n_logs)
+    if n_logs > MAX_LOG_ROWS:  # the logs that come closest to (or past) a failure threshold
+        worst = np.fmax(np.nanmax(np.where(np.isfinite(e_x), e_x, 0.0), axis=1) / fail["e_x_m"],
+                        np.nanmax(np.where(np.isfinite(e_g), e_g, 0.0), axis=1) / fail["e_gamma_deg"])
+        rows = np.sort(np.argsort(-worst, kind="stable")[:MAX_LOG_ROWS])
+    shown = [labels[i] for i in rows]
+    trials = int(doc["trials"])
+    fig = Figure(figsize=(max(9.0, 2.2 * len(columns) + 3.0), 1.9 + 0.22 * len(rows)), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 2, sharey=True)
+    for ax, values, scale, unit, limit in ((axes[0], e_x, 1000.0, "median $e_x$ (mm)", fail["e_x_m"] * 1000.0),
+                                           (axes[1], e_g, 1.0, r"median $e_\gamma$ (deg)", fail["e_gamma_deg"])):
+        v = values[rows] * scale
+        finite = v[np.isfinite(v) & (v > 0)]
+        lo = max(float(finite.min()) if finite.size else limit / 100.0, limit / 1000.0)
+        hi = max(float(finite.max()) if finite.size else limit, limit * 1.5)
+        cmap = colormaps["viridis"].with_extremes(bad="lightgrey")
+        im = ax.imshow(np.ma.masked_invalid(np.maximum(v, lo)), aspect="auto", cmap=cmap,
+                       norm=LogNorm(vmin=lo, vmax=hi), interpolation="nearest")
+        bar = fig.colorbar(im, ax=ax, fraction=0.05, pad=0.02)
+        bar.ax.axhline(limit, color="red", linewidth=1.5)
+        bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+        bar.set_label(f"{unit}; red: failure threshold", fontsize=8)
+        for (r, c), n in np.ndenumerate(failed[rows]):
+            if n:
+                ax.text(c, r, f"{n}/{trials}", ha="center", va="center", fontsize=7, color="red",
+                        fontweight="bold", bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8,
+                                                 "linewidth": 0})
+        ax.set_xticks(range(len(columns)), [c.replace("_", "_\n", 1) if len(c) > 12 else c for c in columns],
+                      fontsize=8)
+        ax.set_title(unit, fontsize=10)
+    axes[0].set_yticks(range(len(rows)), shown, fontsize=7 if len(rows) > 30 else 8)
+    title = f"Per log: median errors over {trials} trial(s), failed trials in red (prior {doc['prior']['mode']})"
+    if len(rows) < n_logs:
+        title += f"\nthe {len(rows)} of {n_logs} logs with the largest errors relative to the failure thresholds"
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_errors_by_log(doc: Mapping[str, Any], path: str | Path) -> Path:
+    """Where the errors are: one row per log, one column for the oracle floor and one per
+    estimator, coloured by the median e_x (left) and e_gamma (right) over the log's trials
+    (log scale; the failure thresholds marked red on the colour bars), each cell with failed
+    trials labelled ``failed/trials`` in red. At most :data:`MAX_LOG_ROWS` logs: beyond,
+    those whose largest median (over the columns) comes closest to or past a threshold, in
+    their order, and the title says how many of how many."""
+    return _write_png(errors_by_log_figure(doc), path)

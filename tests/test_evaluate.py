@@ -74,7 +74,7 @@ def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str,
 
 def test_outputs_and_summaries(run: dict) -> None:
     out, doc = run["out"], run["doc"]
-    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png"):
+    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png", "errors_by_log.png"):
         assert (out / name).stat().st_size > 0, name
     assert len(list((out / "partial").glob("*.json"))) == 4  # one per (log, estimator)
     assert list(doc["logs"]) == ["paper", "l_room"]
@@ -467,7 +467,7 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     code, stdout, err = _run(capsys, ["evaluate", *(str(tmp_path / "four" / f"{n}.h5") for n in picked), "--estimators", "icp_pf",
                                       "--trials", "2", "--param", "n_particles=200", "--workers", "1", "--out", str(out)])
     assert code == 0, err
-    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png"):
+    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png", "errors_by_log.png"):
         assert (out / name).stat().st_size > 0
     doc = json.loads((out / "results.json").read_text())
     assert list(doc["logs"]) == picked

@@ -313,3 +313,55 @@ def test_localize_title_says_where_the_configurations_come_from(capsys) -> None:
     assert "(configurations from odometry)" in " ".join(capsys.readouterr().out.split())
     _print({**doc, "configuration_source": "mocap"}, True)
     assert "configurations from" not in capsys.readouterr().out
+
+
+def _doc_of_logs(medians: dict[str, dict[str, tuple]], trials: int = 3) -> dict:
+    """A minimal ``tofloc evaluate`` document: per log and column ("oracle" or an
+    estimator) its (median e_x m, median e_gamma deg, failures)."""
+    ests = [c for c in next(iter(medians.values())) if c != "oracle"]
+
+    def summary(m):
+        return {"n": trials, "e_x_m": {"median": m[0]}, "e_gamma_deg": {"median": m[1]}, "failures": m[2]}
+
+    return {"trials": trials, "prior": {"mode": "offset"}, "failure": {"e_x_m": 0.1, "e_gamma_deg": 10.0},
+            "summary": {e: {} for e in ests},
+            "logs": {label: {"oracle": {"summary": summary(cols["oracle"])},
+                             "estimators": {e: {"summary": summary(cols[e])} for e in ests}}
+                     for label, cols in medians.items()}}
+
+
+def test_errors_by_log_shows_each_logs_medians_and_failures(tmp_path: Path) -> None:
+    from evaluation.evaluate_report import errors_by_log_figure, plot_errors_by_log
+
+    doc = _doc_of_logs({
+        "node-a": {"oracle": (0.02, 0.5, 0), "beam_pf": (0.03, 0.8, 0), "gtsam_smoother": (0.25, 12.0, 2)},
+        "node-b": {"oracle": (0.01, 0.3, 0), "beam_pf": (None, None, 0), "gtsam_smoother": (0.015, 0.2, 1)},
+    })
+    fig = errors_by_log_figure(doc)
+    ax_x, ax_g = fig.axes[:2]  # then each panel's colour bar, an axes of its own
+    assert [t.get_text() for t in ax_x.get_yticklabels()] == ["node-a", "node-b"]
+    assert [t.get_text().replace("\n", "") for t in ax_x.get_xticklabels()] == ["oracle floor", "beam_pf", "gtsam_smoother"]
+    img = ax_x.get_images()[0].get_array()
+    np.testing.assert_allclose(img.data[0], [20.0, 30.0, 250.0])
+    assert img.mask[1, 1] and not img.mask[1, 0]  # no median: drawn as missing, not as 0
+    np.testing.assert_allclose(ax_g.get_images()[0].get_array().data[0], [0.5, 0.8, 12.0])
+    cells = sorted((t.get_position(), t.get_text()) for t in ax_x.texts)
+    assert cells == [((2, 0), "2/3"), ((2, 1), "1/3")]
+    assert (plot_errors_by_log(doc, tmp_path / "e.png")).stat().st_size > 0
+
+
+def test_errors_by_log_keeps_the_logs_closest_to_failing() -> None:
+    from evaluation.evaluate_report import MAX_LOG_ROWS, errors_by_log_figure
+
+    n = MAX_LOG_ROWS + 5
+    # log i: e_x i mm, except five logs whose yaw is near its threshold (9 deg: 0.9 of it)
+    yaw_bad = {3, 11, 17, 40, 52}
+    medians = {f"log{i:03d}": {"oracle": (0.001 * i, 0.1, 0), "beam_pf": (0.001 * i, 9.0 if i in yaw_bad else 0.1, 0)}
+               for i in range(n)}
+    fig = errors_by_log_figure(_doc_of_logs(medians))
+    shown = [t.get_text() for t in fig.axes[0].get_yticklabels()]
+    dropped = {f"log{i:03d}" for i in range(n)} - set(shown)
+    assert len(shown) == MAX_LOG_ROWS and shown == sorted(shown)  # in their order
+    # the smallest e_x go first, but not the logs whose yaw is 0.9 of its threshold
+    assert dropped == {f"log{i:03d}" for i in (0, 1, 2, 4, 5)}
+    assert f"the {MAX_LOG_ROWS} of {n} logs" in fig._suptitle.get_text()

@@ -875,7 +875,7 @@ def evaluate(
         results_document,
         run_estimators,
     )
-    from evaluation.evaluate_report import plot_error_cdfs, plot_nees, table_markdown
+    from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees, table_markdown
     from evaluation.priors import ALL_PRIOR_MODES, PriorSpec
     from evaluation.report import write_json_atomic, write_text_atomic
     from evaluation.trials import jsonable
@@ -944,6 +944,7 @@ def evaluate(
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),
         plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
         plot_nees(doc, out_dir / "nees.png"),
+        plot_errors_by_log(doc, out_dir / "errors_by_log.png"),
     ]
     if plot_failures:
         from evaluation.failure_plots import plot_failures as draw_failures
