@@ -91,9 +91,14 @@ class LikelihoodFieldModel(SensorModel):
         On a map with a known space (:attr:`tofloc.maps.Map.known_space`, a map built from
         scans): an end point in space the map knows nothing about may lie on a surface the
         map cannot hold; its hit density becomes ``(1 - w) N(s; 0, sigma^2) + w / (2 r_field)``
-        (uniform over the field's span) instead of an outlier. 0 (the default): unknown
-        space is treated as mapped (0.5 on the nano-swarm recordings: 3 -> 6 failures of
-        96; docs/real-data.md, "Ablation"). Ignored on maps without a known space.
+        (uniform over the field's span) instead of an outlier. Default 0.5: "as likely
+        unmapped as mapped", not tuned (the only value measured since the place correlation
+        exists; 0.1 and 0.25 were measured before it). With the place correlation
+        fitted (``refit_correlation``), on the nano-swarm recordings against 0 (unknown space
+        treated as mapped): four drones 29.4 -> 25.8 mm, 1.06 -> 0.96 deg, failures 2 -> 3
+        of 96; two drones 27.2 -> 24.6 mm, 0.91 -> 0.82 deg, 6 -> 2 of 90 (docs/real-data.md,
+        "Ablation"; before the place correlation it had cost failures, 3 -> 6 of 96, and
+        stayed off). Ignored on maps without a known space: every CAD map and simulated scene.
     configuration_cov : bool
         Add each end point's distance variance caused by its sample's configuration
         uncertainty (the problem's ``T_base_tip_cov``) to its sensor variance
@@ -144,7 +149,7 @@ class LikelihoodFieldModel(SensorModel):
     temper: float = 0.25
     cell: float = 0.01
     r_field: float | None = None
-    unknown_weight: float = 0.0
+    unknown_weight: float = 0.5
     configuration_cov: bool = True
     min_incidence_cos: float = 0.25
     sigma_scale: float = 1.0
