@@ -1,5 +1,7 @@
 """Saved results as comparable series: ``results.json`` of ``tofloc paper`` and
-``tofloc localize --json`` files, read back (bounded, validated) for ``tofloc plot``.
+``tofloc localize --json`` files, read back (bounded, validated) for ``tofloc plot``; a
+``results.json`` of ``tofloc evaluate`` is read too, as its checked view
+(:func:`evaluation.evaluate_files.evaluate_view`, no series).
 
 A *series* is one estimator, tip source and prior mode of one file, with its error
 statistics per number of samples k (a ``localize`` file: its one k) and over every trial.
@@ -55,7 +57,8 @@ class Series:
 
 @dataclass
 class ResultsFile:
-    """A results file read back: its kind (``"paper"`` or ``"localize"``), path and series."""
+    """A results file read back: its kind (``"paper"``, ``"localize"`` or ``"evaluate"``),
+    path and series (none for ``"evaluate"``, whose ``document`` is its checked view)."""
 
     path: Path
     kind: str
@@ -112,7 +115,8 @@ def _name(v: Any, path: Path, where: str) -> str:
 
 
 def load_results(path: str | Path) -> ResultsFile:
-    """Read a ``results.json`` of ``tofloc paper`` or a ``tofloc localize --json`` file.
+    """Read a ``results.json`` of ``tofloc paper`` or ``tofloc evaluate``, or a ``tofloc
+    localize --json`` file.
 
     Raises
     ------
@@ -132,6 +136,10 @@ def load_results(path: str | Path) -> ResultsFile:
         raise FormatError(p, "file", "JSON", str(e)[:120]) from None
     if not isinstance(doc, dict):
         raise FormatError(p, "file", "a JSON object", type(doc).__name__)
+    from evaluation.evaluate_files import evaluate_view, is_evaluate_document
+
+    if is_evaluate_document(doc):
+        return ResultsFile(p, "evaluate", [], evaluate_view(doc, p))
     kind, series = series_of(doc, p)
     return ResultsFile(p, kind, series, doc)
 
@@ -144,8 +152,9 @@ def series_of(doc: Mapping[str, Any], source: str | Path = "<results>") -> tuple
         return "paper", _paper_series(doc, p)
     if "trials" in doc and "summary" in doc and "estimator" in doc:
         return "localize", [_localize_series(doc, p)]
-    raise FormatError(p, "file", "a results.json of `tofloc paper` (keys results, paper) or a `tofloc localize --json` "
-                      "file (keys estimator, trials, summary)", f"keys {sorted(doc)[:8]}")
+    raise FormatError(p, "file", "a results.json of `tofloc paper` (keys results, paper) or `tofloc evaluate` (keys logs, "
+                      "summary, oracle_summary, failure) or a `tofloc localize --json` file (keys estimator, trials, summary)",
+                      f"keys {sorted(doc)[:8]}")
 
 
 def _paper_series(doc: Mapping[str, Any], p: Path) -> list[Series]:

@@ -667,3 +667,82 @@ def test_trial_problem_is_the_problem_the_trial_solves(logs: list[Path]) -> None
     np.testing.assert_array_equal(problem.distance_m, solved.problem.distance_m)
     with pytest.raises(ParameterError, match=r"task selection 'active': expected 'random'"):
         trial_problem(en.context, dc.replace(task, selection="active"), make_estimator(cls, task.params))
+
+
+# -- tofloc plot on evaluate results ---------------------------------------------------------------
+
+
+def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from evaluation.evaluate_files import evaluate_view
+    from evaluation.evaluate_report import errors_by_log_figure
+
+    doc = run["doc"]
+    # a second run of the same logs with other numbers: a copy whose beam_pf medians doubled
+    other = json.loads(json.dumps(doc))
+    other["summary"]["beam_pf"]["e_x_m"]["median"] *= 2.0
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "results.json").write_text(json.dumps(other))
+    code, out, err = _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "b" / "results.json"),
+                                   "--out", str(tmp_path / "p")])
+    assert code == 0, err
+    labels = ["out", "b"]
+    for lab in labels:
+        for name in ("errors_cdf.png", "nees.png", "errors_by_log.png"):
+            assert (tmp_path / "p" / f"{lab}_{name}").stat().st_size > 0
+    table = (tmp_path / "p" / "comparison.md").read_text()
+    for lab, d in zip(labels, (doc, other)):
+        for e, s in d["summary"].items():
+            row = next(line for line in table.splitlines() if line.startswith(f"| {lab} | {e} |"))
+            cells = [c.strip() for c in row.split("|")[1:-1]]
+            assert cells[5] == f"{1000 * s['e_x_m']['median']:.1f}" and cells[6] == f"{s['e_gamma_deg']['median']:.2f}"
+            assert cells[7].startswith(f"{s['failures']}/{s['n']}")
+        assert f"| {lab} | oracle floor |" in table
+    assert "beam_pf" in out and "wrote" in err
+    # the checked view draws what the whole document draws
+    view = evaluate_view(doc, "results.json")
+    a, b = errors_by_log_figure(doc), errors_by_log_figure(view)
+    for ax_a, ax_b in zip(a.axes[:2], b.axes[:2]):
+        np.testing.assert_array_equal(ax_a.get_images()[0].get_array(), ax_b.get_images()[0].get_array())
+    # one file: the plots under their own names
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), "--out", str(tmp_path / "one")])[0] == 0
+    assert sorted(p.name for p in (tmp_path / "one").iterdir()) == ["comparison.md", "errors_by_log.png", "errors_cdf.png",
+                                                                    "nees.png"]
+
+
+def _damaged(doc: dict, edit: str) -> dict:
+    d = json.loads(json.dumps(doc))
+    log = next(iter(d["logs"]))
+    if edit == "record":
+        d["logs"][log]["estimators"]["icp_pf"]["records"][0]["e_x_m"] = "x"
+    elif edit == "missing":
+        del d["logs"][log]["estimators"]["beam_pf"]
+    elif edit == "failures":
+        d["summary"]["icp_pf"]["failures"] = d["summary"]["icp_pf"]["n"] + 1
+    elif edit == "threshold":
+        d["failure"]["e_x_m"] = 0
+    return d
+
+
+@pytest.mark.parametrize(("edit", "where"), [
+    ("record", "logs.{log}.estimators.icp_pf.records[0].e_x_m: expected a finite number or null, found 'x'"),
+    ("missing", "logs.{log}.estimators: expected the results of every estimator of the summary ('beam_pf' missing)"),
+    ("failures", "summary.icp_pf.failures: expected at most n = "),
+    ("threshold", "failure.e_x_m: expected a finite number > 0, found 0"),
+])
+def test_plot_refuses_a_damaged_evaluate_file(run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                              edit: str, where: str) -> None:
+    bad = tmp_path / "results.json"
+    bad.write_text(json.dumps(_damaged(run["doc"], edit)))
+    code, _, err = _run(capsys, ["plot", str(bad), "--out", str(tmp_path / "p")])
+    assert code == 2 and f"{bad}: " + where.format(log=next(iter(run["doc"]["logs"]))) in err
+    assert not (tmp_path / "p").exists() or not any((tmp_path / "p").iterdir())  # nothing half-written
+
+
+def test_plot_refuses_to_mix_evaluate_and_localize_files(run: dict, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    loc = tmp_path / "loc.json"
+    loc.write_text(json.dumps({"estimator": "icp_pf", "trials": [], "summary": {}, "samples": 3, "tip_source": "mocap",
+                               "prior": {"mode": "paper"}}))
+    code, _, err = _run(capsys, ["plot", str(run["out"] / "results.json"), str(loc), "--out", str(tmp_path / "p")])
+    assert code == 2 and "cannot be compared with localize results" in err and str(loc) in err

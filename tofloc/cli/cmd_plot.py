@@ -1,10 +1,15 @@
 """``tofloc plot``: re-plot and compare saved results (``results.json`` of ``tofloc paper``,
-``tofloc localize --json`` files) without running anything again.
+``tofloc localize --json`` files; or ``results.json`` of ``tofloc evaluate``) without
+running anything again.
 
 Writes ``DIR/errors_vs_k.png`` (error against k on a log scale, one line style per file),
 ``DIR/comparison.md`` (one row per estimator, tip source and prior mode of every file, as
 ``evo_res`` compares trajectories' statistics) and, when a file holds per-trial NEES (a
-``localize`` file), ``DIR/nees.png``; prints the comparison table.
+``localize`` file), ``DIR/nees.png``; prints the comparison table. ``tofloc evaluate``
+files (compared only with each other: they hold no error-against-k series) get their
+plots drawn again, ``DIR/errors_cdf.png``, ``DIR/nees.png`` and ``DIR/errors_by_log.png``
+(each prefixed ``LABEL_`` when there are several files), and ``DIR/comparison.md`` one row
+per estimator and oracle floor of each file.
 """
 
 from __future__ import annotations
@@ -27,10 +32,12 @@ MAX_FILES = 12
 @app.command("plot")
 def plot(
     results: list[Path] = typer.Argument(..., metavar="RESULTS.json...",
-                                         help="results.json of `tofloc paper` or `tofloc localize --json` files (one or more)."),
+                                         help="results.json of `tofloc paper` or `tofloc localize --json` files (one or more), "
+                                              "or results.json of `tofloc evaluate` (compared with each other only)."),
     out: Path = typer.Option(..., "--out", metavar="DIR", help="Output folder: errors_vs_k.png, comparison.md (and nees.png)."),
 ) -> None:
-    """Re-plot and compare saved results: error against k (log scale, one line style per file) and a comparison table."""
+    """Re-plot and compare saved results: error against k (log scale, one line style per file) and a comparison table;
+    for `tofloc evaluate` results, their error CDFs, NEES and per-log plots and a comparison table."""
     from evaluation.compare import comparison_markdown, comparison_rows, file_labels, load_results
     from evaluation.error_plots import plot_errors_vs_k, plot_nees
     from evaluation.report import PAPER_TABLE_I, write_text_atomic
@@ -44,6 +51,14 @@ def plot(
         raise ParameterError("tofloc plot: a results file is given twice")
     files = [load_results(p) for p in results]
     labels = file_labels([f.path for f in files])
+    evaluated = [f for f in files if f.kind == "evaluate"]
+    if evaluated and len(evaluated) != len(files):
+        other = next(f for f in files if f.kind != "evaluate")
+        raise ParameterError(f"tofloc plot: results of `tofloc evaluate` ({evaluated[0].path}) cannot be compared with "
+                             f"{other.kind} results ({other.path}): plot them apart")
+    if evaluated:
+        _plot_evaluated(files, labels, out)
+        return
     with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
     written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / "errors_vs_k.png",
                                 paper=PAPER_TABLE_I if with_paper else None)]
@@ -58,6 +73,41 @@ def plot(
              f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
     written.append(write_text_atomic(text, out / "comparison.md"))
     _print(rows)
+    for p in written:
+        err_console.print(f"wrote {p}", highlight=False)
+
+
+def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
+    """``tofloc plot`` on ``tofloc evaluate`` files: each file's plots again, and one comparison."""
+    from evaluation.evaluate_files import evaluate_comparison_markdown, evaluate_comparison_rows
+    from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees
+    from evaluation.report import write_text_atomic
+    from tofloc.provenance import provenance
+
+    written = []
+    for f, lab in zip(files, labels):
+        prefix = "" if len(files) == 1 else lab.replace("/", "_") + "_"
+        written += [plot_error_cdfs(f.document, out / f"{prefix}errors_cdf.png"),
+                    plot_nees(f.document, out / f"{prefix}nees.png"),
+                    plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.png")]
+    rows = evaluate_comparison_rows([f.document for f in files], labels)
+    prov = provenance()
+    text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)])
+    text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
+             f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
+    written.append(write_text_atomic(text, out / "comparison.md"))
+
+    def f(v: object, fmt: str) -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    t = Table(title="medians over every trial of each file", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("e_x mm", "right"),
+                         ("e_γ deg", "right"), ("failed", "right"), ("NEES", "right")):
+        t.add_column(col, justify=justify)  # type: ignore[arg-type]
+    for r in rows:
+        t.add_row(r["file"], r["estimator"], f(r["n"], "d"), f(r["e_x_mm_median"], ".1f"), f(r["e_gamma_deg_median"], ".2f"),
+                  f(r["failures"], "d"), "" if r["estimator"] == "oracle floor" else f(r["nees_mean"], ".2f"))
+    console.print(t)
     for p in written:
         err_console.print(f"wrote {p}", highlight=False)
 

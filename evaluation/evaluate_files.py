@@ -1,0 +1,189 @@
+"""``results.json`` of ``tofloc evaluate`` read back (bounded, validated) for ``tofloc plot``:
+its plots drawn again and several runs compared (e.g. before and after a parameter change
+on the same logs).
+
+A results file is untrusted input: :func:`evaluate_view` keeps only what the plots
+(:mod:`evaluation.evaluate_report`) and the comparison read, each field checked for its
+type and range, so that a damaged or hand-edited file is refused with one line naming the
+file, the key and what was expected, never a traceback from deep inside a plot.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from tofloc.errors import FormatError
+
+__all__ = ["is_evaluate_document", "evaluate_view", "evaluate_comparison_rows", "evaluate_comparison_markdown",
+           "MAX_ESTIMATORS"]
+
+#: Estimators one file may hold at most.
+MAX_ESTIMATORS = 64
+#: The per-trial values the plots read from a record (number or null each).
+_RECORD_KEYS = ("e_x_m", "e_gamma_deg", "nees", "nees_exact_truth")
+
+
+def is_evaluate_document(doc: Mapping[str, Any]) -> bool:
+    """Whether ``doc`` looks like a ``tofloc evaluate`` results document (its keys)."""
+    return all(k in doc for k in ("logs", "summary", "oracle_summary", "failure"))
+
+
+def _number(v: Any, p: Path, where: str, *, positive: bool = False, null: bool = True) -> float | None:
+    if v is None and null:
+        return None
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (positive and v <= 0):
+        expected = "a finite number > 0" if positive else "a finite number"
+        raise FormatError(p, where, expected + (" or null" if null else ""), repr(v)[:40])
+    return float(v)
+
+
+def _count(v: Any, p: Path, where: str, low: int = 0) -> int:
+    if not isinstance(v, int) or isinstance(v, bool) or v < low:
+        raise FormatError(p, where, f"an integer >= {low}", repr(v)[:40])
+    return int(v)
+
+
+def _mapping(v: Any, p: Path, where: str, what: str) -> Mapping[str, Any]:
+    if not isinstance(v, Mapping):
+        raise FormatError(p, where, what, type(v).__name__)
+    return v
+
+
+def _name(v: Any, p: Path, where: str) -> str:
+    if not isinstance(v, str) or not v or len(v) > 200:
+        raise FormatError(p, where, "a name (a non-empty string of at most 200 characters)", repr(v)[:40])
+    return v
+
+
+def _stats(v: Any, p: Path, where: str, keys: Sequence[str]) -> dict[str, float | None]:
+    if v is None:
+        return {k: None for k in keys}
+    d = _mapping(v, p, where, f"an object with {', '.join(keys)}")
+    return {k: _number(d.get(k), p, f"{where}.{k}") for k in keys}
+
+
+def _summary(v: Any, p: Path, where: str) -> dict[str, Any]:
+    d = _mapping(v, p, where, "an object of error summaries")
+    out: dict[str, Any] = {
+        "n": _count(d.get("n"), p, f"{where}.n"),
+        "e_x_m": _stats(d.get("e_x_m"), p, f"{where}.e_x_m", ("median", "mean")),
+        "e_gamma_deg": _stats(d.get("e_gamma_deg"), p, f"{where}.e_gamma_deg", ("median", "mean")),
+        "failures": _count(d.get("failures"), p, f"{where}.failures"),
+    }
+    if out["failures"] > out["n"]:
+        raise FormatError(p, f"{where}.failures", f"at most n = {out['n']}", out["failures"])
+    for key in ("nees", "nees_model"):
+        if d.get(key) is not None:
+            out[key] = _stats(d[key], p, f"{where}.{key}", ("mean", "median"))
+    return out
+
+
+def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
+    if not isinstance(v, list):
+        raise FormatError(p, where, "a list of trial records", type(v).__name__)
+    out = []
+    for i, r in enumerate(v):
+        d = _mapping(r, p, f"{where}[{i}]", "a trial record (an object)")
+        out.append({k: _number(d.get(k), p, f"{where}[{i}].{k}") for k in _RECORD_KEYS})
+    return out
+
+
+def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> dict[str, Any]:
+    """The part of a ``tofloc evaluate`` results document that the plots and the comparison
+    read, checked field by field and copied (nothing else of ``doc`` is kept).
+
+    Raises
+    ------
+    FormatError
+        A field is missing or out of its domain (naming ``source`` and the key).
+    """
+    p = Path(source)
+    trials = _count(doc.get("trials"), p, "trials", 1)
+    prior = _mapping(doc.get("prior"), p, "prior", "an object with the prior's mode")
+    failure = _mapping(doc.get("failure"), p, "failure", "an object with e_x_m and e_gamma_deg")
+    summary = _mapping(doc.get("summary"), p, "summary", "an object {estimator: summary}")
+    if not 1 <= len(summary) <= MAX_ESTIMATORS:
+        raise FormatError(p, "summary", f"1 to {MAX_ESTIMATORS} estimators", len(summary))
+    names = [_name(e, p, "summary") for e in summary]
+    logs = _mapping(doc.get("logs"), p, "logs", "an object {log label: results}")
+    if not logs:
+        raise FormatError(p, "logs", "at least one log", "none")
+    view_logs: dict[str, Any] = {}
+    for label, lg in logs.items():
+        where = f"logs.{_name(label, p, 'logs')}"
+        lg = _mapping(lg, p, where, "an object with oracle and estimators")
+        oracle = _mapping(lg.get("oracle"), p, f"{where}.oracle", "an object with summary and records")
+        ests = _mapping(lg.get("estimators"), p, f"{where}.estimators", "an object {estimator: results}")
+        entry: dict[str, Any] = {
+            "oracle": {"summary": _summary(oracle.get("summary"), p, f"{where}.oracle.summary"),
+                       "records": _records(oracle.get("records"), p, f"{where}.oracle.records")},
+            "estimators": {},
+        }
+        for e in names:
+            if e not in ests:
+                raise FormatError(p, f"{where}.estimators", f"the results of every estimator of the summary ({e!r} missing)",
+                                  sorted(ests)[:8])
+            r = _mapping(ests[e], p, f"{where}.estimators.{e}", "an object with summary and records")
+            entry["estimators"][e] = {"summary": _summary(r.get("summary"), p, f"{where}.estimators.{e}.summary"),
+                                      "records": _records(r.get("records"), p, f"{where}.estimators.{e}.records")}
+        view_logs[label] = entry
+    truth = doc.get("truth_uncertainty")
+    declared = 0 if truth is None else _count(_mapping(truth, p, "truth_uncertainty", "an object").get("declared_by", 0),
+                                                p, "truth_uncertainty.declared_by")
+    return {
+        "trials": trials,
+        "prior": {"mode": _name(prior.get("mode"), p, "prior.mode")},
+        "failure": {"e_x_m": _number(failure.get("e_x_m"), p, "failure.e_x_m", positive=True, null=False),
+                    "e_gamma_deg": _number(failure.get("e_gamma_deg"), p, "failure.e_gamma_deg", positive=True, null=False)},
+        "summary": {e: _summary(summary[e], p, f"summary.{e}") for e in names},
+        "oracle_summary": _summary(doc.get("oracle_summary"), p, "oracle_summary"),
+        "truth_uncertainty": {"declared_by": declared},
+        "logs": view_logs,
+    }
+
+
+def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[dict[str, Any]]:
+    """One row per estimator of every file, then the file's oracle floor: median e_x (mm)
+    and e_gamma (deg), failures of trials, mean NEES (and of the model's own covariance),
+    the medians' ratios to the oracle's."""
+    rows = []
+    for view, label in zip(views, labels):
+        oracle = view["oracle_summary"]
+        o_x, o_g = oracle["e_x_m"]["median"], oracle["e_gamma_deg"]["median"]
+        for name, s in [*view["summary"].items(), ("oracle floor", oracle)]:
+            x, g = s["e_x_m"]["median"], s["e_gamma_deg"]["median"]
+            rows.append({
+                "file": label, "estimator": name, "logs": len(view["logs"]), "prior_mode": view["prior"]["mode"],
+                "n": s["n"], "failures": s["failures"],
+                "e_x_mm_median": None if x is None else 1000.0 * x, "e_gamma_deg_median": g,
+                "nees_mean": (s.get("nees") or {}).get("mean"), "nees_model_mean": (s.get("nees_model") or {}).get("mean"),
+                "ratio_e_x": None if name == "oracle floor" or x is None or not o_x else x / o_x,
+                "ratio_e_gamma": None if name == "oracle floor" or g is None or not o_g else g / o_g,
+            })
+    return rows
+
+
+def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Sequence[tuple[str, Path]]) -> str:
+    """``comparison.md`` for ``tofloc evaluate`` files: the files compared, then one row per
+    estimator (and oracle floor) of each."""
+    def f(v: Any, fmt: str) -> str:
+        return "n/a" if v is None else format(v, fmt)
+
+    lines = ["# Comparison of `tofloc evaluate` results", "",
+             "Medians over every trial of every log; failures: e_x or e_gamma beyond the file's thresholds; "
+             "NEES: mean (of the model's own covariance in brackets); ratios: the median to the file's oracle floor's.",
+             "", "| label | file |", "|---|---|"]
+    lines += [f"| {lab} | `{p}` |" for lab, p in files]
+    lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
+              "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        nees = "" if r["estimator"] == "oracle floor" else (
+            f(r["nees_mean"], ".2f") + ("" if r["nees_model_mean"] is None else f" ({r['nees_model_mean']:.2f})"))
+        ratio = "" if r["ratio_e_x"] is None and r["ratio_e_gamma"] is None else \
+            f"{f(r['ratio_e_x'], '.2f')} / {f(r['ratio_e_gamma'], '.2f')}"
+        share = f"{r['failures']}/{r['n']}" + (f" ({r['failures'] / r['n']:.0%})" if r["n"] else "")
+        lines.append(f"| {r['file']} | {r['estimator']} | {r['prior_mode']} | {r['logs']} | {r['n']} | "
+                     f"{f(r['e_x_mm_median'], '.1f')} | {f(r['e_gamma_deg_median'], '.2f')} | {share} | {nees} | {ratio} |")
+    return "\n".join(lines) + "\n"
