@@ -746,3 +746,43 @@ def test_plot_refuses_to_mix_evaluate_and_localize_files(run: dict, tmp_path: Pa
                                "prior": {"mode": "paper"}}))
     code, _, err = _run(capsys, ["plot", str(run["out"] / "results.json"), str(loc), "--out", str(tmp_path / "p")])
     assert code == 2 and "cannot be compared with localize results" in err and str(loc) in err
+
+
+def test_config_sets_one_estimators_sensor_model_and_is_written_back(logs: list[Path], tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """`--param` goes to every estimator, so a sensor model's parameter of one would break the
+    others (icp_score has no `unknown_weight`); `--config` scopes it, and `DIR/config.toml`
+    holds what each estimator used, which `--config` reads back to the same trials."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("[estimators.beam_pf.sensor_model_params]\nunknown_weight = 0.3\n")
+    args = [str(logs[0]), "--estimators", ESTS, "--trials", "2", "--samples", "3", "--seed", "5", *FEW]
+    assert _run(capsys, ["evaluate", *args, "--param", "sensor_model__unknown_weight=0.3", "--out", str(tmp_path / "x")])[0] == 2
+    code, _, err = _run(capsys, ["evaluate", *args, "--config", str(cfg), "--out", str(tmp_path / "a")])
+    assert code == 0, err
+    doc = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert doc["estimators"]["beam_pf"]["params"]["sensor_model_params"] == {"unknown_weight": 0.3}
+    assert not doc["estimators"]["icp_pf"]["params"]["sensor_model_params"]
+    assert doc["estimators"]["beam_pf"]["params"]["n_particles"] == 100  # --param still reaches every estimator
+    prov = doc["provenance"]
+    assert prov["command"].startswith("tofloc evaluate") and "--config" in prov["command"] and prov["utc"] and prov["tofloc_version"]
+    written = tmp_path / "a" / "config.toml"
+    assert "unknown_weight = 0.3" in written.read_text()
+    code, _, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", ESTS, "--trials", "2", "--samples", "3", "--seed", "5",
+                                 "--workers", "1", "--config", str(written), "--out", str(tmp_path / "b")])
+    assert code == 0, err
+    again = json.loads((tmp_path / "b" / "results.json").read_text())
+    for e in ("icp_pf", "beam_pf"):
+        label = next(iter(doc["logs"]))
+        assert [_untimed(r) for r in again["logs"][label]["estimators"][e]["records"]] == \
+            [_untimed(r) for r in doc["logs"][label]["estimators"][e]["records"]]
+
+
+def test_config_with_an_unknown_key_is_refused_before_any_work(logs: list[Path], tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[estimators.beam_pf.sensor_model_params]\nunknown_wieght = 0.3\n")
+    code, _, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", ESTS, "--trials", "1", "--config", str(cfg),
+                                 "--out", str(tmp_path / "o")])
+    assert code == 2 and f"{cfg}: [estimators.beam_pf.sensor_model_params].unknown_wieght: expected a parameter of the " \
+        "sensor model beam" in err
+    assert not (tmp_path / "o" / "results.json").exists() and not (tmp_path / "o" / "partial").exists()

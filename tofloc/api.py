@@ -826,11 +826,14 @@ def evaluate(
     reporter: Reporter = _SILENT,
     selection: str = "random",
     plot_failures: int = 0,
+    estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor, each estimator's target checked at every estimator's answer where
-    some failed and some did not (:mod:`evaluation.cross_check`); ``results.json``, ``table.md``, ``errors_cdf.png`` and ``nees.png``
-    in ``out`` (finished batches in ``out/partial``, reused by a rerun), and with
+    some failed and some did not (:mod:`evaluation.cross_check`); ``results.json``, ``table.md``, ``errors_cdf.png``,
+    ``nees.png``, ``errors_by_log.png`` and ``config.toml`` (every estimator's parameters,
+    defaults included: ``--config`` reads it back) in ``out`` (finished batches in
+    ``out/partial``, reused by a rerun), and with
     ``plot_failures`` a picture of each of the first failed trials in ``out/failures``.
 
     Parameters
@@ -867,6 +870,11 @@ def evaluate(
     plot_failures : int
         Draw at most this many failed trials, each solved again from its seed
         (:mod:`evaluation.failure_plots`; 0: none).
+    estimator_params : dict, optional
+        ``{name: parameters}`` of single estimators, over ``params`` (``sensor_model_params``
+        merged key by key; e.g. resolved from ``--config``): a sensor model's parameter for
+        one estimator of a run whose other estimators do not have it. Names not in the
+        run are refused.
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -880,6 +888,7 @@ def evaluate(
     from evaluation.report import write_json_atomic, write_text_atomic
     from evaluation.trials import jsonable
     from tofloc.atomic import check_output_path
+    from tofloc.provenance import provenance
 
     t0 = time.perf_counter()
     out_dir = check_output_path(Path(out), kind="dir", option="out")
@@ -900,8 +909,14 @@ def evaluate(
         raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     check_selection(selection)
-    ests = {n: estimator(n, params) for n in names}
-    specs = [EstimatorSpec(n, type(ests[n]), dict(params or {})) for n in names]
+    from tofloc.estimator_config import config_toml, merge_params
+
+    unknown_names = sorted(set(estimator_params or {}) - set(names))
+    if unknown_names:
+        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
+    per_est = {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+    ests = {n: estimator(n, per_est[n]) for n in names}
+    specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
     _start_server_early(workers, scheduler)
     entries = prepare_logs(logs, samples=samples, seed=seed, calibration=cal, valid_statuses=valid_statuses,
@@ -935,12 +950,17 @@ def evaluate(
             "valid_statuses": sorted(valid_statuses),
             "selection": selection,
             "wall_time_s": round(time.perf_counter() - t0, 3),
+            "provenance": provenance(),
         },
     )
     if warming is not None:
         warming.join()
+    config_text = config_toml({n: jsonable(ests[n].get_params()) for n in names}, header=[
+        "The parameters every estimator of this run used (defaults included); `--config` reads this file.",
+        f"Made by: {doc['provenance']['command']}"])
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
+        write_text_atomic(config_text, out_dir / "config.toml"),
         write_text_atomic(table_markdown(doc), out_dir / "table.md"),
         plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
         plot_nees(doc, out_dir / "nees.png"),

@@ -1,5 +1,5 @@
-"""Estimator parameters from a TOML file (``--config FILE.toml`` of ``localize``, ``paper``
-and ``scenes``), merged with ``--param`` and saved beside the results.
+"""Estimator parameters from a TOML file (``--config FILE.toml`` of ``localize``, ``paper``,
+``scenes`` and ``evaluate``), merged with ``--param`` and saved beside the results.
 
 The file holds two kinds of tables, with the keys ``--param`` takes:
 
@@ -18,7 +18,7 @@ against its sensor model's) before anything runs; an unknown table or key is ref
 with one line naming the file and the key. ``--param key=value`` given on the command
 line overrides the file's value for that key (a note says so); the file is never
 overridden by a default. The resolved parameters of every estimator are written back as
-the same kind of file (``config.toml`` in a ``paper``/``scenes`` output folder; a
+the same kind of file (``config.toml`` in a ``paper``/``scenes``/``evaluate`` output folder; a
 ``localize --json`` document's ``config``), which ``--config`` reads again.
 """
 

@@ -3,7 +3,8 @@ for all, against each trial's oracle floor.
 
 ``DIR/results.json`` (every trial, per log and estimator; summaries; the oracle floor and
 each estimator's ratio to it), ``DIR/table.md``, ``DIR/errors_cdf.png``, ``DIR/nees.png``,
-with ``--plot-failures N`` ``DIR/failures/*.png``;
+``DIR/errors_by_log.png``, ``DIR/config.toml`` (the parameters used), with
+``--plot-failures N`` ``DIR/failures/*.png``;
 finished (log, estimator) batches in ``DIR/partial/``, reused by a rerun with the same
 arguments. The work is :func:`tofloc.api.evaluate`; this module parses and prints.
 """
@@ -15,10 +16,18 @@ from typing import Any, Optional
 
 import typer
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import REGION_HELP, parse_params, parse_prior_mode, parse_region_option, parse_samples, parse_statuses
+from tofloc.cli.options import (
+    REGION_HELP,
+    estimator_params,
+    parse_prior_mode,
+    parse_region_option,
+    parse_samples,
+    parse_statuses,
+)
 from tofloc.errors import ParameterError
 
 __all__ = ["evaluate"]
@@ -39,7 +48,13 @@ def evaluate(
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
         help="A calibration (`tofloc calibrate` output) for every estimator that uses one, and the oracle floor."),
-    param: Optional[list[str]] = typer.Option(None, "--param", help="Parameter key=value given to every estimator (repeatable)."),
+    param: Optional[list[str]] = typer.Option(
+        None, "--param", help="Parameter key=value given to every estimator (repeatable); overrides the same key of --config."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", metavar="FILE.toml",
+        help=escape("Estimator parameters from a TOML file ([estimator] for every estimator, [estimators.NAME] for one, "
+                    "[estimators.NAME.sensor_model_params] for its sensor model; docs/evaluation.md). The parameters "
+                    "used are saved as DIR/config.toml.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
                                   "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
@@ -76,14 +91,16 @@ def evaluate(
     if not 0 <= plot_failures <= api.MAX_FAILURE_PLOTS:
         raise ParameterError(f"--plot-failures must be in [0, {api.MAX_FAILURE_PLOTS}], got {plot_failures}")
     statuses = parse_statuses(valid_statuses)
-    params = parse_params(param)
+    per_estimator, notes = estimator_params(config, names, param)
     for n in names:  # unknown names and parameters: refused before any log is read
-        api.estimator(n, params)
+        api.estimator(n, per_estimator[n])
     api.check_selection(selection)
+    for note in notes:
+        err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
         run = api.evaluate(
             list(logs), names, out=out, trials=trials, samples=k, prior_mode=prior_mode, prior_sigma_xy=prior_sigma_xy,
-            prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, params=params,
+            prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, estimator_params=per_estimator,
             valid_statuses=statuses,
             seed=seed, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
             plot_failures=plot_failures,
