@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "truth_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+__all__ = ["table_markdown", "truth_sentence", "params_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
            "errors_by_log_figure", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
@@ -138,6 +138,21 @@ def truth_sentence(doc: Mapping[str, Any]) -> str:
             "NEES vs exact truth takes the truth as exact.")
 
 
+def params_sentence(doc: Mapping[str, Any]) -> list[str]:
+    """One line (a list of at most one) naming every parameter an estimator of the run had
+    that differs from its default (``estimators.NAME.changed``, from
+    :func:`tofloc.api.changed_params`), or saying that all ran with their defaults; none for
+    a document that does not record it."""
+    ests = doc.get("estimators") or {}
+    if not ests or any("changed" not in (v or {}) for v in ests.values()):
+        return []
+    parts = [f"{name}: " + ", ".join(f"`{k} = {v!r}`" for k, v in v["changed"].items())
+             for name, v in ests.items() if v["changed"]]
+    if not parts:
+        return ["Every estimator ran with its defaults (`config.toml` beside this file lists them)."]
+    return ["Parameters not at their defaults: " + "; ".join(parts) + " (`config.toml` beside this file lists them all)."]
+
+
 def table_markdown(doc: Mapping[str, Any]) -> str:
     """``table.md``: estimators by summary over every log, the oracle row, the ratios to the
     oracle floor, then one row per log (medians over its trials)."""
@@ -162,6 +177,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "when it is higher near the truth (the search missed it), unattributed for an estimator that cannot "
         "evaluate its target.",
         truth_sentence(doc),
+        *params_sentence(doc),
         "",
         "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "
         "NEES mean | NEES median | NEES vs exact truth (mean) | flagged (covariance widened) | "

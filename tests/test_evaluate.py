@@ -765,6 +765,10 @@ def test_config_sets_one_estimators_sensor_model_and_is_written_back(logs: list[
     assert doc["estimators"]["beam_pf"]["params"]["n_particles"] == 100  # --param still reaches every estimator
     prov = doc["provenance"]
     assert prov["command"].startswith("tofloc evaluate") and "--config" in prov["command"] and prov["utc"] and prov["tofloc_version"]
+    assert doc["estimators"]["beam_pf"]["changed"] == {"sensor_model_params.unknown_weight": 0.3, "n_particles": 100}
+    assert doc["estimators"]["icp_pf"]["changed"] == {"n_particles": 100}
+    assert ("Parameters not at their defaults: icp_pf: `n_particles = 100`; beam_pf: "
+            "`sensor_model_params.unknown_weight = 0.3`, `n_particles = 100`") in (tmp_path / "a" / "table.md").read_text()
     written = tmp_path / "a" / "config.toml"
     assert "unknown_weight = 0.3" in written.read_text()
     code, _, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", ESTS, "--trials", "2", "--samples", "3", "--seed", "5",
@@ -786,3 +790,15 @@ def test_config_with_an_unknown_key_is_refused_before_any_work(logs: list[Path],
     assert code == 2 and f"{cfg}: [estimators.beam_pf.sensor_model_params].unknown_wieght: expected a parameter of the " \
         "sensor model beam" in err
     assert not (tmp_path / "o" / "results.json").exists() and not (tmp_path / "o" / "partial").exists()
+
+
+def test_changed_params_are_the_ones_that_differ_from_the_defaults() -> None:
+    from tofloc.api import changed_params, estimator
+
+    assert changed_params(estimator("likelihood_field_pf", {})) == {}
+    # a default given explicitly is no change, for the estimator and for its sensor model
+    assert changed_params(estimator("likelihood_field_pf", {"n_particles": 1000,
+                                                            "sensor_model_params": {"unknown_weight": 0.5}})) == {}
+    assert changed_params(estimator("likelihood_field_pf", {"sensor_model_params": {"unknown_weight": 0.0}})) == \
+        {"sensor_model_params.unknown_weight": 0.0}
+    assert changed_params(estimator("gtsam_smoother", {"n_starts": 3})) == {"n_starts": 3}

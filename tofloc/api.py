@@ -17,6 +17,7 @@ is silent. Results are plain objects with the JSON document the CLI writes
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -607,7 +608,8 @@ def paper(
     doc = results_document(
         records, k_values, trials, seed,
         extra={
-            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
+            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
+                               "changed": changed_params(ests[n])}
                            for n in names},
             "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes,
                       "specs": {p.mode: p.to_json() for p in priors}},
@@ -806,6 +808,29 @@ class EvaluateResult:
         return self.document["oracle_summary"]
 
 
+def changed_params(est: Any) -> dict[str, Any]:
+    """An estimator's parameters that differ from its class's defaults (``sensor_model_params``
+    key by key, as ``sensor_model_params.KEY``), JSON-ready: what a table must say so that
+    its rows can be told apart from the defaults'."""
+    from evaluation.trials import jsonable
+
+    mine, default = jsonable(est.get_params()), jsonable(type(est)().get_params())
+    out: dict[str, Any] = {}
+    for key, value in mine.items():
+        if key == "sensor_model_params" and isinstance(value, Mapping):
+            base = default.get(key) if isinstance(default.get(key), Mapping) else {}
+            model_cls = type(est.make_sensor_model()) if hasattr(est, "make_sensor_model") else None
+            model_defaults = jsonable({f.name: f.default for f in dataclasses.fields(model_cls)
+                                       if f.default is not dataclasses.MISSING}) \
+                if model_cls is not None and dataclasses.is_dataclass(model_cls) else {}
+            for sub, v in value.items():
+                if base.get(sub, model_defaults.get(sub, object())) != v:
+                    out[f"{key}.{sub}"] = v
+        elif value != default.get(key):
+            out[key] = value
+    return out
+
+
 def evaluate(
     logs: Sequence[Any],
     estimators: Sequence[str],
@@ -944,7 +969,8 @@ def evaluate(
     doc = results_document(
         entries, specs, records, oracle, trials=trials, samples=samples, seed=seed, prior=prior,
         extra={
-            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration()}
+            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
+                               "changed": changed_params(ests[n])}
                            for n in names},
             "calibration": None if cal is None else cal.source,
             "valid_statuses": sorted(valid_statuses),
