@@ -90,6 +90,24 @@ def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
     return out
 
 
+def _changed(v: Any, p: Path, where: str) -> dict[str, Any]:
+    """An estimator's parameters that differ from its defaults: names to JSON scalars or
+    short lists (at most 200 of them)."""
+    d = _mapping(v, p, where, "an object {parameter: value}")
+    if len(d) > 200:
+        raise FormatError(p, where, "at most 200 parameters", len(d))
+    out = {}
+    for key, value in d.items():
+        ok = value is None or isinstance(value, (str, bool, int, float)) or (
+            isinstance(value, list) and len(value) <= 64 and all(isinstance(x, (str, bool, int, float)) or x is None
+                                                                 for x in value))
+        if not ok or len(repr(value)) > 500:
+            raise FormatError(p, f"{where}.{_name(key, p, where)}", "a number, string, boolean, null or a short list of them",
+                              repr(value)[:40])
+        out[_name(key, p, where)] = value
+    return out
+
+
 def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> dict[str, Any]:
     """The part of a ``tofloc evaluate`` results document that the plots and the comparison
     read, checked field by field and copied (nothing else of ``doc`` is kept).
@@ -129,6 +147,10 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
             entry["estimators"][e] = {"summary": _summary(r.get("summary"), p, f"{where}.estimators.{e}.summary"),
                                       "records": _records(r.get("records"), p, f"{where}.estimators.{e}.records")}
         view_logs[label] = entry
+    changed: dict[str, dict[str, Any]] | None = None
+    recorded = doc.get("estimators")
+    if isinstance(recorded, Mapping) and all(isinstance(recorded.get(e), Mapping) and "changed" in recorded[e] for e in names):
+        changed = {e: _changed(recorded[e]["changed"], p, f"estimators.{e}.changed") for e in names}
     truth = doc.get("truth_uncertainty")
     declared = 0 if truth is None else _count(_mapping(truth, p, "truth_uncertainty", "an object").get("declared_by", 0),
                                                 p, "truth_uncertainty.declared_by")
@@ -141,6 +163,7 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
         "oracle_summary": _summary(doc.get("oracle_summary"), p, "oracle_summary"),
         "truth_uncertainty": {"declared_by": declared},
         "logs": view_logs,
+        "changed": changed,
     }
 
 
@@ -165,9 +188,12 @@ def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequenc
     return rows
 
 
-def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Sequence[tuple[str, Path]]) -> str:
-    """``comparison.md`` for ``tofloc evaluate`` files: the files compared, then one row per
-    estimator (and oracle floor) of each."""
+def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Sequence[tuple[str, Path]],
+                                 changed: Sequence[Mapping[str, Mapping[str, Any]] | None] | None = None) -> str:
+    """``comparison.md`` for ``tofloc evaluate`` files: the files compared (with, when the
+    files record them, each estimator's parameters that differ from its defaults:
+    ``changed``, one per file, from :func:`evaluate_view`), then one row per estimator (and
+    oracle floor) of each."""
     def f(v: Any, fmt: str) -> str:
         return "n/a" if v is None else format(v, fmt)
 
@@ -176,6 +202,15 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
              "NEES: mean (of the model's own covariance in brackets); ratios: the median to the file's oracle floor's.",
              "", "| label | file |", "|---|---|"]
     lines += [f"| {lab} | `{p}` |" for lab, p in files]
+    if changed is not None and any(c is not None for c in changed):
+        lines += ["", "Parameters not at their defaults:", ""]
+        for (lab, _), c in zip(files, changed):
+            if c is None:
+                text = "not recorded (a file of an earlier version)"
+            else:
+                parts = [f"{e}: " + ", ".join(f"`{k} = {v!r}`" for k, v in kv.items()) for e, kv in c.items() if kv]
+                text = "; ".join(parts) if parts else "none (every estimator with its defaults)"
+            lines.append(f"* {lab}: {text}")
     lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
               "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -771,6 +771,10 @@ def test_config_sets_one_estimators_sensor_model_and_is_written_back(logs: list[
             "`sensor_model_params.unknown_weight = 0.3`, `n_particles = 100`") in (tmp_path / "a" / "table.md").read_text()
     written = tmp_path / "a" / "config.toml"
     assert "unknown_weight = 0.3" in written.read_text()
+    # `tofloc plot` says which parameters each compared run changed
+    assert _run(capsys, ["plot", str(tmp_path / "a" / "results.json"), "--out", str(tmp_path / "p")])[0] == 0
+    assert ("* a: icp_pf: `n_particles = 100`; beam_pf: `sensor_model_params.unknown_weight = 0.3`, `n_particles = 100`"
+            in (tmp_path / "p" / "comparison.md").read_text())
     code, _, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", ESTS, "--trials", "2", "--samples", "3", "--seed", "5",
                                  "--workers", "1", "--config", str(written), "--out", str(tmp_path / "b")])
     assert code == 0, err

@@ -92,7 +92,8 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
                     plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.png")]
     rows = evaluate_comparison_rows([f.document for f in files], labels)
     prov = provenance()
-    text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)])
+    text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)],
+                                        [f.document["changed"] for f in files])
     text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
              f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
     written.append(write_text_atomic(text, out / "comparison.md"))
