@@ -599,3 +599,36 @@ def test_real_import_is_deterministic(tmp_path: Path) -> None:
         written = write_flight(import_flight(DATA / "two-drones"), tmp_path / out)
         digests.append([hashlib.sha256(p.read_bytes()).hexdigest() for p in written])
     assert digests[0] == digests[1]
+
+
+@needs_data
+def test_odometry_bias_is_what_the_documented_procedure_gives_and_finds_an_injected_one(flights) -> None:
+    """docs/real-data.md, "What the odometry gets wrong systematically": the frames' yaw
+    errors against their yaw rate and rotation so far. Injected into the configurations
+    (the odometry made to lead by 50 ms more and over-count the rotation by 5 % more),
+    both coefficients move by about that much (they trade a little: the rate and the
+    rotation so far are correlated along a scan)."""
+    import dataclasses
+
+    from tofloc import frames as fr
+    from tofloc.io.nanoswarm import FRAME_PERIOD_S
+    from tofloc.io.nanoswarm_odometry import fit_odometry_bias
+
+    imports = [flights["two-drones"], flights["four-drones"]]
+    base = fit_odometry_bias(imports)["pooled"]
+    assert (base["frames"], base["nodes"]) == (230, 23)
+    assert round(1000 * base["latency_s"], 1) == 19.6 and round(100 * base["rotation_scale"], 2) == 1.75
+    assert base["latency_s_90"][0] > 0 and base["rotation_scale_90"][0] > 0  # both effects at 90 %
+
+    tau, k = 0.05, 0.05
+    changed = []
+    for imp in imports:
+        logs = []
+        for lg in imp.flight.logs:
+            yaw = np.unwrap(np.arctan2(lg.T_base_tip[:, 1, 0], lg.T_base_tip[:, 0, 0]))
+            extra = k * (yaw - yaw[0]) + tau * np.gradient(yaw, FRAME_PERIOD_S)
+            logs.append(dataclasses.replace(lg, T_base_tip=lg.T_base_tip @ fr.se3_from_xyyaw(0 * extra, 0 * extra, extra)))
+        changed.append(dataclasses.replace(imp, flight=dataclasses.replace(imp.flight, logs=logs)))
+    moved = fit_odometry_bias(changed)["pooled"]
+    assert 0.03 < moved["latency_s"] - base["latency_s"] < 0.06
+    assert 0.035 < moved["rotation_scale"] - base["rotation_scale"] < 0.07

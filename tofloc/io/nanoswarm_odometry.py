@@ -33,6 +33,17 @@ height at a node are estimated from the motion capture instead: the within-drone
 standard deviation of the Vicon roll/pitch and height over its nodes (the per-drone mean
 is the marker frame's offset), pooled over drones and flights.
 
+What the model leaves out (:func:`fit_odometry_bias`)
+------------------------------------------------------
+The model is zero-mean; step 2's ``e_f`` (yaw) is not. Regressed, robustly (Huber), on the
+frame's yaw rate ``omega_f`` (central differences of the odometry yaw over the frame period)
+and the rotation so far ``theta_f``: ``e_f = a + b omega_f + c theta_f``. A reading taken
+``tau`` before its odometry stamp gives ``b = -tau`` (the sensor still looked where the drone
+pointed ``tau`` earlier); an odometry that over-counts the rotation by a fraction ``k``
+gives ``c = -k``. Reported with 90 % intervals from resampling nodes, per flight and
+pooled; the importer does not correct for them (docs/real-data.md: a correction with the
+pooled values helped one flight and hurt the other).
+
 The truth's own error (:func:`fit_truth_error`)
 -------------------------------------------------
 Step 2's reference correction of a node is the planar correction that puts the node's
@@ -74,6 +85,7 @@ __all__ = [
     "register_reference",
     "fit_error_model",
     "fit_truth_error",
+    "fit_odometry_bias",
     "report",
 ]
 
@@ -247,6 +259,74 @@ def fit_error_model(imports: Sequence[FlightImport], range_cut_m: float = DEFAUL
     }
 
 
+def _huber_fit(X: NDArray[np.float64], y: NDArray[np.float64], iterations: int = 30) -> NDArray[np.float64]:
+    """Linear least squares with Huber weights (tuning 1.345 robust sigmas), by iteratively
+    reweighted least squares from the plain fit."""
+    beta = np.linalg.lstsq(X, y, rcond=None)[0]
+    for _ in range(iterations):
+        r = y - X @ beta
+        scale = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-12)
+        w = np.sqrt(np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(r), 1e-12)))
+        beta = np.linalg.lstsq(X * w[:, None], y * w, rcond=None)[0]
+    return beta
+
+
+def fit_odometry_bias(imports: Sequence[FlightImport], range_cut_m: float = DEFAULT_RANGE_CUT_M,
+                      resamples: int = 300, seed: int = 0) -> dict[str, Any]:
+    """The module docstring's "What the model leaves out": per flight and pooled, the latency
+    ``-b`` (s) and the rotation scale ``-c`` of the frames' yaw errors, each with the 5 and
+    95 % points over ``resamples`` resamplings of the nodes (``numpy.random.default_rng(seed)``),
+    and the frames and nodes counted (a frame counts with its node's reference, step 1's rule).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 20 frames count, or their yaw rates spread over less than 5 deg/s (the
+        latency is then not measurable).
+    """
+    from tofloc.io.nanoswarm import FRAME_PERIOD_S
+
+    def fit(rows: NDArray[np.float64], rng: np.random.Generator) -> dict[str, Any]:
+        node, e, omega, theta = rows.T
+        if e.size < 20 or np.ptp(np.degrees(omega)) < 5.0:
+            raise ValueError(f"fit_odometry_bias: {e.size} frames counted, yaw rates over "
+                             f"{np.ptp(np.degrees(omega)) if e.size else 0.0:.1f} deg/s: not measurable")
+        X = np.column_stack([np.ones_like(e), omega, theta])
+        beta = _huber_fit(X, e)
+        nodes = np.unique(node)
+        draws = []
+        for _ in range(int(resamples)):
+            pick = rng.choice(nodes, nodes.size)
+            sel = np.concatenate([np.flatnonzero(node == n) for n in pick])
+            draws.append(_huber_fit(X[sel], e[sel]))
+        d = np.array(draws)
+        lat = -d[:, 1]
+        scale = -d[:, 2]
+        return {"frames": int(e.size), "nodes": int(nodes.size), "latency_s": float(-beta[1]),
+                "latency_s_90": [float(np.percentile(lat, 5)), float(np.percentile(lat, 95))],
+                "rotation_scale": float(-beta[2]),
+                "rotation_scale_90": [float(np.percentile(scale, 5)), float(np.percentile(scale, 95))],
+                "offset_deg": float(np.degrees(beta[0]))}
+
+    rng = np.random.default_rng(seed)
+    per_flight, pooled = {}, []
+    offset = 0
+    for imp in imports:
+        c = register_frames(imp, range_cut_m)
+        ref = register_reference(imp, range_cut_m)
+        yaw = np.unwrap(np.stack([np.arctan2(lg.T_base_tip[:, 1, 0], lg.T_base_tip[:, 0, 0]) for lg in imp.flight.logs]), axis=1)
+        omega = np.gradient(yaw, FRAME_PERIOD_S, axis=1)
+        theta = yaw - yaw[:, :1]
+        ok = c.counts & ref.counts  # (N, F) & (N, 1)
+        e = c.delta[..., 0] - ref.delta[..., 0]
+        n_idx = np.broadcast_to(np.arange(len(imp.flight.logs))[:, None] + offset, ok.shape)
+        rows = np.column_stack([n_idx[ok], e[ok], omega[ok], theta[ok]])
+        per_flight[Path(imp.flight.folder).name] = fit(rows, rng)
+        pooled.append(rows)
+        offset += len(imp.flight.logs)
+    return {"flights": per_flight, "pooled": fit(np.concatenate(pooled), rng)}
+
+
 def _vicon_spread(imports: Sequence[FlightImport]) -> tuple[float, float]:
     """Within-drone RMS spread of the Vicon roll/pitch (rad) and height (m), pooled over drones and flights."""
     tilt, z = [], []
@@ -328,6 +408,7 @@ def report(dataset: str | Path, flights: Sequence[str] = FLIGHTS) -> dict[str, A
     t = truth["model"]
     truth["model"] = {k: getattr(t, k) for k in ("yaw_rad", "xy_m", "tilt_rad", "z_m")}
     out["truth"] = truth
+    out["bias"] = fit_odometry_bias(imports)
     return out
 
 
