@@ -150,7 +150,8 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
     changed: dict[str, dict[str, Any]] | None = None
     recorded = doc.get("estimators")
     if isinstance(recorded, Mapping) and all(isinstance(recorded.get(e), Mapping) and "changed" in recorded[e] for e in names):
-        changed = {e: _changed(recorded[e]["changed"], p, f"estimators.{e}.changed") for e in names}
+        changed = {e: None if recorded[e]["changed"] is None else _changed(recorded[e]["changed"], p, f"estimators.{e}.changed")
+                   for e in names}
     truth = doc.get("truth_uncertainty")
     declared = 0 if truth is None else _count(_mapping(truth, p, "truth_uncertainty", "an object").get("declared_by", 0),
                                                 p, "truth_uncertainty.declared_by")
@@ -189,7 +190,7 @@ def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequenc
 
 
 def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Sequence[tuple[str, Path]],
-                                 changed: Sequence[Mapping[str, Mapping[str, Any]] | None] | None = None) -> str:
+                                 changed: Sequence[Mapping[str, Mapping[str, Any] | None] | None] | None = None) -> str:
     """``comparison.md`` for ``tofloc evaluate`` files: the files compared (with, when the
     files record them, each estimator's parameters that differ from its defaults:
     ``changed``, one per file, from :func:`evaluate_view`), then one row per estimator (and
@@ -208,7 +209,8 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
             if c is None:
                 text = "not recorded (a file of an earlier version)"
             else:
-                parts = [f"{e}: " + ", ".join(f"`{k} = {v!r}`" for k, v in kv.items()) for e, kv in c.items() if kv]
+                parts = [f"{e}: " + ("defaults unknown" if kv is None else ", ".join(f"`{k} = {v!r}`" for k, v in kv.items()))
+                         for e, kv in c.items() if kv is None or kv]
                 text = "; ".join(parts) if parts else "none (every estimator with its defaults)"
             lines.append(f"* {lab}: {text}")
     lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "

@@ -146,8 +146,9 @@ def params_sentence(doc: Mapping[str, Any]) -> list[str]:
     ests = doc.get("estimators") or {}
     if not ests or any("changed" not in (v or {}) for v in ests.values()):
         return []
-    parts = [f"{name}: " + ", ".join(f"`{k} = {v!r}`" for k, v in v["changed"].items())
-             for name, v in ests.items() if v["changed"]]
+    parts = [f"{name}: " + ("its defaults unknown (its class needs parameters)" if v["changed"] is None else
+                            ", ".join(f"`{k} = {x!r}`" for k, x in v["changed"].items()))
+             for name, v in ests.items() if v["changed"] is None or v["changed"]]
     if not parts:
         return ["Every estimator ran with its defaults (`config.toml` beside this file lists them)."]
     return ["Parameters not at their defaults: " + "; ".join(parts) + " (`config.toml` beside this file lists them all)."]

@@ -806,3 +806,22 @@ def test_changed_params_are_the_ones_that_differ_from_the_defaults() -> None:
     assert changed_params(estimator("likelihood_field_pf", {"sensor_model_params": {"unknown_weight": 0.0}})) == \
         {"sensor_model_params.unknown_weight": 0.0}
     assert changed_params(estimator("gtsam_smoother", {"n_starts": 3})) == {"n_starts": 3}
+
+
+def test_changed_params_of_a_class_without_defaults_is_unknown_not_a_crash() -> None:
+    """A plug-in whose constructor needs a parameter has no defaults to compare with: the
+    run must not fail at its end for it (its table says so)."""
+    import dataclasses as dcs
+
+    from estimators.particle_filter import ICPScorePF
+    from evaluation.evaluate_report import params_sentence
+    from tofloc.api import changed_params
+
+    @dcs.dataclass(frozen=True)
+    class NeedsOne(ICPScorePF):
+        scale: float = dcs.field(kw_only=True)
+
+    assert changed_params(NeedsOne(scale=2.0)) is None
+    doc = {"estimators": {"needs_one": {"changed": None}, "icp_pf": {"changed": {}}}}
+    assert params_sentence(doc) == ["Parameters not at their defaults: needs_one: its defaults unknown (its class needs "
+                                    "parameters) (`config.toml` beside this file lists them all)."]

@@ -808,13 +808,18 @@ class EvaluateResult:
         return self.document["oracle_summary"]
 
 
-def changed_params(est: Any) -> dict[str, Any]:
+def changed_params(est: Any) -> dict[str, Any] | None:
     """An estimator's parameters that differ from its class's defaults (``sensor_model_params``
     key by key, as ``sensor_model_params.KEY``), JSON-ready: what a table must say so that
-    its rows can be told apart from the defaults'."""
+    its rows can be told apart from the defaults'. None when the class has no defaults to
+    compare with (a plug-in whose constructor needs arguments)."""
     from evaluation.trials import jsonable
 
-    mine, default = jsonable(est.get_params()), jsonable(type(est)().get_params())
+    try:
+        default = jsonable(type(est)().get_params())
+    except Exception:  # noqa: BLE001 - a plug-in with required parameters: no defaults, not a failed run
+        return None
+    mine = jsonable(est.get_params())
     out: dict[str, Any] = {}
     for key, value in mine.items():
         if key == "sensor_model_params" and isinstance(value, Mapping):
