@@ -19,7 +19,7 @@ import numpy as np
 
 from tofloc.errors import FormatError
 
-__all__ = ["Series", "ResultsFile", "load_results", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
+__all__ = ["Series", "ResultsFile", "load_results", "checked_name", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
            "MAX_RESULTS_BYTES"]
 
 #: Largest results file read (bytes): a localize file of 100 000 trials is ~60 MB.
@@ -108,9 +108,11 @@ def _entry(d: Any, path: Path, where: str) -> dict[str, Any]:
     return out
 
 
-def _name(v: Any, path: Path, where: str) -> str:
+def checked_name(v: Any, path: Path, where: str) -> str:
+    """``v`` when it is a name read from a results file (a non-empty string of at most 200
+    characters); FormatError naming ``path`` and ``where`` otherwise."""
     if not isinstance(v, str) or not v or len(v) > 200:
-        raise FormatError(path, where, "a name (a non-empty string)", repr(v)[:40])
+        raise FormatError(path, where, "a name (a non-empty string of at most 200 characters)", repr(v)[:40])
     return v
 
 
@@ -180,8 +182,8 @@ def _paper_series(doc: Mapping[str, Any], p: Path) -> list[Series]:
                         raise FormatError(p, f"{where}.per_k", "keys that are numbers of samples", repr(k)[:20]) from None
                     per_k[ki] = _entry(entry, p, f"{where}.per_k.{k}")
                 overall = _entry(group.get("overall") or {}, p, f"{where}.overall")
-                out.append(Series(_name(est, p, "results"), _name(tip, p, f"results.{est}"),
-                                  _name(mode, p, f"results.{est}.{tip}"), per_k, overall))
+                out.append(Series(checked_name(est, p, "results"), checked_name(tip, p, f"results.{est}"),
+                                  checked_name(mode, p, f"results.{est}.{tip}"), per_k, overall))
     return out
 
 
@@ -201,8 +203,8 @@ def _localize_series(doc: Mapping[str, Any], p: Path) -> Series:
                      and math.isfinite(t["nees"])])
     prior = doc.get("prior")
     mode = prior.get("mode") if isinstance(prior, Mapping) else None
-    return Series(_name(doc["estimator"], p, "estimator"), _name(doc.get("tip_source"), p, "tip_source"),
-                  _name(mode, p, "prior.mode"), {int(k): entry}, entry, nees)
+    return Series(checked_name(doc["estimator"], p, "estimator"), checked_name(doc.get("tip_source"), p, "tip_source"),
+                  checked_name(mode, p, "prior.mode"), {int(k): entry}, entry, nees)
 
 
 def file_labels(paths: Sequence[Path]) -> list[str]:

@@ -14,6 +14,8 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from evaluation.compare import checked_name as _name
+from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
 
 __all__ = ["is_evaluate_document", "evaluate_view", "evaluate_comparison_rows", "evaluate_comparison_markdown",
@@ -48,12 +50,6 @@ def _count(v: Any, p: Path, where: str, low: int = 0) -> int:
 def _mapping(v: Any, p: Path, where: str, what: str) -> Mapping[str, Any]:
     if not isinstance(v, Mapping):
         raise FormatError(p, where, what, type(v).__name__)
-    return v
-
-
-def _name(v: Any, p: Path, where: str) -> str:
-    if not isinstance(v, str) or not v or len(v) > 200:
-        raise FormatError(p, where, "a name (a non-empty string of at most 200 characters)", repr(v)[:40])
     return v
 
 
@@ -195,9 +191,6 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
     files record them, each estimator's parameters that differ from its defaults:
     ``changed``, one per file, from :func:`evaluate_view`), then one row per estimator (and
     oracle floor) of each."""
-    def f(v: Any, fmt: str) -> str:
-        return "n/a" if v is None else format(v, fmt)
-
     lines = ["# Comparison of `tofloc evaluate` results", "",
              "Medians over every trial of every log; failures: e_x or e_gamma beyond the file's thresholds; "
              "NEES: mean (of the model's own covariance in brackets); ratios: the median to the file's oracle floor's.",

@@ -9,7 +9,7 @@ from typing import Any, Mapping
 import numpy as np
 
 __all__ = ["table_markdown", "truth_sentence", "params_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
-           "errors_by_log_figure", "CHI2_3_BAND", "MAX_LOG_ROWS"]
+           "errors_by_log_figure", "format_or_na", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
 #: estimator's NEES lies in it 95 % of the time).
@@ -19,8 +19,12 @@ CHI2_3_BAND = (0.2158, 9.3484)
 MAX_LOG_ROWS = 60
 
 
-def _f(v: Any, fmt: str, scale: float = 1.0) -> str:
-    return "n/a" if v is None else format(float(v) * scale, fmt)
+def format_or_na(v: Any, fmt: str, scale: float = 1.0) -> str:
+    """``v`` times ``scale`` formatted with ``fmt``, or ``"n/a"`` for None (a summary's missing
+    value); an integer is formatted as it is when not scaled (``"d"`` formats work)."""
+    if v is None:
+        return "n/a"
+    return format(v if scale == 1.0 and isinstance(v, int) else float(v) * scale, fmt)
 
 
 def _row(name: str, s: Mapping[str, Any]) -> str:
@@ -29,15 +33,15 @@ def _row(name: str, s: Mapping[str, Any]) -> str:
     model = s.get("nees_model") or {}
     wid = s.get("widened")
     rt = (s.get("runtime_s") or {}).get("median")
-    fails = f"{s['failures']}/{s['n']} ({_f(s['failure_rate'], '.0%')})"
+    fails = f"{s['failures']}/{s['n']} ({format_or_na(s['failure_rate'], '.0%')})"
     causes = s.get("failure_causes")
     if causes and s["failures"]:
         fails += f": model {causes['model']}, search {causes['search']}" + (
             f", unattributed {causes['unattributed']}" if causes["unattributed"] else "")
-    return (f"| {name} | {_f(s['e_x_m']['median'], '.1f', 1000)} | {_f(s['e_gamma_deg']['median'], '.2f')} | "
-            f"{_f(s['e_x_m']['mean'], '.1f', 1000)} | {_f(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
-            f"{_f(nees.get('mean'), '.2f')} | {_f(nees.get('median'), '.2f')} | {_f(exact.get('mean'), '.2f')} | "
-            f"{'n/a' if wid is None else wid} | {_f(model.get('mean'), '.2f')} | {_f(rt, '.2f')} |")
+    return (f"| {name} | {format_or_na(s['e_x_m']['median'], '.1f', 1000)} | {format_or_na(s['e_gamma_deg']['median'], '.2f')} | "
+            f"{format_or_na(s['e_x_m']['mean'], '.1f', 1000)} | {format_or_na(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
+            f"{format_or_na(nees.get('mean'), '.2f')} | {format_or_na(nees.get('median'), '.2f')} | {format_or_na(exact.get('mean'), '.2f')} | "
+            f"{'n/a' if wid is None else wid} | {format_or_na(model.get('mean'), '.2f')} | {format_or_na(rt, '.2f')} |")
 
 
 def detection_lines(doc: Mapping[str, Any]) -> list[str]:
@@ -210,8 +214,8 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     for e in ests:
         s = doc["summary"][e]
         r, m = s["ratio_to_oracle"], s["median_log_ratio"]
-        lines.append(f"| {e} | {_f(r['e_x_m'], '.2f')} | {_f(r['e_gamma_deg'], '.2f')} | {_f(m['e_x_m'], '.2f')} | "
-                     f"{_f(m['e_gamma_deg'], '.2f')} |")
+        lines.append(f"| {e} | {format_or_na(r['e_x_m'], '.2f')} | {format_or_na(r['e_gamma_deg'], '.2f')} | {format_or_na(m['e_x_m'], '.2f')} | "
+                     f"{format_or_na(m['e_gamma_deg'], '.2f')} |")
     lines += [
         "",
         "## Per log",
@@ -223,7 +227,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     ]
 
     def cell(s: Mapping[str, Any]) -> str:
-        c = f"{_f(s['e_x_m']['median'], '.1f', 1000)} / {_f(s['e_gamma_deg']['median'], '.2f')}"
+        c = f"{format_or_na(s['e_x_m']['median'], '.1f', 1000)} / {format_or_na(s['e_gamma_deg']['median'], '.2f')}"
         return c + (f" ({s['failures']})" if s["failures"] else "")
 
     for label, lg in logs.items():

@@ -632,3 +632,20 @@ def test_odometry_bias_is_what_the_documented_procedure_gives_and_finds_an_injec
     moved = fit_odometry_bias(changed)["pooled"]
     assert 0.03 < moved["latency_s"] - base["latency_s"] < 0.06
     assert 0.035 < moved["rotation_scale"] - base["rotation_scale"] < 0.07
+
+
+@needs_data
+def test_odometry_bias_of_a_flight_that_never_turns_is_refused_naming_it(flights) -> None:
+    """Without yaw rates to regress on, the latency is not measurable: refused, naming the
+    flight's folder and what was needed (no coefficients made up from nothing)."""
+    import dataclasses
+
+    from tofloc.io.nanoswarm_odometry import fit_odometry_bias
+
+    imp = flights["two-drones"]
+    still = [dataclasses.replace(lg, T_base_tip=np.broadcast_to(np.eye(4), lg.T_base_tip.shape).copy())
+             for lg in imp.flight.logs]
+    frozen = dataclasses.replace(imp, flight=dataclasses.replace(imp.flight, logs=still))
+    with pytest.raises(ValueError, match=r"fit_odometry_bias: .*two-drones: \d+ frames counted \(at least 20 needed\), "
+                                         r"their yaw rates spread over 0\.0 deg/s \(at least 5 needed\): not measurable"):
+        fit_odometry_bias([frozen])

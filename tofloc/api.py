@@ -552,12 +552,7 @@ def paper(
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
-    from tofloc.estimator_config import config_toml, merge_params
-
-    per_est = {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
-    unknown_names = sorted(set(estimator_params or {}) - set(names))
-    if unknown_names:
-        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
+    per_est = _per_estimator_params(names, params, estimator_params)
     ests = {n: estimator(n, per_est[n]) for n in names}
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
     t0 = time.perf_counter()
@@ -644,9 +639,7 @@ def paper(
                                                                     if r.get("nees") is not None],
                                           {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
                                          for i, n in enumerate(names) for m in priors]) for tip in tips]
-    config_text = config_toml({n: jsonable(ests[n].get_params()) for n in names}, header=[
-        "The parameters every estimator of this run used (defaults included); `--config` reads this file.",
-        f"Made by: {doc['provenance']['command']}"])
+    config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
         write_text_atomic(config_text, out_dir / "config.toml"),
@@ -738,11 +731,8 @@ def scenes(
     doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
            "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
            "provenance": provenance()}
-    from tofloc.estimator_config import config_toml
-
-    config_text = config_toml({n: e["params"] for n, e in run.document["estimators"].items()}, header=[
-        "The parameters every estimator of this run used on every scene (defaults included); `--config` reads it.",
-        f"Made by: {doc['provenance']['command']}"])
+    config_text = _config_text({n: e["params"] for n, e in run.document["estimators"].items()},
+                               doc["provenance"]["command"], "on every scene")
     paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
              write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
     return ScenesResult(rows, doc, paths)
@@ -806,6 +796,28 @@ class EvaluateResult:
     @property
     def oracle_summary(self) -> dict[str, Any]:
         return self.document["oracle_summary"]
+
+
+def _per_estimator_params(names: Sequence[str], params: Mapping[str, Any] | None,
+                          estimator_params: Mapping[str, Mapping[str, Any]] | None) -> dict[str, dict[str, Any]]:
+    """Each estimator's parameters: ``params`` (every estimator) under ``estimator_params[name]``
+    (``sensor_model_params`` merged key by key); names of ``estimator_params`` outside the run refused."""
+    from tofloc.estimator_config import merge_params
+
+    unknown_names = sorted(set(estimator_params or {}) - set(names))
+    if unknown_names:
+        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
+    return {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+
+
+def _config_text(params_by_name: Mapping[str, Mapping[str, Any]], command: str, where: str = "") -> str:
+    """``config.toml`` of a run: the parameters every estimator used (defaults included),
+    which ``--config`` reads back, headed by the command that made it."""
+    from tofloc.estimator_config import config_toml
+
+    return config_toml(params_by_name, header=[
+        f"The parameters every estimator of this run used{' ' + where if where else ''} (defaults included); "
+        "`--config` reads this file.", f"Made by: {command}"])
 
 
 def changed_params(est: Any) -> dict[str, Any] | None:
@@ -939,12 +951,7 @@ def evaluate(
         raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     check_selection(selection)
-    from tofloc.estimator_config import config_toml, merge_params
-
-    unknown_names = sorted(set(estimator_params or {}) - set(names))
-    if unknown_names:
-        raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
-    per_est = {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+    per_est = _per_estimator_params(names, params, estimator_params)
     ests = {n: estimator(n, per_est[n]) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
@@ -986,9 +993,7 @@ def evaluate(
     )
     if warming is not None:
         warming.join()
-    config_text = config_toml({n: jsonable(ests[n].get_params()) for n in names}, header=[
-        "The parameters every estimator of this run used (defaults included); `--config` reads this file.",
-        f"Made by: {doc['provenance']['command']}"])
+    config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
     paths = [
         write_json_atomic(doc, out_dir / "results.json"),
         write_text_atomic(config_text, out_dir / "config.toml"),

@@ -168,8 +168,7 @@ def segment_poses(a: ArrayLike, b: ArrayLike, n: int = SEGMENT_POINTS) -> NDArra
     Where a valley between two modes would be (the particle cloud's modes here, a
     filter's basins in :mod:`estimators.basin_check`)."""
     a = np.asarray(a, dtype=float)
-    step = np.asarray(b, dtype=float) - a
-    step[..., 2] = frames.wrap_angle(step[..., 2])
+    step = frames.planar_difference(b, a)
     t = np.linspace(0.0, 1.0, int(n) + 2)[1:-1]
     return a[..., None, :] + t[:, None] * step[..., None, :]
 

@@ -80,6 +80,7 @@ def plot(
 def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     """``tofloc plot`` on ``tofloc evaluate`` files: each file's plots again, and one comparison."""
     from evaluation.evaluate_files import evaluate_comparison_markdown, evaluate_comparison_rows
+    from evaluation.evaluate_report import format_or_na as na
     from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees
     from evaluation.report import write_text_atomic
     from tofloc.provenance import provenance
@@ -97,25 +98,20 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
              f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
     written.append(write_text_atomic(text, out / "comparison.md"))
-
-    def f(v: object, fmt: str) -> str:
-        return "n/a" if v is None else format(v, fmt)
-
     t = Table(title="medians over every trial of each file", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
     for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("e_x mm", "right"),
                          ("e_γ deg", "right"), ("failed", "right"), ("NEES", "right")):
         t.add_column(col, justify=justify)  # type: ignore[arg-type]
     for r in rows:
-        t.add_row(r["file"], r["estimator"], f(r["n"], "d"), f(r["e_x_mm_median"], ".1f"), f(r["e_gamma_deg_median"], ".2f"),
-                  f(r["failures"], "d"), "" if r["estimator"] == "oracle floor" else f(r["nees_mean"], ".2f"))
+        t.add_row(r["file"], r["estimator"], na(r["n"], "d"), na(r["e_x_mm_median"], ".1f"), na(r["e_gamma_deg_median"], ".2f"),
+                  na(r["failures"], "d"), "" if r["estimator"] == "oracle floor" else na(r["nees_mean"], ".2f"))
     console.print(t)
     for p in written:
         err_console.print(f"wrote {p}", highlight=False)
 
 
 def _print(rows: list[dict]) -> None:
-    def f(v: object, fmt: str) -> str:
-        return "n/a" if v is None else format(v, fmt)
+    from evaluation.evaluate_report import format_or_na as f
 
     t = Table(title="over every trial of each series (means; medians in comparison.md)", box=box.SIMPLE_HEAD,
               pad_edge=False, collapse_padding=True)

@@ -286,11 +286,12 @@ def fit_odometry_bias(imports: Sequence[FlightImport], range_cut_m: float = DEFA
     """
     from tofloc.io.nanoswarm import FRAME_PERIOD_S
 
-    def fit(rows: NDArray[np.float64], rng: np.random.Generator) -> dict[str, Any]:
+    def fit(rows: NDArray[np.float64], rng: np.random.Generator, what: str) -> dict[str, Any]:
         node, e, omega, theta = rows.T
-        if e.size < 20 or np.ptp(np.degrees(omega)) < 5.0:
-            raise ValueError(f"fit_odometry_bias: {e.size} frames counted, yaw rates over "
-                             f"{np.ptp(np.degrees(omega)) if e.size else 0.0:.1f} deg/s: not measurable")
+        spread = float(np.ptp(np.degrees(omega))) if e.size else 0.0
+        if e.size < 20 or spread < 5.0:
+            raise ValueError(f"fit_odometry_bias: {what}: {e.size} frames counted (at least 20 needed), their yaw "
+                             f"rates spread over {spread:.1f} deg/s (at least 5 needed): not measurable")
         X = np.column_stack([np.ones_like(e), omega, theta])
         beta = _huber_fit(X, e)
         nodes = np.unique(node)
@@ -321,10 +322,10 @@ def fit_odometry_bias(imports: Sequence[FlightImport], range_cut_m: float = DEFA
         e = c.delta[..., 0] - ref.delta[..., 0]
         n_idx = np.broadcast_to(np.arange(len(imp.flight.logs))[:, None] + offset, ok.shape)
         rows = np.column_stack([n_idx[ok], e[ok], omega[ok], theta[ok]])
-        per_flight[Path(imp.flight.folder).name] = fit(rows, rng)
+        per_flight[Path(imp.flight.folder).name] = fit(rows, rng, str(imp.flight.folder))
         pooled.append(rows)
         offset += len(imp.flight.logs)
-    return {"flights": per_flight, "pooled": fit(np.concatenate(pooled), rng)}
+    return {"flights": per_flight, "pooled": fit(np.concatenate(pooled), rng, "every flight pooled")}
 
 
 def _vicon_spread(imports: Sequence[FlightImport]) -> tuple[float, float]:
