@@ -15,6 +15,7 @@ batched query over all samples:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -26,7 +27,8 @@ from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
-__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma"]
+__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma", "place_points", "with_place_weights",
+           "whitened_residuals"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
@@ -135,7 +137,8 @@ def associate(
     map_sigma : float
         Map and association error (m) added in quadrature to every zone's sigma.
     information_scale : float
-        Every zone's information is multiplied by it.
+        Every zone's information is multiplied by it (and by its measurement's ``weight``,
+        when the sample has one).
     config_cov : array (K, 6, 6), optional
         The configurations' covariances: each zone's variance gains what its sample's
         configuration error does to the zone's distance along the associated plane's normal
@@ -187,7 +190,11 @@ def associate(
     s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2 + v_cfg)
     zone_gate = np.maximum(gate, gate_sigmas * (s_gate if residual == "point_to_plane" else np.hypot(sig_gate, map_sigma)))
     inlier = np.isfinite(dist) & (dist <= zone_gate)
-    s = s0 / math.sqrt(information_scale)
+    if any(m.weight is not None for m in meas):
+        w = np.concatenate([np.ones(m.size) if m.weight is None else np.asarray(m.weight, dtype=float) for m in meas])
+        s = s0 / np.sqrt(information_scale * w)
+    else:
+        s = s0 / math.sqrt(information_scale)
     gate_e = zone_gate / s
     out, changed = [], []
     for m, a, b in zip(meas, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
@@ -195,3 +202,36 @@ def associate(
         changed.append(new.set_association(q[a:b], n[a:b], s[a:b], inlier[a:b], gate_e[a:b], key[a:b]))  # against m's
         out.append(new)
     return out, changed
+
+
+def place_points(problem: Problem, meas: list[SampleMeasurement]) -> list[FloatArray]:
+    """Per sample, its valid zones' points ``(N_k, 3)`` in the base frame at the given
+    configurations: the places of the smoother's ``place_correlation`` (as the particle
+    filters' sensor models place their end points)."""
+    return [frames.transform_points(np.asarray(problem.T_base_tip[k], dtype=float), m.p_tip) for k, m in enumerate(meas)]
+
+
+def with_place_weights(problem: Problem, meas: list[SampleMeasurement], radius: float,
+                       rho: float) -> list[SampleMeasurement]:
+    """Unassociated copies of ``meas`` whose zones carry Kish's design effect for places
+    earlier samples read too (:func:`sensor_models.base.place_weights` at correlation
+    ``rho`` within ``radius``): their information is multiplied by it in :func:`associate`."""
+    from sensor_models.base import place_weights
+
+    w = place_weights(place_points(problem, meas), radius, rho)
+    return [dataclasses.replace(m, weight=wk) for m, wk in zip(meas, w)]
+
+
+def whitened_residuals(problem: Problem, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray],
+                       D: FloatArray, bias: FloatArray | None = None) -> list[FloatArray]:
+    """Per sample, each zone's distance to its associated plane at the base pose
+    ``xyyaw``, the configurations ``C`` and the support correction ``D``, in its own sigma
+    (signed, along the plane's normal; what both residual kinds whiten to); NaN for the
+    zones the gate left out."""
+    T_mb = problem.prior.T_map_base(xyyaw)
+    out = []
+    for k, m in enumerate(meas):  # per sample (K <= a few tens), vectorized over zones
+        p = frames.transform_points(T_mb @ C[k] @ D, m.points(bias))
+        r = np.einsum("ni,ni->n", m.n, p - m.q) / m.s
+        out.append(np.where(m.inlier, r, np.nan))
+    return out

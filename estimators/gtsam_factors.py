@@ -254,6 +254,9 @@ class SampleMeasurement:
     v_tip : (N, 3)
     zones : (N,) int
         Flat ``sensor * Z + zone`` index of each row (for the record).
+    weight : (N,), optional
+        Each zone's information is multiplied by it (the smoother's ``place_correlation``:
+        Kish's design effect of a place earlier samples read too); None: 1.
     """
 
     p_tip: FloatArray
@@ -263,6 +266,7 @@ class SampleMeasurement:
     d: FloatArray
     v_tip: FloatArray
     zones: NDArray[np.int64]
+    weight: FloatArray | None = None
     q: FloatArray = field(init=False)
     n: FloatArray = field(init=False)
     s: FloatArray = field(init=False)

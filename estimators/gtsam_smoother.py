@@ -85,11 +85,12 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.gtsam_association import RESIDUALS, measurements
+from estimators.gtsam_association import RESIDUALS, measurements, place_points, whitened_residuals, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from tofloc import frames
 from tofloc.errors import ParameterError
+from sensor_models.base import check_bool_or_auto
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 from tofloc.threads import kdtree_workers
 
@@ -123,6 +124,24 @@ class GTSAMSmoother(Estimator):
         Map and association error (m) added in quadrature to every zone's sigma.
     information_scale : float
         In (0, 1]: every zone's information is multiplied by it (zone correlation).
+    place_correlation : float
+        In [0, 1]: each zone's information is multiplied by Kish's design effect
+        ``1 / (1 + n rho)``, ``n`` the zones of EARLIER samples whose points lie within
+        ``place_radius`` of its own in the base frame at the given configurations: a scan
+        re-reads the same wall patch, and the map's error there is shared by every reading
+        of it (:func:`sensor_models.base.place_weights`, the particle filters' sensor models'
+        weighting). 0 (the default): every zone counts fully, unless ``refit_correlation``
+        fits it.
+    place_radius : float
+        Zones within this distance (m) in the plane are one place (default 0.05).
+    refit_correlation : bool or "auto"
+        With ``place_correlation = 0``: fit it at the first answer (the best start's), from
+        the zones' residuals in their own sigmas over pairs of zones of different samples at
+        one place (:func:`sensor_models.base.place_correlation_of`, as the sensor models'
+        ``refit_correlation``), and solve again from that answer with the weights (one
+        start; ``diagnostics["refit"]``). ``"auto"`` (the default): on a map built from
+        scans (one with a known space, as the nano-swarm importer's), not on CAD maps or
+        the simulator's scenes, as the sensor models decide.
     gate_m, gate_start_m : float
         Association gate (m): a zone whose associated map point is farther is an outlier
         (constant cost). The gate shrinks geometrically from ``gate_start_m`` to
@@ -208,6 +227,9 @@ class GTSAMSmoother(Estimator):
     robust_k: float = 2.0
     map_sigma: float = 0.003
     information_scale: float = 1.0
+    place_correlation: float = 0.0
+    place_radius: float = 0.05
+    refit_correlation: bool | str = "auto"
     gate_m: float = 0.05
     gate_start_m: float = 0.2
     gate_rounds: int = 3
@@ -249,6 +271,11 @@ class GTSAMSmoother(Estimator):
         for n in ("incremental", "exact_tip_poses", "stacked_factor", "merge_starts"):
             if not isinstance(getattr(self, n), bool):
                 raise ParameterError(f"{n} must be true or false, got {getattr(self, n)!r}")
+        for n, lo, hi in (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0)):
+            v = getattr(self, n)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and lo <= v <= hi):
+                raise ParameterError(f"{n} must be a number in [{lo}, {hi}], got {v!r}")
+        check_bool_or_auto("refit_correlation", self.refit_correlation)
         if not (isinstance(self.marginalize_configurations, bool) or self.marginalize_configurations == "auto"):
             raise ParameterError("marginalize_configurations must be true, false or \"auto\", "
                                  f"got {self.marginalize_configurations!r}")
@@ -260,6 +287,35 @@ class GTSAMSmoother(Estimator):
         if self.marginalize_configurations == "auto":
             return problem.configuration_source == "odometry" and problem.T_base_tip_cov is not None
         return bool(self.marginalize_configurations)
+
+    def refits(self, problem: Problem) -> bool:
+        """Whether an estimate of ``problem`` fits ``place_correlation`` at its first answer
+        and solves again (``refit_correlation``, ``"auto"`` resolved from the map as the
+        sensor models do; never when ``place_correlation`` is set)."""
+        if self.place_correlation > 0:
+            return False
+        if self.refit_correlation == "auto":
+            return getattr(problem.map, "known_space", None) is not None
+        return bool(self.refit_correlation)
+
+    def weighted_measurements(self, problem: Problem, rho: float | None = None) -> list[SampleMeasurement]:
+        """The problem's measurements (:func:`estimators.gtsam_association.measurements`),
+        each zone weighted for its place at correlation ``rho`` (default: the smoother's
+        ``place_correlation``; 0: unweighted)."""
+        meas = measurements(problem)
+        rho = self.place_correlation if rho is None else rho
+        return with_place_weights(problem, meas, self.place_radius, rho) if rho > 0 else meas
+
+    def fitted_place_correlation(self, problem: Problem, graph: SmootherGraph, run: dict[str, Any]) -> float | None:
+        """The correlation of the zones' whitened residuals at a solve's answer ``run`` over
+        pairs of zones of different samples within ``place_radius`` of each other
+        (:func:`sensor_models.base.place_correlation_of`; None below 0.05 or without pairs)."""
+        from sensor_models.base import place_correlation_of
+
+        values = run["values"]
+        xyyaw, C, D = graph.read(values, problem.n_samples)
+        res = whitened_residuals(problem, run["meas"], xyyaw, C, D, graph.bias(values))
+        return place_correlation_of(res, place_points(problem, run["meas"]), self.place_radius)
 
     def starts(self, problem: Problem, meas: list[SampleMeasurement], rng: np.random.Generator) -> FloatArray:
         """The starts ``(n, 3)``: the best-scoring distinct poses among the prior mean and
@@ -309,11 +365,15 @@ class GTSAMSmoother(Estimator):
         ``X`` and the configuration and nuisance factors: a negative log posterior up to a
         constant) with the base held at each pose and every other variable optimized, data
         association included (``solve_batch(..., fix_base=True)``): the target profiled
-        over the configurations and nuisances. ``-inf`` where the solve meets an
-        indeterminant system. One solve per pose (a failed trial's few, not a hot path);
-        ``estimate`` is not needed (its other variables are optimized again)."""
+        over the configurations and nuisances, its zones weighted for their places as the
+        estimate's were (a refitted ``place_correlation`` read from ``estimate``'s
+        ``diagnostics["refit"]``). ``-inf`` where the solve meets an indeterminant system.
+        One solve per pose (a failed trial's few, not a hot path); ``estimate``'s other
+        variables are not needed (they are optimized again)."""
         graph = SmootherGraph(self, problem)
-        meas0 = measurements(problem)
+        refit = estimate.diagnostics.get("refit") if isinstance(estimate.diagnostics, dict) else None
+        rho = (refit.get("params") or {}).get("place_correlation") if isinstance(refit, dict) else None
+        meas0 = self.weighted_measurements(problem, float(rho) if isinstance(rho, (int, float)) else None)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         out = np.full(P.shape[0], -np.inf)
         for i in range(P.shape[0]):
@@ -340,7 +400,7 @@ class GTSAMSmoother(Estimator):
 
         t_start = time.perf_counter()
         graph = SmootherGraph(self, problem)
-        meas0 = measurements(problem)
+        meas0 = self.weighted_measurements(problem)
         starts = self.starts(problem, meas0, rng)
         starts_s = time.perf_counter() - t_start
         runs: list[dict[str, Any]] = []
@@ -378,9 +438,13 @@ class GTSAMSmoother(Estimator):
             diag["message"] = "every start failed with an indeterminant linear system: returning the prior"
             diag["time_s"] = {"starts": starts_s, **graph.timing()}
             return Estimate(pose=problem.prior.mean, covariance=problem.prior.covariance, diagnostics=diag)
+        if self.refits(problem):
+            best = self._refit(problem, graph, best, diag)
         values = best["values"]
         P = values.atPose2(Xk(0))
         pose = np.array([P.x(), P.y(), P.theta()])
+        if "refit" in diag:  # the best start's mode is the answer (its error stays the first pass's, comparable)
+            runs[best_i]["pose"] = pose.tolist()
         t_cov = time.perf_counter()
         cov, cov_note = self._covariance(best, values, problem)
         diag["time_s"] = {"starts": starts_s, **graph.timing(), "covariance": time.perf_counter() - t_cov}
@@ -400,6 +464,29 @@ class GTSAMSmoother(Estimator):
             state["range_scale"] = {"mean": float(b[0]), "prior_sigma": graph.scale_sigma}
         diag["state"] = state
         return Estimate(pose=pose, covariance=cov, diagnostics=diag)
+
+    def _refit(self, problem: Problem, graph: SmootherGraph, best: dict[str, Any], diag: dict[str, Any]) -> dict[str, Any]:
+        """``refit_correlation``: the place correlation fitted at the best start's answer
+        and, when there is one, the solve again from that answer with the zones weighted
+        for their places (``diag["refit"]``: the first answer and the fitted value). The
+        first answer stands when nothing was fitted or the second solve meets an
+        indeterminant system."""
+        from gtsam.symbol_shorthand import X as Xk
+
+        rho = self.fitted_place_correlation(problem, graph, best)
+        if rho is None:
+            return best
+        P = best["values"].atPose2(Xk(0))
+        first = np.array([P.x(), P.y(), P.theta()])
+        meas = self.weighted_measurements(problem, rho)
+        try:
+            run = graph.solve_isam2(meas, first) if self.incremental else graph.solve_batch(meas, first)
+        except RuntimeError as e:
+            if not is_indeterminate(e):
+                raise
+            return best
+        diag["refit"] = {"first_pose": first.tolist(), "params": {"place_correlation": rho}}
+        return run
 
     def _covariance(self, run: dict[str, Any], values: Any, problem: Problem) -> tuple[FloatArray, str]:
         import gtsam

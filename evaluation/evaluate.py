@@ -427,8 +427,9 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
-    """How often a sensor model was refitted to a trial's own data (a second pass of the
-    filter, the record's ``refit``, which holds the parameters the refit changed) and what
+    """How often a sensor model (or an estimator: the smoother's ``place_correlation``) was
+    refitted to a trial's own data (a second pass, the record's ``refit``, which holds the
+    parameters the refit changed: ``sensor_model_params`` or ``params``) and what
     it fitted: ``{"trials", "of", "params"}``, ``params`` per numeric parameter a refit
     changed (e.g. ``place_correlation``) the trials that changed it (``n``) and the median,
     10th and 90th percentile of its fitted values. None when no record was refitted."""
@@ -437,7 +438,7 @@ def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None
         return None
     values: dict[str, list[float]] = {}
     for ref in refits:
-        for key, v in (ref.get("sensor_model_params") or {}).items():
+        for key, v in {**(ref.get("params") or {}), **(ref.get("sensor_model_params") or {})}.items():
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v)):
                 values.setdefault(key, []).append(float(v))
     params = {key: {"n": len(v), "median": float(np.median(v)), "p10": float(np.percentile(v, 10)),

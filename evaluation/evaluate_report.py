@@ -66,7 +66,7 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
 
 def refit_lines(doc: Mapping[str, Any]) -> list[str]:
     """The section "Models refitted to each trial's data": per estimator, the trials whose
-    sensor model was refitted at a first estimate and the parameters fitted (median and
+    model (a sensor model's, or the smoother's place correlation) was refitted at a first estimate and the parameters fitted (median and
     10-90 % range); empty when none was."""
     rows = _summary_rows(doc, "refit")
     if not rows:
@@ -75,8 +75,9 @@ def refit_lines(doc: Mapping[str, Any]) -> list[str]:
         "Models refitted to each trial's data",
         "A sensor model that refits itself (e.g. the place correlation fitted on a map built from scans, "
         "`refit_correlation`, docs/sensor-models.md) runs the filter a second time with the parameters fitted "
-        "at the first estimate: the trials that did and what they fitted (median, 10-90 %; the trials that "
-        "changed a parameter when not all did).",
+        "at the first estimate, and the smoother solves again from its first answer with its zones weighted "
+        "for their places (docs/gtsam-smoother.md): the trials that did and what they fitted (median, "
+        "10-90 %; the trials that changed a parameter when not all did).",
         ["estimator", "trials refitted", "fitted parameters"],
         [[e, f"{r['trials']}/{r['of']}", fitted_parameters(r)] for e, r in rows])
 

@@ -494,7 +494,7 @@ def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     code, _, err = _run(capsys, ["localize", str(tmp_path / "four" / "drone1-node001.h5"), "--estimator", "likelihood_field_pf",
                                  "--samples", "all", "--param", "n_particles=300"])
     assert code == 0, err
-    assert "note: the sensor model refitted itself to the data at a first estimate in 1 of 1 trial(s) and ran again: " \
+    assert "note: the model refitted itself to the data at a first estimate in 1 of 1 trial(s) and ran again: " \
            "place_correlation 0." in " ".join(err.split()), err
 
 

@@ -452,7 +452,8 @@ def test_indeterminant_system_is_reported_not_raised(easy4, monkeypatch) -> None
     "kw",
     [{"residual": "icp"}, {"robust": "tukey"}, {"information_scale": 1.5}, {"n_starts": 0}, {"gate_m": 0.3},
      {"incremental": "yes"}, {"exact_tip_poses": 1}, {"mocap_sigma_m": 0.0}, {"candidate_spread": 0.5},
-     {"candidate_spread": "2"}],
+     {"candidate_spread": "2"}, {"place_correlation": 1.5}, {"place_correlation": True}, {"place_radius": 0.0},
+     {"refit_correlation": "yes"}],
 )
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):
@@ -619,3 +620,93 @@ def test_an_unknown_robust_kernel_names_the_known_ones(monkeypatch, numba_flag: 
                                     np.zeros(3), None, np.eye(4), "tukey", 1.0, True)):
         with pytest.raises(ValueError, match=r"unknown robust kernel 'tukey', expected one of \('huber', 'cauchy', 'none'\)"):
             call()
+
+
+def _scanned(p: Problem) -> Problem:
+    """``p`` whose map carries a known space (every cell known): a map built from scans."""
+    from tofloc.known_space import KnownSpace
+
+    lo, hi = (np.asarray(b, dtype=float) for b in p.map.bounds())
+    cell = 0.05
+    grid = np.ones((int(np.ceil((hi[0] - lo[0] + 0.4) / cell)), int(np.ceil((hi[1] - lo[1] + 0.4) / cell))), dtype=bool)
+    known = KnownSpace(lo[:2] - 0.2, cell, np.array([lo[2] - 0.1, hi[2] + 0.1]), grid)
+    return dataclasses.replace(p, map=p.map.with_known_space(known))
+
+
+def test_place_weights_scale_each_zones_sigma() -> None:
+    """A zone's weight w divides its information: its sigma grows by 1 / sqrt(w), its gate
+    in sigmas shrinks alike, and weights of 1 give the unweighted association bit for bit;
+    the weights are the sensor models' Kish weights of the zones' places."""
+    from estimators.gtsam_association import associate, measurements, place_points, with_place_weights
+    from sensor_models.base import place_weights
+
+    p, truth = easy_problem(n_samples=3)
+    meas = measurements(p)
+    C = [np.asarray(c, dtype=float) for c in p.T_base_tip]
+    x = np.asarray(truth, dtype=float)
+
+    def at_truth(ms: list[Any]) -> list[Any]:
+        return associate(p, ms, x, C, np.eye(4), 0.05)[0]
+
+    plain = at_truth(meas)
+    ones = at_truth([dataclasses.replace(m, weight=np.ones(m.size)) for m in meas])
+    for a, b in zip(plain, ones):
+        np.testing.assert_array_equal(a.s, b.s)
+        np.testing.assert_array_equal(a.gate_e, b.gate_e)
+    weighted = with_place_weights(p, meas, 0.05, 0.6)
+    expect = place_weights(place_points(p, meas), 0.05, 0.6)
+    assert any(float(np.min(w)) < 1.0 for w in expect)  # later samples re-read earlier places
+    got = at_truth(weighted)
+    for a, b, w, m in zip(plain, got, expect, weighted):
+        np.testing.assert_array_equal(m.weight, w)
+        np.testing.assert_allclose(b.s, a.s / np.sqrt(w), rtol=1e-12)
+        np.testing.assert_allclose(b.gate_e, a.gate_e * np.sqrt(w), rtol=1e-12)
+
+
+def test_refit_correlation_follows_the_map_and_widens_the_covariance(monkeypatch) -> None:
+    """On a map built from scans the smoother fits the place correlation at its first answer
+    (the sensor models' place_correlation_of over its whitened residuals) and, when there is
+    one, solves again with the zones weighted: an answer within a fraction of its sigma, a
+    wider covariance, the fitted value in diagnostics["refit"] (read back by log_target);
+    a simulated problem's independent zones give none, and on a CAD map nothing is fitted;
+    a fixed place_correlation weights every start instead."""
+    from estimators.gtsam_solvers import SmootherGraph
+
+    p, truth = easy_problem(n_samples=4)
+    scanned = _scanned(p)
+    est = GTSAMSmoother(n_starts=2)
+    assert not est.refits(p) and est.refits(scanned)
+    assert not GTSAMSmoother(refit_correlation=True, place_correlation=0.5).refits(scanned)
+    plain = est.estimate(p, np.random.default_rng(0))
+    assert "refit" not in plain.diagnostics
+    off = GTSAMSmoother(n_starts=2, refit_correlation=False).estimate(scanned, np.random.default_rng(0))
+    np.testing.assert_array_equal(off.pose, plain.pose)
+    # a base held 1.5 cm off: every place's residuals share a sign (a high correlation)
+    graph = SmootherGraph(est, scanned)
+    start = np.asarray(truth, dtype=float) + np.array([0.015, 0.0, 0.0])
+    run = graph.solve_batch(est.weighted_measurements(scanned), start, fix_base=True)
+    rho_off = est.fitted_place_correlation(scanned, graph, run)
+    assert rho_off is not None and 0.5 < rho_off <= 1.0
+    # at its answer the simulated zones' residuals are independent: nothing fitted, the same answer
+    graph = SmootherGraph(est, scanned)
+    at_answer = graph.solve_batch(est.weighted_measurements(scanned), plain.pose, fix_base=True)
+    assert est.fitted_place_correlation(scanned, graph, at_answer) is None
+    same = est.estimate(scanned, np.random.default_rng(0))
+    assert "refit" not in same.diagnostics
+    np.testing.assert_array_equal(same.pose, plain.pose)
+    # with a correlation fitted: the second solve from the first answer
+    monkeypatch.setattr(GTSAMSmoother, "fitted_place_correlation", lambda self, *a: 0.6)
+    refit = est.estimate(scanned, np.random.default_rng(0))
+    assert refit.diagnostics["refit"]["params"] == {"place_correlation": 0.6}
+    np.testing.assert_allclose(refit.diagnostics["refit"]["first_pose"], plain.pose, atol=1e-12)
+    assert np.all(np.diag(refit.covariance) > 1.2 * np.diag(plain.covariance))
+    d = refit.pose - plain.pose
+    assert abs(d[0]) < math.sqrt(plain.covariance[0, 0]) and abs(d[1]) < math.sqrt(plain.covariance[1, 1])
+    best = refit.diagnostics["best_start"]
+    np.testing.assert_allclose(refit.diagnostics["starts"][best]["pose"], refit.pose, atol=1e-12)  # its mode is the answer
+    poses = np.asarray(truth, dtype=float)[None] + np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    np.testing.assert_allclose(est.log_target(scanned, poses, refit),
+                               GTSAMSmoother(n_starts=2, place_correlation=0.6).log_target(scanned, poses, plain), rtol=1e-12)
+    assert not np.allclose(est.log_target(scanned, poses, refit), est.log_target(scanned, poses, plain))
+    fixed = GTSAMSmoother(n_starts=2, place_correlation=0.7).estimate(p, np.random.default_rng(0))
+    assert "refit" not in fixed.diagnostics and np.all(np.diag(fixed.covariance) > np.diag(plain.covariance))

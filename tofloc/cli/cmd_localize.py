@@ -258,7 +258,7 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
 
     ref = refit_summary(recs)
     if ref is not None:
-        err_console.print(f"note: the sensor model refitted itself to the data at a first estimate in {ref['trials']} of "
+        err_console.print(f"note: the model refitted itself to the data at a first estimate in {ref['trials']} of "
                           f"{ref['of']} trial(s) and ran again: {fitted_parameters(ref)} (see `refit` in --json)",
                           highlight=False, markup=False)
 
