@@ -5,12 +5,17 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_DIR ?= demo-output
 DEMO_TRIALS ?= 2
+# `make real-data`: the README's real-recordings table (ETH Nano_Swarm_Mapping, exp2).
+NANOSWARM ?= ../shared/datasets/eth_nano_swarm_mapping/exp2
+REAL_DIR ?= real-output
+REAL_TRIALS ?= 3
+REAL_ESTIMATORS ?= icp_pf,beam_pf,likelihood_field_pf,gtsam_smoother
 # The suite runs in TEST_WORKERS processes (pytest-xdist), one test file per worker at a
 # time so that a file's module fixtures are built once; TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 PYTEST_WORKERS := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
-.PHONY: demo test test-fast install syslibs clean
+.PHONY: demo real-data test test-fast install syslibs clean
 
 # Open3D links against libusb-1.0 (Debian/Ubuntu package libusb-1.0-0).
 syslibs:
@@ -27,6 +32,18 @@ install: syslibs $(STAMP)
 demo: install
 	$(VENV)/bin/tofloc paper --estimators $$($(VENV)/bin/python -c 'from tofloc.registry import ESTIMATORS; print(",".join(ESTIMATORS.names()))') --trials $(DEMO_TRIALS) --out $(DEMO_DIR)
 
+# Each flight imported once into $(REAL_DIR)/<flight> (kept: a rerun reuses the logs and
+# evaluate's finished batches), then evaluated into $(REAL_DIR)/eval-<flight>.
+real-data: install
+	@test -d "$(NANOSWARM)/four-drones" -a -d "$(NANOSWARM)/two-drones" || { \
+	  echo "real-data: $(NANOSWARM) has no four-drones/ and two-drones/ flight folders (set NANOSWARM=...)"; exit 2; }
+	@for f in four-drones two-drones; do \
+	  if [ ! -d "$(REAL_DIR)/$$f/maps" ]; then \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --out "$(REAL_DIR)/$$f" || exit $$?; fi; \
+	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
+	    --out "$(REAL_DIR)/eval-$$f" || exit $$?; \
+	done
+
 test: install
 	$(PY) -m pytest -q $(PYTEST_WORKERS)
 
@@ -34,4 +51,4 @@ test-fast: install
 	$(PY) -m pytest -q $(PYTEST_WORKERS) -m "not slow"
 
 clean:
-	rm -rf $(VENV) $(DEMO_DIR) .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(DEMO_DIR) $(REAL_DIR) .pytest_cache build *.egg-info

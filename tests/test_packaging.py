@@ -55,3 +55,25 @@ def test_make_test_runs_the_suite_in_worker_processes() -> None:
         assert recipe and "$(PYTEST_WORKERS)" in recipe.group(1), target
     test_extra = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["test"]
     assert any(d.startswith("pytest-xdist") for d in test_extra)
+
+
+def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
+    """`make real-data` imports both exp2 flights (once) and evaluates every built-in
+    estimator on each, as the README's real-recordings section does, and says so."""
+    from tofloc.registry import ESTIMATORS
+
+    make = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^real-data:.*\n((?:\t.*\n)+)", make, flags=re.M)
+    assert recipe
+    body = recipe.group(1)
+    assert "tofloc import nanoswarm" in body and "tofloc evaluate" in body and "--trials $(REAL_TRIALS)" in body
+    assert "for f in four-drones two-drones" in body
+    names = re.search(r"^REAL_ESTIMATORS \?= (.+)$", make, flags=re.M)
+    builtin = {n for n in ESTIMATORS.names() if ESTIMATORS.spec(n).origin == "builtin"}
+    assert names and set(names.group(1).split(",")) == builtin
+    assert re.search(r"^NANOSWARM \?= \.\./shared/datasets/eth_nano_swarm_mapping/exp2$", make, flags=re.M)
+    readme = (ROOT / "README.md").read_text()
+    assert "`make real-data`" in readme
+    cmds = re.findall(r"tofloc evaluate /tmp/ns[24]/\*\.h5 --estimators (\S+) --trials (\d+)", readme)
+    assert cmds and all(e == names.group(1) and int(n) == 3 for e, n in cmds)
+    assert re.search(r"^REAL_TRIALS \?= 3$", make, flags=re.M)
