@@ -75,7 +75,9 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert _seconds(p["dask_2_s"]) and p["dask_speedup"] == pytest.approx(p["workers_1_s"] / p["dask_2_s"])
     assert set(p["trial_s"]) == {"workers_1", "workers_1_one_thread", "workers_2", "dask_2"}
     assert all(_seconds(v) for v in p["trial_s"].values())
-    assert p["contention"] == pytest.approx(p["trial_s"]["workers_2"] / p["trial_s"]["workers_1_one_thread"])
+    assert set(p["setup_s"]) == set(p["trial_s"]) and all(0 <= p["setup_s"][k] < p["trial_s"][k] for k in p["trial_s"])
+    work = {k: p["trial_s"][k] - p["setup_s"][k] for k in p["trial_s"]}
+    assert p["contention"] == pytest.approx(work["workers_2"] / work["workers_1_one_thread"])
     assert p["estimators"] == ["icp_pf"] and p["k_values"] == [1]
     sel = doc["selection"]
     assert _seconds(sel["active_choice_s"]) and sel["candidates"] == 300 and sel["particles"] == 16

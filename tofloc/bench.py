@@ -68,9 +68,11 @@ returns one JSON document:
     and ``scaling`` = ``workers_1_one_thread_s / workers_2_s`` says how the harness scales
     with workers; ``speedup`` says what a user gains over ``--workers 1`` on this machine.
     ``trial_s``: the trials' own time (their ``runtime_s`` and ``setup_s``) summed over
-    each run (``workers_1``, ``workers_1_one_thread``, ``workers_2``, ``dask_2``), and
-    ``contention`` = ``trial_s.workers_2 / trial_s.workers_1_one_thread``: how much slower
-    the same trials run when two workers share the machine (1: not at all); what the
+    each run (``workers_1``, ``workers_1_one_thread``, ``workers_2``, ``dask_2``), of which
+    ``setup_s`` (the same keys) is the set-up each worker pays once per estimator (warm-up
+    estimate, per-map caches, kernels: two workers pay it twice), and ``contention`` = the
+    trials' work without it, ``workers_2`` over ``workers_1_one_thread``: how much slower
+    the same estimates run when two workers share the machine (1: not at all); what the
     wall times add beyond ``trial_s`` is the run's serial part and the workers' start.
 """
 
@@ -309,6 +311,7 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
     from tofloc import api, map_cache
 
     trial_s: dict[str, float] = {}
+    setup_s: dict[str, float] = {}
 
     def run(out: str, workers: int = 1, scheduler: Any = None, label: str = "workers_1") -> float:
         """One timed run from empty result and map caches (local workers, or a Dask client);
@@ -319,7 +322,8 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
         api.paper(list(estimators), out=out, trials=trials, k_values=list(k_values), tip_sources=("mocap",),
                   prior_modes=("paper",), calibrate=False, workers=workers, scheduler=scheduler)
         wall = time.perf_counter() - t0
-        trial_s[label] = _trial_seconds(os.path.join(out, "partial"))
+        work, setup = _trial_seconds(os.path.join(out, "partial"))
+        trial_s[label], setup_s[label] = work + setup, setup
         return wall
 
     def run_one_thread(out: str) -> float:
@@ -353,21 +357,25 @@ def bench_parallel(estimators: Sequence[str], trials: int, k_values: Sequence[in
     return {"workers_1_s": one, "workers_2_s": two, "speedup": one / two,
             "workers_1_one_thread_s": one_thread, "scaling": one_thread / two,
             "dask_2_s": dask_two, "dask_speedup": None if dask_two is None else one / dask_two,
-            "trial_s": trial_s, "contention": trial_s["workers_2"] / trial_s["workers_1_one_thread"],
+            "trial_s": trial_s, "setup_s": setup_s,
+            "contention": ((trial_s["workers_2"] - setup_s["workers_2"])
+                           / (trial_s["workers_1_one_thread"] - setup_s["workers_1_one_thread"])),
             "estimators": list(estimators), "trials": int(trials), "k_values": [int(k) for k in k_values]}
 
 
-def _trial_seconds(partial_dir: str) -> float:
-    """The trials' own time (``work_s``, or ``runtime_s`` where a record has none, plus
-    ``setup_s``; nested trials' answers read off one pass count each their increment)
-    summed over every record a ``paper`` run left in its ``partial`` folder."""
-    total = 0.0
+def _trial_seconds(partial_dir: str) -> tuple[float, float]:
+    """The trials' own work (``work_s``, or ``runtime_s`` where a record has none; nested
+    trials' answers read off one pass count each their increment) and their set-up
+    (``setup_s``, a worker's once per estimator), each summed over every record a ``paper``
+    run left in its ``partial`` folder."""
+    work = setup = 0.0
     for name in sorted(os.listdir(partial_dir)):
         if name.endswith(".json"):
             with open(os.path.join(partial_dir, name), encoding="utf-8") as fh:
                 for rec in json.load(fh)["records"]:
-                    total += float(rec.get("work_s", rec["runtime_s"])) + float(rec.get("setup_s") or 0.0)
-    return total
+                    work += float(rec.get("work_s", rec["runtime_s"]))
+                    setup += float(rec.get("setup_s") or 0.0)
+    return work, setup
 
 
 def bench_active_choice(problem: Any, candidates: int = 300, repeat: int = 5, measured: int = 4) -> dict[str, Any]:
@@ -536,7 +544,8 @@ def run_bench(
     rep.note(f"paper run: 1 worker {par['workers_1_s']:.1f} s, 2 workers {par['workers_2_s']:.1f} s ({par['speedup']:.2f}x); "
              f"1 worker on one thread {par['workers_1_one_thread_s']:.1f} s ({par['scaling']:.2f}x)"
              + ("" if par["dask_2_s"] is None else f", Dask 2 single-threaded workers {par['dask_2_s']:.1f} s ({par['dask_speedup']:.2f}x)")
-             + f"; the trials' own time {par['trial_s']['workers_1_one_thread']:.1f} s on one thread, "
-             f"{par['trial_s']['workers_2']:.1f} s on 2 workers ({par['contention']:.2f}x)")
+             + f"; the trials' own time {par['trial_s']['workers_1_one_thread']:.1f} s on one thread "
+             f"(set-up {par['setup_s']['workers_1_one_thread']:.1f} s), {par['trial_s']['workers_2']:.1f} s on "
+             f"2 workers (set-up {par['setup_s']['workers_2']:.1f} s): without the set-up {par['contention']:.2f}x")
     tick()
     return doc
