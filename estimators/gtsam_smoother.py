@@ -80,6 +80,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -371,8 +372,8 @@ class GTSAMSmoother(Estimator):
         One solve per pose (a failed trial's few, not a hot path); ``estimate``'s other
         variables are not needed (they are optimized again)."""
         graph = SmootherGraph(self, problem)
-        refit = estimate.diagnostics.get("refit") if isinstance(estimate.diagnostics, dict) else None
-        rho = (refit.get("params") or {}).get("place_correlation") if isinstance(refit, dict) else None
+        refit = estimate.diagnostics.get("refit") if isinstance(estimate.diagnostics, Mapping) else None
+        rho = (refit.get("params") or {}).get("place_correlation") if isinstance(refit, Mapping) else None
         meas0 = self.weighted_measurements(problem, float(rho) if isinstance(rho, (int, float)) else None)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         out = np.full(P.shape[0], -np.inf)
