@@ -79,8 +79,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -89,9 +89,9 @@ from numpy.typing import NDArray
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, whitened_residuals, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
+from sensor_models.base import check_bool_or_auto
 from tofloc import frames
 from tofloc.errors import ParameterError
-from sensor_models.base import check_bool_or_auto
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 from tofloc.threads import kdtree_workers
 
