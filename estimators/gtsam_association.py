@@ -27,8 +27,7 @@ from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
-__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma", "place_points", "with_place_weights",
-           "whitened_residuals"]
+__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma", "place_points", "with_place_weights"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
@@ -221,17 +220,3 @@ def with_place_weights(problem: Problem, meas: list[SampleMeasurement], radius: 
     w = place_weights(place_points(problem, meas), radius, rho)
     return [dataclasses.replace(m, weight=wk) for m, wk in zip(meas, w)]
 
-
-def whitened_residuals(problem: Problem, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray],
-                       D: FloatArray, bias: FloatArray | None = None) -> list[FloatArray]:
-    """Per sample, each zone's distance to its associated plane at the base pose
-    ``xyyaw``, the configurations ``C`` and the support correction ``D``, in its own sigma
-    (signed, along the plane's normal; what both residual kinds whiten to); NaN for the
-    zones the gate left out."""
-    T_mb = problem.prior.T_map_base(xyyaw)
-    out = []
-    for k, m in enumerate(meas):  # per sample (K <= a few tens), vectorized over zones
-        p = frames.transform_points(T_mb @ C[k] @ D, m.points(bias))
-        r = np.einsum("ni,ni->n", m.n, p - m.q) / m.s
-        out.append(np.where(m.inlier, r, np.nan))
-    return out

@@ -86,7 +86,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.gtsam_association import RESIDUALS, measurements, place_points, whitened_residuals, with_place_weights
+from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import check_bool_or_auto
@@ -313,9 +313,7 @@ class GTSAMSmoother(Estimator):
         (:func:`sensor_models.base.place_correlation_of`; None below 0.05 or without pairs)."""
         from sensor_models.base import place_correlation_of
 
-        values = run["values"]
-        xyyaw, C, D = graph.read(values, problem.n_samples)
-        res = whitened_residuals(problem, run["meas"], xyyaw, C, D, graph.bias(values))
+        res = graph.whitened_residuals(run["meas"], run["values"])
         return place_correlation_of(res, place_points(problem, run["meas"]), self.place_radius)
 
     def starts(self, problem: Problem, meas: list[SampleMeasurement], rng: np.random.Generator) -> FloatArray:

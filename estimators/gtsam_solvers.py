@@ -192,6 +192,18 @@ class SmootherGraph:
         self.association_s += time.perf_counter() - t0
         return out
 
+    def whitened_residuals(self, meas: list[SampleMeasurement], values: Any) -> list[FloatArray]:
+        """Per sample, each zone's point-to-plane residual in its own sigma at ``values``
+        (the zone factors' own arithmetic, :meth:`SampleMeasurement.evaluate`, without a
+        robust kernel); NaN for the zones the gate left out."""
+        xyyaw, C, D = self.read(values, len(meas))
+        bias = self.bias(values)
+        out = []
+        for k, m in enumerate(meas):  # per sample (K <= a few tens), vectorized over zones
+            e = m.evaluate(xyyaw, self.problem.prior.z, self.R_tilt, C[k], D, "none", 1.0, jacobians=False, bias=bias)[0]
+            out.append(np.where(m.inlier, e, np.nan))
+        return out
+
     def timing(self) -> dict[str, float | int]:
         """Where this graph's solves spent their time so far (s): ``association`` (the data
         association rounds), ``factor_callbacks`` (inside the zone factors' Python

@@ -663,6 +663,31 @@ def test_place_weights_scale_each_zones_sigma() -> None:
         np.testing.assert_allclose(b.gate_e, a.gate_e * np.sqrt(w), rtol=1e-12)
 
 
+def test_whitened_residuals_are_each_zones_distance_to_its_plane_in_its_sigma() -> None:
+    """The residuals the place correlation is fitted from: n . (p - q) / s of every inlier
+    zone at the solve's values (the zone factors' arithmetic without a robust kernel),
+    computed here by hand; NaN where the gate left a zone out; a base 1.5 cm off moves them."""
+    from estimators.gtsam_solvers import SmootherGraph
+
+    p, truth = easy_problem(n_samples=3)
+    est = GTSAMSmoother(n_starts=1)
+    graph = SmootherGraph(est, p)
+    x = np.asarray(truth, dtype=float) + np.array([0.015, 0.0, 0.0])
+    run = graph.solve_batch(est.weighted_measurements(p), x, fix_base=True)
+    got = graph.whitened_residuals(run["meas"], run["values"])
+    xyyaw, C, D = graph.read(run["values"], p.n_samples)
+    T_mb = p.prior.T_map_base(xyyaw)
+    for k, m in enumerate(run["meas"]):
+        pts = frames.transform_points(T_mb @ C[k] @ D, m.points(graph.bias(run["values"])))
+        want = np.where(m.inlier, np.einsum("ni,ni->n", m.n, pts - m.q) / m.s, np.nan)
+        np.testing.assert_allclose(got[k], want, rtol=1e-9, atol=1e-12)
+        assert np.isnan(got[k][~m.inlier]).all() and np.isfinite(got[k][m.inlier]).all()
+    at_truth = graph.solve_batch(est.weighted_measurements(p), np.asarray(truth, dtype=float), fix_base=True)
+    rms = [float(np.sqrt(np.nanmean(np.concatenate(graph.whitened_residuals(r["meas"], r["values"])) ** 2)))
+           for r in (run, at_truth)]
+    assert rms[0] > 2.0 * rms[1], rms  # held 1.5 cm off, the zones sit farther from their planes
+
+
 def test_refit_correlation_follows_the_map_and_widens_the_covariance(monkeypatch) -> None:
     """On a map built from scans the smoother fits the place correlation at its first answer
     (the sensor models' place_correlation_of over its whitened residuals) and, when there is
