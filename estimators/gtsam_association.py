@@ -206,7 +206,7 @@ def associate(
 def place_points(problem: Problem, meas: list[SampleMeasurement]) -> list[FloatArray]:
     """Per sample, its valid zones' points ``(N_k, 3)`` in the base frame at the given
     configurations: the places of the smoother's ``place_correlation`` (as the particle
-    filters' sensor models place their end points)."""
+    filters' sensor models place their end points) and the points its starts are scored by."""
     return [frames.transform_points(np.asarray(problem.T_base_tip[k], dtype=float), m.p_tip) for k, m in enumerate(meas)]
 
 

@@ -333,7 +333,7 @@ class GTSAMSmoother(Estimator):
         cand = np.vstack([prior.mean[None], draws])
         if cand.shape[0] <= 1:
             return cand
-        p_b = np.concatenate([m.p_tip @ problem.T_base_tip[k][:3, :3].T + problem.T_base_tip[k][:3, 3] for k, m in enumerate(meas)])
+        p_b = np.concatenate(place_points(problem, meas))  # the zones in the base frame at the given configurations
         if p_b.shape[0] > 400:
             p_b = p_b[np.linspace(0, p_b.shape[0] - 1, 400).astype(np.intp)]
         T = prior.T_map_base(cand)  # (M, 4, 4)
