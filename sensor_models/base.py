@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
-__all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights"]
+__all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights", "direction_places"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -146,6 +146,25 @@ def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) 
         out.append(1.0 / (1.0 + rho * np.asarray(n, dtype=float)))
         seen = np.vstack([seen, xy])
     return out
+
+
+def direction_places(dirs: NDArray[np.float64], mask: NDArray[np.bool_], zone_width: NDArray[np.float64],
+                     radius: float) -> list[NDArray[np.float64]]:
+    """Places for readings without an end point (a zone with no return): per sample ``k``
+    the masked zones' directions, ``dirs`` ``(K, S, Z, 3)`` in the base frame at the
+    configurations, as points ``(P_k, 3)`` at ``radius / (zone_width[s] / 2)`` along their
+    unit direction in the plane (z = 0), ``zone_width`` ``(S,)`` each sensor's zone angle
+    (rad). Two such points lie within ``radius`` of each other when their directions are
+    within about half a zone of each other: zones whose footprints mostly overlap, as
+    :func:`place_weights` reads them (the beam model's no-return zones,
+    docs/sensor-models.md, "Correlated places")."""
+    d = np.asarray(dirs, dtype=float)[..., :2]
+    n = np.linalg.norm(d, axis=-1, keepdims=True)
+    scale = float(radius) / (0.5 * np.asarray(zone_width, dtype=float))  # (S,)
+    xy = np.where(n > 1e-12, d / np.maximum(n, 1e-12), 0.0) * scale[None, :, None, None]
+    pts = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+    m = np.asarray(mask, dtype=bool)
+    return [pts[k][m[k]] for k in range(pts.shape[0])]
 
 
 def place_correlation_of(residuals: list[NDArray[np.float64]], points: list[NDArray[np.float64]],

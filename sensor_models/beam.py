@@ -68,6 +68,7 @@ from sensor_models.base import (
     SensorModel,
     check_bool_or_auto,
     declared_state,
+    direction_places,
     place_weights,
     reference_pose,
 )
@@ -76,6 +77,7 @@ from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Problem, check_in, check_int
 from tofloc.range_model import RangeUncertainty, edge_zone_mask
+from tofloc.rig import zone_widths
 from tofloc.toml_tables import params_from_table, params_from_toml
 from tofloc.zone_caster import FOOTPRINT_PIECE_BYTES, PlanarZoneRays, ZoneCaster
 
@@ -274,7 +276,9 @@ class BeamModel(SensorModel):
         In [0, 1]: each valid zone's log-probability weighted by ``1 / (1 + n rho)``, ``n``
         the readings of earlier samples within ``place_radius`` of its end
         point in the base frame (:func:`sensor_models.base.place_weights`, as the
-        likelihood field's; docs/sensor-models.md, "Correlated places"). 0 (the default):
+        likelihood field's; docs/sensor-models.md, "Correlated places"), and each zone with
+        no return likewise, ``n`` the earlier samples' no-return zones looking within about
+        half a zone of its direction (:func:`sensor_models.base.direction_places`). 0 (the default):
         the product of independent zones. With it the zones are scored by the numpy path
         (about 3x the fused kernel's time).
     place_radius : float
@@ -401,6 +405,15 @@ class BoundBeamModel(BoundSensorModel):
             self.zone_weights = np.ones(self.valid.shape)
             for k in range(self.n_steps):
                 self.zone_weights[k][self.valid[k]] = w[k]
+            # a zone with no return is evidence too (no wall within range, or a gap), met
+            # again by every later sample that looks the same way: weighted alike
+            if self.no_return.any():
+                dirs = np.einsum("kij,szj->kszi", T_lift_tip[:, :3, :3], self.zone_dirs_tip)
+                w_none = place_weights(direction_places(dirs, self.no_return, zone_widths(problem.rig), model.place_radius),
+                                       model.place_radius, model.place_correlation)
+                for k in range(self.n_steps):
+                    if w_none[k] is not None:
+                        self.zone_weights[k][self.no_return[k]] = w_none[k]
 
     def temporaries_per_state(self) -> int:
         """Bytes of temporaries per state: the zones' (:data:`~sensor_models.base.TEMP_BYTES_PER_ZONE`

@@ -404,7 +404,8 @@ def test_place_correlation_weighs_each_zone_by_its_place() -> None:
     plain, weighted = BeamModel().bind(p), BeamModel(place_correlation=0.5).bind(p)
     assert plain.zone_weights is None
     W = weighted.zone_weights
-    assert W.shape == p.valid.shape and np.all(W[~p.valid] == 1.0) and W[p.valid].min() < 1.0
+    no_ret = (p.status == NO_TARGET_STATUS) & ~p.valid
+    assert W.shape == p.valid.shape and np.all(W[~p.valid & ~no_ret] == 1.0) and W[p.valid].min() < 1.0
     T = p.prior.T_map_base(np.zeros(3))[None] @ p.T_base_tip  # (K, 4, 4): the base frame at the configurations
     tip = p.rig.points_in_tip(np.where(p.valid, p.distance_m, np.nan))  # (K, S, Z, 3)
     pts = np.stack([tip[k] @ T[k, :3, :3].T + T[k, :3, 3] for k in range(3)])  # written out, not the model's helper
@@ -418,6 +419,57 @@ def test_place_correlation_weighs_each_zone_by_its_place() -> None:
     check_model_scores_a_prefix_as_the_whole(BeamModel(place_correlation=1.0))
     with pytest.raises(ParameterError, match="beam.place_correlation"):
         BeamModel(place_correlation=-0.1)
+
+
+def test_direction_places_meet_within_half_a_zone() -> None:
+    """Two no-return zones share a place when their directions in the plane are within
+    about half a zone's angle of each other (sensor_models.base.direction_places)."""
+    from sensor_models.base import direction_places, place_weights
+    from tofloc.rig import zone_widths
+
+    w = math.radians(5.625)
+    assert zone_widths(easy_problem()[0].rig) == pytest.approx(w)
+
+    def unit(deg: float) -> list[float]:
+        return [math.cos(math.radians(deg)), math.sin(math.radians(deg)), 0.3]  # z is ignored
+
+    dirs = np.array([[[unit(10.0), unit(40.0)]], [[unit(10.0 + 0.45 * 5.625), unit(40.0 + 0.6 * 5.625)]]])  # (K=2, S=1, Z=2, 3)
+    places = direction_places(dirs, np.ones((2, 1, 2), bool), np.array([w]), 0.05)
+    assert [q.shape for q in places] == [(2, 3), (2, 3)] and np.all(places[0][:, 2] == 0.0)
+    np.testing.assert_allclose(np.hypot(places[0][:, 0], places[0][:, 1]), 0.05 / (w / 2))
+    weights = place_weights(places, 0.05, 0.8)
+    np.testing.assert_allclose(weights[0], [1.0, 1.0])  # the first sample counts fully
+    np.testing.assert_allclose(weights[1], [1.0 / 1.8, 1.0])  # 0.45 of a zone apart: the same place; 0.6: not
+    # masked zones are left out, sample by sample
+    only = direction_places(dirs, np.array([[[True, False]], [[False, False]]]), np.array([w]), 0.05)
+    assert [q.shape[0] for q in only] == [1, 0]
+
+
+def test_no_return_zones_are_weighted_by_their_direction() -> None:
+    """With place_correlation, a zone with no return that an earlier sample's no-return zone
+    saw the same way (same configuration, same zone) weighs 1 / (1 + rho); one looking
+    elsewhere weighs 1; the valid zones' weights are those of their end points alone."""
+    import dataclasses
+
+    from sensor_models.base import place_weights
+
+    p, truth = easy_problem(n_samples=3)
+    T = np.array(p.T_base_tip)
+    T[1] = T[0]  # sample 1 looks exactly as sample 0 does
+    status = np.array(p.status)
+    dist = np.array(p.distance_m)
+    for k, z in ((0, 0), (1, 0), (1, 7), (2, 0)):  # sensor 0: zone 0 (row 0, col 0) and zone 7 (row 0, col 7)
+        status[k, 0, z] = NO_TARGET_STATUS
+        dist[k, 0, z] = np.nan
+    q = dataclasses.replace(p, T_base_tip=T, status=status, distance_m=dist)
+    rho = 0.6
+    W = BeamModel(place_correlation=rho).bind(q).zone_weights
+    assert W[0, 0, 0] == 1.0 and W[1, 0, 7] == 1.0  # first seen / looking 39 deg away from zone 0
+    assert W[1, 0, 0] == pytest.approx(1.0 / (1.0 + rho))
+    valid_only = place_weights(BeamModel(place_correlation=rho).bind(q).place_points, 0.05, rho)
+    for k in range(3):
+        np.testing.assert_allclose(W[k][q.valid[k]], valid_only[k])
+    assert BeamModel().bind(q).zone_weights is None  # rho = 0: every zone counts 1
 
 
 def test_refit_correlation_fits_the_places_residual_correlation() -> None:

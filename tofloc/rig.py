@@ -40,6 +40,7 @@ __all__ = [
     "default_zone_directions",
     "valid_mask",
     "edge_zone_mask",
+    "zone_widths",
 ]
 
 #: ``target_status`` values counted as valid by default (ST: 5 = valid, 9 = valid with a
@@ -66,6 +67,13 @@ def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float])
     a_col = (cols.ravel() - (C - 1) / 2.0) * f_cols / C
     a_row = (rows.ravel() - (R - 1) / 2.0) * f_rows / R
     return np.stack([np.tan(a_col), np.tan(a_row), np.ones(R * C)], axis=-1)
+
+
+def zone_widths(rig: "Rig") -> NDArray[np.float64]:
+    """``(S,)``: each sensor's zone angle in radians, the smaller side of a zone
+    (``min(fov_rows / rows, fov_cols / cols)``: 5.625 deg for a VL53L5CX's 8x8 grid and for
+    the nano-swarm decks' column zones)."""
+    return np.array([math.radians(min(s.fov_deg[0] / s.resolution[0], s.fov_deg[1] / s.resolution[1])) for s in rig.sensors])
 
 
 def edge_zone_mask(rig: "Rig") -> NDArray[np.bool_]:
