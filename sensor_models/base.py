@@ -152,16 +152,18 @@ def direction_places(dirs: NDArray[np.float64], mask: NDArray[np.bool_], zone_wi
                      radius: float) -> list[NDArray[np.float64]]:
     """Places for readings without an end point (a zone with no return): per sample ``k``
     the masked zones' directions, ``dirs`` ``(K, S, Z, 3)`` in the base frame at the
-    configurations, as points ``(P_k, 3)`` at ``radius / (zone_width[s] / 2)`` along their
-    unit direction in the plane (z = 0), ``zone_width`` ``(S,)`` each sensor's zone angle
-    (rad). Two such points lie within ``radius`` of each other when their directions are
-    within about half a zone of each other: zones whose footprints mostly overlap, as
-    :func:`place_weights` reads them (the beam model's no-return zones,
-    docs/sensor-models.md, "Correlated places")."""
-    d = np.asarray(dirs, dtype=float)[..., :2]
+    configurations, as points ``(P_k, 3)``: the unit direction's x, y times
+    ``radius / (zone_width[s] / 2)``, z = 0, with ``zone_width`` ``(S,)`` each sensor's zone
+    angle (rad). Two horizontal directions within about half a zone of each other lie
+    within ``radius`` (zones whose footprints mostly overlap, as :func:`place_weights`
+    reads them); an inclined direction comes nearer the centre by the cosine of its
+    elevation, so that rays looking up or down share a place and one looking 60 deg up is
+    far from a horizontal one (the beam model's no-return zones, docs/sensor-models.md,
+    "Zones with no return")."""
+    d = np.asarray(dirs, dtype=float)
     n = np.linalg.norm(d, axis=-1, keepdims=True)
     scale = float(radius) / (0.5 * np.asarray(zone_width, dtype=float))  # (S,)
-    xy = np.where(n > 1e-12, d / np.maximum(n, 1e-12), 0.0) * scale[None, :, None, None]
+    xy = (d / np.maximum(n, 1e-12))[..., :2] * scale[None, :, None, None]
     pts = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
     m = np.asarray(mask, dtype=bool)
     return [pts[k][m[k]] for k in range(pts.shape[0])]

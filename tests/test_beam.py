@@ -430,8 +430,9 @@ def test_direction_places_meet_within_half_a_zone() -> None:
     w = math.radians(5.625)
     assert zone_widths(easy_problem()[0].rig) == pytest.approx(w)
 
-    def unit(deg: float) -> list[float]:
-        return [math.cos(math.radians(deg)), math.sin(math.radians(deg)), 0.3]  # z is ignored
+    def unit(deg: float, up_deg: float = 0.0) -> list[float]:
+        c = math.cos(math.radians(up_deg))
+        return [2 * c * math.cos(math.radians(deg)), 2 * c * math.sin(math.radians(deg)), 2 * math.sin(math.radians(up_deg))]  # length 2: normalized
 
     dirs = np.array([[[unit(10.0), unit(40.0)]], [[unit(10.0 + 0.45 * 5.625), unit(40.0 + 0.6 * 5.625)]]])  # (K=2, S=1, Z=2, 3)
     places = direction_places(dirs, np.ones((2, 1, 2), bool), np.array([w]), 0.05)
@@ -443,6 +444,10 @@ def test_direction_places_meet_within_half_a_zone() -> None:
     # masked zones are left out, sample by sample
     only = direction_places(dirs, np.array([[[True, False]], [[False, False]]]), np.array([w]), 0.05)
     assert [q.shape[0] for q in only] == [1, 0]
+    # elevation counts: straight up and nearly straight up share a place; 60 deg up is not level
+    tilted = np.array([[[unit(10.0, 90.0), unit(40.0)]], [[unit(100.0, 88.0), unit(40.0, 60.0)]]])
+    weights = place_weights(direction_places(tilted, np.ones((2, 1, 2), bool), np.array([w]), 0.05), 0.05, 0.8)
+    np.testing.assert_allclose(weights[1], [1.0 / 1.8, 1.0])
 
 
 def test_no_return_zones_are_weighted_by_their_direction() -> None:
