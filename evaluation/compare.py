@@ -19,7 +19,7 @@ import numpy as np
 
 from tofloc.errors import FormatError
 
-__all__ = ["Series", "ResultsFile", "load_results", "checked_name", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
+__all__ = ["Series", "ResultsFile", "load_results", "checked_name", "checked_number", "checked_stats", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
            "MAX_RESULTS_BYTES"]
 
 #: Largest results file read (bytes): a localize file of 100 000 trials is ~60 MB.
@@ -67,31 +67,11 @@ class ResultsFile:
 
 
 def _stat(d: Any, path: Path, where: str) -> dict[str, float | None]:
-    if d is None:
-        return {k: None for k in _STATS}
-    if not isinstance(d, Mapping):
-        raise FormatError(path, where, "an object with mean, std, median, rmse", type(d).__name__)
-    out: dict[str, float | None] = {}
-    for k in _STATS:
-        v = d.get(k)
-        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v)):
-            raise FormatError(path, f"{where}.{k}", "a finite number or null", repr(v)[:40])
-        out[k] = None if v is None else float(v)
-    return out
+    return checked_stats(d, path, where, _STATS)
 
 
 def _crlb(d: Any, path: Path, where: str) -> dict[str, float | None] | None:
-    if d is None:
-        return None
-    if not isinstance(d, Mapping):
-        raise FormatError(path, where, "an object with position_m and yaw_deg", type(d).__name__)
-    out: dict[str, float | None] = {}
-    for k in ("position_m", "yaw_deg"):
-        v = d.get(k)
-        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0):
-            raise FormatError(path, f"{where}.{k}", "a finite number >= 0 or null", repr(v)[:40])
-        out[k] = None if v is None else float(v)
-    return out
+    return None if d is None else checked_stats(d, path, where, ("position_m", "yaw_deg"), nonnegative=True)
 
 
 def _entry(d: Any, path: Path, where: str) -> dict[str, Any]:
@@ -114,6 +94,31 @@ def checked_name(v: Any, path: Path, where: str) -> str:
     if not isinstance(v, str) or not v or len(v) > 200:
         raise FormatError(path, where, "a name (a non-empty string of at most 200 characters)", repr(v)[:40])
     return v
+
+
+def checked_number(v: Any, path: Path, where: str, *, positive: bool = False, nonnegative: bool = False,
+                   null: bool = True) -> float | None:
+    """``v`` as a float when it is a finite number (``> 0`` with ``positive``, ``>= 0`` with
+    ``nonnegative``), or None when it is null and ``null`` allows it; FormatError naming
+    ``path``, ``where`` and what was expected otherwise."""
+    if v is None and null:
+        return None
+    if (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (positive and v <= 0)
+            or (nonnegative and v < 0)):
+        expected = "a finite number > 0" if positive else "a finite number >= 0" if nonnegative else "a finite number"
+        raise FormatError(path, where, expected + (" or null" if null else ""), repr(v)[:40])
+    return float(v)
+
+
+def checked_stats(d: Any, path: Path, where: str, keys: Sequence[str], *, nonnegative: bool = False
+                  ) -> dict[str, float | None]:
+    """An object of statistics read back: each of ``keys`` a finite number or null
+    (:func:`checked_number`); null (or a missing object) gives None for every key."""
+    if d is None:
+        return {k: None for k in keys}
+    if not isinstance(d, Mapping):
+        raise FormatError(path, where, f"an object with {', '.join(keys)}", type(d).__name__)
+    return {k: checked_number(d.get(k), path, f"{where}.{k}", nonnegative=nonnegative) for k in keys}
 
 
 def load_results(path: str | Path) -> ResultsFile:

@@ -10,11 +10,13 @@ file, the key and what was expected, never a traceback from deep inside a plot.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from evaluation.compare import checked_name as _name
+from evaluation.compare import checked_number as _number
+from evaluation.compare import checked_stats as _stats
+from evaluation.evaluate_report import changed_text
 from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
 
@@ -32,15 +34,6 @@ def is_evaluate_document(doc: Mapping[str, Any]) -> bool:
     return all(k in doc for k in ("logs", "summary", "oracle_summary", "failure"))
 
 
-def _number(v: Any, p: Path, where: str, *, positive: bool = False, null: bool = True) -> float | None:
-    if v is None and null:
-        return None
-    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (positive and v <= 0):
-        expected = "a finite number > 0" if positive else "a finite number"
-        raise FormatError(p, where, expected + (" or null" if null else ""), repr(v)[:40])
-    return float(v)
-
-
 def _count(v: Any, p: Path, where: str, low: int = 0) -> int:
     if not isinstance(v, int) or isinstance(v, bool) or v < low:
         raise FormatError(p, where, f"an integer >= {low}", repr(v)[:40])
@@ -51,13 +44,6 @@ def _mapping(v: Any, p: Path, where: str, what: str) -> Mapping[str, Any]:
     if not isinstance(v, Mapping):
         raise FormatError(p, where, what, type(v).__name__)
     return v
-
-
-def _stats(v: Any, p: Path, where: str, keys: Sequence[str]) -> dict[str, float | None]:
-    if v is None:
-        return {k: None for k in keys}
-    d = _mapping(v, p, where, f"an object with {', '.join(keys)}")
-    return {k: _number(d.get(k), p, f"{where}.{k}") for k in keys}
 
 
 def _summary(v: Any, p: Path, where: str) -> dict[str, Any]:
@@ -202,8 +188,7 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
             if c is None:
                 text = "not recorded (a file of an earlier version)"
             else:
-                parts = [f"{e}: " + ("defaults unknown" if kv is None else ", ".join(f"`{k} = {v!r}`" for k, v in kv.items()))
-                         for e, kv in c.items() if kv is None or kv]
+                parts = [f"{e}: {changed_text(kv)}" for e, kv in c.items() if kv is None or kv]
                 text = "; ".join(parts) if parts else "none (every estimator with its defaults)"
             lines.append(f"* {lab}: {text}")
     lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "truth_sentence", "params_sentence", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+__all__ = ["table_markdown", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
            "errors_by_log_figure", "format_or_na", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
@@ -143,6 +143,14 @@ def truth_sentence(doc: Mapping[str, Any]) -> str:
             "NEES vs exact truth takes the truth as exact.")
 
 
+def changed_text(changed: Mapping[str, Any] | None) -> str:
+    """An estimator's parameters not at their defaults as ```key = value``` items, or what
+    to say when its defaults are unknown (None: its class needs parameters)."""
+    if changed is None:
+        return "its defaults unknown (its class needs parameters)"
+    return ", ".join(f"`{k} = {x!r}`" for k, x in changed.items())
+
+
 def params_sentence(doc: Mapping[str, Any]) -> list[str]:
     """One line (a list of at most one) naming every parameter an estimator of the run had
     that differs from its default (``estimators.NAME.changed``, from
@@ -151,9 +159,7 @@ def params_sentence(doc: Mapping[str, Any]) -> list[str]:
     ests = doc.get("estimators") or {}
     if not ests or any("changed" not in (v or {}) for v in ests.values()):
         return []
-    parts = [f"{name}: " + ("its defaults unknown (its class needs parameters)" if v["changed"] is None else
-                            ", ".join(f"`{k} = {x!r}`" for k, x in v["changed"].items()))
-             for name, v in ests.items() if v["changed"] is None or v["changed"]]
+    parts = [f"{name}: {changed_text(v['changed'])}" for name, v in ests.items() if v["changed"] is None or v["changed"]]
     if not parts:
         return ["Every estimator ran with its defaults (`config.toml` beside this file lists them)."]
     return ["Parameters not at their defaults: " + "; ".join(parts) + " (`config.toml` beside this file lists them all)."]

@@ -77,3 +77,23 @@ def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     cmds = re.findall(r"tofloc evaluate /tmp/ns[24]/\*\.h5 --estimators (\S+) --trials (\d+)", readme)
     assert cmds and all(e == names.group(1) and int(n) == 3 for e, n in cmds)
     assert re.search(r"^REAL_TRIALS \?= 3$", make, flags=re.M)
+
+
+def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path) -> None:
+    """Without the two flight folders `make real-data` stops before importing anything, with
+    one line naming the folder it looked in and the variable that sets it (install not run:
+    ``-o install``)."""
+    import shutil
+    import subprocess
+
+    import pytest
+
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    missing = tmp_path / "no-such-exp2"
+    out = tmp_path / "real"
+    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), "real-data", f"NANOSWARM={missing}", f"REAL_DIR={out}"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0
+    assert f"real-data: {missing} has no four-drones/ and two-drones/ flight folders (set NANOSWARM=...)" in r.stdout + r.stderr
+    assert not out.exists()

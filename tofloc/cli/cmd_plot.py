@@ -42,7 +42,6 @@ def plot(
     from evaluation.error_plots import plot_errors_vs_k, plot_nees
     from evaluation.report import PAPER_TABLE_I, write_text_atomic
     from tofloc.atomic import check_output_path
-    from tofloc.provenance import provenance
 
     check_output_path(out, kind="dir", option="--out")
     if len(results) > MAX_FILES:
@@ -67,14 +66,20 @@ def plot(
     if nees:
         written.append(plot_nees([("per-trial NEES of the localize files", nees)], out / "nees.png"))
     rows = comparison_rows(files, labels)
-    prov = provenance()
-    text = comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)])
-    text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
-             f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
+    text = comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)]) + _made_by()
     written.append(write_text_atomic(text, out / "comparison.md"))
     _print(rows)
     for p in written:
         err_console.print(f"wrote {p}", highlight=False)
+
+
+def _made_by() -> str:
+    """The comparison's last line: the command, tofloc's version (and git commit) and the time."""
+    from tofloc.provenance import provenance
+
+    prov = provenance()
+    return (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
+            f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
 
 
 def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
@@ -83,7 +88,6 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     from evaluation.evaluate_report import format_or_na as na
     from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees
     from evaluation.report import write_text_atomic
-    from tofloc.provenance import provenance
 
     written = []
     for f, lab in zip(files, labels):
@@ -92,11 +96,8 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
                     plot_nees(f.document, out / f"{prefix}nees.png"),
                     plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.png")]
     rows = evaluate_comparison_rows([f.document for f in files], labels)
-    prov = provenance()
     text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)],
-                                        [f.document["changed"] for f in files])
-    text += (f"\nMade by `{prov['command']}` (tofloc {prov['tofloc_version']}"
-             f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
+                                        [f.document["changed"] for f in files]) + _made_by()
     written.append(write_text_atomic(text, out / "comparison.md"))
     t = Table(title="medians over every trial of each file", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
     for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("e_x mm", "right"),
