@@ -10,12 +10,14 @@ NANOSWARM ?= ../shared/datasets/eth_nano_swarm_mapping/exp2
 REAL_DIR ?= real-output
 REAL_TRIALS ?= 3
 REAL_ESTIMATORS ?= icp_pf,beam_pf,likelihood_field_pf,gtsam_smoother
+# `make real-data-drones`: the four-drone flight as if flown by fewer of its drones.
+REAL_DRONE_SETS ?= 1,2,3 0,2,3 0,1,3 0,1,2 1,3 0,2
 # The suite runs in TEST_WORKERS processes (pytest-xdist), one test file per worker at a
 # time so that a file's module fixtures are built once; TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 PYTEST_WORKERS := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
-.PHONY: demo real-data test test-fast install syslibs clean
+.PHONY: demo real-data real-data-drones test test-fast install syslibs clean
 
 # Open3D links against libusb-1.0 (Debian/Ubuntu package libusb-1.0-0).
 syslibs:
@@ -42,6 +44,20 @@ real-data: install
 	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --out "$(REAL_DIR)/$$f" || exit $$?; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
 	    --out "$(REAL_DIR)/eval-$$f" || exit $$?; \
+	done
+
+# Each set of REAL_DRONE_SETS: the four-drone flight imported with only those drones
+# (--drones: their logs, maps from their scans alone) into $(REAL_DIR)/four-drones-d<set>,
+# then evaluated into $(REAL_DIR)/eval-four-drones-d<set> (docs/real-data.md, "Fewer drones").
+real-data-drones: install
+	@test -d "$(NANOSWARM)/four-drones" || { \
+	  echo "real-data-drones: $(NANOSWARM) has no four-drones/ flight folder (set NANOSWARM=...)"; exit 2; }
+	@for s in $(REAL_DRONE_SETS); do \
+	  d="four-drones-d$$(echo $$s | tr -d ,)"; \
+	  if [ ! -d "$(REAL_DIR)/$$d/maps" ]; then \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/four-drones" --drones $$s --out "$(REAL_DIR)/$$d" || exit $$?; fi; \
+	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$d"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
+	    --out "$(REAL_DIR)/eval-$$d" || exit $$?; \
 	done
 
 test: install

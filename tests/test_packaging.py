@@ -7,6 +7,8 @@ import re
 import tomllib
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("tofloc", "estimators", "sensor_models", "evaluation")
 
@@ -57,6 +59,22 @@ def test_make_test_runs_the_suite_in_worker_processes() -> None:
     assert any(d.startswith("pytest-xdist") for d in test_extra)
 
 
+def test_make_real_data_drones_imports_each_drone_set_of_the_four_drone_flight() -> None:
+    """`make real-data-drones` imports the four-drone flight once per drone set with
+    ``--drones`` and evaluates every built-in estimator on each, like `make real-data`; the
+    sets are the ones docs/real-data.md reports, and each is a valid ``--drones`` value."""
+    from tofloc.cli.cmd_import import parse_drones
+
+    make = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^real-data-drones:.*\n((?:\t.*\n)+)", make, flags=re.M)
+    assert recipe
+    body = recipe.group(1)
+    assert '--drones $$s' in body and "tofloc evaluate" in body and "--estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS)" in body
+    sets = re.search(r"^REAL_DRONE_SETS \?= (.+)$", make, flags=re.M)
+    assert sets and [parse_drones(s) for s in sets.group(1).split()] == [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2], [1, 3], [0, 2]]
+    assert "make real-data-drones" in (ROOT / "docs" / "real-data.md").read_text()
+
+
 def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     """`make real-data` imports both exp2 flights (once) and evaluates every built-in
     estimator on each, as the README's real-recordings section does, and says so."""
@@ -79,21 +97,21 @@ def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     assert re.search(r"^REAL_TRIALS \?= 3$", make, flags=re.M)
 
 
-def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path) -> None:
-    """Without the two flight folders `make real-data` stops before importing anything, with
-    one line naming the folder it looked in and the variable that sets it (install not run:
-    ``-o install``)."""
+@pytest.mark.parametrize("target, needs", [("real-data", "four-drones/ and two-drones/ flight folders"),
+                                           ("real-data-drones", "four-drones/ flight folder")])
+def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path, target: str, needs: str) -> None:
+    """Without the flight folders `make real-data` (and `make real-data-drones`) stops before
+    importing anything, with one line naming the folder it looked in and the variable that
+    sets it (install not run: ``-o install``)."""
     import shutil
     import subprocess
-
-    import pytest
 
     if shutil.which("make") is None:
         pytest.skip("make is not installed")
     missing = tmp_path / "no-such-exp2"
     out = tmp_path / "real"
-    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), "real-data", f"NANOSWARM={missing}", f"REAL_DIR={out}"],
+    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), target, f"NANOSWARM={missing}", f"REAL_DIR={out}"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode != 0
-    assert f"real-data: {missing} has no four-drones/ and two-drones/ flight folders (set NANOSWARM=...)" in r.stdout + r.stderr
+    assert f"{target}: {missing} has no {needs} (set NANOSWARM=...)" in r.stdout + r.stderr
     assert not out.exists()

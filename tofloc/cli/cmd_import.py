@@ -55,6 +55,7 @@ def nanoswarm(
     map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight."),
     duplicates: str = typer.Option("refuse", "--duplicates", help="A node twice in scans.csv or vicon_poses.csv with different contents: 'refuse', or keep its 'first' or 'last' row (rows repeated byte for byte are always kept once)."),
     missing_poses: str = typer.Option("refuse", "--missing-poses", help="A scan whose node has no row in vicon_poses.csv or poses.csv: 'refuse' the flight, or 'skip' the scan (reported)."),
+    drones: str = typer.Option(None, "--drones", help="Import only these drones of the flight, comma-separated (e.g. 0,1,2): their logs, and leave-one-drone-out maps built from them alone, as if the flight had been flown by those drones."),
     force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
 ) -> None:
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
@@ -74,6 +75,7 @@ def nanoswarm(
         raise ParameterError(f"--voxel: expected a size in [0.001, 0.5] m, found {voxel}")
     if not (0.0 <= fit_radius <= 2.0):
         raise ParameterError(f"--fit-radius: expected a radius in [0, 2] m, found {fit_radius}")
+    selected = None if drones is None else parse_drones(drones)
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not force:
@@ -81,12 +83,14 @@ def nanoswarm(
     with status(f"importing {flight_dir}"):
         fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
         imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from,  # type: ignore[arg-type]
-                            duplicates=duplicates, missing_poses=missing_poses)
+                            duplicates=duplicates, missing_poses=missing_poses, drones=selected)
         write_flight(imp, out)
         at_truth = imp.distances_at_truth()
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
-    built = "leave-one-drone-out" if map_from is None else f"from every drone of {map_from}"
+    built = ("leave-one-drone-out" if map_from is None else f"from every drone of {map_from}") + (
+        "" if selected is None else f"; drones {', '.join(map(str, s['drones_selected']))} of "  # type: ignore[arg-type]
+        f"{', '.join(map(str, s['drones_in_files']))} in the files")  # type: ignore[arg-type]
     console.print(
         f"wrote {out}: {len(imp.flight.logs)} logs ({nodes}), valid zones {s['valid_zone_fraction']:.1%}, "
         f"{len(imp.maps)} {'map' if len(imp.maps) == 1 else 'maps'} {built} (range <= {range_cut:g} m, {voxel * 100:g} cm grid, "
@@ -107,3 +111,11 @@ def nanoswarm(
         if med > AT_TRUTH_WARN_CM:
             console.print(f"[yellow]warning:[/yellow] the median exceeds {AT_TRUTH_WARN_CM:g} cm: the map may not be of this maze "
                           "or not in the same motion-capture frame (docs/real-data.md measured 1-3 cm)", highlight=False, soft_wrap=True)
+
+
+def parse_drones(text: str) -> list[int]:
+    """``--drones``' text (``"0,2"``) as drone numbers, else :class:`ParameterError` quoting it."""
+    parts = [p.strip() for p in text.split(",")]
+    if not parts or any(not p.isdigit() or len(p) > 5 for p in parts):
+        raise ParameterError(f"--drones: expected comma-separated drone numbers such as 0,2, found {text!r}")
+    return [int(p) for p in parts]

@@ -46,7 +46,7 @@ import math
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -599,6 +599,10 @@ class Flight:
     #: scan (``"drone/node"``), rows repeated or left out by ``duplicates`` (``"row N"``) and
     #: scans left out by ``missing_poses`` (``"drone/node (no ... pose)"``)
     unused: dict[str, list[str]] = field(default_factory=dict)
+    #: the drones ``read_flight(drones=...)`` kept (None: every drone of the files) and the
+    #: drones its files hold
+    selected: list[int] | None = None
+    drones_in_files: list[int] = field(default_factory=list)
 
     @property
     def drones(self) -> list[int]:
@@ -616,6 +620,7 @@ class Flight:
             "odometry_pose_xyyaw": self.odometry_pose[i].tolist(),
             "vicon_xyz_qwxyz": self.vicon[i].tolist(),
             "optimized_pose_rows": int(self.optimized_poses[i].shape[0]),
+            "drones_selected": self.selected,
         }
 
 
@@ -657,6 +662,7 @@ def read_flight(
     truth_error: TruthErrorModel | None = TRUTH_ERROR,
     duplicates: str = "refuse",
     missing_poses: str = "refuse",
+    drones: Sequence[int] | None = None,
 ) -> Flight:
     """Parse a flight folder into one log per scan node (no map yet; see the module docstring).
 
@@ -682,12 +688,18 @@ def read_flight(
         Gives ``/truth/T_map_base_cov`` (None: leave it out). Its roll and pitch describe the
         level base; with ``base="mocap"`` the Vicon attitude's marker offset (a few degrees)
         is not in it.
+    drones : sequence of int, optional
+        Keep only these drones' scans (their logs, and the maps built from them): a flight
+        flown by fewer drones, from the same files. The other drones' scans and pose rows are
+        left out before anything is checked against them (a missing pose of a drone not
+        kept is no error); ``Flight.selected`` records the choice. None: every drone.
 
     Raises
     ------
     FormatError
         A file breaks the README's format, or a scan has no motion-capture or odometry
-        pose (unless ``missing_poses="skip"``), or no scan is left. (Pose rows of nodes
+        pose (unless ``missing_poses="skip"``), or no scan is left, or a drone of
+        ``drones`` has no scan in ``scans.csv``. (Pose rows of nodes
         without a scan are not an error: a scan lost on the radio leaves them behind; they
         are listed in ``Flight.unused``.)
     ParameterError
@@ -700,11 +712,22 @@ def read_flight(
         raise ParameterError(f"base: expected 'level' or 'mocap', found {base!r}")
     check_policy("duplicates", duplicates)
     check_policy("missing_poses", missing_poses, MISSING_POSE_POLICIES)
+    selected = _check_drones(drones)
     scans = read_scans_csv(d / "scans.csv", duplicates)
+    in_files = sorted(set(scans.drone.tolist()))
+    if selected is not None:
+        absent = [k for k in selected if k not in in_files]
+        if absent:
+            raise FormatError(d / "scans.csv", "drone/node column", f"scans of every selected drone ({_drone_list(selected)})",
+                              f"none of drone {_drone_list(absent)}; the file holds drone {_drone_list(in_files)}")
+        scans = _without(scans, set(np.flatnonzero(~np.isin(scans.drone, selected)).tolist()))
     vicon = read_vicon_csv(d / "vicon_poses.csv", duplicates)
     odo = read_poses_csv(d / "poses.csv")
     vicon_unused, no_truth = _cross_check(scans, vicon, "a motion-capture pose", missing_poses)
     odo_unused, no_odometry = _cross_check(scans, odo, "an odometry pose", missing_poses)
+    if selected is not None:  # the pose rows of the drones left out are not "unused": they were not asked for
+        vicon_unused = [k for k in vicon_unused if int(k.split("/")[0]) in selected]
+        odo_unused = [k for k in odo_unused if int(k.split("/")[0]) in selected]
     unused = {k: v for k, v in {"vicon_poses.csv": vicon_unused, "poses.csv": odo_unused}.items() if v}
     keys_all = scans.keys()
     left_out = [f"{keys_all[i]} (no {'motion-capture' if i in no_truth else 'odometry'} pose)"
@@ -753,4 +776,25 @@ def read_flight(
         )
         for i in range(len(keys))
     ]
-    return Flight(d, scans.drone, scans.node, logs, odo_pose, later, vic, scans.motion, base, unused)
+    return Flight(d, scans.drone, scans.node, logs, odo_pose, later, vic, scans.motion, base, unused, selected, in_files)
+
+
+def _drone_list(drones: Sequence[int]) -> str:
+    return ", ".join(str(int(k)) for k in drones)
+
+
+def _check_drones(drones: Sequence[int] | None) -> list[int] | None:
+    """``drones`` as a sorted list of distinct drone numbers (None stays None), else
+    :class:`ParameterError` naming what is wrong."""
+    if drones is None:
+        return None
+    out = []
+    for k in drones:
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or not 0 <= int(k) <= MAX_DRONE:
+            raise ParameterError(f"drones: expected drone numbers in 0..{MAX_DRONE}, found {k!r}")
+        out.append(int(k))
+    if not out:
+        raise ParameterError("drones: expected at least one drone number, found none")
+    if len(set(out)) != len(out):
+        raise ParameterError(f"drones: a drone is listed twice ({_drone_list(out)})")
+    return sorted(out)

@@ -38,7 +38,7 @@ import re
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -325,6 +325,8 @@ class FlightImport:
             "valid_zone_fraction": float(valid.mean()),
             "map_points": {name: int(m.points.shape[0]) for name, m in self.maps.items()},
             "map_from": None if self.map_from is None else str(self.map_from),
+            "drones_selected": f.selected,
+            "drones_in_files": list(f.drones_in_files),
         }
 
 
@@ -341,6 +343,7 @@ def import_flight(
     map_from: str | Path | None = None,
     duplicates: str = "refuse",
     missing_poses: str = "refuse",
+    drones: Sequence[int] | None = None,
 ) -> FlightImport:
     """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build the maps its logs name.
 
@@ -356,6 +359,10 @@ def import_flight(
     missing_poses : {"refuse", "skip"}
         A scan without a motion-capture or odometry pose (:func:`tofloc.io.nanoswarm.read_flight`),
         in either flight.
+    drones : sequence of int, optional
+        Import only these drones of the flight (:func:`tofloc.io.nanoswarm.read_flight`): their
+        logs, and leave-one-drone-out maps built from them alone, as if the flight had been
+        flown by those drones (a ``map_from`` flight is used whole). None: every drone.
 
     Raises
     ------
@@ -366,7 +373,7 @@ def import_flight(
         ``map_from``.
     """
     flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates,
-                         missing_poses=missing_poses)
+                         missing_poses=missing_poses, drones=drones)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
@@ -407,7 +414,9 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
         written.append(m.save(out / name))
     f = imp.flight
     params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict(),
-              "built_from": "leave-one-drone-out" if imp.map_from is None else f"every drone of flight {imp.map_from.resolve().name}"}
+              "built_from": (f"every drone of flight {imp.map_from.resolve().name}" if imp.map_from is not None else
+                             "leave-one-drone-out" + ("" if f.selected is None else
+                                                      f" among drones {', '.join(map(str, f.selected))}"))}
     for i, log in enumerate(f.logs):
         dest = out / log_name(int(f.drone[i]), int(f.node[i]))
         with atomic_path(dest) as tmp:
