@@ -181,3 +181,40 @@ def test_time_stamp_latency_is_real_and_the_default_fits() -> None:
     approach = [ETH / n for n in RUNS if n.startswith("Approach")][:5]
     scan = dict(latency_scan(approach, [0.0, 0.085, 0.2]))
     assert scan[0.085] < scan[0.0] - 5 and scan[0.085] < scan[0.2] - 5
+
+
+@needs_data
+def test_the_check_finds_the_runs_of_any_copy_of_the_data_set(tmp_path: Path) -> None:
+    """``report`` checks every GROUP/RUN folder it finds, not a fixed list: a copy with runs
+    the development set lacks (links to real runs under other names) is checked whole, the
+    Rotate group's runs for their edges, the Approach group's for the latency; runs
+    numbered alike sort naturally; a folder without the two files, a hidden one and a loose
+    file are skipped; no run at all is refused naming the folder."""
+    from tofloc.errors import ParameterError
+    from tofloc.io.eth_check import find_runs, report
+
+    ds = tmp_path / "copy"
+    for group, run, src in (("Approach", "A10", "Approach/A0"), ("Approach", "A5", "Approach/A1"),
+                            ("Rotate", "R7", "Rotate/R0"), ("Hover", "H1", "Approach/A2")):
+        (ds / group).mkdir(parents=True, exist_ok=True)
+        (ds / group / run).symlink_to(ETH / src, target_is_directory=True)
+    (ds / "Approach" / "A11").mkdir()
+    (ds / "Approach" / "A11" / "state_ToF.csv").write_text("")
+    (ds / ".cache" / "X").mkdir(parents=True)
+    (ds / "notes.txt").write_text("not a run")
+    assert find_runs(ds) == ("Approach/A5", "Approach/A10", "Hover/H1", "Rotate/R7")
+    doc = report(ds)
+    assert doc["runs"] == list(find_runs(ds)) and sorted(doc["per_run"]) == sorted(doc["runs"])
+    assert list(doc["edges"]) == ["Rotate/R7"] and len(doc["latency_approach"]) == 7
+    # the linked runs give the figures of the runs they are
+    ref = report(ETH, runs=["Approach/A0", "Rotate/R0"])
+    assert doc["per_run"]["Approach/A10"] == ref["per_run"]["Approach/A0"]
+    assert doc["edges"]["Rotate/R7"] == ref["edges"]["Rotate/R0"]
+    assert report(ds, runs=["Hover/H1"])["latency_approach"] == []
+    empty = tmp_path / "empty"
+    (empty / "Approach").mkdir(parents=True)
+    for folder, frag in ((empty, "no run found (expected GROUP/RUN folders with state_ToF.csv and state_Vicon.csv"),
+                         (tmp_path / "missing", "not a folder")):
+        with pytest.raises(ParameterError) as info:
+            find_runs(folder)
+        assert str(info.value).startswith(f"{folder}: {frag}")

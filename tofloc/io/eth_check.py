@@ -12,7 +12,11 @@ VL53L5CX should report, and compares with what it reported:
   edge) against the column the yaw predicts: correlation and slopes.
 
 The numbers quoted in ``docs/real-data.md`` come from :func:`report`
-(``python -m tofloc.io.eth_check /path/to/eth_matrix_tof_drones``).
+(``python -m tofloc.io.eth_check /path/to/eth_matrix_tof_drones``). It checks every run it
+finds (:func:`find_runs`: each ``GROUP/RUN`` folder with the two CSV files), so a copy of the
+data set with other runs (recordings kept out of development) is checked the same way: the
+Rotate runs (a group whose name starts with ``Rotate``) also for their edge tracking, the
+Approach runs for the latency.
 """
 
 from __future__ import annotations
@@ -43,8 +47,10 @@ __all__ = [
     "latency_scan",
     "report",
     "RUNS",
+    "find_runs",
 ]
 
+#: The runs of the development copy (``../shared/datasets/eth_matrix_tof_drones``).
 RUNS = ("Approach/A0", "Approach/A1", "Approach/A2", "Approach/A3", "Approach/A4", "Approach/A6", "Approach/A7", "Approach/A8", "Approach/A9", "Rotate/R0", "Rotate/R1", "Rotate/R2")
 #: Panel extent in the ``Surface`` body frame (y lateral, z up, metres), estimated from the
 #: agreement map of docs/real-data.md: 0.65 m wide, from the floor (z = -0.45) up to the markers.
@@ -188,15 +194,60 @@ def _stats(e: NDArray[np.float64], pred: NDArray[np.float64]) -> dict[str, float
     }
 
 
-def report(dataset: str | Path) -> dict[str, Any]:
-    """Every figure of docs/real-data.md, from the dataset folder."""
+#: Most runs :func:`find_runs` takes (the development copy has 12).
+MAX_RUNS = 500
+_RUN_FILES = ("state_ToF.csv", "state_Vicon.csv")
+
+
+def find_runs(dataset: str | Path) -> tuple[str, ...]:
+    """The runs of a Matrix_ToF_Drones copy: every ``GROUP/RUN`` folder (two levels below
+    ``dataset``, hidden folders skipped) holding both ``state_ToF.csv`` and
+    ``state_Vicon.csv``, as ``"GROUP/RUN"``, sorted (runs numbered alike in natural order:
+    A2 before A10).
+
+    Raises
+    ------
+    ParameterError
+        ``dataset`` is not a folder, holds no run, or more than :data:`MAX_RUNS`.
+    """
+    import re
+
+    from tofloc.errors import ParameterError
+
     root = Path(dataset)
-    runs = {name: import_run(root / name) for name in RUNS}
-    geos = {name: geometry(imp) for name, imp in runs.items()}
+    if not root.is_dir():
+        raise ParameterError(f"{root}: not a folder (expected a copy of ETH's Matrix_ToF_Drones data: GROUP/RUN/state_ToF.csv)")
+    found = []
+    for group in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        for run in sorted(p for p in group.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            if all((run / f).is_file() for f in _RUN_FILES):
+                found.append(f"{group.name}/{run.name}")
+                if len(found) > MAX_RUNS:
+                    raise ParameterError(f"{root}: more than {MAX_RUNS} runs (GROUP/RUN folders with {' and '.join(_RUN_FILES)})")
+    if not found:
+        raise ParameterError(f"{root}: no run found (expected GROUP/RUN folders with {' and '.join(_RUN_FILES)}, e.g. Approach/A0)")
+
+    def natural(name: str) -> list[Any]:
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+    return tuple(sorted(found, key=natural))
+
+
+def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, Any]:
+    """Every figure of docs/real-data.md, from the dataset folder: over ``runs`` (default:
+    every run :func:`find_runs` finds; ``"runs"`` in the result lists them). Edge tracking
+    covers the runs of a ``Rotate*`` group, the latency scan those of an ``Approach*``
+    group."""
+    root = Path(dataset)
+    names = tuple(runs) if runs is not None else find_runs(root)
+    rotate = [n for n in names if n.split("/")[0].startswith("Rotate")]
+    approach = [n for n in names if n.split("/")[0].startswith("Approach")]
+    imports = {name: import_run(root / name) for name in names}
+    geos = {name: geometry(imp) for name, imp in imports.items()}
     per_run, all_e, all_p = {}, [], []
     zones = valid = 0
-    for name in RUNS:
-        r = panel_errors(runs[name], geos[name])
+    for name in names:
+        r = panel_errors(imports[name], geos[name])
         per_run[name] = _stats(r["error_mm"], r["predicted_mm"]) | {"valid_share": float(r["valid"] / max(int(r["zones"]), 1))}
         all_e.append(r["error_mm"])
         all_p.append(r["predicted_mm"])
@@ -205,17 +256,18 @@ def report(dataset: str | Path) -> dict[str, Any]:
     e, p = np.concatenate(all_e), np.concatenate(all_p)
     bins = [(300, 600), (600, 900), (900, 1200), (1200, 1500)]
     by_range = {f"{a}-{b}": _stats(e[(p >= a) & (p < b)], p[(p >= a) & (p < b)]) for a, b in bins}
-    default = [np.concatenate([panel_errors(runs[n], geos[n], order=RawOrder())["error_mm"] for n in RUNS])]
-    pairs = [(runs[n], geos[n]) for n in RUNS]
+    default = [np.concatenate([panel_errors(imports[n], geos[n], order=RawOrder())["error_mm"] for n in names])]
+    pairs = [(imports[n], geos[n]) for n in names]
     return {
+        "runs": list(names),
         "all": _stats(e, p) | {"zones": zones, "valid_share": valid / max(zones, 1)},
         "by_range": by_range,
         "per_run": per_run,
         "default_order_all": {"median_abs_mm": float(np.median(np.abs(default[0]))), "p90_abs_mm": float(np.percentile(np.abs(default[0]), 90))},
         "orders": order_scores(pairs),
-        "edges": {n: edge_tracking(runs[n], geos[n]) for n in RUNS if n.startswith("Rotate")},
-        "edges_default_order": {n: edge_tracking(runs[n], geos[n], RawOrder()) for n in RUNS if n.startswith("Rotate")},
-        "latency_approach": latency_scan([root / n for n in RUNS if n.startswith("Approach")], [0.0, 0.04, 0.07, 0.085, 0.1, 0.13, 0.2]),
+        "edges": {n: edge_tracking(imports[n], geos[n]) for n in rotate},
+        "edges_default_order": {n: edge_tracking(imports[n], geos[n], RawOrder()) for n in rotate},
+        "latency_approach": latency_scan([root / n for n in approach], [0.0, 0.04, 0.07, 0.085, 0.1, 0.13, 0.2]) if approach else [],
         "chosen_order": ETH_RAW_ORDER.to_dict(),
     }
 
