@@ -10,7 +10,8 @@ NANOSWARM ?= ../shared/datasets/eth_nano_swarm_mapping/exp2
 REAL_DIR ?= real-output
 REAL_TRIALS ?= 3
 REAL_ESTIMATORS ?= icp_pf,beam_pf,likelihood_field_pf,gtsam_smoother
-# `make real-data-drones`: the four-drone flight as if flown by fewer of its drones.
+# `make real-data-drones`: a flight (REAL_DRONES_FLIGHT) as if flown by fewer of its drones.
+REAL_DRONES_FLIGHT ?= four-drones
 REAL_DRONE_SETS ?= 1,2,3 0,2,3 0,1,3 0,1,2 1,3 0,2
 # The suite runs in TEST_WORKERS processes (pytest-xdist), one test file per worker at a
 # time so that a file's module fixtures are built once; TEST_WORKERS=0 runs it in this process.
@@ -34,28 +35,34 @@ install: syslibs $(STAMP)
 demo: install
 	$(VENV)/bin/tofloc paper --estimators $$($(VENV)/bin/python -c 'from tofloc.registry import ESTIMATORS; print(",".join(ESTIMATORS.names()))') --trials $(DEMO_TRIALS) --out $(DEMO_DIR)
 
-# Each flight imported once into $(REAL_DIR)/<flight> (kept: a rerun reuses the logs and
-# evaluate's finished batches), then evaluated into $(REAL_DIR)/eval-<flight>.
+# Every flight folder of $(NANOSWARM) (a folder with scans.csv: exp2's four-drones and
+# two-drones, or the flights of another experiment) imported once into $(REAL_DIR)/<flight>
+# (kept: a rerun reuses the logs and evaluate's finished batches), then evaluated into
+# $(REAL_DIR)/eval-<flight>. A flight that fails (a single drone has no leave-one-drone-out
+# map) is named and the others still run; make then fails.
 real-data: install
-	@test -d "$(NANOSWARM)/four-drones" -a -d "$(NANOSWARM)/two-drones" || { \
-	  echo "real-data: $(NANOSWARM) has no four-drones/ and two-drones/ flight folders (set NANOSWARM=...)"; exit 2; }
-	@for f in four-drones two-drones; do \
+	@flights=$$(for d in "$(NANOSWARM)"/*/; do [ -f "$$d/scans.csv" ] && basename "$$d"; done); \
+	test -n "$$flights" || { \
+	  echo "real-data: $(NANOSWARM) has no flight folder (a folder with scans.csv, such as four-drones/; set NANOSWARM=...)"; exit 2; }; \
+	failed=""; \
+	for f in $$flights; do \
 	  if [ ! -d "$(REAL_DIR)/$$f/maps" ]; then \
-	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --out "$(REAL_DIR)/$$f" || exit $$?; fi; \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
-	    --out "$(REAL_DIR)/eval-$$f" || exit $$?; \
-	done
+	    --out "$(REAL_DIR)/eval-$$f" || failed="$$failed $$f"; \
+	done; \
+	test -z "$$failed" || { echo "real-data: failed:$$failed (the others are in $(REAL_DIR))"; exit 1; }
 
-# Each set of REAL_DRONE_SETS: the four-drone flight imported with only those drones
-# (--drones: their logs, maps from their scans alone) into $(REAL_DIR)/four-drones-d<set>,
-# then evaluated into $(REAL_DIR)/eval-four-drones-d<set> (docs/real-data.md, "Fewer drones").
+# Each set of REAL_DRONE_SETS: the flight REAL_DRONES_FLIGHT imported with only those drones
+# (--drones: their logs, maps from their scans alone) into $(REAL_DIR)/<flight>-d<set>, then
+# evaluated into $(REAL_DIR)/eval-<flight>-d<set> (docs/real-data.md, "Fewer drones").
 real-data-drones: install
-	@test -d "$(NANOSWARM)/four-drones" || { \
-	  echo "real-data-drones: $(NANOSWARM) has no four-drones/ flight folder (set NANOSWARM=...)"; exit 2; }
+	@test -f "$(NANOSWARM)/$(REAL_DRONES_FLIGHT)/scans.csv" || { \
+	  echo "real-data-drones: $(NANOSWARM) has no $(REAL_DRONES_FLIGHT)/ flight folder (set NANOSWARM=... or REAL_DRONES_FLIGHT=...)"; exit 2; }
 	@for s in $(REAL_DRONE_SETS); do \
-	  d="four-drones-d$$(echo $$s | tr -d ,)"; \
+	  d="$(REAL_DRONES_FLIGHT)-d$$(echo $$s | tr -d ,)"; \
 	  if [ ! -d "$(REAL_DIR)/$$d/maps" ]; then \
-	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/four-drones" --drones $$s --out "$(REAL_DIR)/$$d" || exit $$?; fi; \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$(REAL_DRONES_FLIGHT)" --drones $$s --out "$(REAL_DIR)/$$d" || exit $$?; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$d"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
 	    --out "$(REAL_DIR)/eval-$$d" || exit $$?; \
 	done
