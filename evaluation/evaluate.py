@@ -452,23 +452,39 @@ def is_flagged(record: Mapping[str, Any]) -> bool:
     return bool(record.get("covariance_widened")) or bool(record.get("ambiguous"))
 
 
+def _contradicts_known_space(record: Mapping[str, Any]) -> bool | None:
+    """Whether a trial's fit check found its data at odds with the space its map knows
+    (``fit.ok_known_space`` False), None when its map has no known space or it has no fit."""
+    fit = record.get("fit")
+    ok = fit.get("ok_known_space") if isinstance(fit, Mapping) else None
+    return None if ok is None else not bool(ok)
+
+
 def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
     """How well the trials' own warnings (:func:`is_flagged`) tell the failures: ``failures``,
     ``failures_flagged`` (of them, by the fit check or ambiguity), ``failures_fit`` (by the
-    fit check alone), ``successes`` and ``successes_flagged`` (false alarms). None when the
-    records carry neither warning (an estimator run without the fit check)."""
+    fit check alone), ``successes`` and ``successes_flagged`` (false alarms). On maps with a
+    known space (:func:`tofloc.fit_check.unknown_space_zones`) also ``failures_fit_known``
+    and ``successes_fit_known``: the trials the fit check flagged whose data contradict the
+    space the map knows, not only its unknown space (the flags worth the most attention).
+    None when the records carry neither warning (an estimator run without the fit check)."""
     if not any("covariance_widened" in r or "ambiguous" in r for r in records):
         return None
     failed = [is_failure(r) for r in records]
     flagged = [is_flagged(r) for r in records]
     fit = [bool(r.get("covariance_widened")) for r in records]
-    return {
+    out = {
         "failures": int(sum(failed)),
         "failures_flagged": int(sum(f and g for f, g in zip(failed, flagged))),
         "failures_fit": int(sum(f and g for f, g in zip(failed, fit))),
         "successes": int(len(records) - sum(failed)),
         "successes_flagged": int(sum((not f) and g for f, g in zip(failed, flagged))),
     }
+    known = [_contradicts_known_space(r) for r in records]
+    if any(k is not None for k in known):
+        out["failures_fit_known"] = int(sum(bool(f and g and k) for f, g, k in zip(failed, fit, known)))
+        out["successes_fit_known"] = int(sum(bool((not f) and g and k) for f, g, k in zip(failed, fit, known)))
+    return out
 
 
 def truth_sigmas(entry: EvalLog) -> dict[str, float] | None:

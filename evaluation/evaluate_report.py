@@ -55,13 +55,21 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     def frac(a: int, b: int) -> str:
         return f"{a}/{b}" + (f" ({a / b:.0%})" if b else "")
 
-    return _section(
-        "Knowing when it is lost",
-        "A trial is flagged when its data-fit check fails (tofloc/fit_check.py; its covariance is then widened) "
-        "or its posterior is ambiguous (tofloc/posterior_modes.py): the warnings a user gets without the truth.",
-        ["estimator", "failures flagged", "by the fit check", "good trials flagged (false alarms)"],
-        [[e, frac(d["failures_flagged"], d["failures"]), frac(d["failures_fit"], d["failures"]),
-          frac(d["successes_flagged"], d["successes"])] for e, d in rows])
+    head = ["estimator", "failures flagged", "by the fit check", "good trials flagged (false alarms)"]
+    body = [[e, frac(d["failures_flagged"], d["failures"]), frac(d["failures_fit"], d["failures"]),
+             frac(d["successes_flagged"], d["successes"])] for e, d in rows]
+    text = ("A trial is flagged when its data-fit check fails (tofloc/fit_check.py; its covariance is then widened) "
+            "or its posterior is ambiguous (tofloc/posterior_modes.py): the warnings a user gets without the truth.")
+    if any("failures_fit_known" in d for _, d in rows):
+        head += ["failures the fit check flagged against the mapped space", "false alarms against the mapped space"]
+        for row, (_, d) in zip(body, rows):
+            known = "failures_fit_known" in d
+            row += [frac(d["failures_fit_known"], d["failures_fit"]) if known else "n/a",
+                    str(d["successes_fit_known"]) if known else "n/a"]
+        text += (" On maps built from scans the fit check also says whether a flagged trial's data contradict the space the "
+                 "map knows or only its unknown space (zones reading walls where no scan looked; `ok_known_space`): the last "
+                 "two columns count the flags of the first kind.")
+    return _section("Knowing when it is lost", text, head, body)
 
 
 def refit_lines(doc: Mapping[str, Any]) -> list[str]:

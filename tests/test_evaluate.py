@@ -200,6 +200,28 @@ def test_detection_counts_the_failures_the_warnings_caught() -> None:
     assert detection_lines({"summary": {"plain": error_summary([{"e_x_m": 0.1, "e_gamma_deg": 1.0}])}}) == []
 
 
+def test_detection_tells_flags_against_the_mapped_space() -> None:
+    """On maps with a known space the flagged trials whose data contradict it (``fit.ok_known_space``
+    False) are counted apart, failures and false alarms; a run without that triage keeps
+    the plain table."""
+    from evaluation.evaluate_report import detection_lines
+
+    def rec(ex: float, widened: bool, known_ok: bool | None) -> dict:
+        return {"e_x_m": ex, "e_gamma_deg": 1.0, "covariance_widened": widened, "ambiguous": False,
+                "fit": {"ok": not widened, "ok_known_space": known_ok}}
+
+    recs = [rec(0.5, True, False), rec(0.4, True, True), rec(0.3, False, True), rec(0.01, True, True), rec(0.02, True, False),
+            rec(0.03, True, True), rec(0.04, False, True)]
+    d = detection_summary(recs)
+    assert (d["failures_fit"], d["failures_fit_known"], d["successes_flagged"], d["successes_fit_known"]) == (2, 1, 3, 1)
+    lines = detection_lines({"summary": {"beam_pf": error_summary(recs)}})
+    assert "failures the fit check flagged against the mapped space" in lines[4] and "ok_known_space" in lines[2]
+    assert "| beam_pf | 2/3 (67%) | 2/3 (67%) | 3/4 (75%) | 1/2 (50%) | 1 |" in lines
+    plain = [dict(r, fit={"ok": r["fit"]["ok"], "ok_known_space": None}) for r in recs]
+    assert "failures_fit_known" not in detection_summary(plain)
+    assert "against the mapped space" not in "\n".join(detection_lines({"summary": {"beam_pf": error_summary(plain)}}))
+
+
 def test_stdout_table_fits_80_columns_in_mm(logs: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", "beam_pf", "--trials", "1", "--samples", "2",
                                    "--out", str(tmp_path / "o"), *FEW])

@@ -157,3 +157,31 @@ def test_likelihood_field_end_point_in_unknown_space() -> None:
     assert a > b + 0.5 and c == pytest.approx(b)
     with pytest.raises(ParameterError, match="unknown_weight"):
         LikelihoodFieldModel(unknown_weight=1.5)
+
+
+def test_fit_check_tells_a_gap_in_the_map_from_a_contradiction() -> None:
+    """A reading short of the map whose ray enters space the map does not know before it
+    may be an unmapped wall: counted in ``n_unknown``, and without it the data fit
+    (``ok_known_space``); a reading short of the map inside known space contradicts it.
+    ``ok`` and its statistics do not change; a map without a known space says nothing."""
+    from tofloc.fit_check import check_pose, unknown_space_zones, zone_residuals
+
+    half = _half_known()  # known for x < 1
+    gap = check_pose(_zone_problem(2.5, 1.5, half), np.zeros(3))  # the mapped wall at 2.5 m lies in unknown space
+    assert not gap.ok and gap.n_unknown == 1 and gap.ok_known_space is True
+    assert "a gap in the map" in gap.warning() and gap.to_json()["ok_known_space"] is True
+    inside = check_pose(_zone_problem(2.5, 0.7, half), np.zeros(3))  # short of the wall, in known space
+    assert not inside.ok and inside.n_unknown == 0 and inside.ok_known_space is False
+    assert "do not fit the space the map knows either" in inside.warning()
+    fits = check_pose(_zone_problem(2.5, 2.5, half), np.zeros(3))
+    assert fits.ok and fits.n_unknown == 0 and fits.ok_known_space is True
+    # the same data without a known space, or with all of it known: no triage, the same flag
+    bare = check_pose(_zone_problem(2.5, 1.5, None), np.zeros(3))
+    assert bare.ok_known_space is None and bare.n_unknown == 0 and bare.to_json()["ok_known_space"] is None
+    assert (bare.ok, bare.statistic, bare.outlier_fraction) == (gap.ok, gap.statistic, gap.outlier_fraction)
+    all_known = KnownSpace(np.array([-1.0, -3.0]), 0.05, np.array([0.0, 1.0]), np.ones((100, 120), bool))
+    assert check_pose(_zone_problem(2.5, 1.5, all_known), np.zeros(3)).ok_known_space is False
+    # a reading just short of the boundary is within 3 sigma of a wall standing on it
+    p = _zone_problem(2.5, 0.99, half)
+    assert unknown_space_zones(p, np.zeros(3), zone_residuals(p, np.zeros(3)))[0, 0, 0]
+    assert unknown_space_zones(_zone_problem(2.5, 1.5, None), np.zeros(3), zone_residuals(_zone_problem(2.5, 1.5, None), np.zeros(3))) is None
