@@ -278,4 +278,4 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
     monkeypatch.setattr("tofloc.io.capture.BackgroundCapture", OneBatch)
     live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
     err = capsys.readouterr().err
-    assert "warning: sample 2: the data do not fit the map at this estimate" in err
+    assert "warning: sample 2: the data do not fit the map at the estimate" in err

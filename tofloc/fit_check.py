@@ -101,6 +101,7 @@ __all__ = [
     "check_fit",
     "check_pose",
     "unknown_space_zones",
+    "warning_text",
     "widen_if_unfit",
     "nuisance_means",
 ]
@@ -223,15 +224,22 @@ class FitCheck:
 
     def warning(self) -> str:
         """One line for a console: what is wrong, in words and numbers (and, on a map with a
-        known space, whether the data contradict what the map knows)."""
-        text = (f"the data do not fit the map at this estimate: {self.reason} "
-                f"({self.n_misfits} of {self.n_zones} zones are misfits)")
-        if self.ok_known_space is True:
-            text += (f"; without the {self.n_unknown} zones that read into space the map does not know they fit: "
-                     "a gap in the map, maybe not a wrong pose")
-        elif self.ok_known_space is False:
-            text += f"; they do not fit the space the map knows either ({self.n_unknown} zones read into space it does not know)"
-        return text
+        known space, whether the data contradict what the map knows): :func:`warning_text`."""
+        return warning_text(self.to_json())
+
+
+def warning_text(fit: Mapping[str, Any]) -> str:
+    """The console line of a fit check, from :meth:`FitCheck.to_json` (what trial records
+    hold): its reason and misfit count and, when ``ok_known_space`` is set, whether the
+    data contradict the space the map knows or only its unknown space."""
+    text = (f"the data do not fit the map at the estimate: {fit.get('reason', '')} "
+            f"({fit.get('n_misfits')} of {fit.get('n_zones')} zones are misfits)")
+    known, n_unknown = fit.get("ok_known_space"), fit.get("n_unknown", 0)
+    if known is True:
+        text += f"; without the {n_unknown} zones that read into space the map does not know they fit: a gap in the map, maybe not a wrong pose"
+    elif known is False:
+        text += f"; they do not fit the space the map knows either ({n_unknown} zones read into space it does not know)"
+    return text
 
 
 def nuisance_means(estimate: "Estimate") -> tuple[float, float]:

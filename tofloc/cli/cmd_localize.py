@@ -240,12 +240,11 @@ MAX_FIT_WARNINGS = 10
 def _warn_fit(recs: list[dict[str, Any]]) -> None:
     """One warning line per trial whose data do not fit the map at the estimate (at most
     :data:`MAX_FIT_WARNINGS`, then a count), and a line per ambiguous posterior count."""
+    from tofloc.fit_check import warning_text
+
     flagged = [r for r in recs if isinstance(r.get("fit"), dict) and not r["fit"].get("ok", True)]
     for r in flagged[:MAX_FIT_WARNINGS]:
-        f = r["fit"]
-        err_console.print(f"warning: trial {r['trial']}: the data do not fit the map at the estimate: {f['reason']} "
-                          f"({f['n_misfits']} of {f['n_zones']} zones are misfits)", style="yellow", highlight=False,
-                          markup=False)
+        err_console.print(f"warning: trial {r['trial']}: {warning_text(r['fit'])}", style="yellow", highlight=False, markup=False)
     if len(flagged) > MAX_FIT_WARNINGS:
         err_console.print(f"warning: {len(flagged) - MAX_FIT_WARNINGS} more trial(s) flagged ({len(flagged)} of {len(recs)} "
                           "in all; see `fit` in --json)", style="yellow", highlight=False, markup=False)
