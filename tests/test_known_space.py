@@ -185,3 +185,18 @@ def test_fit_check_tells_a_gap_in_the_map_from_a_contradiction() -> None:
     p = _zone_problem(2.5, 0.99, half)
     assert unknown_space_zones(p, np.zeros(3), zone_residuals(p, np.zeros(3)))[0, 0, 0]
     assert unknown_space_zones(_zone_problem(2.5, 1.5, None), np.zeros(3), zone_residuals(_zone_problem(2.5, 1.5, None), np.zeros(3))) is None
+
+
+def test_localize_warns_with_the_triage(capsys: pytest.CaptureFixture[str]) -> None:
+    """``tofloc localize``'s warning lines are :func:`tofloc.fit_check.warning_text` of the
+    trial records: the triage shows when the map has a known space, not otherwise."""
+    from tofloc.cli.cmd_localize import _warn_fit
+    from tofloc.fit_check import check_pose
+
+    gap = check_pose(_zone_problem(2.5, 1.5, _half_known()), np.zeros(3)).to_json()
+    bare = check_pose(_zone_problem(2.5, 1.5, None), np.zeros(3)).to_json()
+    _warn_fit([{"trial": 0, "fit": gap}, {"trial": 1, "fit": bare}])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("warning: trial")]
+    assert len(lines) == 2 and "a gap in the map, maybe not a wrong pose" in lines[0]
+    assert lines[1].endswith("zones are misfits)") and "space the map" not in lines[1]
