@@ -70,6 +70,7 @@ def test_make_real_data_drones_imports_each_drone_set_of_the_four_drone_flight()
     assert recipe
     body = recipe.group(1)
     assert '--drones $$s' in body and "tofloc evaluate" in body and "--estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS)" in body
+    assert 'tofloc plot $$results --out "$(REAL_DIR)/compare-$(REAL_DRONES_FLIGHT)-subsets"' in body
     sets = re.search(r"^REAL_DRONE_SETS \?= (.+)$", make, flags=re.M)
     assert sets and [parse_drones(s) for s in sets.group(1).split()] == [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2], [1, 3], [0, 2]]
     assert "make real-data-drones" in (ROOT / "docs" / "real-data.md").read_text()
