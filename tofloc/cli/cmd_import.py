@@ -89,7 +89,7 @@ def nanoswarm(
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
     built = ("leave-one-drone-out" if map_from is None else f"from every drone of {map_from}") + (
-        "" if selected is None else f"; drones {', '.join(map(str, s['drones_selected']))} of "  # type: ignore[arg-type]
+        "" if selected is None else f"; drone{'s' if len(selected) > 1 else ''} {', '.join(map(str, s['drones_selected']))} of "  # type: ignore[arg-type]
         f"{', '.join(map(str, s['drones_in_files']))} in the files")  # type: ignore[arg-type]
     console.print(
         f"wrote {out}: {len(imp.flight.logs)} logs ({nodes}), valid zones {s['valid_zone_fraction']:.1%}, "
