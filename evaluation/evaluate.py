@@ -460,10 +460,13 @@ def _contradicts_known_space(record: Mapping[str, Any]) -> bool | None:
     return None if ok is None else not bool(ok)
 
 
-def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
+def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
     """How well the trials' own warnings (:func:`is_flagged`) tell the failures: ``failures``,
     ``failures_flagged`` (of them, by the fit check or ambiguity), ``failures_fit`` (by the
-    fit check alone), ``successes`` and ``successes_flagged`` (false alarms). On maps with a
+    fit check alone), ``successes`` and ``successes_flagged`` (false alarms);
+    ``nees_unflagged`` (``mean``, ``median``, ``n``): the NEES of the model's own covariance
+    (``nees_model``) over the trials no warning flagged, the promise a user is given without
+    one (absent when no such trial has it). On maps with a
     known space (:func:`tofloc.fit_check.unknown_space_zones`) also ``failures_fit_known``
     and ``successes_fit_known``: the trials the fit check flagged whose data contradict the
     space the map knows, not only its unknown space (the flags worth the most attention).
@@ -473,13 +476,17 @@ def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | 
     failed = [is_failure(r) for r in records]
     flagged = [is_flagged(r) for r in records]
     fit = [bool(r.get("covariance_widened")) for r in records]
-    out = {
+    out: dict[str, Any] = {
         "failures": int(sum(failed)),
         "failures_flagged": int(sum(f and g for f, g in zip(failed, flagged))),
         "failures_fit": int(sum(f and g for f, g in zip(failed, fit))),
         "successes": int(len(records) - sum(failed)),
         "successes_flagged": int(sum((not f) and g for f, g in zip(failed, flagged))),
     }
+    quiet = [r.get("nees_model") for r, g in zip(records, flagged) if not g]
+    quiet_nees = np.array([v for v in quiet if isinstance(v, (int, float)) and math.isfinite(v)], dtype=float)
+    if quiet_nees.size:  # the promise of the answers given without a warning: their own covariance
+        out["nees_unflagged"] = {"mean": float(quiet_nees.mean()), "median": float(np.median(quiet_nees)), "n": int(quiet_nees.size)}
     known = [_contradicts_known_space(r) for r in records]
     if any(k is not None for k in known):
         out["failures_fit_known"] = int(sum(bool(f and g and k) for f, g, k in zip(failed, fit, known)))

@@ -189,6 +189,9 @@ def test_detection_counts_the_failures_the_warnings_caught() -> None:
             rec(0.02, False, False), rec(0.03, False, True), rec(0.04, False, False)]
     assert detection_summary(recs) == {"failures": 3, "failures_flagged": 2, "failures_fit": 1, "successes": 4,
                                        "successes_flagged": 2}
+    # the answers given without a warning: their own covariance's NEES (records without it skipped)
+    with_nees = [dict(r, nees_model=v) for r, v in zip(recs, [50.0, 40.0, 9.0, 30.0, 1.0, 20.0, float("nan")])]
+    assert detection_summary(with_nees)["nees_unflagged"] == {"mean": 5.0, "median": 5.0, "n": 2}
     assert error_summary(recs)["detection"] == detection_summary(recs)
     assert detection_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}]) is None
     assert "detection" not in error_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}])
@@ -196,7 +199,10 @@ def test_detection_counts_the_failures_the_warnings_caught() -> None:
 
     lines = detection_lines({"summary": {"beam_pf": error_summary(recs), "plain": error_summary([{"e_x_m": 0.1, "e_gamma_deg": 1.0}])}})
     assert lines[0] == "## Knowing when it is lost"
-    assert "| beam_pf | 2/3 (67%) | 1/3 (33%) | 2/4 (50%) |" in lines and not any(ln.startswith("| plain") for ln in lines)
+    assert "| beam_pf | 2/3 (67%) | 1/3 (33%) | 2/4 (50%) | 1 | n/a |" in lines and not any(ln.startswith("| plain") for ln in lines)
+    lines = detection_lines({"summary": {"beam_pf": error_summary(with_nees)}})
+    assert "| beam_pf | 2/3 (67%) | 1/3 (33%) | 2/4 (50%) | 1 | 5.00 / 5.00 (2) |" in lines
+    assert "own NEES when not flagged: mean / median (trials)" in lines[4]
     assert detection_lines({"summary": {"plain": error_summary([{"e_x_m": 0.1, "e_gamma_deg": 1.0}])}}) == []
 
 
@@ -216,7 +222,7 @@ def test_detection_tells_flags_against_the_mapped_space() -> None:
     assert (d["failures_fit"], d["failures_fit_known"], d["successes_flagged"], d["successes_fit_known"]) == (2, 1, 3, 1)
     lines = detection_lines({"summary": {"beam_pf": error_summary(recs)}})
     assert "failures the fit check flagged against the mapped space" in lines[4] and "ok_known_space" in lines[2]
-    assert "| beam_pf | 2/3 (67%) | 2/3 (67%) | 3/4 (75%) | 1/2 (50%) | 1 |" in lines
+    assert "| beam_pf | 2/3 (67%) | 2/3 (67%) | 3/4 (75%) | 1 | n/a | 1/2 (50%) | 1 |" in lines
     plain = [dict(r, fit={"ok": r["fit"]["ok"], "ok_known_space": None}) for r in recs]
     assert "failures_fit_known" not in detection_summary(plain)
     assert "against the mapped space" not in "\n".join(detection_lines({"summary": {"beam_pf": error_summary(plain)}}))
