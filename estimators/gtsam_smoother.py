@@ -89,7 +89,7 @@ from numpy.typing import NDArray
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
-from sensor_models.base import check_bool_or_auto
+from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
@@ -272,10 +272,7 @@ class GTSAMSmoother(Estimator):
         for n in ("incremental", "exact_tip_poses", "stacked_factor", "merge_starts"):
             if not isinstance(getattr(self, n), bool):
                 raise ParameterError(f"{n} must be true or false, got {getattr(self, n)!r}")
-        for n, lo, hi in (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0)):
-            v = getattr(self, n)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and lo <= v <= hi):
-                raise ParameterError(f"{n} must be a number in [{lo}, {hi}], got {v!r}")
+        check_place_params(self)
         check_bool_or_auto("refit_correlation", self.refit_correlation)
         if not (isinstance(self.marginalize_configurations, bool) or self.marginalize_configurations == "auto"):
             raise ParameterError("marginalize_configurations must be true, false or \"auto\", "
@@ -296,7 +293,7 @@ class GTSAMSmoother(Estimator):
         if self.place_correlation > 0:
             return False
         if self.refit_correlation == "auto":
-            return getattr(problem.map, "known_space", None) is not None
+            return built_from_scans(problem)
         return bool(self.refit_correlation)
 
     def weighted_measurements(self, problem: Problem, rho: float | None = None) -> list[SampleMeasurement]:

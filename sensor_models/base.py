@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
-__all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights", "direction_places"]
+__all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights", "direction_places", "PLACE_PARAM_BOUNDS", "check_place_params", "built_from_scans"]
 
 #: Nuisance variables a model may estimate, with their unit.
 NUISANCES = {"support_yaw": "rad", "range_scale": "1"}
@@ -122,6 +122,27 @@ def check_bool_or_auto(name: str, value: object) -> None:
     :meth:`SensorModel.for_problem`), naming it."""
     if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
         raise ParameterError(f"{name} must be true, false or \"auto\", got {value!r}")
+
+
+#: Bounds of ``place_correlation`` and ``place_radius`` (m), for every model that weighs places.
+PLACE_PARAM_BOUNDS = (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0))
+
+
+def check_place_params(owner: Any, prefix: str = "") -> None:
+    """Refuse an ``owner``'s ``place_correlation`` or ``place_radius`` outside
+    :data:`PLACE_PARAM_BOUNDS` (or not a finite number), naming it as ``prefix + name``
+    (the beam and likelihood-field models and the smoother share the check)."""
+    for n, lo, hi in PLACE_PARAM_BOUNDS:
+        v = getattr(owner, n)
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
+            raise ParameterError(f"{prefix}{n} must be in [{lo}, {hi}], got {v!r}")
+
+
+def built_from_scans(problem: Problem) -> bool:
+    """Whether ``problem``'s map was built from scans: it carries its known space
+    (:attr:`tofloc.maps.Map.known_space`, as the nano-swarm importer's maps do). What
+    ``refit_correlation = "auto"`` decides on, for the sensor models and the smoother alike."""
+    return getattr(problem.map, "known_space", None) is not None
 
 
 def place_weights(points: list[NDArray[np.float64]], radius: float, rho: float) -> list[NDArray[np.float64] | None]:
@@ -416,8 +437,7 @@ class SensorModel(ABC):
         other model is returned as it is. :meth:`bind` applies it, and so does a filter
         before it asks :meth:`refits`."""
         if getattr(self, "refit_correlation", None) == "auto" and dataclasses.is_dataclass(self):
-            scanned = getattr(problem.map, "known_space", None) is not None
-            return dataclasses.replace(self, refit_correlation=scanned)  # type: ignore[type-var]
+            return dataclasses.replace(self, refit_correlation=built_from_scans(problem))  # type: ignore[type-var]
         return self
 
     def refits(self) -> bool:

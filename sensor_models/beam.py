@@ -66,7 +66,9 @@ from sensor_models.base import (
     TEMP_BYTES_PER_ZONE,
     BoundSensorModel,
     SensorModel,
+    built_from_scans,
     check_bool_or_auto,
+    check_place_params,
     declared_state,
     direction_places,
     place_weights,
@@ -329,10 +331,7 @@ class BeamModel(SensorModel):
         u = self.unknown_weight
         if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
             raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
-        for n, lo, hi in (("place_correlation", 0.0, 1.0), ("place_radius", 0.005, 1.0)):
-            v = getattr(self, n)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
-                raise ParameterError(f"beam.{n} must be in [{lo}, {hi}], got {v!r}")
+        check_place_params(self, "beam.")
         if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
             raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
         v = self.outlier_floor
@@ -677,7 +676,7 @@ class BoundBeamModel(BoundSensorModel):
         psi = self.column(x, "support_yaw")
         scale = self.column(x, "range_scale")
         v_cfg = self.configuration_variance(x, step)
-        known = getattr(self.problem.map, "known_space", None) is not None and self.model.unknown_weight > 0
+        known = built_from_scans(self.problem) and self.model.unknown_weight > 0
         need_unknown = known and bool((c["kind"][step] > 0).any())
         empty = np.zeros((1, 1))
         if caster.n_sub == 1 and not need_unknown:

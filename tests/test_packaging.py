@@ -145,3 +145,36 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
     assert f"real-data: failed: solo (the others are in {out})" in text and "found only drone 0" in text
     assert (out / "eval-pair" / "results.json").is_file() and (out / "eval-pair" / "table.md").is_file()
     assert sorted(p.name for p in out.iterdir()) == ["eval-pair", "pair"]
+
+
+def test_make_real_data_drones_runs_end_to_end_on_a_small_flight(tmp_path: Path) -> None:
+    """`make real-data-drones` on a synthetic three-drone flight with two drone sets: each
+    set imported with only its drones (its logs name only their maps), evaluated, and the
+    sets compared in one table."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    sys.path.insert(0, str(ROOT / "tests"))
+    try:
+        from test_real_nanoswarm import make_flight
+    finally:
+        sys.path.pop(0)
+    make_flight(tmp_path / "ns" / "trio", drones=(0, 1, 2))
+    out = tmp_path / "out"
+    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), "real-data-drones", f"NANOSWARM={tmp_path / 'ns'}",
+                        f"REAL_DIR={out}", "REAL_DRONES_FLIGHT=trio", "REAL_DRONE_SETS=0,1 1,2", "REAL_ESTIMATORS=icp_pf",
+                        "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert sorted(p.name for p in (out / "trio-d01").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5",
+                                                                     "drone1-node000.h5", "drone1-node001.h5"]
+    assert sorted(p.name for p in (out / "trio-d12" / "maps").glob("*.ply")) == ["without-drone1.ply", "without-drone2.ply"]
+    for s in ("d01", "d12"):
+        doc = json.loads((out / f"eval-trio-{s}" / "results.json").read_text())
+        assert len(doc["logs"]) == 4
+    table = (out / "compare-trio-subsets" / "comparison.md").read_text()
+    assert "eval-trio-d01" in table and "eval-trio-d12" in table and "| icp_pf |" in table

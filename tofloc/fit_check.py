@@ -254,6 +254,16 @@ def _rot_z(angle: float) -> NDArray[np.float64]:
     return T
 
 
+def _sensor_poses(problem: Any, pose: NDArray[np.float64], support_yaw: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``T_map_tip`` ``(K, 4, 4)`` and ``T_map_sensor`` ``(K, S, 4, 4)`` at a planar base pose,
+    the support rotated by ``support_yaw`` about the tip's z axis (as the beam model does)."""
+    T_tip_sensor = problem.rig.T_tip_sensor
+    if support_yaw:
+        T_tip_sensor = _rot_z(float(support_yaw))[None] @ T_tip_sensor
+    T_map_tip = problem.prior.T_map_base(pose)[None] @ problem.T_base_tip
+    return T_map_tip, T_map_tip[:, None] @ T_tip_sensor[None]
+
+
 def configuration_variance(caster: ZoneCaster, T_map_sensor: NDArray[np.float64], T_map_tip: NDArray[np.float64],
                            cast: Any, T_base_tip_cov: NDArray[np.float64]) -> NDArray[np.float64]:
     """Variance ``(K, S, Z)`` of every zone's expected reading due to the configuration's
@@ -303,12 +313,7 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
     if p.shape != (3,) or not np.all(np.isfinite(p)):
         raise ParameterError(f"pose must be 3 finite numbers (x, y, yaw), got {p!r}")
     rig = problem.rig
-    T_map_base = problem.prior.T_map_base(p)
-    T_tip_sensor = rig.T_tip_sensor
-    if support_yaw:
-        T_tip_sensor = _rot_z(float(support_yaw))[None] @ T_tip_sensor
-    T_map_tip = T_map_base[None] @ problem.T_base_tip  # (K, 4, 4)
-    T_map_sensor = T_map_tip[:, None] @ T_tip_sensor[None]  # (K, S, 4, 4)
+    T_map_tip, T_map_sensor = _sensor_poses(problem, p, support_yaw)
     caster = ZoneCaster(rig)
     cov = problem.T_base_tip_cov
     cast = caster.cast(problem.map, T_map_sensor, geometry=cov is not None)
@@ -349,10 +354,7 @@ def unknown_space_zones(problem: Any, pose: ArrayLike, res: ZoneResiduals, suppo
     short = valid & (~np.isfinite(res.expected) | (np.nan_to_num(res.r) < -OUTLIER_SIGMA))
     if not short.any():
         return short
-    T_tip_sensor = rig.T_tip_sensor
-    if support_yaw:
-        T_tip_sensor = _rot_z(float(support_yaw))[None] @ T_tip_sensor
-    T_map_sensor = (problem.prior.T_map_base(np.asarray(pose, dtype=float))[None] @ problem.T_base_tip)[:, None] @ T_tip_sensor[None]
+    _, T_map_sensor = _sensor_poses(problem, np.asarray(pose, dtype=float), support_yaw)
     caster = ZoneCaster(rig)
     o, u = caster.rays(T_map_sensor)
     mid = u.shape[-2] // 2  # the centre sub-ray
