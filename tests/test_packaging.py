@@ -6,6 +6,7 @@ import ast
 import re
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -118,10 +119,10 @@ def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path, 
     assert not out.exists()
 
 
-def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
-    """`make real-data` takes every flight folder of NANOSWARM (another experiment's flights
-    too): a flight that cannot be imported (a single drone has no leave-one-drone-out map) is
-    named, the other flights are still imported and evaluated, and make fails."""
+def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str, tuple[int, ...]], *variables: str) -> tuple[Any, Path]:
+    """``make TARGET`` (install not run) on synthetic nano-swarm flights written into
+    ``tmp_path/ns`` (name -> drones, :func:`test_real_nanoswarm.make_flight`), with this
+    environment's venv and ``REAL_DIR=tmp_path/out``; the completed process and that folder."""
     import shutil
     import subprocess
     import sys
@@ -133,13 +134,21 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
         from test_real_nanoswarm import make_flight
     finally:
         sys.path.pop(0)
-    make_flight(tmp_path / "ns" / "solo", drones=(0,))
-    make_flight(tmp_path / "ns" / "pair", drones=(0, 1))
-    (tmp_path / "ns" / "notes").mkdir()  # not a flight: no scans.csv
+    for name, drones in flights.items():
+        make_flight(tmp_path / "ns" / name, drones=drones)
     out = tmp_path / "out"
-    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), "real-data", f"NANOSWARM={tmp_path / 'ns'}", f"REAL_DIR={out}",
-                        "REAL_ESTIMATORS=icp_pf", "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}"],
+    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), target, f"NANOSWARM={tmp_path / 'ns'}", f"REAL_DIR={out}",
+                        "REAL_ESTIMATORS=icp_pf", "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}", *variables],
                        capture_output=True, text=True, timeout=600)
+    return r, out
+
+
+def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
+    """`make real-data` takes every flight folder of NANOSWARM (another experiment's flights
+    too): a flight that cannot be imported (a single drone has no leave-one-drone-out map) is
+    named, the other flights are still imported and evaluated, and make fails."""
+    (tmp_path / "ns" / "notes").mkdir(parents=True)  # not a flight: no scans.csv
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo": (0,), "pair": (0, 1)})
     text = r.stdout + r.stderr
     assert r.returncode != 0, text
     assert f"real-data: failed: solo (the others are in {out})" in text and "found only drone 0" in text
@@ -152,23 +161,9 @@ def test_make_real_data_drones_runs_end_to_end_on_a_small_flight(tmp_path: Path)
     set imported with only its drones (its logs name only their maps), evaluated, and the
     sets compared in one table."""
     import json
-    import shutil
-    import subprocess
-    import sys
 
-    if shutil.which("make") is None:
-        pytest.skip("make is not installed")
-    sys.path.insert(0, str(ROOT / "tests"))
-    try:
-        from test_real_nanoswarm import make_flight
-    finally:
-        sys.path.pop(0)
-    make_flight(tmp_path / "ns" / "trio", drones=(0, 1, 2))
-    out = tmp_path / "out"
-    r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), "real-data-drones", f"NANOSWARM={tmp_path / 'ns'}",
-                        f"REAL_DIR={out}", "REAL_DRONES_FLIGHT=trio", "REAL_DRONE_SETS=0,1 1,2", "REAL_ESTIMATORS=icp_pf",
-                        "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}"],
-                       capture_output=True, text=True, timeout=600)
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data-drones", {"trio": (0, 1, 2)}, "REAL_DRONES_FLIGHT=trio",
+                                          "REAL_DRONE_SETS=0,1 1,2")
     assert r.returncode == 0, r.stdout + r.stderr
     assert sorted(p.name for p in (out / "trio-d01").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5",
                                                                      "drone1-node000.h5", "drone1-node001.h5"]
