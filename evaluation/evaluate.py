@@ -54,6 +54,7 @@ import numpy as np
 from evaluation.failure_cause import count_causes
 from evaluation.metrics import json_float, summarize
 from evaluation.priors import PriorSpec
+from evaluation.log_bootstrap import log_bootstrap
 from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
 from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, sample_pool, trial_seed
 from tofloc.errors import FormatError, ParameterError
@@ -546,6 +547,8 @@ def results_document(
     (:func:`truth_sigmas`), the oracle's records and summary, and per estimator its
     records, summary and ``ratio_to_oracle``. ``truth_uncertainty``: how many logs declare
     their truth's uncertainty and the range of their one-sigma x, y (mm) and yaw (deg).
+    ``intervals``: how sure the medians, failure rates and ratios are, from resampling whole
+    logs (:func:`evaluation.log_bootstrap.log_bootstrap`; ``None`` for a single log).
     """
     logs: dict[str, Any] = {}
     per_log_ratios: dict[str, dict[str, list[float]]] = {e.name: {"e_x_m": [], "e_gamma_deg": []} for e in estimators}
@@ -595,6 +598,7 @@ def results_document(
         "seeds": {"seed": int(seed), "derivation": SEED_DERIVATION},
         "summary": summary,
         "oracle_summary": oracle_sum,
+        "intervals": log_bootstrap(logs, [e.name for e in estimators], seed=seed),
         "logs": logs,
     }
     if extra:

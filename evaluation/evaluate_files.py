@@ -62,6 +62,42 @@ def _summary(v: Any, p: Path, where: str) -> dict[str, Any]:
     return out
 
 
+def _span(v: Any, p: Path, where: str) -> list[float] | None:
+    """An interval ``[lo, hi]`` of finite numbers with lo <= hi, or None."""
+    if v is None:
+        return None
+    if not isinstance(v, list) or len(v) != 2:
+        raise FormatError(p, where, "an interval [low, high] or null", repr(v)[:40])
+    lo, hi = (_number(x, p, f"{where}[{i}]", null=False) for i, x in enumerate(v))
+    if lo > hi:
+        raise FormatError(p, where, "low <= high", repr(v)[:40])
+    return [lo, hi]
+
+
+def _intervals(v: Any, p: Path, names: Sequence[str]) -> dict[str, Any] | None:
+    """The part of ``intervals`` (:mod:`evaluation.log_bootstrap`) the comparison reads: the
+    level, and per estimator the ratios' and the failure rate's intervals (the oracle's
+    failure rate); None when the file has none (one log, or an earlier version)."""
+    if v is None:
+        return None
+    d = _mapping(v, p, "intervals", "an object of intervals or null")
+    level = _number(d.get("level"), p, "intervals.level", positive=True, null=False)
+    if not level < 1.0:
+        raise FormatError(p, "intervals.level", "a probability in (0, 1)", level)
+    ests = _mapping(d.get("estimators"), p, "intervals.estimators", "an object {estimator: intervals}")
+    out: dict[str, Any] = {"level": level, "estimators": {}}
+    for e in names:
+        where = f"intervals.estimators.{e}"
+        r = _mapping(ests.get(e), p, where, "the intervals of every estimator of the summary")
+        ratio = _mapping(r.get("ratio_to_oracle"), p, f"{where}.ratio_to_oracle", "an object with e_x_m and e_gamma_deg")
+        out["estimators"][e] = {"failure_rate": _span(r.get("failure_rate"), p, f"{where}.failure_rate"),
+                                "ratio_e_x": _span(ratio.get("e_x_m"), p, f"{where}.ratio_to_oracle.e_x_m"),
+                                "ratio_e_gamma": _span(ratio.get("e_gamma_deg"), p, f"{where}.ratio_to_oracle.e_gamma_deg")}
+    o = _mapping(d.get("oracle"), p, "intervals.oracle", "an object with the oracle's intervals")
+    out["oracle"] = {"failure_rate": _span(o.get("failure_rate"), p, "intervals.oracle.failure_rate")}
+    return out
+
+
 def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
     if not isinstance(v, list):
         raise FormatError(p, where, "a list of trial records", type(v).__name__)
@@ -147,6 +183,7 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
         "truth_uncertainty": {"declared_by": declared},
         "logs": view_logs,
         "changed": changed,
+        "intervals": _intervals(doc.get("intervals"), p, names),
     }
 
 
@@ -156,6 +193,7 @@ def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequenc
     the medians' ratios to the oracle's."""
     rows = []
     for view, label in zip(views, labels):
+        iv = view.get("intervals")
         oracle = view["oracle_summary"]
         o_x, o_g = oracle["e_x_m"]["median"], oracle["e_gamma_deg"]["median"]
         for name, s in [*view["summary"].items(), ("oracle floor", oracle)]:
@@ -167,6 +205,8 @@ def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequenc
                 "nees_mean": (s.get("nees") or {}).get("mean"), "nees_model_mean": (s.get("nees_model") or {}).get("mean"),
                 "ratio_e_x": None if name == "oracle floor" or x is None or not o_x else x / o_x,
                 "ratio_e_gamma": None if name == "oracle floor" or g is None or not o_g else g / o_g,
+                "intervals": None if iv is None else (iv["oracle"] if name == "oracle floor" else iv["estimators"][name]),
+                "level": None if iv is None else iv["level"],
             })
     return rows
 
@@ -191,14 +231,24 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
                 parts = [f"{e}: {changed_text(kv)}" for e, kv in c.items() if kv is None or kv]
                 text = "; ".join(parts) if parts else "none (every estimator with its defaults)"
             lines.append(f"* {lab}: {text}")
+    levels = sorted({r["level"] for r in rows if r.get("level") is not None})
+    if levels:
+        lines += ["", "In brackets: " + "/".join(f"{lv * 100:.0f} %" for lv in levels) + " intervals from resampling each "
+                  "file's logs (evaluation/log_bootstrap.py; failures: of the rate; ratios: of each)."]
     lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
               "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        iv = r.get("intervals") or {}
         nees = "" if r["estimator"] == "oracle floor" else (
             f(r["nees_mean"], ".2f") + ("" if r["nees_model_mean"] is None else f" ({r['nees_model_mean']:.2f})"))
         ratio = "" if r["ratio_e_x"] is None and r["ratio_e_gamma"] is None else \
-            f"{f(r['ratio_e_x'], '.2f')} / {f(r['ratio_e_gamma'], '.2f')}"
-        share = f"{r['failures']}/{r['n']}" + (f" ({r['failures'] / r['n']:.0%})" if r["n"] else "")
+            f"{f(r['ratio_e_x'], '.2f')}{_bracket(iv.get('ratio_e_x'), '.2f')} / {f(r['ratio_e_gamma'], '.2f')}{_bracket(iv.get('ratio_e_gamma'), '.2f')}"
+        share = f"{r['failures']}/{r['n']}" + (f" ({r['failures'] / r['n']:.0%})" if r["n"] else "") + \
+            _bracket(iv.get("failure_rate"), ".0%")
         lines.append(f"| {r['file']} | {r['estimator']} | {r['prior_mode']} | {r['logs']} | {r['n']} | "
                      f"{f(r['e_x_mm_median'], '.1f')} | {f(r['e_gamma_deg_median'], '.2f')} | {share} | {nees} | {ratio} |")
     return "\n".join(lines) + "\n"
+
+
+def _bracket(span: Sequence[float] | None, fmt: str) -> str:
+    return "" if span is None else f" [{format(span[0], fmt)}-{format(span[1], fmt)}]"

@@ -8,7 +8,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["table_markdown", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+from evaluation.log_bootstrap import MIN_LOGS
+
+__all__ = ["table_markdown", "interval_lines", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
            "errors_by_log_figure", "format_or_na", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
@@ -238,6 +240,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         r, m = s["ratio_to_oracle"], s["median_log_ratio"]
         lines.append(f"| {e} | {format_or_na(r['e_x_m'], '.2f')} | {format_or_na(r['e_gamma_deg'], '.2f')} | {format_or_na(m['e_x_m'], '.2f')} | "
                      f"{format_or_na(m['e_gamma_deg'], '.2f')} |")
+    lines += interval_lines(doc)
     lines += [
         "",
         "## Per log",
@@ -256,6 +259,50 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         cells = [cell(lg["oracle"]["summary"])] + [cell(lg["estimators"][e]["summary"]) for e in ests]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _span_of(iv: Any, fmt: str, scale: float = 1.0) -> str:
+    if not iv or iv[0] is None or iv[1] is None:
+        return "n/a"
+    return f"{format(iv[0] * scale, fmt)}-{format(iv[1] * scale, fmt)}"
+
+
+def interval_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The section "How sure these figures are": the percentile intervals of
+    ``doc["intervals"]`` (:mod:`evaluation.log_bootstrap`); a sentence instead when the run has
+    too few logs for one (or is of a version without them)."""
+    iv = doc.get("intervals")
+    lines = ["", "## How sure these figures are", ""]
+    if not iv:
+        n = len(doc.get("logs", {}))
+        why = (f"{n} log(s); resampling needs at least {MIN_LOGS}" if n < MIN_LOGS
+               else "the results file is of a version without them")
+        return lines + [f"No interval: {why} (evaluation/log_bootstrap.py).", ""]
+    pct = f"{iv['level'] * 100:.0f} %"
+    lines += [
+        f"{pct} intervals from {iv['resamples']} resamples of the {iv['logs']} logs with replacement (every trial of a "
+        "drawn log: a log's trials share its data; the same logs for every estimator and the oracle; "
+        "evaluation/log_bootstrap.py). A bar is met with this confidence when the interval's top is below it, missed when "
+        "its bottom is above it, and not decided by these logs otherwise.",
+        "",
+        "| estimator | e_x / oracle | e_gamma / oracle | failure rate | median e_x (mm) | median e_gamma (deg) |",
+        "|---|---|---|---|---|---|",
+    ]
+    s = doc["summary"]
+    for e, v in iv["estimators"].items():
+        r = s[e].get("ratio_to_oracle") or {}
+        lines.append(
+            f"| {e} | {format_or_na(r.get('e_x_m'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_x_m'], '.2f')}) | "
+            f"{format_or_na(r.get('e_gamma_deg'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}) | "
+            f"{format_or_na(s[e].get('failure_rate'), '.1%')} ({_span_of(v['failure_rate'], '.1%')}) | "
+            f"{format_or_na(s[e]['e_x_m']['median'], '.1f', 1000)} ({_span_of(v['e_x_m_median'], '.1f', 1000)}) | "
+            f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({_span_of(v['e_gamma_deg_median'], '.2f')}) |")
+    o, ov = doc["oracle_summary"], iv["oracle"]
+    lines.append(
+        f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({_span_of(ov['failure_rate'], '.1%')}) | "
+        f"{format_or_na(o['e_x_m']['median'], '.1f', 1000)} ({_span_of(ov['e_x_m_median'], '.1f', 1000)}) | "
+        f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({_span_of(ov['e_gamma_deg_median'], '.2f')}) |")
+    return lines
 
 
 def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:

@@ -112,6 +112,15 @@ def test_outputs_and_summaries(run: dict) -> None:
         assert det["failures"] == doc["summary"][e]["failures"] and det["successes"] == 4 - det["failures"]
         assert det["successes_flagged"] == sum((not is_failure(r)) and (r["covariance_widened"] or r["ambiguous"]) for r in recs)
     assert "| l_room |" in table
+    # how sure: intervals from resampling the two logs, each holding the run's own figure
+    iv = doc["intervals"]
+    assert iv["logs"] == 2 and iv["unit"] == "log" and "## How sure these figures are" in table
+    for e in every:
+        for key in ("e_x_m", "e_gamma_deg"):
+            lo, hi = iv["estimators"][e][f"{key}_median"]
+            assert lo <= doc["summary"][e][key]["median"] <= hi
+        lo, hi = iv["estimators"][e]["failure_rate"]
+        assert lo <= doc["summary"][e]["failure_rate"] <= hi
     # simulated logs declare no truth covariance: the truth is exact and both NEES agree
     assert doc["truth_uncertainty"] == {"declared_by": 0, "logs": 2, "x_mm": None, "y_mm": None, "yaw_deg": None}
     assert "NEES vs exact truth (mean)" in table and "No log declares its truth's uncertainty" in table
@@ -726,6 +735,10 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
             assert cells[5] == f"{1000 * s['e_x_m']['median']:.1f}" and cells[6] == f"{s['e_gamma_deg']['median']:.2f}"
             assert cells[7].startswith(f"{s['failures']}/{s['n']}")
         assert f"| {lab} | oracle floor |" in table
+    assert "90 % intervals from resampling each file's logs" in table  # the ratios' and failure rates' intervals
+    lo, hi = doc["intervals"]["estimators"]["icp_pf"]["ratio_to_oracle"]["e_x_m"]
+    row = next(line for line in table.splitlines() if line.startswith("| out | icp_pf |"))
+    assert f"[{lo:.2f}-{hi:.2f}]" in row.split("|")[10]
     assert "beam_pf" in out and "wrote" in err
     # the checked view draws what the whole document draws
     view = evaluate_view(doc, "results.json")
@@ -749,6 +762,8 @@ def _damaged(doc: dict, edit: str) -> dict:
         d["summary"]["icp_pf"]["failures"] = d["summary"]["icp_pf"]["n"] + 1
     elif edit == "threshold":
         d["failure"]["e_x_m"] = 0
+    elif edit == "interval":
+        d["intervals"]["estimators"]["beam_pf"]["failure_rate"] = [0.5, 0.1]
     return d
 
 
@@ -757,6 +772,7 @@ def _damaged(doc: dict, edit: str) -> dict:
     ("missing", "logs.{log}.estimators: expected the results of every estimator of the summary ('beam_pf' missing)"),
     ("failures", "summary.icp_pf.failures: expected at most n = "),
     ("threshold", "failure.e_x_m: expected a finite number > 0, found 0"),
+    ("interval", "intervals.estimators.beam_pf.failure_rate: expected low <= high, found [0.5, 0.1]"),
 ])
 def test_plot_refuses_a_damaged_evaluate_file(run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                               edit: str, where: str) -> None:

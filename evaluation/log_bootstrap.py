@@ -1,0 +1,176 @@
+"""How sure a ``tofloc evaluate`` figure is: intervals from resampling whole logs.
+
+The trials of one log share its data (its samples, its map, its truth), so they are not
+independent draws: three trials of a node where the map lacks a wall fail together. The
+unit of resampling is therefore the *log* (a cluster bootstrap): a resample draws as many
+logs as the run has, with replacement, and takes every trial of each drawn log. Every
+estimator and the oracle floor are resampled with the **same** logs (paired), so a
+ratio to the oracle is computed on the same trials in each resample, as it is on the
+whole run.
+
+For each estimator :func:`log_bootstrap` gives the percentile interval (``level``, 90 %
+by default) of
+
+* the median e_x and e_gamma (undefined errors left out, as :func:`evaluation.metrics.summarize` does),
+* the failure rate (:func:`evaluation.evaluate.is_failure`: an undefined error fails),
+* the ratio of its median e_x and e_gamma to the oracle's (``ratio_to_oracle``),
+
+and the same medians and failure rate for the oracle floor. Read a bar such as "median
+e_gamma <= 1.3x the oracle's" against the interval: met with that confidence when the
+interval's top is below the bar, missed when its bottom is above, and not decided by
+these data otherwise.
+
+The resamples are drawn by ``numpy.random.default_rng(SeedSequence([seed, BOOTSTRAP_KEY]))``
+from the run's seed (:data:`BOOTSTRAP_DERIVATION`): the same results give the same
+intervals. Fewer than :data:`MIN_LOGS` logs give no interval (``None``): resampling one log
+only repeats it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from evaluation.metrics import json_float
+from tofloc.errors import ParameterError
+
+__all__ = ["BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap"]
+
+#: Mixed into the run's seed for the resamples, so they do not reuse a trial's stream.
+BOOTSTRAP_KEY = 0xB005
+#: Resamples of the logs.
+DEFAULT_RESAMPLES = 2000
+#: Central probability of the percentile interval.
+DEFAULT_LEVEL = 0.9
+#: Fewest logs for an interval.
+MIN_LOGS = 2
+#: Most values (resamples x trials) held at once; larger runs are resampled in chunks.
+_CHUNK_VALUES = 4_000_000
+#: How the resamples are drawn (recorded in results.json).
+BOOTSTRAP_DERIVATION = (
+    "rng = default_rng(SeedSequence([seed, 0xB005])); per resample: rng.integers(0, n_logs, n_logs) "
+    "(logs with replacement, every trial of a drawn log; the same logs for every estimator and the oracle); "
+    "percentile interval of the resampled statistics"
+)
+
+_KEYS = ("e_x_m", "e_gamma_deg")
+
+
+def _padded(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Errors ``(logs, trials, 2)`` (NaN where undefined or padded), failures ``(logs, trials)``
+    as 0/1 (NaN where padded) and the mask of real trials."""
+    from evaluation.evaluate import is_failure
+
+    width = max((len(r) for r in per_log), default=0)
+    err = np.full((len(per_log), width, 2), np.nan)
+    fail = np.full((len(per_log), width), np.nan)
+    mask = np.zeros((len(per_log), width), dtype=bool)
+    for i, recs in enumerate(per_log):
+        for j, rec in enumerate(recs):
+            for c, key in enumerate(_KEYS):
+                v = rec.get(key)
+                err[i, j, c] = np.nan if v is None else float(v)
+            fail[i, j] = float(is_failure(rec))
+            mask[i, j] = True
+    return err, fail, mask
+
+
+def _resampled(values: NDArray[np.float64], idx: NDArray[np.intp], stat: str) -> NDArray[np.float64]:
+    """``stat`` ("median" or "mean", NaN left out) of ``values[idx]`` flattened per resample,
+    in chunks of resamples so that at most :data:`_CHUNK_VALUES` values are held at once.
+    ``values``: ``(logs, trials, ...)``; returns ``(resamples, ...)``."""
+    B, L = idx.shape
+    per = max(1, int(np.prod(values.shape[1:])) * L)
+    step = max(1, _CHUNK_VALUES // per)
+    func = np.nanmedian if stat == "median" else np.nanmean
+    out = []
+    for s in range(0, B, step):
+        v = values[idx[s:s + step]]  # (b, L, T, ...)
+        v = v.reshape(v.shape[0], L * values.shape[1], *values.shape[2:])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN resample: NaN, dropped below
+            out.append(func(v, axis=1))
+    return np.concatenate(out, axis=0)
+
+
+def _interval(samples: NDArray[np.float64], level: float) -> list[float | None] | None:
+    s = samples[np.isfinite(samples)]
+    if s.size == 0:
+        return None
+    lo, hi = np.percentile(s, [50 * (1 - level), 50 * (1 + level)])
+    return [json_float(lo), json_float(hi)]
+
+
+def log_bootstrap(
+    logs: Mapping[str, Mapping[str, Any]],
+    estimators: Sequence[str],
+    *,
+    seed: int,
+    resamples: int = DEFAULT_RESAMPLES,
+    level: float = DEFAULT_LEVEL,
+) -> dict[str, Any] | None:
+    """Percentile intervals of a run's medians, failure rates and ratios to the oracle,
+    from resampling whole logs (module doc).
+
+    Parameters
+    ----------
+    logs : mapping
+        ``results.json``'s ``logs``: ``{label: {"oracle": {"records": [...]},
+        "estimators": {name: {"records": [...]}}}}``; a record needs ``e_x_m`` and
+        ``e_gamma_deg`` (``None`` when undefined).
+    estimators : sequence of str
+        The estimators to resample (each must be in every log).
+    seed : int
+        The run's seed (:data:`BOOTSTRAP_DERIVATION`).
+    resamples : int
+        Number of resamples (100 to 100 000).
+    level : float
+        Central probability of the interval, in (0, 1).
+
+    Returns
+    -------
+    dict or None
+        ``{"level", "resamples", "logs", "unit": "log", "derivation", "oracle":
+        {"e_x_m_median": [lo, hi], "e_gamma_deg_median": [...], "failure_rate": [...]},
+        "estimators": {name: {... the same, "ratio_to_oracle": {"e_x_m": [lo, hi],
+        "e_gamma_deg": [lo, hi]}}}}``; an interval is ``None`` where no resample defines the
+        statistic. ``None`` for fewer than :data:`MIN_LOGS` logs.
+    """
+    if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
+        raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
+    if not isinstance(level, float) or not 0.0 < level < 1.0:
+        raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+    labels = list(logs)
+    if len(labels) < MIN_LOGS:
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), BOOTSTRAP_KEY]))
+    idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
+
+    def stats(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[dict[str, Any], NDArray[np.float64]]:
+        err, fail, _ = _padded(per_log)
+        med = _resampled(err, idx, "median")  # (B, 2)
+        rate = _resampled(fail, idx, "mean")  # (B,)
+        out = {f"{key}_median": _interval(med[:, c], level) for c, key in enumerate(_KEYS)}
+        out["failure_rate"] = _interval(rate, level)
+        return out, med
+
+    oracle_out, oracle_med = stats([logs[lb]["oracle"]["records"] for lb in labels])
+    by_est: dict[str, Any] = {}
+    for name in estimators:
+        out, med = stats([logs[lb]["estimators"][name]["records"] for lb in labels])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(oracle_med > 0, med / oracle_med, np.nan)
+        out["ratio_to_oracle"] = {key: _interval(ratio[:, c], level) for c, key in enumerate(_KEYS)}
+        by_est[name] = out
+    return {
+        "level": level,
+        "resamples": resamples,
+        "logs": len(labels),
+        "unit": "log",
+        "derivation": BOOTSTRAP_DERIVATION,
+        "oracle": oracle_out,
+        "estimators": by_est,
+    }
