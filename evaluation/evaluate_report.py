@@ -285,24 +285,40 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
         "evaluation/log_bootstrap.py). A bar is met with this confidence when the interval's top is below it, missed when "
         "its bottom is above it, and not decided by these logs otherwise.",
         "",
-        "| estimator | e_x / oracle | e_gamma / oracle | failure rate | median e_x (mm) | median e_gamma (deg) |",
-        "|---|---|---|---|---|---|",
     ]
+    ref = iv.get("reference")
     s = doc["summary"]
+    head = "| estimator | e_x / oracle | e_gamma / oracle | failure rate | median e_x (mm) | median e_gamma (deg) |"
+    if ref is not None:
+        head += f" e_x / {ref} | e_gamma / {ref} |"
+        lines[-2] += (f" The last two columns: each estimator's medians over those of {ref}, the run's first "
+                      "estimator, on the same resampled logs.")
+    lines += [head, "|---" * head.count(" | ") + "|---|"]
     for e, v in iv["estimators"].items():
         r = s[e].get("ratio_to_oracle") or {}
+        to_ref = ""
+        if ref is not None:
+            rr = v.get("ratio_to_reference") or {}
+            own = {key: _ratio_of(s[e][key]["median"], s[ref][key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
+            to_ref = "".join(f" {format_or_na(own[key], '.2f')} ({_span_of(rr.get(key), '.2f')}) |" if e != ref else " |"
+                             for key in ("e_x_m", "e_gamma_deg"))
         lines.append(
             f"| {e} | {format_or_na(r.get('e_x_m'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_x_m'], '.2f')}) | "
             f"{format_or_na(r.get('e_gamma_deg'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}) | "
             f"{format_or_na(s[e].get('failure_rate'), '.1%')} ({_span_of(v['failure_rate'], '.1%')}) | "
             f"{format_or_na(s[e]['e_x_m']['median'], '.1f', 1000)} ({_span_of(v['e_x_m_median'], '.1f', 1000)}) | "
-            f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({_span_of(v['e_gamma_deg_median'], '.2f')}) |")
+            f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({_span_of(v['e_gamma_deg_median'], '.2f')}) |" + to_ref)
     o, ov = doc["oracle_summary"], iv["oracle"]
     lines.append(
         f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({_span_of(ov['failure_rate'], '.1%')}) | "
         f"{format_or_na(o['e_x_m']['median'], '.1f', 1000)} ({_span_of(ov['e_x_m_median'], '.1f', 1000)}) | "
-        f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({_span_of(ov['e_gamma_deg_median'], '.2f')}) |")
+        f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({_span_of(ov['e_gamma_deg_median'], '.2f')}) |"
+        + (" | |" if ref is not None else ""))
     return lines
+
+
+def _ratio_of(a: Any, b: Any) -> float | None:
+    return None if a is None or b is None or b == 0 else float(a) / float(b)
 
 
 def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:

@@ -13,7 +13,9 @@ by default) of
 
 * the median e_x and e_gamma (undefined errors left out, as :func:`evaluation.metrics.summarize` does),
 * the failure rate (:func:`evaluation.evaluate.is_failure`: an undefined error fails),
-* the ratio of its median e_x and e_gamma to the oracle's (``ratio_to_oracle``),
+* the ratio of its median e_x and e_gamma to the oracle's (``ratio_to_oracle``) and, for
+  every estimator but the first, to the first estimator's (``ratio_to_reference``: the
+  run's reference, e.g. the paper's ``icp_pf`` listed first),
 
 and the same medians and failure rate for the oracle floor. Read a bar such as "median
 e_gamma <= 1.3x the oracle's" against the interval: met with that confidence when the
@@ -136,8 +138,11 @@ def log_bootstrap(
         ``{"level", "resamples", "logs", "unit": "log", "derivation", "oracle":
         {"e_x_m_median": [lo, hi], "e_gamma_deg_median": [...], "failure_rate": [...]},
         "estimators": {name: {... the same, "ratio_to_oracle": {"e_x_m": [lo, hi],
-        "e_gamma_deg": [lo, hi]}}}}``; an interval is ``None`` where no resample defines the
-        statistic. ``None`` for fewer than :data:`MIN_LOGS` logs.
+        "e_gamma_deg": [lo, hi]}, "ratio_to_reference": {...}}}, "reference": name}``;
+        ``ratio_to_reference``: an estimator's medians over the first estimator's (the
+        reference, e.g. the paper's method listed first; not for the first itself; the
+        reference is ``None`` for a single estimator). An interval is ``None`` where no
+        resample defines the statistic. ``None`` for fewer than :data:`MIN_LOGS` logs.
     """
     if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
         raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
@@ -157,20 +162,29 @@ def log_bootstrap(
         out["failure_rate"] = _interval(rate, level)
         return out, med
 
+    def ratio_interval(num: NDArray[np.float64], den: NDArray[np.float64]) -> dict[str, Any]:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(den > 0, num / den, np.nan)
+        return {key: _interval(ratio[:, c], level) for c, key in enumerate(_KEYS)}
+
     oracle_out, oracle_med = stats([logs[lb]["oracle"]["records"] for lb in labels])
     by_est: dict[str, Any] = {}
+    meds: dict[str, NDArray[np.float64]] = {}
     for name in estimators:
-        out, med = stats([logs[lb]["estimators"][name]["records"] for lb in labels])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(oracle_med > 0, med / oracle_med, np.nan)
-        out["ratio_to_oracle"] = {key: _interval(ratio[:, c], level) for c, key in enumerate(_KEYS)}
+        out, meds[name] = stats([logs[lb]["estimators"][name]["records"] for lb in labels])
+        out["ratio_to_oracle"] = ratio_interval(meds[name], oracle_med)
         by_est[name] = out
+    reference = estimators[0] if len(estimators) > 1 else None
+    if reference is not None:  # e.g. the paper's method, listed first
+        for name in estimators[1:]:
+            by_est[name]["ratio_to_reference"] = ratio_interval(meds[name], meds[reference])
     return {
         "level": level,
         "resamples": resamples,
         "logs": len(labels),
         "unit": "log",
         "derivation": BOOTSTRAP_DERIVATION,
+        "reference": reference,
         "oracle": oracle_out,
         "estimators": by_est,
     }

@@ -121,6 +121,9 @@ def test_outputs_and_summaries(run: dict) -> None:
             assert lo <= doc["summary"][e][key]["median"] <= hi
         lo, hi = iv["estimators"][e]["failure_rate"]
         assert lo <= doc["summary"][e]["failure_rate"] <= hi
+    assert iv["reference"] == "icp_pf" and "| estimator | e_x / oracle |" in table and "e_gamma / icp_pf |" in table
+    lo, hi = iv["estimators"]["beam_pf"]["ratio_to_reference"]["e_x_m"]
+    assert lo <= doc["summary"]["beam_pf"]["e_x_m"]["median"] / doc["summary"]["icp_pf"]["e_x_m"]["median"] <= hi
     # simulated logs declare no truth covariance: the truth is exact and both NEES agree
     assert doc["truth_uncertainty"] == {"declared_by": 0, "logs": 2, "x_mm": None, "y_mm": None, "yaw_deg": None}
     assert "NEES vs exact truth (mean)" in table and "No log declares its truth's uncertainty" in table

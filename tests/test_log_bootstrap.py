@@ -117,3 +117,16 @@ def test_an_estimator_that_never_answers_has_no_median_interval() -> None:
     a = log_bootstrap(logs, ["a"], seed=0)["estimators"]["a"]
     assert a["e_x_m_median"] is None and a["ratio_to_oracle"]["e_x_m"] is None
     assert a["failure_rate"] == [1.0, 1.0]
+
+
+def test_ratios_to_the_first_estimator_on_the_same_resamples() -> None:
+    logs = _random_logs(np.random.default_rng(8), 9, 3)
+    for lg in logs.values():  # "half": every answer half as far off as "a"'s, on every trial
+        lg["estimators"]["half"] = {"records": [
+            {k: None if v is None else v / 2 for k, v in r.items()} for r in lg["estimators"]["a"]["records"]]}
+    got = log_bootstrap(logs, ["a", "half"], seed=3)
+    assert got["reference"] == "a" and "ratio_to_reference" not in got["estimators"]["a"]
+    r = got["estimators"]["half"]["ratio_to_reference"]
+    np.testing.assert_allclose(r["e_x_m"], [0.5, 0.5])
+    np.testing.assert_allclose(r["e_gamma_deg"], [0.5, 0.5])
+    assert log_bootstrap(logs, ["half"], seed=3)["reference"] is None
