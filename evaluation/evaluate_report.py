@@ -288,7 +288,7 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
     ]
     ref = iv.get("reference")
     s = doc["summary"]
-    head = "| estimator | e_x / oracle | e_gamma / oracle | failure rate | median e_x (mm) | median e_gamma (deg) |"
+    head = "| estimator | e_x / oracle | e_gamma / oracle | failure rate | NEES mean | median e_x (mm) | median e_gamma (deg) |"
     if ref is not None:
         head += f" e_x / {ref} | e_gamma / {ref} |"
         lines[-2] += (f" The last two columns: each estimator's medians over those of {ref}, the run's first "
@@ -306,11 +306,12 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
             f"| {e} | {format_or_na(r.get('e_x_m'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_x_m'], '.2f')}) | "
             f"{format_or_na(r.get('e_gamma_deg'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}) | "
             f"{format_or_na(s[e].get('failure_rate'), '.1%')} ({_span_of(v['failure_rate'], '.1%')}) | "
+            f"{format_or_na((s[e].get('nees') or {}).get('mean'), '.2f')} ({_span_of(v.get('nees_mean'), '.2f')}) | "
             f"{format_or_na(s[e]['e_x_m']['median'], '.1f', 1000)} ({_span_of(v['e_x_m_median'], '.1f', 1000)}) | "
             f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({_span_of(v['e_gamma_deg_median'], '.2f')}) |" + to_ref)
     o, ov = doc["oracle_summary"], iv["oracle"]
     lines.append(
-        f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({_span_of(ov['failure_rate'], '.1%')}) | "
+        f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({_span_of(ov['failure_rate'], '.1%')}) | | "
         f"{format_or_na(o['e_x_m']['median'], '.1f', 1000)} ({_span_of(ov['e_x_m_median'], '.1f', 1000)}) | "
         f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({_span_of(ov['e_gamma_deg_median'], '.2f')}) |"
         + (" | |" if ref is not None else ""))

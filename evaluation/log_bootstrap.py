@@ -13,6 +13,8 @@ by default) of
 
 * the median e_x and e_gamma (undefined errors left out, as :func:`evaluation.metrics.summarize` does),
 * the failure rate (:func:`evaluation.evaluate.is_failure`: an undefined error fails),
+* the mean NEES (``nees``, the records' NEES with the truth's declared uncertainty; trials
+  without one left out), for records that have it,
 * the ratio of its median e_x and e_gamma to the oracle's (``ratio_to_oracle``) and, for
   every estimator but the first, to the first estimator's (``ratio_to_reference``: the
   run's reference, e.g. the paper's ``icp_pf`` listed first),
@@ -61,23 +63,24 @@ BOOTSTRAP_DERIVATION = (
 _KEYS = ("e_x_m", "e_gamma_deg")
 
 
-def _padded(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+def _padded(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Errors ``(logs, trials, 2)`` (NaN where undefined or padded), failures ``(logs, trials)``
-    as 0/1 (NaN where padded) and the mask of real trials."""
+    as 0/1 (NaN where padded) and NEES ``(logs, trials)`` (NaN where undefined or padded)."""
     from evaluation.evaluate import is_failure
 
     width = max((len(r) for r in per_log), default=0)
     err = np.full((len(per_log), width, 2), np.nan)
     fail = np.full((len(per_log), width), np.nan)
-    mask = np.zeros((len(per_log), width), dtype=bool)
+    nees = np.full((len(per_log), width), np.nan)
     for i, recs in enumerate(per_log):
         for j, rec in enumerate(recs):
             for c, key in enumerate(_KEYS):
                 v = rec.get(key)
                 err[i, j, c] = np.nan if v is None else float(v)
             fail[i, j] = float(is_failure(rec))
-            mask[i, j] = True
-    return err, fail, mask
+            v = rec.get("nees")
+            nees[i, j] = np.nan if v is None else float(v)
+    return err, fail, nees
 
 
 def _resampled(values: NDArray[np.float64], idx: NDArray[np.intp], stat: str) -> NDArray[np.float64]:
@@ -137,7 +140,7 @@ def log_bootstrap(
     dict or None
         ``{"level", "resamples", "logs", "unit": "log", "derivation", "oracle":
         {"e_x_m_median": [lo, hi], "e_gamma_deg_median": [...], "failure_rate": [...]},
-        "estimators": {name: {... the same, "ratio_to_oracle": {"e_x_m": [lo, hi],
+        "estimators": {name: {... the same, "nees_mean": [lo, hi], "ratio_to_oracle": {"e_x_m": [lo, hi],
         "e_gamma_deg": [lo, hi]}, "ratio_to_reference": {...}}}, "reference": name}``;
         ``ratio_to_reference``: an estimator's medians over the first estimator's (the
         reference, e.g. the paper's method listed first; not for the first itself; the
@@ -155,11 +158,13 @@ def log_bootstrap(
     idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
 
     def stats(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[dict[str, Any], NDArray[np.float64]]:
-        err, fail, _ = _padded(per_log)
+        err, fail, nees = _padded(per_log)
         med = _resampled(err, idx, "median")  # (B, 2)
         rate = _resampled(fail, idx, "mean")  # (B,)
         out = {f"{key}_median": _interval(med[:, c], level) for c, key in enumerate(_KEYS)}
         out["failure_rate"] = _interval(rate, level)
+        if np.isfinite(nees).any():  # the estimators' covariances; the oracle has none
+            out["nees_mean"] = _interval(_resampled(nees, idx, "mean"), level)
         return out, med
 
     def ratio_interval(num: NDArray[np.float64], den: NDArray[np.float64]) -> dict[str, Any]:

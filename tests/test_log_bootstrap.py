@@ -11,8 +11,8 @@ from evaluation.log_bootstrap import BOOTSTRAP_KEY, log_bootstrap
 from tofloc.errors import ParameterError
 
 
-def _rec(ex: float | None, eg: float | None) -> dict:
-    return {"e_x_m": ex, "e_gamma_deg": eg}
+def _rec(ex: float | None, eg: float | None, nees: float | None = None) -> dict:
+    return {"e_x_m": ex, "e_gamma_deg": eg, "nees": nees}
 
 
 def _logs(est: list[list[tuple]], oracle: list[list[tuple]], name: str = "a") -> dict:
@@ -24,7 +24,8 @@ def _random_logs(rng: np.random.Generator, n_logs: int, trials: int) -> dict:
     est, orc = [], []
     for _ in range(n_logs):
         scale = rng.lognormal(0.0, 0.5)  # a log's own difficulty, shared by its trials
-        est.append([(float(scale * rng.gamma(2.0, 0.02)), float(scale * rng.gamma(2.0, 0.5))) for _ in range(trials)])
+        est.append([(float(scale * rng.gamma(2.0, 0.02)), float(scale * rng.gamma(2.0, 0.5)), float(rng.chisquare(3) * scale))
+                    for _ in range(trials)])
         orc.append([(float(scale * rng.gamma(2.0, 0.015)), float(scale * rng.gamma(2.0, 0.4))) for _ in range(trials)])
     est[0][1] = (0.25, 1.0)  # a failure by position
     est[1][0] = (None, None)  # an undefined answer: a failure, left out of the medians
@@ -44,11 +45,13 @@ def _reference(logs: dict, name: str, seed: int, resamples: int, level: float) -
             cols[key + "ex"].append(np.median([r["e_x_m"] for r in rs if r["e_x_m"] is not None]))
             cols[key + "eg"].append(np.median([r["e_gamma_deg"] for r in rs if r["e_gamma_deg"] is not None]))
             cols[key + "fail"].append(np.mean([is_failure(r) for r in rs]))
+        cols.setdefault("nees", []).append(np.mean([r["nees"] for r in recs if r["nees"] is not None]))
     c = {k: np.array(v) for k, v in cols.items()}
     q = [50 * (1 - level), 50 * (1 + level)]
     return {"e_x_m_median": np.percentile(c["ex"], q), "e_gamma_deg_median": np.percentile(c["eg"], q),
             "failure_rate": np.percentile(c["fail"], q), "ratio_e_x": np.percentile(c["ex"] / c["oex"], q),
-            "ratio_e_gamma": np.percentile(c["eg"] / c["oeg"], q), "oracle_failure_rate": np.percentile(c["ofail"], q)}
+            "ratio_e_gamma": np.percentile(c["eg"] / c["oeg"], q), "oracle_failure_rate": np.percentile(c["ofail"], q),
+            "nees_mean": np.percentile(c["nees"], q)}
 
 
 @pytest.mark.parametrize("chunk", [lb._CHUNK_VALUES, 50])
@@ -64,6 +67,8 @@ def test_intervals_are_those_of_resampling_one_log_at_a_time(monkeypatch: pytest
     np.testing.assert_allclose(a["ratio_to_oracle"]["e_x_m"], want["ratio_e_x"], rtol=1e-12)
     np.testing.assert_allclose(a["ratio_to_oracle"]["e_gamma_deg"], want["ratio_e_gamma"], rtol=1e-12)
     np.testing.assert_allclose(got["oracle"]["failure_rate"], want["oracle_failure_rate"], rtol=1e-12)
+    np.testing.assert_allclose(a["nees_mean"], want["nees_mean"], rtol=1e-12)
+    assert "nees_mean" not in got["oracle"]  # no covariance, no NEES
     assert got["logs"] == 12 and got["resamples"] == 300 and got["level"] == 0.8 and got["unit"] == "log"
 
 
