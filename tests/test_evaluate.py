@@ -121,6 +121,11 @@ def test_outputs_and_summaries(run: dict) -> None:
             assert lo <= doc["summary"][e][key]["median"] <= hi
         lo, hi = iv["estimators"][e]["failure_rate"]
         assert lo <= doc["summary"][e]["failure_rate"] <= hi
+    from tofloc.cli.cmd_evaluate import interval_line
+
+    lo, hi = iv["estimators"]["beam_pf"]["ratio_to_oracle"]["e_x_m"]
+    assert interval_line(doc).startswith("90 % intervals of e_x / e_γ over the oracle's, resampling the 2 logs: icp_pf ")
+    assert f"beam_pf {lo:.2f}-{hi:.2f} / " in interval_line(doc) and interval_line({**doc, "intervals": None}) == ""
     assert iv["reference"] == "icp_pf" and "| estimator | e_x / oracle |" in table and "e_gamma / icp_pf |" in table
     lo, hi = iv["estimators"]["beam_pf"]["ratio_to_reference"]["e_x_m"]
     assert lo <= doc["summary"]["beam_pf"]["e_x_m"]["median"] / doc["summary"]["icp_pf"]["e_x_m"]["median"] <= hi

@@ -106,7 +106,7 @@ def evaluate(
             plot_failures=plot_failures,
         )
     console.print(summary_table(run.document))
-    for line in (detection_line(run.document), cross_check_line(run.document)):
+    for line in (interval_line(run.document), detection_line(run.document), cross_check_line(run.document)):
         if line:
             console.print(line, highlight=False, soft_wrap=True)
     for p in run.paths:
@@ -118,6 +118,22 @@ def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
         return "n/a"
     x = float(v) * scale
     return format(x, ".0f" if abs(x) >= 1000 else fmt)
+
+
+def interval_line(doc: dict[str, Any]) -> str:
+    """One line: per estimator, the intervals of its medians' ratios to the oracle floor's
+    (``intervals``, :mod:`evaluation.log_bootstrap`; "" when the run has none)."""
+    iv = doc.get("intervals")
+    if not iv:
+        return ""
+
+    def span(v: Any) -> str:
+        return "n/a" if not v else f"{v[0]:.2f}-{v[1]:.2f}"
+
+    parts = [f"{name} {span(v['ratio_to_oracle']['e_x_m'])} / {span(v['ratio_to_oracle']['e_gamma_deg'])}"
+             for name, v in iv["estimators"].items()]
+    return (f"{iv['level'] * 100:.0f} % intervals of e_x / e_γ over the oracle's, resampling the {iv['logs']} logs: "
+            + ", ".join(parts) + " (table.md: How sure these figures are)")
 
 
 def detection_line(doc: dict[str, Any]) -> str:
