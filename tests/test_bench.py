@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from typing import Any
 
 import pytest
@@ -85,7 +86,24 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert [row["k"] for row in icp["per_k"]] == [1, 5, 10] and icp["max_abs_fitness_diff"] == 0.0
     assert all(_seconds(row["vectorized_after_open3d_s"]) for row in icp["per_k"])
     assert icp["speedup"] == pytest.approx(icp["open3d_loop_s"] / icp["vectorized_s"])
+    assert icp["speedup_min"] == pytest.approx(icp["open3d_loop_min_s"] / icp["vectorized_min_s"])
+    for row in icp["per_k"]:  # the fastest run is no slower than the median; the first calls timed apart
+        assert row["vectorized_min_s"] <= row["vectorized_s"] and row["open3d_loop_min_s"] <= row["open3d_loop_s"]
+        assert _seconds(row["vectorized_first_s"])
     assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
+
+
+def test_warm_calls_for_the_time_asked_and_at_least_three() -> None:
+    from tofloc.bench import _median_and_min_time, _warm
+
+    calls: list[float] = []
+    assert _warm(lambda: calls.append(0.0), 0.0) == 3 and len(calls) == 3
+    t0 = time.perf_counter()
+    n = _warm(lambda: time.sleep(0.01), 0.05)
+    assert time.perf_counter() - t0 >= 0.05 and 3 <= n
+    times = iter([0.0, 0.0])
+    med, low = _median_and_min_time(lambda: time.sleep(next(times) + 0.002), 2)
+    assert 0 < low <= med
 
 
 def test_paired_medians_alternate_and_reverse() -> None:
