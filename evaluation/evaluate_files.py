@@ -234,7 +234,8 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
     levels = sorted({r["level"] for r in rows if r.get("level") is not None})
     if levels:
         lines += ["", "In brackets: " + "/".join(f"{lv * 100:.0f} %" for lv in levels) + " intervals from resampling each "
-                  "file's logs (evaluation/log_bootstrap.py; failures: of the rate; ratios: of each)."]
+                  "file's logs (evaluation/log_bootstrap.py; failures: of the rate, Clopper-Pearson's on the trials over their "
+                  "design effect; ratios: of each)."]
     lines += ["", "| file | estimator | prior | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
               "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

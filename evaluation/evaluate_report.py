@@ -282,7 +282,8 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
     lines += [
         f"{pct} intervals from {iv['resamples']} resamples of the {iv['logs']} logs with replacement (every trial of a "
         "drawn log: a log's trials share its data; the same logs for every estimator and the oracle; "
-        "evaluation/log_bootstrap.py). A bar is met with this confidence when the interval's top is below it, missed when "
+        "evaluation/log_bootstrap.py); the failure rate's interval is Clopper-Pearson's on the trials over their design "
+        "effect (how alike a log's trials fail). A bar is met with this confidence when the interval's top is below it, missed when "
         "its bottom is above it, and not decided by these logs otherwise.",
         "",
     ]
