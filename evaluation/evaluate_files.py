@@ -20,7 +20,7 @@ from evaluation.evaluate_report import changed_text
 from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
 
-__all__ = ["is_evaluate_document", "evaluate_view", "evaluate_comparison_rows", "evaluate_comparison_markdown",
+__all__ = ["is_evaluate_document", "evaluate_view", "evaluate_comparison_rows", "evaluate_comparison_markdown", "paired_lines",
            "MAX_ESTIMATORS"]
 
 #: Estimators one file may hold at most.
@@ -104,7 +104,12 @@ def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
     out = []
     for i, r in enumerate(v):
         d = _mapping(r, p, f"{where}[{i}]", "a trial record (an object)")
-        out.append({k: _number(d.get(k), p, f"{where}[{i}].{k}") for k in _RECORD_KEYS})
+        rec: dict[str, Any] = {k: _number(d.get(k), p, f"{where}[{i}].{k}") for k in _RECORD_KEYS}
+        seed = d.get("seed")
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**64):
+            raise FormatError(p, f"{where}[{i}].seed", "an integer seed >= 0 or null", repr(seed)[:40])
+        rec["seed"] = seed  # pairs this trial with the same trial of another run (evaluation.log_bootstrap.paired_runs)
+        out.append(rec)
     return out
 
 
@@ -175,6 +180,7 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
                                                 p, "truth_uncertainty.declared_by")
     return {
         "trials": trials,
+        "seed": _count(doc.get("seed", 0), p, "seed"),
         "prior": {"mode": _name(prior.get("mode"), p, "prior.mode")},
         "failure": {"e_x_m": _number(failure.get("e_x_m"), p, "failure.e_x_m", positive=True, null=False),
                     "e_gamma_deg": _number(failure.get("e_gamma_deg"), p, "failure.e_gamma_deg", positive=True, null=False)},
@@ -253,3 +259,34 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
 
 def _bracket(span: Sequence[float] | None, fmt: str) -> str:
     return "" if span is None else f" [{format(span[0], fmt)}-{format(span[1], fmt)}]"
+
+
+def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[str]:
+    """``comparison.md``'s section "Paired with the first file": every other file against
+    the first on the trials both ran alike (the same logs, the same trial seeds:
+    :func:`evaluation.log_bootstrap.paired_runs`), per estimator both hold: the ratio of
+    the medians with its 90 % interval, and the trials one failed and the other did not.
+    Empty for a single file."""
+    from evaluation.log_bootstrap import paired_runs
+
+    if len(views) < 2:
+        return []
+    lines = ["", f"## Paired with the first file ({labels[0]})", "",
+             "Each file's medians over the first file's on the trials both ran alike (the same logs and trial seeds: "
+             "the same samples and priors), with 90 % intervals from resampling those logs (evaluation/log_bootstrap.py), "
+             "and the trials that failed in one run only. An interval that holds 1 is a change these logs cannot tell "
+             "from the nodes' spread.", "",
+             "| file | estimator | paired logs | median e_x / first's | median e_gamma / first's | failures, first -> this | "
+             "fixed | broken |", "|---|---|---|---|---|---|---|---|"]
+    base = views[0]
+    for view, label in zip(views[1:], labels[1:]):
+        names = [e for e in view["summary"] if e in base["summary"]]
+        got = paired_runs(base["logs"], view["logs"], names, seed=int(base.get("seed", 0)))
+        for e in names:
+            r = got["estimators"][e]
+            cells = [f"{f(r[k]['ratio'], '.2f')}{_bracket(r[k]['interval'], '.2f')}" for k in ("e_x_m", "e_gamma_deg")]
+            lines.append(f"| {label} | {e} | {r['logs']} | {cells[0]} | {cells[1]} | {r['failures'][0]} -> {r['failures'][1]} | "
+                         f"{r['fixed']} | {r['broken']} |")
+        if not names:
+            lines.append(f"| {label} | (no estimator in common) | | | | | | |")
+    return lines

@@ -47,7 +47,7 @@ from evaluation.metrics import json_float
 from tofloc.errors import ParameterError
 
 __all__ = ["BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
-           "design_effect", "failure_rate_interval"]
+           "design_effect", "failure_rate_interval", "paired_runs"]
 
 #: Mixed into the run's seed for the resamples, so they do not reuse a trial's stream.
 BOOTSTRAP_KEY = 0xB005
@@ -238,3 +238,90 @@ def log_bootstrap(
         "oracle": oracle_out,
         "estimators": by_est,
     }
+
+
+def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, Mapping[str, Any]],
+                 name: str) -> list[str]:
+    """The logs both runs hold with ``name``'s trials drawn from the same seeds, in the same
+    order (every record's ``seed`` given and equal): the same samples and priors."""
+    out = []
+    for label, lg in logs_a.items():
+        other = logs_b.get(label)
+        if other is None or name not in lg["estimators"] or name not in other["estimators"]:
+            continue
+        sa = [r.get("seed") for r in lg["estimators"][name]["records"]]
+        sb = [r.get("seed") for r in other["estimators"][name]["records"]]
+        if sa and sa == sb and all(x is not None for x in sa):
+            out.append(label)
+    return out
+
+
+def paired_runs(
+    logs_a: Mapping[str, Mapping[str, Any]],
+    logs_b: Mapping[str, Mapping[str, Any]],
+    estimators: Sequence[str],
+    *,
+    seed: int,
+    resamples: int = DEFAULT_RESAMPLES,
+    level: float = DEFAULT_LEVEL,
+) -> dict[str, Any]:
+    """Run B against run A on the trials both ran alike: per estimator, B's median e_x and
+    e_gamma over A's with a percentile interval from resampling the shared logs (the same
+    logs for both runs), and the trials one run failed and the other did not.
+
+    Two ``tofloc evaluate`` runs of the same logs with the same seed draw the same samples
+    and priors for every trial (docs/evaluation.md, "Seeds and pairing"): a change of
+    parameters, code or map is then measured on the same trials, and the interval says
+    whether its effect stands out of the nodes' spread. A log counts for an estimator when
+    both runs hold it with that estimator's trials from the same seeds, in the same order.
+
+    Parameters
+    ----------
+    logs_a, logs_b : mapping
+        The two runs' ``logs`` (``results.json``, or :func:`evaluation.evaluate_files.evaluate_view`),
+        records with ``seed``, ``e_x_m`` and ``e_gamma_deg``.
+    estimators : sequence of str
+        The estimators to compare (those both runs hold).
+    seed, resamples, level
+        As :func:`log_bootstrap` (the resamples from ``SeedSequence([seed, BOOTSTRAP_KEY])``).
+
+    Returns
+    -------
+    dict
+        ``{"level", "resamples", "estimators": {name: {"logs": n, "e_x_m": {"ratio", "interval"},
+        "e_gamma_deg": {...}, "failures": [a, b], "fixed": k, "broken": j}}}``; an estimator
+        with fewer than :data:`MIN_LOGS` paired logs has its counts and ``null`` ratios.
+    """
+    from evaluation.evaluate import is_failure
+
+    if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
+        raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
+    if not isinstance(level, float) or not 0.0 < level < 1.0:
+        raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+    out: dict[str, Any] = {"level": level, "resamples": resamples, "estimators": {}}
+    for name in estimators:
+        labels = _paired_logs(logs_a, logs_b, name)
+        recs_a = [logs_a[lb]["estimators"][name]["records"] for lb in labels]
+        recs_b = [logs_b[lb]["estimators"][name]["records"] for lb in labels]
+        fa = [is_failure(r) for rs in recs_a for r in rs]
+        fb = [is_failure(r) for rs in recs_b for r in rs]
+        entry: dict[str, Any] = {"logs": len(labels), "failures": [int(sum(fa)), int(sum(fb))],
+                                 "fixed": int(sum(a and not b for a, b in zip(fa, fb))),
+                                 "broken": int(sum(b and not a for a, b in zip(fa, fb)))}
+        if len(labels) < MIN_LOGS:
+            entry.update({key: {"ratio": None, "interval": None} for key in _KEYS})
+        else:
+            rng = np.random.default_rng(np.random.SeedSequence([int(seed), BOOTSTRAP_KEY]))
+            idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
+            err_a, _, _ = _padded(recs_a)
+            err_b, _, _ = _padded(recs_b)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                whole = np.nanmedian(err_b.reshape(-1, 2), axis=0) / np.nanmedian(err_a.reshape(-1, 2), axis=0)
+            med_a, med_b = _resampled(err_a, idx, "median"), _resampled(err_b, idx, "median")
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(med_a > 0, med_b / med_a, np.nan)
+            for c, key in enumerate(_KEYS):
+                entry[key] = {"ratio": json_float(whole[c]), "interval": _interval(ratio[:, c], level)}
+        out["estimators"][name] = entry
+    return out

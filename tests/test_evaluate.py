@@ -747,6 +747,11 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
     lo, hi = doc["intervals"]["estimators"]["icp_pf"]["ratio_to_oracle"]["e_x_m"]
     row = next(line for line in table.splitlines() if line.startswith("| out | icp_pf |"))
     assert f"[{lo:.2f}-{hi:.2f}]" in row.split("|")[10]
+    # the second run against the first on the same trials (the same logs and seeds): its records are the same
+    assert "## Paired with the first file (out)" in table
+    for e in doc["summary"]:
+        row = next(line for line in table.splitlines() if line.startswith(f"| b | {e} | 2 |"))
+        assert "| 1.00 [1.00-1.00] | 1.00 [1.00-1.00] |" in row and row.endswith("| 0 | 0 |")
     assert "beam_pf" in out and "wrote" in err
     # the checked view draws what the whole document draws
     view = evaluate_view(doc, "results.json")
@@ -770,6 +775,8 @@ def _damaged(doc: dict, edit: str) -> dict:
         d["summary"]["icp_pf"]["failures"] = d["summary"]["icp_pf"]["n"] + 1
     elif edit == "threshold":
         d["failure"]["e_x_m"] = 0
+    elif edit == "seed":
+        d["logs"][log]["estimators"]["icp_pf"]["records"][0]["seed"] = "x"
     elif edit == "interval":
         d["intervals"]["estimators"]["beam_pf"]["failure_rate"] = [0.5, 0.1]
     return d
@@ -781,6 +788,7 @@ def _damaged(doc: dict, edit: str) -> dict:
     ("failures", "summary.icp_pf.failures: expected at most n = "),
     ("threshold", "failure.e_x_m: expected a finite number > 0, found 0"),
     ("interval", "intervals.estimators.beam_pf.failure_rate: expected low <= high, found [0.5, 0.1]"),
+    ("seed", "logs.{log}.estimators.icp_pf.records[0].seed: expected an integer seed >= 0 or null, found 'x'"),
 ])
 def test_plot_refuses_a_damaged_evaluate_file(run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                               edit: str, where: str) -> None:

@@ -7,7 +7,7 @@ import pytest
 
 import evaluation.log_bootstrap as lb
 from evaluation.evaluate import is_failure
-from evaluation.log_bootstrap import BOOTSTRAP_KEY, design_effect, failure_rate_interval, log_bootstrap
+from evaluation.log_bootstrap import BOOTSTRAP_KEY, design_effect, failure_rate_interval, log_bootstrap, paired_runs
 from tofloc.errors import ParameterError
 
 
@@ -167,3 +167,46 @@ def test_ratios_to_the_first_estimator_on_the_same_resamples() -> None:
     np.testing.assert_allclose(r["e_x_m"], [0.5, 0.5])
     np.testing.assert_allclose(r["e_gamma_deg"], [0.5, 0.5])
     assert log_bootstrap(logs, ["half"], seed=3)["reference"] is None
+
+
+def _seeded(logs: dict) -> dict:
+    """``logs`` with a seed on every record (trial j of log i: seed 100 i + j)."""
+    for i, lg in enumerate(logs.values()):
+        for part in [lg["oracle"], *lg["estimators"].values()]:
+            for j, r in enumerate(part["records"]):
+                r["seed"] = 100 * i + j
+    return logs
+
+
+def test_paired_runs_on_the_same_trials() -> None:
+    import copy
+
+    a = _seeded(_random_logs(np.random.default_rng(9), 10, 3))
+    same = paired_runs(a, copy.deepcopy(a), ["a"], seed=0)["estimators"]["a"]
+    assert same["logs"] == 10 and same["e_x_m"] == {"ratio": 1.0, "interval": [1.0, 1.0]}
+    fails_a = [is_failure(r) for lg in a.values() for r in lg["estimators"]["a"]["records"]]
+    assert same["failures"] == [sum(fails_a)] * 2 and same["fixed"] == 0 and same["broken"] == 0
+    # run B: every answer 0.8 times as far off, and log 3's first trial failing instead of log 0's
+    b = copy.deepcopy(a)
+    for lg in b.values():
+        for r in lg["estimators"]["a"]["records"]:
+            r["e_x_m"] = None if r["e_x_m"] is None else 0.8 * r["e_x_m"]
+            r["e_gamma_deg"] = None if r["e_gamma_deg"] is None else 0.8 * r["e_gamma_deg"]
+    b["log0"]["estimators"]["a"]["records"][1] = {**b["log0"]["estimators"]["a"]["records"][1], "e_x_m": 0.02}
+    b["log3"]["estimators"]["a"]["records"][0] = {**b["log3"]["estimators"]["a"]["records"][0], "e_x_m": 0.3}
+    got = paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]
+    fails_b = [is_failure(r) for lg in b.values() for r in lg["estimators"]["a"]["records"]]
+    assert got["failures"] == [sum(fails_a), sum(fails_b)]
+    assert got["fixed"] == sum(x and not y for x, y in zip(fails_a, fails_b)) >= 1
+    assert got["broken"] == sum(y and not x for x, y in zip(fails_a, fails_b)) == 1
+    assert got["e_gamma_deg"]["ratio"] == pytest.approx(0.8)
+    np.testing.assert_allclose(got["e_gamma_deg"]["interval"], [0.8, 0.8])
+    lo, hi = got["e_x_m"]["interval"]
+    assert lo <= got["e_x_m"]["ratio"] <= hi and hi < 1.0
+    # trials drawn from other seeds are not the same trials: that log is left out
+    b["log5"]["estimators"]["a"]["records"][2]["seed"] = 7
+    del b["log6"]
+    assert paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]["logs"] == 8
+    # too few shared logs: counts only
+    few = paired_runs({"log0": a["log0"]}, {"log0": b["log0"]}, ["a"], seed=0)["estimators"]["a"]
+    assert few["logs"] == 1 and few["e_x_m"] == {"ratio": None, "interval": None}
