@@ -52,7 +52,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from evaluation.failure_cause import count_causes
-from evaluation.metrics import json_float, summarize
+from evaluation.metrics import json_float, ratio_or_none, summarize
 from evaluation.priors import PriorSpec
 from evaluation.log_bootstrap import log_bootstrap
 from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
@@ -515,14 +515,8 @@ def _truth_uncertainty(sigmas: Sequence[dict[str, float] | None]) -> dict[str, A
     return out
 
 
-def _ratio(a: Any, b: Any) -> float | None:
-    if a is None or b is None or b == 0:
-        return None
-    return json_float(float(a) / float(b))
-
-
 def _ratios(est: Mapping[str, Any], oracle: Mapping[str, Any]) -> dict[str, Any]:
-    return {key: _ratio(est[key]["median"], oracle[key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
+    return {key: ratio_or_none(est[key]["median"], oracle[key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
 
 
 def results_document(

@@ -16,7 +16,8 @@ from typing import Any, Mapping, Sequence
 from evaluation.compare import checked_name as _name
 from evaluation.compare import checked_number as _number
 from evaluation.compare import checked_stats as _stats
-from evaluation.evaluate_report import changed_text
+from evaluation.evaluate_report import changed_text, format_span
+from evaluation.metrics import ratio_or_none
 from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
 
@@ -209,8 +210,8 @@ def evaluate_comparison_rows(views: Sequence[Mapping[str, Any]], labels: Sequenc
                 "n": s["n"], "failures": s["failures"],
                 "e_x_mm_median": None if x is None else 1000.0 * x, "e_gamma_deg_median": g,
                 "nees_mean": (s.get("nees") or {}).get("mean"), "nees_model_mean": (s.get("nees_model") or {}).get("mean"),
-                "ratio_e_x": None if name == "oracle floor" or x is None or not o_x else x / o_x,
-                "ratio_e_gamma": None if name == "oracle floor" or g is None or not o_g else g / o_g,
+                "ratio_e_x": None if name == "oracle floor" else ratio_or_none(x, o_x),
+                "ratio_e_gamma": None if name == "oracle floor" else ratio_or_none(g, o_g),
                 "intervals": None if iv is None else (iv["oracle"] if name == "oracle floor" else iv["estimators"][name]),
                 "level": None if iv is None else iv["level"],
             })
@@ -258,7 +259,7 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
 
 
 def _bracket(span: Sequence[float] | None, fmt: str) -> str:
-    return "" if span is None else f" [{format(span[0], fmt)}-{format(span[1], fmt)}]"
+    return "" if span is None else f" [{format_span(span, fmt)}]"
 
 
 def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[str]:

@@ -9,8 +9,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from evaluation.log_bootstrap import MIN_LOGS
+from evaluation.metrics import ratio_or_none
 
-__all__ = ["table_markdown", "interval_lines", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+__all__ = ["table_markdown", "interval_lines", "format_span", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
            "errors_by_log_figure", "format_or_na", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
@@ -261,7 +262,9 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _span_of(iv: Any, fmt: str, scale: float = 1.0) -> str:
+def format_span(iv: Any, fmt: str, scale: float = 1.0) -> str:
+    """An interval ``[lo, hi]`` (:mod:`evaluation.log_bootstrap`) times ``scale`` as
+    ``"lo-hi"`` formatted with ``fmt``, or ``"n/a"`` when it (or an end) is None."""
     if not iv or iv[0] is None or iv[1] is None:
         return "n/a"
     return f"{format(iv[0] * scale, fmt)}-{format(iv[1] * scale, fmt)}"
@@ -300,27 +303,24 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
         to_ref = ""
         if ref is not None:
             rr = v.get("ratio_to_reference") or {}
-            own = {key: _ratio_of(s[e][key]["median"], s[ref][key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
-            to_ref = "".join(f" {format_or_na(own[key], '.2f')} ({_span_of(rr.get(key), '.2f')}) |" if e != ref else " |"
+            own = {key: ratio_or_none(s[e][key]["median"], s[ref][key]["median"]) for key in ("e_x_m", "e_gamma_deg")}
+            to_ref = "".join(f" {format_or_na(own[key], '.2f')} ({format_span(rr.get(key), '.2f')}) |" if e != ref else " |"
                              for key in ("e_x_m", "e_gamma_deg"))
         lines.append(
-            f"| {e} | {format_or_na(r.get('e_x_m'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_x_m'], '.2f')}) | "
-            f"{format_or_na(r.get('e_gamma_deg'), '.2f')} ({_span_of(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}) | "
-            f"{format_or_na(s[e].get('failure_rate'), '.1%')} ({_span_of(v['failure_rate'], '.1%')}) | "
-            f"{format_or_na((s[e].get('nees') or {}).get('mean'), '.2f')} ({_span_of(v.get('nees_mean'), '.2f')}) | "
-            f"{format_or_na(s[e]['e_x_m']['median'], '.1f', 1000)} ({_span_of(v['e_x_m_median'], '.1f', 1000)}) | "
-            f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({_span_of(v['e_gamma_deg_median'], '.2f')}) |" + to_ref)
+            f"| {e} | {format_or_na(r.get('e_x_m'), '.2f')} ({format_span(v['ratio_to_oracle']['e_x_m'], '.2f')}) | "
+            f"{format_or_na(r.get('e_gamma_deg'), '.2f')} ({format_span(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}) | "
+            f"{format_or_na(s[e].get('failure_rate'), '.1%')} ({format_span(v['failure_rate'], '.1%')}) | "
+            f"{format_or_na((s[e].get('nees') or {}).get('mean'), '.2f')} ({format_span(v.get('nees_mean'), '.2f')}) | "
+            f"{format_or_na(s[e]['e_x_m']['median'], '.1f', 1000)} ({format_span(v['e_x_m_median'], '.1f', 1000)}) | "
+            f"{format_or_na(s[e]['e_gamma_deg']['median'], '.2f')} ({format_span(v['e_gamma_deg_median'], '.2f')}) |" + to_ref)
     o, ov = doc["oracle_summary"], iv["oracle"]
     lines.append(
-        f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({_span_of(ov['failure_rate'], '.1%')}) | | "
-        f"{format_or_na(o['e_x_m']['median'], '.1f', 1000)} ({_span_of(ov['e_x_m_median'], '.1f', 1000)}) | "
-        f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({_span_of(ov['e_gamma_deg_median'], '.2f')}) |"
+        f"| **oracle floor** | | | {format_or_na(o.get('failure_rate'), '.1%')} ({format_span(ov['failure_rate'], '.1%')}) | | "
+        f"{format_or_na(o['e_x_m']['median'], '.1f', 1000)} ({format_span(ov['e_x_m_median'], '.1f', 1000)}) | "
+        f"{format_or_na(o['e_gamma_deg']['median'], '.2f')} ({format_span(ov['e_gamma_deg_median'], '.2f')}) |"
         + (" | |" if ref is not None else ""))
     return lines
 
-
-def _ratio_of(a: Any, b: Any) -> float | None:
-    return None if a is None or b is None or b == 0 else float(a) / float(b)
 
 
 def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:

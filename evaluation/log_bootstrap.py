@@ -115,6 +115,27 @@ def _interval(samples: NDArray[np.float64], level: float) -> list[float | None] 
     return [json_float(lo), json_float(hi)]
 
 
+def _check_settings(resamples: Any, level: Any) -> None:
+    if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
+        raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
+    if not isinstance(level, float) or not 0.0 < level < 1.0:
+        raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+
+
+def _resample_indices(seed: int, n_logs: int, resamples: int) -> NDArray[np.int64]:
+    """``(resamples, n_logs)`` log indices drawn with replacement (:data:`BOOTSTRAP_DERIVATION`)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), BOOTSTRAP_KEY]))
+    return rng.integers(0, n_logs, size=(resamples, n_logs))
+
+
+def _ratio_interval(num: NDArray[np.float64], den: NDArray[np.float64], level: float) -> dict[str, Any]:
+    """Per key of :data:`_KEYS`, the interval of the resampled medians' ratio ``num / den``
+    ``(resamples, 2)`` (resamples whose denominator is 0 left out)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(den > 0, num / den, np.nan)
+    return {key: _interval(ratio[:, c], level) for c, key in enumerate(_KEYS)}
+
+
 def design_effect(fail: NDArray[np.float64]) -> float:
     """Kish's design effect of a failure rate whose trials cluster by log: the variance of
     the logs' failure fractions over a binomial's with as many trials per log, clipped to
@@ -193,15 +214,11 @@ def log_bootstrap(
         reference is ``None`` for a single estimator). An interval is ``None`` where no
         resample defines the statistic. ``None`` for fewer than :data:`MIN_LOGS` logs.
     """
-    if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
-        raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
-    if not isinstance(level, float) or not 0.0 < level < 1.0:
-        raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+    _check_settings(resamples, level)
     labels = list(logs)
     if len(labels) < MIN_LOGS:
         return None
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), BOOTSTRAP_KEY]))
-    idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
+    idx = _resample_indices(seed, len(labels), resamples)
 
     def stats(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[dict[str, Any], NDArray[np.float64]]:
         err, fail, nees = _padded(per_log)
@@ -212,22 +229,17 @@ def log_bootstrap(
             out["nees_mean"] = _interval(_resampled(nees, idx, "mean"), level)
         return out, med
 
-    def ratio_interval(num: NDArray[np.float64], den: NDArray[np.float64]) -> dict[str, Any]:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(den > 0, num / den, np.nan)
-        return {key: _interval(ratio[:, c], level) for c, key in enumerate(_KEYS)}
-
     oracle_out, oracle_med = stats([logs[lb]["oracle"]["records"] for lb in labels])
     by_est: dict[str, Any] = {}
     meds: dict[str, NDArray[np.float64]] = {}
     for name in estimators:
         out, meds[name] = stats([logs[lb]["estimators"][name]["records"] for lb in labels])
-        out["ratio_to_oracle"] = ratio_interval(meds[name], oracle_med)
+        out["ratio_to_oracle"] = _ratio_interval(meds[name], oracle_med, level)
         by_est[name] = out
     reference = estimators[0] if len(estimators) > 1 else None
     if reference is not None:  # e.g. the paper's method, listed first
         for name in estimators[1:]:
-            by_est[name]["ratio_to_reference"] = ratio_interval(meds[name], meds[reference])
+            by_est[name]["ratio_to_reference"] = _ratio_interval(meds[name], meds[reference], level)
     return {
         "level": level,
         "resamples": resamples,
@@ -294,10 +306,7 @@ def paired_runs(
     """
     from evaluation.evaluate import is_failure
 
-    if not isinstance(resamples, int) or isinstance(resamples, bool) or not 100 <= resamples <= 100_000:
-        raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
-    if not isinstance(level, float) or not 0.0 < level < 1.0:
-        raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+    _check_settings(resamples, level)
     out: dict[str, Any] = {"level": level, "resamples": resamples, "estimators": {}}
     for name in estimators:
         labels = _paired_logs(logs_a, logs_b, name)
@@ -311,17 +320,14 @@ def paired_runs(
         if len(labels) < MIN_LOGS:
             entry.update({key: {"ratio": None, "interval": None} for key in _KEYS})
         else:
-            rng = np.random.default_rng(np.random.SeedSequence([int(seed), BOOTSTRAP_KEY]))
-            idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
+            idx = _resample_indices(seed, len(labels), resamples)
             err_a, _, _ = _padded(recs_a)
             err_b, _, _ = _padded(recs_b)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 whole = np.nanmedian(err_b.reshape(-1, 2), axis=0) / np.nanmedian(err_a.reshape(-1, 2), axis=0)
-            med_a, med_b = _resampled(err_a, idx, "median"), _resampled(err_b, idx, "median")
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(med_a > 0, med_b / med_a, np.nan)
+            spans = _ratio_interval(_resampled(err_b, idx, "median"), _resampled(err_a, idx, "median"), level)
             for c, key in enumerate(_KEYS):
-                entry[key] = {"ratio": json_float(whole[c]), "interval": _interval(ratio[:, c], level)}
+                entry[key] = {"ratio": json_float(whole[c]), "interval": spans[key]}
         out["estimators"][name] = entry
     return out

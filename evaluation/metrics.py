@@ -37,6 +37,7 @@ __all__ = [
     "planar_truth_covariance",
     "summarize",
     "json_float",
+    "ratio_or_none",
     "FOUND_POSITION_M",
     "FOUND_YAW_DEG",
     "found",
@@ -190,6 +191,14 @@ def json_float(x: Any) -> float | None:
         return None
     v = float(x)
     return v if math.isfinite(v) else None
+
+
+def ratio_or_none(a: Any, b: Any) -> float | None:
+    """``a / b`` (JSON-ready, :func:`json_float`), or ``None`` when either is ``None`` or ``b``
+    is 0: an estimator's median over the oracle's, or over another estimator's."""
+    if a is None or b is None or b == 0:
+        return None
+    return json_float(float(a) / float(b))
 
 
 def summarize(values: Iterable[float] | ArrayLike, keys: Iterable[str] = ("mean", "std", "median", "rmse")) -> dict[str, Any]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from typing import Any
 
 import pytest
@@ -93,17 +92,32 @@ def test_bench_json_has_every_key_with_its_type(bench) -> None:
     assert _seconds(icp["speedup"]) and doc["provenance"]["command"] and doc["provenance"]["tofloc_version"]
 
 
-def test_warm_calls_for_the_time_asked_and_at_least_three() -> None:
-    from tofloc.bench import _median_and_min_time, _warm
+class _Clock:
+    """A stand-in for ``time.perf_counter`` that only moves when a timed call says so."""
 
-    calls: list[float] = []
-    assert _warm(lambda: calls.append(0.0), 0.0) == 3 and len(calls) == 3
-    t0 = time.perf_counter()
-    n = _warm(lambda: time.sleep(0.01), 0.05)
-    assert time.perf_counter() - t0 >= 0.05 and 3 <= n
-    times = iter([0.0, 0.0])
-    med, low = _median_and_min_time(lambda: time.sleep(next(times) + 0.002), 2)
-    assert 0 < low <= med
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def takes(self, durations: list[float]):
+        steps = iter(durations)
+
+        def call() -> None:
+            self.now += next(steps)
+        return call
+
+
+def test_warm_calls_for_the_time_asked_and_at_least_three(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tofloc import bench
+
+    clock = _Clock()
+    monkeypatch.setattr(bench.time, "perf_counter", clock)
+    assert bench._warm(clock.takes([0.0] * 3), 0.0) == 3  # at least three calls
+    assert bench._warm(clock.takes([0.1] * 10), 0.35) == 4  # until 0.35 s have passed: 0.4 s after 4 calls
+    med, low = bench._median_and_min_time(clock.takes([3.0, 1.0, 2.0, 5.0, 4.0]), 5)
+    assert med == pytest.approx(3.0) and low == pytest.approx(1.0)
 
 
 def test_paired_medians_alternate_and_reverse() -> None:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.metrics import json_float, nees, pose_errors, position_error, summarize, yaw_error_deg
+from evaluation.metrics import json_float, nees, pose_errors, position_error, ratio_or_none, summarize, yaw_error_deg
 from tofloc.errors import ParameterError
 
 
@@ -90,3 +90,9 @@ def test_summarize_by_hand() -> None:
 def test_json_float() -> None:
     assert json_float(np.float32(0.5)) == 0.5 and isinstance(json_float(np.float64(1.0)), float)
     assert json_float(float("nan")) is None and json_float(float("inf")) is None and json_float(None) is None
+
+
+def test_ratio_or_none() -> None:
+    assert ratio_or_none(3, 2) == 1.5 and ratio_or_none(0.03, 0.02) == pytest.approx(1.5)
+    assert ratio_or_none(None, 2) is None and ratio_or_none(3, None) is None and ratio_or_none(3, 0) is None
+    assert ratio_or_none(float("inf"), 2) is None  # JSON has no infinity

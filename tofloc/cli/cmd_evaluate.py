@@ -123,14 +123,12 @@ def _num(v: Any, fmt: str, scale: float = 1.0) -> str:
 def interval_line(doc: dict[str, Any]) -> str:
     """One line: per estimator, the intervals of its medians' ratios to the oracle floor's
     (``intervals``, :mod:`evaluation.log_bootstrap`; "" when the run has none)."""
+    from evaluation.evaluate_report import format_span
+
     iv = doc.get("intervals")
     if not iv:
         return ""
-
-    def span(v: Any) -> str:
-        return "n/a" if not v else f"{v[0]:.2f}-{v[1]:.2f}"
-
-    parts = [f"{name} {span(v['ratio_to_oracle']['e_x_m'])} / {span(v['ratio_to_oracle']['e_gamma_deg'])}"
+    parts = [f"{name} {format_span(v['ratio_to_oracle']['e_x_m'], '.2f')} / {format_span(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}"
              for name, v in iv["estimators"].items()]
     return (f"{iv['level'] * 100:.0f} % intervals of e_x / e_γ over the oracle's, resampling the {iv['logs']} logs: "
             + ", ".join(parts) + " (table.md: How sure these figures are)")
