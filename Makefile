@@ -38,8 +38,9 @@ demo: install
 # Every flight folder of $(NANOSWARM) (a folder with scans.csv: exp2's four-drones and
 # two-drones, or the flights of another experiment) imported once into $(REAL_DIR)/<flight>
 # (kept: a rerun reuses the logs and evaluate's finished batches), then evaluated into
-# $(REAL_DIR)/eval-<flight>. A flight that fails (a single drone has no leave-one-drone-out
-# map) is named and the others still run; make then fails.
+# $(REAL_DIR)/eval-<flight>. Maps: leave-one-drone-out; a single-drone flight's from the
+# flight folder beside it with the most drones (--map-from auto). A flight that fails (a
+# single drone with no flight beside it) is named and the others still run; make then fails.
 real-data: install
 	@flights=$$(for d in "$(NANOSWARM)"/*/; do [ -f "$$d/scans.csv" ] && basename "$$d"; done); \
 	test -n "$$flights" || { \
@@ -47,7 +48,7 @@ real-data: install
 	failed=""; \
 	for f in $$flights; do \
 	  if [ ! -d "$(REAL_DIR)/$$f/maps" ]; then \
-	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --map-from auto --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
 	    --out "$(REAL_DIR)/eval-$$f" || failed="$$failed $$f"; \
 	done; \

@@ -305,6 +305,56 @@ def test_single_drone_flight_against_another_flights_map(tmp_path: Path) -> None
     assert flight_map_name(tmp_path / "solo flight") == "maps/from-solo_flight.ply"
 
 
+def test_map_from_auto_keeps_leave_one_out_and_gives_a_single_drone_the_sibling_with_most_drones(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``map_from="auto"``: two drones or more keep their leave-one-drone-out maps; a single
+    drone (a flight, or ``drones=``) gets the flight folder beside it with the most drones
+    (ties: the first by name); none beside it is refused naming the flight and its folder."""
+    exp = tmp_path / "exp"
+    solo = make_flight(exp / "c-solo", drones=(2,), seed=3)
+    pair = make_flight(exp / "b-pair", drones=(0, 1), seed=4)
+    make_flight(exp / "d-pair", drones=(0, 3), seed=5)  # as many drones as b-pair, later by name
+    make_flight(exp / "a-solo", drones=(5,), seed=6)
+    (exp / "notes").mkdir()  # a folder without scans.csv is no flight
+    imp = import_flight(pair, map_from="auto")
+    assert imp.map_from is None and sorted(imp.maps) == ["maps/without-drone0.ply", "maps/without-drone1.ply"]
+    ref = leave_one_out_maps(read_flight(pair))
+    np.testing.assert_array_equal(imp.maps["maps/without-drone0.ply"].points, ref[0].points)
+    imp = import_flight(solo, map_from="auto")
+    assert imp.map_from == pair.resolve() and list(imp.maps) == ["maps/from-b-pair.ply"]
+    np.testing.assert_array_equal(imp.maps["maps/from-b-pair.ply"].points, flight_map(read_flight(pair)).points)
+    assert {lg.map for lg in imp.flight.logs} == {"maps/from-b-pair.ply"}
+    # one drone selected from a flight of two: the sibling with the most drones
+    imp = import_flight(pair, map_from="auto", drones=[1])
+    assert imp.map_from == (exp / "d-pair").resolve() and list(imp.maps) == ["maps/from-d-pair.ply"]
+    lone = make_flight(tmp_path / "alone" / "only", drones=(0,), seed=7)
+    refused(lambda: import_flight(lone, map_from="auto"), lone / "scans.csv", "drone/node column",
+            "another flight folder of the same maze beside it", str((tmp_path / "alone").absolute()), "only drone 0")
+    # a sibling that breaks the format is named, not skipped
+    (exp / "a-solo" / "scans.csv").write_text("0/0,zz\n")
+    with pytest.raises(FormatError) as info:
+        import_flight(solo, map_from="auto")
+    assert "a-solo" in str(info.value) and "hex digits" in str(info.value)
+    # "auto" with a folder of that name in the working directory: refused, not guessed
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "auto").mkdir()
+    with pytest.raises(ParameterError, match="absolute path"):
+        import_flight(pair, map_from="auto")
+
+
+def test_cli_map_from_auto_says_which_flight_it_took(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.cli import main
+
+    solo = make_flight(tmp_path / "exp" / "solo", drones=(0,), seed=5)
+    make_flight(tmp_path / "exp" / "pair", drones=(0, 1), seed=6)
+    assert main(["import", "nanoswarm", str(solo), "--map-from", "auto", "--out", str(tmp_path / "out")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert f"1 map from every drone of {(tmp_path / 'exp' / 'pair').resolve()}" in out
+    assert read_log(tmp_path / "out" / "drone0-node000.h5").map == "maps/from-pair.ply"
+    assert main(["import", "nanoswarm", str(tmp_path / "exp" / "pair"), "--map-from", "auto", "--out", str(tmp_path / "out2")]) == 0
+    assert "maps leave-one-drone-out" in " ".join(capsys.readouterr().out.split())
+
+
 def test_cli_map_from_reports_the_distance_at_the_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from tofloc.cli import main
 

@@ -52,7 +52,7 @@ def nanoswarm(
     voxel: float = typer.Option(0.02, "--voxel", help="Map grid (m): 2-D thinning and z extrusion step."),
     carve: bool = typer.Option(True, "--carve/--no-carve", help="Drop map cells that more readings' rays crossed than ended in (free-space carving)."),
     fit_radius: float = typer.Option(0.12, "--fit-radius", help="Move each wall point onto the robust line through its neighbours within this radius (m; 0: no fit)."),
-    map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight."),
+    map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight. 'auto': leave-one-drone-out when the flight has two drones or more, else the flight folder beside it with the most drones."),
     duplicates: str = typer.Option("refuse", "--duplicates", help="A node twice in scans.csv or vicon_poses.csv with different contents: 'refuse', or keep its 'first' or 'last' row (rows repeated byte for byte are always kept once)."),
     missing_poses: str = typer.Option("refuse", "--missing-poses", help="A scan whose node has no row in vicon_poses.csv or poses.csv: 'refuse' the flight, or 'skip' the scan (reported)."),
     drones: str = typer.Option(None, "--drones", help="Import only these drones of the flight, comma-separated (e.g. 0,1,2): their logs, and leave-one-drone-out maps built from them alone, as if the flight had been flown by those drones."),
@@ -88,7 +88,7 @@ def nanoswarm(
         at_truth = imp.distances_at_truth()
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
-    built = ("leave-one-drone-out" if map_from is None else f"from every drone of {map_from}") + (
+    built = ("leave-one-drone-out" if imp.map_from is None else f"from every drone of {imp.map_from}") + (
         "" if selected is None else f"; drone{'s' if len(selected) > 1 else ''} {', '.join(map(str, s['drones_selected']))} of "  # type: ignore[arg-type]
         f"{', '.join(map(str, s['drones_in_files']))} in the files")  # type: ignore[arg-type]
     console.print(
@@ -99,7 +99,7 @@ def nanoswarm(
         soft_wrap=True,
     )
     for name, what in {**imp.flight.unused, **({} if imp.map_flight is None else
-                                                {f"{map_from}/{k}": v for k, v in imp.map_flight.unused.items()})}.items():
+                                                {f"{imp.map_from}/{k}": v for k, v in imp.map_flight.unused.items()})}.items():
         shown = ", ".join(what[:6]) + (f" and {len(what) - 6} more" if len(what) > 6 else "")
         console.print(f"note: {name}: {len(what)} row(s) not used (a node without a scan, a node's other row, or a scan "
                       f"without a pose): {shown}",

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from tofloc import frames
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
-from tofloc.io.nanoswarm import FRAMES, ZONE_HEIGHT_DEG, Flight, OdometryErrorModel, ODOMETRY_ERROR, read_flight
+from tofloc.io.nanoswarm import FRAMES, ZONE_HEIGHT_DEG, Flight, OdometryErrorModel, ODOMETRY_ERROR, read_flight, read_scans_csv
 from tofloc.logs import open_for_extras, write_checksummed_dataset, write_log, write_text_attribute
 from tofloc.maps import Map
 from tofloc.point_clouds import estimate_normals_2d
@@ -67,6 +67,9 @@ __all__ = [
     "log_name",
     "FlightImport",
     "import_flight",
+    "AUTO_MAP_FROM",
+    "is_auto",
+    "sibling_map_flight",
     "write_flight",
     "distance_report",
 ]
@@ -188,7 +191,7 @@ def leave_one_out_maps(
     _check_range_cut(range_cut_m)
     drones = flight.drones
     if len(drones) < 2:
-        raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others'), or a map from another flight (map_from, --map-from)", f"only drone {drones[0]}")
+        raise FormatError(flight.folder / "scans.csv", "drone/node column", "scans of at least two drones (each drone's map is built from the others'), or a map from another flight (map_from, --map-from; 'auto' takes a flight folder beside it)", f"only drone {drones[0]}")
     return {
         h: _map_of_nodes(flight, np.flatnonzero(flight.drone != h), range_cut_m, voxel_m, normal_k, wall_fit,
                          f"nanoswarm {flight.folder.name}: walls of drones {', '.join(str(d) for d in drones if d != h)} (without drone {h})")
@@ -349,10 +352,12 @@ def import_flight(
 
     Parameters
     ----------
-    map_from : path, optional
+    map_from : path or "auto", optional
         Another flight folder of the same maze: every log then names one map built from every
         drone of that flight (:func:`flight_map`, same ``base``, range cut, grid and wall fit)
         instead of its leave-one-drone-out map. Needed for a flight of a single drone.
+        ``"auto"`` (:data:`AUTO_MAP_FROM`): leave-one-drone-out when the flight (after
+        ``drones``) has two drones or more, else :func:`sibling_map_flight`.
     duplicates : {"refuse", "first", "last"}
         A node twice with different contents (:func:`tofloc.io.nanoswarm.read_flight`), in
         either flight.
@@ -370,11 +375,13 @@ def import_flight(
         ``map_from`` is the flight itself (its scans would be in their own map).
     FormatError
         A file breaks the format (either flight), or the flight has a single drone and no
-        ``map_from``.
+        ``map_from`` (with ``"auto"``: and no other flight folder beside it).
     """
     flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates,
                          missing_poses=missing_poses, drones=drones)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
+    if is_auto(map_from):
+        map_from = None if len(flight.drones) >= 2 else sibling_map_flight(flight, duplicates=duplicates)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
         maps = {map_name(d): m for d, m in by_drone.items()}
@@ -391,6 +398,53 @@ def import_flight(
     for log in flight.logs:
         log.map = name
     return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src, other)
+
+
+#: ``map_from`` / ``--map-from`` value that picks the map source by the flight's drones
+#: (:func:`import_flight`, :func:`sibling_map_flight`).
+AUTO_MAP_FROM = "auto"
+
+
+def is_auto(map_from: str | Path | None) -> bool:
+    """Whether ``map_from`` is :data:`AUTO_MAP_FROM`.
+
+    Raises
+    ------
+    ParameterError
+        It is, and a folder of that name exists in the working directory: which of the two
+        was meant is not guessed (give the folder's absolute path).
+    """
+    if map_from is None or str(map_from) != AUTO_MAP_FROM:
+        return False
+    if Path(AUTO_MAP_FROM).is_dir() and not Path(map_from).is_absolute():
+        raise ParameterError(f"map_from {map_from!s}: means 'pick the map source' but a folder {Path(AUTO_MAP_FROM).resolve()} "
+                             "exists too (give that folder's absolute path to build the map from it)")
+    return True
+
+
+def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse") -> Path:
+    """The flight folder beside ``flight``'s (same parent folder, holding a ``scans.csv``)
+    whose scans hold the most drones (ties: the first by name): the map source of a
+    single-drone flight under ``map_from="auto"``. The flights of one experiment folder
+    (``exp2/two-drones``, ``exp2/four-drones``) are flights of the same maze in one
+    motion-capture frame; the import's distances at the truth say if that does not hold.
+
+    Raises
+    ------
+    FormatError
+        No other flight folder lies beside it, or one's ``scans.csv`` breaks the format.
+    """
+    here = flight.folder.resolve()
+    parent = flight.folder.absolute().parent  # the folder as named (a link to a flight: the link's folder)
+    siblings = sorted((d for d in parent.iterdir() if d.is_dir() and d.resolve() != here and (d / "scans.csv").is_file()),
+                      key=lambda d: d.name)
+    if not siblings:
+        raise FormatError(flight.folder / "scans.csv", "drone/node column",
+                          "scans of at least two drones (each drone's map is built from the others'), or another flight folder "
+                          f"of the same maze beside it in {parent} (map_from='auto')",
+                          f"only drone {flight.drones[0]} and no other folder with a scans.csv")
+    counts = [len(set(read_scans_csv(d / "scans.csv", duplicates=duplicates).drone.tolist())) for d in siblings]
+    return siblings[int(np.argmax(counts))]  # argmax: the first of the most
 
 
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
