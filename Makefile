@@ -10,6 +10,11 @@ NANOSWARM ?= ../shared/datasets/eth_nano_swarm_mapping/exp2
 REAL_DIR ?= real-output
 REAL_TRIALS ?= 3
 REAL_ESTIMATORS ?= icp_pf,beam_pf,likelihood_field_pf,gtsam_smoother
+# How `make real-data` imports a flight: maps by the drones (leave-one-drone-out, or the
+# flight beside a single drone's), and a scan the files cannot support (a corrupt row, a
+# node without a pose) left out and reported at import rather than failing the flight.
+# REAL_IMPORT="--map-from auto" refuses such a flight instead.
+REAL_IMPORT ?= --map-from auto --bad-scans skip --missing-poses skip
 # `make real-data-drones`: a flight (REAL_DRONES_FLIGHT) as if flown by fewer of its drones.
 REAL_DRONES_FLIGHT ?= four-drones
 REAL_DRONE_SETS ?= 1,2,3 0,2,3 0,1,3 0,1,2 1,3 0,2
@@ -38,8 +43,7 @@ demo: install
 # Every flight folder of $(NANOSWARM) (a folder with scans.csv: exp2's four-drones and
 # two-drones, or the flights of another experiment) imported once into $(REAL_DIR)/<flight>
 # (kept: a rerun reuses the logs and evaluate's finished batches), then evaluated into
-# $(REAL_DIR)/eval-<flight>. Maps: leave-one-drone-out; a single-drone flight's from the
-# flight folder beside it with the most drones (--map-from auto). A flight that fails (a
+# $(REAL_DIR)/eval-<flight>, with REAL_IMPORT's options (above). A flight that fails (a
 # single drone with no flight beside it) is named and the others still run; make then fails.
 real-data: install
 	@flights=$$(for d in "$(NANOSWARM)"/*/; do [ -f "$$d/scans.csv" ] && basename "$$d"; done); \
@@ -48,7 +52,7 @@ real-data: install
 	failed=""; \
 	for f in $$flights; do \
 	  if [ ! -d "$(REAL_DIR)/$$f/maps" ]; then \
-	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" --map-from auto --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT) --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
 	    --out "$(REAL_DIR)/eval-$$f" || failed="$$failed $$f"; \
 	done; \

@@ -156,6 +156,56 @@ def test_bad_values_inside_a_scan_name_frame_direction_column(tmp_path: Path) ->
     refused(lambda: read_flight(folder), folder / "scans.csv", "row 3, field hex: frame 9 dy", "a finite value within +-5 m", "nan")
 
 
+def test_bad_scan_rows_are_skipped_and_reported_when_asked(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``bad_scans="skip"``: each row that breaks the scan format is left out with what was
+    wrong, the rest read as from a file without them; a differing repeat of a node and
+    file-wide faults are still refused; no readable row at all is refused."""
+    from tofloc.cli import main
+
+    folder = make_flight(tmp_path / "f", nodes=4)
+    clean = read_flight(make_flight(tmp_path / "clean", nodes=4))
+    rng = np.random.default_rng(5)
+
+    def neg(b):
+        b["mm"][4, 2, 6] = -7
+
+    def nan(b):
+        b["motion"][9, 1] = np.nan
+
+    rows = (folder / "scans.csv").read_text().splitlines()
+    k2, h2 = rows[1].split(",")
+    rows[1] = f"{k2},{h2[:-10]}"  # 1/0 truncated
+    rows[3] = f"1/1,{scan_hex(1, 1, rng, neg)}"  # an impossible distance
+    rows[4] = f"0/2,{scan_hex(0, 2, rng, nan)}"  # a non-finite motion
+    rows[6] = "x/3," + rows[6].split(",")[1]  # a malformed key
+    (folder / "scans.csv").write_text("\n".join(rows) + "\n")
+    refused(lambda: read_flight(folder), folder / "scans.csv", "row 2, field hex", "truncated: 1139 bytes")
+    fl = read_flight(folder, bad_scans="skip")
+    assert fl.keys() == ["0/0", "0/1", "1/2", "1/3"]
+    assert fl.unused["scans.csv"] == [
+        "row 2 (field hex: expected 1144 bytes (2288 hex digits), found truncated: 1139 bytes)",
+        "row 4 (field hex: frame 4 direction 2 column 6: expected -1 (invalid) or a distance >= 0 mm, found -7)",
+        "row 5 (field hex: frame 9 dy: expected a finite value within +-5 m, found nan)",
+        "row 7 (field drone/node: expected drone/node with drone in 0..15 and node in 0..4095, found 'x/3')",
+    ]
+    for key in fl.keys():  # the scans kept are the clean flight's, byte for byte
+        a, b = fl.logs[fl.keys().index(key)], clean.logs[clean.keys().index(key)]
+        assert a.distance_mm.tobytes() == b.distance_mm.tobytes() and a.T_base_tip.tobytes() == b.T_base_tip.tobytes()
+    assert main(["import", "nanoswarm", str(folder), "--bad-scans", "skip", "--out", str(tmp_path / "out")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "note: scans.csv: 4 row(s) not used" in out and "row 5 (field hex: frame 9 dy" in out and "4 logs" in out
+    assert main(["import", "nanoswarm", str(folder), "--bad-scans", "maybe", "--out", str(tmp_path / "out2")]) == 2
+    assert "--bad-scans: expected one of refuse, skip, found 'maybe'" in capsys.readouterr().err
+    # a node twice with different scans: either may be the good one, skip does not choose
+    with open(folder / "scans.csv", "a") as fh:
+        fh.write(f"0/0,{scan_hex(0, 0, rng)}\n")
+    refused(lambda: read_flight(folder, bad_scans="skip"), folder / "scans.csv", "row 9, field drone/node",
+            "one scan per node")
+    (folder / "scans.csv").write_text(f"0/0,{h2[:-10]}\n0/1,zz\n")
+    refused(lambda: read_flight(folder, bad_scans="skip"), folder / "scans.csv", "file", "at least one readable scan",
+            "none of 2 rows (row 1 (field hex: expected 1144 bytes", "and more")
+
+
 @pytest.mark.parametrize(
     "name, row, new, where, frags",
     [
@@ -197,7 +247,7 @@ def test_rows_without_a_scan_and_repeated_rows_are_reported_not_used(tmp_path: P
     assert clean.unused == {}
     assert main(["import", "nanoswarm", str(folder), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    why = "(a node without a scan, a node's other row, or a scan without a pose)"
+    why = "(a node without a scan, a node's other row, a scan without a pose, or a scan row that breaks the format)"
     assert f"note: vicon_poses.csv: 3 row(s) not used {why}: row 7, 7/0, 1/9" in out
     assert f"note: scans.csv: 1 row(s) not used {why}: row 5" in out
 

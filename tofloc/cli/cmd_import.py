@@ -55,13 +55,14 @@ def nanoswarm(
     map_from: Path = typer.Option(None, "--map-from", help="Another flight folder of the same maze: every log names one map built from all of ITS drones (maps/from-<folder>.ply) instead of its leave-one-drone-out map; needed for a single-drone flight. 'auto': leave-one-drone-out when the flight has two drones or more, else the flight folder beside it with the most drones."),
     duplicates: str = typer.Option("refuse", "--duplicates", help="A node twice in scans.csv or vicon_poses.csv with different contents: 'refuse', or keep its 'first' or 'last' row (rows repeated byte for byte are always kept once)."),
     missing_poses: str = typer.Option("refuse", "--missing-poses", help="A scan whose node has no row in vicon_poses.csv or poses.csv: 'refuse' the flight, or 'skip' the scan (reported)."),
+    bad_scans: str = typer.Option("refuse", "--bad-scans", help="A row of scans.csv that breaks the scan format (truncated or corrupt hex, a wrong pose id, an impossible distance or motion): 'refuse' the flight, or 'skip' the row (reported with what was wrong)."),
     drones: str = typer.Option(None, "--drones", help="Import only these drones of the flight, comma-separated (e.g. 0,1,2): their logs, and leave-one-drone-out maps built from them alone, as if the flight had been flown by those drones."),
     force: bool = typer.Option(False, "--force", help="Write into a folder that is not empty (same names are overwritten)."),
 ) -> None:
     """Import one Nano_Swarm_Mapping flight: a log per scan node (odometry configuration with its
     covariance, Vicon truth) and leave-one-drone-out wall maps, or one map from another flight
     (docs/real-data.md). Prints how far the nodes' points at the truth lie from their maps."""
-    from tofloc.io.nanoswarm import MISSING_POSE_POLICIES, check_policy
+    from tofloc.io.nanoswarm import BAD_SCAN_POLICIES, MISSING_POSE_POLICIES, check_policy
     from tofloc.io.nanoswarm_maps import import_flight, write_flight
     from tofloc.scan_maps import WallFitSettings
 
@@ -69,6 +70,7 @@ def nanoswarm(
         raise ParameterError(f"--base: expected 'level' or 'mocap', found {base!r}")
     check_policy("--duplicates", duplicates)
     check_policy("--missing-poses", missing_poses, MISSING_POSE_POLICIES)
+    check_policy("--bad-scans", bad_scans, BAD_SCAN_POLICIES)
     if not (0 < range_cut <= 4.0):
         raise ParameterError(f"--range-cut: expected a distance in (0, 4] m, found {range_cut}")
     if not (0.001 <= voxel <= 0.5):
@@ -83,7 +85,7 @@ def nanoswarm(
     with status(f"importing {flight_dir}"):
         fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
         imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from,  # type: ignore[arg-type]
-                            duplicates=duplicates, missing_poses=missing_poses, drones=selected)
+                            duplicates=duplicates, missing_poses=missing_poses, drones=selected, bad_scans=bad_scans)
         write_flight(imp, out)
         at_truth = imp.distances_at_truth()
     s = imp.summary()
@@ -101,8 +103,8 @@ def nanoswarm(
     for name, what in {**imp.flight.unused, **({} if imp.map_flight is None else
                                                 {f"{imp.map_from}/{k}": v for k, v in imp.map_flight.unused.items()})}.items():
         shown = ", ".join(what[:6]) + (f" and {len(what) - 6} more" if len(what) > 6 else "")
-        console.print(f"note: {name}: {len(what)} row(s) not used (a node without a scan, a node's other row, or a scan "
-                      f"without a pose): {shown}",
+        console.print(f"note: {name}: {len(what)} row(s) not used (a node without a scan, a node's other row, a scan "
+                      f"without a pose, or a scan row that breaks the format): {shown}",
                       highlight=False, soft_wrap=True)
     if at_truth.size:
         med, p90 = 100 * float(np.median(at_truth)), 100 * float(np.percentile(at_truth, 90))

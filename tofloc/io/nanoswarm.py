@@ -297,6 +297,8 @@ class Scans:
     motion: NDArray[np.float32]
     #: rows (1-based) that repeated an earlier row of the same node byte for byte, skipped
     repeated_rows: tuple[int, ...] = ()
+    #: rows left out by ``bad_scans="skip"``: ``"row R (field: expected ..., found ...)"``
+    bad_rows: tuple[str, ...] = ()
 
     def keys(self) -> list[str]:
         return [f"{d}/{n}" for d, n in zip(self.drone.tolist(), self.node.tolist())]
@@ -315,8 +317,15 @@ def check_policy(name: str, value: str, policies: tuple[str, ...] = DUPLICATE_PO
         raise ParameterError(f"{name}: expected one of {', '.join(policies)}, found {value!r}")
 
 
-def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
+def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str = "refuse") -> Scans:
     """Read ``scans.csv`` (``drone/node,HEX``; README: 1144 bytes, little endian).
+
+    Parameters
+    ----------
+    bad_scans : {"refuse", "skip"}
+        A row that breaks the scan format (every case below but the file-wide ones and a
+        differing repeat): refused, or left out and listed in ``Scans.bad_rows`` with what
+        was wrong (``--bad-scans skip``; a radio link can corrupt one packet of a flight).
 
     Raises
     ------
@@ -327,11 +336,14 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
         repeat is skipped or replaces the earlier row, listed there too), hex of odd length,
         non-hex characters, a byte count other than 1144 (truncated or too long), a pose
         id that disagrees with the key, a distance other than -1 or >= 0, a non-finite or
-        out-of-bounds in-scan motion.
+        out-of-bounds in-scan motion; with ``bad_scans="skip"`` only a file-wide fault
+        (size, row count, a non-ASCII or over-long line) or no readable row at all.
     """
     check_policy("duplicates", duplicates)
+    check_policy("bad_scans", bad_scans, BAD_SCAN_POLICIES)
     p = Path(path)
     lines = _lines(p)
+    bad: list[str] = []
     keys: list[tuple[int, int]] = []
     seen: dict[tuple[int, int], int] = {}
     seen_hex: dict[tuple[int, int], str] = {}
@@ -340,30 +352,23 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
     position: dict[tuple[int, int], int] = {}  # a node's index in keys
     blobs = []
     for i, line in enumerate(lines, start=1):
-        key_text, hex_text = _fields(p, i, line, ("drone/node", "hex"))
-        key = _key(p, i, key_text)
-        if key in seen and hex_text.lower() == seen_hex[key]:  # the same scan sent twice: nothing to choose between
-            repeated.append(i)
+        try:
+            key_text, hex_text = _fields(p, i, line, ("drone/node", "hex"))
+            key = _key(p, i, key_text)
+            hex_text = hex_text.lower()
+            if key in seen and hex_text == seen_hex[key]:  # the same scan sent twice: nothing to choose between
+                repeated.append(i)
+                continue
+            if key in seen and duplicates == "refuse":
+                raise DuplicateScan(p, f"row {i}, field drone/node",
+                                    f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
+                                    "--duplicates first|last keeps one)", key_text)
+            raw = _scan_bytes(p, i, key, hex_text)
+        except FormatError as e:
+            if bad_scans == "refuse" or isinstance(e, DuplicateScan):
+                raise
+            bad.append(_bad_row(i, e))
             continue
-        if key in seen and duplicates == "refuse":
-            raise FormatError(p, f"row {i}, field drone/node",
-                              f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
-                              "--duplicates first|last keeps one)", key_text)
-        if len(hex_text) % 2:
-            raise FormatError(p, f"row {i}, field hex", "an even number of hex digits", f"{len(hex_text)} digits")
-        m = _HEX.match(hex_text)
-        assert m is not None
-        if m.end() != len(hex_text):
-            raise FormatError(p, f"row {i}, field hex", "hex digits 0-9 a-f only", f"{hex_text[m.end()]!r} at character {m.end() + 1}")
-        raw = bytes.fromhex(hex_text)
-        if len(raw) != SCAN_BYTES:
-            what = "truncated: " if len(raw) < SCAN_BYTES else ""
-            raise FormatError(p, f"row {i}, field hex", f"{SCAN_BYTES} bytes ({2 * SCAN_BYTES} hex digits)", f"{what}{len(raw)} bytes")
-        pose_id = int.from_bytes(raw[:2], "little")
-        if pose_id != (key[0] << 12 | key[1]):
-            raise FormatError(
-                p, f"row {i}, field hex bytes 0-1 (pose id)", f"{key[0] << 12 | key[1]} (drone {key[0]} << 12 | node {key[1]})", f"{pose_id} (drone {pose_id >> 12}, node {pose_id & 0xFFF})"
-            )
         if key not in seen:
             position[key] = len(keys)
             keys.append(key)
@@ -377,25 +382,75 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse") -> Scans:
             blobs[position[key]] = raw[4:]
             file_rows[position[key]] = i
         seen[key] = i
-        seen_hex[key] = hex_text.lower()
+        seen_hex[key] = hex_text
     body = np.frombuffer(b"".join(blobs), dtype=_SCAN_DTYPE).reshape(len(blobs), FRAMES)
     mm = body["mm"].astype(np.int16)
     motion = body["motion"].astype(np.float32)
-    bad = mm < -1
-    if bad.any():
-        n, f, d, c = (int(v) for v in np.argwhere(bad)[0])
-        raise FormatError(p, f"row {file_rows[n]}, field hex: frame {f} direction {d} column {c}", "-1 (invalid) or a distance >= 0 mm", int(mm[n, f, d, c]))
+    faults = _value_faults(p, mm, motion, file_rows)
+    if faults and bad_scans == "refuse":
+        raise next(iter(faults.values()))
+    keep = np.array([n not in faults for n in range(len(keys))], dtype=bool)
+    bad += [_bad_row(file_rows[n], e) for n, e in faults.items()]
+    if not keep.any() and (bad or keys):
+        raise FormatError(p, "file", "at least one readable scan", f"none of {len(lines)} rows ({bad[0]}{' and more' if len(bad) > 1 else ''})")
+    drone = np.array([k[0] for k, ok in zip(keys, keep) if ok], dtype=np.int64)
+    node = np.array([k[1] for k, ok in zip(keys, keep) if ok], dtype=np.int64)
+    bad.sort(key=lambda text: int(text.split()[1]))
+    return Scans(p, drone, node, mm[keep], motion[keep], tuple(sorted(repeated)), tuple(bad))
+
+
+#: What to do with a row of ``scans.csv`` that breaks the scan format (``--bad-scans``):
+#: refuse the flight (the default), or leave the row out and report it.
+BAD_SCAN_POLICIES = ("refuse", "skip")
+
+
+class DuplicateScan(FormatError):
+    """A node twice in ``scans.csv`` with different scans (``duplicates="refuse"``): no
+    ``bad_scans`` policy skips it, since either row may be the good one."""
+
+
+def _scan_bytes(p: Path, i: int, key: tuple[int, int], hex_text: str) -> bytes:
+    """The bytes of row ``i``'s hex (lower case), checked against the format and its key,
+    else :class:`FormatError` naming the row and field."""
+    if len(hex_text) % 2:
+        raise FormatError(p, f"row {i}, field hex", "an even number of hex digits", f"{len(hex_text)} digits")
+    m = _HEX.match(hex_text)
+    assert m is not None
+    if m.end() != len(hex_text):
+        raise FormatError(p, f"row {i}, field hex", "hex digits 0-9 a-f only", f"{hex_text[m.end()]!r} at character {m.end() + 1}")
+    raw = bytes.fromhex(hex_text)
+    if len(raw) != SCAN_BYTES:
+        what = "truncated: " if len(raw) < SCAN_BYTES else ""
+        raise FormatError(p, f"row {i}, field hex", f"{SCAN_BYTES} bytes ({2 * SCAN_BYTES} hex digits)", f"{what}{len(raw)} bytes")
+    pose_id = int.from_bytes(raw[:2], "little")
+    if pose_id != (key[0] << 12 | key[1]):
+        raise FormatError(
+            p, f"row {i}, field hex bytes 0-1 (pose id)", f"{key[0] << 12 | key[1]} (drone {key[0]} << 12 | node {key[1]})", f"{pose_id} (drone {pose_id >> 12}, node {pose_id & 0xFFF})"
+        )
+    return raw
+
+
+def _value_faults(p: Path, mm: NDArray[np.int16], motion: NDArray[np.float32], file_rows: list[int]) -> dict[int, FormatError]:
+    """Per scan index, the first value that breaks the format (a distance other than -1 or
+    >= 0 mm, a non-finite or out-of-bounds in-scan motion), as the error naming it."""
+    faults: dict[int, FormatError] = {}
+    for n, f, d, c in np.argwhere(mm < -1).tolist():
+        faults.setdefault(n, FormatError(p, f"row {file_rows[n]}, field hex: frame {f} direction {d} column {c}",
+                                         "-1 (invalid) or a distance >= 0 mm", int(mm[n, f, d, c])))
     limits = np.array([MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_YAW_RAD])
     with np.errstate(invalid="ignore"):
         bad_m = ~(np.abs(motion.astype(np.float64)) <= limits)
-    if bad_m.any():
-        n, f, j = (int(v) for v in np.argwhere(bad_m)[0])
-        name = ("dx", "dy", "dyaw")[j]
+    for n, f, j in np.argwhere(bad_m).tolist():
         unit = "rad" if j == 2 else "m"
-        raise FormatError(p, f"row {file_rows[n]}, field hex: frame {f} {name}", f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j]))
-    drone = np.array([k[0] for k in keys], dtype=np.int64)
-    node = np.array([k[1] for k in keys], dtype=np.int64)
-    return Scans(p, drone, node, mm, motion, tuple(sorted(repeated)))
+        faults.setdefault(n, FormatError(p, f"row {file_rows[n]}, field hex: frame {f} {('dx', 'dy', 'dyaw')[j]}",
+                                         f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j])))
+    return dict(sorted(faults.items()))
+
+
+def _bad_row(row: int, e: FormatError) -> str:
+    """``"row R (where: expected ..., found ...)"``: a skipped row and what was wrong with it."""
+    where = e.where.split(", ", 1)[1] if ", " in e.where else e.where
+    return f"row {row} ({where}: expected {e.expected}" + ("" if e.found is None else f", found {e.found}") + ")"
 
 
 @dataclass(frozen=True)
@@ -663,6 +718,7 @@ def read_flight(
     duplicates: str = "refuse",
     missing_poses: str = "refuse",
     drones: Sequence[int] | None = None,
+    bad_scans: str = "refuse",
 ) -> Flight:
     """Parse a flight folder into one log per scan node (no map yet; see the module docstring).
 
@@ -684,6 +740,9 @@ def read_flight(
     missing_poses : {"refuse", "skip"}
         A scan whose node has no row in ``vicon_poses.csv`` or ``poses.csv``: refused, or
         left out of the flight (listed in ``unused["scans.csv"]``, with the file it lacks).
+    bad_scans : {"refuse", "skip"}
+        A row of ``scans.csv`` that breaks the scan format (:func:`read_scans_csv`): refused,
+        or left out (listed in ``unused["scans.csv"]`` with what was wrong).
     truth_error : TruthErrorModel or None
         Gives ``/truth/T_map_base_cov`` (None: leave it out). Its roll and pitch describe the
         level base; with ``base="mocap"`` the Vicon attitude's marker offset (a few degrees)
@@ -713,7 +772,7 @@ def read_flight(
     check_policy("duplicates", duplicates)
     check_policy("missing_poses", missing_poses, MISSING_POSE_POLICIES)
     selected = _check_drones(drones)
-    scans = read_scans_csv(d / "scans.csv", duplicates)
+    scans = read_scans_csv(d / "scans.csv", duplicates, bad_scans)
     in_files = sorted(set(scans.drone.tolist()))
     if selected is not None:
         absent = [k for k in selected if k not in in_files]
@@ -732,8 +791,8 @@ def read_flight(
     keys_all = scans.keys()
     left_out = [f"{keys_all[i]} (no {'motion-capture' if i in no_truth else 'odometry'} pose)"
                 for i in sorted(set(no_truth) | set(no_odometry))]
-    if scans.repeated_rows or left_out:
-        unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows] + left_out
+    if scans.repeated_rows or left_out or scans.bad_rows:
+        unused["scans.csv"] = [f"row {r}" for r in scans.repeated_rows] + list(scans.bad_rows) + left_out
     if left_out:
         scans = _without(scans, set(no_truth) | set(no_odometry))
         if scans.drone.size == 0:

@@ -347,6 +347,7 @@ def import_flight(
     duplicates: str = "refuse",
     missing_poses: str = "refuse",
     drones: Sequence[int] | None = None,
+    bad_scans: str = "refuse",
 ) -> FlightImport:
     """Read a flight (:func:`tofloc.io.nanoswarm.read_flight`) and build the maps its logs name.
 
@@ -364,6 +365,9 @@ def import_flight(
     missing_poses : {"refuse", "skip"}
         A scan without a motion-capture or odometry pose (:func:`tofloc.io.nanoswarm.read_flight`),
         in either flight.
+    bad_scans : {"refuse", "skip"}
+        A row of ``scans.csv`` that breaks the scan format (:func:`tofloc.io.nanoswarm.read_flight`),
+        in either flight.
     drones : sequence of int, optional
         Import only these drones of the flight (:func:`tofloc.io.nanoswarm.read_flight`): their
         logs, and leave-one-drone-out maps built from them alone, as if the flight had been
@@ -378,10 +382,10 @@ def import_flight(
         ``map_from`` (with ``"auto"``: and no other flight folder beside it).
     """
     flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates,
-                         missing_poses=missing_poses, drones=drones)
+                         missing_poses=missing_poses, drones=drones, bad_scans=bad_scans)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
     if is_auto(map_from):
-        map_from = None if len(flight.drones) >= 2 else sibling_map_flight(flight, duplicates=duplicates)
+        map_from = None if len(flight.drones) >= 2 else sibling_map_flight(flight, duplicates=duplicates, bad_scans=bad_scans)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
         maps = {map_name(d): m for d, m in by_drone.items()}
@@ -392,7 +396,8 @@ def import_flight(
     if src.is_dir() and Path(folder).is_dir() and src.resolve() == Path(folder).resolve():
         raise ParameterError(f"map_from {src}: is the flight being imported; its nodes would be localized against their own scans "
                              "(expected another flight of the same maze)")
-    other = read_flight(src, base=base, error_model=error_model, duplicates=duplicates, missing_poses=missing_poses)
+    other = read_flight(src, base=base, error_model=error_model, duplicates=duplicates, missing_poses=missing_poses,
+                        bad_scans=bad_scans)
     name = flight_map_name(src)
     maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
     for log in flight.logs:
@@ -422,7 +427,7 @@ def is_auto(map_from: str | Path | None) -> bool:
     return True
 
 
-def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse") -> Path:
+def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse", bad_scans: str = "refuse") -> Path:
     """The flight folder beside ``flight``'s (same parent folder, holding a ``scans.csv``)
     whose scans hold the most drones (ties: the first by name): the map source of a
     single-drone flight under ``map_from="auto"``. The flights of one experiment folder
@@ -443,7 +448,7 @@ def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse") -> Path:
                           "scans of at least two drones (each drone's map is built from the others'), or another flight folder "
                           f"of the same maze beside it in {parent} (map_from='auto')",
                           f"only drone {flight.drones[0]} and no other folder with a scans.csv")
-    counts = [len(set(read_scans_csv(d / "scans.csv", duplicates=duplicates).drone.tolist())) for d in siblings]
+    counts = [len(set(read_scans_csv(d / "scans.csv", duplicates, bad_scans).drone.tolist())) for d in siblings]
     return siblings[int(np.argmax(counts))]  # argmax: the first of the most
 
 
