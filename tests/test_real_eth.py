@@ -5,6 +5,7 @@ The figures asserted here are reported in docs/real-data.md (``python -m tofloc.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -181,6 +182,42 @@ def test_time_stamp_latency_is_real_and_the_default_fits() -> None:
     approach = [ETH / n for n in RUNS if n.startswith("Approach")][:5]
     scan = dict(latency_scan(approach, [0.0, 0.085, 0.2]))
     assert scan[0.085] < scan[0.0] - 5 and scan[0.085] < scan[0.2] - 5
+
+
+@needs_data
+def test_the_check_sets_aside_runs_it_cannot_use_and_says_why(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """ETH's full data set has runs with an empty Vicon file, and a run may lack the panel:
+    the check reports the others (the same figures as alone), lists each set-aside run with
+    its one-line reason, leaves empty range bins as None, and refuses only when no run is
+    usable; ``main`` prints the skips on stderr and exits 2 on bad input."""
+    from tofloc.errors import ParameterError
+    from tofloc.io.eth_check import main, report
+
+    ds = tmp_path / "copy"
+    (ds / "Rotate").mkdir(parents=True)
+    (ds / "Rotate" / "R1").symlink_to(ETH / "Rotate/R1", target_is_directory=True)
+    for run, vicon in (("X1", ""), ("X2", "".join(line + "\n" for line in (ETH / "Rotate/R2/state_Vicon.csv").read_text().splitlines()
+                                                   if not line.startswith("Surface")))):
+        (ds / "Other" / run).mkdir(parents=True)
+        (ds / "Other" / run / "state_ToF.csv").symlink_to(ETH / "Rotate/R2/state_ToF.csv")
+        (ds / "Other" / run / "state_Vicon.csv").write_text(vicon)
+    doc = report(ds)
+    assert doc["runs"] == ["Rotate/R1"] and list(doc["skipped"]) == ["Other/X1", "Other/X2"]
+    assert doc["skipped"]["Other/X1"] == (f"{ds / 'Other/X1/state_Vicon.csv'}: line 1: expected the header "
+                                          "'name,timeStamp,posx,posy,posz,qw,qx,qy,qz', found ''")
+    assert doc["skipped"]["Other/X2"] == (f"{ds / 'Other/X2/state_Vicon.csv'}: name column: expected rows of the panel body "
+                                          "(Surface), found bodies ['Drone']")
+    ref = report(ETH, runs=["Rotate/R1"])
+    assert ref["skipped"] == {} and doc["per_run"] == ref["per_run"] and doc["edges"] == ref["edges"] and doc["all"] == ref["all"]
+    assert doc["by_range"]["300-600"] == {"n": 0, "median_abs_mm": None, "p90_abs_mm": None, "bias_mm": None, "p90_rel": None}
+    assert doc["by_range"]["900-1200"]["n"] > 1000
+    assert main([str(ds)]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["runs"] == ["Rotate/R1"] and "skipped Other/X1: " in err and "skipped Other/X2: " in err
+    (ds / "Rotate" / "R1").unlink()
+    with pytest.raises(ParameterError, match="no run could be checked"):
+        report(ds)
+    assert main([str(ds)]) == 2 and "error: " in capsys.readouterr().err and main([]) == 2
 
 
 @needs_data

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tofloc import frames
+from tofloc.errors import FormatError, ParameterError
 from tofloc.io.eth_matrix import ETH_RAW_ORDER, EthImport, import_run, plane_distances
 from tofloc.rig import RawOrder
 
@@ -79,10 +80,17 @@ class Geometry:
     panel_col: NDArray[np.float64]  # (K,) continuous column where the panel centre appears
 
 
-def geometry(imp: EthImport) -> Geometry:
-    """Predictions for one imported run (needs the panel pose)."""
+def geometry(imp: EthImport, vicon_file: str | Path | None = None) -> Geometry:
+    """Predictions for one imported run (needs the panel pose).
+
+    Raises
+    ------
+    FormatError
+        The run has no panel pose (naming ``vicon_file``, default the run's name).
+    """
     if imp.T_map_panel_median is None:
-        raise ValueError(f"run {imp.notes.get('run')} has no panel (Surface) pose")
+        raise FormatError(vicon_file or f"run {imp.notes.get('run')}", "name column", "rows of the panel body (Surface)",
+                          f"bodies {imp.notes.get('bodies')}")
     log = imp.log
     sensor = log.rig.sensors[0]
     T_ms = frames.compose(log.T_base_tip, sensor.T_tip_sensor)  # base = map
@@ -148,10 +156,15 @@ def order_scores(runs: Sequence[tuple[EthImport, Geometry]], orders: Sequence[Ra
     return out
 
 
-def edge_tracking(imp: EthImport, geo: Geometry, order: RawOrder | None = None) -> dict[str, float]:
+#: Fewest frames with a panel edge in view for :func:`edge_tracking` to fit its line.
+MIN_EDGE_FRAMES = 3
+
+
+def edge_tracking(imp: EthImport, geo: Geometry, order: RawOrder | None = None) -> dict[str, float | None]:
     """Rotate runs: per frame with a vertical panel edge in view (middle rows 2-5), the mean
     column of the zones that see something at the panel's distance against the mean
-    column of the zones predicted on the panel; their correlation and slopes vs yaw."""
+    column of the zones predicted on the panel; their correlation and slopes vs yaw
+    (None with fewer than :data:`MIN_EDGE_FRAMES` such frames, or no spread to correlate)."""
     d, st = _reorder(imp, order) if order is not None else (imp.log.distance_mm[:, 0].astype(np.float64), imp.log.status[:, 0])
     rows = slice(2, 6)
     P = (_in(geo.panel_yz, PANEL_EXTENT) & np.isfinite(geo.panel_mm)).reshape(-1, 8, 8)[:, rows]
@@ -162,6 +175,9 @@ def edge_tracking(imp: EthImport, geo: Geometry, order: RawOrder | None = None) 
     pc = (P * cols).sum((1, 2)) / np.maximum(pn, 1)
     mc = (M * cols).sum((1, 2)) / np.maximum(mn, 1)
     yaw = geo.yaw_deg
+    if sel.sum() < MIN_EDGE_FRAMES or np.ptp(pc[sel]) == 0 or np.ptp(mc[sel]) == 0 or np.ptp(yaw[sel]) == 0:
+        return {"frames": float(sel.sum()), "r": None, "slope_predicted_col_per_deg": None, "slope_measured_col_per_deg": None,
+                "yaw_span_deg": float(np.ptp(yaw[sel])) if sel.any() else None}
     return {
         "frames": float(sel.sum()),
         "r": float(np.corrcoef(pc[sel], mc[sel])[0, 1]),
@@ -179,12 +195,21 @@ def latency_scan(run_dirs: Sequence[Path], latencies_s: Sequence[float]) -> list
         for rd in run_dirs:
             imp = import_run(rd, latency_s=lat)
             errs.append(panel_errors(imp, geometry(imp))["error_mm"])
-        out.append((float(lat), float(np.median(np.abs(np.concatenate(errs))))))
+        out.append((float(lat), _median_abs(np.concatenate(errs))))
     return out
 
 
-def _stats(e: NDArray[np.float64], pred: NDArray[np.float64]) -> dict[str, float]:
+def _median_abs(e: NDArray[np.float64]) -> float | None:
+    """Median absolute value, None for no value."""
+    return float(np.median(np.abs(e))) if e.size else None
+
+
+def _stats(e: NDArray[np.float64], pred: NDArray[np.float64]) -> dict[str, float | None]:
+    """Error statistics of zones ``e`` (mm) at predicted distances ``pred``; ``n`` = 0 and
+    the others None when there is no zone (a run or a range bin the panel never filled)."""
     a = np.abs(e)
+    if e.size == 0:
+        return {"n": 0, "median_abs_mm": None, "p90_abs_mm": None, "bias_mm": None, "p90_rel": None}
     return {
         "n": int(e.size),
         "median_abs_mm": float(np.median(a)),
@@ -212,7 +237,6 @@ def find_runs(dataset: str | Path) -> tuple[str, ...]:
     """
     import re
 
-    from tofloc.errors import ParameterError
 
     root = Path(dataset)
     if not root.is_dir():
@@ -233,17 +257,49 @@ def find_runs(dataset: str | Path) -> tuple[str, ...]:
     return tuple(sorted(found, key=natural))
 
 
+def usable_runs(root: Path, names: Sequence[str]) -> tuple[dict[str, EthImport], dict[str, Geometry], dict[str, str]]:
+    """Import every run of ``names`` under ``root`` with its panel geometry; a run whose
+    files break the format or hold no panel pose (ETH's full data set has runs with an
+    empty Vicon file) is set aside with the one-line reason, not fatal.
+
+    Returns
+    -------
+    imports, geometries : dict run -> EthImport, Geometry
+        The usable runs, in the order of ``names``.
+    skipped : dict run -> str
+        The others, with why.
+
+    Raises
+    ------
+    ParameterError
+        No run is usable (the reasons listed).
+    """
+    imports: dict[str, EthImport] = {}
+    geos: dict[str, Geometry] = {}
+    skipped: dict[str, str] = {}
+    for name in names:
+        try:
+            imp = import_run(root / name)
+            geos[name] = geometry(imp, root / name / "state_Vicon.csv")
+            imports[name] = imp
+        except FormatError as e:
+            skipped[name] = str(e)
+    if not imports:
+        why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
+        raise ParameterError(f"{root}: no run could be checked ({why[:2000]})")
+    return imports, geos, skipped
+
+
 def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, Any]:
     """Every figure of docs/real-data.md, from the dataset folder: over ``runs`` (default:
-    every run :func:`find_runs` finds; ``"runs"`` in the result lists them). Edge tracking
-    covers the runs of a ``Rotate*`` group, the latency scan those of an ``Approach*``
-    group."""
+    every run :func:`find_runs` finds; ``"runs"`` in the result lists the runs checked,
+    ``"skipped"`` the unusable ones with why, :func:`usable_runs`). Edge tracking covers the
+    runs of a ``Rotate*`` group, the latency scan those of an ``Approach*`` group."""
     root = Path(dataset)
-    names = tuple(runs) if runs is not None else find_runs(root)
+    imports, geos, skipped = usable_runs(root, tuple(runs) if runs is not None else find_runs(root))
+    names = tuple(imports)
     rotate = [n for n in names if n.split("/")[0].startswith("Rotate")]
     approach = [n for n in names if n.split("/")[0].startswith("Approach")]
-    imports = {name: import_run(root / name) for name in names}
-    geos = {name: geometry(imp) for name, imp in imports.items()}
     per_run, all_e, all_p = {}, [], []
     zones = valid = 0
     for name in names:
@@ -260,10 +316,12 @@ def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, 
     pairs = [(imports[n], geos[n]) for n in names]
     return {
         "runs": list(names),
+        "skipped": skipped,
         "all": _stats(e, p) | {"zones": zones, "valid_share": valid / max(zones, 1)},
         "by_range": by_range,
         "per_run": per_run,
-        "default_order_all": {"median_abs_mm": float(np.median(np.abs(default[0]))), "p90_abs_mm": float(np.percentile(np.abs(default[0]), 90))},
+        "default_order_all": {"median_abs_mm": _median_abs(default[0]),
+                              "p90_abs_mm": float(np.percentile(np.abs(default[0]), 90)) if default[0].size else None},
         "orders": order_scores(pairs),
         "edges": {n: edge_tracking(imports[n], geos[n]) for n in rotate},
         "edges_default_order": {n: edge_tracking(imports[n], geos[n], RawOrder()) for n in rotate},
@@ -272,5 +330,25 @@ def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, 
     }
 
 
-if __name__ == "__main__":  # pragma: no cover - documentation helper
-    print(json.dumps(report(sys.argv[1]), indent=1))
+def main(argv: Sequence[str]) -> int:
+    """``python -m tofloc.io.eth_check DATASET``: :func:`report` as JSON on stdout, every
+    skipped run on stderr; bad input is one line on stderr and exit code 2."""
+    from tofloc.errors import TofLocError
+
+    if len(argv) != 1:
+        print("usage: python -m tofloc.io.eth_check DATASET (a copy of ETH's Matrix_ToF_Drones data: GROUP/RUN/state_ToF.csv)",
+              file=sys.stderr)
+        return 2
+    try:
+        doc = report(argv[0])
+    except TofLocError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for name, why in doc["skipped"].items():
+        print(f"skipped {name}: {why}", file=sys.stderr)
+    print(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - the command line of main
+    sys.exit(main(sys.argv[1:]))
