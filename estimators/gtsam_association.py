@@ -10,24 +10,29 @@ batched query over all samples:
   (:meth:`tofloc.maps.Map.closest_surface_point`);
 * ``"range"``: the zone's ray cast by the shared zone caster
   (:meth:`tofloc.zone_caster.ZoneCaster.cast_zone_rays`), the hit's plane.
+
+The samples' zones are concatenated once per solve (:class:`ZoneStack`, kept on the
+:class:`AssociatedMeasurements` a round returns for the next); each round moves them with
+one matrix product per sample (:func:`zone_frames`) and takes what it needs of the planes
+in one compiled pass (:func:`plane_geometry`, numpy's bits on x86-64).
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.gtsam_factors import SampleMeasurement
-from tofloc import frames
+from estimators.gtsam_factors import SampleMeasurement, _bias_corrected
+from tofloc import frames, numba_kernels
 from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
-__all__ = ["RESIDUALS", "measurements", "associate", "expected_sigma", "place_points", "with_place_weights"]
+__all__ = ["RESIDUALS", "measurements", "associate", "AssociatedMeasurements", "ZoneStack", "zone_stack",
+           "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
@@ -54,21 +59,35 @@ def expected_sigma(problem: Problem, sigma_L: FloatArray, zones: NDArray[np.int6
     sensor's reported sigmas, ``sigma_L`` is kept; a prediction is held within a factor
     of two of the measured length (an association that far off is gated anyway).
     """
-    unc = problem.range_model
-    if unc.use_reported_sigma or sigma_L.size == 0:
+    if problem.range_model.use_reported_sigma or sigma_L.size == 0:
         return sigma_L
     L = np.linalg.norm(p - o, axis=1)
+    n_dot_u = np.einsum("ni,ni->n", n, u) if t is None else None
+    return _sigma_at(problem, sigma_L, zones, *_predicted_length(L, o, q, n, n_dot_u, t))
+
+
+def _predicted_length(L: FloatArray, o: FloatArray, q: FloatArray, n: FloatArray, n_dot_u: FloatArray | None,
+                      t: FloatArray | None) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The rays' lengths ``(N,)`` the planes predict, held within ``[L / 2, 2 L]`` of the
+    measured lengths ``L`` (``L`` where not usable), and where they are usable: ``t``
+    given (the ray cast), else where the ray meets the plane (``n_dot_u`` its cosine)."""
     if t is None:
-        denom = np.einsum("ni,ni->n", n, u)
+        assert n_dot_u is not None
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.einsum("ni,ni->n", n, q - o) / denom
-        usable = np.abs(denom) >= _MIN_COS_EXPECTED
+            t = np.einsum("ni,ni->n", n, q - o) / n_dot_u
+        usable = np.abs(n_dot_u) >= _MIN_COS_EXPECTED
     else:
         usable = np.ones(t.shape, dtype=bool)
     usable &= np.isfinite(t) & (t > 0)
-    t = np.clip(np.where(usable, t, L), 0.5 * L, 2.0 * L)
+    return np.clip(np.where(usable, t, L), 0.5 * L, 2.0 * L), usable
+
+
+def _sigma_at(problem: Problem, sigma_L: FloatArray, zones: NDArray[np.int64], t_exp: FloatArray,
+              usable: NDArray[np.bool_]) -> FloatArray:
+    """The range sigmas along the rays at the predicted lengths ``t_exp`` where ``usable``,
+    ``sigma_L`` elsewhere."""
     rf = problem.rig.range_factor.reshape(-1)[zones]
-    s_exp = unc.sigma_of_zones(problem.rig, t / rf, zones) * rf
+    s_exp = problem.range_model.sigma_of_zones(problem.rig, t_exp / rf, zones) * rf
     return np.where(usable, s_exp, sigma_L)
 
 
@@ -96,6 +115,181 @@ def measurements(problem: Problem) -> list[SampleMeasurement]:
     return out
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ZoneStack:
+    """The zones of a list of :class:`~estimators.gtsam_factors.SampleMeasurement` side by
+    side (every sample's rows in turn), concatenated once for the association rounds of
+    one solve: :func:`associate` keeps it on the list it returns and reuses it when given
+    that list again (:meth:`holds`).
+
+    Parameters
+    ----------
+    members : tuple of SampleMeasurement
+        The measurements stacked, in order.
+    bounds : ndarray of intp, shape (K + 1,)
+        Sample ``k``'s rows are ``bounds[k]:bounds[k + 1]``.
+    sample : ndarray of intp, shape (N,)
+        The sample of every row.
+    p_tip, o_tip, u_tip, v_tip : ndarray, shape (N, 3)
+    sigma_L, d : ndarray, shape (N,)
+    zones : ndarray of int64, shape (N,)
+        The members' arrays of the same names, concatenated.
+    weight : ndarray, shape (N,), optional
+        The members' weights (1 for a member without); None when no member has any.
+    """
+
+    members: tuple[SampleMeasurement, ...]
+    bounds: NDArray[np.intp]
+    sample: NDArray[np.intp]
+    p_tip: FloatArray
+    o_tip: FloatArray
+    u_tip: FloatArray
+    v_tip: FloatArray
+    sigma_L: FloatArray
+    d: FloatArray
+    zones: NDArray[np.int64]
+    weight: FloatArray | None
+
+    @classmethod
+    def of(cls, meas: list[SampleMeasurement]) -> "ZoneStack":
+        """The stack of ``meas`` (empty arrays for an empty list)."""
+        sizes = [m.size for m in meas]
+        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+
+        def cat(name: str, shape: tuple[int, ...], dtype: type = float) -> NDArray:
+            return np.concatenate([getattr(m, name) for m in meas]) if meas else np.zeros(shape, dtype=dtype)
+
+        weight = None
+        if any(m.weight is not None for m in meas):
+            weight = np.concatenate([np.ones(m.size) if m.weight is None else np.asarray(m.weight, dtype=float) for m in meas])
+        return cls(tuple(meas), bounds, np.repeat(np.arange(len(meas), dtype=np.intp), sizes), cat("p_tip", (0, 3)),
+                   cat("o_tip", (0, 3)), cat("u_tip", (0, 3)), cat("v_tip", (0, 3)), cat("sigma_L", (0,)), cat("d", (0,)),
+                   cat("zones", (0,), np.int64), weight)
+
+    def holds(self, meas: list[SampleMeasurement]) -> bool:
+        """Whether ``meas`` are this stack's members (the same objects, in order)."""
+        return len(meas) == len(self.members) and all(a is b for a, b in zip(meas, self.members))
+
+    def points(self, bias: FloatArray | None) -> FloatArray:
+        """Every zone's point in the tip frame ``(N, 3)``, the range bias ``b`` applied
+        (:meth:`SampleMeasurement.points`, stacked)."""
+        return _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
+
+    def previous_association(self) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """The members' current plane keys and inlier flags ``(N,)``, stacked."""
+        if not self.members:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
+        return np.concatenate([m.key for m in self.members]), np.concatenate([m.inlier for m in self.members])
+
+
+class AssociatedMeasurements(list):
+    """The measurements :func:`associate` returns (a list of
+    :class:`~estimators.gtsam_factors.SampleMeasurement`) and their :class:`ZoneStack`,
+    which the next call given this list reuses."""
+
+    def __init__(self, meas: list[SampleMeasurement], stack: ZoneStack) -> None:
+        super().__init__(meas)
+        self.stack = stack
+
+
+def zone_stack(meas: list[SampleMeasurement]) -> ZoneStack:
+    """The :class:`ZoneStack` of ``meas``: the one an earlier :func:`associate` kept on
+    this list when it still holds it, else a new one."""
+    stack = getattr(meas, "stack", None)
+    if isinstance(stack, ZoneStack) and stack.holds(meas):
+        return stack
+    return ZoneStack.of(meas)
+
+
+def rotate_by_sample(X: FloatArray, T: list[FloatArray], bounds: NDArray[np.intp]) -> FloatArray:
+    """Rows ``X`` ``(N, 3)`` of samples (sample ``k`` at ``bounds[k]:bounds[k + 1]``)
+    rotated by their sample's transform ``T[k]`` ``(4, 4)``: ``X_k @ T[k][:3, :3].T``, the
+    same matrix product per sample as one expression per sample, written into one array."""
+    out = np.empty(X.shape)
+    for k, Tk in enumerate(T):  # per sample (K <= a few tens), one product over its zones
+        np.matmul(X[bounds[k] : bounds[k + 1]], Tk[:3, :3].T, out=out[bounds[k] : bounds[k + 1]])
+    return out
+
+
+def zone_frames(stack: ZoneStack, T: list[FloatArray], points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Every zone's point ``p``, ray direction ``u`` and ray origin ``o`` ``(N, 3)`` in the
+    map frame: ``points`` (the stack's tip-frame points, bias applied) and the stack's rays
+    moved by their sample's ``T[k]`` ``(4, 4)`` (``T_map_tip``). numpy's matrix products,
+    one per sample and array, as before the stack (a compiled transform adding the products
+    in index order differs from BLAS's fused multiply-adds in the last bit, and the solver's
+    iterations carried that to 3e-9 in an estimate of a nano-swarm log)."""
+    if not T:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    t_rows = np.stack([Tk[:3, 3] for Tk in T])[stack.sample]  # each zone's translation
+    p = rotate_by_sample(points, T, stack.bounds) + t_rows
+    return p, rotate_by_sample(stack.u_tip, T, stack.bounds), rotate_by_sample(stack.o_tip, T, stack.bounds) + t_rows
+
+
+def plane_geometry(p: FloatArray, o: FloatArray, u: FloatArray, q: FloatArray, n: FloatArray, t: FloatArray | None,
+                   dist: FloatArray | None, predict: bool,
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, NDArray[np.bool_] | None]:
+    """What the association needs of each zone's plane ``(q, n)`` ``(N, 3)``, for the zones'
+    points ``p`` and rays ``(o, u)``.
+
+    Parameters
+    ----------
+    p, o, u, q, n : ndarray, shape (N, 3)
+    t : ndarray, shape (N,), optional
+        The rays' lengths to their planes (the ray cast); None: where each ray meets its plane.
+    dist : ndarray, shape (N,), optional
+        Each zone's distance to its plane's point; None: ``|p - q|``.
+    predict : bool
+        Whether to predict the rays' lengths (:func:`expected_sigma`).
+
+    Returns
+    -------
+    n : ndarray, shape (N, 3)
+        The normals, ``+z`` for a row with a non-finite entry.
+    n_dot_u : ndarray, shape (N,)
+    dist : ndarray, shape (N,)
+    t_exp : ndarray, shape (N,), or None
+        The predicted lengths held within ``[L / 2, 2 L]`` of the measured ``L = |p - o|``
+        (``L`` where not usable); None without ``predict``.
+    usable : ndarray of bool, shape (N,), or None
+        Where the prediction is usable; None without ``predict``.
+
+    The compiled kernel (:func:`tofloc.numba_kernels.association_planes`, one pass) takes
+    the numpy code's sums in numpy's orders.
+    """
+    if numba_kernels.enabled():
+        N = p.shape[0]
+        n_out, n_dot_u = np.empty((N, 3)), np.empty(N)
+        dist_out = np.empty(N) if dist is None else dist
+        t_exp, usable = (np.empty(N), np.empty(N, dtype=bool)) if predict else (np.empty(0), np.empty(0, dtype=bool))
+        f = np.ascontiguousarray
+        numba_kernels.association_planes(f(p), f(o), f(u), f(q, dtype=float), f(n, dtype=float),
+                                         np.empty(0) if t is None else f(t, dtype=float), _MIN_COS_EXPECTED, predict,
+                                         n_out, n_dot_u, dist_out, t_exp, usable)
+        return n_out, n_dot_u, dist_out, (t_exp if predict else None), (usable if predict else None)
+    n = _finite_normals(n)
+    n_dot_u = np.einsum("ni,ni->n", n, u)
+    if dist is None:
+        dist = np.linalg.norm(p - q, axis=1)
+    if not predict:
+        return n, n_dot_u, dist, None, None
+    t_exp, usable = _predicted_length(np.linalg.norm(p - o, axis=1), o, q, n, n_dot_u, t)
+    return n, n_dot_u, dist, t_exp, usable
+
+
+def _finite_normals(n: FloatArray) -> FloatArray:
+    """``n`` ``(N, 3)`` with every row holding a non-finite entry replaced by ``+z``."""
+    if np.isfinite(n).all():
+        return n
+    return np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
+
+
+def _changed_by_sample(stack: ZoneStack, key: NDArray[np.int64], inlier: NDArray[np.bool_]) -> list[bool]:
+    """Per member, whether its zones' keys or inlier flags differ from ``key``, ``inlier``."""
+    old_key, old_inlier = stack.previous_association()
+    diff = np.concatenate([[0], np.cumsum((key != old_key) | (inlier != old_inlier))])
+    return (diff[stack.bounds[1:]] != diff[stack.bounds[:-1]]).tolist()
+
+
 def associate(
     problem: Problem,
     meas: list[SampleMeasurement],
@@ -110,7 +304,7 @@ def associate(
     information_scale: float = 1.0,
     gate_sigmas: float = 0.0,
     config_cov: NDArray[np.float64] | None = None,
-) -> tuple[list[SampleMeasurement], list[bool]]:
+) -> tuple[AssociatedMeasurements, list[bool]]:
     """New measurements associated at the given estimate, and per sample whether its
     association changed.
 
@@ -118,7 +312,8 @@ def associate(
     ----------
     problem : Problem
     meas : list of SampleMeasurement
-        One per sample.
+        One per sample (an :class:`AssociatedMeasurements` of an earlier call: its zones
+        are not concatenated again).
     xyyaw : array (3,)
         The base pose.
     C : list of array (4, 4)
@@ -142,65 +337,88 @@ def associate(
         The configurations' covariances: each zone's variance gains what its sample's
         configuration error does to the zone's distance along the associated plane's normal
         (:func:`tofloc.configuration_uncertainty.normal_variance`; non-finite: nothing).
+
+    Returns
+    -------
+    meas : AssociatedMeasurements
+        New measurements (the zones shared with ``meas``), one per sample.
+    changed : list of bool
+        Per sample, whether a zone's plane key or inlier flag changed.
     """
+    stack = zone_stack(meas)
     T_mb = problem.prior.T_map_base(xyyaw)
-    sizes = [m.size for m in meas]
     T_mt = [T_mb @ C[k] @ D for k in range(len(meas))]
-    p = np.concatenate([m.points(bias) @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
-    u = np.concatenate([m.u_tip @ T[:3, :3].T for m, T in zip(meas, T_mt)])
-    sig = np.concatenate([m.sigma_L for m in meas])
-    o = np.concatenate([m.o_tip @ T[:3, :3].T + T[:3, 3] for m, T in zip(meas, T_mt)])
-    zones = np.concatenate([m.zones for m in meas]) if meas else np.zeros(0, dtype=np.int64)
+    points = stack.points(bias)
+    p, u, o = zone_frames(stack, T_mt, points)
+    sig, zones = stack.sigma_L, stack.zones
     if residual == "point_to_plane":
         # the key of a zone's plane: its triangle (a mesh, a cloud's surface) or its nearest
         # point (a bare cloud): the association changed when a key did
         q, n, key = problem.map.closest_surface_point_and_key(p)
-        dist = np.linalg.norm(p - q, axis=1)
-        t = None
+        t = dist = None
     else:
-        Z = problem.rig.n_zones
-        cast = ZoneCaster(problem.rig).cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
-        assert cast.point is not None and cast.normal is not None and cast.index is not None
-        hit = np.isfinite(cast.reading)
-        L = np.linalg.norm(p - o, axis=1)  # the measured point's distance along the ray
-        t = np.where(hit, np.linalg.norm(np.nan_to_num(cast.point) - o, axis=1), np.inf)
-        q = np.where(hit[:, None], cast.point, o)
-        n = np.where(hit[:, None], cast.normal, _UP)
-        key = cast.index
-        dist = np.where(hit, np.abs(L - t), np.inf)
-    n = np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
+        q, n, key, t, dist = _cast_planes(problem, p, o, u, zones)
+    predict = not problem.range_model.use_reported_sigma and sig.size > 0
+    n, n_dot_u, dist, t_exp, usable = plane_geometry(p, o, u, q, n, t, dist, predict)
     # the gate with the smaller of the two sigmas: a reading far short of its plane (an
     # object the map does not hold) must not widen its own gate through a longer prediction
-    expected = expected_sigma(problem, sig, zones, o, u, p, q, n, t)
+    expected = _sigma_at(problem, sig, zones, t_exp, usable) if t_exp is not None and usable is not None else sig
     sig_gate = np.minimum(sig, expected)
     sig = expected
-    cos_inc = np.abs(np.einsum("ni,ni->n", n, u))
-    v_cfg = np.zeros(sig.shape)
+    cos_inc = np.abs(n_dot_u)
+    v_cfg = None
     if config_cov is not None and meas:
-        # T_base_tip_true = C exp(delta), the support correction D after it: the zone points
-        # D p and the planes' normals in each sample's tip frame (the frame delta moves)
-        sample = np.repeat(np.arange(len(meas)), sizes)
-        R_map_tip = (T_mb @ np.stack([np.asarray(c, dtype=float) for c in C]))[:, :3, :3][sample]
-        p_tip = frames.transform_points(D, np.concatenate([m.points(bias) for m in meas]))
-        n_tip = np.einsum("nji,nj->ni", R_map_tip, n)  # R^T n
-        v = normal_variance(p_tip, n_tip, np.asarray(config_cov, dtype=float)[sample])
-        v_cfg = np.where(np.isfinite(v), v, 0.0)
-    s0 = np.sqrt((sig * cos_inc) ** 2 + map_sigma**2 + v_cfg)
-    s_gate = np.sqrt((sig_gate * cos_inc) ** 2 + map_sigma**2 + v_cfg)
+        v_cfg = _configuration_variance(stack, T_mb, C, D, points, n, config_cov)
+    s0 = _zone_sigma(sig, cos_inc, map_sigma, v_cfg)
+    s_gate = _zone_sigma(sig_gate, cos_inc, map_sigma, v_cfg)
     zone_gate = np.maximum(gate, gate_sigmas * (s_gate if residual == "point_to_plane" else np.hypot(sig_gate, map_sigma)))
     inlier = np.isfinite(dist) & (dist <= zone_gate)
-    if any(m.weight is not None for m in meas):
-        w = np.concatenate([np.ones(m.size) if m.weight is None else np.asarray(m.weight, dtype=float) for m in meas])
-        s = s0 / np.sqrt(information_scale * w)
+    if stack.weight is not None:
+        s = s0 / np.sqrt(information_scale * stack.weight)
     else:
         s = s0 / math.sqrt(information_scale)
     gate_e = zone_gate / s
-    out, changed = [], []
-    for m, a, b in zip(meas, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
-        new = copy.copy(m)  # the zones shared; set_association replaces every association array
-        changed.append(new.set_association(q[a:b], n[a:b], s[a:b], inlier[a:b], gate_e[a:b], key[a:b]))  # against m's
-        out.append(new)
-    return out, changed
+    b = stack.bounds
+    out = [m.associated(q[b[k] : b[k + 1]], n[b[k] : b[k + 1]], s[b[k] : b[k + 1]], inlier[b[k] : b[k + 1]],
+                        gate_e[b[k] : b[k + 1]], key[b[k] : b[k + 1]]) for k, m in enumerate(stack.members)]
+    return AssociatedMeasurements(out, dataclasses.replace(stack, members=tuple(out))), _changed_by_sample(stack, key, inlier)
+
+
+def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, zones: NDArray[np.int64],
+                 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray, FloatArray]:
+    """The planes of the ``"range"`` association: every zone's ray cast by the shared
+    zone caster. Returns the hit points ``q`` and normals ``n`` (the ray's origin and
+    ``+z`` without a hit), the hit's key, the ray length ``t`` to the hit and the distance
+    along the ray between the zone's point and the hit (inf without a hit)."""
+    Z = problem.rig.n_zones
+    cast = ZoneCaster(problem.rig).cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
+    assert cast.point is not None and cast.normal is not None and cast.index is not None
+    hit = np.isfinite(cast.reading)
+    L = np.linalg.norm(p - o, axis=1)  # the measured point's distance along the ray
+    t = np.where(hit, np.linalg.norm(np.nan_to_num(cast.point) - o, axis=1), np.inf)
+    q = np.where(hit[:, None], cast.point, o)
+    n = np.where(hit[:, None], cast.normal, _UP)
+    return q, n, cast.index, t, np.where(hit, np.abs(L - t), np.inf)
+
+
+def _configuration_variance(stack: ZoneStack, T_mb: FloatArray, C: list[FloatArray], D: FloatArray, points: FloatArray,
+                            n: FloatArray, config_cov: NDArray[np.float64]) -> FloatArray:
+    """Each zone's variance ``(N,)`` along its plane's normal from its sample's
+    configuration covariance (non-finite: 0)."""
+    # T_base_tip_true = C exp(delta), the support correction D after it: the zone points
+    # D p and the planes' normals in each sample's tip frame (the frame delta moves)
+    R_map_tip = (T_mb @ np.stack([np.asarray(c, dtype=float) for c in C]))[:, :3, :3][stack.sample]
+    p_tip = frames.transform_points(D, points)
+    n_tip = np.einsum("nji,nj->ni", R_map_tip, n)  # R^T n
+    v = normal_variance(p_tip, n_tip, np.asarray(config_cov, dtype=float)[stack.sample])
+    return np.where(np.isfinite(v), v, 0.0)
+
+
+def _zone_sigma(sig: FloatArray, cos_inc: FloatArray, map_sigma: float, v_cfg: FloatArray | None) -> FloatArray:
+    """A zone's sigma across its plane ``(N,)``: the range sigma ``sig`` projected on the
+    normal, the map error and the configuration's variance ``v_cfg`` (None: none) in quadrature."""
+    v = (sig * cos_inc) ** 2 + map_sigma**2
+    return np.sqrt(v if v_cfg is None else v + v_cfg)
 
 
 def place_points(problem: Problem, meas: list[SampleMeasurement]) -> list[FloatArray]:

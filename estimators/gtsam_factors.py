@@ -296,6 +296,16 @@ class SampleMeasurement:
         self.q, self.n, self.s, self.inlier, self.gate_e, self.key = q, n, s, inlier, gate_e, key
         return changed
 
+    def associated(
+        self, q: FloatArray, n: FloatArray, s: FloatArray, inlier: NDArray[np.bool_], gate_e: FloatArray, key: NDArray[np.int64]
+    ) -> "SampleMeasurement":
+        """A copy holding the new association (the arrays as given) and sharing this one's
+        zones: :meth:`set_association` on a shallow copy, without comparing the two."""
+        new = object.__new__(SampleMeasurement)
+        new.__dict__.update(self.__dict__)
+        new.q, new.n, new.s, new.inlier, new.gate_e, new.key = q, n, s, inlier, gate_e, key
+        return new
+
     def points(self, bias: FloatArray | None = None) -> FloatArray:
         """Zone points in the tip frame with the relative range-bias correction ``b`` (a 1-vector) applied."""
         return _bias_corrected(self.p_tip, self.d, self.v_tip, bias)

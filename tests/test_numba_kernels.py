@@ -119,6 +119,52 @@ def test_smoother_zone_rows_agree_with_numpy(monkeypatch, kernel: str, stacked: 
 
 
 @needs_numba
+@pytest.mark.parametrize("ray_cast", [False, True])
+@pytest.mark.parametrize("predict", [True, False])
+def test_association_planes_are_the_numpy_bits(monkeypatch, ray_cast: bool, predict: bool) -> None:
+    """The smoother's association: the compiled plane geometry gives the numpy code's bits
+    (sums in numpy's einsum and norm orders) on random planes with the edge rows: non-finite
+    normals, rays parallel to their plane (a zero cosine), grazing and behind the sensor,
+    ray lengths infinite, negative or NaN."""
+    from estimators.gtsam_association import plane_geometry
+
+    rng = np.random.default_rng(9)
+    N = 600
+    p, o, q = rng.normal(size=(N, 3)), rng.normal(size=(N, 3)) * 0.1, rng.normal(size=(N, 3))
+    u = rng.normal(size=(N, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    n = rng.normal(size=(N, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[:5] = np.nan
+    n[5, 1] = np.inf
+    n[6:10] = np.cross(u[6:10], [0.0, 0.0, 1.0])  # parallel to the plane: n . u = 0
+    n[6:10] /= np.linalg.norm(n[6:10], axis=1, keepdims=True)
+    q[10:14] = o[10:14]  # n . (q - o) = 0
+    t = dist = None
+    if ray_cast:
+        t = rng.uniform(-0.5, 3.0, N)
+        t[20:25], t[25:28] = np.inf, np.nan
+        dist = np.abs(rng.normal(size=N))
+    out = {}
+    for flag in ("1", "0"):
+        monkeypatch.setenv("TOFLOC_NUMBA", flag)
+        out[flag] = plane_geometry(p, o, u, q, n, t, None if dist is None else dist.copy(), predict)
+    for a, b in zip(out["1"], out["0"]):
+        if b is None:
+            assert a is None
+            continue
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    n_out, n_dot_u, _, t_exp, usable = out["0"]
+    np.testing.assert_array_equal(n_out[:6], np.tile([0.0, 0.0, 1.0], (6, 1)))
+    assert np.all(np.abs(n_dot_u[6:10]) < 1e-15)
+    if predict:
+        assert usable is not None and t_exp is not None and usable.any() and not usable.all()
+        assert not usable[20:28].any() and usable[:20].any() if ray_cast else not usable[6:10].any()
+        assert np.isfinite(t_exp).all()
+
+
+@needs_numba
 @pytest.mark.parametrize("footprint", [1, 3])
 def test_zone_caster_rays_are_the_einsums_bits(monkeypatch, footprint: int) -> None:
     """The compiled rotation of the zones' sub-ray directions gives numpy's einsum's bits

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "gram_root_by_sample", "gram_root_schur", "ROBUST_CODES",
+__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "association_planes", "gram_root_by_sample", "gram_root_schur", "ROBUST_CODES",
            "planar_inlier_count", "bounded_nearest_distance", "mean_shift_seeds"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
@@ -949,6 +949,49 @@ def smoother_zone_rows(p_tip: Any, n: Any, q: Any, s_: Any, inlier: Any, out_con
         _pose_row(Hd, i, px, py, pz, e0, e1, e2, w)
         g = -(e0 * v_tip[i, 0] + e1 * v_tip[i, 1] + e2 * v_tip[i, 2]) * w
         Hbias[i, 0] = g * d[i]
+
+
+@_jit
+def association_planes(p: Any, o: Any, u: Any, q: Any, n: Any, t_ray: Any, min_cos: float, predict: bool, n_out: Any,
+                       n_dot_u: Any, dist: Any, t_exp: Any, usable: Any) -> None:  # pragma: no cover - compiled
+    """What the GTSAM smoother's data association needs of each zone's plane ``(q, n)``
+    (:func:`estimators.gtsam_association.plane_geometry`, whose numpy code is the twin):
+    the normal ``n_out`` (``+z`` for a row with a non-finite entry), its cosine with the
+    ray ``n_dot_u``; with ``t_ray`` empty (point-to-plane) the distance ``dist = |p - q|``
+    and the ray's length to the plane ``n . (q - o) / (n . u)``, usable where ``|n . u|``
+    reaches ``min_cos``; else (the range association) ``t_ray`` is that length and
+    ``dist`` is left as given. With ``predict``: ``usable`` where the length is finite and
+    positive, and ``t_exp`` that length held within ``[L / 2, 2 L]`` (``L = |p - o|``,
+    the measured length; ``L`` where not usable). Sums of three terms are taken in the
+    orders numpy's ``einsum`` (``(x0 + x2) + x1``, its 4-lane SIMD sum on x86-64) and
+    ``norm`` (``(x0 + x1) + x2``) take, so the two give the same bits there and agree to
+    rounding elsewhere."""
+    from_plane = t_ray.shape[0] == 0
+    for i in range(p.shape[0]):
+        nx, ny, nz = n[i, 0], n[i, 1], n[i, 2]
+        if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz)):
+            nx, ny, nz = 0.0, 0.0, 1.0
+        n_out[i, 0], n_out[i, 1], n_out[i, 2] = nx, ny, nz
+        nu = (nx * u[i, 0] + nz * u[i, 2]) + ny * u[i, 1]
+        n_dot_u[i] = nu
+        if from_plane:
+            dx, dy, dz = p[i, 0] - q[i, 0], p[i, 1] - q[i, 1], p[i, 2] - q[i, 2]
+            dist[i] = math.sqrt((dx * dx + dy * dy) + dz * dz)
+        if not predict:
+            continue
+        lx, ly, lz = p[i, 0] - o[i, 0], p[i, 1] - o[i, 1], p[i, 2] - o[i, 2]
+        L = math.sqrt((lx * lx + ly * ly) + lz * lz)
+        if from_plane:
+            nq = (nx * (q[i, 0] - o[i, 0]) + nz * (q[i, 2] - o[i, 2])) + ny * (q[i, 1] - o[i, 1])
+            ok = abs(nu) >= min_cos and nu != 0.0  # numpy's quotient by zero is not finite: not usable either
+            tt = nq / nu if ok else math.nan
+        else:
+            tt = t_ray[i]
+            ok = True
+        ok = ok and math.isfinite(tt) and tt > 0.0
+        v = tt if ok else L
+        t_exp[i] = min(max(v, 0.5 * L), 2.0 * L)
+        usable[i] = ok
 
 
 @_jit
