@@ -41,20 +41,23 @@ demo: install
 	$(VENV)/bin/tofloc paper --estimators $$($(VENV)/bin/python -c 'from tofloc.registry import ESTIMATORS; print(",".join(ESTIMATORS.names()))') --trials $(DEMO_TRIALS) --out $(DEMO_DIR)
 
 # Every flight folder of $(NANOSWARM) (a folder with scans.csv: exp2's four-drones and
-# two-drones, or the flights of another experiment) imported once into $(REAL_DIR)/<flight>
-# (kept: a rerun reuses the logs and evaluate's finished batches), then evaluated into
-# $(REAL_DIR)/eval-<flight>, with REAL_IMPORT's options (above). A flight that fails (a
-# single drone with no flight beside it) is named and the others still run; make then fails.
+# two-drones, or the flights of another experiment; or, one level deeper, EXP/FLIGHT: the
+# flights of every experiment of a copy of the data set, named EXP-FLIGHT) imported once
+# into $(REAL_DIR)/<flight> (kept: a rerun reuses the logs and evaluate's finished
+# batches), then evaluated into $(REAL_DIR)/eval-<flight>, with REAL_IMPORT's options
+# (above). A flight that fails (a single drone with no flight beside it) is named and the
+# others still run; make then fails.
 real-data: install
-	@flights=$$(for d in "$(NANOSWARM)"/*/; do [ -f "$$d/scans.csv" ] && basename "$$d"; done); \
+	@flights=$$(cd "$(NANOSWARM)" 2>/dev/null && for d in */ */*/; do [ -f "$$d/scans.csv" ] && echo "$${d%/}"; done); \
 	test -n "$$flights" || { \
-	  echo "real-data: $(NANOSWARM) has no flight folder (a folder with scans.csv, such as four-drones/; set NANOSWARM=...)"; exit 2; }; \
+	  echo "real-data: $(NANOSWARM) has no flight folder (a folder with scans.csv, such as four-drones/ or exp2/four-drones/; set NANOSWARM=...)"; exit 2; }; \
 	failed=""; \
 	for f in $$flights; do \
-	  if [ ! -d "$(REAL_DIR)/$$f/maps" ]; then \
-	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT) --out "$(REAL_DIR)/$$f" || { failed="$$failed $$f"; continue; }; fi; \
-	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$f"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
-	    --out "$(REAL_DIR)/eval-$$f" || failed="$$failed $$f"; \
+	  n=$$(echo "$$f" | tr / -); \
+	  if [ ! -d "$(REAL_DIR)/$$n/maps" ]; then \
+	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT) --out "$(REAL_DIR)/$$n" || { failed="$$failed $$f"; continue; }; fi; \
+	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$n"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
+	    --out "$(REAL_DIR)/eval-$$n" || failed="$$failed $$f"; \
 	done; \
 	test -z "$$failed" || { echo "real-data: failed:$$failed (the others are in $(REAL_DIR))"; exit 1; }
 
