@@ -6,7 +6,7 @@ import ast
 import re
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import pytest
 
@@ -87,7 +87,9 @@ def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     assert recipe
     body = recipe.group(1)
     assert "tofloc import nanoswarm" in body and "tofloc evaluate" in body and "--trials $(REAL_TRIALS)" in body
-    assert 'for d in "$(NANOSWARM)"/*/; do [ -f "$$d/scans.csv" ]' in body and "for f in $$flights" in body
+    assert 'for d in */ */*/; do [ -f "$$d/scans.csv" ]' in body and "for f in $$flights" in body
+    assert 'tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT)' in body
+    assert re.search(r"^REAL_IMPORT \?= --map-from auto --bad-scans skip --missing-poses skip$", make, flags=re.M)
     names = re.search(r"^REAL_ESTIMATORS \?= (.+)$", make, flags=re.M)
     builtin = {n for n in ESTIMATORS.names() if ESTIMATORS.spec(n).origin == "builtin"}
     assert names and set(names.group(1).split(",")) == builtin
@@ -99,7 +101,7 @@ def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     assert re.search(r"^REAL_TRIALS \?= 3$", make, flags=re.M)
 
 
-@pytest.mark.parametrize("target, needs", [("real-data", "flight folder (a folder with scans.csv, such as four-drones/; set NANOSWARM=...)"),
+@pytest.mark.parametrize("target, needs", [("real-data", "flight folder (a folder with scans.csv, such as four-drones/ or exp2/four-drones/; set NANOSWARM=...)"),
                                            ("real-data-drones", "four-drones/ flight folder (set NANOSWARM=... or REAL_DRONES_FLIGHT=...)")])
 def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path, target: str, needs: str) -> None:
     """Without the flight folders `make real-data` (and `make real-data-drones`) stops before
@@ -119,10 +121,12 @@ def test_make_real_data_refuses_a_missing_data_folder_naming_it(tmp_path: Path, 
     assert not out.exists()
 
 
-def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str, tuple[int, ...]], *variables: str) -> tuple[Any, Path]:
+def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str, tuple[int, ...]], *variables: str,
+                                 edit: Callable[[Path], None] | None = None) -> tuple[Any, Path]:
     """``make TARGET`` (install not run) on synthetic nano-swarm flights written into
-    ``tmp_path/ns`` (name -> drones, :func:`test_real_nanoswarm.make_flight`), with this
-    environment's venv and ``REAL_DIR=tmp_path/out``; the completed process and that folder."""
+    ``tmp_path/ns`` (name -> drones, :func:`test_real_nanoswarm.make_flight`; a name may be
+    ``EXP/FLIGHT``), ``edit(tmp_path / "ns")`` applied first, with this environment's venv
+    and ``REAL_DIR=tmp_path/out``; the completed process and that folder."""
     import shutil
     import subprocess
     import sys
@@ -136,6 +140,8 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
         sys.path.pop(0)
     for name, drones in flights.items():
         make_flight(tmp_path / "ns" / name, drones=drones)
+    if edit is not None:
+        edit(tmp_path / "ns")
     out = tmp_path / "out"
     r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), target, f"NANOSWARM={tmp_path / 'ns'}", f"REAL_DIR={out}",
                         "REAL_ESTIMATORS=icp_pf", "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}", *variables],
@@ -145,15 +151,50 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
 
 def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
     """`make real-data` takes every flight folder of NANOSWARM (another experiment's flights
-    too): a flight that cannot be imported (a single drone has no leave-one-drone-out map) is
-    named, the other flights are still imported and evaluated, and make fails."""
-    (tmp_path / "ns" / "notes").mkdir(parents=True)  # not a flight: no scans.csv
-    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo": (0,), "pair": (0, 1)})
-    text = r.stdout + r.stderr
+    too): a single drone's flight takes its map from the flight beside it (``--map-from
+    auto``), a corrupt scan row is left out and reported (``--bad-scans skip``), a flight
+    that cannot be imported at all is named, the other flights are still imported and
+    evaluated, and make fails."""
+
+    def edit(ns: Path) -> None:
+        (ns / "notes").mkdir()  # not a flight: no scans.csv
+        rows = (ns / "pair" / "scans.csv").read_text().splitlines()
+        rows[1] = rows[1][:-10]  # drone 1 node 0 truncated
+        (ns / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
+        (ns / "broken" / "scans.csv").write_bytes(b"0/0,\xe9\n")  # a non-ASCII file: refused whole
+
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo": (0,), "pair": (0, 1), "broken": (0, 1)}, edit=edit)
+    text = " ".join((r.stdout + r.stderr).split())
     assert r.returncode != 0, text
-    assert f"real-data: failed: solo (the others are in {out})" in text and "found only drone 0" in text
-    assert (out / "eval-pair" / "results.json").is_file() and (out / "eval-pair" / "table.md").is_file()
-    assert sorted(p.name for p in out.iterdir()) == ["eval-pair", "pair"]
+    assert f"real-data: failed: broken (the others are in {out})" in text and "ASCII text" in text
+    assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
+    assert "note: --map-from auto passed over broken (unreadable): " in text  # solo's choice of map
+    assert sorted(p.name for p in out.iterdir()) == ["eval-pair", "eval-solo", "pair", "solo"]
+    assert sorted(p.name for p in (out / "pair").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node001.h5"]
+    assert [p.name for p in (out / "solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
+    for name in ("pair", "solo"):
+        assert (out / f"eval-{name}" / "results.json").is_file() and (out / f"eval-{name}" / "table.md").is_file()
+
+
+def test_make_real_data_takes_the_flights_of_every_experiment_of_a_copy(tmp_path: Path) -> None:
+    """NANOSWARM at a copy of the whole data set: its EXP/FLIGHT folders are the flights,
+    imported and evaluated as EXP-FLIGHT, a single drone mapped from its own experiment's
+    other flight; REAL_IMPORT="--map-from auto" keeps the strict import (a corrupt row
+    refuses its flight)."""
+
+    def edit(ns: Path) -> None:
+        rows = (ns / "expB" / "pair" / "scans.csv").read_text().splitlines()
+        rows[1] = rows[1][:-10]
+        (ns / "expB" / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
+
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"expA/solo": (0,), "expA/pair": (0, 1), "expB/pair": (0, 1)},
+                                          "REAL_IMPORT=--map-from auto", edit=edit)
+    text = " ".join((r.stdout + r.stderr).split())
+    assert r.returncode != 0 and f"real-data: failed: expB/pair (the others are in {out})" in text, text
+    assert "row 2, field hex: expected 1144 bytes" in text
+    assert sorted(p.name for p in out.iterdir()) == ["eval-expA-pair", "eval-expA-solo", "expA-pair", "expA-solo"]
+    assert [p.name for p in (out / "expA-solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
+    assert (out / "eval-expA-solo" / "results.json").is_file()
 
 
 def test_make_real_data_drones_runs_end_to_end_on_a_small_flight(tmp_path: Path) -> None:

@@ -380,11 +380,17 @@ def test_map_from_auto_keeps_leave_one_out_and_gives_a_single_drone_the_sibling_
     lone = make_flight(tmp_path / "alone" / "only", drones=(0,), seed=7)
     refused(lambda: import_flight(lone, map_from="auto"), lone / "scans.csv", "drone/node column",
             "another flight folder of the same maze beside it", str((tmp_path / "alone").absolute()), "only drone 0")
-    # a sibling that breaks the format is named, not skipped
-    (exp / "a-solo" / "scans.csv").write_text("0/0,zz\n")
-    with pytest.raises(FormatError) as info:
-        import_flight(solo, map_from="auto")
-    assert "a-solo" in str(info.value) and "hex digits" in str(info.value)
+    # a sibling that cannot be read is no candidate, and is reported; none readable: refused naming them
+    (exp / "d-pair" / "scans.csv").write_text("0/0,zz\n")
+    imp = import_flight(pair, map_from="auto", drones=[1])
+    assert imp.map_from == (exp / "a-solo").resolve() and list(imp.map_from_passed_over) == ["d-pair"]  # one drone each: by name
+    assert "hex digits" in imp.map_from_passed_over["d-pair"] and str(exp / "d-pair" / "scans.csv") in imp.map_from_passed_over["d-pair"]
+    imp = import_flight(solo, map_from="auto")
+    assert imp.map_from == pair.resolve() and list(imp.map_from_passed_over) == ["d-pair"]
+    (lone.parent / "bad").mkdir()
+    (lone.parent / "bad" / "scans.csv").write_text("0/0,zz\n")
+    refused(lambda: import_flight(lone, map_from="auto"), lone / "scans.csv", "drone/node column",
+            "no other readable folder with a scans.csv; bad unreadable: ", "hex digits")
     # "auto" with a folder of that name in the working directory: refused, not guessed
     monkeypatch.chdir(tmp_path)
     (tmp_path / "auto").mkdir()

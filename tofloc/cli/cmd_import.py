@@ -106,6 +106,8 @@ def nanoswarm(
         console.print(f"note: {name}: {len(what)} row(s) not used (a node without a scan, a node's other row, a scan "
                       f"without a pose, or a scan row that breaks the format): {shown}",
                       highlight=False, soft_wrap=True)
+    for name, why in imp.map_from_passed_over.items():
+        console.print(f"note: --map-from auto passed over {name} (unreadable): {why}", highlight=False, soft_wrap=True)
     if at_truth.size:
         med, p90 = 100 * float(np.median(at_truth)), 100 * float(np.percentile(at_truth, 90))
         console.print(f"points at the truth (zones <= {range_cut:g} m): median {med:.1f} cm from the map, 90 % within {p90:.1f} cm",

@@ -36,7 +36,7 @@ import json
 import math
 import re
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, Sequence
 
@@ -310,6 +310,9 @@ class FlightImport:
     map_from: Path | None = None
     #: the flight ``map_from`` names, as read (None: leave-one-drone-out)
     map_flight: Flight | None = None
+    #: ``map_from="auto"``: flight folders beside this one whose ``scans.csv`` could not be
+    #: read, with why (not candidates for the map; :func:`sibling_map_flight`)
+    map_from_passed_over: dict[str, str] = field(default_factory=dict)
 
     def map_of(self, i: int) -> Map:
         """The map log ``i`` names."""
@@ -384,8 +387,12 @@ def import_flight(
     flight = read_flight(folder, base=base, created=created, error_model=error_model, duplicates=duplicates,
                          missing_poses=missing_poses, drones=drones, bad_scans=bad_scans)
     fit = replace(wall_fit or WallFitSettings(), voxel_m=voxel_m)
+    passed_over: dict[str, str] = {}
     if is_auto(map_from):
-        map_from = None if len(flight.drones) >= 2 else sibling_map_flight(flight, duplicates=duplicates, bad_scans=bad_scans)
+        if len(flight.drones) >= 2:
+            map_from = None
+        else:
+            map_from, passed_over = sibling_map_flight(flight, duplicates=duplicates, bad_scans=bad_scans)
     if map_from is None:
         by_drone = leave_one_out_maps(flight, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)
         maps = {map_name(d): m for d, m in by_drone.items()}
@@ -402,7 +409,7 @@ def import_flight(
     maps = {name: flight_map(other, range_cut_m=range_cut_m, voxel_m=voxel_m, normal_k=normal_k, wall_fit=fit)}
     for log in flight.logs:
         log.map = name
-    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src, other)
+    return FlightImport(flight, maps, range_cut_m, voxel_m, normal_k, fit, src, other, passed_over)
 
 
 #: ``map_from`` / ``--map-from`` value that picks the map source by the flight's drones
@@ -427,29 +434,45 @@ def is_auto(map_from: str | Path | None) -> bool:
     return True
 
 
-def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse", bad_scans: str = "refuse") -> Path:
+def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse", bad_scans: str = "refuse") -> tuple[Path, dict[str, str]]:
     """The flight folder beside ``flight``'s (same parent folder, holding a ``scans.csv``)
     whose scans hold the most drones (ties: the first by name): the map source of a
     single-drone flight under ``map_from="auto"``. The flights of one experiment folder
     (``exp2/two-drones``, ``exp2/four-drones``) are flights of the same maze in one
     motion-capture frame; the import's distances at the truth say if that does not hold.
 
+    Returns
+    -------
+    folder : Path
+        The flight chosen.
+    passed_over : dict folder name -> str
+        Folders beside it whose ``scans.csv`` could not be read (the one-line reason): not
+        candidates, and reported.
+
     Raises
     ------
     FormatError
-        No other flight folder lies beside it, or one's ``scans.csv`` breaks the format.
+        No readable flight folder lies beside it (the unreadable ones named).
     """
     here = flight.folder.resolve()
     parent = flight.folder.absolute().parent  # the folder as named (a link to a flight: the link's folder)
     siblings = sorted((d for d in parent.iterdir() if d.is_dir() and d.resolve() != here and (d / "scans.csv").is_file()),
                       key=lambda d: d.name)
-    if not siblings:
+    counts: dict[Path, int] = {}
+    passed_over: dict[str, str] = {}
+    for d in siblings:
+        try:
+            counts[d] = len(set(read_scans_csv(d / "scans.csv", duplicates, bad_scans).drone.tolist()))
+        except FormatError as e:
+            passed_over[d.name] = str(e)
+    if not counts:
+        unreadable = "".join(f"; {name} unreadable: {why}" for name, why in passed_over.items())
         raise FormatError(flight.folder / "scans.csv", "drone/node column",
                           "scans of at least two drones (each drone's map is built from the others'), or another flight folder "
                           f"of the same maze beside it in {parent} (map_from='auto')",
-                          f"only drone {flight.drones[0]} and no other folder with a scans.csv")
-    counts = [len(set(read_scans_csv(d / "scans.csv", duplicates, bad_scans).drone.tolist())) for d in siblings]
-    return siblings[int(np.argmax(counts))]  # argmax: the first of the most
+                          f"only drone {flight.drones[0]} and no other readable folder with a scans.csv{unreadable}")
+    most = max(counts.values())
+    return next(d for d, n in counts.items() if n == most), passed_over
 
 
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
