@@ -10,6 +10,7 @@ file, the key and what was expected, never a traceback from deep inside a plot.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -110,8 +111,19 @@ def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
         if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**64):
             raise FormatError(p, f"{where}[{i}].seed", "an integer seed >= 0 or null", repr(seed)[:40])
         rec["seed"] = seed  # pairs this trial with the same trial of another run (evaluation.log_bootstrap.paired_runs)
+        rec["truth"] = _truth(d.get("truth"), p, f"{where}[{i}].truth")  # ... of the same log (a label is only a file name)
         out.append(rec)
     return out
+
+
+def _truth(v: Any, p: Path, where: str) -> list[float] | None:
+    """A record's true pose ``[x, y, yaw]`` (finite numbers), or None when it has none."""
+    if v is None:
+        return None
+    if not isinstance(v, list) or len(v) != 3 or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+        raise FormatError(p, where, "the true pose [x, y, yaw] (three finite numbers) or null", repr(v)[:40])
+    return [float(x) for x in v]
 
 
 def _changed(v: Any, p: Path, where: str) -> dict[str, Any]:
@@ -273,8 +285,8 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     if len(views) < 2:
         return []
     lines = ["", f"## Paired with the first file ({labels[0]})", "",
-             "Each file's medians over the first file's on the trials both ran alike (the same logs and trial seeds: "
-             "the same samples and priors), with 90 % intervals from resampling those logs (evaluation/log_bootstrap.py), "
+             "Each file's medians over the first file's on the trials both ran alike (the same logs, by file name and "
+             "true pose, and the same trial seeds: the same samples and priors), with 90 % intervals from resampling those logs (evaluation/log_bootstrap.py), "
              "and the trials that failed in one run only. An interval that holds 1 is a change these logs cannot tell "
              "from the nodes' spread.", "",
              "| file | estimator | paired logs | median e_x / first's | median e_gamma / first's | failures, first -> this | "
@@ -283,6 +295,9 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     for view, label in zip(views[1:], labels[1:]):
         names = [e for e in view["summary"] if e in base["summary"]]
         got = paired_runs(base["logs"], view["logs"], names, seed=int(base.get("seed", 0)))
+        if names and all(got["estimators"][e]["logs"] == 0 for e in names):
+            lines.append(f"| {label} | (no log in common: no file of the same name, true pose and trial seeds) | 0 | | | | | |")
+            continue
         for e in names:
             r = got["estimators"][e]
             cells = [f"{f(r[k]['ratio'], '.2f')}{_bracket(r[k]['interval'], '.2f')}" for k in ("e_x_m", "e_gamma_deg")]

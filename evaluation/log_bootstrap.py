@@ -255,15 +255,19 @@ def log_bootstrap(
 def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, Mapping[str, Any]],
                  name: str) -> list[str]:
     """The logs both runs hold with ``name``'s trials drawn from the same seeds, in the same
-    order (every record's ``seed`` given and equal): the same samples and priors."""
+    order (every record's ``seed`` given and equal): the same samples and priors; and of the
+    same log, as far as the records tell: their true poses (``truth``) equal. A label is
+    only the file's name (``drone0-node000`` is in every flight of a data set), and two
+    logs of one name evaluated with one seed draw the same seeds."""
     out = []
     for label, lg in logs_a.items():
         other = logs_b.get(label)
         if other is None or name not in lg["estimators"] or name not in other["estimators"]:
             continue
-        sa = [r.get("seed") for r in lg["estimators"][name]["records"]]
-        sb = [r.get("seed") for r in other["estimators"][name]["records"]]
-        if sa and sa == sb and all(x is not None for x in sa):
+        ra, rb = lg["estimators"][name]["records"], other["estimators"][name]["records"]
+        sa, sb = [r.get("seed") for r in ra], [r.get("seed") for r in rb]
+        same_truth = [r.get("truth") for r in ra] == [r.get("truth") for r in rb]
+        if sa and sa == sb and all(x is not None for x in sa) and same_truth:
             out.append(label)
     return out
 

@@ -753,6 +753,20 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
         row = next(line for line in table.splitlines() if line.startswith(f"| b | {e} | 2 |"))
         assert "| 1.00 [1.00-1.00] | 1.00 [1.00-1.00] |" in row and row.endswith("| 0 | 0 |")
     assert "beam_pf" in out and "wrote" in err
+    # other logs under the same file names (drone0-node000 is in every flight of a data set), run
+    # with the same seed: the same trial seeds, other true poses; not paired
+    moved = json.loads(json.dumps(doc))
+    for lg in moved["logs"].values():
+        for est in lg["estimators"].values():
+            for r in est["records"]:
+                r["truth"][0] += 1.0
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "results.json").write_text(json.dumps(moved))
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "c" / "results.json"),
+                         "--out", str(tmp_path / "pc")])[0] == 0
+    table_c = (tmp_path / "pc" / "comparison.md").read_text()
+    assert "| c | (no log in common: no file of the same name, true pose and trial seeds) | 0 |" in table_c
+    assert not any(line.startswith("| c | icp_pf | ") for line in table_c.split("## Paired")[1].splitlines())
     # the checked view draws what the whole document draws
     view = evaluate_view(doc, "results.json")
     a, b = errors_by_log_figure(doc), errors_by_log_figure(view)
@@ -777,6 +791,8 @@ def _damaged(doc: dict, edit: str) -> dict:
         d["failure"]["e_x_m"] = 0
     elif edit == "seed":
         d["logs"][log]["estimators"]["icp_pf"]["records"][0]["seed"] = "x"
+    elif edit == "truth":
+        d["logs"][log]["estimators"]["icp_pf"]["records"][0]["truth"] = [0.0, "x", 0.0]
     elif edit == "interval":
         d["intervals"]["estimators"]["beam_pf"]["failure_rate"] = [0.5, 0.1]
     return d
@@ -789,6 +805,8 @@ def _damaged(doc: dict, edit: str) -> dict:
     ("threshold", "failure.e_x_m: expected a finite number > 0, found 0"),
     ("interval", "intervals.estimators.beam_pf.failure_rate: expected low <= high, found [0.5, 0.1]"),
     ("seed", "logs.{log}.estimators.icp_pf.records[0].seed: expected an integer seed >= 0 or null, found 'x'"),
+    ("truth", "logs.{log}.estimators.icp_pf.records[0].truth: expected the true pose [x, y, yaw] (three finite numbers) or null, "
+              "found [0.0, 'x', 0.0]"),
 ])
 def test_plot_refuses_a_damaged_evaluate_file(run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                               edit: str, where: str) -> None:

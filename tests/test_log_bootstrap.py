@@ -207,6 +207,12 @@ def test_paired_runs_on_the_same_trials() -> None:
     b["log5"]["estimators"]["a"]["records"][2]["seed"] = 7
     del b["log6"]
     assert paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]["logs"] == 8
+    # another log under the same name (another flight's node): same seeds, another true pose
+    a["log7"]["estimators"]["a"]["records"][0]["truth"] = [1.0, 2.0, 0.1]
+    b["log7"]["estimators"]["a"]["records"][0]["truth"] = [1.5, 2.0, 0.1]
+    assert paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]["logs"] == 7
+    b["log7"]["estimators"]["a"]["records"][0]["truth"] = [1.0, 2.0, 0.1]
+    assert paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]["logs"] == 8
     # too few shared logs: counts only
     few = paired_runs({"log0": a["log0"]}, {"log0": b["log0"]}, ["a"], seed=0)["estimators"]["a"]
     assert few["logs"] == 1 and few["e_x_m"] == {"ratio": None, "interval": None}
