@@ -45,8 +45,9 @@ demo: install
 # flights of every experiment of a copy of the data set, named EXP-FLIGHT) imported once
 # into $(REAL_DIR)/<flight> (kept: a rerun reuses the logs and evaluate's finished
 # batches), then evaluated into $(REAL_DIR)/eval-<flight>, with REAL_IMPORT's options
-# (above). A flight that fails (a single drone with no flight beside it) is named and the
-# others still run; make then fails.
+# (above); every flight evaluated in one table, $(REAL_DIR)/compare-flights/comparison.md
+# (tofloc plot). A flight that fails (a single drone with no flight beside it) is named and
+# the others still run; make then fails.
 real-data: install
 	@flights=$$(cd "$(NANOSWARM)" 2>/dev/null && for d in */ */*/; do [ -f "$$d/scans.csv" ] && echo "$${d%/}"; done); \
 	test -n "$$flights" || { \
@@ -56,9 +57,10 @@ real-data: install
 	  n=$$(echo "$$f" | tr / -); \
 	  if [ ! -d "$(REAL_DIR)/$$n/maps" ]; then \
 	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT) --out "$(REAL_DIR)/$$n" || { failed="$$failed $$f"; continue; }; fi; \
-	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$n"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
-	    --out "$(REAL_DIR)/eval-$$n" || failed="$$failed $$f"; \
+	  if $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$n"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
+	    --out "$(REAL_DIR)/eval-$$n"; then results="$$results $(REAL_DIR)/eval-$$n/results.json"; else failed="$$failed $$f"; fi; \
 	done; \
+	test -z "$$results" || $(VENV)/bin/tofloc plot $$results --out "$(REAL_DIR)/compare-flights" || failed="$$failed (compare-flights)"; \
 	test -z "$$failed" || { echo "real-data: failed:$$failed (the others are in $(REAL_DIR))"; exit 1; }
 
 # Each set of REAL_DRONE_SETS: the flight REAL_DRONES_FLIGHT imported with only those drones

@@ -169,7 +169,9 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
     assert f"real-data: failed: broken (the others are in {out})" in text and "ASCII text" in text
     assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
     assert "note: --map-from auto passed over broken (unreadable): " in text  # solo's choice of map
-    assert sorted(p.name for p in out.iterdir()) == ["eval-pair", "eval-solo", "pair", "solo"]
+    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-pair", "eval-solo", "pair", "solo"]
+    table = (out / "compare-flights" / "comparison.md").read_text()  # every flight evaluated, in one table
+    assert "| eval-pair | icp_pf |" in table and "| eval-solo | icp_pf |" in table and "eval-broken" not in table
     assert sorted(p.name for p in (out / "pair").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node001.h5"]
     assert [p.name for p in (out / "solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
     for name in ("pair", "solo"):
@@ -192,7 +194,7 @@ def test_make_real_data_takes_the_flights_of_every_experiment_of_a_copy(tmp_path
     text = " ".join((r.stdout + r.stderr).split())
     assert r.returncode != 0 and f"real-data: failed: expB/pair (the others are in {out})" in text, text
     assert "row 2, field hex: expected 1144 bytes" in text
-    assert sorted(p.name for p in out.iterdir()) == ["eval-expA-pair", "eval-expA-solo", "expA-pair", "expA-solo"]
+    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-expA-pair", "eval-expA-solo", "expA-pair", "expA-solo"]
     assert [p.name for p in (out / "expA-solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
     assert (out / "eval-expA-solo" / "results.json").is_file()
 
