@@ -59,6 +59,7 @@ from evaluation.result_cache import _partial_path, code_fingerprint, context_fin
 from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, sample_pool, trial_seed
 from tofloc.errors import FormatError, ParameterError
 from tofloc.rig import DEFAULT_VALID_STATUSES
+from tofloc.problem import ProblemError
 
 __all__ = [
     "is_flagged",
@@ -176,6 +177,7 @@ def prepare_logs(
     calibration: Any = None,
     valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
     on_map: Callable[[Path], None] | None = None,
+    set_aside: dict[str, str] | None = None,
 ) -> list[EvalLog]:
     """Read and check every log, load each map once, and make the trial contexts.
 
@@ -191,6 +193,10 @@ def prepare_logs(
     valid_statuses : iterable of int
     on_map : callable, optional
         Called with each map's path before it is loaded.
+    set_aside : dict, optional
+        Given, a log with fewer usable samples than a trial needs (a scan node whose
+        sensors returned nothing) is left out and recorded here, ``path -> reason``,
+        instead of refusing the run (``tofloc evaluate --set-aside-unusable``).
 
     Raises
     ------
@@ -198,7 +204,8 @@ def prepare_logs(
         A log has no ``/truth/T_map_base``, no ``/samples/T_base_tip`` or no ``map``
         attribute (the message names the file).
     ProblemError
-        A log has fewer usable samples than ``samples``.
+        A log has fewer usable samples than ``samples`` (without ``set_aside``), or no log
+        has enough (with it).
     """
     from tofloc.logs import Log, read_log
     from tofloc.maps import load_map
@@ -219,10 +226,22 @@ def prepare_logs(
         if lg.map is None:
             raise FormatError(lg.path, "map", "the map's file name in the root attribute `map`", "no such attribute")
     labels = log_labels([Path(lg.path) for lg in read])
-    pools = [sample_pool(lg, None, 1 if samples is None else samples, statuses) for lg in read]
+    pools: list[Any] = []
+    for lg in read:
+        try:
+            pools.append(sample_pool(lg, None, 1 if samples is None else samples, statuses))
+        except ProblemError as e:
+            if set_aside is None:
+                raise
+            set_aside[str(lg.path)] = str(e)
+            pools.append(None)
+    if set_aside and all(pool is None for pool in pools):
+        raise ProblemError(f"no log has the usable samples a trial needs ({len(set_aside)} set aside: "
+                           + "; ".join(list(set_aside.values())[:3]) + ("; ..." if len(set_aside) > 3 else "") + ")")
+    kept = [(lg, label, pool) for lg, label, pool in zip(read, labels, pools) if pool is not None]
     maps: dict[Path, Any] = {}
     out = []
-    for lg, label, pool in zip(read, labels, pools):
+    for lg, label, pool in kept:
         mp = Path(lg.map_path()).resolve()
         if mp not in maps:
             if on_map is not None:

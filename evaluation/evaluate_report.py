@@ -149,6 +149,15 @@ def _span(v: Any, fmt: str) -> str:
     return format(lo, fmt) if lo == hi else f"{format(lo, fmt)}-{format(hi, fmt)}"
 
 
+def set_aside_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The logs ``--set-aside-unusable`` left out, with why (none: no line)."""
+    gone = doc.get("set_aside") or {}
+    if not gone:
+        return []
+    return [f"Set aside (fewer usable samples than a trial needs; not in any figure below): {len(gone)} log(s): "
+            + "; ".join(gone.values())]  # each reason names its log
+
+
 def truth_sentence(doc: Mapping[str, Any]) -> str:
     """What the truth's declared uncertainty is, and which NEES uses it (one sentence)."""
     tu = doc.get("truth_uncertainty") or {"declared_by": 0, "logs": len(doc["logs"])}
@@ -208,6 +217,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "evaluate its target.",
         truth_sentence(doc),
         *params_sentence(doc),
+        *set_aside_lines(doc),
         "",
         "| estimator | median e_x (mm) | median e_gamma (deg) | mean e_x (mm) | mean e_gamma (deg) | failures | "
         "NEES mean | NEES median | NEES vs exact truth (mean) | flagged (covariance widened) | "

@@ -469,6 +469,38 @@ def test_a_log_without_truth_is_refused_naming_it(logs: list[Path], tmp_path: Pa
     assert not (tmp_path / "o").exists(), text
 
 
+def test_a_log_without_usable_samples_is_refused_or_set_aside_when_asked(logs: list[Path], tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """A log whose zones are all invalid cannot make a trial: the run is refused naming it;
+    with --set-aside-unusable it is left out and named, with why, in the notes,
+    results.json (``set_aside``) and table.md, and the other logs give the figures they
+    give alone; nothing usable at all is still refused."""
+    from tofloc.logs import read_log, write_log
+
+    log = read_log(logs[0])
+    dead = write_log(dc.replace(log, distance_mm=np.full_like(log.distance_mm, np.nan),
+                                status=np.full_like(log.status, 255), map=log.map_path().name), logs[0].parent / "dead.h5")
+    args = ["--estimators", "icp_pf", "--trials", "1", "--samples", "3", "--seed", "5", *FEW]
+    _refused(capsys, [str(dead), str(logs[1]), *args, "--out", str(tmp_path / "o")], str(dead),
+             f"0 of {log.n_samples} samples are usable")
+    code, out, err = _run(capsys, ["evaluate", str(dead), str(logs[1]), *args, "--set-aside-unusable", "--out", str(tmp_path / "a")])
+    assert code == 0, err
+    why = f"{dead}: 0 of {log.n_samples} samples are usable (with a valid zone, a known motion-capture pose); 3 are needed per trial"
+    assert f"set aside: {why}" in " ".join(err.split())
+    doc = json.loads((tmp_path / "a" / "results.json").read_text())
+    assert doc["set_aside"] == {str(dead): why} and len(doc["logs"]) == 1
+    assert f"Set aside (fewer usable samples than a trial needs; not in any figure below): 1 log(s): {why}" in (
+        tmp_path / "a" / "table.md").read_text()
+    assert _run(capsys, ["evaluate", str(logs[1]), *args, "--out", str(tmp_path / "b")])[0] == 0
+    alone = json.loads((tmp_path / "b" / "results.json").read_text())
+    (label,) = doc["logs"]
+    assert [_untimed(r) for r in doc["logs"][label]["estimators"]["icp_pf"]["records"]] == [
+        _untimed(r) for r in alone["logs"][next(iter(alone["logs"]))]["estimators"]["icp_pf"]["records"]]
+    assert alone["set_aside"] == {}
+    _refused(capsys, [str(dead), *args, "--set-aside-unusable", "--out", str(tmp_path / "c")], str(dead),
+             "no log has the usable samples a trial needs (1 set aside: ")
+
+
 # -- the real flight -------------------------------------------------------------------------------
 
 

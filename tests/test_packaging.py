@@ -90,6 +90,7 @@ def test_make_real_data_runs_the_readmes_real_recordings_commands() -> None:
     assert 'for d in */ */*/; do [ -f "$$d/scans.csv" ]' in body and "for f in $$flights" in body
     assert 'tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT)' in body
     assert re.search(r"^REAL_IMPORT \?= --map-from auto --bad-scans skip --missing-poses skip$", make, flags=re.M)
+    assert "$(REAL_EVALUATE) --out" in body and re.search(r"^REAL_EVALUATE \?= --set-aside-unusable$", make, flags=re.M)
     names = re.search(r"^REAL_ESTIMATORS \?= (.+)$", make, flags=re.M)
     builtin = {n for n in ESTIMATORS.names() if ESTIMATORS.spec(n).origin == "builtin"}
     assert names and set(names.group(1).split(",")) == builtin

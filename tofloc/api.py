@@ -869,6 +869,7 @@ def evaluate(
     selection: str = "random",
     plot_failures: int = 0,
     estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
+    set_aside_unusable: bool = False,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor, each estimator's target checked at every estimator's answer where
@@ -917,6 +918,10 @@ def evaluate(
         merged key by key; e.g. resolved from ``--config``): a sensor model's parameter for
         one estimator of a run whose other estimators do not have it. Names not in the
         run are refused.
+    set_aside_unusable : bool
+        A log with fewer usable samples than a trial needs is left out, named with why in
+        the note, ``results.json`` (``set_aside``) and ``table.md``, instead of refusing the
+        run (:func:`evaluation.evaluate.prepare_logs`).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -956,8 +961,11 @@ def evaluate(
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
     _start_server_early(workers, scheduler)
+    set_aside: dict[str, str] | None = {} if set_aside_unusable else None
     entries = prepare_logs(logs, samples=samples, seed=seed, calibration=cal, valid_statuses=valid_statuses,
-                           on_map=lambda p: reporter.note(f"map {p}"))
+                           on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
+    for why in (set_aside or {}).values():
+        reporter.note(f"set aside: {why}")  # the reason names the log
     ks = sorted({en.k for en in entries})
     reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "
                   f"{ks[0] if len(ks) == 1 else f'{ks[0]}..{ks[-1]}'} sample(s) per trial")
@@ -987,6 +995,7 @@ def evaluate(
             "calibration": None if cal is None else cal.source,
             "valid_statuses": sorted(valid_statuses),
             "selection": selection,
+            "set_aside": set_aside or {},
             "wall_time_s": round(time.perf_counter() - t0, 3),
             "provenance": provenance(),
         },

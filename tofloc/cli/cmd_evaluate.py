@@ -61,6 +61,8 @@ def evaluate(
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),
+    set_aside_unusable: bool = typer.Option(False, "--set-aside-unusable", help="Leave out (and name, with why) a log "
+                                            "with fewer usable samples than a trial needs, instead of refusing the run."),
     plot_failures: int = typer.Option(0, "--plot-failures", metavar="N", help="Draw the first N failed trials (solved "
                                       "again from their seeds) into DIR/failures/: map, zones at the estimate and at the "
                                       "truth, the failure's cause."),
@@ -103,7 +105,7 @@ def evaluate(
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, estimator_params=per_estimator,
             valid_statuses=statuses,
             seed=seed, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
-            plot_failures=plot_failures,
+            plot_failures=plot_failures, set_aside_unusable=set_aside_unusable,
         )
     console.print(summary_table(run.document))
     for line in (interval_line(run.document), detection_line(run.document), cross_check_line(run.document)):
