@@ -23,6 +23,7 @@ from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
 
 __all__ = ["is_evaluate_document", "evaluate_view", "evaluate_comparison_rows", "evaluate_comparison_markdown", "paired_lines",
+           "pooled_lines",
            "MAX_ESTIMATORS"]
 
 #: Estimators one file may hold at most.
@@ -306,3 +307,70 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
         if not names:
             lines.append(f"| {label} | (no estimator in common) | | | | | | |")
     return lines
+
+
+def _log_key(lg: Mapping[str, Any]) -> tuple[Any, ...]:
+    """What makes a log the same log in two files besides its label: its trials' true poses."""
+    return tuple(tuple(r["truth"]) if r.get("truth") is not None else None for r in lg["oracle"]["records"])
+
+
+def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[str]:
+    """``comparison.md``'s section "Pooled over every file's logs": when the files hold
+    different logs (no log of the same name and true poses in two files: e.g. the flights
+    of an experiment, each evaluated on its own) run under one protocol (prior mode,
+    failure thresholds), their logs together as one run: per estimator every trial's
+    medians, failures and mean NEES, the ratios to the oracle floor's medians, and their
+    90 % intervals from resampling the pooled logs (:func:`evaluation.log_bootstrap.log_bootstrap`,
+    seeded with the first file's seed). More logs, narrower intervals. Otherwise one
+    sentence says why the files are not pooled; empty for a single file."""
+    from evaluation.evaluate import error_summary
+    from evaluation.log_bootstrap import log_bootstrap
+
+    if len(views) < 2:
+        return []
+    head = ["", "## Pooled over every file's logs", ""]
+    names = [e for e in views[0]["summary"] if all(e in v["summary"] for v in views[1:])]
+    protocols = {(v["prior"]["mode"], v["failure"]["e_x_m"], v["failure"]["e_gamma_deg"]) for v in views}
+    seen: dict[tuple[Any, ...], str] = {}
+    shared = 0
+    for v, lab in zip(views, labels):
+        for label, lg in v["logs"].items():
+            key = (label, _log_key(lg))
+            shared += key in seen
+            seen.setdefault(key, lab)
+    why = ("the files share no estimator" if not names else
+           f"the files hold {shared} log(s) twice (the same name and true poses): pooling would count them twice"
+           if shared else "the files ran other protocols (prior mode or failure thresholds)" if len(protocols) > 1 else "")
+    if why:
+        return head + [f"Not pooled: {why}."]
+    logs = {f"{lab}/{label}": lg for v, lab in zip(views, labels) for label, lg in v["logs"].items()}
+    iv = log_bootstrap(logs, names, seed=int(views[0].get("seed", 0)))
+    lines = head + [f"The {len(logs)} logs of the {len(views)} files as one run (each file's trials as they ran), with "
+                    + ("no intervals (too few logs)." if iv is None else
+                       f"{iv['level'] * 100:.0f} % intervals from resampling the pooled logs (evaluation/log_bootstrap.py)."),
+                    "", "| estimator | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
+                    "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|"]
+    orc = error_summary([r for lg in logs.values() for r in lg["oracle"]["records"]])
+    for e in [*names, None]:
+        recs = [r for lg in logs.values() for r in (lg["oracle"] if e is None else lg["estimators"][e])["records"]]
+        sm = error_summary(recs)
+        span = (iv or {}).get("oracle" if e is None else "estimators", {})
+        span = span if e is None else span.get(e, {})
+        share = f"{sm['failures']}/{sm['n']}" + (f" ({sm['failures'] / sm['n']:.0%})" if sm["n"] else "") + \
+            _bracket(span.get("failure_rate"), ".0%")
+        if e is None:
+            lines.append(f"| oracle floor | {len(logs)} | {sm['n']} | {f(_mm(sm['e_x_m']['median']), '.1f')} | "
+                         f"{f(sm['e_gamma_deg']['median'], '.2f')} | {share} | | |")
+            continue
+        ratios = [ratio_or_none(sm[k]["median"], orc[k]["median"]) for k in ("e_x_m", "e_gamma_deg")]
+        spans = span.get("ratio_to_oracle", {})
+        nees = f(sm["nees"]["mean"], ".2f") + _bracket(span.get("nees_mean"), ".2f")
+        lines.append(f"| {e} | {len(logs)} | {sm['n']} | {f(_mm(sm['e_x_m']['median']), '.1f')} | "
+                     f"{f(sm['e_gamma_deg']['median'], '.2f')} | {share} | {nees} | "
+                     f"{f(ratios[0], '.2f')}{_bracket(spans.get('e_x_m'), '.2f')} / "
+                     f"{f(ratios[1], '.2f')}{_bracket(spans.get('e_gamma_deg'), '.2f')} |")
+    return lines
+
+
+def _mm(v: float | None) -> float | None:
+    return None if v is None else 1000.0 * v

@@ -789,8 +789,8 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
     # with the same seed: the same trial seeds, other true poses; not paired
     moved = json.loads(json.dumps(doc))
     for lg in moved["logs"].values():
-        for est in lg["estimators"].values():
-            for r in est["records"]:
+        for part in [lg["oracle"], *lg["estimators"].values()]:
+            for r in part["records"]:
                 r["truth"][0] += 1.0
     (tmp_path / "c").mkdir()
     (tmp_path / "c" / "results.json").write_text(json.dumps(moved))
@@ -799,6 +799,18 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
     table_c = (tmp_path / "pc" / "comparison.md").read_text()
     assert "| c | (no log in common: no file of the same name, true pose and trial seeds) | 0 |" in table_c
     assert not any(line.startswith("| c | icp_pf | ") for line in table_c.split("## Paired")[1].splitlines())
+    # ... but pooled with the first file: 2 + 2 logs as one run (other logs of one protocol, as two flights)
+    pooled = table_c.split("## Pooled over every file's logs")[1]
+    assert "The 4 logs of the 2 files as one run" in pooled
+    for e in [*doc["summary"], None]:
+        recs = [r for d in (doc, moved) for lg in d["logs"].values()
+                for r in (lg["oracle"] if e is None else lg["estimators"][e])["records"]]
+        row = next(line for line in pooled.splitlines() if line.startswith(f"| {e or 'oracle floor'} | 4 | {len(recs)} |"))
+        cells = [c.strip() for c in row.split("|")[1:-1]]
+        assert cells[3] == f"{1000 * np.median([r['e_x_m'] for r in recs]):.1f}", row
+        assert cells[4] == f"{np.median([r['e_gamma_deg'] for r in recs]):.2f}", row
+    # the same logs twice (a rerun): not pooled, and why
+    assert "Not pooled: the files hold 2 log(s) twice (the same name and true poses): pooling would count them twice." in table
     # the checked view draws what the whole document draws
     view = evaluate_view(doc, "results.json")
     a, b = errors_by_log_figure(doc), errors_by_log_figure(view)

@@ -84,7 +84,7 @@ def _made_by() -> str:
 
 def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     """``tofloc plot`` on ``tofloc evaluate`` files: each file's plots again, and one comparison."""
-    from evaluation.evaluate_files import evaluate_comparison_markdown, evaluate_comparison_rows, paired_lines
+    from evaluation.evaluate_files import evaluate_comparison_markdown, evaluate_comparison_rows, paired_lines, pooled_lines
     from evaluation.evaluate_report import format_or_na as na
     from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees
     from evaluation.report import write_text_atomic
@@ -98,7 +98,8 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     rows = evaluate_comparison_rows([f.document for f in files], labels)
     text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)],
                                         [f.document["changed"] for f in files])
-    text += "\n".join(paired_lines([f.document for f in files], labels)) + "\n" + _made_by()
+    docs = [f.document for f in files]
+    text += "\n".join(paired_lines(docs, labels) + pooled_lines(docs, labels)) + "\n" + _made_by()
     written.append(write_text_atomic(text, out / "comparison.md"))
     t = Table(title="medians over every trial of each file", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
     for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("e_x mm", "right"),
