@@ -54,15 +54,15 @@ real-data: install
 	@flights=$$(cd "$(NANOSWARM)" 2>/dev/null && for d in */ */*/; do [ -f "$$d/scans.csv" ] && echo "$${d%/}"; done); \
 	test -n "$$flights" || { \
 	  echo "real-data: $(NANOSWARM) has no flight folder (a folder with scans.csv, such as four-drones/ or exp2/four-drones/; set NANOSWARM=...)"; exit 2; }; \
-	failed=""; \
+	failed=""; set --; IFS=$$(printf '\n_'); IFS=$${IFS%_}; \
 	for f in $$flights; do \
 	  n=$$(echo "$$f" | tr / -); \
 	  if [ ! -d "$(REAL_DIR)/$$n/maps" ]; then \
 	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$$f" $(REAL_IMPORT) --out "$(REAL_DIR)/$$n" || { failed="$$failed $$f"; continue; }; fi; \
 	  if $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$n"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
-	    $(REAL_EVALUATE) --out "$(REAL_DIR)/eval-$$n"; then results="$$results $(REAL_DIR)/eval-$$n/results.json"; else failed="$$failed $$f"; fi; \
+	    $(REAL_EVALUATE) --out "$(REAL_DIR)/eval-$$n"; then set -- "$$@" "$(REAL_DIR)/eval-$$n/results.json"; else failed="$$failed $$f"; fi; \
 	done; \
-	test -z "$$results" || $(VENV)/bin/tofloc plot $$results --out "$(REAL_DIR)/compare-flights" || failed="$$failed (compare-flights)"; \
+	[ $$# -eq 0 ] || $(VENV)/bin/tofloc plot "$$@" --out "$(REAL_DIR)/compare-flights" || failed="$$failed (compare-flights)"; \
 	test -z "$$failed" || { echo "real-data: failed:$$failed (the others are in $(REAL_DIR))"; exit 1; }
 
 # Each set of REAL_DRONE_SETS: the flight REAL_DRONES_FLIGHT imported with only those drones

@@ -32,7 +32,7 @@ from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
 __all__ = ["RESIDUALS", "measurements", "associate", "AssociatedMeasurements", "ZoneStack", "zone_stack",
-           "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights"]
+           "rotate_by_sample", "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
@@ -237,7 +237,8 @@ def plane_geometry(p: FloatArray, o: FloatArray, u: FloatArray, q: FloatArray, n
     t : ndarray, shape (N,), optional
         The rays' lengths to their planes (the ray cast); None: where each ray meets its plane.
     dist : ndarray, shape (N,), optional
-        Each zone's distance to its plane's point; None: ``|p - q|``.
+        Each zone's distance to its plane's point; None: ``|p - q|``. Given with ``t`` (the
+        ``"range"`` residual) or not at all (point-to-plane): one without the other is refused.
     predict : bool
         Whether to predict the rays' lengths (:func:`expected_sigma`).
 
@@ -255,7 +256,16 @@ def plane_geometry(p: FloatArray, o: FloatArray, u: FloatArray, q: FloatArray, n
 
     The compiled kernel (:func:`tofloc.numba_kernels.association_planes`, one pass) takes
     the numpy code's sums in numpy's orders.
+
+    Raises
+    ------
+    ValueError
+        ``t`` given without ``dist`` or ``dist`` without ``t`` (the kernel computes the
+        distances exactly when the cast lengths are absent).
     """
+    if (t is None) != (dist is None):
+        raise ValueError("plane_geometry: t and dist are given together (the range residual) or neither "
+                         f"(point-to-plane), got t {'None' if t is None else 'given'}, dist {'None' if dist is None else 'given'}")
     if numba_kernels.enabled():
         N = p.shape[0]
         n_out, n_dot_u = np.empty((N, 3)), np.empty(N)

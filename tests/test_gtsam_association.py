@@ -251,3 +251,26 @@ def test_an_empty_list_associates_to_nothing() -> None:
     p, truth = easy_problem(n_samples=2)
     out, changed = associate(p, [], truth, [], np.eye(4), 0.05)
     assert list(out) == [] and changed == [] and isinstance(out.stack, ZoneStack)
+
+
+@pytest.mark.parametrize("numba", ["1", "0"])
+def test_plane_geometry_takes_t_and_dist_together_or_neither(monkeypatch, numba: str) -> None:
+    """The compiled kernel computes the distances exactly when no cast lengths are given, so
+    one without the other is refused (compiled and numpy alike); both given: the distances
+    come back as given."""
+    from estimators.gtsam_association import plane_geometry
+
+    monkeypatch.setenv("TOFLOC_NUMBA", numba)
+    rng = np.random.default_rng(3)
+    p, o, q = rng.normal(size=(3, 5, 3))
+    u = rng.normal(size=(5, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    n = np.tile([1.0, 0.0, 0.0], (5, 1))
+    t, dist = np.full(5, 2.0), np.arange(5.0)
+    for tt, dd, given in ((t, None, "t given, dist None"), (None, dist, "t None, dist given")):
+        with pytest.raises(ValueError, match=f"together .* or neither .*got {given}"):
+            plane_geometry(p, o, u, q, n, tt, dd, True)
+    _, _, got, _, _ = plane_geometry(p, o, u, q, n, t, dist.copy(), True)
+    np.testing.assert_array_equal(got, np.arange(5.0))
+    _, _, got, _, _ = plane_geometry(p, o, u, q, n, None, None, False)
+    np.testing.assert_array_equal(got, np.linalg.norm(p - q, axis=1))

@@ -164,18 +164,18 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
         (ns / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
         (ns / "broken" / "scans.csv").write_bytes(b"0/0,\xe9\n")  # a non-ASCII file: refused whole
 
-    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo": (0,), "pair": (0, 1), "broken": (0, 1)}, edit=edit)
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo flight": (0,), "pair": (0, 1), "broken": (0, 1)}, edit=edit)
     text = " ".join((r.stdout + r.stderr).split())
     assert r.returncode != 0, text
     assert f"real-data: failed: broken (the others are in {out})" in text and "ASCII text" in text
     assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
     assert "note: --map-from auto passed over broken (unreadable): " in text  # solo's choice of map
-    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-pair", "eval-solo", "pair", "solo"]
+    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-pair", "eval-solo flight", "pair", "solo flight"]
     table = (out / "compare-flights" / "comparison.md").read_text()  # every flight evaluated, in one table
-    assert "| eval-pair | icp_pf |" in table and "| eval-solo | icp_pf |" in table and "eval-broken" not in table
+    assert "| eval-pair | icp_pf |" in table and "| eval-solo flight | icp_pf |" in table and "eval-broken" not in table
     assert sorted(p.name for p in (out / "pair").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node001.h5"]
-    assert [p.name for p in (out / "solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
-    for name in ("pair", "solo"):
+    assert [p.name for p in (out / "solo flight" / "maps").glob("*.ply")] == ["from-pair.ply"]  # a name with a space
+    for name in ("pair", "solo flight"):
         assert (out / f"eval-{name}" / "results.json").is_file() and (out / f"eval-{name}" / "table.md").is_file()
 
 

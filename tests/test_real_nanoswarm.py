@@ -201,6 +201,15 @@ def test_bad_scan_rows_are_skipped_and_reported_when_asked(tmp_path: Path, capsy
         fh.write(f"0/0,{scan_hex(0, 0, rng)}\n")
     refused(lambda: read_flight(folder, bad_scans="skip"), folder / "scans.csv", "row 9, field drone/node",
             "one scan per node")
+    # a node's later row that breaks the format neither replaces its good row (last) nor counts as its other row (first)
+    rows = (make_flight(tmp_path / "dup", nodes=2).joinpath("scans.csv")).read_text().splitlines()
+    for policy in ("last", "first"):
+        (tmp_path / "dup" / "scans.csv").write_text("\n".join([*rows, f"0/0,{scan_hex(0, 0, rng, neg)}"]) + "\n")
+        sc = read_scans_csv(tmp_path / "dup" / "scans.csv", duplicates=policy, bad_scans="skip")
+        assert sc.keys() == ["0/0", "1/0", "0/1", "1/1"] and sc.repeated_rows == ()
+        assert sc.bad_rows == ("row 5 (field hex: frame 4 direction 2 column 6: expected -1 (invalid) or a distance >= 0 mm, found -7)",)
+        row1 = np.frombuffer(bytes.fromhex(rows[0].split(",")[1])[4:], dtype=ns._SCAN_DTYPE)  # node 0/0's good row
+        np.testing.assert_array_equal(sc.distance_mm[0], row1["mm"])
     (folder / "scans.csv").write_text(f"0/0,{h2[:-10]}\n0/1,zz\n")
     refused(lambda: read_flight(folder, bad_scans="skip"), folder / "scans.csv", "file", "at least one readable scan",
             "none of 2 rows (row 1 (field hex: expected 1144 bytes", "and more")
@@ -391,6 +400,10 @@ def test_map_from_auto_keeps_leave_one_out_and_gives_a_single_drone_the_sibling_
     (lone.parent / "bad" / "scans.csv").write_text("0/0,zz\n")
     refused(lambda: import_flight(lone, map_from="auto"), lone / "scans.csv", "drone/node column",
             "no other readable folder with a scans.csv; bad unreadable: ", "hex digits")
+    # the flight named through ".." (the working directory inside it): its siblings are still its folder's
+    (exp / "c-solo" / "sub").mkdir()
+    monkeypatch.chdir(exp / "c-solo" / "sub")
+    assert import_flight(Path(".."), map_from="auto").map_from == pair.resolve()
     # "auto" with a folder of that name in the working directory: refused, not guessed
     monkeypatch.chdir(tmp_path)
     (tmp_path / "auto").mkdir()

@@ -300,6 +300,11 @@ class Scans:
     #: rows left out by ``bad_scans="skip"``: ``"row R (field: expected ..., found ...)"``
     bad_rows: tuple[str, ...] = ()
 
+    @property
+    def drones(self) -> list[int]:
+        """The drones with a scan, sorted."""
+        return sorted(set(self.drone.tolist()))
+
     def keys(self) -> list[str]:
         return [f"{d}/{n}" for d, n in zip(self.drone.tolist(), self.node.tolist())]
 
@@ -322,10 +327,21 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
 
     Parameters
     ----------
+    path : path
+        The file.
+    duplicates : {"refuse", "first", "last"}
+        A node on two rows with different scans: refused, or its first or last row kept
+        (the other listed in ``Scans.repeated_rows``). Rows are checked before this choice,
+        so a row that breaks the format never replaces a good one.
     bad_scans : {"refuse", "skip"}
         A row that breaks the scan format (every case below but the file-wide ones and a
         differing repeat): refused, or left out and listed in ``Scans.bad_rows`` with what
         was wrong (``--bad-scans skip``; a radio link can corrupt one packet of a flight).
+
+    Returns
+    -------
+    Scans
+        The scans kept, in file order of their nodes' first rows.
 
     Raises
     ------
@@ -343,7 +359,7 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
     check_policy("bad_scans", bad_scans, BAD_SCAN_POLICIES)
     p = Path(path)
     lines = _lines(p)
-    bad: list[str] = []
+    bad: list[tuple[int, str]] = []  # (file row, what was wrong), in file order
     keys: list[tuple[int, int]] = []
     seen: dict[tuple[int, int], int] = {}
     seen_hex: dict[tuple[int, int], str] = {}
@@ -364,10 +380,11 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
                                     f"one scan per node ({key_text} is on row {seen[key]} already, with a different scan; "
                                     "--duplicates first|last keeps one)", key_text)
             raw = _scan_bytes(p, i, key, hex_text)
+            _check_values(p, i, raw)  # before the duplicates are resolved: a faulty row never replaces a good one
         except FormatError as e:
             if bad_scans == "refuse" or isinstance(e, DuplicateScan):
                 raise
-            bad.append(_bad_row(i, e))
+            bad.append((i, _bad_row(i, e)))
             continue
         if key not in seen:
             position[key] = len(keys)
@@ -386,17 +403,12 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
     body = np.frombuffer(b"".join(blobs), dtype=_SCAN_DTYPE).reshape(len(blobs), FRAMES)
     mm = body["mm"].astype(np.int16)
     motion = body["motion"].astype(np.float32)
-    faults = _value_faults(p, mm, motion, file_rows)
-    if faults and bad_scans == "refuse":
-        raise next(iter(faults.values()))
-    keep = np.array([n not in faults for n in range(len(keys))], dtype=bool)
-    bad += [_bad_row(file_rows[n], e) for n, e in faults.items()]
-    if not keep.any() and (bad or keys):
-        raise FormatError(p, "file", "at least one readable scan", f"none of {len(lines)} rows ({bad[0]}{' and more' if len(bad) > 1 else ''})")
-    drone = np.array([k[0] for k, ok in zip(keys, keep) if ok], dtype=np.int64)
-    node = np.array([k[1] for k, ok in zip(keys, keep) if ok], dtype=np.int64)
-    bad.sort(key=lambda text: int(text.split()[1]))
-    return Scans(p, drone, node, mm[keep], motion[keep], tuple(sorted(repeated)), tuple(bad))
+    if not keys:
+        raise FormatError(p, "file", "at least one readable scan",
+                          f"none of {len(lines)} rows ({bad[0][1]}{' and more' if len(bad) > 1 else ''})")
+    drone = np.array([k[0] for k in keys], dtype=np.int64)
+    node = np.array([k[1] for k in keys], dtype=np.int64)
+    return Scans(p, drone, node, mm, motion, tuple(sorted(repeated)), tuple(text for _, text in bad))
 
 
 #: What to do with a row of ``scans.csv`` that breaks the scan format (``--bad-scans``):
@@ -430,21 +442,24 @@ def _scan_bytes(p: Path, i: int, key: tuple[int, int], hex_text: str) -> bytes:
     return raw
 
 
-def _value_faults(p: Path, mm: NDArray[np.int16], motion: NDArray[np.float32], file_rows: list[int]) -> dict[int, FormatError]:
-    """Per scan index, the first value that breaks the format (a distance other than -1 or
-    >= 0 mm, a non-finite or out-of-bounds in-scan motion), as the error naming it."""
-    faults: dict[int, FormatError] = {}
-    for n, f, d, c in np.argwhere(mm < -1).tolist():
-        faults.setdefault(n, FormatError(p, f"row {file_rows[n]}, field hex: frame {f} direction {d} column {c}",
-                                         "-1 (invalid) or a distance >= 0 mm", int(mm[n, f, d, c])))
+def _check_values(p: Path, row: int, raw: bytes) -> None:
+    """:class:`FormatError` naming the first value of scan row ``row`` (its decoded bytes
+    ``raw``) that breaks the format: a distance other than -1 or >= 0 mm (frame, direction,
+    column), or a non-finite or out-of-bounds in-scan motion (frame, dx/dy/dyaw)."""
+    body = np.frombuffer(raw[4:], dtype=_SCAN_DTYPE)
+    mm = body["mm"]
+    if (mm < -1).any():
+        f, d, c = (int(v) for v in np.argwhere(mm < -1)[0])
+        raise FormatError(p, f"row {row}, field hex: frame {f} direction {d} column {c}", "-1 (invalid) or a distance >= 0 mm",
+                          int(mm[f, d, c]))
     limits = np.array([MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_TRANSLATION_M, MAX_IN_SCAN_YAW_RAD])
+    motion = body["motion"].astype(np.float64)
     with np.errstate(invalid="ignore"):
-        bad_m = ~(np.abs(motion.astype(np.float64)) <= limits)
-    for n, f, j in np.argwhere(bad_m).tolist():
-        unit = "rad" if j == 2 else "m"
-        faults.setdefault(n, FormatError(p, f"row {file_rows[n]}, field hex: frame {f} {('dx', 'dy', 'dyaw')[j]}",
-                                         f"a finite value within +-{limits[j]:.4g} {unit}", float(motion[n, f, j])))
-    return dict(sorted(faults.items()))
+        bad_m = ~(np.abs(motion) <= limits)
+    if bad_m.any():
+        f, j = (int(v) for v in np.argwhere(bad_m)[0])
+        raise FormatError(p, f"row {row}, field hex: frame {f} {('dx', 'dy', 'dyaw')[j]}",
+                          f"a finite value within +-{limits[j]:.4g} {'rad' if j == 2 else 'm'}", float(np.float32(motion[f, j])))
 
 
 def _bad_row(row: int, e: FormatError) -> str:
@@ -773,7 +788,7 @@ def read_flight(
     check_policy("missing_poses", missing_poses, MISSING_POSE_POLICIES)
     selected = _check_drones(drones)
     scans = read_scans_csv(d / "scans.csv", duplicates, bad_scans)
-    in_files = sorted(set(scans.drone.tolist()))
+    in_files = scans.drones
     if selected is not None:
         absent = [k for k in selected if k not in in_files]
         if absent:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import sys
 from dataclasses import dataclass, field, replace
@@ -420,6 +421,16 @@ AUTO_MAP_FROM = "auto"
 def is_auto(map_from: str | Path | None) -> bool:
     """Whether ``map_from`` is :data:`AUTO_MAP_FROM`.
 
+    Parameters
+    ----------
+    map_from : str, path or None
+        ``import_flight``'s ``map_from`` (``--map-from``).
+
+    Returns
+    -------
+    bool
+        True for ``"auto"`` (an absolute path to a folder of that name is a folder).
+
     Raises
     ------
     ParameterError
@@ -428,7 +439,7 @@ def is_auto(map_from: str | Path | None) -> bool:
     """
     if map_from is None or str(map_from) != AUTO_MAP_FROM:
         return False
-    if Path(AUTO_MAP_FROM).is_dir() and not Path(map_from).is_absolute():
+    if Path(AUTO_MAP_FROM).is_dir():
         raise ParameterError(f"map_from {map_from!s}: means 'pick the map source' but a folder {Path(AUTO_MAP_FROM).resolve()} "
                              "exists too (give that folder's absolute path to build the map from it)")
     return True
@@ -455,14 +466,15 @@ def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse", bad_scans:
         No readable flight folder lies beside it (the unreadable ones named).
     """
     here = flight.folder.resolve()
-    parent = flight.folder.absolute().parent  # the folder as named (a link to a flight: the link's folder)
+    # the folder as named (a link to a flight: the link's folder; "..", "." resolved by name)
+    parent = Path(os.path.normpath(flight.folder.absolute())).parent
     siblings = sorted((d for d in parent.iterdir() if d.is_dir() and d.resolve() != here and (d / "scans.csv").is_file()),
                       key=lambda d: d.name)
     counts: dict[Path, int] = {}
     passed_over: dict[str, str] = {}
     for d in siblings:
         try:
-            counts[d] = len(set(read_scans_csv(d / "scans.csv", duplicates, bad_scans).drone.tolist()))
+            counts[d] = len(read_scans_csv(d / "scans.csv", duplicates, bad_scans).drones)
         except FormatError as e:
             passed_over[d.name] = str(e)
     if not counts:
