@@ -225,7 +225,6 @@ def prepare_logs(
                               "log's own)", "no such dataset")
         if lg.map is None:
             raise FormatError(lg.path, "map", "the map's file name in the root attribute `map`", "no such attribute")
-    labels = log_labels([Path(lg.path) for lg in read])
     pools: list[Any] = []
     for lg in read:
         try:
@@ -238,7 +237,10 @@ def prepare_logs(
     if set_aside and all(pool is None for pool in pools):
         raise ProblemError(f"no log has the usable samples a trial needs ({len(set_aside)} set aside: "
                            + "; ".join(list(set_aside.values())[:3]) + ("; ..." if len(set_aside) > 3 else "") + ")")
-    kept = [(lg, label, pool) for lg, label, pool in zip(read, labels, pools) if pool is not None]
+    usable = [(lg, pool) for lg, pool in zip(read, pools) if pool is not None]
+    # labels (and so seeds) of the logs kept only: a log set aside changes no other's trials
+    labels = log_labels([Path(lg.path) for lg, _ in usable])
+    kept = [(lg, label, pool) for (lg, pool), label in zip(usable, labels)]
     maps: dict[Path, Any] = {}
     out = []
     for lg, label, pool in kept:
@@ -503,10 +505,9 @@ def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | 
         "successes": int(len(records) - sum(failed)),
         "successes_flagged": int(sum((not f) and g for f, g in zip(failed, flagged))),
     }
-    quiet = [r.get("nees_model") for r, g in zip(records, flagged) if not g]
-    quiet_nees = np.array([v for v in quiet if isinstance(v, (int, float)) and math.isfinite(v)], dtype=float)
-    if quiet_nees.size:  # the promise of the answers given without a warning: their own covariance
-        out["nees_unflagged"] = {"mean": float(quiet_nees.mean()), "median": float(np.median(quiet_nees)), "n": int(quiet_nees.size)}
+    quiet = summarize(_values([r for r, g in zip(records, flagged) if not g], "nees_model"), keys=("mean", "median", "n"))
+    if quiet["n"]:  # the promise of the answers given without a warning: their own covariance
+        out["nees_unflagged"] = quiet
     known = [_contradicts_known_space(r) for r in records]
     if any(k is not None for k in known):
         out["failures_fit_known"] = int(sum(bool(f and g and k) for f, g, k in zip(failed, fit, known)))

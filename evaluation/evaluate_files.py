@@ -10,14 +10,13 @@ file, the key and what was expected, never a traceback from deep inside a plot.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from evaluation.compare import checked_name as _name
 from evaluation.compare import checked_number as _number
 from evaluation.compare import checked_stats as _stats
-from evaluation.evaluate_report import changed_text, format_span
+from evaluation.evaluate_report import changed_text, format_span, share_text
 from evaluation.metrics import ratio_or_none
 from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
@@ -101,7 +100,7 @@ def _intervals(v: Any, p: Path, names: Sequence[str]) -> dict[str, Any] | None:
     return out
 
 
-def _records(v: Any, p: Path, where: str) -> list[dict[str, float | None]]:
+def _records(v: Any, p: Path, where: str) -> list[dict[str, Any]]:
     if not isinstance(v, list):
         raise FormatError(p, where, "a list of trial records", type(v).__name__)
     out = []
@@ -121,10 +120,16 @@ def _truth(v: Any, p: Path, where: str) -> list[float] | None:
     """A record's true pose ``[x, y, yaw]`` (finite numbers), or None when it has none."""
     if v is None:
         return None
-    if not isinstance(v, list) or len(v) != 3 or not all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+    if not isinstance(v, list) or len(v) != 3:
         raise FormatError(p, where, "the true pose [x, y, yaw] (three finite numbers) or null", repr(v)[:40])
-    return [float(x) for x in v]
+    return [float(_number(x, p, f"{where}[{i}]", null=False)) for i, x in enumerate(v)]  # type: ignore[arg-type]
+
+
+def _samples(v: Any, p: Path) -> int | str | None:
+    """``samples``: ``"all"``, a count >= 1, or None (a file of an earlier version)."""
+    if v is None or v == "all":
+        return v
+    return _count(v, p, "samples", 1)
 
 
 def _changed(v: Any, p: Path, where: str) -> dict[str, Any]:
@@ -195,7 +200,11 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
     return {
         "trials": trials,
         "seed": _count(doc.get("seed", 0), p, "seed"),
-        "prior": {"mode": _name(prior.get("mode"), p, "prior.mode")},
+        "prior": {"mode": _name(prior.get("mode"), p, "prior.mode"),
+                  "sigma_xy_m": _number(prior.get("sigma_xy_m"), p, "prior.sigma_xy_m", nonnegative=True),
+                  "sigma_yaw_deg": _number(prior.get("sigma_yaw_deg"), p, "prior.sigma_yaw_deg", nonnegative=True)},
+        "samples": _samples(doc.get("samples"), p),
+        "selection": None if doc.get("selection") is None else _name(doc.get("selection"), p, "selection"),
         "failure": {"e_x_m": _number(failure.get("e_x_m"), p, "failure.e_x_m", positive=True, null=False),
                     "e_gamma_deg": _number(failure.get("e_gamma_deg"), p, "failure.e_gamma_deg", positive=True, null=False)},
         "summary": {e: _summary(summary[e], p, f"summary.{e}") for e in names},
@@ -264,7 +273,7 @@ def evaluate_comparison_markdown(rows: Sequence[Mapping[str, Any]], files: Seque
             f(r["nees_mean"], ".2f") + ("" if r["nees_model_mean"] is None else f" ({r['nees_model_mean']:.2f})"))
         ratio = "" if r["ratio_e_x"] is None and r["ratio_e_gamma"] is None else \
             f"{f(r['ratio_e_x'], '.2f')}{_bracket(iv.get('ratio_e_x'), '.2f')} / {f(r['ratio_e_gamma'], '.2f')}{_bracket(iv.get('ratio_e_gamma'), '.2f')}"
-        share = f"{r['failures']}/{r['n']}" + (f" ({r['failures'] / r['n']:.0%})" if r["n"] else "") + \
+        share = share_text(r["failures"], r["n"]) + \
             _bracket(iv.get("failure_rate"), ".0%")
         lines.append(f"| {r['file']} | {r['estimator']} | {r['prior_mode']} | {r['logs']} | {r['n']} | "
                      f"{f(r['e_x_mm_median'], '.1f')} | {f(r['e_gamma_deg_median'], '.2f')} | {share} | {nees} | {ratio} |")
@@ -281,13 +290,14 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     :func:`evaluation.log_bootstrap.paired_runs`), per estimator both hold: the ratio of
     the medians with its 90 % interval, and the trials one failed and the other did not.
     Empty for a single file."""
-    from evaluation.log_bootstrap import paired_runs
+    from evaluation.log_bootstrap import DEFAULT_LEVEL, paired_runs
 
     if len(views) < 2:
         return []
     lines = ["", f"## Paired with the first file ({labels[0]})", "",
              "Each file's medians over the first file's on the trials both ran alike (the same logs, by file name and "
-             "true pose, and the same trial seeds: the same samples and priors), with 90 % intervals from resampling those logs (evaluation/log_bootstrap.py), "
+             f"true pose, and the same trial seeds: the same samples and priors), with {DEFAULT_LEVEL * 100:.0f} % intervals "
+             "from resampling those logs (evaluation/log_bootstrap.py), "
              "and the trials that failed in one run only. An interval that holds 1 is a change these logs cannot tell "
              "from the nodes' spread.", "",
              "| file | estimator | paired logs | median e_x / first's | median e_gamma / first's | failures, first -> this | "
@@ -309,38 +319,48 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     return lines
 
 
-def _log_key(lg: Mapping[str, Any]) -> tuple[Any, ...]:
-    """What makes a log the same log in two files besides its label: its trials' true poses."""
-    return tuple(tuple(r["truth"]) if r.get("truth") is not None else None for r in lg["oracle"]["records"])
+def _protocol(view: Mapping[str, Any], names: Sequence[str]) -> tuple[Any, ...]:
+    """What two runs must share to be pooled: prior (mode and spread), samples per trial,
+    sample selection, failure thresholds, and each estimator's changed parameters."""
+    changed = view.get("changed") or {}
+    return (tuple(sorted(view["prior"].items())), view.get("samples"), view.get("selection"),
+            view["failure"]["e_x_m"], view["failure"]["e_gamma_deg"], tuple(repr(changed.get(e)) for e in names))
 
 
 def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[str]:
     """``comparison.md``'s section "Pooled over every file's logs": when the files hold
-    different logs (no log of the same name and true poses in two files: e.g. the flights
-    of an experiment, each evaluated on its own) run under one protocol (prior mode,
-    failure thresholds), their logs together as one run: per estimator every trial's
-    medians, failures and mean NEES, the ratios to the oracle floor's medians, and their
-    90 % intervals from resampling the pooled logs (:func:`evaluation.log_bootstrap.log_bootstrap`,
-    seeded with the first file's seed). More logs, narrower intervals. Otherwise one
-    sentence says why the files are not pooled; empty for a single file."""
-    from evaluation.evaluate import error_summary
-    from evaluation.log_bootstrap import log_bootstrap
+    different logs (:func:`evaluation.log_bootstrap.log_identity`, whatever their labels
+    and trial counts: e.g. the flights of an experiment, each evaluated on its own) run
+    under one protocol (:func:`_protocol`, with the failure thresholds every count uses),
+    their logs together as one run: per estimator every trial's medians, failures and mean
+    NEES, the ratios to the oracle floor's medians, and their intervals from resampling the
+    pooled logs (:func:`evaluation.log_bootstrap.log_bootstrap`, seeded with the first
+    file's seed). More logs, narrower intervals. Otherwise one sentence says why the files
+    are not pooled; empty for a single file."""
+    from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, error_summary
+    from evaluation.log_bootstrap import log_bootstrap, log_identity
 
     if len(views) < 2:
         return []
     head = ["", "## Pooled over every file's logs", ""]
     names = [e for e in views[0]["summary"] if all(e in v["summary"] for v in views[1:])]
-    protocols = {(v["prior"]["mode"], v["failure"]["e_x_m"], v["failure"]["e_gamma_deg"]) for v in views}
-    seen: dict[tuple[Any, ...], str] = {}
-    shared = 0
+    seen: dict[Any, str] = {}
+    twice: list[str] = []
     for v, lab in zip(views, labels):
         for label, lg in v["logs"].items():
-            key = (label, _log_key(lg))
-            shared += key in seen
+            key = log_identity(lg) or ("no truth", label)
+            if key in seen:
+                twice.append(f"{label} ({seen[key]}, {lab})")
             seen.setdefault(key, lab)
+    protocols = {_protocol(v, names) for v in views}
+    thresholds = {(v["failure"]["e_x_m"], v["failure"]["e_gamma_deg"]) for v in views}
     why = ("the files share no estimator" if not names else
-           f"the files hold {shared} log(s) twice (the same name and true poses): pooling would count them twice"
-           if shared else "the files ran other protocols (prior mode or failure thresholds)" if len(protocols) > 1 else "")
+           f"the files hold {len(twice)} log(s) twice (the same true poses): pooling would count them twice, e.g. "
+           + ", ".join(twice[:3]) if twice else
+           "the files ran other protocols (prior, samples per trial, selection, failure thresholds or an estimator's "
+           "parameters)" if len(protocols) > 1 else
+           f"the files' failure thresholds are not the ones the counts use ({FAILURE_E_X_M * 1000:.0f} mm, "
+           f"{FAILURE_E_GAMMA_DEG:.0f} deg)" if thresholds != {(FAILURE_E_X_M, FAILURE_E_GAMMA_DEG)} else "")
     if why:
         return head + [f"Not pooled: {why}."]
     logs = {f"{lab}/{label}": lg for v, lab in zip(views, labels) for label, lg in v["logs"].items()}
@@ -352,25 +372,17 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
                     "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|"]
     orc = error_summary([r for lg in logs.values() for r in lg["oracle"]["records"]])
     for e in [*names, None]:
-        recs = [r for lg in logs.values() for r in (lg["oracle"] if e is None else lg["estimators"][e])["records"]]
-        sm = error_summary(recs)
-        span = (iv or {}).get("oracle" if e is None else "estimators", {})
-        span = span if e is None else span.get(e, {})
-        share = f"{sm['failures']}/{sm['n']}" + (f" ({sm['failures'] / sm['n']:.0%})" if sm["n"] else "") + \
-            _bracket(span.get("failure_rate"), ".0%")
+        sm = orc if e is None else error_summary([r for lg in logs.values() for r in lg["estimators"][e]["records"]])
+        span = (iv or {}).get("oracle", {}) if e is None else (iv or {}).get("estimators", {}).get(e, {})
+        cells = [e or "oracle floor", str(len(logs)), str(sm["n"]), f(sm["e_x_m"]["median"], ".1f", 1000),
+                 f(sm["e_gamma_deg"]["median"], ".2f"), share_text(sm["failures"], sm["n"]) + _bracket(span.get("failure_rate"), ".0%")]
         if e is None:
-            lines.append(f"| oracle floor | {len(logs)} | {sm['n']} | {f(_mm(sm['e_x_m']['median']), '.1f')} | "
-                         f"{f(sm['e_gamma_deg']['median'], '.2f')} | {share} | | |")
-            continue
-        ratios = [ratio_or_none(sm[k]["median"], orc[k]["median"]) for k in ("e_x_m", "e_gamma_deg")]
-        spans = span.get("ratio_to_oracle", {})
-        nees = f(sm["nees"]["mean"], ".2f") + _bracket(span.get("nees_mean"), ".2f")
-        lines.append(f"| {e} | {len(logs)} | {sm['n']} | {f(_mm(sm['e_x_m']['median']), '.1f')} | "
-                     f"{f(sm['e_gamma_deg']['median'], '.2f')} | {share} | {nees} | "
-                     f"{f(ratios[0], '.2f')}{_bracket(spans.get('e_x_m'), '.2f')} / "
-                     f"{f(ratios[1], '.2f')}{_bracket(spans.get('e_gamma_deg'), '.2f')} |")
+            cells += ["", ""]
+        else:
+            spans = span.get("ratio_to_oracle", {})
+            ratios = [ratio_or_none(sm[k]["median"], orc[k]["median"]) for k in ("e_x_m", "e_gamma_deg")]
+            cells += [f(sm["nees"]["mean"], ".2f") + _bracket(span.get("nees_mean"), ".2f"),
+                      f"{f(ratios[0], '.2f')}{_bracket(spans.get('e_x_m'), '.2f')} / "
+                      f"{f(ratios[1], '.2f')}{_bracket(spans.get('e_gamma_deg'), '.2f')}"]
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
-
-
-def _mm(v: float | None) -> float | None:
-    return None if v is None else 1000.0 * v

@@ -55,8 +55,6 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     if not rows:
         return []
 
-    def frac(a: int, b: int) -> str:
-        return f"{a}/{b}" + (f" ({a / b:.0%})" if b else "")
 
     def quiet(d: Mapping[str, Any]) -> str:
         q = d.get("nees_unflagged")
@@ -64,8 +62,8 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
 
     head = ["estimator", "failures flagged", "by the fit check", "good trials flagged (false alarms)",
             "failures not flagged", "own NEES when not flagged: mean / median (trials)"]
-    body = [[e, frac(d["failures_flagged"], d["failures"]), frac(d["failures_fit"], d["failures"]),
-             frac(d["successes_flagged"], d["successes"]), str(d["failures"] - d["failures_flagged"]), quiet(d)] for e, d in rows]
+    body = [[e, share_text(d["failures_flagged"], d["failures"]), share_text(d["failures_fit"], d["failures"]),
+             share_text(d["successes_flagged"], d["successes"]), str(d["failures"] - d["failures_flagged"]), quiet(d)] for e, d in rows]
     text = ("A trial is flagged when its data-fit check fails (tofloc/fit_check.py; its covariance is then widened) "
             "or its posterior is ambiguous (tofloc/posterior_modes.py): the warnings a user gets without the truth. "
             "The answers given without a warning are the ones a user takes as they are: how many of them failed, and "
@@ -74,7 +72,7 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
         head += ["failures the fit check flagged against the mapped space", "false alarms against the mapped space"]
         for row, (_, d) in zip(body, rows):
             known = "failures_fit_known" in d
-            row += [frac(d["failures_fit_known"], d["failures_fit"]) if known else "n/a",
+            row += [share_text(d["failures_fit_known"], d["failures_fit"]) if known else "n/a",
                     str(d["successes_fit_known"]) if known else "n/a"]
         text += (" On maps built from scans the fit check also says whether a flagged trial's data contradict the space the "
                  "map knows or only its unknown space (zones reading walls where no scan looked; `ok_known_space`): the last "
@@ -144,9 +142,9 @@ def cross_check_lines(doc: Mapping[str, Any]) -> list[str]:
         [[e, doc["summary"][e]["failures"], c["decided"], c["ranks_failure_first"], c["own_failures"]] for e, c in rows])
 
 
-def _span(v: Any, fmt: str) -> str:
-    lo, hi = v
-    return format(lo, fmt) if lo == hi else f"{format(lo, fmt)}-{format(hi, fmt)}"
+def share_text(a: int, b: int) -> str:
+    """``"a/b (pct)"`` (``"a/b"`` for ``b = 0``): a count of trials out of many."""
+    return f"{a}/{b}" + (f" ({a / b:.0%})" if b else "")
 
 
 def set_aside_lines(doc: Mapping[str, Any]) -> list[str]:
@@ -165,7 +163,7 @@ def truth_sentence(doc: Mapping[str, Any]) -> str:
         return ("No log declares its truth's uncertainty (`/truth/T_map_base_cov`): NEES takes the truth as exact "
                 "and equals NEES vs exact truth.")
     return (f"The truth is uncertain: {tu['declared_by']} of {tu['logs']} log(s) declare it (`/truth/T_map_base_cov`), "
-            f"one sigma x {_span(tu['x_mm'], '.1f')} mm, y {_span(tu['y_mm'], '.1f')} mm, yaw {_span(tu['yaw_deg'], '.2f')} deg; "
+            f"one sigma x {format_span(tu['x_mm'], '.1f', collapse=True)} mm, y {format_span(tu['y_mm'], '.1f', collapse=True)} mm, yaw {format_span(tu['yaw_deg'], '.2f', collapse=True)} deg; "
             "NEES uses the estimate's covariance plus the truth's (the error is measured against an uncertain truth), "
             "NEES vs exact truth takes the truth as exact.")
 
@@ -272,12 +270,14 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def format_span(iv: Any, fmt: str, scale: float = 1.0) -> str:
-    """An interval ``[lo, hi]`` (:mod:`evaluation.log_bootstrap`) times ``scale`` as
-    ``"lo-hi"`` formatted with ``fmt``, or ``"n/a"`` when it (or an end) is None."""
+def format_span(iv: Any, fmt: str, scale: float = 1.0, collapse: bool = False) -> str:
+    """An interval ``[lo, hi]`` (:mod:`evaluation.log_bootstrap`, or a range of values) times
+    ``scale`` as ``"lo-hi"`` formatted with ``fmt`` (with ``collapse``: one value when both
+    ends format alike), or ``"n/a"`` when it (or an end) is None."""
     if not iv or iv[0] is None or iv[1] is None:
         return "n/a"
-    return f"{format(iv[0] * scale, fmt)}-{format(iv[1] * scale, fmt)}"
+    lo, hi = format(iv[0] * scale, fmt), format(iv[1] * scale, fmt)
+    return lo if collapse and lo == hi else f"{lo}-{hi}"
 
 
 def interval_lines(doc: Mapping[str, Any]) -> list[str]:

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from evaluation.metrics import json_float
 from tofloc.errors import ParameterError
 
-__all__ = ["BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
+__all__ = ["log_identity", "BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
            "design_effect", "failure_rate_interval", "paired_runs"]
 
 #: Mixed into the run's seed for the resamples, so they do not reuse a trial's stream.
@@ -252,22 +252,30 @@ def log_bootstrap(
     }
 
 
+def log_identity(lg: Mapping[str, Any]) -> frozenset[tuple[float, ...]]:
+    """What makes a log of one ``results.json`` the same log in another, besides its label
+    (only a file name: ``drone0-node000`` is in every flight of a data set): the set of true
+    poses ``[x, y, yaw]`` its trial records hold (oracle and estimators; rounded to 1e-9), whatever
+    the number of trials. Empty when no record holds a truth."""
+    parts = [lg.get("oracle") or {}, *(lg.get("estimators") or {}).values()]
+    return frozenset(tuple(round(float(x), 9) for x in r["truth"]) for part in parts for r in part.get("records", [])
+                     if r.get("truth") is not None)
+
+
 def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, Mapping[str, Any]],
                  name: str) -> list[str]:
     """The logs both runs hold with ``name``'s trials drawn from the same seeds, in the same
-    order (every record's ``seed`` given and equal): the same samples and priors; and of the
-    same log, as far as the records tell: their true poses (``truth``) equal. A label is
-    only the file's name (``drone0-node000`` is in every flight of a data set), and two
-    logs of one name evaluated with one seed draw the same seeds."""
+    order (every record's ``seed`` given and equal): the same samples and priors; and the
+    same log (:func:`log_identity`: two logs of one name evaluated with one seed draw the
+    same seeds)."""
     out = []
     for label, lg in logs_a.items():
         other = logs_b.get(label)
         if other is None or name not in lg["estimators"] or name not in other["estimators"]:
             continue
-        ra, rb = lg["estimators"][name]["records"], other["estimators"][name]["records"]
-        sa, sb = [r.get("seed") for r in ra], [r.get("seed") for r in rb]
-        same_truth = [r.get("truth") for r in ra] == [r.get("truth") for r in rb]
-        if sa and sa == sb and all(x is not None for x in sa) and same_truth:
+        sa = [r.get("seed") for r in lg["estimators"][name]["records"]]
+        sb = [r.get("seed") for r in other["estimators"][name]["records"]]
+        if sa and sa == sb and all(x is not None for x in sa) and log_identity(lg) == log_identity(other):
             out.append(label)
     return out
 

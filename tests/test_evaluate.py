@@ -209,6 +209,8 @@ def test_detection_counts_the_failures_the_warnings_caught() -> None:
     # the answers given without a warning: their own covariance's NEES (records without it skipped)
     with_nees = [dict(r, nees_model=v) for r, v in zip(recs, [50.0, 40.0, 9.0, 30.0, 1.0, 20.0, float("nan")])]
     assert detection_summary(with_nees)["nees_unflagged"] == {"mean": 5.0, "median": 5.0, "n": 2}
+    three = [dict(r, nees_model=v) for r, v in zip(recs, [50.0, 40.0, 9.0, 30.0, 1.0, 20.0, 2.0])]  # mean != median
+    assert detection_summary(three)["nees_unflagged"] == {"mean": 4.0, "median": 2.0, "n": 3}
     assert error_summary(recs)["detection"] == detection_summary(recs)
     assert detection_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}]) is None
     assert "detection" not in error_summary([{"e_x_m": 0.5, "e_gamma_deg": 1.0}])
@@ -497,6 +499,19 @@ def test_a_log_without_usable_samples_is_refused_or_set_aside_when_asked(logs: l
     assert [_untimed(r) for r in doc["logs"][label]["estimators"]["icp_pf"]["records"]] == [
         _untimed(r) for r in alone["logs"][next(iter(alone["logs"]))]["estimators"]["icp_pf"]["records"]]
     assert alone["set_aside"] == {}
+    # a log set aside under the kept one's file name (another folder) changes neither its label nor its trials
+    import shutil
+
+    twin = tmp_path / "other" / logs[1].name
+    twin.parent.mkdir()
+    shutil.copy(log.map_path(), twin.parent / log.map_path().name)
+    write_log(dc.replace(log, distance_mm=np.full_like(log.distance_mm, np.nan), status=np.full_like(log.status, 255),
+                         map=log.map_path().name), twin)
+    assert _run(capsys, ["evaluate", str(twin), str(logs[1]), *args, "--set-aside-unusable", "--out", str(tmp_path / "t")])[0] == 0
+    got = json.loads((tmp_path / "t" / "results.json").read_text())
+    assert list(got["logs"]) == list(alone["logs"]) and list(got["set_aside"]) == [str(twin)]
+    assert [_untimed(r) for r in got["logs"][label]["estimators"]["icp_pf"]["records"]] == [
+        _untimed(r) for r in alone["logs"][label]["estimators"]["icp_pf"]["records"]]
     _refused(capsys, [str(dead), *args, "--set-aside-unusable", "--out", str(tmp_path / "c")], str(dead),
              "no log has the usable samples a trial needs (1 set aside: ")
 
@@ -809,8 +824,37 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
         cells = [c.strip() for c in row.split("|")[1:-1]]
         assert cells[3] == f"{1000 * np.median([r['e_x_m'] for r in recs]):.1f}", row
         assert cells[4] == f"{np.median([r['e_gamma_deg'] for r in recs]):.2f}", row
-    # the same logs twice (a rerun): not pooled, and why
-    assert "Not pooled: the files hold 2 log(s) twice (the same name and true poses): pooling would count them twice." in table
+        fails = sum(r["e_x_m"] > 0.1 or r["e_gamma_deg"] > 10 for r in recs)
+        assert cells[5].startswith(f"{fails}/{len(recs)} ("), row
+        if e is not None:  # NEES and the ratio to the pooled oracle's median, with the pooled logs' intervals
+            orc = [r for d in (doc, moved) for lg in d["logs"].values() for r in lg["oracle"]["records"]]
+            ratio = np.median([r["e_x_m"] for r in recs]) / np.median([r["e_x_m"] for r in orc])
+            assert cells[7].startswith(f"{ratio:.2f} ["), row
+            nees = [r["nees"] for r in recs if r.get("nees") is not None]
+            assert cells[6].startswith(f"{np.mean(nees):.2f}"), row
+    from evaluation.log_bootstrap import log_bootstrap
+
+    both = {f"{lab}/{k}": v for lab, d in (("out", evaluate_view(doc)), ("c", evaluate_view(moved))) for k, v in d["logs"].items()}
+    lo, hi = log_bootstrap(both, list(doc["summary"]), seed=doc["seed"])["estimators"]["icp_pf"]["ratio_to_oracle"]["e_x_m"]
+    assert f"[{lo:.2f}-{hi:.2f}] /" in next(line for line in pooled.splitlines() if line.startswith("| icp_pf |"))
+    # the same logs twice (a rerun): not pooled, and why (naming them)
+    assert "Not pooled: the files hold 2 log(s) twice (the same true poses): pooling would count them twice, e.g. " in table
+    # ... whatever the trial counts: a rerun with fewer trials holds the same logs
+    fewer = json.loads(json.dumps(doc))
+    for lg in fewer["logs"].values():
+        for part in [lg["oracle"], *lg["estimators"].values()]:
+            part["records"] = part["records"][:1]
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "results.json").write_text(json.dumps(fewer))
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "d" / "results.json"),
+                         "--out", str(tmp_path / "pd")])[0] == 0
+    assert "Not pooled: the files hold 2 log(s) twice" in (tmp_path / "pd" / "comparison.md").read_text()
+    # other logs under another prior: not pooled
+    moved["prior"]["sigma_xy_m"] = 0.5
+    (tmp_path / "c" / "results.json").write_text(json.dumps(moved))
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "c" / "results.json"),
+                         "--out", str(tmp_path / "pe")])[0] == 0
+    assert "Not pooled: the files ran other protocols (prior, samples per trial" in (tmp_path / "pe" / "comparison.md").read_text()
     # the checked view draws what the whole document draws
     view = evaluate_view(doc, "results.json")
     a, b = errors_by_log_figure(doc), errors_by_log_figure(view)
@@ -849,8 +893,7 @@ def _damaged(doc: dict, edit: str) -> dict:
     ("threshold", "failure.e_x_m: expected a finite number > 0, found 0"),
     ("interval", "intervals.estimators.beam_pf.failure_rate: expected low <= high, found [0.5, 0.1]"),
     ("seed", "logs.{log}.estimators.icp_pf.records[0].seed: expected an integer seed >= 0 or null, found 'x'"),
-    ("truth", "logs.{log}.estimators.icp_pf.records[0].truth: expected the true pose [x, y, yaw] (three finite numbers) or null, "
-              "found [0.0, 'x', 0.0]"),
+    ("truth", "logs.{log}.estimators.icp_pf.records[0].truth[1]: expected a finite number, found 'x'"),
 ])
 def test_plot_refuses_a_damaged_evaluate_file(run: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                               edit: str, where: str) -> None:

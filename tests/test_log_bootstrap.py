@@ -68,6 +68,12 @@ def test_intervals_are_those_of_resampling_one_log_at_a_time(monkeypatch: pytest
     # the failure rate's interval: Clopper-Pearson on the trials' 0/1 failures, log by log
     fails = np.array([[float(is_failure(r)) for r in lg["estimators"]["a"]["records"]] for lg in logs.values()])
     assert a["failure_rate"] == failure_rate_interval(fails, 0.8) and 0 < a["failure_rate"][0] < fails.mean()
+    from scipy.stats import beta  # written out: Clopper-Pearson on trials / design effect, 80 %
+
+    n_eff = fails.size / design_effect(fails)
+    x_eff = fails.mean() * n_eff
+    np.testing.assert_allclose(a["failure_rate"], [beta.ppf(0.1, x_eff, n_eff - x_eff + 1), beta.ppf(0.9, x_eff + 1, n_eff - x_eff)],
+                               rtol=1e-12)
     assert got["logs"] == 12 and got["resamples"] == 300 and got["level"] == 0.8 and got["unit"] == "log"
 
 
