@@ -133,9 +133,14 @@ def check_place_params(owner: Any, prefix: str = "") -> None:
     :data:`PLACE_PARAM_BOUNDS` (or not a finite number), naming it as ``prefix + name``
     (the beam and likelihood-field models and the smoother share the check)."""
     for n, lo, hi in PLACE_PARAM_BOUNDS:
-        v = getattr(owner, n)
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
-            raise ParameterError(f"{prefix}{n} must be in [{lo}, {hi}], got {v!r}")
+        check_in_range(getattr(owner, n), prefix + n, lo, hi)
+
+
+def check_in_range(v: Any, name: str, lo: float, hi: float) -> None:
+    """Refuse ``v`` unless it is a finite number in ``[lo, hi]`` (not a bool), naming
+    ``name``: ``"beam.unknown_weight must be in [0, 1], got 2"``."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
+        raise ParameterError(f"{name} must be in [{lo}, {hi}], got {v!r}")
 
 
 def built_from_scans(problem: Problem) -> bool:

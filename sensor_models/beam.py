@@ -68,6 +68,7 @@ from sensor_models.base import (
     SensorModel,
     built_from_scans,
     check_bool_or_auto,
+    check_in_range,
     check_place_params,
     declared_state,
     direction_places,
@@ -328,9 +329,7 @@ class BeamModel(SensorModel):
         g = self.sigma_scale
         if not isinstance(g, (int, float)) or isinstance(g, bool) or not math.isfinite(g) or not 0.1 <= g <= 10:
             raise ParameterError(f"beam.sigma_scale must be in [0.1, 10], got {g!r}")
-        u = self.unknown_weight
-        if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
-            raise ParameterError(f"beam.unknown_weight must be in [0, 1], got {u!r}")
+        check_in_range(self.unknown_weight, "beam.unknown_weight", 0, 1)
         check_place_params(self, "beam.")
         if not isinstance(self.hit_dof, (int, float)) or isinstance(self.hit_dof, bool) or not self.hit_dof >= 1:
             raise ParameterError(f"beam.hit_dof must be >= 1 (inf: a Gaussian), got {self.hit_dof!r}")
@@ -470,8 +469,7 @@ class BoundBeamModel(BoundSensorModel):
         u = d.mean(axis=3)
         u = u / np.linalg.norm(u, axis=-1, keepdims=True)
         along = self.rays.caster.along.mean(axis=2)  # (S, Z) reading per metre of ray
-        t = ks.unknown_entry(o[:, :, 0, 0, None, :], u, reach / along)
-        return t * along
+        return ks.unknown_entry_reading(o[:, :, 0, 0, None, :], u, reach, along)
 
     def expected(self, states: NDArray[np.float64], step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Expected readings (NaN: no target) and hit fractions ``(M, S, Z)`` of step ``step``,

@@ -41,7 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from sensor_models.base import BoundSensorModel, SensorModel, check_bool_or_auto, check_place_params, declared_state, place_weights, reference_pose
+from sensor_models.base import BoundSensorModel, SensorModel, check_bool_or_auto, check_in_range, check_place_params, declared_state, place_weights, reference_pose
 from tofloc import numba_kernels
 from tofloc.configuration_uncertainty import normal_variance, point_covariance
 from sensor_models.beam import check_temper
@@ -179,9 +179,7 @@ class LikelihoodFieldModel(SensorModel):
         if not isinstance(c, (int, float)) or isinstance(c, bool) or not math.isfinite(c) or not 0.05 <= c <= 1:
             raise ParameterError(f"likelihood_field.min_incidence_cos must be in [0.05, 1], got {c!r}")
         check_place_params(self, "likelihood_field.")
-        u = self.unknown_weight
-        if not isinstance(u, (int, float)) or isinstance(u, bool) or not math.isfinite(u) or not 0 <= u <= 1:
-            raise ParameterError(f"likelihood_field.unknown_weight must be in [0, 1], got {u!r}")
+        check_in_range(self.unknown_weight, "likelihood_field.unknown_weight", 0, 1)
         for n, lo, hi in (("cell", 0.001, 0.1), ("r_field", 0.005, 2.0)):
             v = getattr(self, n)
             if v is None and n == "r_field":

@@ -200,3 +200,25 @@ def test_localize_warns_with_the_triage(capsys: pytest.CaptureFixture[str]) -> N
     lines = [ln for ln in err.splitlines() if ln.startswith("warning: trial")]
     assert len(lines) == 2 and "a gap in the map, maybe not a wrong pose" in lines[0]
     assert lines[1].endswith("zones are misfits)") and "space the map" not in lines[1]
+
+
+@pytest.mark.parametrize("cls, owner", [(BeamModel, "beam"), (LikelihoodFieldModel, "likelihood_field")])
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan"), True, "0.5"])
+def test_unknown_weight_outside_zero_one_is_refused_naming_it(cls, owner: str, bad) -> None:
+    with pytest.raises(ParameterError) as info:
+        cls(unknown_weight=bad)
+    assert str(info.value) == f"{owner}.unknown_weight must be in [0, 1], got {bad!r}"
+    assert cls(unknown_weight=1.0).unknown_weight == 1.0 and cls(unknown_weight=0).unknown_weight == 0
+
+
+def test_the_entry_reading_is_the_entry_distance_times_the_reading_per_metre() -> None:
+    """KnownSpace.unknown_entry_reading: readings in, readings out (``along`` per metre)."""
+    ks = _half_known()  # known for x < 1
+    o = np.zeros((2, 3))
+    o[:, 2] = 0.5
+    u = np.tile([1.0, 0.0, 0.0], (2, 1))
+    along = np.array([1.0, 0.8])
+    got = ks.unknown_entry_reading(o, u, np.array([5.0, 5.0]), along)
+    np.testing.assert_allclose(got, ks.unknown_entry(o, u, 5.0 / along) * along)
+    np.testing.assert_allclose(got, [1.0, 0.8], atol=1e-6)  # the unknown cells start 1 m out
+    assert np.isinf(ks.unknown_entry_reading(o, u, np.array([0.5, 0.5]), along)).all()  # known up to the reach

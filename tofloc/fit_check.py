@@ -361,9 +361,10 @@ def unknown_space_zones(problem: Any, pose: ArrayLike, res: ZoneResiduals, suppo
     along = caster.along[..., mid]  # (S, Z): reading per metre of ray
     z = np.where(short, problem.distance_m, 0.0)
     sigma = problem.range_model.sigma(rig, np.where(short, z, 1.0), problem.sigma_m)
-    reach = np.where(short, (z + OUTLIER_SIGMA * sigma) / along[None], 0.0)
-    t = ks.unknown_entry(np.broadcast_to(o[..., 0, 0, :][:, :, None, :], u[..., mid, :].shape), u[..., mid, :], reach)
-    return short & np.isfinite(t)
+    reach = np.where(short, z + OUTLIER_SIGMA * sigma, 0.0)
+    entry = ks.unknown_entry_reading(np.broadcast_to(o[..., 0, 0, :][:, :, None, :], u[..., mid, :].shape), u[..., mid, :],
+                                     reach, along[None])
+    return short & np.isfinite(entry)
 
 
 def fit_statistics(res: ZoneResiduals) -> tuple[float, float, int, int]:

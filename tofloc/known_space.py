@@ -145,6 +145,15 @@ class KnownSpace:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
 
+    def unknown_entry_reading(self, origins: ArrayLike, directions: ArrayLike, reach: ArrayLike,
+                              along: ArrayLike) -> NDArray[np.float64]:
+        """:meth:`unknown_entry` of zones' rays in readings: ``reach`` and the result are
+        readings (``inf``: known space up to ``reach``), ``along`` the reading per metre of
+        ray (a zone table's :attr:`tofloc.zone_caster.ZoneCaster.along`). What the beam
+        model and the fit check ask of a map built from scans."""
+        along = np.asarray(along, dtype=float)
+        return self.unknown_entry(origins, directions, np.asarray(reach, dtype=float) / along) * along
+
     def unknown_entry(self, origins: ArrayLike, directions: ArrayLike, max_t: ArrayLike) -> NDArray[np.float64]:
         """Distance along each ray to where it first enters unknown space (``inf`` when it
         stays in known space up to ``max_t``; 0 when it starts there).
