@@ -118,6 +118,7 @@ def test_warm_calls_for_the_time_asked_and_at_least_three(monkeypatch: pytest.Mo
     assert bench._warm(clock.takes([0.1] * 10), 0.35) == 4  # until 0.35 s have passed: 0.4 s after 4 calls
     med, low = bench._median_and_min_time(clock.takes([3.0, 1.0, 2.0, 5.0, 4.0]), 5)
     assert med == pytest.approx(3.0) and low == pytest.approx(1.0)
+    assert bench._median_time(clock.takes([0.5, 9.0, 0.2, 0.4]), 4) == pytest.approx(0.45)  # even count: the mean of the middle two
 
 
 def test_paired_medians_alternate_and_reverse() -> None:

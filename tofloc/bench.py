@@ -108,15 +108,12 @@ COUNT_REPEAT = 25
 
 
 def _median_time(fn: Callable[[], Any], repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(statistics.median(times))
+    """The median duration of ``repeat`` calls of ``fn`` (s)."""
+    return _median_and_min_time(fn, repeat)[0]
 
 
 def _median_and_min_time(fn: Callable[[], Any], repeat: int) -> tuple[float, float]:
+    """The median and the shortest duration of ``repeat`` calls of ``fn`` (s)."""
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()

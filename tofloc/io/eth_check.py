@@ -195,28 +195,25 @@ def latency_scan(run_dirs: Sequence[Path], latencies_s: Sequence[float]) -> list
         for rd in run_dirs:
             imp = import_run(rd, latency_s=lat)
             errs.append(panel_errors(imp, geometry(imp))["error_mm"])
-        out.append((float(lat), _median_abs(np.concatenate(errs))))
+        out.append((float(lat), _abs_quantiles(np.concatenate(errs))["median_abs_mm"]))
     return out
 
 
-def _median_abs(e: NDArray[np.float64]) -> float | None:
-    """Median absolute value, None for no value."""
-    return float(np.median(np.abs(e))) if e.size else None
+def _abs_quantiles(e: NDArray[np.float64]) -> dict[str, float | None]:
+    """``median_abs_mm`` and ``p90_abs_mm`` of errors ``e`` (mm); None for no value."""
+    a = np.abs(e)
+    if a.size == 0:
+        return {"median_abs_mm": None, "p90_abs_mm": None}
+    return {"median_abs_mm": float(np.median(a)), "p90_abs_mm": float(np.percentile(a, 90))}
 
 
 def _stats(e: NDArray[np.float64], pred: NDArray[np.float64]) -> dict[str, float | None]:
     """Error statistics of zones ``e`` (mm) at predicted distances ``pred``; ``n`` = 0 and
     the others None when there is no zone (a run or a range bin the panel never filled)."""
-    a = np.abs(e)
     if e.size == 0:
-        return {"n": 0, "median_abs_mm": None, "p90_abs_mm": None, "bias_mm": None, "p90_rel": None}
-    return {
-        "n": int(e.size),
-        "median_abs_mm": float(np.median(a)),
-        "p90_abs_mm": float(np.percentile(a, 90)),
-        "bias_mm": float(np.median(e)),
-        "p90_rel": float(np.percentile(a / pred, 90)),
-    }
+        return {"n": 0, **_abs_quantiles(e), "bias_mm": None, "p90_rel": None}
+    return {"n": int(e.size), **_abs_quantiles(e), "bias_mm": float(np.median(e)),
+            "p90_rel": float(np.percentile(np.abs(e) / pred, 90))}
 
 
 #: Most runs :func:`find_runs` takes (the development copy has 12).
@@ -286,7 +283,8 @@ def usable_runs(root: Path, names: Sequence[str]) -> tuple[dict[str, EthImport],
             skipped[name] = str(e)
     if not imports:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
-        raise ParameterError(f"{root}: no run could be checked ({why[:2000]})")
+        raise ParameterError(f"{root}: no run could be checked ({why[:2000]}{' ...' if len(why) > 2000 else ''})"
+                             if skipped else f"{root}: no run to check (an empty list of runs)")
     return imports, geos, skipped
 
 
@@ -320,8 +318,7 @@ def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, 
         "all": _stats(e, p) | {"zones": zones, "valid_share": valid / max(zones, 1)},
         "by_range": by_range,
         "per_run": per_run,
-        "default_order_all": {"median_abs_mm": _median_abs(default[0]),
-                              "p90_abs_mm": float(np.percentile(np.abs(default[0]), 90)) if default[0].size else None},
+        "default_order_all": _abs_quantiles(default[0]),
         "orders": order_scores(pairs),
         "edges": {n: edge_tracking(imports[n], geos[n]) for n in rotate},
         "edges_default_order": {n: edge_tracking(imports[n], geos[n], RawOrder()) for n in rotate},
