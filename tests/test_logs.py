@@ -278,6 +278,47 @@ def test_rig_attribute_must_be_a_string(tmp_path: Path) -> None:
     assert_refused(bad_file(tmp_path, attrs={"rig": np.arange(3)}), "root attribute `rig`", "scalar attribute", "shape (3,)")
 
 
+@pytest.mark.parametrize("key", ["model", "resolution", "fov_deg", "distance", "T_tip_sensor"])
+def test_rig_sensor_key_missing_is_refused_not_defaulted(tmp_path: Path, key: str) -> None:
+    """Contract, "The rig": every sensor gives these keys and the page states no default
+    for them, so a log whose rig leaves one out is refused, naming the key (the old reader
+    filled in 8 x 8, 45 deg, perpendicular, an identity mount: a guess)."""
+    rd = rig_dict()
+    del rd["sensors"][1][key]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}), f"rig.sensors[1].{key}", "required in a log's rig", "missing")
+
+
+def test_rig_without_actuators_key_is_refused(tmp_path: Path) -> None:
+    """Contract, "The rig": `actuators` "may be empty" -- but it is there; a missing list is
+    refused (the old reader took it as empty)."""
+    rd = rig_dict()
+    del rd["actuators"]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}, drop=("/samples/pressure_kpa",)), "rig.actuators", "actuator names", "missing")
+
+
+def test_rig_with_a_repeated_key_is_refused(tmp_path: Path) -> None:
+    """Contract, "Errors" (malformed rig JSON; nothing is guessed): an object that repeats a
+    key has no single meaning; the old reader silently kept the last value."""
+    text = json.dumps(rig_dict())
+    text = text[:-1] + ', "actuators": ["x"]}'
+    assert_refused(bad_file(tmp_path, attrs={"rig": text}), "rig", "unique keys", "'actuators' twice")
+
+
+def test_rig_optional_zone_directions_and_integral_json_numbers_are_accepted(tmp_path: Path) -> None:
+    """Contract, "The rig" and "Zone directions": `zone_directions` is optional (the default
+    grid), and `resolution` is JSON numbers, which do not distinguish 8 from 8.0 (a
+    converter that dumps numpy floats writes 8.0; the old reader refused it)."""
+    rd = rig_dict()
+    del rd["sensors"][0]["zone_directions"]
+    rd["sensors"][1]["resolution"] = [8.0, 8.0]
+    log = read_log(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}))
+    assert [s.resolution for s in log.rig.sensors] == [(8, 8), (8, 8)]
+    assert all(isinstance(r, int) for r in log.rig.sensors[1].resolution)
+    assert log.rig.sensors[0].zone_directions is None and log.n_zones == Z
+    rd["sensors"][1]["resolution"] = [8.5, 8.0]
+    assert_refused(bad_file(tmp_path, attrs={"rig": json.dumps(rd)}), "rig.sensors[1].resolution", "positive integers")
+
+
 @pytest.mark.parametrize(
     "attrs, where, frags",
     [

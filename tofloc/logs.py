@@ -640,7 +640,7 @@ def read_log(path: str | Path) -> Log:
             )
         rig_text = _read_str_attr(f, "rig", file, MAX_RIG_JSON_BYTES, "the rig as a JSON string")
         try:
-            rig = Rig.from_json(rig_text, source=file)
+            rig = Rig.from_json(rig_text, source=file, strict=True)
         except LogFormatError:
             raise
         except FormatError as e:

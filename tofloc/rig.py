@@ -33,6 +33,7 @@ from tofloc.map_validation import readonly as _readonly
 __all__ = [
     "DEFAULT_VALID_STATUSES",
     "DISTANCE_CONVENTIONS",
+    "LOG_SENSOR_KEYS",
     "RawOrder",
     "Sensor",
     "Rig",
@@ -52,6 +53,16 @@ VL53L5CX_RESOLUTIONS = ((4, 4), (8, 8))
 #: Largest number of zones a sensor may declare (bounds what a rig file may ask for).
 MAX_ZONES = 4096
 MAX_SENSORS = 256
+#: Keys every sensor of a log's rig must give (log format v1 has no defaults for them), with
+#: what each must hold; ``zone_directions`` may be left out (the default grid, as ``null``).
+#: Rig files (:meth:`Rig.from_file`) may leave them out and get the documented defaults.
+LOG_SENSOR_KEYS: dict[str, str] = {
+    "model": "a non-empty string",
+    "resolution": "[rows, cols] of positive integers",
+    "fov_deg": "[across rows, across cols] in degrees",
+    "distance": f"one of {list(DISTANCE_CONVENTIONS)}",
+    "T_tip_sensor": "a 4x4 rigid transform",
+}
 
 
 def default_zone_directions(resolution: Sequence[int], fov_deg: Sequence[float]) -> NDArray[np.float64]:
@@ -151,6 +162,13 @@ class RawOrder:
 
 def _fail(source: str, where: str, expected: str, found: object | None = None) -> FormatError:
     return FormatError(source, where, expected, found)
+
+
+def _is_json_integer(v: Any) -> bool:
+    """An integer-valued JSON number (``8`` or ``8.0``: JSON does not tell them apart)."""
+    if isinstance(v, bool):
+        return False
+    return isinstance(v, int) or (isinstance(v, float) and v.is_integer())
 
 
 def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
@@ -268,10 +286,19 @@ class Sensor:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], source: str = "<rig>", where: str = "sensors[0]") -> "Sensor":
-        """Validate and build a sensor from its rig-JSON object; errors name ``source`` and ``where``."""
+    def from_dict(cls, d: Mapping[str, Any], source: str = "<rig>", where: str = "sensors[0]", *, strict: bool = False) -> "Sensor":
+        """Validate and build a sensor from its rig-JSON object; errors name ``source`` and ``where``.
+
+        ``strict``: every key of :data:`LOG_SENSOR_KEYS` must be given (a log's rig, which
+        log format v1 does not complete with defaults); otherwise missing keys get the
+        defaults of a rig file.
+        """
         if not isinstance(d, Mapping):
             raise _fail(source, where, "a JSON object", type(d).__name__)
+        if strict:
+            for key, what in LOG_SENSOR_KEYS.items():
+                if key not in d:
+                    raise _fail(source, f"{where}.{key}", f"{what} (required in a log's rig: no default)", "nothing (missing)")
         name = d.get("name")
         if not isinstance(name, str) or not name:
             raise _fail(source, f"{where}.name", "a non-empty string", repr(name))
@@ -282,9 +309,10 @@ class Sensor:
         if (
             not isinstance(res, (list, tuple))
             or len(res) != 2
-            or not all(isinstance(r, int) and not isinstance(r, bool) and r > 0 for r in res)
+            or not all(_is_json_integer(r) and r > 0 for r in res)
         ):
             raise _fail(source, f"{where}.resolution", "[rows, cols] of positive integers", repr(res))
+        res = [int(r) for r in res]  # JSON has one number type: 8.0 is the integer 8
         fov = d.get("fov_deg", [45.0, 45.0])
         if (
             not isinstance(fov, (list, tuple))
@@ -341,6 +369,24 @@ class Sensor:
             raw_order=raw_order,
             max_range_m=float(max_range),
         )
+
+
+class _DuplicateKey(Exception):
+    """A JSON object repeats a key (raised by :func:`_unique_keys`)."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` of :func:`json.loads` that refuses a repeated key."""
+    out: dict[str, Any] = {}
+    for k, v in pairs:
+        if k in out:
+            raise _DuplicateKey(k)
+        out[k] = v
+    return out
 
 
 #: Keys of the rig's optional ``tolerances`` object and their largest accepted value.
@@ -509,14 +555,20 @@ class Rig:
         return json.dumps(self.to_dict())
 
     @classmethod
-    def from_dict(cls, d: Any, source: str = "<rig>") -> "Rig":
-        """Validate a rig object (log-format v1); every error names ``source`` and the key."""
+    def from_dict(cls, d: Any, source: str = "<rig>", *, strict: bool = False) -> "Rig":
+        """Validate a rig object (log-format v1); every error names ``source`` and the key.
+
+        ``strict``: a log's rig: ``actuators`` and every sensor key of
+        :data:`LOG_SENSOR_KEYS` must be given (no defaults).
+        """
         if not isinstance(d, Mapping):
             raise _fail(source, "rig", "a JSON object with 'sensors' and 'actuators'", type(d).__name__)
         sensors = d.get("sensors")
         if not isinstance(sensors, list) or not 1 <= len(sensors) <= MAX_SENSORS:
             raise _fail(source, "rig.sensors", f"a list of 1 to {MAX_SENSORS} sensor objects", repr(sensors)[:80])
-        built = [Sensor.from_dict(s, source, f"rig.sensors[{i}]") for i, s in enumerate(sensors)]
+        if strict and "actuators" not in d:
+            raise _fail(source, "rig.actuators", "a list of actuator names, possibly empty (required in a log's rig)", "nothing (missing)")
+        built = [Sensor.from_dict(s, source, f"rig.sensors[{i}]", strict=strict) for i, s in enumerate(sensors)]
         names = [s.name for s in built]
         if len(set(names)) != len(names):
             raise _fail(source, "rig.sensors[].name", "unique names", names)
@@ -532,12 +584,18 @@ class Rig:
         return cls(sensors=tuple(built), actuators=tuple(acts), tolerances=tol)
 
     @classmethod
-    def from_json(cls, text: str, source: str = "<rig>") -> "Rig":
+    def from_json(cls, text: str, source: str = "<rig>", *, strict: bool = False) -> "Rig":
+        """Parse and validate a rig's JSON text (see :meth:`from_dict` for ``strict``).
+
+        An object that repeats a key is refused: which of the values was meant is unknown.
+        """
         try:
-            d = json.loads(text)
+            d = json.loads(text, object_pairs_hook=_unique_keys)
+        except _DuplicateKey as e:
+            raise _fail(source, "rig", "valid JSON with unique keys in every object", f"the key {e.key!r} twice") from None
         except (ValueError, TypeError, RecursionError) as e:  # ValueError: also Python's int-string limit
             raise _fail(source, "rig", "valid JSON", str(e)[:200]) from None
-        return cls.from_dict(d, source)
+        return cls.from_dict(d, source, strict=strict)
 
     @classmethod
     def from_file(cls, path: str | Path) -> "Rig":
