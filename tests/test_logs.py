@@ -490,6 +490,20 @@ def test_round_trip_identical_arrays(tmp_path: Path, full_log: Log) -> None:
         assert f["/truth/T_map_base"].fletcher32
 
 
+def test_rig_without_actuators_and_empty_pressures_round_trip(tmp_path: Path) -> None:
+    """Contract, "The rig" (`actuators` may be empty) and "Datasets" (`pressure_kpa` is
+    (K, C)): a (K, 0) pressure dataset is a valid log, which the reader accepts and the
+    writer must write (it raised ParameterError: "needs at least one element")."""
+    rd = rig_dict()
+    rd["actuators"] = []
+    path = bad_file(tmp_path, attrs={"rig": json.dumps(rd)}, datasets={"/samples/pressure_kpa": np.zeros((K, 0), np.float32)})
+    log = read_log(path)
+    assert log.n_actuators == 0 and log.pressure_kpa.shape == (K, 0)
+    back = read_log(write_log(log, tmp_path / "again.h5"))
+    assert back.pressure_kpa.shape == (K, 0) and back.pressure_kpa.dtype == np.dtype(np.float32)
+    assert back.checksums == "full"
+
+
 def test_writer_omits_absent_optional_fields_and_fills_created(tmp_path: Path, full_log: Log) -> None:
     log = Log(full_log.rig, full_log.timestamp_s, full_log.distance_mm, full_log.status)
     path = write_log(log, tmp_path / "min.h5")

@@ -1052,16 +1052,23 @@ def write_checksummed_dataset(group: h5py.Group, name: str, data: ArrayLike, dty
     group : h5py.Group
     name : str
     data : array_like
-        At least one element.
+        At least one axis. It may hold no element (a ``(K, 0)`` ``pressure_kpa`` of a rig
+        without actuators): a zero-length axis is then stored as extendible, in chunks of
+        1, since HDF5 refuses a chunk longer than a fixed axis.
     dtype : str or numpy dtype, optional
         Stored dtype (e.g. ``"<f4"``); default: ``data``'s own.
     """
     arr = np.asarray(data)
     arr = np.ascontiguousarray(arr, dtype=np.dtype(dtype) if dtype is not None else arr.dtype)
-    if arr.size == 0 or arr.ndim == 0:
-        raise ParameterError(f"{group.name}/{name}: a checksummed dataset needs at least one element and one axis, found shape {arr.shape}")
+    if arr.ndim == 0:
+        raise ParameterError(f"{group.name}/{name}: a checksummed dataset needs at least one axis, found shape {arr.shape}")
+    chunks: bool | tuple[int, ...] = True
+    maxshape: tuple[int | None, ...] | None = None
+    if arr.size == 0:
+        chunks = tuple(max(1, n) for n in arr.shape)
+        maxshape = tuple(None if n == 0 else n for n in arr.shape)
     return group.create_dataset(
-        name, data=arr, chunks=True, compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True, fletcher32=True
+        name, data=arr, chunks=chunks, maxshape=maxshape, compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True, fletcher32=True
     )
 
 
