@@ -96,7 +96,8 @@ def small_log(K: int = 40, seed: int = 0, truth: Any = None) -> Log:
     status = np.full((K, S, Z), 5, dtype=np.uint8)
     T_map_base = frames.se3_from_xyyaw(*TRUTH, TRUTH_Z) if truth is None else truth
     return Log.from_arrays(rig, np.arange(K, dtype=float), d, status, sigma_mm=np.full((K, S, Z), 10.0),
-                           pressure_kpa=pressure, T_base_tip=T_base_tip, T_map_base=T_map_base, source="test")
+                           pressure_kpa=pressure, T_base_tip=T_base_tip, T_map_base=T_map_base, source="test",
+                           configuration_source="mocap")
 
 
 class FakeMap:
@@ -199,7 +200,7 @@ def test_problem_from_log_mocap_and_knn() -> None:
     np.testing.assert_allclose(p.sigma_m, 0.01)
     np.testing.assert_array_equal(p.sample_indices, idx)
     assert p.tip_source == "mocap" and p.T_base_tip_cov is None
-    assert p.configuration_source is None  # the log does not say where its configurations come from
+    assert p.configuration_source == "mocap"  # what the log says of its configurations
     q = problem_from_log(log, idx, FakeMap(), prior, "knn", kin, valid_statuses={5, 6})
     np.testing.assert_allclose(q.T_base_tip, kin.predict(log.pressure_kpa[idx]))
     assert q.T_base_tip_cov.shape == (3, 6, 6) and q.valid_statuses == frozenset({5, 6})
@@ -219,7 +220,23 @@ def test_problem_from_log_refusals() -> None:
         problem_from_log(dataclasses.replace(log, T_base_tip=None), [1], FakeMap(), prior, "mocap")
     with pytest.raises(ParameterError, match="kinematics"):
         problem_from_log(log, [1], FakeMap(), prior, "knn")
+    # log format v1: a configuration is not exact unless the log says so
+    for source in (None, "odometry", "kinematics"):
+        unstated = dataclasses.replace(log, configuration_source=source)
+        with pytest.raises(ProblemError, match=r"/samples/T_base_tip has no stated uncertainty") as e:
+            problem_from_log(unstated, [1], FakeMap(), prior, "mocap")
+        assert ("configuration_source is absent" if source is None else f"configuration_source is {source!r}") in str(e.value)
+        assert "/samples/T_base_tip_cov" in str(e.value)
+        nan_cov = dataclasses.replace(unstated, T_base_tip_cov=np.full((log.n_samples, 6, 6), np.nan))
+        with pytest.raises(ProblemError, match="no stated uncertainty"):
+            problem_from_log(nan_cov, [1], FakeMap(), prior, "mocap")
+        stated = dataclasses.replace(unstated, T_base_tip_cov=np.tile(np.eye(6) * 1e-6, (log.n_samples, 1, 1)))
+        assert problem_from_log(stated, [1], FakeMap(), prior, "mocap").T_base_tip_cov.shape == (1, 6, 6)
+    assert problem_from_log(dataclasses.replace(log, configuration_source="cad"), [1], FakeMap(), prior, "mocap").T_base_tip_cov is None
     kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
+    # the k-NN model states its own uncertainty: the log's silence does not matter there
+    silent = dataclasses.replace(log, configuration_source=None)
+    assert problem_from_log(silent, [1], FakeMap(), prior, "knn", kin).T_base_tip_cov.shape == (1, 6, 6)
     with pytest.raises(FormatError, match="/samples/pressure_kpa"):
         problem_from_log(dataclasses.replace(log, pressure_kpa=None), [1], FakeMap(), prior, "knn", kin)
     with pytest.raises(ParameterError, match="tip source"):

@@ -125,6 +125,7 @@ def test_import_maps_the_dataset_as_documented(runs) -> None:
     assert np.all(np.diff(log.timestamp_s) > 0)  # duplicate stamps spread
     assert imp.notes["frames_with_pose"] >= 0.99 * log.n_samples
     np.testing.assert_array_equal(log.T_map_base, np.eye(4))
+    assert log.configuration_source == "mocap"  # the Vicon body: estimators may localize on it (log format v1)
     assert log.rig.sensors[0].raw_order == ETH_RAW_ORDER
     assert imp.T_map_panel is not None and imp.T_map_panel.shape == (631, 4, 4)
 

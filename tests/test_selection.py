@@ -130,7 +130,7 @@ def _wall_log(K: int = 16) -> Log:
     d = expected_distances(np.eye(4), T, rig, _two_walls())
     status = np.where(np.isfinite(d), 5, 255).astype(np.uint8)
     return Log.from_arrays(rig, np.arange(K, dtype=float), np.nan_to_num(d) * 1000.0, status, T_base_tip=T,
-                           T_map_base=np.eye(4), source="test")
+                           T_map_base=np.eye(4), source="test", configuration_source="mocap")
 
 
 def test_random_trials_are_bit_identical_to_the_protocol() -> None:

@@ -28,7 +28,7 @@ from tofloc.problem import NuisancePriors, Prior, Problem, ProblemError
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
 
-__all__ = ["TIP_SOURCES", "build_problem", "mm_to_m", "nuisance_priors", "problem_from_log"]
+__all__ = ["STATED_EXACT_SOURCES", "TIP_SOURCES", "build_problem", "mm_to_m", "nuisance_priors", "problem_from_log"]
 
 #: Where ``T_base_tip`` comes from for a log's samples: its ``/samples/T_base_tip``
 #: (motion capture, odometry, ...) or the k-NN kinematics model fed with the pressures.
@@ -127,6 +127,24 @@ def build_problem(
     )
 
 
+#: The ``configuration_source`` values that state how exact a configuration without a
+#: covariance is: ``"cad"`` (a rigid mount: exact) and ``"mocap"`` (measured; estimators
+#: give it motion capture's sigmas). Any other source, or none, needs
+#: ``/samples/T_base_tip_cov``: log format v1 forbids treating it as exact.
+STATED_EXACT_SOURCES = ("cad", "mocap")
+
+
+def _unstated_uncertainty(name: str, source: str | None) -> str:
+    """The refusal for a log whose configurations come with no stated uncertainty."""
+    said = ("the root attribute configuration_source is absent" if source is None
+            else f"configuration_source is {source!r}")
+    return (f"{name}: /samples/T_base_tip has no stated uncertainty ({said} and there is no "
+            f"/samples/T_base_tip_cov, or it is all NaN): log format v1 forbids treating such a "
+            f"configuration as exact. Write each sample's covariance to /samples/T_base_tip_cov, or set "
+            f"configuration_source to 'mocap' (measured by motion capture) or 'cad' (a rigid mount) "
+            f"if that is what it is")
+
+
 def _log_name(log: Any) -> str:
     p = getattr(log, "path", None)
     return str(p) if p is not None else "<log>"
@@ -154,7 +172,8 @@ def problem_from_log(
     tip_source : {"mocap", "knn"}
         ``mocap``: ``T_base_tip`` are the log's ``/samples/T_base_tip`` rows (a sample whose
         pose is unknown, all NaN, is refused), with the log's ``/samples/T_base_tip_cov``
-        and ``configuration_source`` when it has them. ``knn``: predicted by
+        and ``configuration_source`` when it has them; without a covariance the source must
+        be one of :data:`STATED_EXACT_SOURCES` (else :class:`ProblemError`). ``knn``: predicted by
         ``kinematics`` from ``/samples/pressure_kpa``, with the model's validation-error
         covariance.
     kinematics : tofloc.kinematics.KinematicsModel, optional
@@ -167,7 +186,10 @@ def problem_from_log(
     FormatError
         The log lacks the dataset the tip source needs.
     ProblemError
-        A selected sample has no usable configuration (unknown pose, NaN pressure).
+        A selected sample has no usable configuration (unknown pose, NaN pressure), or the
+        log's configurations have no stated uncertainty (log format v1: absent
+        ``configuration_source`` and ``T_base_tip_cov``, or a source such as odometry
+        without its covariance).
     ParameterError
         Bad indices, tip source, a missing kinematics model, or one whose actuators
         differ from the log's (:meth:`~tofloc.kinematics.KinematicsModel.check_actuators`).
@@ -199,6 +221,8 @@ def problem_from_log(
                 raise ProblemError(f"{name}: samples {idx[~known][:5].tolist()} have no configuration covariance "
                                    f"(/samples/T_base_tip_cov is NaN) while the others do")
         source = getattr(log, "configuration_source", None)
+        if cov is None and source not in STATED_EXACT_SOURCES:
+            raise ProblemError(_unstated_uncertainty(name, source))
     elif tip_source == "knn":
         if kinematics is None:
             raise ParameterError("tip source knn needs a kinematics model (--kinematics MODEL)")

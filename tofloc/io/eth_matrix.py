@@ -347,6 +347,7 @@ def import_run(
         T_base_tip=T_tip,
         T_map_base=np.eye(4),
         source="import:eth-matrix",
+        configuration_source="mocap",  # the Vicon body, interpolated to each frame
     )
     panel = panel_median = None
     if panel_body in vicon:
