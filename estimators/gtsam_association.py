@@ -11,8 +11,10 @@ batched query over all samples:
 * ``"range"``: the zone's ray cast by the shared zone caster
   (:meth:`tofloc.zone_caster.ZoneCaster.cast_zone_rays`), the hit's plane.
 
-The samples' zones are concatenated once per solve (:class:`ZoneStack`, kept on the
-:class:`AssociatedMeasurements` a round returns for the next); each round moves them with
+The samples' zones are concatenated once per solve (:class:`~estimators.gtsam_stack.ZoneStack`,
+kept on the :class:`~estimators.gtsam_stack.AssociatedMeasurements` a round returns for the
+next round and for the stacked factor, :class:`~estimators.gtsam_factors.StackedMeasurements`;
+re-exported here); each round moves them with
 one matrix product per sample (:func:`zone_frames`) and takes what it needs of the planes
 in one compiled pass (:func:`plane_geometry`, numpy's bits on x86-64).
 """
@@ -25,7 +27,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.gtsam_factors import SampleMeasurement, _bias_corrected
+from estimators.gtsam_factors import SampleMeasurement
+from estimators.gtsam_stack import AssociatedMeasurements, ZoneStack, zone_stack
 from tofloc import frames, numba_kernels
 from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
@@ -113,92 +116,6 @@ def measurements(problem: Problem) -> list[SampleMeasurement]:
         out.append(SampleMeasurement(p_tip[k][m], o_sz[m].copy(), dirs[m].copy(), sigma_L[k][m], d[k][m], v,
                                      flat[m].astype(np.int64)))
     return out
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class ZoneStack:
-    """The zones of a list of :class:`~estimators.gtsam_factors.SampleMeasurement` side by
-    side (every sample's rows in turn), concatenated once for the association rounds of
-    one solve: :func:`associate` keeps it on the list it returns and reuses it when given
-    that list again (:meth:`holds`).
-
-    Parameters
-    ----------
-    members : tuple of SampleMeasurement
-        The measurements stacked, in order.
-    bounds : ndarray of intp, shape (K + 1,)
-        Sample ``k``'s rows are ``bounds[k]:bounds[k + 1]``.
-    sample : ndarray of intp, shape (N,)
-        The sample of every row.
-    p_tip, o_tip, u_tip, v_tip : ndarray, shape (N, 3)
-    sigma_L, d : ndarray, shape (N,)
-    zones : ndarray of int64, shape (N,)
-        The members' arrays of the same names, concatenated.
-    weight : ndarray, shape (N,), optional
-        The members' weights (1 for a member without); None when no member has any.
-    """
-
-    members: tuple[SampleMeasurement, ...]
-    bounds: NDArray[np.intp]
-    sample: NDArray[np.intp]
-    p_tip: FloatArray
-    o_tip: FloatArray
-    u_tip: FloatArray
-    v_tip: FloatArray
-    sigma_L: FloatArray
-    d: FloatArray
-    zones: NDArray[np.int64]
-    weight: FloatArray | None
-
-    @classmethod
-    def of(cls, meas: list[SampleMeasurement]) -> "ZoneStack":
-        """The stack of ``meas`` (empty arrays for an empty list)."""
-        sizes = [m.size for m in meas]
-        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
-
-        def cat(name: str, shape: tuple[int, ...], dtype: type = float) -> NDArray:
-            return np.concatenate([getattr(m, name) for m in meas]) if meas else np.zeros(shape, dtype=dtype)
-
-        weight = None
-        if any(m.weight is not None for m in meas):
-            weight = np.concatenate([np.ones(m.size) if m.weight is None else np.asarray(m.weight, dtype=float) for m in meas])
-        return cls(tuple(meas), bounds, np.repeat(np.arange(len(meas), dtype=np.intp), sizes), cat("p_tip", (0, 3)),
-                   cat("o_tip", (0, 3)), cat("u_tip", (0, 3)), cat("v_tip", (0, 3)), cat("sigma_L", (0,)), cat("d", (0,)),
-                   cat("zones", (0,), np.int64), weight)
-
-    def holds(self, meas: list[SampleMeasurement]) -> bool:
-        """Whether ``meas`` are this stack's members (the same objects, in order)."""
-        return len(meas) == len(self.members) and all(a is b for a, b in zip(meas, self.members))
-
-    def points(self, bias: FloatArray | None) -> FloatArray:
-        """Every zone's point in the tip frame ``(N, 3)``, the range bias ``b`` applied
-        (:meth:`SampleMeasurement.points`, stacked)."""
-        return _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
-
-    def previous_association(self) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-        """The members' current plane keys and inlier flags ``(N,)``, stacked."""
-        if not self.members:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
-        return np.concatenate([m.key for m in self.members]), np.concatenate([m.inlier for m in self.members])
-
-
-class AssociatedMeasurements(list):
-    """The measurements :func:`associate` returns (a list of
-    :class:`~estimators.gtsam_factors.SampleMeasurement`) and their :class:`ZoneStack`,
-    which the next call given this list reuses."""
-
-    def __init__(self, meas: list[SampleMeasurement], stack: ZoneStack) -> None:
-        super().__init__(meas)
-        self.stack = stack
-
-
-def zone_stack(meas: list[SampleMeasurement]) -> ZoneStack:
-    """The :class:`ZoneStack` of ``meas``: the one an earlier :func:`associate` kept on
-    this list when it still holds it, else a new one."""
-    stack = getattr(meas, "stack", None)
-    if isinstance(stack, ZoneStack) and stack.holds(meas):
-        return stack
-    return ZoneStack.of(meas)
 
 
 def rotate_by_sample(X: FloatArray, T: list[FloatArray], bounds: NDArray[np.intp]) -> FloatArray:

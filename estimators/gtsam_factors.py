@@ -15,7 +15,8 @@ robustified residuals of every zone and their Jacobians with respect to
 * optionally a relative range bias ``b`` shared by all zones (a 1-vector): the reported
   distance ``d`` is corrected by ``-b d`` on top of the uncertainty model's bias.
 
-:class:`StackedMeasurements` concatenates every sample's zones and association once per
+:class:`StackedMeasurements` takes every sample's zones from the solve's
+:class:`~estimators.gtsam_stack.ZoneStack` and concatenates their association once per
 association round, and :func:`make_stacked_factor` makes ONE factor of them: one
 vectorized pass over every zone and one Python callback per linearization, the rows
 compressed to the few of the same Gauss-Newton system and cost (:func:`compress_schur`:
@@ -53,6 +54,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from estimators.gtsam_stack import ZoneStack, bias_corrected, zone_stack
 from tofloc import numba_kernels
 
 __all__ = [
@@ -150,14 +152,6 @@ def _T_map_base(xyyaw: FloatArray, z: float, R_tilt: FloatArray) -> FloatArray:
     T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
     T[:3, 3] = (xyyaw[0], xyyaw[1], z)
     return T
-
-
-def _bias_corrected(p_tip: FloatArray, d: FloatArray, v_tip: FloatArray, bias: FloatArray | None) -> FloatArray:
-    """Zone points in the tip frame with the relative range-bias correction ``b`` (a
-    1-vector, or None for none) applied: each point moved by ``-b d`` along its ray ``v``."""
-    if bias is None:
-        return p_tip
-    return p_tip - (float(bias[0]) * d)[:, None] * v_tip
 
 
 def _zone_rows(
@@ -308,7 +302,7 @@ class SampleMeasurement:
 
     def points(self, bias: FloatArray | None = None) -> FloatArray:
         """Zone points in the tip frame with the relative range-bias correction ``b`` (a 1-vector) applied."""
-        return _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
+        return bias_corrected(self.p_tip, self.d, self.v_tip, bias)
 
     def evaluate(
         self,
@@ -384,9 +378,13 @@ def make_sample_factor(
 
 
 class StackedMeasurements:
-    """Every sample's zones and current association, concatenated once (per association
-    round) for :func:`make_stacked_factor`; the constant cost of the gated zones is
-    computed here once, not at every linearization.
+    """Every sample's zones and current association side by side for
+    :func:`make_stacked_factor`: the zone-constant arrays (``bounds``, ``sample``,
+    ``p_tip``, ``d``, ``v_tip``) are the :class:`~estimators.gtsam_stack.ZoneStack`'s of the
+    solve (:func:`~estimators.gtsam_stack.zone_stack`: the one the association kept on
+    ``meas``, else a new one), and only the association (``q``, ``n``, ``s``, ``inlier``,
+    the gated zones' constant cost) is concatenated per association round; the constant
+    cost of the gated zones is computed here once, not at every linearization.
 
     Parameters
     ----------
@@ -400,23 +398,23 @@ class StackedMeasurements:
     def __init__(self, meas: list[SampleMeasurement], kernel: str, k: float) -> None:
         self.meas = meas
         self.kernel, self.k = kernel, float(k)
-        self.sizes = [m.size for m in meas]
-        self.bounds = np.concatenate([[0], np.cumsum(self.sizes)]).astype(np.intp)
-        #: (N,) the sample of every row
-        self.sample = np.repeat(np.arange(len(meas)), self.sizes)
-        cat = np.concatenate
-        self.p_tip = cat([m.p_tip for m in meas]) if meas else np.zeros((0, 3))
-        self.d = cat([m.d for m in meas]) if meas else np.zeros(0)
-        self.v_tip = cat([m.v_tip for m in meas]) if meas else np.zeros((0, 3))
-        self.q = cat([m.q for m in meas]) if meas else np.zeros((0, 3))
-        self.n = cat([m.n for m in meas]) if meas else np.zeros((0, 3))
-        self.s = cat([m.s for m in meas]) if meas else np.zeros(0)
-        self.inlier = cat([m.inlier for m in meas]) if meas else np.zeros(0, dtype=bool)
-        gate_e = cat([m.gate_e for m in meas]) if meas else np.zeros(0)
+        self.stack: ZoneStack = zone_stack(meas)
+        st = self.stack
+        self.bounds = st.bounds
+        #: (N,) the sample of every row (intp: the compiled kernel's index type)
+        self.sample = st.sample
+        self.p_tip, self.d, self.v_tip = st.p_tip, st.d, st.v_tip
+        self.q = st.association("q", (0, 3))
+        self.n = st.association("n", (0, 3))
+        self.s = st.association("s", (0,))
+        self.inlier = st.association("inlier", (0,), bool)
         #: the transformed residual of a gated zone (a constant)
-        self.out_const = np.sqrt(2.0 * robust_loss(gate_e, kernel, k))
-        #: the rows' sample as the compiled kernel's index type
-        self.sample_idx = np.ascontiguousarray(self.sample, dtype=np.intp)
+        self.out_const = np.sqrt(2.0 * robust_loss(st.association("gate_e", (0,)), kernel, k))
+
+    @property
+    def n_samples(self) -> int:
+        """The samples' number ``K``."""
+        return self.stack.n_samples
 
     @property
     def size(self) -> int:
@@ -456,9 +454,8 @@ class StackedMeasurements:
         A = np.empty((N, m + 1))
         Hd = A[:, 9:15] if rig else np.empty((N, 6))
         Hbias = A[:, m - 1 : m] if bias is not None else np.empty((N, 1))
-        p_tip = _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
-        _zone_rows_compiled(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, R_tilt,
-                            C[:, :3, :3], C[:, :3, 3], self.sample_idx, D, self.kernel, self.k, jacobians,
+        _zone_rows_compiled(self.stack.points(bias), self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip,
+                            xyyaw, R_tilt, C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians,
                             _T_map_base(xyyaw, z, R_tilt), out=(A[:, m], A[:, cb], A[:, cc], Hd, Hbias))
         return A
 
@@ -478,8 +475,7 @@ class StackedMeasurements:
         of every sample, stacked.
 
         ``C`` is ``(K, 4, 4)``: the configurations of the samples."""
-        p_tip = _bias_corrected(self.p_tip, self.d, self.v_tip, bias)
-        return _zone_rows(p_tip, self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, z, R_tilt,
+        return _zone_rows(self.stack.points(bias), self.n, self.q, self.s, self.inlier, self.out_const, self.d, self.v_tip, xyyaw, z, R_tilt,
                           C[:, :3, :3], C[:, :3, 3], self.sample, D, self.kernel, self.k, jacobians)
 
 
@@ -500,7 +496,7 @@ def compress_rows(stacked: StackedMeasurements, res: FloatArray, blocks: list[Fl
     Returns ``W`` ``(K, m + 1, m)`` and ``w`` ``(K, m + 1)``."""
     A = np.concatenate(blocks + [res[:, None]], axis=1)
     b = stacked.bounds
-    K, c = len(stacked.sizes), A.shape[1]
+    K, c = stacked.n_samples, A.shape[1]
     if numba_kernels.enabled():
         Wz = np.empty((K, c, c))
         numba_kernels.gram_root_by_sample(A, b, GRAM_TINY, Wz)
@@ -539,7 +535,7 @@ def compress_schur(stacked: StackedMeasurements, A: FloatArray, n_own: int = OWN
     shared : ndarray (c - n_own, c - n_own)
     """
     b = stacked.bounds
-    K, c = len(stacked.sizes), A.shape[1]
+    K, c = stacked.n_samples, A.shape[1]
     own = np.empty((K, n_own, c))
     shared = np.empty((c - n_own, c - n_own))
     if numba_kernels.enabled():

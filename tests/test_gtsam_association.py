@@ -224,6 +224,29 @@ def test_a_stack_is_reused_only_for_its_own_list() -> None:
     assert len(grown) == 3 and grown.stack.holds(grown)
 
 
+def test_the_stacked_factor_shares_the_association_stack() -> None:
+    """``StackedMeasurements`` of the list ``associate`` returned takes its zone-constant
+    arrays from that list's stack (the same objects, not copies) and concatenates only the
+    association; of a plain list (a new stack), the same numbers."""
+    from estimators.gtsam_factors import StackedMeasurements
+
+    p, truth = easy_problem(n_samples=3)
+    out, _ = associate(p, measurements(p), truth, list(p.T_base_tip), np.eye(4), 0.05)
+    st = StackedMeasurements(out, "cauchy", 2.0)
+    assert st.stack is out.stack
+    for name in ("bounds", "sample", "p_tip", "d", "v_tip"):
+        assert getattr(st, name) is getattr(out.stack, name)
+    plain = StackedMeasurements(list(out), "cauchy", 2.0)
+    assert plain.stack is not out.stack and plain.n_samples == st.n_samples == 3
+    for name in ("bounds", "sample", "p_tip", "d", "v_tip", "q", "n", "s", "inlier", "out_const"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(st, name))
+        assert getattr(plain, name).dtype == getattr(st, name).dtype
+    for name in ("q", "n", "s", "inlier"):
+        np.testing.assert_array_equal(getattr(st, name), np.concatenate([getattr(m, name) for m in out]))
+    empty = StackedMeasurements([], "huber", 1.0)
+    assert empty.size == 0 and empty.n_samples == 0 and empty.q.shape == (0, 3) and empty.inlier.dtype == bool
+
+
 def test_zone_frames_are_the_per_sample_products() -> None:
     """Every zone's point, ray and origin in the map frame: each sample's own matrix
     product, bit for bit, samples of no zone and of one zone included."""
