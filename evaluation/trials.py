@@ -46,8 +46,8 @@ Samples come from the k-NN model's held-out validation split when a kinematics m
 fit on this very log is given (the paper: the model is trained on 80 % of the samples;
 localization uses the other 20 %), **for both tip sources**, so that ``mocap`` and
 ``knn`` use the same samples. Only samples every usable tip source can use enter the
-pool (a known motion-capture pose when the log has them, finite pressures when a model
-is given) and samples without any valid zone are left out (they carry no information and
+pool (a known configuration, e.g. a motion-capture pose, when the log has them, finite
+pressures when a model is given) and samples without any valid zone are left out (they carry no information and
 a problem made only of them has nothing to localize from). When that pool holds fewer
 than the largest ``k`` asked for, every usable sample of the log is used instead, and
 :attr:`SamplePool.note` says so; so it does when there is no model or the model was fit
@@ -161,6 +161,15 @@ class SamplePool:
         return {"source": self.source, "size": int(self.indices.size), "note": self.note}
 
 
+def _known_configuration(log: Any) -> str:
+    """What a usable sample needs of ``/samples/T_base_tip``, in the words of the log's
+    ``configuration_source``."""
+    source = getattr(log, "configuration_source", None)
+    return {"mocap": "a known motion-capture pose", "odometry": "a known odometry configuration",
+            "kinematics": "a known kinematic configuration", "cad": "a known CAD configuration"}.get(
+        source, "a known configuration (/samples/T_base_tip)")
+
+
 def sample_pool(
     log: Any,
     kinematics: Any | None = None,
@@ -188,7 +197,7 @@ def sample_pool(
     needs = ["a valid zone"]
     if log.T_base_tip is not None:
         usable &= np.all(np.isfinite(np.asarray(log.T_base_tip)), axis=(1, 2))
-        needs.append("a known motion-capture pose")
+        needs.append(_known_configuration(log))
     if kinematics is not None and log.pressure_kpa is not None:
         usable &= np.all(np.isfinite(np.asarray(log.pressure_kpa)), axis=1)
         needs.append("finite pressures")

@@ -502,3 +502,31 @@ def test_warm_up_prepares_every_trials_problem_and_warms_once() -> None:
     tr.warm_up(est, task, p, ctx)  # type: ignore[arg-type]
     assert calls == [("prepare", 3), ("estimate", 3), ("prepare", 3)]
     tr._WARMED.clear()
+
+
+def test_localize_and_evaluate_say_when_a_calibration_was_fitted_for_another_footprint(
+        data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``paper`` warned when a given calibration's footprint differs from the one an
+    estimator casts; ``localize`` and ``evaluate`` applied it silently. All now say so,
+    naming the estimator, the file and the refit (:func:`tofloc.api.footprint_mismatches`)."""
+    from estimators.particle_filter import BeamPF, ICPScorePF, LikelihoodFieldPF
+    from tofloc.api import footprint_mismatches
+    from tofloc.calibration_file import SensorCalibration
+    from tofloc.range_model import RangeUncertainty
+
+    path = SensorCalibration(RangeUncertainty(), meta={"footprint": 3}).write(tmp_path / "fp3.toml")
+    cal = SensorCalibration.from_toml(path)
+    ests = {"lf": LikelihoodFieldPF(), "beam": BeamPF(), "icp": ICPScorePF()}
+    (note,) = footprint_mismatches(ests, cal)  # beam_pf casts 3 (as fitted), icp_pf uses no calibration
+    assert note.startswith("lf casts 1 sub-ray(s) per zone side but ") and str(path) in note and "--footprint 1" in note
+    assert footprint_mismatches(ests, None) == [] and footprint_mismatches(ests, SensorCalibration(RangeUncertainty())) == []
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "likelihood_field_pf", "--trials", "1",
+                                 "--samples", "2", "--param", "n_particles=50", "--calibration", str(path)])
+    assert code == 0, err
+    assert "likelihood_field_pf casts 1 sub-ray(s) per zone side but" in " ".join(err.split())
+    code, _, err = _run(capsys, ["evaluate", str(data["log"]), "--estimators", "likelihood_field_pf,icp_pf", "--trials", "1",
+                                 "--samples", "2", "--param", "n_particles=50", "--calibration", str(path),
+                                 "--out", str(tmp_path / "ev"), "--workers", "1"])
+    assert code == 0, err
+    flat = " ".join(err.split())
+    assert "likelihood_field_pf casts 1 sub-ray(s) per zone side but" in flat and "icp_pf casts" not in flat

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import pickle
 import subprocess
 import sys
@@ -649,3 +650,16 @@ def test_run_batches_saves_and_reuses_partial_results(tmp_path: Path) -> None:
             run_batches(ctx, [reuse], [1, 2], partial_dir=tmp_path, **kwargs)
     with pytest.raises(AssertionError, match="should have been reused"):
         run_batches(ctx, [dataclasses.replace(reuse, params={"scale": 0.2})], [1, 2], 3, 4, partial_dir=tmp_path)
+
+
+def test_sample_pool_names_what_a_sample_needs_in_the_logs_own_words() -> None:
+    """A pool too small for a trial says what a usable sample needs; its configuration is
+    named after the log's ``configuration_source`` (an odometry log has no motion-capture
+    pose to be missing)."""
+    from tofloc.problem import ProblemError
+
+    log = small_log(K=4)
+    for source, words in (("mocap", "a known motion-capture pose"), ("odometry", "a known odometry configuration"),
+                          (None, "a known configuration (/samples/T_base_tip)")):
+        with pytest.raises(ProblemError, match=r"4 of 4 samples are usable \(with a valid zone, " + re.escape(words) + r"\)"):
+            sample_pool(dataclasses.replace(log, configuration_source=source), None, 5)

@@ -35,6 +35,7 @@ from tofloc.rig import DEFAULT_VALID_STATUSES
 __all__ = [
     "Reporter",
     "estimator",
+    "footprint_mismatches",
     "load_calibration",
     "simulate",
     "calibrate",
@@ -141,6 +142,27 @@ def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
     return make_estimator(ESTIMATORS.load(name), dict(params or {}), name)
 
 
+def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalibration | None) -> list[str]:
+    """One note per estimator that uses ``calibration`` but casts another footprint than
+    the one it was fitted with (its ``footprint`` metadata): the calibration's range bias
+    is then relative to another expected distance (docs/calibration.md, "Cast as the
+    estimator casts"). Empty without a calibration or without that metadata.
+
+    Parameters
+    ----------
+    estimators : mapping of str to Estimator
+        By the names the user gave them.
+    calibration : SensorCalibration or None
+    """
+    fitted = None if calibration is None else calibration.meta.get("footprint")
+    if fitted is None:
+        return []
+    return [f"{n} casts {e.calibration_footprint()} sub-ray(s) per zone side but {calibration.source} was fitted "  # type: ignore[union-attr]
+            f"with footprint {fitted}: its bias is relative to another expected distance (refit with "
+            f"`tofloc calibrate ... --footprint {e.calibration_footprint()}`; docs/calibration.md, 'Cast as the estimator casts')"
+            for n, e in estimators.items() if e.uses_calibration() and int(fitted) != int(e.calibration_footprint())]
+
+
 def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | None) -> SensorCalibration | None:
     """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None."""
     if calibration is None or isinstance(calibration, SensorCalibration):
@@ -239,7 +261,7 @@ def calibrate(
         log = _as_log(lg)
         mp = given[i if len(given) > 1 else 0] if given else resolve_calibration_map(log)
         if mp is None:
-            raise FormatError(getattr(log, "path", "<log>"), "map", "the map's file name in the root attribute `map` (or give maps)",
+            raise FormatError(getattr(log, "path", "<log>"), "map", "the map's file name in the root attribute `map` (or pass --map MAP)",
                               "no such attribute")
         if isinstance(mp, Map):
             m, name = mp, mp.source
@@ -361,6 +383,8 @@ def localize(
     check_selection(selection)
     full_params = jsonable(est.get_params())
     cal = load_calibration(calibration)
+    for message in footprint_mismatches({estimator_name: est}, cal):
+        reporter.note(message)
     lg = _as_log(log)
     if tip_source == "mocap" and lg.T_base_tip is None:
         raise FormatError(lg.path, "/samples/T_base_tip", "measured tip poses for tip source mocap "
@@ -575,13 +599,9 @@ def paper(
             footprint_cals[f], p = calibrate_for_paper(data, out_dir, scenario, seed, sub_rays=f, note=reporter.note,
                                                        stage=reporter.stage, progress=reporter.progress)
             footprint_paths[str(f)] = str(p)
-    elif cal is not None:
-        fitted = cal.meta.get("footprint")
-        for n, e in ests.items():
-            if e.uses_calibration() and fitted is not None and int(fitted) != int(e.calibration_footprint()):
-                reporter.note(f"{n} casts {e.calibration_footprint()} sub-ray(s) per zone side but {cal.source} was fitted "
-                              f"with footprint {fitted}: its bias is relative to another expected distance "
-                              "(docs/calibration.md, 'Cast as the estimator casts')")
+    else:
+        for message in footprint_mismatches(ests, cal):
+            reporter.note(message)
     k_values = ks
     pool = sample_pool(data.log, data.kinematics, max(ks))
     reporter.note(f"samples: {pool.note}")
@@ -960,6 +980,8 @@ def evaluate(
     ests = {n: estimator(n, per_est[n]) for n in names}
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
+    for message in footprint_mismatches(ests, cal):
+        reporter.note(message)
     _start_server_early(workers, scheduler)
     set_aside: dict[str, str] | None = {} if set_aside_unusable else None
     entries = prepare_logs(logs, samples=samples, seed=seed, calibration=cal, valid_statuses=valid_statuses,

@@ -98,6 +98,8 @@ def run_live(
     kin = KinematicsModel.load(kinematics_path)
     est = api.estimator(estimator, params)
     cal = api.load_calibration(calibration) if est.uses_calibration() else None
+    for message in api.footprint_mismatches({estimator: est}, cal):
+        err_console.print(f"[yellow]{message}[/]", highlight=False)
     prior = Prior(
         np.array([prior_x, prior_y, math.radians(float(prior_yaw_deg))]),  # type: ignore[arg-type]
         np.array([prior_sigma_xy, prior_sigma_xy, math.radians(prior_sigma_yaw_deg)]),

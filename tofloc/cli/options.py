@@ -14,7 +14,7 @@ __all__ = ["parse_params", "parse_statuses", "parse_samples", "require_finite", 
            "parse_region_option", "REGION_HELP"]
 
 #: ``--region``'s help, the same for every command that takes it.
-REGION_HELP = ("With --prior-mode global: the rectangle XMIN,XMAX,YMIN,YMAX (m) the base is in (default: the map's x-y "
+REGION_HELP = ("For the global prior (prior mode global): the rectangle XMIN,XMAX,YMIN,YMAX (m) the base is in (default: the map's x-y "
                "bounds); the prior is uniform over its free positions (at least 5 cm from the map's surface at the base "
                "height) and every yaw.")
 
