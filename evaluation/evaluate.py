@@ -58,6 +58,7 @@ from evaluation.log_bootstrap import log_bootstrap
 from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
 from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, sample_pool, trial_seed
 from tofloc.errors import FormatError, ParameterError
+from tofloc.problem_builder import check_configuration_uncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES
 from tofloc.problem import ProblemError
 
@@ -225,6 +226,7 @@ def prepare_logs(
                               "log's own)", "no such dataset")
         if lg.map is None:
             raise FormatError(lg.path, "map", "the map's file name in the root attribute `map`", "no such attribute")
+        check_configuration_uncertainty(lg)  # before any map is loaded or trial run
     pools: list[Any] = []
     for lg in read:
         try:

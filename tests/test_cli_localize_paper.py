@@ -530,3 +530,34 @@ def test_localize_and_evaluate_say_when_a_calibration_was_fitted_for_another_foo
     assert code == 0, err
     flat = " ".join(err.split())
     assert "likelihood_field_pf casts 1 sub-ray(s) per zone side but" in flat and "icp_pf casts" not in flat
+
+
+def test_a_log_without_stated_configuration_uncertainty_is_refused_up_front(
+        data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Log format v1: a configuration is not exact unless the log says so. A log with
+    ``/samples/T_base_tip`` but neither ``configuration_source`` nor
+    ``/samples/T_base_tip_cov`` is refused by ``localize`` (tip source mocap) and
+    ``evaluate`` before any map is loaded or trial run, in one line naming the log, both
+    fields and the fix; the k-NN tip source, which states its own uncertainty, runs."""
+    import h5py
+
+    silent = tmp_path / "silent.h5"
+    shutil.copy(data["log"], silent)
+    for name in ("paper.map.ply", "paper.cad.ply"):
+        shutil.copy(data["folder"] / name, tmp_path / name)
+    with h5py.File(silent, "a") as f:
+        del f.attrs["configuration_source"]
+        if "T_base_tip_cov" in f["samples"]:
+            del f["samples/T_base_tip_cov"]
+    runs = (["localize", str(silent), "--estimator", "icp_pf", "--trials", "1", "--samples", "2"],
+            ["evaluate", str(silent), "--estimators", "icp_pf", "--trials", "1", "--samples", "2", "--out", str(tmp_path / "ev"),
+             "--set-aside-unusable"])
+    for args in runs:
+        code, _, err = _run(capsys, args)
+        flat = " ".join(err.split())
+        assert code == 2, err
+        assert f"{silent}: /samples/T_base_tip has no stated uncertainty" in flat
+        assert "configuration_source is absent" in flat and "/samples/T_base_tip_cov" in flat and "trial" not in flat
+    code, _, err = _run(capsys, ["localize", str(silent), "--estimator", "icp_pf", "--trials", "1", "--samples", "2",
+                                 "--tip-source", "knn", "--kinematics", str(data["knn"]), "--param", "n_particles=50"])
+    assert code == 0, err

@@ -30,6 +30,7 @@ from typing import Any, ContextManager, Mapping, Sequence
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem import Estimator
+from tofloc.problem_builder import check_configuration_uncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES
 
 __all__ = [
@@ -389,6 +390,8 @@ def localize(
     if tip_source == "mocap" and lg.T_base_tip is None:
         raise FormatError(lg.path, "/samples/T_base_tip", "measured tip poses for tip source mocap "
                           "(or use tip source knn with a kinematics model)", "no such dataset")
+    if tip_source == "mocap":
+        check_configuration_uncertainty(lg)  # before the map is loaded or a trial runs
     if tip_source == "knn":
         if kinematics is None:
             raise ParameterError("tip source knn needs a kinematics model (fit one with `tofloc kinematics fit`)")

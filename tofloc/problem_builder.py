@@ -28,7 +28,7 @@ from tofloc.problem import NuisancePriors, Prior, Problem, ProblemError
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
 
-__all__ = ["STATED_EXACT_SOURCES", "TIP_SOURCES", "build_problem", "mm_to_m", "nuisance_priors", "problem_from_log"]
+__all__ = ["STATED_EXACT_SOURCES", "TIP_SOURCES", "build_problem", "check_configuration_uncertainty", "mm_to_m", "nuisance_priors", "problem_from_log"]
 
 #: Where ``T_base_tip`` comes from for a log's samples: its ``/samples/T_base_tip``
 #: (motion capture, odometry, ...) or the k-NN kinematics model fed with the pressures.
@@ -145,6 +145,29 @@ def _unstated_uncertainty(name: str, source: str | None) -> str:
             f"if that is what it is")
 
 
+def check_configuration_uncertainty(log: Any) -> None:
+    """Refuse a log whose own configurations (``/samples/T_base_tip``) have no stated
+    uncertainty: no ``/samples/T_base_tip_cov`` (or an all-NaN one) and a
+    ``configuration_source`` that is absent or not one of :data:`STATED_EXACT_SOURCES`
+    (log format v1: "a reader must not treat the configuration as exact unless told").
+    A log without configurations, or with a covariance for some sample, passes (the
+    per-sample check is :func:`problem_from_log`'s).
+
+    Raises
+    ------
+    ProblemError
+        Naming the log, both fields and what to write.
+    """
+    if getattr(log, "T_base_tip", None) is None:
+        return
+    cov = getattr(log, "T_base_tip_cov", None)
+    if cov is not None and np.isfinite(np.asarray(cov)).all(axis=(1, 2)).any():
+        return
+    source = getattr(log, "configuration_source", None)
+    if source not in STATED_EXACT_SOURCES:
+        raise ProblemError(_unstated_uncertainty(_log_name(log), source))
+
+
 def _log_name(log: Any) -> str:
     p = getattr(log, "path", None)
     return str(p) if p is not None else "<log>"
@@ -221,8 +244,8 @@ def problem_from_log(
                 raise ProblemError(f"{name}: samples {idx[~known][:5].tolist()} have no configuration covariance "
                                    f"(/samples/T_base_tip_cov is NaN) while the others do")
         source = getattr(log, "configuration_source", None)
-        if cov is None and source not in STATED_EXACT_SOURCES:
-            raise ProblemError(_unstated_uncertainty(name, source))
+        if cov is None:
+            check_configuration_uncertainty(log)
     elif tip_source == "knn":
         if kinematics is None:
             raise ParameterError("tip source knn needs a kinematics model (--kinematics MODEL)")
