@@ -354,9 +354,12 @@ class ParticleFilter(Estimator):
             return self.sensor_model
         if not isinstance(self.sensor_model, str):
             raise ParameterError(f"sensor_model must be a registered name or a SensorModel, got {type(self.sensor_model).__name__}")
+        from tofloc.param_docs import check_parameter_names
         from tofloc.registry import SENSOR_MODELS
 
         cls = SENSOR_MODELS.load(self.sensor_model)
+        check_parameter_names(cls, self.sensor_model_params, kind="sensor model", name=self.sensor_model,
+                              owner=f"sensor model {self.sensor_model!r} of estimator {self.name!r}")
         try:
             return cls(**dict(self.sensor_model_params))
         except TypeError as e:

@@ -279,18 +279,22 @@ def jsonable(value: Any) -> Any:
 
 
 def make_estimator(cls: type, params: Mapping[str, Any], name: str = "") -> Estimator:
-    """``cls(**params)``, with an unknown parameter reported as a :class:`ParameterError`."""
+    """``cls(**params)``; a parameter name it (or its sensor model) does not take is refused
+    before anything is built (:func:`tofloc.param_docs.check_parameter_names`), and any other
+    constructor ``TypeError`` is reported as a :class:`ParameterError`."""
+    from tofloc.param_docs import check_parameter_names, parameter_names
+
+    label = name or str(getattr(cls, "name", "") or cls.__name__)
+    check_parameter_names(cls, params, kind="estimator", name=label)
     try:
         est = cls(**dict(params))
     except TypeError as e:
-        import dataclasses
-
-        known = [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+        known = parameter_names(cls)
         raise ParameterError(
-            f"estimator {name or cls.__name__!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")
+            f"estimator {label!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")
         ) from None
     if not isinstance(est, Estimator):
-        raise ParameterError(f"estimator {name or cls.__name__!r} does not follow tofloc.problem.Estimator")
+        raise ParameterError(f"estimator {label!r} does not follow tofloc.problem.Estimator")
     return est
 
 

@@ -956,8 +956,8 @@ def test_config_with_an_unknown_key_is_refused_before_any_work(logs: list[Path],
     cfg.write_text("[estimators.beam_pf.sensor_model_params]\nunknown_wieght = 0.3\n")
     code, _, err = _run(capsys, ["evaluate", str(logs[0]), "--estimators", ESTS, "--trials", "1", "--config", str(cfg),
                                  "--out", str(tmp_path / "o")])
-    assert code == 2 and f"{cfg}: [estimators.beam_pf.sensor_model_params].unknown_wieght: expected a parameter of the " \
-        "sensor model beam" in err
+    assert code == 2 and f"{cfg}: [estimators.beam_pf.sensor_model_params].unknown_wieght: sensor model 'beam' of " \
+        "estimator 'beam_pf' has no parameter 'unknown_wieght' (did you mean 'unknown_weight'?); its parameters: " in err
     assert not (tmp_path / "o" / "results.json").exists() and not (tmp_path / "o" / "partial").exists()
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tofloc.cli import main
-from tofloc.errors import FormatError
+from tofloc.errors import FormatError, UnknownParameterError
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -235,10 +235,10 @@ def test_config_resolution_order_and_unknown_keys(tmp_path: Path) -> None:
     assert params == {"n_particles": 500, "roughening": 0.3, "sensor_model_params": {"temper": 0.4, "sub_rays": 2}}
     assert notes == [f"--param beam_pf: sensor_model__temper=0.4 overrides 0.5 of {p}"]
     assert resolve_params(cfg, "icp_pf", {})[0] == {"n_particles": 500, "roughening": 0.1}
-    with pytest.raises(FormatError, match=r"\[estimator\]\.n_particles.*gtsam_smoother"):
+    with pytest.raises(UnknownParameterError, match=r"\[estimator\]\.n_particles.*gtsam_smoother"):
         resolve_params(cfg, "gtsam_smoother", {})  # [estimator] goes to every estimator: it must fit each
     p.write_text("[estimators.beam_pf.sensor_model_params]\ntempr = 0.5\n")
-    with pytest.raises(FormatError, match=r"\[estimators.beam_pf.sensor_model_params\]\.tempr.*sensor model beam"):
+    with pytest.raises(UnknownParameterError, match=r"\[estimators.beam_pf.sensor_model_params\]\.tempr.*sensor model 'beam'"):
         resolve_params(read_config(p), "beam_pf", {})
     # what a run saves reads back to the same parameters
     from tofloc import api

@@ -728,6 +728,9 @@ def scenes(
     unknown = sorted(set(names) - set(builtin_scenarios()))
     if unknown:
         raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
+    per_est = _per_estimator_params(list(estimators), params, estimator_params)
+    for n in estimators:  # a bad name or parameter fails before the first scene is simulated
+        estimator(n, per_est[n])
     out_dir = Path(out)
     rows: list[dict[str, Any]] = []
     for scene in names:

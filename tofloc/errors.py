@@ -6,6 +6,8 @@ Every error caused by a user's input (a file, a parameter, a port) derives from
 
 from __future__ import annotations
 
+from typing import Sequence
+
 
 class TofLocError(Exception):
     """Base class of every error raised on bad user input."""
@@ -27,6 +29,46 @@ class FormatError(TofLocError, ValueError):
 
 class ParameterError(TofLocError, ValueError):
     """A parameter (of an estimator, a sensor model, a scenario, ...) is out of its domain."""
+
+
+class UnknownParameterError(ParameterError):
+    """A parameter name that an estimator, sensor model or other plug-in does not have.
+
+    The message is one line: where the name was given (``--param KEY``, a config file's
+    path and key; omitted when unknown), whose parameter it was meant to be, the closest
+    valid name when one is close (:func:`difflib.get_close_matches`) and every valid name.
+
+    Parameters
+    ----------
+    owner : str
+        Whose parameter, e.g. ``"estimator 'beam_pf'"`` or ``"sensor model 'beam' of estimator 'beam_pf'"``.
+    name : str
+        The unknown name, as given.
+    valid : sequence of str
+        Every parameter ``owner`` has, in its own order.
+    source : str, optional
+        Where ``name`` was given (``"--param sensor_model__tempr"``, ``"run.toml: [estimator].n_particle"``).
+    see : str, optional
+        A command that describes the valid parameters (``"tofloc list --params beam_pf"``).
+    """
+
+    def __init__(self, owner: str, name: str, valid: Sequence[str], source: str | None = None, see: str = "") -> None:
+        import difflib
+
+        self.owner = owner
+        self.name = name
+        self.valid = list(valid)
+        self.source = source
+        close = difflib.get_close_matches(name, self.valid, n=1)
+        self.suggestion: str | None = close[0] if close else None
+        msg = f"{source}: " if source else ""
+        msg += f"{owner} has no parameter {name!r}"
+        if self.suggestion is not None:
+            msg += f" (did you mean {self.suggestion!r}?)"
+        msg += f"; its parameters: {', '.join(self.valid) if self.valid else 'none'}"
+        if see:
+            msg += f" (see `{see}`)"
+        super().__init__(msg)
 
 
 class PluginError(TofLocError, LookupError):

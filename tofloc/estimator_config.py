@@ -24,12 +24,12 @@ the same kind of file (``config.toml`` in a ``paper``/``scenes``/``evaluate`` ou
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from tofloc.errors import FormatError
+from tofloc.param_docs import NESTED_SUFFIX
 
 __all__ = ["EstimatorConfig", "read_config", "resolve_params", "merge_params", "config_toml"]
 
@@ -76,8 +76,23 @@ def read_config(path: str | Path) -> EstimatorConfig:
     return EstimatorConfig({k: v for k, v in common.items()}, {n: dict(t) for n, t in per.items()}, str(p))
 
 
-def _fields(cls: type) -> list[str]:
-    return [f.name for f in dataclasses.fields(cls) if f.init] if dataclasses.is_dataclass(cls) else []
+def _record(origin: dict[tuple[str, ...], str], table: Mapping[str, Any], describe: Callable[[tuple[str, ...]], str],
+            path: tuple[str, ...] = ()) -> None:
+    """Note where each key of ``table`` (and of its nested ``*_params`` tables) was given; a
+    later table's note replaces an earlier one's, as its value does."""
+    for key, value in table.items():
+        origin[path + (key,)] = describe(path + (key,))
+        if key.endswith(NESTED_SUFFIX) and isinstance(value, Mapping):
+            _record(origin, value, describe, path + (key,))
+
+
+def _file_key(source: str, table: str) -> Callable[[tuple[str, ...]], str]:
+    """How to name a key at ``path`` inside the table ``table`` of the file ``source``:
+    ``run.toml: [estimators.beam_pf.sensor_model_params].tempr``."""
+    def describe(path: tuple[str, ...]) -> str:
+        return f"{source}: [{'.'.join((table, *path[:-1]))}].{path[-1]}"
+
+    return describe
 
 
 def merge_params(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
@@ -103,39 +118,29 @@ def resolve_params(config: EstimatorConfig | None, name: str, cli_params: Mappin
 
     Raises
     ------
-    FormatError
-        A key of the file that is not a parameter of the estimator (or of its sensor
-        model), naming the file, the table and the key.
+    tofloc.errors.UnknownParameterError
+        A name (of the file or of ``--param``) that is not a parameter of the estimator
+        (or of its sensor model, at any depth): one line naming the file and the key (or
+        the ``--param``), the estimator or sensor model, the closest valid name and every
+        valid one (:func:`tofloc.param_docs.check_parameter_names`).
+    tofloc.errors.PluginError
+        ``name`` is not a registered estimator.
     """
-    from tofloc.registry import ESTIMATORS, SENSOR_MODELS
+    from tofloc.param_docs import check_parameter_names, cli_source
+    from tofloc.registry import ESTIMATORS
 
     cli = dict(cli_params or {})
+    cls = ESTIMATORS.load(name)
+    origin: dict[tuple[str, ...], str] = {}
+    from_file: dict[str, Any] = {}
+    if config is not None:
+        for where, table in (("estimator", config.common), (f"estimators.{name}", config.per_estimator.get(name, {}))):
+            _record(origin, table, _file_key(config.source, where))
+            from_file = merge_params(from_file, table)
+    _record(origin, cli, cli_source)
+    check_parameter_names(cls, merge_params(from_file, cli), kind="estimator", name=name, source=origin.get)
     if config is None:
         return cli, []
-    cls = ESTIMATORS.load(name)
-    known = _fields(cls)
-    from_file: dict[str, Any] = {}
-    for where, table in (("estimator", config.common), (f"estimators.{name}", config.per_estimator.get(name, {}))):
-        for key in table:
-            if key not in known:
-                raise FormatError(config.source, f"[{where}].{key}",
-                                  f"a parameter of {name} ({', '.join(known)}; see `tofloc list --params {name}`)",
-                                  "an unknown key")
-        from_file = merge_params(from_file, table)
-    nested = from_file.get(_NESTED)
-    if nested:
-        model = cli.get("sensor_model", from_file.get("sensor_model"))
-        if model is None:
-            default = next((f.default for f in dataclasses.fields(cls) if f.name == "sensor_model"), None)
-            model = default if isinstance(default, str) else None
-        if isinstance(model, str) and model in SENSOR_MODELS.names():
-            mknown = _fields(SENSOR_MODELS.load(model))
-            for key in nested:
-                if key not in mknown:
-                    where = f"estimators.{name}" if _NESTED in config.per_estimator.get(name, {}) and key in \
-                        config.per_estimator[name][_NESTED] else "estimator"
-                    raise FormatError(config.source, f"[{where}.{_NESTED}].{key}",
-                                      f"a parameter of the sensor model {model} ({', '.join(mknown)})", "an unknown key")
     notes = []
     for key, value in cli.items():
         if key == _NESTED and isinstance(value, Mapping) and isinstance(from_file.get(key), Mapping):

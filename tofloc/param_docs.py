@@ -1,5 +1,6 @@
 """The parameters of an estimator or sensor model, with their defaults and meaning
-(``tofloc list --params NAME``).
+(``tofloc list --params NAME``), and the check of parameter names given to one
+(:func:`check_parameter_names`: every unknown name is refused alike, whatever gave it).
 
 Read from the class itself: its dataclass fields (name, default, annotation) and the
 numpydoc ``Parameters`` sections of the docstrings along its class hierarchy (a subclass
@@ -13,8 +14,16 @@ import dataclasses
 import inspect
 import re
 from dataclasses import dataclass
+from typing import Any, Callable, Mapping
 
-__all__ = ["ParamDoc", "parameter_docs", "numpydoc_parameters"]
+from tofloc.errors import UnknownParameterError
+
+__all__ = ["ParamDoc", "parameter_docs", "numpydoc_parameters", "parameter_names", "check_parameter_names",
+           "cli_source", "NESTED_SUFFIX"]
+
+#: A parameter ``X_params`` holds the parameters of the plug-in its sibling ``X`` names
+#: (``sensor_model_params`` of ``sensor_model``; ``--param sensor_model__KEY=VALUE``).
+NESTED_SUFFIX = "_params"
 
 _ENTRY = re.compile(r"^(?P<names>[A-Za-z_][\w]*(?:\s*,\s*[A-Za-z_][\w]*)*)\s*(?::\s*(?P<type>.*))?$")
 
@@ -106,3 +115,114 @@ def parameter_docs(cls: type) -> list[ParamDoc]:
             meaning = f"one of {typ.strip('{}')}" if typ.startswith("{") else "(not described)"
         out.append(ParamDoc(f.name, _default(f), typ or str(annotation), meaning))
     return out
+
+
+def parameter_names(cls: type) -> list[str] | None:
+    """The keyword names ``cls(...)`` takes, in order.
+
+    Parameters
+    ----------
+    cls : type
+        A dataclass (its ``init`` fields) or any class (its constructor's named parameters).
+
+    Returns
+    -------
+    list of str or None
+        None when any name is taken (a ``**kwargs`` constructor) or the signature is unknown.
+    """
+    if dataclasses.is_dataclass(cls):
+        return [f.name for f in dataclasses.fields(cls) if f.init]
+    try:
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):
+        return None
+    names = []
+    for p in signature.parameters.values():
+        if p.kind is p.VAR_KEYWORD:
+            return None
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+            names.append(p.name)
+    return names
+
+
+def _default_of(cls: type, name: str) -> Any:
+    """The default of the constructor parameter ``name`` of ``cls`` (None without one)."""
+    if dataclasses.is_dataclass(cls):
+        for f in dataclasses.fields(cls):
+            if f.name == name and f.default is not dataclasses.MISSING:
+                return f.default
+        return None
+    try:
+        p = inspect.signature(cls).parameters.get(name)
+    except (TypeError, ValueError):
+        return None
+    return None if p is None or p.default is p.empty else p.default
+
+
+def _see(kind: str, name: str) -> str:
+    """The command describing a plug-in's parameters ("" for kinds it does not list)."""
+    return f"tofloc list --params {name}" if kind in ("estimator", "sensor model") else ""
+
+
+def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, name: str,
+                          source: Callable[[tuple[str, ...]], str | None] | None = None,
+                          owner: str | None = None, _path: tuple[str, ...] = ()) -> None:
+    """Refuse a parameter name ``cls`` does not take, at any depth, before anything is built.
+
+    A parameter ``X_params`` (:data:`NESTED_SUFFIX`) whose sibling ``X`` names a plug-in of a
+    registry (:func:`tofloc.registry.registry_for`: ``sensor_model``) holds that plug-in's
+    parameters; they are checked against its class in the same way (``X`` as given in
+    ``params``, else ``cls``'s default; a plug-in given as an object is not looked into).
+    Only names are checked: values are the constructors' business.
+
+    Parameters
+    ----------
+    cls : type
+        The plug-in class the parameters are for.
+    params : mapping
+        ``{name: value}`` as ``cls(**params)`` would take them.
+    kind, name : str
+        What ``cls`` is and its registered name (``"estimator"``, ``"beam_pf"``), for the message.
+    owner : str, optional
+        Whose parameters, in words (default ``"{kind} '{name}'"``; a nested plug-in's says
+        whose it is: ``"sensor model 'beam' of estimator 'beam_pf'"``).
+    source : callable, optional
+        ``source(path)`` says where the parameter at ``path`` (its keys from the top, e.g.
+        ``("sensor_model_params", "tempr")``) was given: ``"--param sensor_model__tempr"``.
+
+    Raises
+    ------
+    UnknownParameterError
+        One line: where, whose, the unknown name, the closest valid one, every valid one.
+    tofloc.errors.PluginError
+        ``X`` names no registered plug-in while ``X_params`` is given.
+    """
+    from tofloc.registry import registry_for
+
+    owner = owner or f"{kind} {name!r}"
+    valid = parameter_names(cls)
+    if valid is not None:
+        for key in params:
+            if key not in valid:
+                where, value = _path + (key,), params[key]
+                while where[-1].endswith(NESTED_SUFFIX) and isinstance(value, Mapping) and value:
+                    leaf = next(iter(value))  # --param a__b__c names all of it, not a_params
+                    where, value = where + (leaf,), value[leaf]
+                raise UnknownParameterError(owner, key, valid, source(where) if source else None, _see(kind, name))
+    for key, value in params.items():
+        if not (key.endswith(NESTED_SUFFIX) and isinstance(value, Mapping) and value):
+            continue
+        plugin = key[: -len(NESTED_SUFFIX)]
+        registry = registry_for(plugin)
+        chosen = params[plugin] if plugin in params else _default_of(cls, plugin)
+        if registry is None or not isinstance(chosen, str):
+            continue
+        check_parameter_names(registry.load(chosen), value, kind=registry.kind, name=chosen, source=source,
+                              owner=f"{registry.kind} {chosen!r} of {owner}", _path=_path + (key,))
+
+
+def cli_source(path: tuple[str, ...]) -> str:
+    """How ``--param`` spells the parameter at ``path``: ``("sensor_model_params", "tempr")``
+    is ``--param sensor_model__tempr`` (:func:`tofloc.cli.options.parse_params`)."""
+    owners = [k[: -len(NESTED_SUFFIX)] if k.endswith(NESTED_SUFFIX) else k for k in path[:-1]]
+    return "--param " + "__".join([*owners, path[-1]])

@@ -25,7 +25,7 @@ from typing import Any, Iterator
 from tofloc.errors import PluginError
 
 __all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "get_estimator",
-           "get_sensor_model"]
+           "get_sensor_model", "registry_for"]
 
 #: pip package to install when an import of this module fails.
 _INSTALL_HINTS = {
@@ -118,9 +118,14 @@ class Registry:
             ) from None
 
     @property
-    def _kind(self) -> str:
+    def kind(self) -> str:
+        """What one plug-in is, in words (``"estimator"``, ``"sensor model"``, ``"selection policy"``)."""
         kind = self.group.split(".")[-1]
         return (kind[:-3] + "y" if kind.endswith("ies") else kind.rstrip("s")).replace("_", " ")
+
+    @property
+    def _kind(self) -> str:
+        return self.kind
 
     def load(self, name: str) -> Any:
         """Import and return the plug-in's object; :class:`PluginError` with an install hint on failure."""
@@ -228,3 +233,21 @@ def get_sensor_model(name: str) -> Any:
     return SENSOR_MODELS.load(name)
 
 
+def registry_for(parameter: str) -> Registry | None:
+    """The registry whose plug-in a parameter named ``parameter`` selects by name
+    (``"sensor_model"`` -> :data:`SENSOR_MODELS`: its ``sensor_model_params`` are that
+    plug-in's parameters), or None.
+
+    Parameters
+    ----------
+    parameter : str
+        A parameter name; it matches a registry's :attr:`Registry.kind` with ``_`` for spaces.
+
+    Returns
+    -------
+    Registry or None
+    """
+    for registry in (ESTIMATORS, SENSOR_MODELS, SELECTION_POLICIES):
+        if registry.kind.replace(" ", "_") == parameter:
+            return registry
+    return None

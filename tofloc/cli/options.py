@@ -45,12 +45,21 @@ def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
     """``["key=value", ...]`` -> dict; values are JSON when they parse (``100``, ``0.5``,
     ``true``, ``{"a": 1}``), strings otherwise. ``model__key=value`` (scikit-learn's nested
     form) sets ``key`` inside the ``model_params`` mapping (``sensor_model__temper=0.5``
-    is ``sensor_model_params={"temper": 0.5}``)."""
+    is ``sensor_model_params={"temper": 0.5}``), at any depth (``a__b__c=1`` is
+    ``a_params={"b_params": {"c": 1}}``). Names are checked against the estimators by
+    :func:`tofloc.estimator_config.resolve_params`.
+
+    Raises
+    ------
+    ParameterError
+        An item that is not ``key=value`` with identifiers, a non-finite number, or a key
+        given twice.
+    """
     out: dict[str, Any] = {}
     for item in items or ():
         key, sep, raw = item.partition("=")
         key = key.strip()
-        if not sep or not all(part.isidentifier() for part in key.split("__")) or key.count("__") > 1:
+        if not sep or not all(part.isidentifier() for part in key.split("__")):
             raise ParameterError(f"--param expects key=value (or owner__key=value) with Python identifiers, got {item!r}")
         try:
             value = json.loads(raw)
@@ -58,18 +67,16 @@ def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
             value = raw
         if isinstance(value, float) and not math.isfinite(value):
             raise ParameterError(f"--param {key}: expected a finite number, got {raw!r}")
-        if "__" in key:
-            owner, sub = key.split("__")
-            nested = out.setdefault(f"{owner}_params", {})
+        *owners, last = key.split("__")
+        table = out
+        for depth, owner in enumerate(owners):
+            nested = table.setdefault(f"{owner}_params", {})
             if not isinstance(nested, dict):
-                raise ParameterError(f"--param {key}: {owner}_params is given as a whole too")
-            if sub in nested:
-                raise ParameterError(f"--param {key} given twice")
-            nested[sub] = value
-            continue
-        if key in out:
+                raise ParameterError(f"--param {key}: {'__'.join(owners[:depth + 1])}_params is given as a whole too")
+            table = nested
+        if last in table:
             raise ParameterError(f"--param {key} given twice")
-        out[key] = value
+        table[last] = value
     return out
 
 

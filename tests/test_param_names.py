@@ -1,0 +1,108 @@
+"""Unknown parameter names: one line naming where the name was given (``--param`` or the
+config file and key), whose parameter it was meant to be (estimator or sensor model, at any
+depth of ``a__b``), the closest valid name and every valid name; refused before any file
+is read (tofloc.param_docs.check_parameter_names)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from tofloc.cli import main
+from tofloc.cli.options import estimator_params, parse_params
+from tofloc.errors import ParameterError, UnknownParameterError
+from tofloc.param_docs import parameter_names
+from tofloc.registry import get_estimator, get_sensor_model
+
+
+def _refusal(param: list[str], config: Path | None = None, names: tuple[str, ...] = ("beam_pf",)) -> str:
+    with pytest.raises(UnknownParameterError) as e:
+        estimator_params(config, list(names), param)
+    assert isinstance(e.value, ParameterError)
+    message = str(e.value)
+    assert "\n" not in message
+    return message
+
+
+def test_estimator_typo_names_the_option_the_estimator_and_the_closest_name() -> None:
+    message = _refusal(["n_particle=3"])
+    valid = ", ".join(parameter_names(get_estimator("beam_pf")) or [])
+    assert message == (f"--param n_particle: estimator 'beam_pf' has no parameter 'n_particle' (did you mean "
+                       f"'n_particles'?); its parameters: {valid} (see `tofloc list --params beam_pf`)")
+    # the Python API says the same, without the option it did not come from
+    from tofloc import api
+
+    with pytest.raises(UnknownParameterError, match=r"^estimator 'beam_pf' has no parameter 'n_particle' "
+                                                    r"\(did you mean 'n_particles'\?\); its parameters: sensor_model, "):
+        api.estimator("beam_pf", {"n_particle": 3})
+
+
+def test_sensor_model_typo_names_the_model_its_estimator_the_closest_name_and_the_list() -> None:
+    message = _refusal(["n_particles=50", "sensor_model__tempr=0.5"])
+    valid = parameter_names(get_sensor_model("beam")) or []
+    assert "temper" in valid and len(valid) > 3
+    assert message == (f"--param sensor_model__tempr: sensor model 'beam' of estimator 'beam_pf' has no parameter "
+                       f"'tempr' (did you mean 'temper'?); its parameters: {', '.join(valid)} "
+                       f"(see `tofloc list --params beam`)")
+    # the sensor model another --param chose is the one checked
+    assert "sensor model 'likelihood_field' of estimator 'beam_pf'" in _refusal(
+        ["sensor_model=likelihood_field", "sensor_model__tempr=0.5"])
+    # built directly, the particle filter refuses it the same way
+    with pytest.raises(UnknownParameterError, match=r"^sensor model 'beam' of estimator 'beam_pf' has no parameter "
+                                                    r"'tempr' \(did you mean 'temper'\?\); its parameters: mixture, "):
+        get_estimator("beam_pf")(sensor_model_params={"tempr": 0.5})
+
+
+def test_a_name_with_no_close_match_gets_the_list_but_no_guess() -> None:
+    message = _refusal(["sensor_model__zzz=1"])
+    assert "has no parameter 'zzz'; its parameters: " in message and "did you mean" not in message
+    message = _refusal(["qqqq=1"], names=("icp_pf", "beam_pf"))
+    assert message.startswith("--param qqqq: estimator 'icp_pf' has no parameter 'qqqq'; its parameters: ")
+
+
+def test_any_depth_of_double_underscores() -> None:
+    assert parse_params(["a__b__c=1", "a__b__d=x", "a__e=2"]) == {"a_params": {"b_params": {"c": 1, "d": "x"}, "e": 2}}
+    with pytest.raises(ParameterError, match="given twice"):
+        parse_params(["a__b__c=1", "a__b__c=2"])
+    message = _refusal(["sensor_model__hit_dof__x=1"])
+    assert message.startswith("--param sensor_model__hit_dof__x: sensor model 'beam' of estimator 'beam_pf' has no "
+                              "parameter 'hit_dof_params' (did you mean 'hit_dof'?); its parameters: ")
+
+
+def test_config_file_typo_names_the_file_and_the_key(tmp_path: Path) -> None:
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("[estimators.beam_pf.sensor_model_params]\ntempr = 0.5\n")
+    message = _refusal([], cfg)
+    assert message.startswith(f"{cfg}: [estimators.beam_pf.sensor_model_params].tempr: sensor model 'beam' of "
+                              "estimator 'beam_pf' has no parameter 'tempr' (did you mean 'temper'?); its parameters: ")
+    cfg.write_text("[estimator]\nroughening = 0.2\nn_particle = 5\n")
+    message = _refusal(["roughening=0.3"], cfg)
+    assert message.startswith(f"{cfg}: [estimator].n_particle: estimator 'beam_pf' has no parameter 'n_particle' "
+                              "(did you mean 'n_particles'?); its parameters: ")
+    cfg.write_text("[estimators.beam_pf]\nsensor_model = 'likelihood_field'\n")  # the file's model, --param's key
+    assert _refusal(["sensor_model__tempr=1"], cfg).startswith(
+        "--param sensor_model__tempr: sensor model 'likelihood_field' of estimator 'beam_pf' has no parameter 'tempr'")
+
+
+@pytest.mark.parametrize("command", [
+    ["localize", "{tmp}/no-such.h5", "--estimator", "beam_pf"],
+    ["evaluate", "{tmp}/no-such.h5", "--estimators", "beam_pf", "--out", "{tmp}/e"],
+    ["paper", "--estimators", "beam_pf", "--out", "{tmp}/p"],
+    ["scenes", "--estimators", "beam_pf", "--out", "{tmp}/s"],
+])
+def test_cli_refuses_before_reading_anything_with_one_line_and_code_2(
+        command: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The log does not exist and no scene is simulated: the parameter is refused first."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in command] + ["--param", "sensor_model__tempr=0.5"]
+    t0 = time.perf_counter()
+    code = main(argv)
+    elapsed = time.perf_counter() - t0
+    out, err = capsys.readouterr()
+    assert code == 2
+    assert err.startswith("error: --param sensor_model__tempr: sensor model ")
+    assert "has no parameter 'tempr' (did you mean 'temper'?); its parameters: " in err
+    assert err.count("\n") == 1 and out == ""
+    assert not any(tmp_path.iterdir())  # no output folder, nothing written
+    assert elapsed < 5.0  # the estimator classes are imported, nothing else runs (about 0.2 s warm)
