@@ -1,8 +1,9 @@
 """The data of the paper's experiment run (``tofloc paper``): the log, its map, the k-NN
 kinematics and the calibration, made or reused in one output folder.
 
-* :func:`prepare_data`: simulate ``DIR/paper.h5`` (any scenario of the library) unless it
-  exists, attach the CAD mesh for ray casts, fit or reuse ``DIR/knn.npz``;
+* :func:`prepare_data`: simulate ``DIR/<scenario>.h5`` (:func:`log_name`: ``paper.h5`` for
+  the paper's scenario, ``pillars.h5`` for the pillars, ...) unless it exists, attach the
+  CAD mesh for ray casts, fit or reuse ``DIR/knn.npz``;
 * :func:`calibrate_for_paper`: a calibration of the same set-up (a simulated *calibration
   session*, or a real log's k-NN training split), written to ``DIR/sensor_model.toml``
   and reused by a rerun whose inputs are the same (the file records their key).
@@ -10,6 +11,7 @@ kinematics and the calibration, made or reused in one output folder.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, ContextManager
@@ -19,9 +21,12 @@ import numpy as np
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
 
-__all__ = ["PaperData", "prepare_data", "calibrate_for_paper", "calibration_session", "LOG_NAME", "KNN_NAME",
+__all__ = ["PaperData", "prepare_data", "calibrate_for_paper", "calibration_session", "LOG_NAME", "log_name",
+           "experiment_log_path", "KNN_NAME",
            "CALIBRATION_NAME", "calibration_name", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET", "KNN_STREAM"]
 
+#: The log of the paper's scenario; before logs were named after their scenario, every
+#: scene's log had this name (such a folder is still reused: :func:`experiment_log_path`).
 LOG_NAME = "paper.h5"
 KNN_NAME = "knn.npz"
 CALIBRATION_NAME = "sensor_model.toml"
@@ -78,12 +83,93 @@ def _rig_variant(source: str) -> str | None:
     return None
 
 
+#: File names of a run folder that a scenario's log must not take.
+_RESERVED_STEMS = frozenset({"calibration-session", "knn", "sensor_model", "results", "scenes", "config", "table"})
+
+
+def log_name(scenario_name: str) -> str:
+    """The experiment log's file name in a run folder: the scenario's name, ``.h5``.
+
+    Parameters
+    ----------
+    scenario_name : str
+        The scenario's ``[scenario] name`` (``"paper"``, ``"pillars"``, ...).
+
+    Returns
+    -------
+    str
+        ``"<name>.h5"`` (``"paper.h5"`` for the paper's scenario); characters other than
+        letters, digits, ``_``, ``-`` and ``.`` become ``_``, and a name that a run's other
+        files use (``calibration-session``, ``knn``, ...) gets the prefix ``scene-``.
+    """
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", scenario_name).strip("._") or "scene"
+    if stem in _RESERVED_STEMS or stem.startswith("sensor_model"):
+        stem = f"scene-{stem}"
+    return f"{stem}.h5"
+
+
+def _other_scene_log(out: Path, scenario_name: str) -> Path | None:
+    """A log in ``out`` named after another scene of the library (``out`` holds another
+    scene's run), or None."""
+    from tofloc.simulation import builtin_scenarios
+
+    for other in builtin_scenarios():
+        path = out / log_name(other)
+        if other != scenario_name and path.name != LOG_NAME and path.exists():
+            return path
+    return None
+
+
+def experiment_log_path(out: Path, scenario_name: str) -> Path:
+    """The experiment log of scenario ``scenario_name`` in the run folder ``out``.
+
+    Parameters
+    ----------
+    out : Path
+        The run folder (``tofloc paper --out``, or a scene's sub-folder of ``tofloc scenes``).
+    scenario_name : str
+        The scenario's name.
+
+    Returns
+    -------
+    Path
+        ``out/<scenario>.h5`` (:func:`log_name`) when it exists or when nothing else holds
+        the log; ``out/paper.h5`` when only that exists: a folder written before logs were
+        named after their scenario is reused as it is (its log names its map
+        ``paper.map.ply``, and its k-NN model, calibration and finished batches were made
+        from it), and :func:`prepare_data` refuses it if it was simulated from another
+        scenario.
+
+    Raises
+    ------
+    ParameterError
+        When ``out`` holds neither but another library scene's log (``out/pillars.h5``
+        for a run of the paper's scenario, ...): the folder is another scene's run.
+    """
+    own = out / log_name(scenario_name)
+    if own.exists():
+        return own
+    legacy = out / LOG_NAME
+    if legacy.exists():
+        return legacy
+    other = _other_scene_log(out, scenario_name)
+    if other is not None:
+        raise ParameterError(
+            f"{other} is the log of scene {other.stem!r}: {out} holds that scene's run, not one of "
+            f"{scenario_name!r} (its log would be {own.name}); use another --out or delete the folder"
+        )
+    return own
+
+
 def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, rig_variant: str | None = None,
                  stage: Stage = _no_stage) -> PaperData:
-    """Simulate ``out/paper.h5`` unless it exists, and fit (or reuse) ``out/knn.npz``.
+    """Simulate ``out/<scenario>.h5`` (:func:`log_name`; its maps ``<scenario>.map.ply`` and
+    ``<scenario>.cad.ply`` beside it) unless it exists, and fit (or reuse) ``out/knn.npz``.
 
-    An existing ``paper.h5`` is used as it is, whoever made it (a real log conforming to
-    log format v1 works too); one simulated from another scenario is refused. An existing
+    An existing log is used as it is, whoever made it (a real log conforming to log format
+    v1 works too); one simulated from another scenario is refused. A folder written before
+    logs were named after their scenario (``paper.h5`` whatever the scene) is reused as it
+    is (:func:`experiment_log_path`). An existing
     ``knn.npz`` is reused only if it was fit on this log. With ``surface`` and a CAD mesh
     ``<stem>.cad.ply`` beside the map (the simulator writes one), the map gets it as its
     surface (:meth:`tofloc.maps.Map.with_surface`): the ray-casting models cast against the
@@ -97,8 +183,8 @@ def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, r
     from tofloc.simulation import load_scenario, simulate, write_simulation
 
     notes: list[str] = []
-    log_path = out / LOG_NAME
     sc = load_scenario(scenario)
+    log_path = experiment_log_path(out, sc.scenario.name)
     if log_path.exists():
         log = read_log(log_path)
         src = log.source
@@ -115,6 +201,10 @@ def prepare_data(out: Path, scenario: str, seed: int, surface: bool = True, *, r
                     f"{rig_variant or 'as written'!r}: use another --out or delete the file"
                 )
         notes.append(f"reused {log_path} ({src})")
+        if log_path.name != log_name(sc.scenario.name):
+            notes.append(f"{log_path.name} kept its name from before logs were named after their scenario "
+                         f"(a new folder gets {log_name(sc.scenario.name)}); this folder's k-NN model, calibration "
+                         "and finished batches stay valid")
     else:
         out.mkdir(parents=True, exist_ok=True)
         with stage(f"simulating scenario {sc.scenario.name!r} (seed {seed}) into {log_path}"):
@@ -187,7 +277,8 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
     if cal_path.exists():
         src = read_log(cal_path).source
         if _hardware_seed(src) != hw or _rig_variant(src) != rig_variant:
-            note(f"{cal_path.name} records another set-up than {LOG_NAME} (hardware seed, rig variant): simulating it again")
+            note(f"{cal_path.name} records another set-up than the experiment's log (hardware seed, rig variant): "
+                 "simulating it again")
             cal_path.unlink()
     if not cal_path.exists():
         with stage(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "

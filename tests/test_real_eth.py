@@ -6,6 +6,7 @@ The figures asserted here are reported in docs/real-data.md (``python -m tofloc.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,8 @@ from tofloc.io.eth_matrix import (
 from tofloc.rig import RawOrder, Sensor
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-ETH = SHARED / "datasets" / "eth_matrix_tof_drones"
+#: The data beside the checkout, or where TOFLOC_ETH_DATA says (a checkout elsewhere, e.g. a git worktree).
+ETH = Path(os.environ.get("TOFLOC_ETH_DATA") or SHARED / "datasets" / "eth_matrix_tof_drones")
 needs_data = pytest.mark.skipif(not (ETH / "Rotate" / "R0" / "state_ToF.csv").exists(), reason=f"ETH Matrix_ToF_Drones data not found at {ETH}")
 
 
@@ -256,3 +258,55 @@ def test_the_check_finds_the_runs_of_any_copy_of_the_data_set(tmp_path: Path) ->
         with pytest.raises(ParameterError) as info:
             find_runs(folder)
         assert str(info.value).startswith(f"{folder}: {frag}")
+
+
+def test_the_check_answers_help_and_usage_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--help`` is help, not a folder named '--help' (exit 0, naming the argument, the
+    options and the exit codes); no argument or an unknown option is a usage error (2)."""
+    from tofloc.io.eth_check import main
+
+    assert main(["--help"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "usage: python -m tofloc.io.eth_check" in out and "DATASET" in out and "Matrix_ToF_Drones" in out
+    assert "--json FILE" in out and "--run GROUP/RUN" in out and "Exit codes: 0" in out and "2 bad input" in out
+    assert "not a folder" not in out
+    assert main([]) == 2 and "the following arguments are required: DATASET" in capsys.readouterr().err
+    assert main([str(ETH), "--sideways"]) == 2 and "unrecognized arguments: --sideways" in capsys.readouterr().err
+
+
+def test_the_check_refuses_an_unwritable_json_file_before_the_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tofloc.io.eth_check import main
+
+    (tmp_path / "a_folder").mkdir()
+    assert main([str(tmp_path), "--json", str(tmp_path / "a_folder")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "a_folder" in err and "not a folder" not in err  # the --json file, not DATASET
+
+
+@needs_data
+def test_the_check_summarizes_on_stderr_and_keeps_the_json_on_stdout(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """The JSON on stdout is :func:`report`'s, unchanged; stderr says in a few lines what was
+    checked and the headline figures, read from the same document; ``--json FILE`` writes the
+    same document there instead of stdout."""
+    from tofloc.io.eth_check import main, report
+
+    runs = ["Approach/A0", "Rotate/R1"]
+    assert main([str(ETH), "--run", runs[0], "--run", runs[1]]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert doc == json.loads(json.dumps(report(ETH, runs=runs)))
+    lines = err.splitlines()
+    assert 4 <= len(lines) <= 10, err
+    assert lines[0] == f"eth_check {ETH}: 2 run(s) checked, 0 skipped"
+    a = doc["all"]
+    assert f"median |e| {a['median_abs_mm']:.1f} mm" in err and f"{a['n']} valid zones of {a['zones']}" in err
+    for name in runs:
+        assert f"{name} {doc['per_run'][name]['median_abs_mm']:.1f} mm" in err
+    assert "zone order identity: agrees on" in err and "the best of 8" in err
+    assert f"Rotate/R1 r = {doc['edges']['Rotate/R1']['r']:.2f}" in err
+    assert "latency (Approach runs): median |e| lowest at" in err
+    target = tmp_path / "report.json"
+    assert main([str(ETH), "--run", runs[1], "--json", str(target)]) == 0
+    out, err = capsys.readouterr()
+    assert out == "" and f"wrote {target}" in err and json.loads(target.read_text())["runs"] == [runs[1]]

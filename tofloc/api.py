@@ -712,7 +712,10 @@ def scenes(
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
-    the table of mean errors against the mean sqrt(CRLB) of the same trials.
+    the table of mean errors against the mean sqrt(CRLB) of the same trials. Each scene's
+    log and maps are named after it (``out/pillars-exact/pillars.h5``, ``pillars.map.ply``,
+    ``pillars.cad.ply``; a folder from before, holding ``paper.h5``, is reused as it is:
+    :func:`evaluation.paper_data.experiment_log_path`).
 
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
     tips, offset prior, 20 trials; every estimator with its default parameters

@@ -1,6 +1,7 @@
 """``tofloc paper``: the paper's whole experiment (Table I and Fig. 4) in one command.
 
-simulate (unless ``DIR/paper.h5`` exists; ``--scenario`` picks any scene of the library)
+simulate (unless ``DIR/<scenario>.h5`` exists: ``DIR/paper.h5`` for the paper's scenario;
+``--scenario`` picks any scene of the library; :func:`evaluation.paper_data.experiment_log_path`)
 -> fit the k-NN kinematics (``DIR/knn.npz``) -> calibrate the sensor model on a
 calibration session of the same set-up (``DIR/sensor_model.toml``, reused when its inputs
 are unchanged) -> the trial protocol for every estimator, both tip sources and both prior

@@ -38,7 +38,7 @@ def scenes(
         help=escape("Estimator parameters from a TOML file ([estimator], [estimators.NAME]; as `tofloc paper`); "
                     "saved as DIR/config.toml.")),
     calibrate: Optional[bool] = typer.Option(None, "--calibrate/--no-calibrate", help="As `tofloc paper`."),
-    out: Path = typer.Option(Path("scenes-results"), "--out", help="Output folder (one sub-folder per scene)."),
+    out: Path = typer.Option(Path("scenes-results"), "--out", help="Output folder: one sub-folder per scene, DIR/SCENE-VARIANT/, its log SCENE.h5 and maps SCENE.map.ply, SCENE.cad.ply."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
 ) -> None:

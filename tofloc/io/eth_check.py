@@ -12,7 +12,8 @@ VL53L5CX should report, and compares with what it reported:
   edge) against the column the yaw predicts: correlation and slopes.
 
 The numbers quoted in ``docs/real-data.md`` come from :func:`report`
-(``python -m tofloc.io.eth_check /path/to/eth_matrix_tof_drones``). It checks every run it
+(``python -m tofloc.io.eth_check /path/to/eth_matrix_tof_drones``: the JSON on stdout or in
+``--json FILE``, :func:`summary_lines` on stderr; ``--help``). It checks every run it
 finds (:func:`find_runs`: each ``GROUP/RUN`` folder with the two CSV files), so a copy of the
 data set with other runs (recordings kept out of development) is checked the same way: the
 Rotate runs (a group whose name starts with ``Rotate``) also for their edge tracking, the
@@ -21,6 +22,7 @@ Approach runs for the latency.
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import json
 import sys
@@ -47,6 +49,8 @@ __all__ = [
     "edge_tracking",
     "latency_scan",
     "report",
+    "summary_lines",
+    "main",
     "RUNS",
     "find_runs",
 ]
@@ -327,23 +331,170 @@ def report(dataset: str | Path, runs: Sequence[str] | None = None) -> dict[str, 
     }
 
 
+#: What ``--help`` says the check does (the module's summary, for the command line).
+_DESCRIPTION = (
+    "Check the VL53L5CX sensor model on ETH's Matrix_ToF_Drones recordings: predict, from the Vicon poses "
+    "alone (drone, panel, the stated mounting), what each zone should read and compare with what it read. "
+    "Reports the panel errors (overall, by range, per run), the score of each of the 8 possible zone orders, "
+    "the panel edge's tracking in the Rotate runs and the latency scan of the Approach runs. Every GROUP/RUN "
+    "folder holding state_ToF.csv and state_Vicon.csv is checked; a run that cannot be used is skipped with "
+    "its reason."
+)
+_EPILOG = (
+    "Output: the full report as JSON on stdout (or in --json FILE), a short summary on stderr (runs checked "
+    "and skipped, the panel error overall and per run, the chosen zone order's score, edge tracking, best "
+    "latency). Exit codes: 0 the report was made; 2 bad input (no such folder, no usable run, a bad option, "
+    "an unwritable --json file). docs/real-data.md explains every figure."
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line of :func:`main`."""
+    parser = argparse.ArgumentParser(prog="python -m tofloc.io.eth_check", description=_DESCRIPTION, epilog=_EPILOG)
+    parser.add_argument("dataset", metavar="DATASET",
+                        help="root folder of a copy of ETH's Matrix_ToF_Drones data set, holding GROUP/RUN/state_ToF.csv "
+                             "and GROUP/RUN/state_Vicon.csv (e.g. /work/shared/datasets/eth_matrix_tof_drones)")
+    parser.add_argument("--run", action="append", metavar="GROUP/RUN", dest="runs",
+                        help="check only this run (repeatable; default: every run found)")
+    parser.add_argument("--json", metavar="FILE", type=Path, dest="json_path",
+                        help="write the JSON report to FILE instead of stdout")
+    return parser
+
+
+def _mm(value: float | None) -> str:
+    """A distance in mm for the summary; ``n/a`` for None."""
+    return "n/a" if value is None else f"{value:.1f} mm"
+
+
+def _order_name(order: dict[str, bool]) -> str:
+    """A zone order for the summary: its flips and transpose, or ``identity``."""
+    parts = [key for key in ("transpose", "flip_rows", "flip_cols") if order.get(key)]
+    return "+".join(parts) if parts else "identity"
+
+
+def _order_line(doc: dict[str, Any]) -> str:
+    """The chosen zone order's agreement, and whether it explains the panel best of the 8."""
+    scores = doc["orders"]
+    chosen = next((o for o in scores if o["order"] == doc["chosen_order"]), None)
+    if chosen is None:
+        return f"zone order {_order_name(doc['chosen_order'])}: not scored"
+    others = [o for o in scores if o is not chosen]
+    runner = max(others, key=lambda o: o["panel"]) if others else None
+    if runner is None:
+        verdict = "the only order scored"
+    elif chosen["panel"] >= runner["panel"]:
+        verdict = f"the best of {len(scores)} (next: {_order_name(runner['order'])}, {100 * runner['panel']:.0f} %)"
+    else:
+        verdict = f"NOT the best of {len(scores)}: {_order_name(runner['order'])} agrees on {100 * runner['panel']:.0f} %"
+    return (f"zone order {_order_name(doc['chosen_order'])}: agrees on {100 * chosen['panel']:.0f} % of the panel zones "
+            f"({100 * chosen['floor']:.0f} % of the floor zones), {verdict}")
+
+
+def _wrap_items(head: str, items: Sequence[str], width: int = 100) -> list[str]:
+    """``head`` then ``items`` joined by commas, wrapped at ``width`` between items only."""
+    lines, line = [], head
+    for i, item in enumerate(items):
+        piece = item + ("," if i < len(items) - 1 else "")
+        if line != head and len(line) + 1 + len(piece) > width:
+            lines.append(line)
+            line = "  " + piece
+        else:
+            line = f"{line} {piece}"
+    lines.append(line)
+    return lines
+
+
+def summary_lines(doc: dict[str, Any], dataset: str | Path) -> list[str]:
+    """A few human-readable lines on a :func:`report` document: runs checked and skipped
+    (with why), the panel error overall and per run, the chosen zone order's score, the
+    edge tracking of the Rotate runs and the best latency of the Approach runs.
+
+    Parameters
+    ----------
+    doc : dict
+        The document :func:`report` returns.
+    dataset : str or Path
+        The folder it was made from (named in the first line).
+
+    Returns
+    -------
+    list of str
+        The lines, without newlines.
+    """
+    a = doc["all"]
+    lines = [f"eth_check {dataset}: {len(doc['runs'])} run(s) checked, {len(doc['skipped'])} skipped"]
+    lines += [f"skipped {name}: {why}" for name, why in doc["skipped"].items()]
+    bias = "n/a" if a["bias_mm"] is None else f"{a['bias_mm']:+.1f} mm"
+    lines.append(f"panel error (measured - predicted, {a['n']} valid zones of {a['zones']} on the panel at "
+                 f"{RANGE_M[0]}-{RANGE_M[1]} m): median |e| {_mm(a['median_abs_mm'])}, p90 |e| {_mm(a['p90_abs_mm'])}, "
+                 f"median e {bias}")
+    lines += _wrap_items("median |e| per run:", [f"{name} {_mm(r['median_abs_mm'])}" for name, r in doc["per_run"].items()])
+    lines.append(_order_line(doc))
+    edges = [f"{name} r = {e['r']:.2f}" if e["r"] is not None else f"{name} n/a" for name, e in doc["edges"].items()]
+    if edges:
+        lines.append(f"panel edge vs yaw (Rotate runs): {', '.join(edges)}")
+    if doc["latency_approach"]:
+        lat, med = min(doc["latency_approach"], key=lambda row: row[1])
+        lines.append(f"latency (Approach runs): median |e| lowest at {lat:.3f} s ({_mm(med)})")
+    return lines
+
+
+def _write_json(text: str, path: Path | None) -> None:
+    """``text`` on stdout, or atomically to ``path`` (checked beforehand by :func:`main`).
+
+    Raises
+    ------
+    ParameterError
+        ``path`` cannot be written (naming it and why).
+    """
+    if path is None:
+        print(text)
+        return
+    from tofloc.atomic import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+    except OSError as e:
+        raise ParameterError(f"--json {path}: cannot write the JSON report ({e.strerror or e})") from None
+
+
 def main(argv: Sequence[str]) -> int:
-    """``python -m tofloc.io.eth_check DATASET``: :func:`report` as JSON on stdout, every
-    skipped run on stderr; bad input is one line on stderr and exit code 2."""
+    """``python -m tofloc.io.eth_check DATASET [--run GROUP/RUN ...] [--json FILE]``:
+    :func:`report` as JSON on stdout (or in ``FILE``) and :func:`summary_lines` on stderr.
+
+    Parameters
+    ----------
+    argv : sequence of str
+        The arguments (``sys.argv[1:]``); ``--help`` prints the usage.
+
+    Returns
+    -------
+    int
+        0 when the report was made (or for ``--help``); 2 on bad input: a bad option, a
+        folder that is not a copy of the data set or holds no usable run (one line on
+        stderr), a ``--json`` file that cannot be written.
+    """
     from tofloc.errors import TofLocError
 
-    if len(argv) != 1:
-        print("usage: python -m tofloc.io.eth_check DATASET (a copy of ETH's Matrix_ToF_Drones data: GROUP/RUN/state_ToF.csv)",
-              file=sys.stderr)
-        return 2
     try:
-        doc = report(argv[0])
+        args = _parser().parse_args(list(argv))
+    except SystemExit as e:  # --help (0) or a usage error (2), already printed by argparse
+        return 0 if e.code in (0, None) else 2
+    try:
+        if args.json_path is not None:
+            from tofloc.atomic import check_output_path
+
+            check_output_path(args.json_path, kind="file", option="--json")  # before the work
+        doc = report(args.dataset, runs=args.runs)
+        _write_json(json.dumps(doc, indent=1), args.json_path)
     except TofLocError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    for name, why in doc["skipped"].items():
-        print(f"skipped {name}: {why}", file=sys.stderr)
-    print(json.dumps(doc, indent=1))
+    for line in summary_lines(doc, args.dataset):
+        print(line, file=sys.stderr)
+    if args.json_path is not None:
+        print(f"wrote {args.json_path}", file=sys.stderr)
     return 0
 
 
