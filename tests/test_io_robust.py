@@ -32,7 +32,8 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert main(["simulate", "--out", str(d / "paper.h5"), "--seed", "5"]) == 0
     sim = read_log(d / "paper.h5").subset(slice(0, 60))
     slow = Log.from_arrays(sim.rig, np.arange(60) / 10.0, sim.distance_mm, sim.status, sigma_mm=sim.sigma_mm,
-                           pressure_kpa=sim.pressure_kpa, T_base_tip=sim.T_base_tip, T_map_base=sim.T_map_base)
+                           pressure_kpa=sim.pressure_kpa, T_base_tip=sim.T_base_tip, T_map_base=sim.T_map_base,
+                           T_base_tip_cov=sim.T_base_tip_cov, configuration_source=sim.configuration_source)
     return write_log(slow, d / "slow60.h5")
 
 
