@@ -90,8 +90,8 @@ class SmootherGraph:
         self.clock = CallbackClock()
         self.association_s = 0.0
         self.solve_s = 0.0
-        #: the solves' time outside their own association rounds and callbacks (an
-        #: association or an evaluation outside a solve, such as a refit's, is not in it)
+        #: the solves' time outside their own association rounds and callbacks (a callback
+        #: outside a solve, such as the covariance's linearization, is not taken from it)
         self.gtsam_s = 0.0
 
     # -- pieces ----------------------------------------------------------------------------------
@@ -219,8 +219,8 @@ class SmootherGraph:
         """Add a solve begun at ``t0`` (``perf_counter``) to :meth:`timing`: its wall time
         to ``solve_s`` and, to ``gtsam_s``, that time less the association and callback
         time spent inside it (``association_s`` and ``callback_s``: their totals at ``t0``).
-        Subtracting the graph's whole association time instead let an association outside
-        the solves (a refit's) push GTSAM's share to zero."""
+        Subtracting the graph's whole association and callback time instead let callbacks
+        outside the solves push GTSAM's share to zero on a loaded machine."""
         dt = time.perf_counter() - t0
         self.solve_s += dt
         self.gtsam_s += dt - (self.association_s - association_s) - (self.clock.seconds - callback_s)
