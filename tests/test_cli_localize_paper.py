@@ -561,3 +561,8 @@ def test_a_log_without_stated_configuration_uncertainty_is_refused_up_front(
     code, _, err = _run(capsys, ["localize", str(silent), "--estimator", "icp_pf", "--trials", "1", "--samples", "2",
                                  "--tip-source", "knn", "--kinematics", str(data["knn"]), "--param", "n_particles=50"])
     assert code == 0, err
+    # tofloc info says so beforehand; a log that states its source does not get the row
+    for path, said in ((silent, True), (data["log"], False)):
+        code, out, err = _run(capsys, ["info", str(path)])
+        assert code == 0, err
+        assert ("configuration uncertainty" in out and "refuse this log" in " ".join(out.split())) is said, out

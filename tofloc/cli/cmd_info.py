@@ -9,6 +9,8 @@ import typer
 from rich.table import Table
 
 from tofloc.cli.app import app, console
+from tofloc.problem import ProblemError
+from tofloc.problem_builder import check_configuration_uncertainty
 
 
 _CHECKSUM_TEXT = {
@@ -62,6 +64,11 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
         known = int(np.isfinite(log.T_base_tip[:, 0, 0]).sum())
         src = f", from {log.configuration_source}" if log.configuration_source else ", source not stated"
         t.add_row("configuration T_base_tip", f"{known} of {log.n_samples} samples{src}")
+        try:
+            check_configuration_uncertainty(log)
+        except ProblemError:
+            t.add_row("configuration uncertainty", "not stated (no covariance; the source does not state it): "
+                      "localize --tip-source mocap and evaluate refuse this log (docs/log-format.md)")
     else:
         t.add_row("configuration T_base_tip", "absent")
     if log.T_base_tip_cov is not None:
