@@ -566,3 +566,20 @@ def test_a_log_without_stated_configuration_uncertainty_is_refused_up_front(
         code, out, err = _run(capsys, ["info", str(path)])
         assert code == 0, err
         assert ("configuration uncertainty" in out and "refuse this log" in " ".join(out.split())) is said, out
+
+
+def test_a_calibration_footprint_that_is_not_an_integer_is_refused(tmp_path: Path) -> None:
+    """``[calibration].footprint`` is read by every command that compares it with the
+    estimator's footprint: a value that is not an integer in [1, 9] is refused naming the
+    file and key (it crashed localize with a ValueError, or was truncated: 2.5 -> 2)."""
+    from tofloc.calibration_file import SensorCalibration
+    from tofloc.errors import FormatError
+    from tofloc.range_model import RangeUncertainty
+
+    good = SensorCalibration(RangeUncertainty(), meta={"footprint": 3}).write(tmp_path / "good.toml")
+    assert SensorCalibration.from_toml(good).meta["footprint"] == 3
+    for bad in ('"1x1"', "2.5", "0", "true"):
+        path = tmp_path / "bad.toml"
+        path.write_text(good.read_text().replace("footprint = 3", f"footprint = {bad}"))
+        with pytest.raises(FormatError, match=r"\[calibration\]\.footprint: expected an integer in \[1, 9\]"):
+            SensorCalibration.from_toml(path)

@@ -6,6 +6,7 @@ is read (tofloc.param_docs.check_parameter_names)."""
 from __future__ import annotations
 
 import time
+from dataclasses import InitVar, dataclass  # at module level: the string annotation InitVar[...] is resolved here
 from pathlib import Path
 
 import pytest
@@ -106,3 +107,29 @@ def test_cli_refuses_before_reading_anything_with_one_line_and_code_2(
     assert err.count("\n") == 1 and out == ""
     assert not any(tmp_path.iterdir())  # no output folder, nothing written
     assert elapsed < 5.0  # the estimator classes are imported, nothing else runs (about 0.2 s warm)
+
+
+def test_names_come_from_the_constructor_a_plugin_really_has() -> None:
+    """A plug-in's accepted names are its constructor's: a dataclass's ``InitVar`` and a
+    class's own ``__init__`` count (they were refused when the names came from the
+    dataclass fields), and a ``**kwargs`` constructor is not checked."""
+    from estimators.particle_filter import ICPScorePF
+    from evaluation.trials import make_estimator
+
+    @dataclass(frozen=True, eq=False)
+    class ScaledPF(ICPScorePF):
+        scale: InitVar[float] = 1.0
+
+        def __post_init__(self, scale: float) -> None:
+            super().__post_init__()
+
+    class Budgeted(ICPScorePF):
+        def __init__(self, budget: int = 100, **kw: object) -> None:
+            super().__init__(**kw)
+
+    assert "scale" in (parameter_names(ScaledPF) or [])
+    assert isinstance(make_estimator(ScaledPF, {"scale": 2.0}), ScaledPF)
+    assert parameter_names(Budgeted) is None  # **kw: any name may be meant
+    assert isinstance(make_estimator(Budgeted, {"budget": 5}), Budgeted)
+    with pytest.raises(UnknownParameterError, match="did you mean 'scale'"):
+        make_estimator(ScaledPF, {"scal": 2.0})

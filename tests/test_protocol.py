@@ -20,7 +20,7 @@ from evaluation.executors import run_tasks
 from evaluation.priors import PriorSpec, base_pose_parts
 from evaluation.result_cache import Batch, run_batches
 from evaluation.trials import TrialContext, TrialError, draw_samples_and_prior, make_tasks, sample_pool, trial_rngs, trial_seed
-from tofloc.problem_builder import problem_from_log
+from tofloc.problem_builder import check_configuration_uncertainty, problem_from_log
 from tofloc import frames
 from tofloc.errors import FormatError, ParameterError
 from tofloc.kinematics import KinematicsModel
@@ -234,6 +234,18 @@ def test_problem_from_log_refusals() -> None:
         stated = dataclasses.replace(unstated, T_base_tip_cov=np.tile(np.eye(6) * 1e-6, (log.n_samples, 1, 1)))
         assert problem_from_log(stated, [1], FakeMap(), prior, "mocap").T_base_tip_cov.shape == (1, 6, 6)
     assert problem_from_log(dataclasses.replace(log, configuration_source="cad"), [1], FakeMap(), prior, "mocap").T_base_tip_cov is None
+    # a covariance for some samples does not state it for the others: decided on the samples used
+    some = np.full((log.n_samples, 6, 6), np.nan)
+    some[0] = np.eye(6) * 1e-6
+    partial = dataclasses.replace(log, configuration_source="odometry", T_base_tip_cov=some)
+    with pytest.raises(ProblemError, match=r"no stated uncertainty for samples \[5, 6, 7\]"):
+        problem_from_log(partial, [5, 6, 7], FakeMap(), prior, "mocap")
+    with pytest.raises(ProblemError, match=r"no stated uncertainty for samples \[1, 2, 3, 4, 5\] \.\.\."):
+        check_configuration_uncertainty(partial)
+    check_configuration_uncertainty(dataclasses.replace(partial, configuration_source="mocap"))  # stated by the source
+    # an imported log is told how to get the attribute
+    with pytest.raises(ProblemError, match=r"import it again with `tofloc import eth-matrix`"):
+        check_configuration_uncertainty(dataclasses.replace(log, configuration_source=None, source="import:eth-matrix"))
     kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
     # the k-NN model states its own uncertainty: the log's silence does not matter there
     silent = dataclasses.replace(log, configuration_source=None)

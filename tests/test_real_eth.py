@@ -310,3 +310,8 @@ def test_the_check_summarizes_on_stderr_and_keeps_the_json_on_stdout(tmp_path: P
     assert main([str(ETH), "--run", runs[1], "--json", str(target)]) == 0
     out, err = capsys.readouterr()
     assert out == "" and f"wrote {target}" in err and json.loads(target.read_text())["runs"] == [runs[1]]
+    # a latency scan whose every median is None (no valid panel zone) is said, not a crash
+    from tofloc.io.eth_check import summary_lines
+
+    blank = dict(doc, latency_approach=[[lat, None] for lat, _ in doc["latency_approach"]])
+    assert summary_lines(blank, ETH)[-1] == "latency (Approach runs): n/a (no valid panel zone at any latency)"

@@ -179,6 +179,10 @@ class SensorCalibration:
         meta = data.get("calibration", {})
         if not isinstance(meta, Mapping):
             raise FormatError(source, "[calibration]", "a table", type(meta).__name__)
+        fp = meta.get("footprint")
+        if fp is not None and (isinstance(fp, bool) or not isinstance(fp, int) or not 1 <= fp <= 9):
+            raise FormatError(source, "[calibration].footprint", "an integer in [1, 9] (sub-rays per zone side the "
+                              "calibration was fitted with)", repr(fp))
         tables = {}
         for name, t in data.items():
             if name in _OWN_TABLES:

@@ -123,18 +123,20 @@ def parameter_names(cls: type) -> list[str] | None:
     Parameters
     ----------
     cls : type
-        A dataclass (its ``init`` fields) or any class (its constructor's named parameters).
+        Any class: its constructor's named parameters (for a dataclass, its generated or
+        own ``__init__``'s, ``InitVar`` parameters included); a dataclass whose signature
+        cannot be read: its ``init`` fields.
 
     Returns
     -------
     list of str or None
         None when any name is taken (a ``**kwargs`` constructor) or the signature is unknown.
     """
-    if dataclasses.is_dataclass(cls):
-        return [f.name for f in dataclasses.fields(cls) if f.init]
     try:
         signature = inspect.signature(cls)
     except (TypeError, ValueError):
+        if dataclasses.is_dataclass(cls):
+            return [f.name for f in dataclasses.fields(cls) if f.init]
         return None
     names = []
     for p in signature.parameters.values():

@@ -134,15 +134,22 @@ def build_problem(
 STATED_EXACT_SOURCES = ("cad", "mocap")
 
 
-def _unstated_uncertainty(name: str, source: str | None) -> str:
-    """The refusal for a log whose configurations come with no stated uncertainty."""
+def _unstated_uncertainty(name: str, source: str | None, log_source: str | None = None,
+                          samples: ArrayLike | None = None) -> str:
+    """The refusal for a log whose configurations come with no stated uncertainty
+    (``samples``: the ones without, when not all)."""
     said = ("the root attribute configuration_source is absent" if source is None
             else f"configuration_source is {source!r}")
-    return (f"{name}: /samples/T_base_tip has no stated uncertainty ({said} and there is no "
-            f"/samples/T_base_tip_cov, or it is all NaN): log format v1 forbids treating such a "
+    which = "" if samples is None else f" for samples {np.asarray(samples)[:5].tolist()}{' ...' if np.size(samples) > 5 else ''}"
+    hint = ""
+    if isinstance(log_source, str) and log_source.startswith("import:"):
+        hint = (f"; this log was imported ({log_source}): logs imported before tofloc wrote configuration_source "
+                f"lack it, so import it again with `tofloc import {log_source[len('import:'):]}`")
+    return (f"{name}: /samples/T_base_tip has no stated uncertainty{which} ({said} and there is no "
+            f"/samples/T_base_tip_cov, or it is NaN): log format v1 forbids treating such a "
             f"configuration as exact. Write each sample's covariance to /samples/T_base_tip_cov, or set "
             f"configuration_source to 'mocap' (measured by motion capture) or 'cad' (a rigid mount) "
-            f"if that is what it is")
+            f"if that is what it is{hint}")
 
 
 def check_configuration_uncertainty(log: Any) -> None:
@@ -150,22 +157,25 @@ def check_configuration_uncertainty(log: Any) -> None:
     uncertainty: no ``/samples/T_base_tip_cov`` (or an all-NaN one) and a
     ``configuration_source`` that is absent or not one of :data:`STATED_EXACT_SOURCES`
     (log format v1: "a reader must not treat the configuration as exact unless told").
-    A log without configurations, or with a covariance for some sample, passes (the
-    per-sample check is :func:`problem_from_log`'s).
+    A log without configurations passes; otherwise every sample with a configuration
+    needs its covariance (:func:`problem_from_log` decides the same on the samples it uses).
 
     Raises
     ------
     ProblemError
         Naming the log, both fields and what to write.
     """
-    if getattr(log, "T_base_tip", None) is None:
-        return
-    cov = getattr(log, "T_base_tip_cov", None)
-    if cov is not None and np.isfinite(np.asarray(cov)).all(axis=(1, 2)).any():
-        return
+    T = getattr(log, "T_base_tip", None)
     source = getattr(log, "configuration_source", None)
-    if source not in STATED_EXACT_SOURCES:
-        raise ProblemError(_unstated_uncertainty(_log_name(log), source))
+    if T is None or source in STATED_EXACT_SOURCES:
+        return
+    known = np.all(np.isfinite(np.asarray(T)), axis=(1, 2))  # samples with a configuration
+    cov = getattr(log, "T_base_tip_cov", None)
+    stated = np.zeros(known.shape, bool) if cov is None else np.all(np.isfinite(np.asarray(cov)), axis=(1, 2))
+    missing = np.flatnonzero(known & ~stated)
+    if missing.size:
+        raise ProblemError(_unstated_uncertainty(_log_name(log), source, getattr(log, "source", None),
+                                                 None if missing.size == known.sum() else missing))
 
 
 def _log_name(log: Any) -> str:
@@ -244,8 +254,8 @@ def problem_from_log(
                 raise ProblemError(f"{name}: samples {idx[~known][:5].tolist()} have no configuration covariance "
                                    f"(/samples/T_base_tip_cov is NaN) while the others do")
         source = getattr(log, "configuration_source", None)
-        if cov is None:
-            check_configuration_uncertainty(log)
+        if cov is None and source not in STATED_EXACT_SOURCES:  # decided on the samples used, not the whole log
+            raise ProblemError(_unstated_uncertainty(name, source, getattr(log, "source", None), idx))
     elif tip_source == "knn":
         if kinematics is None:
             raise ParameterError("tip source knn needs a kinematics model (--kinematics MODEL)")

@@ -434,8 +434,12 @@ def summary_lines(doc: dict[str, Any], dataset: str | Path) -> list[str]:
     if edges:
         lines.append(f"panel edge vs yaw (Rotate runs): {', '.join(edges)}")
     if doc["latency_approach"]:
-        lat, med = min(doc["latency_approach"], key=lambda row: row[1])
-        lines.append(f"latency (Approach runs): median |e| lowest at {lat:.3f} s ({_mm(med)})")
+        scored = [row for row in doc["latency_approach"] if row[1] is not None]
+        if scored:
+            lat, med = min(scored, key=lambda row: row[1])
+            lines.append(f"latency (Approach runs): median |e| lowest at {lat:.3f} s ({_mm(med)})")
+        else:
+            lines.append("latency (Approach runs): n/a (no valid panel zone at any latency)")
     return lines
 
 
