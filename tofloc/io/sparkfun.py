@@ -39,8 +39,11 @@ STATUS_VALID = 5
 STATUS_NO_TARGET = 255
 
 _INT = rb"-?[0-9]{1,6}"
-_CSV = re.compile(rb"^\s*" + _INT + rb"(?:\s*,\s*" + _INT + rb")*\s*,?\s*$")
-_GRID_ROW = re.compile(rb"^\t?\s*" + _INT + rb"(?:\s*\t\s*" + _INT + rb")*\s*$")
+# No two adjacent quantifiers may match the same bytes (``\s*,?\s*``, ``\s*\t\s*``): on a
+# 64 kB line of blanks that backtracks quadratically (seconds to minutes per line).
+_CSV = re.compile(rb"^\s*" + _INT + rb"(?:\s*,\s*" + _INT + rb")*(?:\s*,)?\s*$")
+_GRID_ROW = re.compile(rb"^\t?\s*" + _INT + rb"(?:[^\S\t]*\t\s*" + _INT + rb")*\s*$")
+_TOKEN = re.compile(_INT)
 
 
 def _single_sensor(rig: Rig, fmt: str) -> Sensor:
@@ -96,8 +99,8 @@ class SparkFunCsvDecoder(_SparkFunBase):
             if not line.strip():
                 return [Rejected("empty line", line_no, "text")]
             return [Rejected("not a comma-separated line of integers", line_no, "text" if is_text(line) else "malformed")]
-        tok = np.array(line.replace(b" ", b"").split(b","), dtype="S8")
-        vals = tok[tok != b""].astype(np.float64)
+        # the values themselves: any blank (tab, CR, ...) may sit around the commas
+        vals = np.array(_TOKEN.findall(line), dtype="S7").astype(np.float64)
         if vals.size != self._W * self._W:
             return [Rejected(f"expected {self._W * self._W} distances, found {vals.size}", line_no)]
         return [self._frame(vals, t_host_s, line_no)]
