@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import re
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from test_io_capture import sim_log
+from test_io_capture import loop_port, sim_log
 
+from tofloc.io.capture import CaptureTimeout, SerialCapture
 from tofloc.io.formats import FORMATS, encode_log
 from tofloc.io.lines import LineSplitter
 from tofloc.io.samples import samples_to_log
@@ -196,3 +198,37 @@ def test_line_splitter_keeps_every_byte_in_order_within_its_memory_bound(chunks:
     assert bytes(rebuilt) == stripped
     complete = [r for r in got if not r.overflow and not r.partial]
     assert len(complete) == want.count(b"\n")
+
+
+# -- the capture loop: another format's lines are not taken for a banner ---------------------------------
+
+
+@pytest.mark.parametrize("fmt", ["st-uld", "sparkfun-csv", "sparkfun-grid"])
+def test_tofloc_lines_read_as_another_format_stop_after_the_time_out(tmp_path: Path, fmt: str) -> None:
+    """tofloc lines are printable text with letters: read as st-uld or sparkfun, every line
+    counted as text, and the recorder used to run for ever with 0 frames (the docs promise
+    it stops, naming the first rejected line)."""
+    log = sim_log(S=1, K=40)
+    port = loop_port()
+    lines = [line for _, ls, _ in encode_log(log, "tofloc") for line in ls]
+    calls = iter(range(10**6))
+
+    def clock() -> float:  # 50 ms per call, and the device sends a line meanwhile
+        k = next(calls)
+        if port.is_open:
+            port.write(lines[k % len(lines)])
+        return 0.05 * k
+
+    cap = SerialCapture("loop://", fmt=fmt, rig=log.rig, journal=tmp_path / "j", timeout_s=0.3, duration_s=60, clock=clock,
+                        opener=lambda p, b: port)
+    with pytest.raises(CaptureTimeout, match=rf"none is a frame of format {fmt} \(first: line 1: not a .*Check --format"):
+        list(cap.samples())
+
+
+def test_a_banner_then_silence_is_not_a_wrong_format(tmp_path: Path) -> None:
+    port = loop_port()
+    port.write(b"VL53L5CX firmware 1.0 booting\r\n")
+    clock = iter(np.arange(0.0, 1e6, 0.1).tolist()).__next__
+    cap = SerialCapture("loop://", fmt="tofloc", rig=sim_log(K=1).rig, journal=tmp_path / "j", timeout_s=0.3, duration_s=2.0,
+                        clock=clock, opener=lambda p, b: port)
+    assert list(cap.samples()) == [] and cap.ended_by == "duration" and cap.stats.text == 1

@@ -208,13 +208,14 @@ class SerialCapture:
                     last_data = now
                     silent_reported = False
                     out: list[Sample] = []
+                    lines_before = proc.stats.lines
                     for line in splitter.push(chunk):
                         journal.line(line, now)
                         out += proc.feed(line, now)
                     journal.flush()
                     self.frames_journaled = proc.stats.frames
                     yield from out
-                    self._check_decoding(now - t0)
+                    self._check_decoding(now - t0, text_arrived=proc.stats.last_text_line > lines_before)
                     continue
                 if not got_bytes and now - t0 > self.timeout_s:
                     raise CaptureTimeout(
@@ -262,16 +263,19 @@ class SerialCapture:
                     conn.port.close()
         yield from self._final
 
-    def _check_decoding(self, elapsed: float) -> None:
-        """Bytes but no frame after the time-out: wrong format or baud rate (text lines
-        alone, such as a start-up banner, do not count)."""
+    def _check_decoding(self, elapsed: float, text_arrived: bool = False) -> None:
+        """Bytes but no frame after the time-out: wrong format or baud rate. A start-up
+        banner followed by silence does not count, but text lines that still arrive
+        after the time-out do (another format's lines, e.g. tofloc lines read as
+        ``st-uld``, look like text)."""
         st = self.stats
-        if st.frames == 0 and st.malformed > 0 and elapsed > self.timeout_s:
+        if st.frames == 0 and (st.malformed > 0 or text_arrived) and elapsed > self.timeout_s:
             raise CaptureTimeout(self._nothing_decoded())
 
     def _nothing_decoded(self) -> str:
         st = self.stats
-        why = f" (first: {st.first_rejections[0]})" if st.first_rejections else ""
+        first = st.first_rejections[0] if st.first_rejections else st.first_text
+        why = f" (first: {first})" if first else ""
         return (
             f"{st.lines} lines from {self.port_name} at {self.baud} baud in {self.timeout_s:g} s, but none is a frame of "
             f"format {self.fmt}{why}; expected {FORMAT_HINTS[self.fmt]}. Check --format and --baud"

@@ -43,6 +43,10 @@ class CaptureStats:
         Times the port went away.
     first_rejections : list of str
         The first few rejection reasons, with line numbers (for messages).
+    first_text : str
+        The first non-empty text line's reason, with its line number ("" if none).
+    last_text_line : int
+        Number of the last non-empty text line (0 if none).
     """
 
     lines: int = 0
@@ -58,6 +62,8 @@ class CaptureStats:
     orphan_pressures: int = 0
     disconnects: int = 0
     first_rejections: list[str] = field(default_factory=list)
+    first_text: str = ""
+    last_text_line: int = 0
 
     def summary(self) -> str:
         """One line: frames, samples, dropped/malformed lines, disconnects."""
@@ -145,6 +151,9 @@ class StreamProcessor:
             elif isinstance(e, Rejected):
                 if e.kind == "text":
                     st.text += 1
+                    if e.reason != "empty line":
+                        st.last_text_line = e.line_no
+                        st.first_text = st.first_text or f"line {e.line_no}: {e.reason}"
                 elif e.kind == "unfinished":
                     st.unfinished += 1
                 else:
