@@ -146,6 +146,16 @@ def test_sequence_gaps_count_lost_lines_and_time_unwraps_32_bits() -> None:
     assert ev[1].t_device_s - (t1 * 1e-6) == pytest.approx(1500e-6)
 
 
+def test_a_late_time_stamp_from_before_a_wrap_does_not_count_a_second_wrap() -> None:
+    """A repeated or reordered line stamped just before the 32-bit wrap, arriving after it,
+    used to be taken for the next wrap's start: every later time jumped by 71.6 min."""
+    dec = TofLocDecoder(rig=rig2())
+    d, s = np.full(64, 1.0), np.full(64, 5)
+    t = [2**32 - 256, 256, 2**32 - 128, 512]
+    got = [dec.feed(encode_frame_line(k, tk, k, 0, (8, 8), d, s).rstrip(b"\n"), 0.0, k + 1)[-1].t_device_s for k, tk in enumerate(t)]
+    assert got == pytest.approx([(2**32 - 256) * 1e-6, (2**32 + 256) * 1e-6, (2**32 - 128) * 1e-6, (2**32 + 512) * 1e-6], abs=1e-7, rel=0)
+
+
 def test_negative_distance_means_no_distance_and_names_are_accepted() -> None:
     dec = TofLocDecoder(rig=rig2())
     d = np.full(64, 300.0)

@@ -176,6 +176,9 @@ class TofLocDecoder(Decoder):
     def _time(self, raw: int) -> float:
         """Device seconds, unwrapping a 32-bit microsecond counter (micros() on most MCUs)."""
         last = self._last_t_raw
+        if last is not None and last < 0x40000000 and 0xC0000000 <= raw < _WRAP32 and self._t_offset >= _WRAP32:
+            # a late (repeated or reordered) stamp from before the last wrap: not a new wrap
+            return (raw + self._t_offset - _WRAP32) * 1e-6
         if last is not None and raw < last and last >= 0xC0000000 and raw < 0x40000000 and last < _WRAP32:
             self._t_offset += _WRAP32
         self._last_t_raw = raw
