@@ -311,8 +311,9 @@ def test_surface_field_persists_between_processes(cache_folder, monkeypatch) -> 
     again = surface_field_for(the_map, 0.01, 0.05)
     assert map_cache.build_count("surface_field") == builds + 3
     np.testing.assert_array_equal(again.values, built.values)
-    with np.load(files[0], allow_pickle=False) as z:
-        SurfaceField.from_arrays({k: z[k] for k in z.files})
+    with np.load(files[0], allow_pickle=False) as z:  # the arrays, and whose they are
+        assert the_map.fingerprint() in str(z[map_cache.KEY_ARRAY])
+        SurfaceField.from_arrays({k: z[k] for k in z.files if k != map_cache.KEY_ARRAY})
     # a file larger than the bound is not read
     monkeypatch.setattr(map_cache, "MAX_FILE_BYTES", 10)
     map_cache.clear()

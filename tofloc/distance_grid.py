@@ -157,12 +157,14 @@ class DistanceGrid:
             raise ValueError(f"lo must be 3 finite numbers, got {lo.shape}")
         if d.ndim != 3 or d.size > MAX_CELLS or min(d.shape) < 1:
             raise ValueError(f"d must be a 3-D grid of at most {MAX_CELLS} cells, got {d.shape}")
+        if not (d >= 0).all():  # distances or inf; NaN or < 0 would answer wrongly, silently
+            raise ValueError("d must hold distances >= 0 (or inf), found NaN or a negative one")
         rows = a["row_centre"].shape[0]
         if a["row_centre"].shape != (rows, 3) or a["crowded"].shape != (rows,) or sub.shape != (rows, SUB**3):
             raise ValueError(f"row_centre, crowded and sub must have {rows} rows: {a['row_centre'].shape}, "
                              f"{a['crowded'].shape}, {sub.shape}")
-        if cand.ndim != 3 or cand.shape[:2] != (3, rows) or cand.shape[2] < 1:
-            raise ValueError(f"cand must be (3, {rows}, width), got {cand.shape}")
+        if cand.ndim != 3 or cand.shape[:2] != (3, rows) or cand.shape[2] < 1 or not np.isfinite(cand).all():
+            raise ValueError(f"cand must be (3, {rows}, width) finite coordinates, got {cand.shape}")
         if state.shape != tuple(n + 2 for n in d.shape) or state.max(initial=0) > 2 or sub.max(initial=0) > 2:
             raise ValueError(f"state must be {tuple(n + 2 for n in d.shape)} decisions 0-2 (sub too), got {state.shape} "
                              f"with largest {state.max(initial=0)} (sub {sub.max(initial=0)})")

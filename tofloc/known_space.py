@@ -237,6 +237,9 @@ class KnownSpace:
                 if cell.shape != () or not np.issubdtype(cell.dtype, np.floating):
                     raise FormatError(p, "cell", "a float scalar", f"{cell.dtype} {cell.shape}")
                 origin, z_range = f["origin"], f["z_range"]
+                for name, a in (("origin", origin), ("z_range", z_range)):
+                    if a.shape != (2,) or not np.issubdtype(a.dtype, np.floating):  # complex lost its imaginary part
+                        raise FormatError(p, name, "2 float numbers", f"{a.dtype} {a.shape}")
                 try:
                     return cls(origin, float(cell), z_range, known.astype(bool))
                 except ParameterError as e:

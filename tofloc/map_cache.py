@@ -45,7 +45,7 @@ from typing import Any, Callable, Hashable, Protocol, TypeVar
 
 import numpy as np
 
-__all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "disk_count", "cache_folder",
+__all__ = ["per_map", "clear", "bundle", "MapCacheBundle", "build_count", "disk_count", "cache_folder", "KEY_ARRAY",
            "Persistable", "check_stored", "stored_scalar", "MAX_ENTRIES", "MAX_DISK_BYTES", "MAX_FILE_BYTES"]
 
 _LOG = logging.getLogger(__name__)
@@ -117,14 +117,28 @@ def _source_hash(cls: type) -> str:
     return h.hexdigest()[:16]
 
 
+#: The array of a cache file that names what it holds (:func:`_identity`).
+KEY_ARRAY = "__tofloc_cache_key__"
+
+
+def _identity(key: tuple[str, str, Hashable], cls: type) -> str:
+    """What a cache file holds, in full: the map's whole fingerprint (the file name has
+    32 hex digits of it), the kind, the parameters, the class and its source's hash.
+    Stored in the file and compared on load: a file of another map or other parameters
+    (copied or renamed) is rebuilt, never trusted."""
+    fp, kind, params = key
+    return repr((fp, kind, params, cls.__module__, cls.__qualname__, _source_hash(cls)))
+
+
 def _disk_path(folder: Path, key: tuple[str, str, Hashable], cls: type) -> Path:
     fp, kind, params = key
     tag = hashlib.sha256(repr((params, cls.__module__, cls.__qualname__, _source_hash(cls))).encode()).hexdigest()[:16]
     return folder / f"{kind}-{fp[:32]}-{tag}.npz"
 
 
-def _load(path: Path, cls: Any) -> Any | None:
-    """The object in ``path`` or None (missing, unreadable or inconsistent: logged)."""
+def _load(path: Path, cls: Any, identity: str) -> Any | None:
+    """The object in ``path`` or None (missing, unreadable, inconsistent or holding
+    something other than ``identity``: logged)."""
     if not path.is_file():
         return None
     try:
@@ -133,6 +147,9 @@ def _load(path: Path, cls: Any) -> Any | None:
             raise ValueError(f"{size} bytes, more than the {MAX_FILE_BYTES} a cache file may hold")
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
+        stored = arrays.pop(KEY_ARRAY, None)
+        if stored is None or stored.dtype.kind != "U" or stored.shape != () or str(stored) != identity:
+            raise ValueError(f"it holds {str(stored)[:120] if stored is not None else 'no key'}, not {identity[:120]}")
         obj = cls.from_arrays(arrays)
     except Exception as exc:  # a corrupt or foreign file is rebuilt, never trusted
         _LOG.warning("cache file %s is not usable (%s); building it again", path, exc)
@@ -144,7 +161,7 @@ def _load(path: Path, cls: Any) -> Any | None:
     return obj
 
 
-def _save(path: Path, obj: Any) -> bool:
+def _save(path: Path, obj: Any, identity: str) -> bool:
     """Write ``obj`` to ``path`` atomically, then prune the folder; a full or read-only
     folder only costs the next process a build (logged). Whether the file was written."""
     from tofloc.atomic import atomic_path
@@ -152,7 +169,7 @@ def _save(path: Path, obj: Any) -> bool:
     try:
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, **obj.to_arrays())
+                np.savez(fh, **obj.to_arrays(), **{KEY_ARRAY: np.array(identity)})
         _prune(path.parent)
     except OSError as exc:
         _LOG.warning("could not write the cache file %s (%s)", path, exc)
@@ -205,14 +222,15 @@ def per_map(the_map: Any, kind: str, params: Hashable, build: Callable[[], T], s
             return _CACHE[key]  # type: ignore[no-any-return]
     folder = cache_folder() if stored_as is not None else None
     path = _disk_path(folder, key, stored_as) if folder is not None else None
-    obj = _load(path, stored_as) if path is not None else None
+    identity = _identity(key, stored_as) if path is not None else ""
+    obj = _load(path, stored_as, identity) if path is not None else None
     if obj is not None:
         with _LOCK:
             _LOADS[kind] += 1
             _FILES[key] = (path, stored_as)
             return _store(key, obj)  # type: ignore[no-any-return]
     obj = build()
-    saved = path is not None and _save(path, obj)
+    saved = path is not None and _save(path, obj, identity)
     with _LOCK:
         _BUILDS[kind] += 1
         if saved:
@@ -268,7 +286,7 @@ class MapCacheBundle:
             with _LOCK:
                 if key in _CACHE:
                     continue
-            obj = _load(path, cls)
+            obj = _load(path, cls, _identity(key, cls))
             if obj is None:
                 _LOG.warning("cache file %s of the parent process is gone or unreadable; built on first use", path)
                 continue

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 import struct
+import tokenize
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -144,25 +145,32 @@ def _parse_ply_header(text: str, fail: Fail) -> tuple[str, list[_PlyElement]]:
             continue
         where = f"header line {no}"
         if tok[0] == "format":
+            if fmt is not None:
+                raise fail(where, "one 'format' line", repr(ln[:60]))
             if len(tok) != 3 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian") or tok[2] != "1.0":
                 raise fail(where, "'format ascii|binary_little_endian|binary_big_endian 1.0'", repr(ln[:60]))
             fmt = tok[1]
         elif tok[0] == "element":
-            if len(tok) != 3 or not tok[2].isdigit():
+            if len(tok) != 3 or not re.fullmatch(r"[0-9]+", tok[2]):
                 raise fail(where, "'element <name> <count>'", repr(ln[:60]))
-            count = int(tok[2])
+            digits = tok[2].lstrip("0") or "0"
+            count = int(digits) if len(digits) <= 18 else -1  # int() of thousands of digits raises
             limit = MAX_TRIANGLES if tok[1] == "face" else MAX_POINTS
-            if count > limit:
-                raise fail(where, f"at most {limit} {tok[1]} items", count)
+            if not 0 <= count <= limit:
+                raise fail(where, f"at most {limit} {tok[1]} items", tok[2][:40])
+            if tok[1] in ("vertex", "face") and any(e.name == tok[1] for e in elements):
+                raise fail(where, f"one 'element {tok[1]}'", repr(ln[:60]))
             elements.append(_PlyElement(tok[1], count, []))
         elif tok[0] == "property":
             if not elements:
                 raise fail(where, "a property after an 'element' line", repr(ln[:60]))
+            if tok[-1] in {q.name for q in elements[-1].props}:
+                raise fail(where, f"distinct property names in element {elements[-1].name}", repr(ln[:60]))
             if len(tok) == 3 and tok[1] in _PLY_TYPES:
                 elements[-1].props.append(_PlyProp(tok[2], _PLY_TYPES[tok[1]]))
             elif len(tok) == 5 and tok[1] == "list" and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES:
-                if _PLY_TYPES[tok[2]][0] == "f" or _PLY_TYPES[tok[3]][0] == "f":
-                    raise fail(where, "integer list count and index types", repr(ln[:60]))
+                if _PLY_TYPES[tok[2]][0] == "f":
+                    raise fail(where, "an integer list count type", repr(ln[:60]))
                 elements[-1].props.append(_PlyProp(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]]))
             else:
                 raise fail(where, "'property <type> <name>' or 'property list <type> <type> <name>'", repr(ln[:60]))
@@ -171,6 +179,17 @@ def _parse_ply_header(text: str, fail: Fail) -> tuple[str, list[_PlyElement]]:
     if fmt is None:
         raise fail("header", "a 'format' line")
     return fmt, elements
+
+
+_PLY_INDEX_LISTS = ("vertex_indices", "vertex_index")
+
+
+def _index_list(el: _PlyElement) -> int:
+    """The property whose values :func:`_ply_binary_list_element` returns: a face's index
+    list, else the element's first list."""
+    props = el.props
+    return next((i for i, p in enumerate(props) if p.count_dtype is not None and p.name in _PLY_INDEX_LISTS),
+                next(i for i, p in enumerate(props) if p.count_dtype is not None))
 
 
 def _ply_vertex_and_faces(elements: list[_PlyElement], fail: Fail) -> tuple[_PlyElement, _PlyElement | None]:
@@ -187,9 +206,9 @@ def _ply_vertex_and_faces(elements: list[_PlyElement], fail: Fail) -> tuple[_Ply
         raise fail("header: element vertex", "at least one vertex", "element vertex 0")
     face = next((e for e in elements if e.name == "face"), None)
     if face is not None:
-        lists = [p for p in face.props if p.count_dtype is not None]
-        if len(lists) != 1 or lists[0].name not in ("vertex_indices", "vertex_index"):
-            raise fail("header: element face", "one list property 'vertex_indices' (or 'vertex_index')")
+        lists = [p for p in face.props if p.count_dtype is not None and p.name in _PLY_INDEX_LISTS]
+        if len(lists) != 1 or lists[0].dtype[0] == "f":
+            raise fail("header: element face", "one integer list property 'vertex_indices' (or 'vertex_index')")
     return vert, face
 
 
@@ -246,6 +265,7 @@ def _ply_binary_list_element(
         return {}, off
     # Fast path: every item has the lengths of the first one -> one structured read.
     lengths = []
+    want = _index_list(el)
     pos = off
     for p in el.props:
         if p.count_dtype is None:
@@ -255,8 +275,12 @@ def _ply_binary_list_element(
         if pos + csz > len(data):
             raise fail(where, f"{el.count} items", "the file ends inside item 0")
         (cnt,) = struct.unpack_from(endian + _struct_code(p.count_dtype), data, pos)
+        if cnt < 0:
+            raise fail(f"{where} 0", f"a list length >= 0 for {p.name}", cnt)
         lengths.append(int(cnt))
         pos += csz + int(cnt) * np.dtype(p.dtype).itemsize
+    if pos > len(data):
+        raise fail(where, f"{el.count} items", "the file ends inside item 0")
     fields: list[tuple[Any, ...]] = []
     li = 0
     for i, p in enumerate(el.props):
@@ -267,7 +291,6 @@ def _ply_binary_list_element(
             fields.append((f"p{i}", endian + p.dtype, (lengths[li],)))
             li += 1
     dt = np.dtype(fields)
-    first_list = next(i for i, p in enumerate(el.props) if p.count_dtype is not None)
     if off + dt.itemsize * el.count <= len(data):
         arr = np.frombuffer(data, dtype=dt, count=el.count, offset=off)
         ok = True
@@ -277,7 +300,8 @@ def _ply_binary_list_element(
                 ok &= bool((arr[f"c{i}"] == lengths[li]).all())
                 li += 1
         if ok:
-            return {lengths[0]: np.array(arr[f"p{first_list}"], dtype=np.int64)}, off + dt.itemsize * el.count
+            n_want = lengths[sum(p.count_dtype is not None for p in el.props[:want])]
+            return {n_want: np.array(arr[f"p{want}"], dtype=np.int64)}, off + dt.itemsize * el.count
     # Slow path (mixed polygon sizes): one item at a time.
     groups: dict[int, list[tuple[int, ...]]] = {}
     pos = off
@@ -292,12 +316,14 @@ def _ply_binary_list_element(
             if pos + struct.calcsize(ccode) > len(data):
                 raise fail(where, f"{el.count} items", f"the file ends inside item {item}")
             (cnt,) = struct.unpack_from(ccode, data, pos)
+            if cnt < 0:
+                raise fail(f"{where} {item}", f"a list length >= 0 for {p.name}", cnt)
             pos += struct.calcsize(ccode)
             if pos + cnt * size > len(data):
                 raise fail(where, f"{el.count} items", f"the file ends inside item {item}")
             vals = struct.unpack_from(endian + f"{cnt}" + _struct_code(p.dtype), data, pos)
             pos += cnt * size
-            if i == first_list:
+            if i == want:
                 groups.setdefault(int(cnt), []).append(vals)
     if pos > len(data):
         raise fail(where, f"{el.count} items", "the file ends early")
@@ -341,24 +367,39 @@ def _read_ply_ascii(
 
 
 def _ascii_faces(chunk: list[str], el: _PlyElement, fail: Fail) -> dict[int, Any]:
+    """The index list of each line, the other properties (scalars, lists) skipped."""
     where = f"element {el.name}"
-    if len(el.props) != 1:  # scalar properties beside the list: parse token by token
-        raise fail(where, "only the vertex index list in an ascii face element")
+    want = _index_list(el)
     groups: dict[int, list[list[int]]] = {}
     for i, ln in enumerate(chunk):
         tok = ln.split()
+        pos = 0
+        idx: list[int] = []
         try:
-            vals = [int(t) for t in tok]
-        except ValueError:
-            raise fail(f"{where} {i}", "integers", repr(ln[:60])) from None
-        if not vals or vals[0] != len(vals) - 1:
-            raise fail(f"{where} {i}", "a count followed by that many indices", repr(ln[:60]))
-        groups.setdefault(vals[0], []).append(vals[1:])
-    return {k: np.asarray(v, dtype=np.int64) for k, v in groups.items()}
+            for k, p in enumerate(el.props):
+                if p.count_dtype is None:
+                    pos += 1
+                    continue
+                cnt = int(tok[pos])
+                if cnt < 0 or pos + 1 + cnt > len(tok):
+                    raise ValueError
+                if k == want:
+                    idx = [int(t) for t in tok[pos + 1 : pos + 1 + cnt]]
+                pos += 1 + cnt
+            if pos != len(tok):
+                raise ValueError
+        except (ValueError, IndexError):
+            props = " ".join(p.name for p in el.props)
+            raise fail(f"{where} {i}", f"{props}: a count followed by that many integer indices", repr(ln[:60])) from None
+        groups.setdefault(len(idx), []).append(idx)
+    try:
+        return {k: np.asarray(v, dtype=np.int64) for k, v in groups.items()}
+    except OverflowError:
+        raise fail(where, "vertex indices within int64", "a larger index") from None
 
 
 # ---- STL --------------------------------------------------------------------------------
-_STL_VERTEX = re.compile(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)")
+_STL_VERTEX = re.compile(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)", re.IGNORECASE)
 
 
 def _read_stl(path: Path, fail: Fail) -> Parsed:
@@ -374,7 +415,11 @@ def _read_stl(path: Path, fail: Fail) -> Parsed:
         corners = np.frombuffer(data, dtype=dt, count=n, offset=84)["v"].reshape(-1, 3).astype(np.float64)
     elif data.lstrip()[:5].lower() == b"solid":
         found = _STL_VERTEX.findall(data)
-        n_facets = len(re.findall(rb"\bendfacet\b", data))
+        n_facets = len(re.findall(rb"\bendfacet\b", data, re.IGNORECASE))
+        if not found and len(data) >= 84 and not re.search(rb"\bfacet\b", data, re.IGNORECASE):
+            n = struct.unpack_from("<I", data, 80)[0]
+            raise fail("file", "a binary STL of 84 + 50 n bytes (n at byte 80) or an ascii STL of facets",
+                       f"{len(data)} bytes with n = {n} and no 'facet'")
         if not found:
             raise fail("ascii STL", "'facet ... vertex x y z ... endfacet' blocks", "no vertex")
         if len(found) != 3 * n_facets:
@@ -418,6 +463,7 @@ def _read_obj(path: Path, fail: Fail) -> Parsed:
     groups: dict[int, list[list[int]]] = {}
     n_tri = 0
     for no, ln in enumerate(text.split("\n"), start=1):
+        ln = ln.lstrip()  # an indented 'v'/'f' is a statement too (it was skipped silently)
         if not ln or ln[0] not in "vf":
             continue
         tok = ln.split()
@@ -511,6 +557,13 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
         raise fail("header", "a POINTS (or WIDTH and HEIGHT) count") from None
     if not 1 <= n_points <= MAX_POINTS:
         raise fail("header: POINTS", f"1..{MAX_POINTS} points", n_points)
+    if "POINTS" in fields and "WIDTH" in fields:
+        try:
+            wh = int(fields["WIDTH"][0]) * int(fields.get("HEIGHT", ["1"])[0])
+        except (IndexError, ValueError):
+            raise fail("header: WIDTH", "integer WIDTH and HEIGHT") from None
+        if wh != n_points:
+            raise fail("header: WIDTH", f"WIDTH x HEIGHT = POINTS = {n_points}", wh)
     if len(set(names)) != nf:
         raise fail("header: FIELDS", "distinct field names", " ".join(names))
     dtype = np.dtype(dt_fields)
@@ -532,9 +585,21 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
         need = dtype.itemsize * n_points
         if len(data) - body_start < need:
             raise fail("DATA", f"{n_points} binary points ({need} bytes)", f"{len(data) - body_start} bytes")
+        if data[body_start + need :].strip(b" \t\r\n\x00"):
+            extra = len(data) - body_start - need
+            raise fail("DATA", f"{n_points} binary points ({need} bytes, POINTS) and nothing after", f"{extra} more bytes")
         rec = np.frombuffer(data, dtype=dtype, count=n_points, offset=body_start)
         get = {name: rec[name] for name in names if rec[name].ndim == 1}
     elif mode == "binary_compressed":
+        # Open3D decodes a block whose sizes disagree with the header into garbage points:
+        # check them here (uint32 compressed and uncompressed sizes, then the block)
+        if len(data) - body_start < 8:
+            raise fail("DATA", "the 8-byte compressed block sizes", f"{len(data) - body_start} bytes")
+        comp, raw = struct.unpack_from("<II", data, body_start)
+        if raw != dtype.itemsize * n_points:
+            raise fail("DATA", f"{dtype.itemsize * n_points} uncompressed bytes ({n_points} points, POINTS)", raw)
+        if data[body_start + 8 + comp :].strip(b" \t\r\n\x00") or len(data) < body_start + 8 + comp:
+            raise fail("DATA", f"a compressed block of {comp} bytes and nothing after", f"{len(data) - body_start - 8} bytes")
         import open3d as o3d
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             pc = o3d.io.read_point_cloud(str(path), format="pcd", remove_nan_points=False, remove_infinite_points=False)
@@ -555,8 +620,15 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
 # ---- XYZ and NPY ----------------------------------------------------------------------------
 def _read_xyz(path: Path, fail: Fail) -> Parsed:
     text = _decode(_read_bytes(path, fail), fail)
+    lines = [ln for ln in text.splitlines() if ln.split("#", 1)[0].strip()]
+    if not lines:
+        raise fail("content", "at least one point", "none")
+    if len(lines) > MAX_POINTS:
+        raise fail("content", f"at most {MAX_POINTS} points", f"{len(lines)} lines")
+    if lines and len(lines[0].split("#", 1)[0].split()) != 3:
+        raise fail("content", "three columns 'x y z'", f"{len(lines[0].split('#', 1)[0].split())} columns")
     try:
-        arr = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=2, comments="#", max_rows=MAX_POINTS + 1)
+        arr = np.loadtxt(lines, dtype=np.float64, ndmin=2, comments="#")
     except ValueError as e:
         raise fail("content", "three numbers 'x y z' per line", str(e).split(";")[0][:120]) from None
     if arr.size == 0:
@@ -584,12 +656,16 @@ def _read_npy(path: Path, fail: Fail) -> Parsed:
                 raise fail("header", "at least one point", "shape (0, 3)")
             if shape[0] > MAX_POINTS:
                 raise fail("header", f"at most {MAX_POINTS} points", shape[0])
+            need = f.tell() + shape[0] * 3 * dtype.itemsize
+            size = f.seek(0, 2)
+            if size > need:
+                raise fail("content", f"{need} bytes ({shape[0]} x 3 {dtype}) and nothing after", f"{size - need} more bytes")
             f.seek(0)
             arr = np.lib.format.read_array(f, allow_pickle=False)
     except FormatError:
         raise
-    except (ValueError, OSError, EOFError) as e:
-        raise fail("content", "a complete .npy array", str(e)[:120]) from None
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as e:  # numpy parses the header with ast/tokenize
+        raise fail("content", "a complete .npy array", str(e).replace("\n", " ")[:120]) from None
     return np.asarray(arr, dtype=np.float64), None, None
 
 
