@@ -10,7 +10,7 @@ statistics per number of samples k (a ``localize`` file: its one k) and over eve
 from __future__ import annotations
 
 import json
-import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -24,7 +24,10 @@ __all__ = ["Series", "ResultsFile", "load_results", "checked_name", "checked_num
 
 #: Largest results file read (bytes): a localize file of 100 000 trials is ~60 MB.
 MAX_RESULTS_BYTES = 256 * 2**20
+#: Largest number of samples per trial (k) a results file may hold.
+MAX_K = 10**6
 _STATS = ("mean", "std", "median", "rmse")
+_FLOAT_MAX = sys.float_info.max
 
 
 @dataclass
@@ -66,6 +69,22 @@ class ResultsFile:
     document: dict[str, Any]
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` refusing an object that repeats a key (which value was meant is unknown)."""
+    out: dict[str, Any] = {}
+    for k, v in pairs:
+        if k in out:
+            raise _DuplicateKey(k)
+        out[k] = v
+    return out
+
+
 def _stat(d: Any, path: Path, where: str) -> dict[str, float | None]:
     return checked_stats(d, path, where, _STATS)
 
@@ -78,14 +97,31 @@ def _entry(d: Any, path: Path, where: str) -> dict[str, Any]:
     if not isinstance(d, Mapping):
         raise FormatError(path, where, "an object of error summaries", type(d).__name__)
     n = d.get("n")
+    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or not 0 <= n < 2**63):
+        raise FormatError(path, f"{where}.n", "the number of trials (an integer >= 0) or null", repr(n)[:40])
     out = {"e_x_m": _stat(d.get("e_x_m"), path, f"{where}.e_x_m"),
            "e_gamma_deg": _stat(d.get("e_gamma_deg"), path, f"{where}.e_gamma_deg"),
            "crlb": _crlb(d.get("crlb"), path, f"{where}.crlb"),
-           "n": int(n) if isinstance(n, int) and not isinstance(n, bool) else None}
+           "n": n}
     nees = d.get("nees")
-    if isinstance(nees, Mapping) and isinstance(nees.get("mean"), (int, float)):
-        out["nees_mean"] = float(nees["mean"])
+    if nees is not None:
+        if not isinstance(nees, Mapping):
+            raise FormatError(path, f"{where}.nees", "an object with mean, or null", type(nees).__name__)
+        mean = checked_number(nees.get("mean"), path, f"{where}.nees.mean", nonnegative=True)
+        if mean is not None:
+            out["nees_mean"] = mean
     return out
+
+
+def _checked_k(v: Any, path: Path, where: str) -> int:
+    """A number of samples per trial: an integer in [1, MAX_K] (a ``per_k`` key: its decimal digits)."""
+    if isinstance(v, str):
+        k = int(v) if v.isdecimal() and v.isascii() and len(v) <= 7 and v == str(int(v)) else None
+    else:
+        k = v if isinstance(v, int) and not isinstance(v, bool) else None
+    if k is None or not 1 <= k <= MAX_K:
+        raise FormatError(path, where, f"a number of samples per trial (an integer in [1, {MAX_K}])", repr(v)[:20])
+    return k
 
 
 def checked_name(v: Any, path: Path, where: str) -> str:
@@ -103,8 +139,8 @@ def checked_number(v: Any, path: Path, where: str, *, positive: bool = False, no
     ``path``, ``where`` and what was expected otherwise."""
     if v is None and null:
         return None
-    if (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (positive and v <= 0)
-            or (nonnegative and v < 0)):
+    if (not isinstance(v, (int, float)) or isinstance(v, bool) or not -_FLOAT_MAX <= v <= _FLOAT_MAX  # NaN, inf; no float() of a huge int
+            or (positive and v <= 0) or (nonnegative and v < 0)):
         expected = "a finite number > 0" if positive else "a finite number >= 0" if nonnegative else "a finite number"
         raise FormatError(path, where, expected + (" or null" if null else ""), repr(v)[:40])
     return float(v)
@@ -136,9 +172,11 @@ def load_results(path: str | Path) -> ResultsFile:
         size = p.stat().st_size
         if size > MAX_RESULTS_BYTES:
             raise FormatError(p, "file", f"at most {MAX_RESULTS_BYTES} bytes", f"{size} bytes")
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(p.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
     except OSError as e:
         raise FormatError(p, "file", "a readable results file", e.strerror) from None
+    except _DuplicateKey as e:
+        raise FormatError(p, "file", "JSON with unique keys in every object", f"the key {e.key!r} twice") from None
     except (ValueError, RecursionError) as e:
         raise FormatError(p, "file", "JSON", str(e)[:120]) from None
     if not isinstance(doc, dict):
@@ -181,11 +219,7 @@ def _paper_series(doc: Mapping[str, Any], p: Path) -> list[Series]:
                     raise FormatError(p, where, "an object with per_k and overall", repr(group)[:40])
                 per_k = {}
                 for k, entry in group["per_k"].items():
-                    try:
-                        ki = int(k)
-                    except ValueError:
-                        raise FormatError(p, f"{where}.per_k", "keys that are numbers of samples", repr(k)[:20]) from None
-                    per_k[ki] = _entry(entry, p, f"{where}.per_k.{k}")
+                    per_k[_checked_k(k, p, f"{where}.per_k")] = _entry(entry, p, f"{where}.per_k.{k}")
                 overall = _entry(group.get("overall") or {}, p, f"{where}.overall")
                 out.append(Series(checked_name(est, p, "results"), checked_name(tip, p, f"results.{est}"),
                                   checked_name(mode, p, f"results.{est}.{tip}"), per_k, overall))
@@ -193,9 +227,7 @@ def _paper_series(doc: Mapping[str, Any], p: Path) -> list[Series]:
 
 
 def _localize_series(doc: Mapping[str, Any], p: Path) -> Series:
-    k = doc.get("samples")
-    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
-        raise FormatError(p, "samples", "the number of samples per trial (an integer >= 1)", repr(k)[:40])
+    k = _checked_k(doc.get("samples"), p, "samples")
     trials = doc["trials"]
     if not isinstance(trials, list):
         raise FormatError(p, "trials", "a list of trial records", type(trials).__name__)
@@ -203,9 +235,14 @@ def _localize_series(doc: Mapping[str, Any], p: Path) -> Series:
     if not isinstance(summary, Mapping):
         raise FormatError(p, "summary", "an object", type(summary).__name__)
     entry = _entry({**summary, "n": len(trials)}, p, "summary")
-    nees = np.array([float(t["nees"]) for t in trials
-                     if isinstance(t, Mapping) and isinstance(t.get("nees"), (int, float)) and not isinstance(t.get("nees"), bool)
-                     and math.isfinite(t["nees"])])
+    values = []
+    for i, t in enumerate(trials):
+        if not isinstance(t, Mapping):
+            raise FormatError(p, f"trials[{i}]", "a trial record (an object)", type(t).__name__)
+        v = checked_number(t.get("nees"), p, f"trials[{i}].nees", nonnegative=True)  # null: a trial without one
+        if v is not None:
+            values.append(v)
+    nees = np.array(values)
     prior = doc.get("prior")
     mode = prior.get("mode") if isinstance(prior, Mapping) else None
     return Series(checked_name(doc["estimator"], p, "estimator"), checked_name(doc.get("tip_source"), p, "tip_source"),

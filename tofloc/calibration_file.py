@@ -183,10 +183,15 @@ class SensorCalibration:
         if fp is not None and (isinstance(fp, bool) or not isinstance(fp, int) or not 1 <= fp <= 9):
             raise FormatError(source, "[calibration].footprint", "an integer in [1, 9] (sub-rays per zone side the "
                               "calibration was fitted with)", repr(fp))
+        from tofloc.registry import SENSOR_MODELS
+
         tables = {}
         for name, t in data.items():
             if name in _OWN_TABLES:
                 continue
+            if name not in SENSOR_MODELS.names():  # a misspelt [beam] would silently leave the model's defaults
+                raise FormatError(source, f"[{name}]", f"[uncertainty], [mounting], [calibration] or a sensor model's table "
+                                  f"({', '.join(SENSOR_MODELS.names())})", "an unknown table")
             if not isinstance(t, Mapping):
                 raise FormatError(source, name, "a table (a sensor model's parameters)", type(t).__name__)
             tables[name] = dict(t)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import tokenize
 import os
 import zipfile
 from dataclasses import dataclass
@@ -707,6 +708,7 @@ class KinematicsModel:
         total = sum(i.file_size for i in infos)
         if total > MAX_FILE_PAYLOAD:
             raise fail("<file>", f"at most {MAX_FILE_PAYLOAD} uncompressed bytes", total)
+        _check_member_headers(path, infos, fail)
 
         raw: dict[str, NDArray[Any]] = {}
         try:
@@ -744,6 +746,39 @@ class KinematicsModel:
                     raw["validation_indices"], raw["log_fingerprint"], fail)
         model.configuration_covariance = _check_covariance(raw.get("configuration_covariance"), fail)
         return model
+
+
+def _check_member_headers(path: Path, infos: list[zipfile.ZipInfo], fail: _Fail) -> None:
+    """Read the ``.npy`` header of every field the model reads, before its data: numpy
+    allocates the shape a header declares before reading, so a member of a few bytes
+    declaring ``(10**11, 3)`` would otherwise ask for terabytes (MemoryError) or hang."""
+    wanted = {f"{name}.npy": name for name in (*_FIELDS, "configuration_covariance")}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in infos:
+                name = wanted.get(info.filename)
+                if name is None:
+                    continue
+                try:
+                    with zf.open(info) as f:
+                        version = np.lib.format.read_magic(f)
+                        if version == (1, 0):
+                            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                        elif version == (2, 0):
+                            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                        else:
+                            raise fail(name, "a .npy array of format version 1.0 or 2.0", f"version {version}")
+                        header = f.tell()
+                except FormatError:
+                    raise
+                except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile) as e:
+                    raise fail(name, "a .npy array with a readable header", str(e).replace("\n", " ")[:120]) from None
+                need = math.prod(shape) * dtype.itemsize
+                if need > info.file_size - header:
+                    raise fail(name, f"the data its header declares (shape {shape[:4]}, {dtype}: {need} bytes)",
+                               f"{max(info.file_size - header, 0)} bytes")
+    except (zipfile.BadZipFile, OSError) as e:
+        raise fail("<file>", "a readable .npz (zip) archive", str(e)) from None
 
 
 def configuration_error_covariance(T_pred: ArrayLike, T_true: ArrayLike) -> NDArray[np.float64] | None:

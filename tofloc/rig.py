@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -174,7 +173,7 @@ def _is_json_integer(v: Any) -> bool:
 def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
     try:
         T = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
         raise _fail(source, where, "a 4x4 numeric matrix", repr(value)[:80]) from None
     if T.shape != (4, 4):
         raise _fail(source, where, "a 4x4 matrix", f"shape {T.shape}")
@@ -329,7 +328,7 @@ class Sensor:
         if zd is not None:
             try:
                 zone_dirs = np.asarray(zd, dtype=float)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise _fail(source, f"{where}.zone_directions", "a Z x 3 numeric table") from None
             if zone_dirs.ndim != 2 or zone_dirs.shape[1] != 3 or not 1 <= zone_dirs.shape[0] <= MAX_ZONES:
                 raise _fail(source, f"{where}.zone_directions", f"a Z x 3 table with 1 <= Z <= {MAX_ZONES}", f"shape {zone_dirs.shape}")
@@ -369,6 +368,27 @@ class Sensor:
             raw_order=raw_order,
             max_range_m=float(max_range),
         )
+
+
+#: The keys of a rig file, and of each of its sensors (``Rig.to_dict``, ``Sensor.to_dict``).
+RIG_FILE_KEYS = ("sensors", "actuators", "tolerances")
+SENSOR_FILE_KEYS = ("name", "model", "resolution", "fov_deg", "distance", "T_tip_sensor", "zone_directions", "raw_order",
+                    "max_range_m")
+
+
+def _refuse_unknown_keys(d: Any, source: str) -> None:
+    """A rig file's unknown key is refused (a misspelt ``T_tip_sensor`` would silently be the
+    identity); a log's rig is not checked here (log format v1 ignores unknown keys)."""
+    if not isinstance(d, Mapping):
+        return  # from_dict names the problem
+    unknown = sorted(set(d) - set(RIG_FILE_KEYS))
+    if unknown:
+        raise _fail(source, f"rig.{unknown[0]}", f"one of {list(RIG_FILE_KEYS)}", "an unknown key")
+    sensors = d.get("sensors")
+    for i, s in enumerate(sensors if isinstance(sensors, list) else []):
+        unknown = sorted(set(s) - set(SENSOR_FILE_KEYS)) if isinstance(s, Mapping) else []
+        if unknown:
+            raise _fail(source, f"rig.sensors[{i}].{unknown[0]}", f"one of {list(SENSOR_FILE_KEYS)}", "an unknown key")
 
 
 class _DuplicateKey(Exception):
@@ -442,7 +462,7 @@ class RigTolerances:
             raise _fail(source, f"{where}.{unknown[0]}", f"one of {sorted(TOLERANCE_LIMITS)}", "an unknown key")
         for name, v in d.items():
             hi = TOLERANCE_LIMITS[name]
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= hi:
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 <= v <= hi:  # NaN fails too; no float() of a huge int
                 raise _fail(source, f"{where}.{name}", f"a number in [0, {hi}]", repr(v)[:40])
         return cls(**{k: float(v) for k, v in d.items()})
 
@@ -584,10 +604,12 @@ class Rig:
         return cls(sensors=tuple(built), actuators=tuple(acts), tolerances=tol)
 
     @classmethod
-    def from_json(cls, text: str, source: str = "<rig>", *, strict: bool = False) -> "Rig":
+    def from_json(cls, text: str, source: str = "<rig>", *, strict: bool = False, _file: bool = False) -> "Rig":
         """Parse and validate a rig's JSON text (see :meth:`from_dict` for ``strict``).
 
         An object that repeats a key is refused: which of the values was meant is unknown.
+        (``_file``: a rig file's text, whose unknown keys are refused; a log's rig keeps
+        log format v1's rule that unknown keys are ignored.)
         """
         try:
             d = json.loads(text, object_pairs_hook=_unique_keys)
@@ -595,6 +617,8 @@ class Rig:
             raise _fail(source, "rig", "valid JSON with unique keys in every object", f"the key {e.key!r} twice") from None
         except (ValueError, TypeError, RecursionError) as e:  # ValueError: also Python's int-string limit
             raise _fail(source, "rig", "valid JSON", str(e)[:200]) from None
+        if _file:
+            _refuse_unknown_keys(d, source)
         return cls.from_dict(d, source, strict=strict)
 
     @classmethod
@@ -608,11 +632,19 @@ class Rig:
         if len(raw) > 16 * 2**20:
             raise FormatError(p, "file", "a rig file of at most 16 MiB", f"{len(raw)} bytes")
         if p.suffix.lower() == ".toml":
+            from tofloc.toml_tables import parse_toml
+
             try:
-                d = tomllib.loads(raw.decode("utf-8"))
-            except ValueError as e:  # TOMLDecodeError, UnicodeDecodeError, Python's int-string limit
-                raise FormatError(p, "rig", "valid TOML", str(e)[:200]) from None
+                text = raw.decode("utf-8")
+            except UnicodeDecodeError as e:
+                raise FormatError(p, "rig", "valid TOML (UTF-8)", str(e)[:200]) from None
+            d = parse_toml(text, p, "rig")
+            _refuse_unknown_keys(d, str(p))
             return cls.from_dict(d, str(p))
         if p.suffix.lower() == ".json":
-            return cls.from_json(raw.decode("utf-8", errors="replace"), str(p))
+            try:
+                text = raw.decode("utf-8")
+            except UnicodeDecodeError as e:
+                raise FormatError(p, "rig", "valid JSON (UTF-8)", str(e)[:200]) from None
+            return cls.from_json(text, str(p), _file=True)
         raise FormatError(p, "file", "a .json or .toml rig file", p.suffix or "no suffix")

@@ -15,12 +15,14 @@ from typing import Any, Mapping, TypeVar
 
 from tofloc.errors import FormatError, ParameterError
 
-__all__ = ["MAX_TOML_BYTES", "read_toml", "params_from_table", "params_from_toml", "dumps", "toml_safe"]
+__all__ = ["MAX_TOML_BYTES", "MAX_TOML_DEPTH", "read_toml", "parse_toml", "params_from_table", "params_from_toml", "dumps", "toml_safe"]
 
 T = TypeVar("T")
 
 #: Largest TOML file we read (bytes).
 MAX_TOML_BYTES = 1_000_000
+#: Deepest nesting of tables and arrays we accept (our files need at most 5 levels).
+MAX_TOML_DEPTH = 32
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
@@ -30,11 +32,37 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         size = p.stat().st_size
         if size > MAX_TOML_BYTES:
             raise FormatError(p, "file", f"at most {MAX_TOML_BYTES} bytes", f"{size} bytes")
-        return tomllib.loads(p.read_text(encoding="utf-8"))
+        text = p.read_text(encoding="utf-8")
     except OSError as e:
         raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError as e:
         raise FormatError(p, "file", "valid TOML", str(e)) from None
+    return parse_toml(text, p)
+
+
+def parse_toml(text: str, source: str | Path, where: str = "file") -> dict[str, Any]:
+    """Parse TOML text as TOML 1.0 requires, bounded: every failure is a :class:`FormatError`
+    naming ``source``. An integer that does not fit 64 bits is refused (the spec's rule;
+    ``tomllib`` would return it whole, and a float conversion of it overflows), and so is
+    nesting deeper than :data:`MAX_TOML_DEPTH` (``tomllib`` recurses on nested arrays and
+    inline tables, and ``[a.a.a...]`` headers build a dict as deep as the line is long)."""
+    try:
+        doc = tomllib.loads(text)
+    except (ValueError, RecursionError) as e:  # TOMLDecodeError; Python's int-string limit; deep nesting
+        msg = "nesting too deep" if isinstance(e, RecursionError) else str(e)
+        raise FormatError(source, where, "valid TOML", msg[:200]) from None
+    stack: list[tuple[Any, str, int]] = [(doc, "", 0)]
+    while stack:
+        value, key, depth = stack.pop()
+        if depth > MAX_TOML_DEPTH:
+            raise FormatError(source, (key or where)[:200], f"at most {MAX_TOML_DEPTH} levels of nested tables and arrays", "deeper nesting")
+        if isinstance(value, dict):
+            stack.extend((v, f"{key}.{k}" if key else str(k), depth + 1) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((v, f"{key}[{i}]", depth + 1) for i, v in enumerate(value))
+        elif isinstance(value, int) and not isinstance(value, bool) and not -2**63 <= value < 2**63:
+            raise FormatError(source, (key or where)[:200], "an integer that fits 64 bits (TOML)", f"{len(str(abs(value)))} digits")
+    return doc
 
 
 def params_from_table(cls: type[T], d: Mapping[str, Any], source: str, table: str) -> T:
