@@ -133,3 +133,18 @@ def test_names_come_from_the_constructor_a_plugin_really_has() -> None:
     assert isinstance(make_estimator(Budgeted, {"budget": 5}), Budgeted)
     with pytest.raises(UnknownParameterError, match="did you mean 'scale'"):
         make_estimator(ScaledPF, {"scal": 2.0})
+
+
+def test_a_bad_value_in_a_config_file_names_the_file_and_key(tmp_path: Path) -> None:
+    """A value the estimator refuses is refused while the config file is read, prefixed
+    with where it was given (the estimator's own message said only the parameter)."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('[estimator]\nn_particles = "many"\n')
+    with pytest.raises(ParameterError) as e:
+        estimator_params(cfg, ["icp_pf"], [])
+    assert str(e.value).startswith(f"{cfg}: [estimator].n_particles: n_particles must be an integer")
+    cfg.write_text('[estimators.icp_pf]\nn_particles = 0\n')
+    with pytest.raises(ParameterError, match=r"run\.toml: \[estimators\.icp_pf\]\.n_particles: n_particles must be"):
+        estimator_params(cfg, ["icp_pf"], [])
+    # the value --param gives wins and is the one checked
+    assert estimator_params(cfg, ["icp_pf"], ["n_particles=50"])[0]["icp_pf"]["n_particles"] == 50

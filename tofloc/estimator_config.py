@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from tofloc.errors import FormatError
+from tofloc.errors import FormatError, ParameterError
 from tofloc.param_docs import NESTED_SUFFIX
 
 __all__ = ["EstimatorConfig", "read_config", "resolve_params", "merge_params", "config_toml"]
@@ -95,6 +95,25 @@ def _file_key(source: str, table: str) -> Callable[[tuple[str, ...]], str]:
     return describe
 
 
+def _check_values(cls: type, params: Mapping[str, Any], origin: Mapping[tuple[str, ...], str]) -> None:
+    """Build the estimator once so that a bad value of a config file fails now, named: the
+    estimator's own refusal (``n_particles must be an integer in [...]``) prefixed with
+    where that parameter was given (``run.toml: [estimator].n_particles``) when the message
+    names exactly one of the keys given; otherwise the refusal as it is."""
+    import re
+
+    try:
+        cls(**dict(params))
+    except TypeError:
+        return  # reported, with the estimator's parameters, where the estimator is made
+    except ParameterError as e:
+        message = str(e)
+        named = {src for key, src in origin.items() if len(key) == 1 and re.search(rf"\b{re.escape(key[0])}\b", message)}
+        if len(named) != 1:
+            raise
+        raise ParameterError(f"{named.pop()}: {message}") from None
+
+
 def merge_params(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     """``base`` updated with ``over``; ``sensor_model_params`` tables merge key by key."""
     out = dict(base)
@@ -139,6 +158,8 @@ def resolve_params(config: EstimatorConfig | None, name: str, cli_params: Mappin
             from_file = merge_params(from_file, table)
     _record(origin, cli, cli_source)
     check_parameter_names(cls, merge_params(from_file, cli), kind="estimator", name=name, source=origin.get)
+    if config is not None:
+        _check_values(cls, merge_params(from_file, cli), origin)
     if config is None:
         return cli, []
     notes = []
