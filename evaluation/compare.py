@@ -18,6 +18,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from tofloc.errors import FormatError
+from tofloc.json_input import DuplicateKey, unique_keys
 
 __all__ = ["Series", "ResultsFile", "load_results", "checked_name", "checked_number", "checked_stats", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
            "MAX_RESULTS_BYTES"]
@@ -67,22 +68,6 @@ class ResultsFile:
     kind: str
     series: list[Series]
     document: dict[str, Any]
-
-
-class _DuplicateKey(Exception):
-    def __init__(self, key: str) -> None:
-        super().__init__(key)
-        self.key = key
-
-
-def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """``object_pairs_hook`` refusing an object that repeats a key (which value was meant is unknown)."""
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if k in out:
-            raise _DuplicateKey(k)
-        out[k] = v
-    return out
 
 
 def _stat(d: Any, path: Path, where: str) -> dict[str, float | None]:
@@ -172,10 +157,10 @@ def load_results(path: str | Path) -> ResultsFile:
         size = p.stat().st_size
         if size > MAX_RESULTS_BYTES:
             raise FormatError(p, "file", f"at most {MAX_RESULTS_BYTES} bytes", f"{size} bytes")
-        doc = json.loads(p.read_text(encoding="utf-8"), object_pairs_hook=_unique_keys)
+        doc = json.loads(p.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
     except OSError as e:
         raise FormatError(p, "file", "a readable results file", e.strerror) from None
-    except _DuplicateKey as e:
+    except DuplicateKey as e:
         raise FormatError(p, "file", "JSON with unique keys in every object", f"the key {e.key!r} twice") from None
     except (ValueError, RecursionError) as e:
         raise FormatError(p, "file", "JSON", str(e)[:120]) from None

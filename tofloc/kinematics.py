@@ -52,6 +52,7 @@ from tofloc import frames
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.logs import POSE_ATOL
+from tofloc.npy_input import UnsupportedNpyVersion, read_npy_header
 
 __all__ = [
     "FORMAT_TAG",
@@ -761,13 +762,10 @@ def _check_member_headers(path: Path, infos: list[zipfile.ZipInfo], fail: _Fail)
                     continue
                 try:
                     with zf.open(info) as f:
-                        version = np.lib.format.read_magic(f)
-                        if version == (1, 0):
-                            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-                        elif version == (2, 0):
-                            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-                        else:
-                            raise fail(name, "a .npy array of format version 1.0 or 2.0", f"version {version}")
+                        try:
+                            shape, _, dtype = read_npy_header(f)
+                        except UnsupportedNpyVersion as e:
+                            raise fail(name, "a .npy array of format version 1.0 or 2.0", f"version {e.version}") from None
                         header = f.tell()
                 except FormatError:
                     raise

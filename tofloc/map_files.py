@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from tofloc.errors import FormatError
 from tofloc.map_validation import MAX_HEADER_BYTES, MAX_POINTS, MAX_TRIANGLES, Fail
+from tofloc.npy_input import UnsupportedNpyVersion, read_npy_header
 
 if TYPE_CHECKING:
     from tofloc.maps import Map
@@ -641,13 +642,10 @@ def _read_xyz(path: Path, fail: Fail) -> Parsed:
 def _read_npy(path: Path, fail: Fail) -> Parsed:
     try:
         with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-            elif version == (2, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-            else:
-                raise fail("header", "a .npy file of format version 1.0 or 2.0", f"version {version}")
+            try:
+                shape, fortran, dtype = read_npy_header(f)
+            except UnsupportedNpyVersion as e:
+                raise fail("header", "a .npy file of format version 1.0 or 2.0", f"version {e.version}") from None
             if dtype.kind not in "fiu" or dtype.fields is not None or dtype.subdtype is not None:
                 raise fail("header", "a real numeric dtype (float or integer)", str(dtype))
             if len(shape) != 2 or shape[1] != 3:

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.errors import FormatError
+from tofloc.json_input import DuplicateKey, unique_keys
 from tofloc.map_validation import readonly as _readonly
 
 __all__ = [
@@ -391,24 +392,6 @@ def _refuse_unknown_keys(d: Any, source: str) -> None:
             raise _fail(source, f"rig.sensors[{i}].{unknown[0]}", f"one of {list(SENSOR_FILE_KEYS)}", "an unknown key")
 
 
-class _DuplicateKey(Exception):
-    """A JSON object repeats a key (raised by :func:`_unique_keys`)."""
-
-    def __init__(self, key: str) -> None:
-        super().__init__(key)
-        self.key = key
-
-
-def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """``object_pairs_hook`` of :func:`json.loads` that refuses a repeated key."""
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if k in out:
-            raise _DuplicateKey(k)
-        out[k] = v
-    return out
-
-
 #: Keys of the rig's optional ``tolerances`` object and their largest accepted value.
 TOLERANCE_LIMITS = {"support_yaw_deg": 45.0, "range_scale": 0.5}
 
@@ -612,8 +595,8 @@ class Rig:
         log format v1's rule that unknown keys are ignored.)
         """
         try:
-            d = json.loads(text, object_pairs_hook=_unique_keys)
-        except _DuplicateKey as e:
+            d = json.loads(text, object_pairs_hook=unique_keys)
+        except DuplicateKey as e:
             raise _fail(source, "rig", "valid JSON with unique keys in every object", f"the key {e.key!r} twice") from None
         except (ValueError, TypeError, RecursionError) as e:  # ValueError: also Python's int-string limit
             raise _fail(source, "rig", "valid JSON", str(e)[:200]) from None
