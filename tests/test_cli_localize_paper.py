@@ -558,14 +558,20 @@ def test_a_log_without_stated_configuration_uncertainty_is_refused_up_front(
         assert code == 2, err
         assert f"{silent}: /samples/T_base_tip has no stated uncertainty" in flat
         assert "configuration_source is absent" in flat and "/samples/T_base_tip_cov" in flat and "trial" not in flat
+        assert "map " not in flat and not (tmp_path / "ev").exists()  # no map loaded, no output folder made
     code, _, err = _run(capsys, ["localize", str(silent), "--estimator", "icp_pf", "--trials", "1", "--samples", "2",
                                  "--tip-source", "knn", "--kinematics", str(data["knn"]), "--param", "n_particles=50"])
     assert code == 0, err
     # tofloc info says so beforehand; a log that states its source does not get the row
+    from tofloc.logs import read_log
+
+    known = int(np.isfinite(read_log(silent).T_base_tip).all(axis=(1, 2)).sum())
     for path, said in ((silent, True), (data["log"], False)):
         code, out, err = _run(capsys, ["info", str(path)])
         assert code == 0, err
-        assert ("configuration uncertainty" in out and "refuse this log" in " ".join(out.split())) is said, out
+        flat = " ".join(out.replace("│", " ").split())
+        assert ("configuration uncertainty" in out and "refuse this log" in flat) is said, out
+        assert (f"not stated for {known} of {known} configurations" in flat) is said, out
 
 
 def test_a_calibration_footprint_that_is_not_an_integer_is_refused(tmp_path: Path) -> None:

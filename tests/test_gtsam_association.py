@@ -215,13 +215,21 @@ def test_a_stack_is_reused_only_for_its_own_list() -> None:
     assert zone_stack(swapped) is not out.stack
     shorter = AssociatedMeasurements(list(out[:2]), out.stack)
     assert zone_stack(shorter) is not out.stack
-    again, _ = associate(p, swapped, truth, C, np.eye(4), 0.05)
-    plain, _ = associate(p, list(swapped), truth, C, np.eye(4), 0.05)
+    again, changed_again = associate(p, swapped, truth, C, np.eye(4), 0.05)
+    plain, changed_plain = associate(p, list(swapped), truth, C, np.eye(4), 0.05)
     for a, b in zip(again, plain):
         for f in _FIELDS:
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
-    grown, _ = associate(p, list(out[:2]) + [meas[2]], truth, C, np.eye(4), 0.05)
-    assert len(grown) == 3 and grown.stack.holds(grown)
+    # the replaced sample was never associated (its keys are -1): a stale stack would carry
+    # out[1]'s association and call it unchanged
+    assert list(changed_again) == list(changed_plain) and changed_again[1]
+    grown_input = list(out[:2]) + [meas[2]]
+    grown, _ = associate(p, grown_input, truth, C, np.eye(4), 0.05)
+    fresh, _ = associate(p, [*grown_input], truth, C, np.eye(4), 0.05)
+    assert len(grown) == 3 and grown.stack is not out.stack
+    for a, b in zip(grown, fresh):
+        for f in _FIELDS:
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
 
 
 def test_the_stacked_factor_shares_the_association_stack() -> None:

@@ -222,3 +222,31 @@ def test_the_entry_reading_is_the_entry_distance_times_the_reading_per_metre() -
     np.testing.assert_allclose(got, ks.unknown_entry(o, u, 5.0 / along) * along)
     np.testing.assert_allclose(got, [1.0, 0.8], atol=1e-6)  # the unknown cells start 1 m out
     assert np.isinf(ks.unknown_entry_reading(o, u, np.array([0.5, 0.5]), along)).all()  # known up to the reach
+
+
+def test_a_sidecar_whose_header_declares_a_huge_grid_is_refused(tmp_path) -> None:
+    """A ``.known.npz`` member of a few bytes whose ``.npy`` header declares a 10^6 x 10^6
+    grid made numpy allocate 931 GiB (MemoryError, a traceback); its header is now checked
+    against the member's size first (tofloc.npy_input.check_npz_member_headers)."""
+    import zipfile
+
+    from tofloc.errors import FormatError
+
+    good = tmp_path / "good.known.npz"
+    KnownSpace(np.array([-1.0, -1.0]), 0.05, np.array([0.0, 1.0]), np.ones((4, 5), bool)).save(good)
+    bomb = tmp_path / "bomb.known.npz"
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((1, 1), np.uint8))
+    header["shape"] = (10**6, 10**6)
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(bomb, "w") as dst:
+        for info in src.infolist():
+            data = src.read(info)
+            if info.filename == "known.npy":
+                import io
+
+                buf = io.BytesIO()
+                np.lib.format.write_array_header_1_0(buf, header)
+                data = buf.getvalue() + b"\x01" * 8
+            dst.writestr(info.filename, data)
+    with pytest.raises(FormatError, match=r"bomb\.known\.npz.*known: expected the data its header declares \(shape \(1000000, 1000000\)"):
+        KnownSpace.load(bomb)
+    assert KnownSpace.load(good).known.shape == (4, 5)

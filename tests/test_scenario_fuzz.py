@@ -55,8 +55,11 @@ def test_sub_ray_budget(tmp_path) -> None:
     # the paper's 816 postures x 16 sensors x 64 zones x 81 sub-rays: 68 million rays in one batch
     text = "[rig]\nazimuths_deg = [" + ", ".join(str(20.0 * i) for i in range(16)) + "]\n[tof]\nsub_rays = 9\n"
     _refused(tmp_path, text, rf"\[tof\]\.sub_rays: expected at most {MAX_SUB_RAYS} sub-rays")
-    sc = load_scenario("paper")  # the shipped scenarios fit
-    assert n_postures(sc) * 3 * 64 * 9 <= MAX_SUB_RAYS
+    for name in ("paper", "pillars", "l_room", "clutter"):  # the shipped scenarios fit, with their own counts
+        sc = load_scenario(name)
+        rows, cols = sc.rig.resolution
+        assert n_postures(sc) * len(sc.rig.azimuths_deg) * rows * cols * sc.tof.sub_rays ** 2 <= MAX_SUB_RAYS, name
+    assert n_postures(load_scenario("paper")) == 816  # the count the limits are sized against
 
 
 @pytest.mark.parametrize("text, match", [

@@ -262,7 +262,7 @@ def calibrate(
         log = _as_log(lg)
         mp = given[i if len(given) > 1 else 0] if given else resolve_calibration_map(log)
         if mp is None:
-            raise FormatError(getattr(log, "path", "<log>"), "map", "the map's file name in the root attribute `map` (or pass --map MAP)",
+            raise FormatError(getattr(log, "path", "<log>"), "map", "the map's file name in the root attribute `map` (or give the map: --map MAP, or maps= in Python)",
                               "no such attribute")
         if isinstance(mp, Map):
             m, name = mp, mp.source

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import FormatError, ParameterError, PluginError
 from tofloc.param_docs import NESTED_SUFFIX
 
 __all__ = ["EstimatorConfig", "read_config", "resolve_params", "merge_params", "config_toml"]
@@ -103,15 +103,31 @@ def _check_values(cls: type, params: Mapping[str, Any], origin: Mapping[tuple[st
     import re
 
     try:
-        cls(**dict(params))
+        est = cls(**dict(params))
+        make_model = getattr(est, "make_sensor_model", None)
+        if callable(make_model):  # nested sensor-model values are checked when the model is made
+            make_model()
     except TypeError:
         return  # reported, with the estimator's parameters, where the estimator is made
-    except ParameterError as e:
+    except (ParameterError, PluginError) as e:
         message = str(e)
-        named = {src for key, src in origin.items() if len(key) == 1 and re.search(rf"\b{re.escape(key[0])}\b", message)}
+        hits = [(len(key), src) for key, src in origin.items()
+                if re.search(rf"\b{re.escape(key[-1])}\b", message) or repr(params_at(params, key)) in message]
+        deepest = max((n for n, _ in hits), default=0)
+        named = {src for n, src in hits if n == deepest}
         if len(named) != 1:
             raise
-        raise ParameterError(f"{named.pop()}: {message}") from None
+        raise type(e)(f"{named.pop()}: {message}") from None
+
+
+def params_at(params: Mapping[str, Any], key: tuple[str, ...]) -> Any:
+    """The value at ``key`` (a path through nested ``*_params`` tables), None if absent."""
+    value: Any = params
+    for part in key:
+        if not isinstance(value, Mapping) or part not in value:
+            return None
+        value = value[part]
+    return value
 
 
 def merge_params(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:

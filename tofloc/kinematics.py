@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import tokenize
 import os
 import zipfile
 from dataclasses import dataclass
@@ -52,7 +51,7 @@ from tofloc import frames
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.logs import POSE_ATOL
-from tofloc.npy_input import UnsupportedNpyVersion, read_npy_header
+from tofloc.npy_input import check_npz_member_headers
 
 __all__ = [
     "FORMAT_TAG",
@@ -709,7 +708,7 @@ class KinematicsModel:
         total = sum(i.file_size for i in infos)
         if total > MAX_FILE_PAYLOAD:
             raise fail("<file>", f"at most {MAX_FILE_PAYLOAD} uncompressed bytes", total)
-        _check_member_headers(path, infos, fail)
+        check_npz_member_headers(infos, path, {f"{name}.npy": name for name in (*_FIELDS, "configuration_covariance")}, fail)
 
         raw: dict[str, NDArray[Any]] = {}
         try:
@@ -747,36 +746,6 @@ class KinematicsModel:
                     raw["validation_indices"], raw["log_fingerprint"], fail)
         model.configuration_covariance = _check_covariance(raw.get("configuration_covariance"), fail)
         return model
-
-
-def _check_member_headers(path: Path, infos: list[zipfile.ZipInfo], fail: _Fail) -> None:
-    """Read the ``.npy`` header of every field the model reads, before its data: numpy
-    allocates the shape a header declares before reading, so a member of a few bytes
-    declaring ``(10**11, 3)`` would otherwise ask for terabytes (MemoryError) or hang."""
-    wanted = {f"{name}.npy": name for name in (*_FIELDS, "configuration_covariance")}
-    try:
-        with zipfile.ZipFile(path) as zf:
-            for info in infos:
-                name = wanted.get(info.filename)
-                if name is None:
-                    continue
-                try:
-                    with zf.open(info) as f:
-                        try:
-                            shape, _, dtype = read_npy_header(f)
-                        except UnsupportedNpyVersion as e:
-                            raise fail(name, "a .npy array of format version 1.0 or 2.0", f"version {e.version}") from None
-                        header = f.tell()
-                except FormatError:
-                    raise
-                except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile) as e:
-                    raise fail(name, "a .npy array with a readable header", str(e).replace("\n", " ")[:120]) from None
-                need = math.prod(shape) * dtype.itemsize
-                if need > info.file_size - header:
-                    raise fail(name, f"the data its header declares (shape {shape[:4]}, {dtype}: {need} bytes)",
-                               f"{max(info.file_size - header, 0)} bytes")
-    except (zipfile.BadZipFile, OSError) as e:
-        raise fail("<file>", "a readable .npz (zip) archive", str(e)) from None
 
 
 def configuration_error_covariance(T_pred: ArrayLike, T_true: ArrayLike) -> NDArray[np.float64] | None:

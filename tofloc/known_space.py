@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
+from tofloc.npy_input import check_npz_member_headers
 
 __all__ = ["FORMAT", "MAX_CELLS", "KnownSpace", "sidecar_path"]
 
@@ -219,9 +220,12 @@ class KnownSpace:
             raise FormatError(p, "file", f"at most {MAX_FILE_BYTES} bytes", size)
         try:
             with zipfile.ZipFile(p) as z:  # bound the uncompressed size before numpy inflates it
-                total = sum(i.file_size for i in z.infolist())
+                infos = z.infolist()
+            total = sum(i.file_size for i in infos)
             if total > MAX_CELLS + 1_000_000:
                 raise FormatError(p, "file", f"at most {MAX_CELLS + 1_000_000} bytes uncompressed", total)
+            wanted = {f"{n}.npy": n for n in ("format", "origin", "cell", "z_range", "known")}
+            check_npz_member_headers(infos, p, wanted, lambda field, expected, found: FormatError(p, field, expected, found))
             with np.load(p, allow_pickle=False) as f:
                 entries = set(f.files)
                 want = {"format", "origin", "cell", "z_range", "known"}

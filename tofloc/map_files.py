@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import re
 import struct
-import tokenize
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -20,7 +19,7 @@ from numpy.typing import NDArray
 
 from tofloc.errors import FormatError
 from tofloc.map_validation import MAX_HEADER_BYTES, MAX_POINTS, MAX_TRIANGLES, Fail
-from tofloc.npy_input import UnsupportedNpyVersion, read_npy_header
+from tofloc.npy_input import NPY_HEADER_ERRORS, UnsupportedNpyVersion, read_npy_header
 
 if TYPE_CHECKING:
     from tofloc.maps import Map
@@ -662,7 +661,7 @@ def _read_npy(path: Path, fail: Fail) -> Parsed:
             arr = np.lib.format.read_array(f, allow_pickle=False)
     except FormatError:
         raise
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as e:  # numpy parses the header with ast/tokenize
+    except NPY_HEADER_ERRORS as e:  # numpy parses the header with ast/tokenize
         raise fail("content", "a complete .npy array", str(e).replace("\n", " ")[:120]) from None
     return np.asarray(arr, dtype=np.float64), None, None
 

@@ -67,8 +67,11 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
         try:
             check_configuration_uncertainty(log)
         except ProblemError:
-            t.add_row("configuration uncertainty", "not stated (no covariance; the source does not state it): "
-                      "localize --tip-source mocap and evaluate refuse this log (docs/log-format.md)")
+            cov = log.T_base_tip_cov
+            stated = 0 if cov is None else int((np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(log.T_base_tip).all(axis=(1, 2))).sum())
+            t.add_row("configuration uncertainty", f"not stated for {known - stated} of {known} configurations (no covariance, "
+                      "and the source does not state it): localize --tip-source mocap and evaluate refuse this log "
+                      "(docs/log-format.md)")
     else:
         t.add_row("configuration T_base_tip", "absent")
     if log.T_base_tip_cov is not None:

@@ -444,7 +444,8 @@ def summary_lines(doc: dict[str, Any], dataset: str | Path) -> list[str]:
 
 
 def _write_json(text: str, path: Path | None) -> None:
-    """``text`` on stdout, or atomically to ``path`` (checked beforehand by :func:`main`).
+    """``text`` on stdout, or atomically to ``path`` (checked beforehand by :func:`main`;
+    the project's one atomic text writer, :func:`evaluation.report.write_text_atomic`).
 
     Raises
     ------
@@ -454,11 +455,10 @@ def _write_json(text: str, path: Path | None) -> None:
     if path is None:
         print(text)
         return
-    from tofloc.atomic import atomic_path
+    from evaluation.report import write_text_atomic
 
     try:
-        with atomic_path(path) as tmp:
-            tmp.write_text(text + "\n", encoding="utf-8")
+        write_text_atomic(text + "\n", path)
     except OSError as e:
         raise ParameterError(f"--json {path}: cannot write the JSON report ({e.strerror or e})") from None
 
@@ -491,7 +491,7 @@ def main(argv: Sequence[str]) -> int:
 
             check_output_path(args.json_path, kind="file", option="--json")  # before the work
         doc = report(args.dataset, runs=args.runs)
-        _write_json(json.dumps(doc, indent=1), args.json_path)
+        _write_json(json.dumps(doc, indent=1, allow_nan=False), args.json_path)
     except TofLocError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

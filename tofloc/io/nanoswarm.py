@@ -364,7 +364,6 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
     seen: dict[tuple[int, int], int] = {}
     seen_hex: dict[tuple[int, int], str] = {}
     repeated: list[int] = []
-    file_rows: list[int] = []  # the file row of each kept scan (messages name it)
     position: dict[tuple[int, int], int] = {}  # a node's index in keys
     blobs = []
     for i, line in enumerate(lines, start=1):
@@ -390,14 +389,12 @@ def read_scans_csv(path: str | Path, duplicates: str = "refuse", bad_scans: str 
             position[key] = len(keys)
             keys.append(key)
             blobs.append(raw[4:])
-            file_rows.append(i)
         elif duplicates == "first":  # a checked row that loses to the node's first
             repeated.append(i)
             continue
         else:  # "last": this row replaces the node's earlier one
             repeated.append(seen[key])
             blobs[position[key]] = raw[4:]
-            file_rows[position[key]] = i
         seen[key] = i
         seen_hex[key] = hex_text
     body = np.frombuffer(b"".join(blobs), dtype=_SCAN_DTYPE).reshape(len(blobs), FRAMES)
