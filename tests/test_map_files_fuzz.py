@@ -230,3 +230,38 @@ def test_npy_header_that_numpy_cannot_tokenize_is_refused(tmp_path: Path) -> Non
     np.save(buf, np.zeros((20, 3)))
     data = buf.getvalue()
     _refused(tmp_path / "q.npy", data[:13] + b"'" * 6 + data[13:], "a complete .npy array")
+
+
+_FACE_TOKENS = st.sampled_from(["0", "1", "2", "3", "4", "+1", "-1", "07", "1.0", "1_0", "\u0663", "0x1", "1e2",
+                                "99999999999999999999", "-3", "x"])
+_FACE_LINE = st.lists(_FACE_TOKENS, min_size=1, max_size=6).map(" ".join)  # the reader drops blank lines
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(lines=st.lists(st.one_of(_FACE_LINE, st.sampled_from(["3 0 1 2", "3 1 2 3", "4 0 1 2 3"])), min_size=1, max_size=6))
+def test_ascii_faces_fast_path_reads_only_what_the_line_reader_reads_the_same(lines: list[str]) -> None:
+    """The numpy fast path for one index list per line (a million ASCII triangles in
+    0.30 s instead of 3.3 s) answers only where the line-by-line reader accepts the lines,
+    with the same indices; it leaves everything else (mixed sizes, tokens int() reads
+    but numpy does not, bad counts) to the line reader's reading or refusal."""
+    from tofloc import map_files
+
+    el = map_files._PlyElement("face", len(lines), [map_files._PlyProp("vertex_indices", "i4", "u1")])
+    fast = map_files._uniform_ascii_faces(lines, el)
+
+    def fail(where: str, expected: str, found: object) -> FormatError:
+        return FormatError("faces.ply", where, expected, found)
+
+    try:
+        slow = map_files._ascii_faces_by_line(lines, el, fail)
+    except FormatError:
+        slow = None
+    if fast is not None:
+        assert slow is not None and set(fast) == set(slow)
+        for n in fast:
+            assert fast[n].shape == np.asarray(slow[n]).shape
+            np.testing.assert_array_equal(fast[n], slow[n])
+    all_triangles = all(ln.split() and ln.split()[0] == "3" and len(ln.split()) == 4 and all(
+        t.isascii() and t.lstrip("+-").isdigit() and "_" not in t for t in ln.split()) for ln in lines)
+    if all_triangles:  # the common case does take the fast path
+        assert fast is not None
