@@ -282,17 +282,10 @@ def make_estimator(cls: type, params: Mapping[str, Any], name: str = "") -> Esti
     """``cls(**params)``; a parameter name it (or its sensor model) does not take is refused
     before anything is built (:func:`tofloc.param_docs.check_parameter_names`), and any other
     constructor ``TypeError`` is reported as a :class:`ParameterError`."""
-    from tofloc.param_docs import check_parameter_names, parameter_names
+    from tofloc.param_docs import build_plugin
 
     label = name or str(getattr(cls, "name", "") or cls.__name__)
-    check_parameter_names(cls, params, kind="estimator", name=label)
-    try:
-        est = cls(**dict(params))
-    except TypeError as e:
-        known = parameter_names(cls)
-        raise ParameterError(
-            f"estimator {label!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")
-        ) from None
+    est = build_plugin(cls, params, kind="estimator", name=label)
     if not isinstance(est, Estimator):
         raise ParameterError(f"estimator {label!r} does not follow tofloc.problem.Estimator")
     return est

@@ -161,3 +161,17 @@ def test_a_bad_nested_value_or_model_in_a_config_file_names_the_file_and_key(tmp
     with pytest.raises(PluginError) as p:
         estimator_params(cfg, ["beam_pf"], [])
     assert str(p.value).startswith(f"{cfg}: [estimator].sensor_model: unknown sensor model 'nope'")
+
+
+def test_build_plugin_reports_a_constructor_type_error_as_a_parameter_error() -> None:
+    """Estimators and selection policies are built by one helper: a known name with a
+    missing required argument is a ParameterError naming the plug-in and its parameters."""
+    from tofloc.param_docs import build_plugin
+
+    class Needs:
+        def __init__(self, a: float, b: float = 1.0) -> None:
+            self.a, self.b = a, b
+
+    assert build_plugin(Needs, {"a": 2.0}, kind="selection policy", name="needs").a == 2.0
+    with pytest.raises(ParameterError, match=r"^selection policy 'needs': .*missing .*'a'.* \(its parameters: a, b\)$"):
+        build_plugin(Needs, {"b": 2.0}, kind="selection policy", name="needs")

@@ -19,7 +19,7 @@ from typing import Any, Callable, Mapping
 from tofloc.errors import UnknownParameterError
 
 __all__ = ["ParamDoc", "parameter_docs", "numpydoc_parameters", "parameter_names", "check_parameter_names",
-           "cli_source", "NESTED_SUFFIX"]
+           "build_plugin", "cli_source", "NESTED_SUFFIX"]
 
 #: A parameter ``X_params`` holds the parameters of the plug-in its sibling ``X`` names
 #: (``sensor_model_params`` of ``sensor_model``; ``--param sensor_model__KEY=VALUE``).
@@ -221,6 +221,22 @@ def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, na
             continue
         check_parameter_names(registry.load(chosen), value, kind=registry.kind, name=chosen, source=source,
                               owner=f"{registry.kind} {chosen!r} of {owner}", _path=_path + (key,))
+
+
+def build_plugin(cls: type, params: Mapping[str, Any] | None, *, kind: str, name: str) -> Any:
+    """``cls(**params)``: a name it does not take refused before anything is built
+    (:func:`check_parameter_names`), any other constructor ``TypeError`` reported as a
+    :class:`~tofloc.errors.ParameterError` naming the plug-in and its parameters (the one
+    construction of estimators and selection policies from names and parameters)."""
+    from tofloc.errors import ParameterError
+
+    given = dict(params or {})
+    check_parameter_names(cls, given, kind=kind, name=name)
+    try:
+        return cls(**given)
+    except TypeError as e:
+        known = parameter_names(cls)
+        raise ParameterError(f"{kind} {name!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")) from None
 
 
 def cli_source(path: tuple[str, ...]) -> str:

@@ -26,14 +26,7 @@ def policy_names() -> list[str]:
 def make_policy(name: str, params: Mapping[str, Any] | None = None) -> SelectionPolicy:
     """The policy registered under ``name`` built with ``params``; a :class:`~tofloc.errors.ParameterError`
     for an unknown parameter, a :class:`~tofloc.errors.PluginError` for an unknown name."""
-    from tofloc.errors import ParameterError
-    from tofloc.param_docs import check_parameter_names, parameter_names
+    from tofloc.param_docs import build_plugin
     from tofloc.registry import SELECTION_POLICIES
 
-    cls = SELECTION_POLICIES.load(name)
-    check_parameter_names(cls, params or {}, kind="selection policy", name=name)
-    try:
-        return cls(**dict(params or {}))
-    except TypeError as e:
-        known = parameter_names(cls)
-        raise ParameterError(f"selection policy {name!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")) from None
+    return build_plugin(SELECTION_POLICIES.load(name), params, kind="selection policy", name=name)
