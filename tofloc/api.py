@@ -579,8 +579,7 @@ def paper(
     out_dir = Path(out)
     if out_dir.exists() and not out_dir.is_dir():
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
-    per_est = _per_estimator_params(names, params, estimator_params)
-    ests = {n: estimator(n, per_est[n]) for n in names}
+    per_est, ests = _estimators(names, params, estimator_params)
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
     t0 = time.perf_counter()
     _start_server_early(workers, scheduler)
@@ -731,9 +730,7 @@ def scenes(
     unknown = sorted(set(names) - set(builtin_scenarios()))
     if unknown:
         raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
-    per_est = _per_estimator_params(list(estimators), params, estimator_params)
-    for n in estimators:  # a bad name or parameter fails before the first scene is simulated
-        estimator(n, per_est[n])
+    _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
     out_dir = Path(out)
     rows: list[dict[str, Any]] = []
     for scene in names:
@@ -837,6 +834,14 @@ def _per_estimator_params(names: Sequence[str], params: Mapping[str, Any] | None
     if unknown_names:
         raise ParameterError(f"estimator_params names estimators not in the run: {unknown_names}")
     return {n: merge_params(params or {}, (estimator_params or {}).get(n, {})) for n in names}
+
+
+def _estimators(names: Sequence[str], params: Mapping[str, Any] | None,
+                estimator_params: Mapping[str, Mapping[str, Any]] | None) -> tuple[dict[str, dict[str, Any]], dict[str, Estimator]]:
+    """Each estimator's parameters (:func:`_per_estimator_params`) and the estimator built
+    with them (:func:`estimator`: a bad name or parameter refused before any work)."""
+    per_est = _per_estimator_params(names, params, estimator_params)
+    return per_est, {n: estimator(n, per_est[n]) for n in names}
 
 
 def _config_text(params_by_name: Mapping[str, Mapping[str, Any]], command: str, where: str = "") -> str:
@@ -985,8 +990,7 @@ def evaluate(
         raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     check_selection(selection)
-    per_est = _per_estimator_params(names, params, estimator_params)
-    ests = {n: estimator(n, per_est[n]) for n in names}
+    per_est, ests = _estimators(names, params, estimator_params)
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
     for message in footprint_mismatches(ests, cal):
