@@ -114,7 +114,7 @@ class Registry:
             return self._specs[name]
         except KeyError:
             raise PluginError(
-                f"unknown {self._kind} {name!r}; available: {', '.join(self.names()) or 'none'}"
+                f"unknown {self.kind} {name!r}; available: {', '.join(self.names()) or 'none'}"
             ) from None
 
     @property
@@ -122,10 +122,6 @@ class Registry:
         """What one plug-in is, in words (``"estimator"``, ``"sensor model"``, ``"selection policy"``)."""
         kind = self.group.split(".")[-1]
         return (kind[:-3] + "y" if kind.endswith("ies") else kind.rstrip("s")).replace("_", " ")
-
-    @property
-    def _kind(self) -> str:
-        return self.kind
 
     def load(self, name: str) -> Any:
         """Import and return the plug-in's object; :class:`PluginError` with an install hint on failure."""
@@ -139,17 +135,17 @@ class Registry:
             missing = (e.name or "").split(".")[0]
             hint = _INSTALL_HINTS.get(missing, f"pip install {missing}" if missing else "")
             raise PluginError(
-                f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) needs the missing module "
+                f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) needs the missing module "
                 f"{e.name!r}" + (f": {hint}" if hint else "")
             ) from e
         except Exception as e:  # a plug-in's own import error
-            raise PluginError(f"{self._kind} {name!r} ({spec.target}) failed to import: {e}") from e
+            raise PluginError(f"{self.kind} {name!r} ({spec.target}) failed to import: {e}") from e
         try:
             obj = module
             for part in attr.split(".") if attr else []:
                 obj = getattr(obj, part)
         except AttributeError as e:
-            raise PluginError(f"{self._kind} {name!r}: {spec.target} does not exist ({e})") from e
+            raise PluginError(f"{self.kind} {name!r}: {spec.target} does not exist ({e})") from e
         self._check(name, spec, obj)
         self._cache[name] = obj
         return obj
@@ -161,11 +157,11 @@ class Registry:
         mod, _, attr = self._base.partition(":")
         base = getattr(importlib.import_module(mod), attr)
         if not (isinstance(obj, type) and issubclass(obj, base)):
-            raise PluginError(f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) is not a subclass of "
+            raise PluginError(f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) is not a subclass of "
                               f"{base.__module__}.{base.__qualname__}")
         declared = getattr(obj, "name", None)
         if declared != name:
-            raise PluginError(f"{self._kind} {name!r} ({spec.target}, from {spec.origin}) declares name = {declared!r}: "
+            raise PluginError(f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) declares name = {declared!r}: "
                               f"the entry point and the class's name must agree")
 
     def iter_loaded(self) -> Iterator[tuple[str, Any]]:
@@ -174,7 +170,7 @@ class Registry:
             try:
                 yield name, self.load(name)
             except PluginError as e:
-                warnings.warn(f"skipping {self._kind} {name!r}: {e}", stacklevel=2)
+                warnings.warn(f"skipping {self.kind} {name!r}: {e}", stacklevel=2)
 
     def status(self) -> list[tuple[PluginSpec, str]]:
         """``(spec, "ok" | error message)`` for every plug-in (imports them)."""
