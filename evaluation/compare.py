@@ -20,7 +20,7 @@ import numpy as np
 from tofloc.errors import FormatError
 from tofloc.json_input import DuplicateKey, unique_keys
 
-__all__ = ["Series", "ResultsFile", "load_results", "checked_name", "checked_number", "checked_stats", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
+__all__ = ["Series", "ResultsFile", "load_results", "checked_name", "checked_int", "checked_number", "checked_stats", "series_of", "file_labels", "comparison_rows", "comparison_markdown",
            "MAX_RESULTS_BYTES"]
 
 #: Largest results file read (bytes): a localize file of 100 000 trials is ~60 MB.
@@ -81,9 +81,7 @@ def _crlb(d: Any, path: Path, where: str) -> dict[str, float | None] | None:
 def _entry(d: Any, path: Path, where: str) -> dict[str, Any]:
     if not isinstance(d, Mapping):
         raise FormatError(path, where, "an object of error summaries", type(d).__name__)
-    n = d.get("n")
-    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or not 0 <= n < 2**63):
-        raise FormatError(path, f"{where}.n", "the number of trials (an integer >= 0) or null", repr(n)[:40])
+    n = checked_int(d.get("n"), path, f"{where}.n", "the number of trials (an integer >= 0) or null", high=2**63, null=True)
     out = {"e_x_m": _stat(d.get("e_x_m"), path, f"{where}.e_x_m"),
            "e_gamma_deg": _stat(d.get("e_gamma_deg"), path, f"{where}.e_gamma_deg"),
            "crlb": _crlb(d.get("crlb"), path, f"{where}.crlb"),
@@ -115,6 +113,18 @@ def checked_name(v: Any, path: Path, where: str) -> str:
     if not isinstance(v, str) or not v or len(v) > 200:
         raise FormatError(path, where, "a name (a non-empty string of at most 200 characters)", repr(v)[:40])
     return v
+
+
+def checked_int(v: Any, path: Path, where: str, expected: str, *, low: int = 0, high: int | None = None,
+                null: bool = False) -> int | None:
+    """``v`` when it is an integer (not a bool) in ``[low, high)`` (no upper bound without
+    ``high``), or None when it is null and ``null`` allows it; FormatError naming ``path``,
+    ``where`` and ``expected`` otherwise."""
+    if v is None and null:
+        return None
+    if not isinstance(v, int) or isinstance(v, bool) or v < low or (high is not None and v >= high):
+        raise FormatError(path, where, expected, repr(v)[:40])
+    return int(v)
 
 
 def checked_number(v: Any, path: Path, where: str, *, positive: bool = False, nonnegative: bool = False,

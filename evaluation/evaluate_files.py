@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from evaluation.compare import checked_int
 from evaluation.compare import checked_name as _name
 from evaluation.compare import checked_number as _number
 from evaluation.compare import checked_stats as _stats
@@ -37,9 +38,9 @@ def is_evaluate_document(doc: Mapping[str, Any]) -> bool:
 
 
 def _count(v: Any, p: Path, where: str, low: int = 0) -> int:
-    if not isinstance(v, int) or isinstance(v, bool) or v < low:
-        raise FormatError(p, where, f"an integer >= {low}", repr(v)[:40])
-    return int(v)
+    n = checked_int(v, p, where, f"an integer >= {low}", low=low)
+    assert n is not None
+    return n
 
 
 def _mapping(v: Any, p: Path, where: str, what: str) -> Mapping[str, Any]:
@@ -107,9 +108,7 @@ def _records(v: Any, p: Path, where: str) -> list[dict[str, Any]]:
     for i, r in enumerate(v):
         d = _mapping(r, p, f"{where}[{i}]", "a trial record (an object)")
         rec: dict[str, Any] = {k: _number(d.get(k), p, f"{where}[{i}].{k}") for k in _RECORD_KEYS}
-        seed = d.get("seed")
-        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**64):
-            raise FormatError(p, f"{where}[{i}].seed", "an integer seed >= 0 or null", repr(seed)[:40])
+        seed = checked_int(d.get("seed"), p, f"{where}[{i}].seed", "an integer seed >= 0 or null", high=2**64, null=True)
         rec["seed"] = seed  # pairs this trial with the same trial of another run (evaluation.log_bootstrap.paired_runs)
         rec["truth"] = _truth(d.get("truth"), p, f"{where}[{i}].truth")  # ... of the same log (a label is only a file name)
         out.append(rec)

@@ -191,3 +191,18 @@ def test_results_mutation_fuzz(tmp_path: Path, path_choice: int, value: object) 
         assert all(isinstance(k, int) and k >= 1 for k in s.ks)
         for stat in s.overall["e_x_m"].values():
             assert stat is None or np.isfinite(stat)
+
+
+def test_checked_int_bounds_bools_and_null(tmp_path) -> None:
+    """One integer check for results files (trial counts, seeds): bools, floats and
+    out-of-range values refused naming the file, field and expectation; null only when allowed."""
+    from evaluation.compare import checked_int
+    from tofloc.errors import FormatError
+
+    p = tmp_path / "results.json"
+    assert checked_int(5, p, "n", "an integer") == 5
+    assert checked_int(None, p, "seed", "a seed or null", null=True) is None
+    assert checked_int(2**64 - 1, p, "seed", "a seed", high=2**64) == 2**64 - 1
+    for bad, kw in ((True, {}), (3.0, {}), (-1, {}), (None, {}), (2**64, {"high": 2**64}), (1, {"low": 2})):
+        with pytest.raises(FormatError, match=rf"^{p}: where: expected what, found {repr(bad)[:40]}"):
+            checked_int(bad, p, "where", "what", **kw)
