@@ -650,17 +650,13 @@ def _read_xyz(path: Path, fail: Fail) -> Parsed:
         raise fail("content", "at least one point", "none")
     if len(lines) > MAX_POINTS:
         raise fail("content", f"at most {MAX_POINTS} points", f"{len(lines)} lines")
-    if lines and len(lines[0].split("#", 1)[0].split()) != 3:
+    if len(lines[0].split("#", 1)[0].split()) != 3:
         raise fail("content", "three columns 'x y z'", f"{len(lines[0].split('#', 1)[0].split())} columns")
     try:
         arr = np.loadtxt(lines, dtype=np.float64, ndmin=2, comments="#")
     except ValueError as e:
         raise fail("content", "three numbers 'x y z' per line", str(e).split(";")[0][:120]) from None
-    if arr.size == 0:
-        raise fail("content", "at least one point", "none")
-    if arr.shape[1] != 3:
-        raise fail("content", "three columns 'x y z'", f"{arr.shape[1]} columns")
-    return arr, None, None
+    return arr, None, None  # (n, 3): the first line has three columns, and numpy refuses ragged rows
 
 
 def _read_npy(path: Path, fail: Fail) -> Parsed:
