@@ -84,7 +84,8 @@ def _rig_variant(source: str) -> str | None:
 
 
 #: File names of a run folder that a scenario's log must not take.
-_RESERVED_STEMS = frozenset({"calibration-session", "knn", "sensor_model", "results", "scenes", "config", "table"})
+_RESERVED_STEMS = frozenset({Path(CALIBRATION_LOG_NAME).stem, Path(KNN_NAME).stem, Path(CALIBRATION_NAME).stem,
+                             "results", "scenes", "config", "table"})
 
 
 def log_name(scenario_name: str) -> str:
