@@ -183,7 +183,17 @@ def test_mutated_map_files_load_or_fail_in_one_line(tmp_path: Path, name: str, e
     except FormatError as e:
         assert "\n" not in str(e) and str(p) in str(e)
         return
-    assert np.isfinite(loaded.points).all()
+    # what a reader hands on: finite (n, 3) points; triangles of vertices that exist
+    # (degenerate ones allowed: their normal is NaN); unit normals, one per point
+    pts = loaded.points
+    assert pts.ndim == 2 and pts.shape[1] == 3 and len(pts) > 0 and np.isfinite(pts).all()
+    tri = loaded.triangles()
+    if tri is not None:
+        assert tri.ndim == 2 and tri.shape[1] == 3 and len(tri) > 0
+        assert tri.min() >= 0 and tri.max() < len(pts)
+    if loaded.normals is not None:
+        assert loaded.normals.shape == pts.shape
+        np.testing.assert_allclose(np.linalg.norm(loaded.normals, axis=1), 1.0, atol=1e-9)
 
 
 def test_a_cache_file_of_another_map_is_rebuilt(cache_folder) -> None:
