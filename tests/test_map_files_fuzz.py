@@ -275,3 +275,18 @@ def test_ascii_faces_fast_path_reads_only_what_the_line_reader_reads_the_same(li
         t.isascii() and t.lstrip("+-").isdigit() and "_" not in t for t in ln.split()) for ln in lines)
     if all_triangles:  # the common case does take the fast path
         assert fast is not None
+
+
+def test_ply_header_refusals_say_what_was_found(tmp_path: Path) -> None:
+    """A PLY header without x/y/z, with a list among the vertex properties, or without one
+    integer index list: the refusal names what the header holds, not only what it lacks."""
+    base = "ply\nformat ascii 1.0\nelement vertex 1\n"
+    _refused(tmp_path / "noz.ply", base + "property float x\nproperty float y\nend_header\n0 0\n",
+             r"header: element vertex: expected a property 'z', found properties x y$")
+    _refused(tmp_path / "list.ply", base + "property float x\nproperty float y\nproperty float z\n"
+             "property list uchar int idx\nend_header\n0 0 0 0\n",
+             r"expected scalar properties only \(no list\), found property list idx$")
+    _refused(tmp_path / "flt.ply", base + "property float x\nproperty float y\nproperty float z\nelement face 1\n"
+             "property list uchar float vertex_indices\nend_header\n0 0 0\n3 0 0 0\n",
+             r"expected one integer list property 'vertex_indices' \(or 'vertex_index'\), "
+             r"found index lists: vertex_indices \(f4\)$")

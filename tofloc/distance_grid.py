@@ -152,9 +152,10 @@ class DistanceGrid:
         points, lo, d, cand, state, sub = a["points"], a["lo"], a["d"], a["cand"], a["state"], a["sub"]
         cell, r_max = stored_scalar(a, "cell", 1.0), stored_scalar(a, "r_max", 10.0)
         if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0 or not np.all(np.isfinite(points)):
-            raise ValueError(f"points must be (N, 3) finite, got {points.shape}")
+            raise ValueError(f"points must be (N, 3) finite, got {points.shape}"
+                             + (f" with {int(np.sum(~np.isfinite(points)))} non-finite values" if points.size else ""))
         if lo.shape != (3,) or not np.all(np.isfinite(lo)):
-            raise ValueError(f"lo must be 3 finite numbers, got {lo.shape}")
+            raise ValueError(f"lo must be 3 finite numbers, got {lo.tolist() if lo.size <= 3 else lo.shape}")
         if d.ndim != 3 or d.size > MAX_CELLS or min(d.shape) < 1:
             raise ValueError(f"d must be a 3-D grid of at most {MAX_CELLS} cells, got {d.shape}")
         if not (d >= 0).all():  # distances or inf; NaN or < 0 would answer wrongly, silently

@@ -197,18 +197,21 @@ def _ply_vertex_and_faces(elements: list[_PlyElement], fail: Fail) -> tuple[_Ply
     if vert is None:
         raise fail("header", "an 'element vertex' line")
     names = {p.name: p for p in vert.props}
-    if any(p.count_dtype is not None for p in vert.props):
-        raise fail("header: element vertex", "scalar properties only (no list)")
+    lists = [p.name for p in vert.props if p.count_dtype is not None]
+    if lists:
+        raise fail("header: element vertex", "scalar properties only (no list)", f"property list {lists[0]}")
     for c in ("x", "y", "z"):
         if c not in names:
-            raise fail("header: element vertex", f"a property {c!r}")
+            raise fail("header: element vertex", f"a property {c!r}", f"properties {' '.join(names) or 'none'}")
     if vert.count == 0:
         raise fail("header: element vertex", "at least one vertex", "element vertex 0")
     face = next((e for e in elements if e.name == "face"), None)
     if face is not None:
         lists = [p for p in face.props if p.count_dtype is not None and p.name in _PLY_INDEX_LISTS]
         if len(lists) != 1 or lists[0].dtype[0] == "f":
-            raise fail("header: element face", "one integer list property 'vertex_indices' (or 'vertex_index')")
+            found = ", ".join(f"{p.name} ({p.dtype})" for p in lists) or "none"
+            raise fail("header: element face", "one integer list property 'vertex_indices' (or 'vertex_index')",
+                       f"index lists: {found}")
     return vert, face
 
 
