@@ -34,15 +34,15 @@ def _write(path: Path, text: str | bytes) -> Path:
 
 
 # -- TOML (calibration, config, rig) ---------------------------------------------------------
-@pytest.mark.parametrize("text", [
-    "a = " + "[" * 3000 + "]" * 3000,                      # tomllib recursed: RecursionError
-    "a = " + "{b = " * 3000 + "1" + "}" * 3000,
-    "[" + ".".join(["a"] * 5000) + "]\n",                  # a 5000-deep dict, no recursion in the parser
-    "a = 1" + "0" * 5000,                                  # Python's int-string limit: a bare ValueError
-    "a = " + BIG,                                          # beyond TOML's 64-bit integers
+@pytest.mark.parametrize("text,found", [
+    ("a = " + "[" * 3000 + "]" * 3000, "file: expected valid TOML, found nesting too deep"),  # tomllib recursed
+    ("a = " + "{b = " * 3000 + "1" + "}" * 3000, "file: expected valid TOML, found nesting too deep"),
+    ("[" + ".".join(["a"] * 5000) + "]\n", r"a(\.a){31,}: expected at most 32 levels"),  # a 5000-deep dict
+    ("a = 1" + "0" * 5000, "file: expected valid TOML, found Exceeds the limit"),  # Python's int-string limit
+    ("a = " + BIG, "a: expected an integer that fits 64 bits"),                     # beyond TOML's 64-bit integers
 ])
-def test_toml_refuses_deep_nesting_and_huge_integers(tmp_path: Path, text: str) -> None:
-    with pytest.raises(FormatError, match="x.toml"):
+def test_toml_refuses_deep_nesting_and_huge_integers(tmp_path: Path, text: str, found: str) -> None:
+    with pytest.raises(FormatError, match=r"x\.toml: " + found):
         read_toml(_write(tmp_path / "x.toml", text))
 
 
@@ -51,13 +51,13 @@ def test_toml_keeps_64_bit_integers_and_ordinary_nesting(tmp_path: Path) -> None
     assert d["a"] == 2**63 - 1 and d["b"] == -2**63 and d["c"]["d"]["e"]["f"] == [[1, 2], [3]]
 
 
-@pytest.mark.parametrize("old,new", [
-    ("support_yaw_deg = 8.0", f"support_yaw_deg = {BIG}"),   # OverflowError in the angle check
-    ("sigma_floor = 0.004", f"sigma_floor = {BIG}"),         # ... in RangeUncertainty
-    ("[beam]", "[beem]"),                                     # a misspelt table was ignored: the beam model's defaults
+@pytest.mark.parametrize("old,new,where", [
+    ("support_yaw_deg = 8.0", f"support_yaw_deg = {BIG}", "mounting.support_yaw_deg"),  # OverflowError in the angle check
+    ("sigma_floor = 0.004", f"sigma_floor = {BIG}", "uncertainty.sigma_floor"),  # ... in RangeUncertainty
+    ("[beam]", "[beem]", r"\[beem\]: .*found an unknown table"),  # a misspelt table was ignored: the beam model's defaults
 ])
-def test_calibration_refusals(tmp_path: Path, old: str, new: str) -> None:
-    with pytest.raises(FormatError, match="cal.toml"):
+def test_calibration_refusals(tmp_path: Path, old: str, new: str, where: str) -> None:
+    with pytest.raises(FormatError, match=r"cal\.toml: " + where):
         SensorCalibration.from_toml(_write(tmp_path / "cal.toml", CAL.replace(old, new)))
     assert SensorCalibration.from_toml(_write(tmp_path / "ok.toml", CAL)).table("beam") == {"z_hit": 0.9}
 
@@ -78,20 +78,26 @@ def test_cli_plot_of_a_corrupt_results_file_exit_2(tmp_path: Path, capsys: pytes
 RIG = {"actuators": ["a"], "sensors": [{"name": "tof0"}]}
 
 
-@pytest.mark.parametrize("name,text", [
-    ("rig.json", json.dumps({**RIG, "tolerances": {"range_scale": 0}}).replace('"range_scale": 0', f'"range_scale": {BIG}')),
+@pytest.mark.parametrize("name,text,where", [
+    ("rig.json", json.dumps({**RIG, "tolerances": {"range_scale": 0}}).replace('"range_scale": 0', f'"range_scale": {BIG}'),
+     r"rig\.tolerances\.range_scale: expected a number in \[0, 0\.5\], found 1000"),
     ("rig.json", json.dumps({"actuators": [], "sensors": [{"name": "tof0", "T_tip_sensor": [[1, 0, 0, 0]] * 4}]})
-     .replace("[[1,", f"[[{BIG},", 1).replace("[[1, ", f"[[{BIG}, ", 1)),
+     .replace("[[1,", f"[[{BIG},", 1).replace("[[1, ", f"[[{BIG}, ", 1),
+     r"rig\.sensors\[0\]\.T_tip_sensor: expected a 4x4 numeric matrix, found \[\[1000"),
     ("rig.json", json.dumps({"actuators": [], "sensors": [{"name": "tof0", "resolution": [1, 1],
-                                                             "zone_directions": [[0, 0, 7]]}]}).replace("7", BIG)),
-    ("rig.json", json.dumps({**RIG, "sensorz": []})),                                       # unknown keys: docs say refused
-    ("rig.json", json.dumps({"actuators": [], "sensors": [{"name": "tof0", "T_tip_senosr": np.eye(4).tolist()}]})),
-    ("rig.toml", 'actuators = []\nfoo = 1\n[[sensors]]\nname = "tof0"\n'),
-    ("rig.toml", 'actuators = []\n[[sensors]]\nname = "tof0"\nmax_range_m = 4\nx = ' + "[" * 3000 + "]" * 3000),
-    ("rig.json", b'{"actuators": [], "sensors": [{"name": "tof\xff"}]}'),                # was decoded with U+FFFD
+                                                             "zone_directions": [[0, 0, 7]]}]}).replace("7", BIG),
+     r"rig\.sensors\[0\]\.zone_directions: expected a Z x 3 numeric table, found \[\[0, 0, 1000"),
+    ("rig.json", json.dumps({**RIG, "sensorz": []}), r"rig\.sensorz: .*found an unknown key"),  # docs say refused
+    ("rig.json", json.dumps({"actuators": [], "sensors": [{"name": "tof0", "T_tip_senosr": np.eye(4).tolist()}]}),
+     r"rig\.sensors\[0\]\.T_tip_senosr: .*found an unknown key"),
+    ("rig.toml", 'actuators = []\nfoo = 1\n[[sensors]]\nname = "tof0"\n', r"rig\.foo: .*found an unknown key"),
+    ("rig.toml", 'actuators = []\n[[sensors]]\nname = "tof0"\nmax_range_m = 4\nx = ' + "[" * 3000 + "]" * 3000,
+     "rig: expected valid TOML, found nesting too deep"),
+    ("rig.json", b'{"actuators": [], "sensors": [{"name": "tof\xff"}]}',                # was decoded with U+FFFD
+     r"rig: expected valid JSON \(UTF-8\), found 'utf-8' codec can't decode byte 0xff"),
 ])
-def test_rig_file_refusals(tmp_path: Path, name: str, text: str | bytes) -> None:
-    with pytest.raises(FormatError, match=name):
+def test_rig_file_refusals(tmp_path: Path, name: str, text: str | bytes, where: str) -> None:
+    with pytest.raises(FormatError, match=name.replace(".", r"\.") + ": " + where):
         Rig.from_file(_write(tmp_path / name, text))
 
 
@@ -136,19 +142,28 @@ def _paper_doc() -> dict:
     return {"paper": True, "results": {"icp_pf": {"mocap": {"paper": {"per_k": {"1": entry, "2": entry}, "overall": entry}}}}}
 
 
-@pytest.mark.parametrize("text", [
-    json.dumps(_paper_doc()).replace('"mean": 0.01', f'"mean": {BIG}', 1),           # OverflowError
-    json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": NaN', 1),  # was read as nan
-    json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": "x"', 1),  # was dropped silently
-    json.dumps(_paper_doc()).replace('"n": 1', '"n": -5', 1),
-    json.dumps(_paper_doc()).replace('"1": {', '"-3": {', 1),                          # k must be >= 1
-    json.dumps(_paper_doc()).replace('"2": {', '"01": {', 1),                          # k 1 twice, one silently lost
-    json.dumps(_paper_doc()).replace('"1": {', '"' + "9" * 4000 + '": {', 1),          # an unplottable k
-    json.dumps(_paper_doc()).replace('{"paper": true', '{"paper": true, "paper": true', 1),  # duplicate key
+_PER_K = r"results\.icp_pf\.mocap\.paper\.per_k"
+
+
+@pytest.mark.parametrize("text,where", [
+    (json.dumps(_paper_doc()).replace('"mean": 0.01', f'"mean": {BIG}', 1),           # OverflowError
+     _PER_K + r"\.1\.e_x_m\.mean: expected a finite number or null, found 1000"),
+    (json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": NaN', 1),  # was read as nan
+     _PER_K + r"\.1\.nees\.mean: expected a finite number >= 0 or null, found nan"),
+    (json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": "x"', 1),  # was dropped silently
+     _PER_K + r"\.1\.nees\.mean: expected a finite number >= 0 or null, found 'x'"),
+    (json.dumps(_paper_doc()).replace('"n": 1', '"n": -5', 1), _PER_K + r"\.1\.n: expected the number of trials .*, found -5"),
+    (json.dumps(_paper_doc()).replace('"1": {', '"-3": {', 1), _PER_K + r": expected a number of samples .*, found '-3'"),  # k >= 1
+    (json.dumps(_paper_doc()).replace('"2": {', '"01": {', 1),                          # k 1 twice, one silently lost
+     _PER_K + r": expected a number of samples .*, found '01'"),
+    (json.dumps(_paper_doc()).replace('"1": {', '"' + "9" * 4000 + '": {', 1),          # an unplottable k
+     _PER_K + r": expected a number of samples .*, found '999"),
+    (json.dumps(_paper_doc()).replace('{"paper": true', '{"paper": true, "paper": true', 1),  # duplicate key
+     "file: expected JSON with unique keys in every object, found the key 'paper' twice"),
 ])
-def test_results_refusals(tmp_path: Path, text: str) -> None:
+def test_results_refusals(tmp_path: Path, text: str, where: str) -> None:
     assert load_results(_write(tmp_path / "good.json", json.dumps(_paper_doc()))).series[0].ks == [1, 2]
-    with pytest.raises(FormatError, match="bad.json"):
+    with pytest.raises(FormatError, match=r"bad\.json: " + where):
         load_results(_write(tmp_path / "bad.json", text))
 
 

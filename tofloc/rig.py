@@ -330,7 +330,7 @@ class Sensor:
             try:
                 zone_dirs = np.asarray(zd, dtype=float)
             except (TypeError, ValueError, OverflowError):
-                raise _fail(source, f"{where}.zone_directions", "a Z x 3 numeric table") from None
+                raise _fail(source, f"{where}.zone_directions", "a Z x 3 numeric table", repr(zd)[:80]) from None
             if zone_dirs.ndim != 2 or zone_dirs.shape[1] != 3 or not 1 <= zone_dirs.shape[0] <= MAX_ZONES:
                 raise _fail(source, f"{where}.zone_directions", f"a Z x 3 table with 1 <= Z <= {MAX_ZONES}", f"shape {zone_dirs.shape}")
             norms = np.linalg.norm(zone_dirs, axis=1)
