@@ -530,6 +530,14 @@ def test_localize_and_evaluate_say_when_a_calibration_was_fitted_for_another_foo
     assert code == 0, err
     flat = " ".join(err.split())
     assert "likelihood_field_pf casts 1 sub-ray(s) per zone side but" in flat and "icp_pf casts" not in flat
+    # live localization says it too, before it opens the port (here one that does not exist)
+    maps = sorted(data["folder"].glob("*.map.ply")) + sorted(data["folder"].glob("*.ply"))
+    code, _, err = _run(capsys, ["localize", "--port", str(tmp_path / "no-such-tty"), "--rig", str(data["log"]),
+                                 "--map", str(maps[0]), "--kinematics", str(data["knn"]), "--estimator",
+                                 "likelihood_field_pf", "--calibration", str(path), "--prior-x", "0", "--prior-y", "0",
+                                 "--prior-yaw-deg", "0", "--base-z", "0.5", "--timeout", "1"])
+    flat = " ".join(err.split())
+    assert code != 0 and "likelihood_field_pf casts 1 sub-ray(s) per zone side but" in flat and "no-such-tty" in flat
 
 
 def test_a_log_without_stated_configuration_uncertainty_is_refused_up_front(

@@ -175,3 +175,27 @@ def test_build_plugin_reports_a_constructor_type_error_as_a_parameter_error() ->
     assert build_plugin(Needs, {"a": 2.0}, kind="selection policy", name="needs").a == 2.0
     with pytest.raises(ParameterError, match=r"^selection policy 'needs': .*missing .*'a'.* \(its parameters: a, b\)$"):
         build_plugin(Needs, {"b": 2.0}, kind="selection policy", name="needs")
+
+
+def test_a_nested_param_after_its_table_given_whole_is_refused_naming_both() -> None:
+    with pytest.raises(ParameterError, match=r"^--param sensor_model__temper: sensor_model_params is given as a whole too$"):
+        parse_params(["sensor_model_params=5", "sensor_model__temper=1"])
+
+
+def test_scenes_refuses_a_bad_parameter_before_simulating_any_scene(tmp_path: Path) -> None:
+    """``tofloc scenes`` builds every estimator before the first scene: a misspelt name is
+    refused at once, before the first scene is announced, with no scene folder made."""
+    from tofloc import api
+
+    class Notes(api.Reporter):
+        def __init__(self) -> None:
+            self.notes: list[str] = []
+
+        def note(self, message: str) -> None:
+            self.notes.append(message)
+
+    rep = Notes()
+    with pytest.raises(UnknownParameterError, match="did you mean 'n_particles'"):
+        api.scenes(["icp_pf", "beam_pf"], out=tmp_path / "scenes", estimator_params={"beam_pf": {"n_particls": 10}},
+                   reporter=rep)
+    assert rep.notes == [] and not (tmp_path / "scenes").exists()
