@@ -314,14 +314,7 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
     missing = out / "partial" / "l_room__beam_pf.json"
     missing.unlink()  # as if the run had stopped before this batch ended
 
-    class Notes(api.Reporter):
-        def __init__(self) -> None:
-            self.notes: list[str] = []
-
-        def note(self, message: str) -> None:
-            self.notes.append(message)
-
-    rep = Notes()
+    rep = api.NoteList()
     res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, trials=2, samples=3, seed=5, params={"n_particles": 100},
                        workers=1, reporter=rep)
     assert "reused 3 of 4 saved (log, estimator) batches" in rep.notes
@@ -336,7 +329,7 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
             else:  # reused as saved, runtimes included
                 assert got["records"] == old
     # another trial count is another key: nothing reused
-    rep2 = Notes()
+    rep2 = api.NoteList()
     api.evaluate(logs[:1], ["beam_pf"], out=out, trials=1, samples=3, seed=5, params={"n_particles": 100}, workers=1,
                  reporter=rep2)
     assert not any(n.startswith("reused") for n in rep2.notes)

@@ -187,14 +187,7 @@ def test_scenes_refuses_a_bad_parameter_before_simulating_any_scene(tmp_path: Pa
     refused at once, before the first scene is announced, with no scene folder made."""
     from tofloc import api
 
-    class Notes(api.Reporter):
-        def __init__(self) -> None:
-            self.notes: list[str] = []
-
-        def note(self, message: str) -> None:
-            self.notes.append(message)
-
-    rep = Notes()
+    rep = api.NoteList()
     with pytest.raises(UnknownParameterError, match="did you mean 'n_particles'"):
         api.scenes(["icp_pf", "beam_pf"], out=tmp_path / "scenes", estimator_params={"beam_pf": {"n_particls": 10}},
                    reporter=rep)

@@ -35,6 +35,7 @@ from tofloc.rig import DEFAULT_VALID_STATUSES
 
 __all__ = [
     "Reporter",
+    "NoteList",
     "estimator",
     "footprint_mismatches",
     "load_calibration",
@@ -74,6 +75,17 @@ class Reporter:
 
     def progress(self, done: int, total: int, label: str) -> None:
         """``done`` of ``total`` units of the work named ``label``."""
+
+
+class NoteList(Reporter):
+    """A :class:`Reporter` that keeps every note, in order, in :attr:`notes` (for scripts
+    that want to read what a run said, and tests); silent otherwise."""
+
+    def __init__(self) -> None:
+        self.notes: list[str] = []
+
+    def note(self, message: str) -> None:
+        self.notes.append(message)
 
 
 _SILENT = Reporter()
