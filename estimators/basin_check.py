@@ -66,6 +66,7 @@ from numpy.typing import NDArray
 from scipy.special import log_ndtr
 
 from estimators.global_search import DISTINCT_M, DISTINCT_RAD, coarse_modes
+from estimators.resampling import normalize_log_weights
 from sensor_models.base import held_states
 from tofloc import frames
 from tofloc.posterior_modes import AMBIGUOUS_SHARE, SADDLE_RATIO, PosteriorMode, segment_poses
@@ -349,8 +350,7 @@ def check_basins(problem: Problem, bound: Any, pose: FloatArray, covariance: Flo
         cov = _laplace(problem, bound, top, spread, extra, covariance)
         basins.append((top, cov, val, z, False))
     log_odds = np.array([0.0] + [max(float(log_ndtr(-z) - log_ndtr(z)), t - t_filter) for _, _, t, z, _ in basins[1:]])
-    w = np.exp(log_odds - log_odds.max())
-    w = w / w.sum()
+    w = normalize_log_weights(log_odds)  # an infinite odds (a certain test) takes the weight, no NaN
     order = np.argsort(-w, kind="stable")
     out = [Basin(np.asarray(basins[i][0], dtype=float).copy(), np.asarray(basins[i][1], dtype=float).copy(),
                  float(basins[i][2]), float(basins[i][3]), float(w[i]), bool(basins[i][4])) for i in order]

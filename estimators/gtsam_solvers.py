@@ -32,12 +32,13 @@ from tofloc.problem import Problem
 if TYPE_CHECKING:
     from estimators.gtsam_smoother import GTSAMSmoother
 
-__all__ = ["SmootherGraph", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M", "FIXED_BASE_SIGMA"]
+__all__ = ["SmootherGraph", "base_change", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M", "FIXED_BASE_SIGMA"]
 
 FloatArray = NDArray[np.float64]
 #: A round that moves the base by less than this (m, rad) ends the association loop even if
 #: some zones still swap between equidistant map points.
 _STILL = 1e-5
+
 #: Prior sigmas of the support correction's components no nuisance declares (tilt, translation):
 #: held (numerically) at zero, so ``D`` is the support's rotation about the tip's z axis.
 D_FIXED_SIGMA_RAD = 1e-5
@@ -60,6 +61,13 @@ def is_indeterminate(e: BaseException) -> bool:
 #: 1 cm and 1 deg, 5 % with these (docs/gtsam-smoother.md).
 MERGE_M = 0.003
 MERGE_RAD = math.radians(0.3)
+
+
+def base_change(a: FloatArray, b: FloatArray) -> float:
+    """The largest change between two base poses ``(x, y, yaw)`` (m, rad), the yaw's the
+    shorter turn: a pose that crosses +-pi by a hair (GTSAM's theta jumps from pi to -pi)
+    has barely moved, not 2 pi."""
+    return float(np.max(np.abs(frames.planar_difference(a, b))))
 
 
 class SmootherGraph:
@@ -229,7 +237,7 @@ class SmootherGraph:
         """Largest change of any variable's matrix entries between two GTSAM value sets."""
         xa, Ca, Da = self.read(a, K)
         xb, Cb, Db = self.read(b, K)
-        d = float(np.max(np.abs(xa - xb)))
+        d = base_change(xa, xb)
         for u, v in zip(Ca + [Da], Cb + [Db]):
             d = max(d, float(np.max(np.abs(u - v))))
         return d
@@ -289,7 +297,7 @@ class SmootherGraph:
             new_values = opt.optimize()
             iterations += int(opt.iterations())
             x_new = self.read(new_values, K)[0]
-            moved = float(np.max(np.abs(x_new - xyyaw)))
+            moved = base_change(x_new, xyyaw)
             values = new_values
             for j, P in enumerate(finished or ()):
                 if np.hypot(*(x_new[:2] - P[:2])) <= MERGE_M and abs(float(frames.wrap_angle(x_new[2] - P[2]))) <= MERGE_RAD:

@@ -8,7 +8,9 @@ roughened like the pose and marginalized out of the estimate (its mean and stand
 deviation are in ``diagnostics["state"]``). For a sensor model whose
 ``weight_update`` is ``"replace"`` (the paper's ICP score of the merged cloud ``X_k``) the
 weights of step k are that score; for ``"bayes"`` (beam, likelihood field) the step's
-log-likelihood is added to the log-weights (a sequential Bayes filter). Between steps
+log-likelihood is added to the log-weights (a sequential Bayes filter; a step whose
+log-likelihood is ``-inf`` at every particle is left out, ``diagnostics["all_excluded"]``,
+since it tells no particle from another). Between steps
 the filter resamples (when the effective sample size falls below
 ``resample_threshold * N``) and adds Gaussian jitter (roughening).
 
@@ -145,6 +147,16 @@ def anneal_step(log_w: NDArray[np.float64], ll: NDArray[np.float64], remaining: 
         if hi - lo < 0.02:
             break
     return math.exp(lo)
+
+
+def _unless_all_excluded(before: NDArray[np.float64], after: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """``after`` (log-weights updated by one step), or None when that step's likelihood is
+    ``-inf`` at every particle that had weight (the sample excludes them all: nothing
+    tells them apart, and ``-inf`` log-weights would stay ``-inf`` whatever the later
+    samples say); the caller then keeps ``before``."""
+    if np.any(after > -np.inf) or not np.any(before > -np.inf):
+        return after
+    return None
 
 
 def _log_prior(problem: Problem, state: Sequence[Any], states: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -639,6 +651,7 @@ class ParticleFilter(Estimator):
         global_prior = None
         w_slow = w_fast = 0.0
         valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
+        excluded: list[int] = []  # steps whose likelihood excluded every particle (not applied)
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
             ll = bound.log_likelihood_chunked(particles, k)
@@ -679,7 +692,11 @@ class ParticleFilter(Estimator):
                 while True:
                     last_stage = n_stages >= self.max_stages
                     beta = remaining if last_stage else anneal_step(log_w, ll, remaining, self.anneal_ess)
-                    log_w = log_w + beta * ll
+                    updated = _unless_all_excluded(log_w, log_w + beta * ll)
+                    if updated is None:  # all -inf: anneal_step gave the whole remainder
+                        excluded.append(k)
+                    else:
+                        log_w = updated
                     remaining -= beta
                     if remaining <= 1e-12 or last_stage:
                         break
@@ -695,7 +712,11 @@ class ParticleFilter(Estimator):
                         n_scored += self.move_steps * particles.shape[0]
                         acceptance.append(rate)
             else:
-                log_w = log_w + ll
+                updated = _unless_all_excluded(log_w, log_w + ll)
+                if updated is None:
+                    excluded.append(k)
+                else:
+                    log_w = updated
             stages.append(n_stages)
             scored.append(int(n_scored))
             w = normalize_log_weights(log_w)
@@ -704,14 +725,14 @@ class ParticleFilter(Estimator):
             last = k == bound.n_steps - 1
             if not last and k + 1 in want:  # what a pass over the first k + 1 samples returns
                 reports[k + 1] = self._finish(particles, w, state, model, adapt, ess, resampled + [False], stages, counts,
-                                              scored, recovery)
+                                              scored, recovery, excluded)
                 reports[k + 1].runtime_s = time.perf_counter() - t0
             do = (not last) and ess[-1] < self.resample_threshold * particles.shape[0]
             resampled.append(bool(do))
             if do:
                 particles = self._resample(particles, w, floors, adapt, rng)
                 log_w = np.zeros(particles.shape[0])
-        final = self._finish(particles, w, state, model, adapt, ess, resampled, stages, counts, scored, recovery)
+        final = self._finish(particles, w, state, model, adapt, ess, resampled, stages, counts, scored, recovery, excluded)
         if self.move_steps:
             final.diagnostics["move_acceptance"] = list(acceptance)
         if bound.n_steps in want:
@@ -751,8 +772,10 @@ class ParticleFilter(Estimator):
 
     def _finish(self, particles: NDArray[np.float64], w: NDArray[np.float64], state: tuple[Any, ...], model: SensorModel,
                 adapt: bool, ess: list[float], resampled: list[bool], stages: list[int], counts: list[int],
-                scored: list[int], recovery: dict[str, Any]) -> Estimate:
-        """The estimate of weighted particles and the pass's diagnostics so far (copied)."""
+                scored: list[int], recovery: dict[str, Any], excluded: Sequence[int] = ()) -> Estimate:
+        """The estimate of weighted particles and the pass's diagnostics so far (copied);
+        ``diagnostics["all_excluded"]``: the steps whose likelihood was ``-inf`` at every
+        particle, left out of the weights (only when there is one)."""
         pose, cov, modes = self._point_estimate(particles, w)
         state_diag = {}
         for i, v in enumerate(state):
@@ -774,6 +797,8 @@ class ParticleFilter(Estimator):
         }
         if modes is not None:
             diagnostics["modes"] = modes
+        if excluded:
+            diagnostics["all_excluded"] = list(excluded)
         if self.recovery:
             diagnostics["recovery"] = {key: list(v) for key, v in recovery.items()}
         return Estimate(pose=pose, covariance=cov, diagnostics=diagnostics)

@@ -18,9 +18,22 @@ __all__ = ["systematic", "stratified", "multinomial", "residual", "RESAMPLERS", 
 
 
 def _cumsum(weights: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The cumulative weights, exactly 1 from the last particle with weight on (round-off
+    guard: a trailing particle without weight is never drawn)."""
     c = np.cumsum(weights)
-    c[-1] = 1.0  # guard against round-off
+    positive = np.flatnonzero(weights > 0)
+    c[positive[-1] if positive.size else -1:] = 1.0
     return c
+
+
+def _draw(weights: NDArray[np.float64], positions: NDArray[np.float64]) -> NDArray[np.intp]:
+    """The particle each position in ``[0, 1]`` falls on: the first whose cumulative weight
+    exceeds it. A position that rounded up to 1 (``(u + n - 1) / n`` with ``u`` within
+    ``n`` ulps of 1) takes the last particle with weight, never index ``M``."""
+    c = _cumsum(weights)
+    idx = np.searchsorted(c, positions, side="right")
+    positive = np.flatnonzero(weights > 0)
+    return np.minimum(idx, positive[-1] if positive.size else weights.size - 1).astype(np.intp)
 
 
 def systematic(weights: NDArray[np.float64], rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
@@ -28,20 +41,20 @@ def systematic(weights: NDArray[np.float64], rng: np.random.Generator, n: int | 
     ``n`` draws instead of N when given (every scheme here takes it)."""
     n = weights.size if n is None else int(n)
     positions = (rng.random() + np.arange(n)) / n
-    return np.searchsorted(_cumsum(weights), positions, side="right").astype(np.intp)
+    return _draw(weights, positions)
 
 
 def stratified(weights: NDArray[np.float64], rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
     """One uniform draw per stratum (filterpy ``stratified_resample``)."""
     n = weights.size if n is None else int(n)
     positions = (rng.random(n) + np.arange(n)) / n
-    return np.searchsorted(_cumsum(weights), positions, side="right").astype(np.intp)
+    return _draw(weights, positions)
 
 
 def multinomial(weights: NDArray[np.float64], rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
     """N independent draws (filterpy ``multinomial_resample``)."""
     n = weights.size if n is None else int(n)
-    return np.searchsorted(_cumsum(weights), rng.random(n), side="right").astype(np.intp)
+    return _draw(weights, rng.random(n))
 
 
 def residual(weights: NDArray[np.float64], rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
@@ -54,7 +67,7 @@ def residual(weights: NDArray[np.float64], rng: np.random.Generator, n: int | No
     if rest > 0:
         r = n * weights - copies
         r = r / r.sum()
-        extra = np.searchsorted(_cumsum(r), rng.random(rest), side="right")
+        extra = _draw(r, rng.random(rest))
         idx = np.concatenate([idx, extra])
     return idx.astype(np.intp)
 
@@ -68,11 +81,15 @@ RESAMPLERS: dict[str, Callable[..., NDArray[np.intp]]] = {
 
 
 def normalize_log_weights(log_w: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Normalized weights from log-weights (max-shifted: no underflow); all ``-inf`` -> uniform."""
+    """Normalized weights from log-weights (max-shifted: no underflow); all ``-inf`` -> uniform;
+    any ``+inf`` -> those particles share the weight (the limit), never uniform."""
     log_w = np.asarray(log_w, dtype=float)
     if np.any(np.isnan(log_w)):
         raise ValueError("NaN log-weight")
     m = np.max(log_w)
+    if m == np.inf:
+        top = (log_w == np.inf).astype(float)
+        return top / top.sum()
     if not np.isfinite(m):
         return np.full(log_w.size, 1.0 / log_w.size)
     w = np.exp(log_w - m)

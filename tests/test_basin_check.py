@@ -187,3 +187,26 @@ def test_an_ambiguous_answers_covariance_is_the_mixtures_second_moment_about_it(
     np.testing.assert_allclose(cov, expected, rtol=1e-12, atol=1e-15)
     # alone, the answer keeps its own covariance
     np.testing.assert_array_equal(BasinCheck([own, faint]).covariance(), own.covariance)
+
+
+def test_basin_weights_stay_finite_when_the_test_is_certain(monkeypatch) -> None:
+    """Vuong's z is -inf when the filter's basin is worse at every zone of one place (no
+    spread to weigh by): its log-odds are +inf, and the old ``exp(odds - max)`` made every
+    basin's weight NaN (inf - inf). The weights go through the one log-weight
+    normalization: the certain basin takes the weight."""
+    from types import SimpleNamespace
+
+    import estimators.basin_check as bc
+
+    other = np.array([1.0, 0.0, math.pi])
+    monkeypatch.setattr(bc, "coarse_modes", lambda problem, rng, n_modes: [SimpleNamespace(pose=other)])
+    monkeypatch.setattr(bc, "_climb", lambda problem, bound, starts, extra: (starts, np.array([-10.0, -10.5])))
+    monkeypatch.setattr(bc, "_one_basin", lambda *a: False)
+    monkeypatch.setattr(bc, "_laplace", lambda problem, bound, pose, scale, extra, fallback: fallback)
+    places = np.zeros((5, 2))  # one place: the cluster-robust variance is 0
+    monkeypatch.setattr(bc, "_units", lambda bound, pose, extra: (np.full(5, -1.0 if pose[0] == 0.0 else 0.0), places))
+    assert vuong_z(np.full(5, -1.0), places, 0.1) == -math.inf
+    got = check_basins(None, SimpleNamespace(), np.zeros(3), np.eye(3) * 1e-4, [], np.random.default_rng(0))
+    w = {b.filter_basin: b.weight for b in got.basins}
+    assert w == {True: 0.0, False: 1.0}
+    assert got.ambiguous and not got.moved and np.all(np.isfinite(got.covariance()))

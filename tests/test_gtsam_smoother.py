@@ -735,3 +735,29 @@ def test_refit_correlation_follows_the_map_and_widens_the_covariance(monkeypatch
     assert not np.allclose(est.log_target(scanned, poses, refit), est.log_target(scanned, poses, plain))
     fixed = GTSAMSmoother(n_starts=2, place_correlation=0.7).estimate(p, np.random.default_rng(0))
     assert "refit" not in fixed.diagnostics and np.all(np.diag(fixed.covariance) > np.diag(plain.covariance))
+
+
+def test_a_base_crossing_pi_by_a_hair_has_barely_moved() -> None:
+    """The association loop's stopping tests (the batch round's base step against
+    ``_STILL``, ISAM2's settling ``pose_change``) take the yaw's shorter turn: GTSAM's theta
+    jumps from pi to -pi, which the old code counted as a 2 pi (6.28 rad) move, so a base
+    at yaw +-180 deg never counted as still."""
+    from gtsam.symbol_shorthand import C as Ck, X as Xk
+
+    from estimators.gtsam_solvers import SmootherGraph
+
+    a, b = np.array([0.1, 0.2, math.pi - 1e-9]), np.array([0.1, 0.2, -math.pi + 1e-9])
+    p, _ = easy_problem(n_samples=2)
+    graph = SmootherGraph(GTSAMSmoother(), p)
+    values = []
+    for yaw in (a[2], b[2]):
+        v = gtsam.Values()
+        v.insert(Xk(0), gtsam.Pose2(0.1, 0.2, yaw))
+        for k in range(2):
+            v.insert(Ck(k), gtsam.Pose3(np.asarray(p.T_base_tip[k])))
+        values.append(v)
+    assert graph.pose_change(values[0], values[1], 2) < 1e-8
+    from estimators.gtsam_solvers import base_change  # the batch round's step
+
+    assert base_change(a, b) == pytest.approx(2e-9, abs=1e-12)
+    assert base_change(np.array([0.0, 0.0, 0.0]), np.array([0.0, 3e-6, 0.0])) == 3e-6

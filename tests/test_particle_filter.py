@@ -199,3 +199,44 @@ def test_batch_moves_leave_the_tempered_target_invariant() -> None:
     acc = a.diagnostics["move_acceptance"]
     assert len(acc) == a.diagnostics["stages"][0] - 1 and all(0 <= r <= 1 for r in acc)
     assert np.hypot(*(a.pose[:2] - truth[:2])) < 0.01
+
+
+def _excluding_model(first: str):
+    """A sensor model of two steps: step 0 ``-inf`` at every state (``first == "all"``) or
+    at none (``"none"``: 0), step 1 a Gaussian of x about 0.1 (sd 5 mm)."""
+    from dataclasses import dataclass
+
+    from sensor_models.base import BoundSensorModel, SensorModel
+
+    class Bound(BoundSensorModel):
+        n_steps = 2
+
+        def log_likelihood(self, states, step):
+            if step == 0:
+                return np.full(states.shape[0], -np.inf if first == "all" else 0.0)
+            return -0.5 * ((states[:, 0] - 0.1) / 0.005) ** 2
+
+    @dataclass(frozen=True)
+    class Excluding(SensorModel):
+        name = "excluding"
+        uses_calibration = False
+
+        def bind(self, problem):
+            return Bound()
+
+    return Excluding()
+
+
+@pytest.mark.parametrize("anneal_ess", [0.0, 0.5])
+def test_a_sample_excluding_every_particle_does_not_silence_the_later_ones(anneal_ess: float) -> None:
+    """A step whose likelihood is -inf at every particle is left out of the weights
+    (``diagnostics["all_excluded"]``) instead of leaving every log-weight at -inf, where
+    the later samples changed nothing (the old code answered the prior's cloud: x 0.038
+    instead of 0.100); the answer then equals a filter that never saw that step."""
+    p, _ = easy_problem(n_samples=2)
+    kw = dict(n_particles=400, resample_threshold=0.5, anneal_ess=anneal_ess, point_estimate="mean", basin_check="off")
+    got = ParticleFilter(sensor_model=_excluding_model("all"), **kw).estimate(p, np.random.default_rng(2))
+    ref = ParticleFilter(sensor_model=_excluding_model("none"), **kw).estimate(p, np.random.default_rng(2))
+    assert abs(got.pose[0] - 0.1) < 0.01 and np.all(np.isfinite(got.covariance))
+    np.testing.assert_array_equal(got.pose, ref.pose)
+    assert got.diagnostics["all_excluded"] == [0] and "all_excluded" not in ref.diagnostics

@@ -60,3 +60,48 @@ def test_log_weight_normalization_has_no_underflow() -> None:
     assert rs.effective_sample_size(np.full(10, 0.1)) == pytest.approx(10.0)
     with pytest.raises(ValueError):
         rs.normalize_log_weights(np.array([0.0, np.nan]))
+
+
+class _FixedDraws:
+    """A generator whose uniform draws are all ``u`` (the resamplers' only call)."""
+
+    def __init__(self, u: float) -> None:
+        self.u = u
+
+    def random(self, size=None):
+        return self.u if size is None else np.full(size, self.u)
+
+
+@pytest.mark.parametrize("name", sorted(rs.RESAMPLERS))
+def test_draws_near_one_stay_on_particles_with_weight(name: str) -> None:
+    """The largest uniform draw (1 - 2^-53): ``(u + n - 1) / n`` rounds to 1.0 (systematic,
+    stratified: index M, out of bounds, on the old code), and ten weights of 0.1 sum to
+    1 - 1.1e-16, so a draw above that fell on the trailing particle without weight."""
+    u = float(np.nextafter(1.0, 0.0))
+    w = np.array([0.1] * 10 + [0.0])
+    idx = rs.RESAMPLERS[name](w, _FixedDraws(u))
+    assert idx.shape == (11,) and idx.max() == 9 and np.all(w[idx] > 0)
+    w = np.array([0.0, 0.3, 0.7, 0.0, 0.0])  # zero weights at both ends and a draw of exactly 0
+    for v in (0.0, u):
+        idx = rs.RESAMPLERS[name](w, _FixedDraws(v))
+        assert np.all(w[idx] > 0) and idx.size == 5
+
+
+def test_counts_sum_to_n_and_are_unbiased_for_systematic_and_stratified() -> None:
+    """Systematic and stratified resampling keep each particle within one copy of ``N w_i``
+    (systematic) and return exactly ``n`` indices, for a count other than the particles'."""
+    rng = np.random.default_rng(5)
+    w = rng.random(37) ** 4
+    w[::5] = 0.0
+    w /= w.sum()
+    for n in (37, 100, 1):
+        idx = rs.systematic(w, rng, n)
+        counts = np.bincount(idx, minlength=w.size)
+        assert counts.sum() == n and np.all(np.abs(counts - n * w) < 1.0) and np.all(counts[w == 0] == 0)
+        assert rs.stratified(w, rng, n).size == n
+
+
+def test_infinite_log_weights_take_the_weight() -> None:
+    """A +inf log-weight (a degenerate density) takes all the weight, shared among such
+    particles; the old normalization returned uniform weights."""
+    np.testing.assert_array_equal(rs.normalize_log_weights(np.array([0.0, np.inf, -np.inf, np.inf])), [0.0, 0.5, 0.0, 0.5])

@@ -48,7 +48,7 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 
-__all__ = ["easy_problem", "CHECKS", "SENSOR_MODEL_CHECKS", "check_estimator", "check_sensor_model",
+__all__ = ["easy_problem", "rotated_problem", "CHECKS", "SENSOR_MODEL_CHECKS", "check_estimator", "check_sensor_model",
            "parametrize_with_checks", "parametrize_with_sensor_model_checks", "expected_failures"]
 
 #: the easy problem's truth (x, y, yaw) and base height
@@ -86,6 +86,40 @@ def easy_problem(
     """A noise-free problem in the paper's cuboid (map: 2000-point CAD cloud) with a
     prior 2-3 cm / 2 deg off the truth; returns ``(problem, truth_xyyaw)``."""
     return _easy_cached(n_samples, seed, tuple(prior_offset))
+
+
+def rotated_problem(problem: Problem, truth: np.ndarray, angle: float) -> tuple[Problem, np.ndarray]:
+    """The same problem turned by ``angle`` (rad) about the map's z axis: the map (a point
+    cloud, its normals too, or a mesh), the prior's mean and the truth ``(x, y, yaw)``;
+    the readings and configurations (base frame) are unchanged. Every estimator's errors
+    should match the unturned problem's (to its Monte Carlo noise): with ``angle`` putting
+    the truth's yaw near +-pi, a check of yaw wrapping. Gaussian priors only (a global
+    prior's free space is not turned); returns ``(problem, truth)``."""
+    import dataclasses
+
+    from tofloc.maps import Map
+
+    if problem.prior.is_global:
+        raise ParameterError("rotated_problem: a global prior's free space is not turned")
+    m = problem.map
+    if m.surface is not None or m.known_space is not None:
+        raise ParameterError("rotated_problem: a map with a surface or a known space is not turned")
+    R = frames.rot_z(float(angle))
+    pts = m.points @ R.T
+    if m.kind == "mesh":
+        turned = Map.from_mesh(pts, m.triangles, source=f"{m.source} turned {float(angle)!r} rad")
+    else:
+        turned = Map.from_points(pts, None if m.normals is None else m.normals @ R.T,
+                                 source=f"{m.source} turned {float(angle)!r} rad")
+
+    def turn(pose: np.ndarray) -> np.ndarray:
+        out = np.asarray(pose, dtype=float).copy()
+        out[:2] = R[:2, :2] @ out[:2]
+        out[2] = float(frames.wrap_angle(out[2] + float(angle)))
+        return out
+
+    prior = dataclasses.replace(problem.prior, mean=turn(problem.prior.mean))
+    return dataclasses.replace(problem, map=turned, prior=prior), turn(truth)
 
 
 def _no_valid_problem() -> Problem:
