@@ -146,3 +146,20 @@ def test_the_oracle_matches_on_a_problem_turned_to_pi() -> None:
         b = oracle_fit(q, t)
         assert b.converged == a.converged
         assert b.e_x_m == pytest.approx(a.e_x_m, abs=1e-9) and b.e_gamma_deg == pytest.approx(a.e_gamma_deg, abs=1e-7)
+
+
+def test_rotated_problem_turns_a_mesh_map_too() -> None:
+    """The mesh branch keeps the triangles and turns the vertices (it passed the bound
+    method ``Map.triangles`` instead of the array)."""
+    import dataclasses
+
+    from tofloc.maps import Map
+
+    p, truth = easy_problem()
+    m = Map.cuboid()
+    q, t = rotated_problem(dataclasses.replace(p, map=m), truth, 0.5)
+    c, s = np.cos(0.5), np.sin(0.5)
+    assert q.map.kind == "mesh"
+    np.testing.assert_array_equal(q.map.triangles(), m.triangles())
+    np.testing.assert_allclose(q.map.points, m.points @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T)
+    np.testing.assert_allclose(t[:2], [c * truth[0] - s * truth[1], s * truth[0] + c * truth[1]])

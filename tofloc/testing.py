@@ -107,7 +107,7 @@ def rotated_problem(problem: Problem, truth: np.ndarray, angle: float) -> tuple[
     R = frames.rot_z(float(angle))
     pts = m.points @ R.T
     if m.kind == "mesh":
-        turned = Map.from_mesh(pts, m.triangles, source=f"{m.source} turned {float(angle)!r} rad")
+        turned = Map.from_mesh(pts, m.triangles(), source=f"{m.source} turned {float(angle)!r} rad")
     else:
         turned = Map.from_points(pts, None if m.normals is None else m.normals @ R.T,
                                  source=f"{m.source} turned {float(angle)!r} rad")
