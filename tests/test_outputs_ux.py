@@ -365,3 +365,13 @@ def test_errors_by_log_keeps_the_logs_closest_to_failing() -> None:
     # the smallest e_x go first, but not the logs whose yaw is 0.9 of its threshold
     assert dropped == {f"log{i:03d}" for i in (0, 1, 2, 4, 5)}
     assert f"the {MAX_LOG_ROWS} of {n} logs" in fig._suptitle.get_text()
+
+
+def test_python_dash_m_tofloc_is_the_cli(tmp_path) -> None:
+    """``python -m tofloc`` runs the ``tofloc`` command (its exit codes too), for an
+    environment whose scripts folder is not on PATH."""
+    ok = subprocess.run([sys.executable, "-m", "tofloc", "--help"], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and "Usage: tofloc" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "tofloc", "info", str(tmp_path / "none.h5")], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "none.h5" in bad.stderr and "Traceback" not in bad.stderr
