@@ -9,16 +9,20 @@ the problem from the log's own configurations (``/samples/T_base_tip``, whatever
 
 Pairing
 -------
-Every log gets a seed from the run's seed and its *label* (:func:`log_labels`: the file
-name without ``.h5``, or as much of its path as tells it from the run's other logs)::
+Every log gets a seed from the run's seed and its *name* (:func:`log_name`: the file name
+without ``.h5``)::
 
-    log seed   = SeedSequence([seed, label_key]).generate_state(1, uint32)[0]
-    label_key  = first 4 bytes of sha256(label) as a big-endian integer
+    log seed   = SeedSequence([seed, name_key]).generate_state(1, uint32)[0]
+    name_key   = first 4 bytes of sha256(name) as a big-endian integer
     trial seed = evaluation.trials.trial_seed(log seed, k, trial)
 
 The trial seed depends neither on the estimator nor on the other logs of the run, so every
 estimator sees the same samples in the same order and the same prior mean on a given log
-and trial, and adding logs to a run leaves the trials of the others unchanged.
+and trial, and adding logs to a run leaves the trials of the others unchanged. The seed
+comes from the name, not from the *label* (:func:`log_labels`, the name with as many parent
+folders as tell it from the run's other logs, ``four/drone0-node000``): a label depends on
+the other logs of the run, and seeding by it gave a log other trials when a log of the same
+name from another flight joined the run.
 
 Work and saved progress
 -----------------------
@@ -71,6 +75,7 @@ __all__ = [
     "EvalLog",
     "EstimatorSpec",
     "log_labels",
+    "log_name",
     "log_seed",
     "prepare_logs",
     "batch_group",
@@ -88,7 +93,8 @@ FAILURE_E_X_M = 0.1
 FAILURE_E_GAMMA_DEG = 10.0
 #: How the seeds of ``tofloc evaluate`` are derived (recorded in results.json).
 SEED_DERIVATION = (
-    "log seed = SeedSequence([seed, int.from_bytes(sha256(label)[:4], 'big')]).generate_state(1, uint32)[0]; "
+    "log seed = SeedSequence([seed, int.from_bytes(sha256(name)[:4], 'big')]).generate_state(1, uint32)[0], "
+    "name = the log's file name without .h5; "
     "trial seed = SeedSequence([log seed, k, trial]).generate_state(1, uint32)[0]; "
     "draw_rng, estimator_rng = default_rng(SeedSequence(trial seed).spawn(2)); "
     "draw_rng: choice(pool, k, replace=False) then normal(size=3) for the prior offset"
@@ -124,6 +130,13 @@ class EstimatorSpec:
     name: str
     cls: type
     params: Mapping[str, Any]
+
+
+def log_name(path: Path) -> str:
+    """A log's name: its (resolved) file name without ``.h5``; what its seed is derived from
+    (:func:`log_seed`), whatever other logs the run holds."""
+    name = Path(path).resolve().name
+    return name[: -len(".h5")] if name.endswith(".h5") else name
 
 
 def log_labels(paths: Sequence[Path]) -> list[str]:
@@ -162,11 +175,12 @@ def log_labels(paths: Sequence[Path]) -> list[str]:
             labels[i] = name(resolved[i], depth[i])
 
 
-def log_seed(seed: int, label: str) -> int:
-    """The seed of a log in a run seeded ``seed`` (see the module doc)."""
+def log_seed(seed: int, name: str) -> int:
+    """The seed of a log named ``name`` (:func:`log_name`) in a run seeded ``seed`` (see the
+    module doc)."""
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ParameterError(f"seed must be a non-negative integer, got {seed!r}")
-    key = int.from_bytes(hashlib.sha256(label.encode("utf-8")).digest()[:4], "big")
+    key = int.from_bytes(hashlib.sha256(name.encode("utf-8")).digest()[:4], "big")
     return int(np.random.SeedSequence([int(seed), key]).generate_state(1, np.uint32)[0])
 
 
@@ -240,7 +254,7 @@ def prepare_logs(
         raise ProblemError(f"no log has the usable samples a trial needs ({len(set_aside)} set aside: "
                            + "; ".join(list(set_aside.values())[:3]) + ("; ..." if len(set_aside) > 3 else "") + ")")
     usable = [(lg, pool) for lg, pool in zip(read, pools) if pool is not None]
-    # labels (and so seeds) of the logs kept only: a log set aside changes no other's trials
+    # labels of the logs kept only; seeds from each log's own name, whatever the others are
     labels = log_labels([Path(lg.path) for lg, _ in usable])
     kept = [(lg, label, pool) for (lg, pool), label in zip(usable, labels)]
     maps: dict[Path, Any] = {}
@@ -253,7 +267,7 @@ def prepare_logs(
             maps[mp] = load_map(mp)
         k = int(pool.indices.size) if samples is None else int(samples)
         ctx = TrialContext(lg, maps[mp], pool, None, statuses, calibration)
-        out.append(EvalLog(label, Path(lg.path), mp, ctx, k, log_seed(seed, label)))
+        out.append(EvalLog(label, Path(lg.path), mp, ctx, k, log_seed(seed, log_name(Path(lg.path)))))
     return out
 
 

@@ -217,15 +217,22 @@ def summarize(values: Iterable[float] | ArrayLike, keys: Iterable[str] = ("mean"
     -------
     dict
         ``{key: float}`` in the order asked; every statistic is ``None`` when no finite
-        value is left.
+        value is left. Every statistic is independent of the values' order: the sums are
+        exact (``math.fsum``), so the trials of many logs pooled in another order (``tofloc
+        evaluate`` with its logs given in another order) give the same bits; numpy's
+        pairwise sums differed in the last bit.
     """
     v = np.asarray(list(values) if not isinstance(values, np.ndarray) else values, dtype=float).reshape(-1)
     v = v[np.isfinite(v)]
+
+    def mean(a: NDArray[np.float64]) -> float:
+        return math.fsum(a.tolist()) / a.size
+
     funcs = {
-        "mean": lambda a: a.mean(),
-        "std": lambda a: a.std(ddof=0),
+        "mean": mean,
+        "std": lambda a: math.sqrt(mean((a - mean(a)) ** 2)),
         "median": lambda a: np.median(a),
-        "rmse": lambda a: np.sqrt(np.mean(a**2)),
+        "rmse": lambda a: math.sqrt(mean(a**2)),
         "min": lambda a: a.min(),
         "max": lambda a: a.max(),
     }

@@ -125,7 +125,10 @@ def code_fingerprint(*objects: Any) -> str:
 
     Saved partial results carry it, so that editing an estimator, a sensor model (a
     plug-in's too) or the protocol invalidates them instead of silently mixing old and
-    new numbers.
+    new numbers. It also holds the kernels' back-end (:func:`tofloc.numba_kernels.backend`:
+    numba and its version, or numpy): the two agree only to rounding, which a particle
+    filter's resampling can grow into other estimates, so a run resumed with
+    ``TOFLOC_NUMBA=0`` (or without numba) recomputes instead of mixing the two.
     """
     import importlib
     import inspect
@@ -161,6 +164,9 @@ def code_fingerprint(*objects: Any) -> str:
             continue
     for d in sorted(dists):
         h.update(d.encode())
+    from tofloc.numba_kernels import backend
+
+    h.update(f"kernels: {backend()}".encode())
     return h.hexdigest()[:16]
 
 

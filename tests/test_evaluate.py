@@ -291,6 +291,28 @@ def test_a_log_keeps_its_trials_whatever_else_runs(run: dict, logs: list[Path], 
         assert r1["sample_indices"] == r2["sample_indices"] and r1["prior_mean"] == r2["prior_mean"]
 
 
+def test_a_log_keeps_its_seed_when_a_log_of_the_same_name_joins(logs: list[Path], tmp_path: Path) -> None:
+    """Two flights hold logs of one name (drone0-node000): given together, their labels grow
+    a folder (`a/paper`), but each log's seed, hence its trials, stays the one it has alone
+    (it was derived from the label, so adding the other flight's log changed them)."""
+    import shutil
+
+    from evaluation.evaluate import prepare_logs
+
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        for f in logs[0].parent.glob("paper*"):
+            shutil.copy(f, tmp_path / folder / f.name)
+    a, b = tmp_path / "a" / "paper.h5", tmp_path / "b" / "paper.h5"
+    alone = prepare_logs([a, logs[1]], samples=3, seed=5)
+    both = prepare_logs([logs[1], b, a], samples=3, seed=5)
+    assert [en.label for en in alone] == ["paper", "l_room"]
+    assert [en.label for en in both] == ["l_room", "b/paper", "a/paper"]
+    assert alone[0].seed == both[2].seed == both[1].seed == log_seed(5, "paper")
+    assert alone[0].trial_seeds(2) == both[2].trial_seeds(2)
+    assert alone[1].seed == both[0].seed == log_seed(5, "l_room")
+
+
 def test_labels_are_file_names_or_as_much_path_as_needed(tmp_path: Path) -> None:
     assert log_labels([tmp_path / "a" / "x.h5", tmp_path / "b" / "y.h5"]) == ["x", "y"]
     assert log_labels([tmp_path / "a" / "x.h5", tmp_path / "b" / "x.h5", tmp_path / "b" / "z.h5"]) == ["a/x", "b/x", "z"]

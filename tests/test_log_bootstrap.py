@@ -34,7 +34,7 @@ def _random_logs(rng: np.random.Generator, n_logs: int, trials: int) -> dict:
 
 def _reference(logs: dict, name: str, seed: int, resamples: int, level: float) -> dict:
     """The same resamples taken one at a time with plain Python lists."""
-    labels = list(logs)
+    labels = sorted(logs)
     rng = np.random.default_rng(np.random.SeedSequence([seed, BOOTSTRAP_KEY]))
     idx = rng.integers(0, len(labels), size=(resamples, len(labels)))
     cols = {"ex": [], "eg": [], "oex": [], "oeg": []}
@@ -87,6 +87,28 @@ def test_same_seed_same_intervals_and_paired_resamples() -> None:
         lg["estimators"]["same"] = {"records": [dict(r) for r in lg["oracle"]["records"]]}
     same = log_bootstrap(logs, ["same"], seed=1)["estimators"]["same"]
     assert same["ratio_to_oracle"] == {"e_x_m": [1.0, 1.0], "e_gamma_deg": [1.0, 1.0]}
+
+
+def test_intervals_do_not_depend_on_the_order_the_logs_were_given() -> None:
+    """The resamples' log indices used to point into the logs in the order given (the
+    command line's): `tofloc evaluate` with the same logs in another order gave other
+    intervals. Now they point into the labels sorted."""
+    import copy
+
+    logs = _random_logs(np.random.default_rng(6), 10, 3)
+    other = copy.deepcopy(logs)  # a second run of the same logs, errors changed log by log
+    for i, lg in enumerate(other.values()):
+        for r in lg["estimators"]["a"]["records"]:
+            r["e_x_m"] = None if r["e_x_m"] is None else r["e_x_m"] * (0.5 + 0.1 * i)
+    for run in (logs, other):
+        for lg in run.values():
+            for t, r in enumerate(lg["estimators"]["a"]["records"]):
+                r["seed"] = t
+    want, want_paired = log_bootstrap(logs, ["a"], seed=0), paired_runs(logs, other, ["a"], seed=0)
+    keys = list(logs)
+    for order in (keys[::-1], [keys[i] for i in np.random.default_rng(7).permutation(len(keys))]):
+        assert log_bootstrap({k: logs[k] for k in order}, ["a"], seed=0) == want
+        assert paired_runs({k: logs[k] for k in order}, other, ["a"], seed=0) == want_paired
 
 
 def test_the_log_is_the_unit_a_log_repeated_adds_no_certainty() -> None:

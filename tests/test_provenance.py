@@ -28,7 +28,7 @@ def _head() -> str | None:
 
 def test_provenance_record() -> None:
     p = provenance(["tofloc", "localize", "a b.h5", "--json", "x.json"])
-    assert set(p) == {"tofloc_version", "git_commit", "command", "utc"}
+    assert set(p) == {"tofloc_version", "git_commit", "command", "utc", "kernels"}
     assert p["tofloc_version"].startswith(__version__)
     assert p["command"] == "tofloc localize 'a b.h5' --json x.json"  # shell-quoted: it can be pasted back
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", p["utc"])
@@ -96,3 +96,21 @@ def test_scenes_json_records_its_provenance(tmp_path: Path, capsys: pytest.Captu
     doc = json.loads((out / "scenes.json").read_text())
     assert doc["provenance"]["command"].startswith("tofloc scenes --estimators icp_pf")
     assert doc["rows"][0]["scene"] == "pillars"
+
+
+def test_results_record_the_kernels_and_saved_batches_are_keyed_by_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """numba's kernels and their numpy twins agree only to rounding, and beam_pf's resampling
+    turns that into estimates millimetres apart (paper scenario, numba on vs TOFLOC_NUMBA=0,
+    every trial). A result file must say which ran, and a run resumed with the other one
+    must not reuse the saved batches (the key held the sources only: they were mixed)."""
+    pytest.importorskip("numba")
+    from evaluation.result_cache import code_fingerprint
+
+    monkeypatch.setenv("TOFLOC_NUMBA", "1")
+    on, prov_on = code_fingerprint(), provenance(["tofloc", "paper"])
+    monkeypatch.setenv("TOFLOC_NUMBA", "0")
+    off, prov_off = code_fingerprint(), provenance(["tofloc", "paper"])
+    assert prov_on["kernels"].startswith("numba ") and prov_off["kernels"] == "numpy"
+    assert on != off
+    monkeypatch.setenv("TOFLOC_NUMBA", "1")
+    assert code_fingerprint() == on  # the same back-end, the same key

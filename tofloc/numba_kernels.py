@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["enabled", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "association_planes", "gram_root_by_sample", "gram_root_schur", "ROBUST_CODES",
+__all__ = ["enabled", "backend", "sub_cell_states", "trilinear_int16", "ndtr", "beam_log_likelihood", "likelihood_field_distances", "planar_ray_buffer", "rotate_directions", "unit_ray_directions", "ray_hits", "parallel", "smoother_zone_rows", "association_planes", "gram_root_by_sample", "gram_root_schur", "ROBUST_CODES",
            "planar_inlier_count", "bounded_nearest_distance", "mean_shift_seeds"]
 
 try:  # pragma: no cover - exercised when numba is installed (the test extra has it)
@@ -56,6 +56,15 @@ except ImportError:  # pragma: no cover
 def enabled() -> bool:
     """Whether the compiled kernels are used (numba importable, ``TOFLOC_NUMBA`` not ``0``)."""
     return _nb is not None and os.environ.get("TOFLOC_NUMBA", "1") != "0"
+
+
+def backend() -> str:
+    """Which code computes the kernels' numbers in this process: ``"numba <version>"``, or
+    ``"numpy"`` (numba missing or ``TOFLOC_NUMBA=0``). The two agree only to the tolerances
+    of docs/speed.md, and a particle filter's resampling can turn that into other estimates
+    (beam_pf by millimetres), so result files record it (:func:`tofloc.provenance.provenance`)
+    and saved batches are keyed by it (:func:`evaluation.result_cache.code_fingerprint`)."""
+    return f"numba {_nb.__version__}" if enabled() and _nb is not None else "numpy"
 
 
 def _jit(fn: Any) -> Any:

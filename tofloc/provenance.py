@@ -1,6 +1,6 @@
 """Where a result came from: the one record every result file carries.
 
-:func:`provenance` returns ``{"tofloc_version", "git_commit", "command", "utc"}``:
+:func:`provenance` returns ``{"tofloc_version", "git_commit", "command", "utc", "kernels"}``:
 
 * ``tofloc_version``: the package's version (:data:`tofloc.__version__`; the installed
   distribution's metadata when they differ, e.g. an old editable install: both shown);
@@ -11,7 +11,11 @@
   per process;
 * ``command``: the command line (``tofloc ...`` as :func:`tofloc.cli.main` received it;
   from the Python API, the interpreter's ``sys.argv``), shell-quoted;
-* ``utc``: when the record was made, ISO 8601 UTC to the second (``2025-01-31T12:00:00Z``).
+* ``utc``: when the record was made, ISO 8601 UTC to the second (``2025-01-31T12:00:00Z``);
+* ``kernels``: what computed the compiled kernels' numbers (:func:`tofloc.numba_kernels.backend`:
+  ``"numba 0.68.1"``, or ``"numpy"`` without numba or with ``TOFLOC_NUMBA=0``); the two
+  agree only to rounding, which a particle filter can grow into other estimates
+  (docs/speed.md), so a result is reproduced with the same back-end.
 
 ``localize --json``, ``paper``'s ``results.json``, ``scenes.json``, ``bench --json``
 (key ``provenance``) and calibration files (``[calibration.provenance]``) hold it.
@@ -97,4 +101,11 @@ def provenance(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "git_commit": git_commit(),
         "command": shlex.join(str(a) for a in args),
         "utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "kernels": _kernels(),
     }
+
+
+def _kernels() -> str:
+    from tofloc.numba_kernels import backend
+
+    return backend()
