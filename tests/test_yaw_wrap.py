@@ -163,3 +163,12 @@ def test_rotated_problem_turns_a_mesh_map_too() -> None:
     np.testing.assert_array_equal(q.map.triangles(), m.triangles())
     np.testing.assert_allclose(q.map.points, m.points @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T)
     np.testing.assert_allclose(t[:2], [c * truth[0] - s * truth[1], s * truth[0] + c * truth[1]])
+
+
+def test_a_mode_at_the_seam_has_its_yaw_in_the_estimates_interval() -> None:
+    """A group whose circular mean is exactly at the seam reports +pi, as every yaw of an
+    estimate (arctan2(-0.0, -1) is -pi: the mode's mean could be -pi)."""
+    from tofloc.posterior_modes import pose_mean_covariance
+
+    _, mean, _ = pose_mean_covariance(np.array([[0.0, 0.0, -np.pi]]), np.array([1.0]), np.array([0]), 1)
+    assert mean[0, 2] == np.pi

@@ -116,6 +116,7 @@ def pose_mean_covariance(poses: ArrayLike, weights: ArrayLike, labels: ArrayLike
         mean = np.stack([np.bincount(lab, w * p[:, 0], n_groups) / W, np.bincount(lab, w * p[:, 1], n_groups) / W,
                          np.arctan2(np.bincount(lab, w * np.sin(p[:, 2]), n_groups),
                                     np.bincount(lab, w * np.cos(p[:, 2]), n_groups))], axis=1)
+        mean[:, 2] = frames.wrap_angle(mean[:, 2])  # arctan2 can give -pi; a yaw is in (-pi, pi]
         dev = p - mean[lab]
         dev[:, 2] = frames.wrap_angle(dev[:, 2])
         outer = (w[:, None, None] * dev[:, :, None] * dev[:, None, :]).reshape(-1, 9)
