@@ -25,6 +25,7 @@ from tofloc.fit_check import (
     widen_if_unfit,
     zone_residuals,
 )
+from tofloc.errors import ParameterError
 from tofloc.maps import Map
 from tofloc.problem import Estimate, NuisancePriors, Prior, Problem
 from tofloc.range_model import RangeUncertainty
@@ -90,7 +91,7 @@ def test_check_fit_reports_and_explains() -> None:
     bad = check_fit(good, Estimate(pose=np.array([-0.3, 0.0, 0.0]), covariance=np.eye(3)))
     assert not bad.ok and "beyond 3 sigma" in bad.reason and "mean capped squared residual" in bad.reason
     assert "misfits" in bad.warning()
-    with pytest.raises(Exception):
+    with pytest.raises(ParameterError, match="threshold must be a finite number > 0"):
         check_fit(good, Estimate(pose=np.zeros(3), covariance=np.eye(3)), threshold=0.0)
     # a particle filter's ESS and an evidence are recorded when the diagnostics carry them
     pf = Estimate(pose=np.zeros(3), covariance=np.eye(3),

@@ -20,8 +20,7 @@ from tofloc.io.events import Rejected
 from tofloc.io.formats import FORMATS, encode_log
 from tofloc.io.lines import LineSplitter
 from tofloc.io.samples import samples_to_log
-from tofloc.io.sparkfun import _CSV, _GRID_ROW, SparkFunCsvDecoder, SparkFunGridDecoder
-from tofloc.io.st_uld import StUldDecoder
+from tofloc.io.sparkfun import _CSV, _GRID_ROW, SparkFunCsvDecoder
 from tofloc.io.stream import StreamProcessor
 
 FUZZ = settings(derandomize=True, max_examples=150, deadline=None, database=None, suppress_health_check=list(HealthCheck))

@@ -315,3 +315,49 @@ def test_the_check_summarizes_on_stderr_and_keeps_the_json_on_stdout(tmp_path: P
 
     blank = dict(doc, latency_approach=[[lat, None] for lat, _ in doc["latency_approach"]])
     assert summary_lines(blank, ETH)[-1] == "latency (Approach runs): n/a (no valid panel zone at any latency)"
+
+
+def _conforms(value: object, hint: object) -> bool:
+    """Whether ``value`` is of the type ``hint`` (the generics these reports return)."""
+    import types
+    import typing
+
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is typing.Any:
+        return True
+    if hint is None or hint is type(None):
+        return value is None
+    if origin in (typing.Union, types.UnionType):
+        return any(_conforms(value, a) for a in args)
+    if origin is list:
+        return isinstance(value, list) and all(_conforms(v, args[0]) for v in value)
+    if origin is tuple:
+        return isinstance(value, tuple) and len(value) == len(args) and all(map(_conforms, value, args))
+    if origin is dict:
+        return isinstance(value, dict) and all(_conforms(k, args[0]) and _conforms(v, args[1]) for k, v in value.items())
+    return isinstance(value, (int, float) if hint is float else hint)  # type: ignore[arg-type]
+
+
+def test_order_scores_and_latency_scan_return_what_they_declare(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Their return annotations admit what they return: an order's scores hold the order as a
+    dict, and a latency at which no zone met the panel has a median of None (both once
+    declared as plain floats). Synthetic inputs: no data needed."""
+    import typing
+
+    from tofloc.io import eth_check
+
+    K, Z = 2, 64
+    geo = eth_check.Geometry(ok=np.ones(K, bool), panel_mm=np.full((K, Z), 800.0), panel_yz=np.full((K, Z, 2), (0.0, -0.2)),
+                             floor_mm=np.full((K, Z), np.nan), floor_in_front=np.zeros((K, Z), bool),
+                             facing=np.ones(K, bool), yaw_deg=np.zeros(K), panel_col=np.zeros(K))
+    monkeypatch.setattr(eth_check, "_reorder", lambda imp, order: (np.full((K, Z), 800.0), np.full((K, Z), 5, np.uint8)))
+    scores = order_scores([(None, geo)], eth_check.ALL_ORDERS[:2])  # type: ignore[list-item]
+    assert scores[0]["panel"] == 1.0 and isinstance(scores[0]["order"], dict)
+    assert _conforms(scores, typing.get_type_hints(order_scores)["return"])
+
+    monkeypatch.setattr(eth_check, "import_run", lambda run_dir, latency_s: None)
+    monkeypatch.setattr(eth_check, "geometry", lambda imp: None)
+    monkeypatch.setattr(eth_check, "panel_errors", lambda imp, geo: {"error_mm": np.empty(0)})
+    scan = latency_scan([Path("run")], [0.0, 0.1])
+    assert scan == [(0.0, None), (0.1, None)]
+    assert _conforms(scan, typing.get_type_hints(latency_scan)["return"])

@@ -52,6 +52,16 @@ def test_line_fit_moves_a_thick_band_onto_its_weighted_centre_and_leaves_corners
     assert fitted_c[10] and abs(out_c[10, 1]) < 1e-9  # far from the corner: on its line
 
 
+def test_line_fit_refuses_fewer_than_one_iteration() -> None:
+    """``iterations`` counts the fits, the first included: 0 used to end in an
+    UnboundLocalError (the loop never ran), now it is refused as WallFitSettings refuses it."""
+    xy = np.column_stack([np.linspace(0.0, 1.0, 20), np.zeros(20)])
+    for bad in (0, -1, True, 2.0):
+        with pytest.raises(ParameterError, match="iterations"):
+            fit_lines(xy, np.ones(20), radius=0.3, iterations=bad)  # type: ignore[arg-type]
+    assert fit_lines(xy, np.ones(20), radius=0.3, iterations=1)[2].all()
+
+
 def test_thin_weights_and_views() -> None:
     p = np.array([[0.001, 0.001], [0.009, 0.001], [0.5, 0.5]])
     s = np.array([[0.0, -1.0], [0.0, 1.0], [1.0, 1.0]])

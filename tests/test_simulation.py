@@ -85,6 +85,19 @@ def test_log_declares_its_motion_capture_configurations(paper_sim, tmp_path) -> 
     np.testing.assert_array_equal(back.T_base_tip_cov[ok], cov[ok])
 
 
+def test_result_declares_the_paths_it_was_written_to(paper_sim) -> None:
+    """``paths`` (what ``tofloc.api.simulate`` sets after writing) is a declared field: every
+    result has it (empty until written) and a copy keeps it; it was set on the instance
+    only, so ``simulation.simulate``'s results had none and ``dataclasses.replace`` lost it."""
+    import dataclasses
+    from pathlib import Path
+
+    assert paper_sim.paths == {}
+    assert "paths" in {f.name for f in dataclasses.fields(paper_sim)}
+    moved = dataclasses.replace(paper_sim, paths={"log": Path("p.h5")})
+    assert dataclasses.replace(moved).paths == {"log": Path("p.h5")} and paper_sim.paths == {}
+
+
 def test_measured_distances_match_geometry(paper_sim) -> None:
     """Valid zones' points lie near the true walls: median error ~ bias + noise, not more."""
     log = paper_sim.log

@@ -666,7 +666,7 @@ def _read_npy(path: Path, fail: Fail) -> Parsed:
     try:
         with open(path, "rb") as f:
             try:
-                shape, fortran, dtype = read_npy_header(f)
+                shape, _, dtype = read_npy_header(f)  # read_array below honours the Fortran order
             except UnsupportedNpyVersion as e:
                 raise fail("header", "a .npy file of format version 1.0 or 2.0", f"version {e.version}") from None
             if dtype.kind not in "fiu" or dtype.fields is not None or dtype.subdtype is not None:

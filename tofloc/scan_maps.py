@@ -49,6 +49,12 @@ FloatArray = NDArray[np.float64]
 _CARVE_CHUNK = 2_000_000
 
 
+def _check_count(name: str, v: object, lo: int) -> None:
+    """Refuse ``v`` unless it is an integer (not a bool) in ``[lo, 1000]``."""
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= 1000:
+        raise ParameterError(f"{name}: expected an integer in [{lo}, 1000], found {v!r}")
+
+
 @dataclass(frozen=True)
 class WallFitSettings:
     """Parameters of :func:`wall_points_2d` (see the module docstring).
@@ -90,9 +96,7 @@ class WallFitSettings:
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not lo <= v <= hi:
                 raise ParameterError(f"{name}: expected a number in [{lo}, {hi}], found {v!r}")
         for name, lo in (("neighbours", 3), ("iterations", 1)):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= 1000:
-                raise ParameterError(f"{name}: expected an integer in [{lo}, 1000], found {v!r}")
+            _check_count(name, getattr(self, name), lo)
         if not isinstance(self.carve, bool):
             raise ParameterError(f"carve: expected true or false, found {self.carve!r}")
 
@@ -215,7 +219,14 @@ def thin(points_xy: ArrayLike, sensors_xy: ArrayLike, weights: ArrayLike, voxel_
 
 def fit_lines(xy: ArrayLike, weights: ArrayLike, radius: float, neighbours: int = 48, trim_sigmas: float = 2.5,
               line_ratio: float = 0.1, iterations: int = 3) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Robust local line fit (step 3): ``(xy moved onto their lines (M, 2), spread (M,), fitted (M,))``."""
+    """Robust local line fit (step 3): ``(xy moved onto their lines (M, 2), spread (M,), fitted (M,))``.
+
+    Raises
+    ------
+    ParameterError
+        ``iterations`` is not an integer in ``[1, 1000]`` (as :class:`WallFitSettings`).
+    """
+    _check_count("iterations", iterations, 1)
     P0 = np.asarray(xy, dtype=float)
     w = np.asarray(weights, dtype=float)
     m = P0.shape[0]

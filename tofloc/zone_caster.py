@@ -482,7 +482,7 @@ class ZoneCaster:
         (range cut, weighting). Zones without a target read NaN (hit fraction 0); zones
         without a plane (:attr:`rough` or not ``planar``) are overwritten by the caller."""
         _, _, _, _, depth, planar, slope, image = self._stencil
-        S, Z = centre.shape[-2:]
+        S = centre.shape[-2]
         with np.errstate(invalid="ignore", divide="ignore"):
             q = 1.0 / (centre * depth)  # (..., S, Z)
             qp = np.concatenate([q, np.zeros(q.shape[:-1] + (1,))], axis=-1)

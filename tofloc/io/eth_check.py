@@ -138,10 +138,11 @@ def panel_errors(imp: EthImport, geo: Geometry, region=CONSERVATIVE_REGION, orde
     return {"error_mm": (d - geo.panel_mm)[valid], "predicted_mm": geo.panel_mm[valid], "zones": np.array(sel.sum()), "valid": np.array(valid.sum())}
 
 
-def order_scores(runs: Sequence[tuple[EthImport, Geometry]], orders: Sequence[RawOrder] = ALL_ORDERS) -> list[dict[str, float]]:
+def order_scores(runs: Sequence[tuple[EthImport, Geometry]], orders: Sequence[RawOrder] = ALL_ORDERS) -> list[dict[str, Any]]:
     """For each order: share of zones predicted on the panel (conservative region, facing,
     0.3-1.5 m) or on the floor (in front of the panel, within 2.5 m) whose valid reading
-    agrees with the prediction within 10 % + 30 mm."""
+    agrees with the prediction within 10 % + 30 mm: ``{"order": order.to_dict(), "panel": share,
+    "floor": share}``."""
     out = []
     for order in orders:
         agree_p = tot_p = agree_f = tot_f = 0
@@ -191,8 +192,9 @@ def edge_tracking(imp: EthImport, geo: Geometry, order: RawOrder | None = None) 
     }
 
 
-def latency_scan(run_dirs: Sequence[Path], latencies_s: Sequence[float]) -> list[tuple[float, float]]:
-    """Median absolute panel error (mm) over ``run_dirs`` for each assumed latency."""
+def latency_scan(run_dirs: Sequence[Path], latencies_s: Sequence[float]) -> list[tuple[float, float | None]]:
+    """Median absolute panel error (mm) over ``run_dirs`` for each assumed latency (None when
+    no zone met the panel)."""
     out = []
     for lat in latencies_s:
         errs = []

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +56,9 @@ __all__ = ["SimulationResult", "simulate", "write_simulation", "simulation_paths
 class SimulationResult:
     """What :func:`simulate` makes: the log, the map the estimators get (a cloud sampled on
     the CAD mesh, or the CAD mesh), the CAD mesh, the true world, the true (noise-free) tip
-    poses and the true rig (how the sensors are really mounted; the log carries the CAD one)."""
+    poses and the true rig (how the sensors are really mounted; the log carries the CAD one),
+    and ``paths``, the files :func:`tofloc.api.simulate` wrote (:func:`write_simulation`'s
+    answer; empty when nothing was written)."""
 
     log: "object"  # tofloc.logs.Log
     map: "object"  # tofloc.maps.Map
@@ -66,6 +68,7 @@ class SimulationResult:
     scenario: Scenario
     seed: int
     rig_true: "object" = None  # tofloc.rig.Rig
+    paths: dict[str, Path] = field(default_factory=dict)
 
     @property
     def map_cloud(self) -> "object":
