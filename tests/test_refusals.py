@@ -122,3 +122,17 @@ def test_cli_simulate_refuses_a_base_outside_the_room(tmp_path: Path, capsys) ->
     err = capsys.readouterr().err
     assert code == 2 and "inside the room" in err and len(err.strip().splitlines()) == 1
     assert not any(tmp_path.iterdir())
+
+
+def test_problem_refuses_sample_indices_that_are_not_one_per_sample() -> None:
+    """A Problem's sample_indices name each sample's row of its log: one integer per sample
+    (a wrong length was kept, and subset() then indexed it out of step)."""
+    from tofloc.problem import ProblemError
+    from tofloc.testing import easy_problem
+
+    p, _ = easy_problem()
+    K = p.n_samples
+    assert dataclasses.replace(p, sample_indices=np.arange(K) + 7).sample_indices[0] == 7
+    for bad in (np.arange(K + 1), np.arange(K - 1), np.linspace(0, 1, K)):
+        with pytest.raises(ProblemError, match=rf"sample_indices must be \({K},\) integers"):
+            dataclasses.replace(p, sample_indices=bad)

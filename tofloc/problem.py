@@ -268,6 +268,8 @@ class Problem:
                 raise ProblemError(f"T_base_tip_cov must be shaped ({K}, 6, 6), got {c.shape}")
             object.__setattr__(self, "T_base_tip_cov", c)
         idx = np.arange(K) if self.sample_indices is None else np.asarray(self.sample_indices)
+        if idx.shape != (K,) or idx.dtype.kind not in "iu":
+            raise ProblemError(f"sample_indices must be ({K},) integers, one per sample, got {idx.dtype} {idx.shape}")
         object.__setattr__(self, "sample_indices", _readonly(idx, np.int64))
         object.__setattr__(self, "valid_statuses", frozenset(int(v) for v in self.valid_statuses))
         if not isinstance(self.range_model, RangeUncertainty):
