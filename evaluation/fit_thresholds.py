@@ -5,7 +5,7 @@ Procedure (:func:`good_estimate_statistics` then :func:`derive_thresholds`; the 
 ``scripts/fit_check_thresholds.py`` runs it on the whole library and prints the numbers
 docs/evaluation.md quotes):
 
-1. every scene of the library (``paper``, ``pillars``, ``l_room``, ``clutter``), both rig
+1. the library's first four scenes (``paper``, ``pillars``, ``l_room``, ``clutter``; :data:`LIBRARY`), both rig
    variants (``exact``, ``perturbed``), simulated with seed 0 as ``tofloc paper`` lays it
    out (the CAD mesh as the ray-casting surface, the k-NN model fit on the log);
 2. both range models: the datasheet's (no calibration) and the one ``tofloc paper``

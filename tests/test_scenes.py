@@ -398,3 +398,31 @@ def test_cli_simulate_scenes_by_name_and_info(tmp_path, capsys) -> None:
     assert "support yaw 3 deg, range scale 0.03" in capsys.readouterr().out
     assert main(["simulate", "--scenario", "pillars", "--out", str(out), "--rig-variant", "loose"]) == 2
     assert "--rig-variant expects one of exact, perturbed" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------
+# The corridor: a direction the data cannot fix
+# --------------------------------------------------------------------------------------
+def test_corridor_leaves_the_direction_along_it_to_the_prior() -> None:
+    """Every sensor is more than its range from the corridor's ends, so the zones see only
+    surfaces parallel to x: the Fisher information has no x row (an infinite bound along the
+    corridor, named as such), while y and yaw are bounded; the scene's own checks hold."""
+    sc = load_scenario("corridor")
+    assert sc.scenario.extends == "paper" and sc.environment.map_kind == "mesh" and sc.tof == load_scenario("paper").tof
+    assert 0 < abs(sc.rig.support_yaw_error_deg) <= 1.5 * sc.rig.support_yaw_tolerance_deg
+    sim = _sim("corridor", "exact")
+    assert base_clearance_problem(sim.scenario) is None
+    log = sim.log
+    T = log.T_map_base @ sim.T_base_tip_true[:, None] @ sim.rig_true.T_tip_sensor[None]
+    x = T[..., 0, 3].ravel()
+    xs = np.array([p[0] for p in sc.environment.outline])
+    assert min(x.min() - xs.min(), xs.max() - x.max()) > sc.tof.max_range
+    valid = log.valid()
+    assert 0.8 < valid.mean() < 0.99
+    idx = np.arange(0, log.n_samples, 25)
+    bound = crlb(log.T_map_base, sim.T_base_tip_true[idx], log.rig, sim.map, valid=valid[idx])
+    assert math.isinf(bound.position_m) and "do not constrain x" in bound.reason
+    assert np.allclose(bound.information[0], 0.0) and bound.information[1, 1] > 0
+    assert math.isfinite(bound.yaw_deg) and bound.yaw_deg < 0.5
+    a, b = simulate("corridor", 5), simulate("corridor", 5)
+    np.testing.assert_array_equal(a.log.distance_mm, b.log.distance_mm)
