@@ -263,21 +263,40 @@ def log_identity(lg: Mapping[str, Any]) -> frozenset[tuple[float, ...]]:
                      if r.get("truth") is not None)
 
 
+def _file_name(label: str) -> str:
+    """A log's file name (without ``.h5``) from its label (``four/drone0-node000``: the
+    parent folders a label carries only tell it from the run's other logs)."""
+    return label.rsplit("/", 1)[-1]
+
+
 def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, Mapping[str, Any]],
-                 name: str) -> list[str]:
+                 name: str) -> list[tuple[str, str]]:
     """The logs both runs hold with ``name``'s trials drawn from the same seeds, in the same
     order (every record's ``seed`` given and equal): the same samples and priors; and the
-    same log (:func:`log_identity`: two logs of one name evaluated with one seed draw the
-    same seeds)."""
+    same log: the same file name and :func:`log_identity` (two logs of one name evaluated
+    with one seed draw the same seeds), whatever their labels (a log evaluated alone is
+    ``drone0-node000``, beside another flight's node of that name ``two/drone0-node000``;
+    its seeds come from its file name, docs/evaluation.md "Pairing"). Pairs of labels
+    ``(label in A, label in B)``, in A's label order; the same label is preferred, a log of
+    A that matches several of B is left out, and logs without true poses pair by label only."""
+    ids_b: dict[tuple[str, frozenset[tuple[float, ...]]], list[str]] = {}
+    for label in sorted(logs_b):
+        ids_b.setdefault((_file_name(label), log_identity(logs_b[label])), []).append(label)
     out = []
     for label in sorted(logs_a):  # in label order, as log_bootstrap: the resamples' indices point into it
-        lg, other = logs_a[label], logs_b.get(label)
-        if other is None or name not in lg["estimators"] or name not in other["estimators"]:
+        lg = logs_a[label]
+        found = ids_b.get((_file_name(label), log_identity(lg)), [])
+        # without true poses (an empty identity) nothing tells logs of one name apart: the same label only
+        match = label if label in found else found[0] if len(found) == 1 and log_identity(lg) else None
+        if match is None:
+            continue
+        other = logs_b[match]
+        if name not in lg["estimators"] or name not in other["estimators"]:
             continue
         sa = [r.get("seed") for r in lg["estimators"][name]["records"]]
         sb = [r.get("seed") for r in other["estimators"][name]["records"]]
-        if sa and sa == sb and all(x is not None for x in sa) and log_identity(lg) == log_identity(other):
-            out.append(label)
+        if sa and sa == sb and all(x is not None for x in sa):
+            out.append((label, match))
     return out
 
 
@@ -323,8 +342,8 @@ def paired_runs(
     out: dict[str, Any] = {"level": level, "resamples": resamples, "estimators": {}}
     for name in estimators:
         labels = _paired_logs(logs_a, logs_b, name)
-        recs_a = [logs_a[lb]["estimators"][name]["records"] for lb in labels]
-        recs_b = [logs_b[lb]["estimators"][name]["records"] for lb in labels]
+        recs_a = [logs_a[la]["estimators"][name]["records"] for la, _ in labels]
+        recs_b = [logs_b[lb]["estimators"][name]["records"] for _, lb in labels]
         fa = [is_failure(r) for rs in recs_a for r in rs]
         fb = [is_failure(r) for rs in recs_b for r in rs]
         entry: dict[str, Any] = {"logs": len(labels), "failures": [int(sum(fa)), int(sum(fb))],

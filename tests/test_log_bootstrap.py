@@ -244,3 +244,28 @@ def test_paired_runs_on_the_same_trials() -> None:
     # too few shared logs: counts only
     few = paired_runs({"log0": a["log0"]}, {"log0": b["log0"]}, ["a"], seed=0)["estimators"]["a"]
     assert few["logs"] == 1 and few["e_x_m"] == {"ratio": None, "interval": None}
+
+
+def test_paired_runs_pair_a_log_by_identity_not_label() -> None:
+    """A log evaluated alone is labelled ``log0``; beside another flight's log of that name,
+    ``two/log0``. Its trial seeds come from its file name (the same in both runs), so the two
+    runs ran it alike and pair it; another flight's log of that name (the same seeds, other
+    true poses) is not paired with it, nor a log of another name with the same true poses."""
+    import copy
+
+    a = _seeded(_random_logs(np.random.default_rng(5), 4, 3))
+    for i, lg in enumerate(a.values()):
+        for part in [lg["oracle"], *lg["estimators"].values()]:
+            for r in part["records"]:
+                r["truth"] = [float(i), 1.0, 0.5]
+    b = {f"two/{k}": copy.deepcopy(v) for k, v in a.items()}
+    other_flight = copy.deepcopy(a["log0"])
+    for part in [other_flight["oracle"], *other_flight["estimators"].values()]:
+        for r in part["records"]:
+            r["truth"] = [9.0, 9.0, 0.0]
+    b["four/log0"] = other_flight
+    got = paired_runs(a, b, ["a"], seed=0)["estimators"]["a"]
+    assert got["logs"] == 4 and got["e_x_m"] == {"ratio": 1.0, "interval": [1.0, 1.0]}
+    assert paired_runs(b, a, ["a"], seed=0)["estimators"]["a"]["logs"] == 4
+    assert paired_runs({"log0": a["log0"]}, {"four/log0": other_flight}, ["a"], seed=0)["estimators"]["a"]["logs"] == 0
+    assert paired_runs({"log0": a["log0"]}, {"two/log9": b["two/log0"]}, ["a"], seed=0)["estimators"]["a"]["logs"] == 0

@@ -238,3 +238,41 @@ def test_sessions_of_one_set_up_share_the_hardware(tmp_path, capsys) -> None:
     assert code == 0, capsys.readouterr().err
     code = main(["simulate", "--out", str(tmp_path / "s.h5"), "--base", "1,2"])
     assert code == 2 and "--base expects X,Y,YAW_DEG" in capsys.readouterr().err
+
+
+def test_write_simulation_renames_the_log_last(tmp_path, monkeypatch) -> None:
+    """A process killed (SIGKILL: no clean-up) between write_simulation's renames must not leave
+    a log without its map and CAD mesh: `tofloc paper`/`scenes` resume from a folder whose log
+    exists (evaluation.paper_data.prepare_data), so a log without its map failed the resume (the
+    log was renamed first, the map last)."""
+    from pathlib import Path
+
+    import tofloc.atomic
+    from tofloc.simulation import simulate, simulation_paths, write_simulation
+
+    class Killed(BaseException):
+        pass
+
+    sim = simulate("pillars", 0)
+    real_replace = tofloc.atomic.os.replace
+    for n_renames in (1, 2, 3):
+        out = tmp_path / f"run{n_renames}" / "pillars.h5"
+        done = []
+
+        finals = set(simulation_paths(out).values())
+
+        def dying_replace(src, dst, _n=n_renames, _done=done, _finals=finals):
+            real_replace(src, dst)
+            if Path(dst) in _finals:  # a temporary renamed to one of the three files
+                _done.append(Path(dst).name)
+                if len(_done) == _n:
+                    raise Killed  # the process dies right after this rename
+
+        monkeypatch.setattr(tofloc.atomic.os, "replace", dying_replace)
+        with pytest.raises(Killed):
+            write_simulation(sim, out)
+        monkeypatch.setattr(tofloc.atomic.os, "replace", real_replace)
+        paths = simulation_paths(out)
+        if paths["log"].exists():
+            assert paths["map"].exists() and paths["cad"].exists(), (n_renames, done)
+    assert paths["log"].exists()  # after the third rename, all three are there

@@ -189,7 +189,9 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     All or nothing: the three files are written to temporaries and renamed only once all
     of them are complete; on any error (a full disk included, refused before the first
     byte when the free space is known to be short) or an interruption the temporaries
-    are removed and existing files keep their content.
+    are removed and existing files keep their content. The log is renamed last: a process
+    killed between the renames (SIGKILL, no clean-up) may leave new maps, never a log
+    without the maps it was written with.
     """
     import io
     from contextlib import ExitStack, redirect_stderr
@@ -210,8 +212,11 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     # h5py prints a failed write's error again for every object it cleans up: keep it quiet
     with redirect_stderr(io.StringIO()):
         try:
-            with ExitStack() as stack:  # renames happen on the way out, once every file is complete
-                tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("map", "cad", "log")}
+            # renames happen on the way out, once every file is complete, in the reverse order of
+            # entry: the log last, so a process killed between renames (no clean-up) leaves no
+            # log without its maps (a rerun of paper/scenes reuses the folder's log as it finds it)
+            with ExitStack() as stack:
+                tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("log", "cad", "map")}
                 tmp["map"].write_bytes(data["map"])
                 tmp["cad"].write_bytes(data["cad"])
                 write_log(log, tmp["log"])
