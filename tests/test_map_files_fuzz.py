@@ -290,3 +290,20 @@ def test_ply_header_refusals_say_what_was_found(tmp_path: Path) -> None:
              "property list uchar float vertex_indices\nend_header\n0 0 0\n3 0 0 0\n",
              r"expected one integer list property 'vertex_indices' \(or 'vertex_index'\), "
              r"found index lists: vertex_indices \(f4\)$")
+
+
+def test_ascii_faces_fast_path_declines_when_numpy_only_warns(monkeypatch) -> None:
+    """numpy < 2 (which the project allows) reads '1.5' as the integer 1 with only a
+    DeprecationWarning; the fast path must then leave the line to the line reader, which
+    refuses it (found in review: on numpy 1.26 '3 0 1.5 2' loaded as triangle 0 1 2)."""
+    import warnings
+
+    from tofloc import map_files
+
+    def old_loadtxt(lines, **kw):
+        warnings.warn("loadtxt(): Parsing an integer via a float is deprecated", DeprecationWarning, stacklevel=2)
+        return np.array([[3, 0, 1, 2]], dtype=np.int64)
+
+    monkeypatch.setattr(map_files.np, "loadtxt", old_loadtxt)
+    el = map_files._PlyElement("face", 1, [map_files._PlyProp("vertex_indices", "i4", "u1")])
+    assert map_files._uniform_ascii_faces(["3 0 1.5 2"], el) is None

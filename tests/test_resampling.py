@@ -99,6 +99,13 @@ def test_counts_sum_to_n_and_are_unbiased_for_systematic_and_stratified() -> Non
         counts = np.bincount(idx, minlength=w.size)
         assert counts.sum() == n and np.all(np.abs(counts - n * w) < 1.0) and np.all(counts[w == 0] == 0)
         assert rs.stratified(w, rng, n).size == n
+    # unbiased: over many draws each particle's mean count is n w_i (systematic and stratified)
+    n, draws = 37, 4000
+    for scheme in (rs.systematic, rs.stratified):
+        mean = np.mean([np.bincount(scheme(w, rng, n), minlength=w.size) for _ in range(draws)], axis=0)
+        sd = np.sqrt(n * w * (1 - w) / draws)  # a multinomial's spread bounds both schemes'
+        assert np.all(np.abs(mean - n * w) <= 5 * sd + 1e-12), scheme.__name__
+        assert np.all(mean[w == 0] == 0)
 
 
 def test_infinite_log_weights_take_the_weight() -> None:

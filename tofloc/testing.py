@@ -93,14 +93,19 @@ def rotated_problem(problem: Problem, truth: np.ndarray, angle: float) -> tuple[
     cloud, its normals too, or a mesh), the prior's mean and the truth ``(x, y, yaw)``;
     the readings and configurations (base frame) are unchanged. Every estimator's errors
     should match the unturned problem's (to its Monte Carlo noise): with ``angle`` putting
-    the truth's yaw near +-pi, a check of yaw wrapping. Gaussian priors only (a global
-    prior's free space is not turned); returns ``(problem, truth)``."""
+    the truth's yaw near +-pi, a check of yaw wrapping. Gaussian priors with sigma_x =
+    sigma_y only (a global prior's free space is not turned, nor an axis-aligned prior's
+    ellipse); returns ``(problem, truth)``."""
     import dataclasses
 
     from tofloc.maps import Map
 
     if problem.prior.is_global:
         raise ParameterError("rotated_problem: a global prior's free space is not turned")
+    sx, sy = (float(v) for v in problem.prior.sigma[:2])
+    if sx != sy:
+        raise ParameterError(f"rotated_problem: the prior's sigma_x and sigma_y differ ({sx} and {sy}): an "
+                             "axis-aligned prior does not turn with the map")
     m = problem.map
     if m.surface is not None or m.known_space is not None:
         raise ParameterError("rotated_problem: a map with a surface or a known space is not turned")

@@ -1,5 +1,5 @@
 """A simulator of the paper's experiment (its data is not public) and of a library of
-other scenes (``builtin_scenarios()``: ``paper``, ``pillars``, ``l_room``, ``clutter``).
+other scenes (``builtin_scenarios()``: ``paper``, ``pillars``, ``l_room``, ``clutter``, ``corridor``).
 
 :func:`simulate` turns a :class:`~tofloc.simulation.scenario.Scenario` and a seed into a
 log (format v1) and the maps: the map the estimators get (a point cloud sampled from the
@@ -190,8 +190,9 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     of them are complete; on any error (a full disk included, refused before the first
     byte when the free space is known to be short) or an interruption the temporaries
     are removed and existing files keep their content. The log is renamed last: a process
-    killed between the renames (SIGKILL, no clean-up) may leave new maps, never a log
-    without the maps it was written with.
+    killed between the renames (SIGKILL, no clean-up) in a new folder may leave new maps,
+    never a log without the maps it was written with (over an existing set, the old log
+    may be left beside new maps).
     """
     import io
     from contextlib import ExitStack, redirect_stderr
