@@ -307,3 +307,14 @@ def test_ascii_faces_fast_path_declines_when_numpy_only_warns(monkeypatch) -> No
     monkeypatch.setattr(map_files.np, "loadtxt", old_loadtxt)
     el = map_files._PlyElement("face", 1, [map_files._PlyProp("vertex_indices", "i4", "u1")])
     assert map_files._uniform_ascii_faces(["3 0 1.5 2"], el) is None
+
+
+def test_index_and_pcd_size_refusals_say_what_was_found(tmp_path: Path) -> None:
+    """An index past int64 and a non-integer PCD WIDTH are refused naming the value found
+    (the messages said only 'a larger index' and nothing)."""
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in QUAD)
+    head = HEAD.format(fmt="ascii") + "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    _refused(tmp_path / "big.ply", head + body + "3 0 1 99999999999999999999999\n",
+             r"element face: expected vertex indices within int64, found index 99999999999999999999999$")
+    _refused(tmp_path / "w.pcd", "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH two\nPOINTS 2\nDATA ascii\n0 0 0\n1 2 3\n",
+             r"header: WIDTH: expected integer WIDTH and HEIGHT, found WIDTH 'two', HEIGHT '1'$")

@@ -427,7 +427,8 @@ def _ascii_faces_by_line(chunk: list[str], el: _PlyElement, fail: Fail) -> dict[
     try:
         return {k: np.asarray(v, dtype=np.int64) for k, v in groups.items()}
     except OverflowError:
-        raise fail(where, "vertex indices within int64", "a larger index") from None
+        big = max((i for rows in groups.values() for row in rows for i in row), key=abs)  # the error path only
+        raise fail(where, "vertex indices within int64", f"index {big}") from None
 
 
 # ---- STL --------------------------------------------------------------------------------
@@ -593,7 +594,8 @@ def _read_pcd(path: Path, fail: Fail) -> Parsed:
         try:
             wh = int(fields["WIDTH"][0]) * int(fields.get("HEIGHT", ["1"])[0])
         except (IndexError, ValueError):
-            raise fail("header: WIDTH", "integer WIDTH and HEIGHT") from None
+            found = f"WIDTH {' '.join(fields['WIDTH'])!r}, HEIGHT {' '.join(fields.get('HEIGHT', ['1']))!r}"
+            raise fail("header: WIDTH", "integer WIDTH and HEIGHT", found) from None
         if wh != n_points:
             raise fail("header: WIDTH", f"WIDTH x HEIGHT = POINTS = {n_points}", wh)
     if len(set(names)) != nf:

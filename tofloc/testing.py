@@ -108,7 +108,8 @@ def rotated_problem(problem: Problem, truth: np.ndarray, angle: float) -> tuple[
                              "axis-aligned prior does not turn with the map")
     m = problem.map
     if m.surface is not None or m.known_space is not None:
-        raise ParameterError("rotated_problem: a map with a surface or a known space is not turned")
+        held = " and ".join(n for n, v in (("a surface", m.surface), ("a known space", m.known_space)) if v is not None)
+        raise ParameterError(f"rotated_problem: expected a map without a surface or a known space, {m.source} has {held}")
     R = frames.rot_z(float(angle))
     pts = m.points @ R.T
     if m.kind == "mesh":
