@@ -56,6 +56,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from evaluation.failure_cause import count_causes
+from evaluation.report import excluded_summary
 from evaluation.metrics import json_float, ratio_or_none, summarize
 from evaluation.priors import PriorSpec
 from evaluation.log_bootstrap import log_bootstrap
@@ -461,6 +462,9 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     ref = refit_summary(records)
     if ref is not None:
         out["refit"] = ref
+    excl = excluded_summary(records)
+    if excl is not None:
+        out["excluded_samples"] = excl
     return out
 
 

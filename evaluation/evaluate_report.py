@@ -80,6 +80,23 @@ def detection_lines(doc: Mapping[str, Any]) -> list[str]:
     return _section("Knowing when it is lost", text, head, body)
 
 
+def excluded_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The section "Samples no particle could explain": per estimator, the trials that left
+    samples out of the particle weights (:func:`evaluation.evaluate.excluded_summary`);
+    empty when none did."""
+    rows = _summary_rows(doc, "excluded_samples")
+    if not rows:
+        return []
+    return _section(
+        "Samples no particle could explain",
+        "A sample whose likelihood is zero at every particle (e.g. every zone outside the map or beyond the model's "
+        "range) carries no information about which particle is right; the particle filter leaves it out of the "
+        "weights and goes on with the others (estimators/particle_filter.py). Each trial's record lists them as "
+        "`excluded_samples` (the log's sample indices).",
+        ["estimator", "trials", "samples left out"],
+        [[e, f"{r['trials']}/{r['of']}", str(r["samples"])] for e, r in rows])
+
+
 def refit_lines(doc: Mapping[str, Any]) -> list[str]:
     """The section "Models refitted to each trial's data": per estimator, the trials whose
     model (a sensor model's, or the smoother's place correlation) was refitted at a first estimate and the parameters fitted (median and
@@ -235,6 +252,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     lines += detection_lines(doc)
     lines += cross_check_lines(doc)
     lines += refit_lines(doc)
+    lines += excluded_lines(doc)
     lines += [
         "## Ratios to the oracle floor",
         "",

@@ -25,6 +25,8 @@ __all__ = [
     "write_json_atomic",
     "write_text_atomic",
     "summarize_trials",
+    "excluded_summary",
+    "excluded_text",
     "crlb_summary",
     "fit_summary",
     "setup_summary",
@@ -132,7 +134,8 @@ def summarize_trials(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         ``"crlb"`` (:func:`crlb_summary`) when at least one has a Cramér-Rao bound and
         ``"fit": {"checked", "not_ok", "ambiguous"}`` (:func:`fit_summary`) when the trials
         carry a data-fit check, ``"found"`` (:func:`found_summary`) when they record it,
-        ``"failure_causes"`` when failed trials record their cause. The
+        ``"failure_causes"`` when failed trials record their cause, ``"excluded_samples"``
+        (:func:`excluded_summary`) when trials left samples out of their weights. The
         error entries are ``None`` when no trial has a truth.
     """
     out: dict[str, Any] = {}
@@ -157,8 +160,9 @@ def _add_nees_and_crlb(
     out: dict[str, Any], records: Sequence[Mapping[str, Any]], nees_keys: tuple[str, ...] = ("mean", "n")
 ) -> None:
     """Add ``nees``, ``crlb`` (and ``crlb_map_tolerance``, ``crlb_all_valid``), ``fit``,
-    ``found`` and ``failure_causes`` (:func:`evaluation.failure_cause.count_causes`)
-    summaries to ``out`` where the trials define them."""
+    ``found``, ``failure_causes`` (:func:`evaluation.failure_cause.count_causes`) and
+    ``excluded_samples`` (:func:`excluded_summary`) summaries to ``out`` where the trials
+    define them."""
     nees = _values(records, "nees")
     if np.isfinite(nees).any():
         out["nees"] = summarize(nees, keys=nees_keys)
@@ -175,6 +179,27 @@ def _add_nees_and_crlb(
     causes = count_causes(records)
     if causes is not None:
         out["failure_causes"] = causes
+    excl = excluded_summary(records)
+    if excl is not None:
+        out["excluded_samples"] = excl
+
+
+def excluded_text(samples: Sequence[int]) -> str:
+    """The console line for samples an estimate left out because no particle could explain
+    them (a trial record's ``excluded_samples``, log sample indices)."""
+    listed = ", ".join(str(int(i)) for i in samples)
+    return (f"sample(s) {listed} left out of the weights: their likelihood was zero at every particle "
+            "(no particle explains them; see `excluded_samples` in --json)")
+
+
+def excluded_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
+    """How many trials left samples out of the particle weights because no particle could
+    explain them (the record's ``excluded_samples``: a likelihood of zero at every particle,
+    :mod:`estimators.particle_filter`), and how many samples in all; ``None`` when none did."""
+    hit = [r for r in records if r.get("excluded_samples")]
+    if not hit:
+        return None
+    return {"trials": len(hit), "samples": int(sum(len(r["excluded_samples"]) for r in hit)), "of": len(records)}
 
 
 def group_summary(records: Sequence[Mapping[str, Any]], k_values: Sequence[int]) -> dict[str, Any]:

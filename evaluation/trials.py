@@ -686,6 +686,9 @@ def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> d
     refit = result.diagnostics.get("refit") if isinstance(result.diagnostics, Mapping) else None
     if refit is not None:  # a sensor model refitted to the trial's data (a second pass of the filter)
         record["refit"] = jsonable(refit)
+    excluded = result.diagnostics.get("all_excluded") if isinstance(result.diagnostics, Mapping) else None
+    if excluded:  # samples no particle could explain (likelihood zero everywhere): left out of the weights
+        record["excluded_samples"] = [int(idx[int(step)]) for step in excluded]
     basins = result.diagnostics.get("basin_check") if isinstance(result.diagnostics, Mapping) else None
     if basins is not None:  # other places checked after a global start (estimators/basin_check.py)
         record["basin_check"] = jsonable(basins)

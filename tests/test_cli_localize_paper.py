@@ -597,3 +597,51 @@ def test_a_calibration_footprint_that_is_not_an_integer_is_refused(tmp_path: Pat
         path.write_text(good.read_text().replace("footprint = 3", f"footprint = {bad}"))
         with pytest.raises(FormatError, match=r"\[calibration\]\.footprint: expected an integer in \[1, 9\]"):
             SensorCalibration.from_toml(path)
+
+
+def test_samples_no_particle_explains_are_named(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A sensor model (a run-time plug-in) whose first step has a likelihood of zero at every
+    particle: the filter leaves that sample out (estimators/particle_filter.py), and
+    `localize` says so per trial, naming the LOG's sample index (the trial's first drawn
+    sample), in the record's `excluded_samples` and in the summary; the same filter with
+    the plain ICP score leaves nothing out and says nothing."""
+    from dataclasses import dataclass
+
+    from sensor_models.base import SensorModel
+    from sensor_models.icp_score import ICPScore
+    from tofloc.registry import SENSOR_MODELS
+
+    @dataclass(frozen=True)
+    class FirstStepExcluded(SensorModel):
+        name = "first_step_excluded"
+        uses_calibration = False
+
+        def bind(self, problem):
+            inner = ICPScore().bind(problem)
+
+            class Bound(type(inner)):  # the ICP score, but -inf everywhere at step 0
+                def log_likelihood(self, states, step):
+                    ll = super().log_likelihood(states, step)
+                    return np.full_like(ll, -np.inf) if step == 0 else ll
+
+            inner.__class__ = Bound
+            return inner
+
+    SENSOR_MODELS.register("first_step_excluded", FirstStepExcluded)
+    try:
+        out = tmp_path / "out.json"
+        code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "2", "--samples", "3",
+                                     "--param", "sensor_model=first_step_excluded", "--json", str(out), "--seed", "4", *FEW])
+        assert code == 0, err
+        doc = json.loads(out.read_text())
+        for t in doc["trials"]:
+            assert t["excluded_samples"] == [t["sample_indices"][0]]
+            assert f"warning: trial {t['trial']}: sample(s) {t['sample_indices'][0]} left out of the weights" in " ".join(err.split())
+        assert doc["summary"]["excluded_samples"] == {"trials": 2, "samples": 2, "of": 2}
+    finally:
+        SENSOR_MODELS.unregister("first_step_excluded")
+    code, _, err = _run(capsys, ["localize", str(data["log"]), "--estimator", "icp_pf", "--trials", "2", "--samples", "3",
+                                 "--json", str(out), "--seed", "4", *FEW])
+    assert code == 0 and "left out of the weights" not in err
+    doc = json.loads(out.read_text())
+    assert all("excluded_samples" not in t for t in doc["trials"]) and "excluded_samples" not in doc["summary"]

@@ -1005,3 +1005,19 @@ def test_changed_params_of_a_class_without_defaults_is_unknown_not_a_crash() -> 
     doc = {"estimators": {"needs_one": {"changed": None}, "icp_pf": {"changed": {}}}}
     assert params_sentence(doc) == ["Parameters not at their defaults: needs_one: its defaults unknown (its class needs "
                                     "parameters) (`config.toml` beside this file lists them all)."]
+
+
+def test_excluded_samples_summary_and_section() -> None:
+    """Trials that left samples no particle could explain out of their weights (the record's
+    `excluded_samples`) are counted in the summary and get a section in table.md; none, no
+    entry and no section."""
+    from evaluation.evaluate_report import excluded_lines
+
+    recs = [{"e_x_m": 0.01, "e_gamma_deg": 1.0, "excluded_samples": [3, 7]}, {"e_x_m": 0.01, "e_gamma_deg": 1.0},
+            {"e_x_m": 0.02, "e_gamma_deg": 2.0, "excluded_samples": [5]}]
+    assert error_summary(recs)["excluded_samples"] == {"trials": 2, "samples": 3, "of": 3}
+    assert "excluded_samples" not in error_summary(recs[1:2])
+    lines = excluded_lines({"summary": {"beam_pf": error_summary(recs), "icp_pf": error_summary(recs[1:2])}})
+    assert lines[0] == "## Samples no particle could explain"
+    assert "| beam_pf | 2/3 | 3 |" in lines and not any(ln.startswith("| icp_pf") for ln in lines)
+    assert excluded_lines({"summary": {"icp_pf": error_summary(recs[1:2])}}) == []

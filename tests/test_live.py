@@ -279,3 +279,40 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
     live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
     err = capsys.readouterr().err
     assert "warning: sample 2: the data do not fit the map at the estimate" in err
+
+
+def test_a_sample_no_particle_explains_is_named(paper) -> None:
+    """A window sample whose likelihood is zero at every particle is left out of the weights,
+    and the update names it by its index in the stream (`excluded_samples`)."""
+    from dataclasses import dataclass
+
+    from sensor_models.base import SensorModel
+    from sensor_models.icp_score import ICPScore
+    from tofloc.io.samples import Sample
+
+    @dataclass(frozen=True)
+    class FirstStepExcluded(SensorModel):
+        name = "first_step_excluded"
+        uses_calibration = False
+
+        def bind(self, problem):
+            inner = ICPScore().bind(problem)
+
+            class Bound(type(inner)):  # the ICP score, but -inf everywhere at the window's first sample
+                def log_likelihood(self, states, step):
+                    ll = super().log_likelihood(states, step)
+                    return np.full_like(ll, -np.inf) if step == 0 else ll
+
+            inner.__class__ = Bound
+            return inner
+
+    sim, model = paper
+    log = sim.log.subset(model.validation_indices[:3])
+    prior = Prior(frames.xyyaw_from_se3(sim.log.T_map_base), np.array([0.05, 0.05, 0.1]), z=0.5)
+    for sm, first in ((FirstStepExcluded(), True), (ICPScore(), False)):
+        live = LiveLocalizer(ICPScorePF(n_particles=100, sensor_model=sm), log.rig, sim.map_cloud, prior, model, window=2)
+        ups = [live.update(Sample(index=10 + i, t_s=float(i), t_host_s=float(i), distance_mm=log.distance_mm[i],
+                                  status=log.status[i], sigma_mm=None, pressure_kpa=log.pressure_kpa[i], sample_id=i,
+                                  sensors_present=(True,) * 3)) for i in range(3)]
+        # the window holds samples (10), (10, 11), (11, 12): its first one is left out
+        assert [u.excluded_samples for u in ups] == ([(10,), (10,), (11,)] if first else [(), (), ()])

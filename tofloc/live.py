@@ -44,6 +44,9 @@ class LiveUpdate:
     reason: str = ""
     #: samples added to the window since the previous update without an estimate of their own
     skipped: int = 0
+    #: the window's samples (their indices) the estimate left out because no particle could
+    #: explain them (``diagnostics["all_excluded"]`` of a particle filter)
+    excluded_samples: tuple[int, ...] = ()
 
 
 @dataclass
@@ -167,7 +170,9 @@ class LiveLocalizer:
             return LiveUpdate(index, problem.n_samples, None, str(e))
         est.fit = check_fit(problem, est)  # does the window's data fit the map at the estimate?
         widen_if_unfit(problem, est)  # if not, its covariance is widened by the prior's
-        return LiveUpdate(index, problem.n_samples, est, reason)
+        steps = est.diagnostics.get("all_excluded", ()) if isinstance(est.diagnostics, dict) else ()
+        excluded = tuple(int(problem.sample_indices[int(i)]) for i in steps)
+        return LiveUpdate(index, problem.n_samples, est, reason, excluded_samples=excluded)
 
     def run(self, samples: Iterable[Any]) -> Iterator[LiveUpdate]:
         """Updates for a stream of samples (e.g. ``SerialCapture.samples()``)."""

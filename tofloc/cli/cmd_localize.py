@@ -239,7 +239,8 @@ MAX_FIT_WARNINGS = 10
 
 def _warn_fit(recs: list[dict[str, Any]]) -> None:
     """One warning line per trial whose data do not fit the map at the estimate (at most
-    :data:`MAX_FIT_WARNINGS`, then a count), and a line per ambiguous posterior count."""
+    :data:`MAX_FIT_WARNINGS`, then a count), and a line per ambiguous posterior count; the
+    same for trials that left samples no particle could explain out of their weights."""
     from tofloc.fit_check import warning_text
 
     flagged = [r for r in recs if isinstance(r.get("fit"), dict) and not r["fit"].get("ok", True)]
@@ -253,8 +254,17 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
         err_console.print(f"note: {n_amb} of {len(recs)} trial(s) have an ambiguous posterior (a second mode holds more "
                           "than 10 % of the weight; see `modes` in --json)", highlight=False, markup=False)
     from evaluation.evaluate import refit_summary
+    from evaluation.report import excluded_text
     from evaluation.evaluate_report import fitted_parameters
 
+    excluded = [r for r in recs if r.get("excluded_samples")]
+    for r in excluded[:MAX_FIT_WARNINGS]:
+        err_console.print(f"warning: trial {r['trial']}: {excluded_text(r['excluded_samples'])}", style="yellow",
+                          highlight=False, markup=False)
+    if len(excluded) > MAX_FIT_WARNINGS:
+        err_console.print(f"warning: {len(excluded) - MAX_FIT_WARNINGS} more trial(s) left samples out ({len(excluded)} "
+                          f"of {len(recs)} in all; see `excluded_samples` in --json)", style="yellow", highlight=False,
+                          markup=False)
     ref = refit_summary(recs)
     if ref is not None:
         err_console.print(f"note: the model refitted itself to the data at a first estimate in {ref['trials']} of "

@@ -185,6 +185,11 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
             if fit is not None and not fit.ok:
                 err_console.print(f"warning: sample {upd.sample_index}: {fit.warning()}", style="yellow", highlight=False,
                                   markup=False)
+            if upd.excluded_samples:
+                from evaluation.report import excluded_text
+
+                err_console.print(f"warning: sample {upd.sample_index}: {excluded_text(upd.excluded_samples)}",
+                                  style="yellow", highlight=False, markup=False)
             if writer is not None:
                 writer.write(upd, batch[-1].t_s)
             if suggest is not None:
