@@ -531,11 +531,6 @@ def test_a_log_without_usable_samples_is_refused_or_set_aside_when_asked(logs: l
              "no log has the usable samples a trial needs (1 set aside: ")
 
 
-# -- the real flight -------------------------------------------------------------------------------
-
-
-@pytest.mark.slow  # ~22 s: skipped by `make test-fast`
-@pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
 def test_refit_summary_reports_what_was_fitted_per_trial() -> None:
     """The trials whose model was refitted, and per numeric parameter a refit changed (the
     record holds those; a bool is not a number) how many trials changed it and the median
@@ -566,6 +561,11 @@ def test_refit_summary_reports_what_was_fitted_per_trial() -> None:
     assert not any(ln.startswith("| icp_pf") for ln in lines)
 
 
+# -- the real flight -------------------------------------------------------------------------------
+
+
+@pytest.mark.slow  # ~22 s alone, ~65 s beside another test file: skipped by `make test-fast`
+@pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
 def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(capsys, ["import", "nanoswarm", str(FOUR), "--out", str(tmp_path / "four")])
     assert code == 0, err

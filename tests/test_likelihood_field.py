@@ -165,6 +165,7 @@ def _room_problem(seed: int = 0):
     return dataclasses.replace(p, map=room, distance_m=z, status=status), truth
 
 
+@pytest.mark.slow  # ~25 s: skipped by `make test-fast`
 def test_r_field_follows_the_zone_noise() -> None:
     from sensor_models.likelihood_field import R_FIELD_LEVELS, auto_r_field
 

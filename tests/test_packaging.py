@@ -150,6 +150,7 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
     return r, out
 
 
+@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
 def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
     """`make real-data` takes every flight folder of NANOSWARM (another experiment's flights
     too): a single drone's flight takes its map from the flight beside it (``--map-from
@@ -179,6 +180,7 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
         assert (out / f"eval-{name}" / "results.json").is_file() and (out / f"eval-{name}" / "table.md").is_file()
 
 
+@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
 def test_make_real_data_takes_the_flights_of_every_experiment_of_a_copy(tmp_path: Path) -> None:
     """NANOSWARM at a copy of the whole data set: its EXP/FLIGHT folders are the flights,
     imported and evaluated as EXP-FLIGHT, a single drone mapped from its own experiment's
@@ -200,6 +202,7 @@ def test_make_real_data_takes_the_flights_of_every_experiment_of_a_copy(tmp_path
     assert (out / "eval-expA-solo" / "results.json").is_file()
 
 
+@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
 def test_make_real_data_drones_runs_end_to_end_on_a_small_flight(tmp_path: Path) -> None:
     """`make real-data-drones` on a synthetic three-drone flight with two drone sets: each
     set imported with only its drones (its logs name only their maps), evaluated, and the
