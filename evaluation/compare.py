@@ -119,7 +119,32 @@ def checked_int(v: Any, path: Path, where: str, expected: str, *, low: int = 0, 
                 null: bool = False) -> int | None:
     """``v`` when it is an integer (not a bool) in ``[low, high)`` (no upper bound without
     ``high``), or None when it is null and ``null`` allows it; FormatError naming ``path``,
-    ``where`` and ``expected`` otherwise."""
+    ``where`` and ``expected`` otherwise.
+
+    Parameters
+    ----------
+    v : object
+        The value read from the file.
+    path : Path
+        The file, for the message.
+    where : str
+        The field's place in the file (``"trials[3].k"``), for the message.
+    expected : str
+        What the field must hold, in words, for the message.
+    low, high : int
+        The accepted range ``[low, high)``; no upper bound when ``high`` is None.
+    null : bool
+        Whether a null (None) is accepted (and returned).
+
+    Returns
+    -------
+    int or None
+
+    Raises
+    ------
+    tofloc.errors.FormatError
+        ``v`` is not such an integer (a bool is not one), naming what was found.
+    """
     if v is None and null:
         return None
     if not isinstance(v, int) or isinstance(v, bool) or v < low or (high is not None and v >= high):

@@ -227,7 +227,29 @@ def build_plugin(cls: type, params: Mapping[str, Any] | None, *, kind: str, name
     """``cls(**params)``: a name it does not take refused before anything is built
     (:func:`check_parameter_names`), any other constructor ``TypeError`` reported as a
     :class:`~tofloc.errors.ParameterError` naming the plug-in and its parameters (the one
-    construction of estimators and selection policies from names and parameters)."""
+    construction of estimators and selection policies from names and parameters).
+
+    Parameters
+    ----------
+    cls : type
+        The plug-in's class (an estimator or a selection policy).
+    params : mapping of str to object, optional
+        Its constructor's keyword arguments; None for its defaults.
+    kind : str
+        What the plug-in is, in words, for the messages (``"estimator"``).
+    name : str
+        The name it is registered under, for the messages.
+
+    Returns
+    -------
+    object
+        ``cls(**params)``.
+
+    Raises
+    ------
+    tofloc.errors.ParameterError
+        A parameter ``cls`` does not take, or one its constructor refuses by type.
+    """
     from tofloc.errors import ParameterError
 
     given = dict(params or {})
