@@ -168,6 +168,14 @@ def _log_prior(problem: Problem, state: Sequence[Any], states: NDArray[np.float6
     return out
 
 
+def _step_samples(bound: Any, step: int) -> range:
+    """The samples (positions in the problem) step ``step`` of ``bound`` weighs: that one
+    sample, or every sample for a :class:`BatchLikelihood`'s one step."""
+    if isinstance(bound, BatchLikelihood):
+        return range(bound.bound.n_steps)
+    return range(step, step + 1)
+
+
 class BatchLikelihood:
     """A bound sensor model seen as ONE step whose log-likelihood is the sum of every
     sample's (``schedule = "batch"``): the filter then tempers the whole data set from the
@@ -651,7 +659,7 @@ class ParticleFilter(Estimator):
         global_prior = None
         w_slow = w_fast = 0.0
         valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
-        excluded: list[int] = []  # steps whose likelihood excluded every particle (not applied)
+        excluded: list[int] = []  # the samples of the steps whose likelihood excluded every particle (not applied)
         w = np.full(M, 1.0 / M)
         for k in range(bound.n_steps):
             ll = bound.log_likelihood_chunked(particles, k)
@@ -694,7 +702,7 @@ class ParticleFilter(Estimator):
                     beta = remaining if last_stage else anneal_step(log_w, ll, remaining, self.anneal_ess)
                     updated = _unless_all_excluded(log_w, log_w + beta * ll)
                     if updated is None:  # all -inf: anneal_step gave the whole remainder
-                        excluded.append(k)
+                        excluded.extend(_step_samples(bound, k))
                     else:
                         log_w = updated
                     remaining -= beta
@@ -714,7 +722,7 @@ class ParticleFilter(Estimator):
             else:
                 updated = _unless_all_excluded(log_w, log_w + ll)
                 if updated is None:
-                    excluded.append(k)
+                    excluded.extend(_step_samples(bound, k))
                 else:
                     log_w = updated
             stages.append(n_stages)
@@ -774,8 +782,9 @@ class ParticleFilter(Estimator):
                 adapt: bool, ess: list[float], resampled: list[bool], stages: list[int], counts: list[int],
                 scored: list[int], recovery: dict[str, Any], excluded: Sequence[int] = ()) -> Estimate:
         """The estimate of weighted particles and the pass's diagnostics so far (copied);
-        ``diagnostics["all_excluded"]``: the steps whose likelihood was ``-inf`` at every
-        particle, left out of the weights (only when there is one)."""
+        ``diagnostics["all_excluded"]``: the samples (positions in the problem) whose
+        likelihood was ``-inf`` at every particle, left out of the weights (every sample
+        when the one step of ``schedule = "batch"`` was; only when there is one)."""
         pose, cov, modes = self._point_estimate(particles, w)
         state_diag = {}
         for i, v in enumerate(state):

@@ -240,3 +240,15 @@ def test_a_sample_excluding_every_particle_does_not_silence_the_later_ones(annea
     assert abs(got.pose[0] - 0.1) < 0.01 and np.all(np.isfinite(got.covariance))
     np.testing.assert_array_equal(got.pose, ref.pose)
     assert got.diagnostics["all_excluded"] == [0] and "all_excluded" not in ref.diagnostics
+
+
+def test_a_batch_step_excluding_every_particle_names_every_sample() -> None:
+    """Under ``schedule = "batch"`` the one step weighs every sample at once: when it
+    excludes every particle, every sample is left out (``all_excluded`` names the samples,
+    not the step: [0, 1], where the old code said [0], read as the first sample alone)."""
+    p, _ = easy_problem(n_samples=2)
+    kw = dict(n_particles=200, schedule="batch", anneal_ess=0.5, point_estimate="mean", basin_check="off")
+    got = ParticleFilter(sensor_model=_excluding_model("all"), **kw).estimate(p, np.random.default_rng(2))
+    assert got.diagnostics["all_excluded"] == [0, 1]
+    ok = ParticleFilter(sensor_model=_excluding_model("none"), **kw).estimate(p, np.random.default_rng(2))
+    assert "all_excluded" not in ok.diagnostics and abs(ok.pose[0] - 0.1) < 0.01
