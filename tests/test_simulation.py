@@ -276,3 +276,30 @@ def test_write_simulation_renames_the_log_last(tmp_path, monkeypatch) -> None:
         if paths["log"].exists():
             assert paths["map"].exists() and paths["cad"].exists(), (n_renames, done)
     assert paths["log"].exists()  # after the third rename, all three are there
+
+
+def test_api_simulate_is_what_the_command_writes(tmp_path, capsys) -> None:
+    """``tofloc.api.simulate`` takes the rig variant the command takes (it did not: a script
+    could not ask for the exact or perturbed rig) and writes the same bytes as ``tofloc
+    simulate``, which now calls it; a bad variant or seed is refused naming it; the
+    command's help names every built-in scene (it had left out ``corridor``)."""
+    from tofloc import api
+    from tofloc.errors import ParameterError
+    from tofloc.simulation import builtin_scenarios
+
+    r = api.simulate("pillars", 3, out=tmp_path / "api" / "p.h5", rig_variant="exact")
+    assert not r.log.rig.tolerances.declared and "rig=exact" in r.log.source
+    assert main(["simulate", "--scenario", "pillars", "--seed", "3", "--rig-variant", "exact", "--out", str(tmp_path / "cli" / "p.h5")]) == 0
+    for key in ("log", "map", "cad"):
+        cli = tmp_path / "cli" / r.paths[key].name
+        assert cli.read_bytes() == r.paths[key].read_bytes(), key
+    perturbed = api.simulate("pillars", 3, rig_variant="perturbed")
+    assert perturbed.log.rig.tolerances.declared and r.paths and not perturbed.paths
+    with pytest.raises(ParameterError, match="rig_variant expects one of exact, perturbed, got 'bent'"):
+        api.simulate("pillars", 3, rig_variant="bent")
+    with pytest.raises(ParameterError, match="seeds must be >= 0, got seed -1"):
+        api.simulate("pillars", -1)
+    capsys.readouterr()
+    assert main(["simulate", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(name in text for name in builtin_scenarios()), text

@@ -193,17 +193,45 @@ def _as_log(log: Any) -> Any:
 
 
 def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[str] | None = None,
-             hardware_seed: int | None = None, base: tuple[float, float, float] | None = None) -> Any:
-    """Simulate a scenario of the scene library (or a TOML file); write it when ``out`` is given.
+             hardware_seed: int | None = None, base: tuple[float, float, float] | None = None,
+             rig_variant: str | None = None) -> Any:
+    """Simulate a scenario of the scene library (or a TOML file); write it when ``out`` is given
+    (what ``tofloc simulate`` does).
+
+    Parameters
+    ----------
+    scenario : str or tofloc.simulation.Scenario
+        A built-in scene's name (:func:`tofloc.simulation.builtin_scenarios`), a scenario
+        TOML file or a loaded scenario.
+    seed : int
+        Seed of every random draw (same seed, same bytes).
+    out : path, optional
+        The log to write (HDF5); its maps are written beside it.
+    hardware_seed : int, optional
+        Seed of the set-up's draws instead of ``seed`` (sessions of one physical set-up).
+    base : (x, y, yaw_deg), optional
+        The base's placement instead of the scenario's.
+    rig_variant : {"exact", "perturbed"}, optional
+        The log's rig: the true one, or the scenario's perturbed one with its declared
+        tolerance; None: as the scenario writes it (docs/simulator.md).
 
     Returns
     -------
     tofloc.simulation.SimulationResult
         With ``paths`` (log, map, cad) set when written.
-    """
-    from tofloc.simulation import simulate as run, write_simulation
 
-    result = run(scenario, seed, hardware_seed=hardware_seed, base=base)
+    Raises
+    ------
+    ParameterError
+        An unknown rig variant, a negative seed, or a base outside free space.
+    """
+    from tofloc.simulation import RIG_VARIANTS, simulate as run, write_simulation
+
+    if rig_variant is not None and rig_variant not in RIG_VARIANTS:
+        raise ParameterError(f"rig_variant expects one of {', '.join(RIG_VARIANTS)}, got {rig_variant!r}")
+    if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
+        raise ParameterError(f"seeds must be >= 0, got seed {seed}, hardware seed {hardware_seed}")
+    result = run(scenario, seed, hardware_seed=hardware_seed, base=base, rig_variant=rig_variant)
     result.paths = write_simulation(result, out) if out is not None else {}
     return result
 

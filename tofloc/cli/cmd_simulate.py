@@ -19,7 +19,7 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="Log to write (HDF5); the maps are written beside it."),
     scenario: str = typer.Option(
         "paper", "--scenario",
-        help="Built-in scenario name (paper, pillars, l_room, clutter: see docs/simulator.md) or a scenario TOML file."),
+        help="Built-in scenario name (paper, pillars, l_room, clutter, corridor: see docs/simulator.md) or a scenario TOML file."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw (same seed, same bytes)."),
     hardware_seed: Optional[int] = typer.Option(
         None, "--hardware-seed",
@@ -33,7 +33,8 @@ def simulate(
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
     from tofloc.atomic import check_output_path
-    from tofloc.simulation import RIG_VARIANTS, load_scenario, simulate as run, simulation_paths, write_simulation
+    from tofloc import api
+    from tofloc.simulation import RIG_VARIANTS, load_scenario, simulation_paths
 
     for key, path in simulation_paths(out).items():
         check_output_path(path, option="--out" if key == "log" else f"--out (its {key} file)")
@@ -54,8 +55,8 @@ def simulate(
     sc = load_scenario(scenario)
     t0 = time.perf_counter()
     with status(f"simulating scenario {sc.scenario.name!r} (seed {seed})"):
-        result = run(sc, seed, hardware_seed=hardware_seed, base=placement, rig_variant=rig_variant)
-        paths = write_simulation(result, out)
+        result = api.simulate(sc, seed, out=out, hardware_seed=hardware_seed, base=placement, rig_variant=rig_variant)
+        paths = result.paths
     elapsed = time.perf_counter() - t0
     log = result.log
     valid = log.valid()
