@@ -605,27 +605,10 @@ def test_samples_no_particle_explains_are_named(data: dict[str, Path], tmp_path:
     `localize` says so per trial, naming the LOG's sample index (the trial's first drawn
     sample), in the record's `excluded_samples` and in the summary; the same filter with
     the plain ICP score leaves nothing out and says nothing."""
-    from dataclasses import dataclass
+    from excluding_model import FirstStepExcluded
 
-    from sensor_models.base import SensorModel
-    from sensor_models.icp_score import ICPScore
     from tofloc.registry import SENSOR_MODELS
 
-    @dataclass(frozen=True)
-    class FirstStepExcluded(SensorModel):
-        name = "first_step_excluded"
-        uses_calibration = False
-
-        def bind(self, problem):
-            inner = ICPScore().bind(problem)
-
-            class Bound(type(inner)):  # the ICP score, but -inf everywhere at step 0
-                def log_likelihood(self, states, step):
-                    ll = super().log_likelihood(states, step)
-                    return np.full_like(ll, -np.inf) if step == 0 else ll
-
-            inner.__class__ = Bound
-            return inner
 
     SENSOR_MODELS.register("first_step_excluded", FirstStepExcluded)
     try:

@@ -284,27 +284,11 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
 def test_a_sample_no_particle_explains_is_named(paper) -> None:
     """A window sample whose likelihood is zero at every particle is left out of the weights,
     and the update names it by its index in the stream (`excluded_samples`)."""
-    from dataclasses import dataclass
+    from excluding_model import FirstStepExcluded
 
-    from sensor_models.base import SensorModel
     from sensor_models.icp_score import ICPScore
     from tofloc.io.samples import Sample
 
-    @dataclass(frozen=True)
-    class FirstStepExcluded(SensorModel):
-        name = "first_step_excluded"
-        uses_calibration = False
-
-        def bind(self, problem):
-            inner = ICPScore().bind(problem)
-
-            class Bound(type(inner)):  # the ICP score, but -inf everywhere at the window's first sample
-                def log_likelihood(self, states, step):
-                    ll = super().log_likelihood(states, step)
-                    return np.full_like(ll, -np.inf) if step == 0 else ll
-
-            inner.__class__ = Bound
-            return inner
 
     sim, model = paper
     log = sim.log.subset(model.validation_indices[:3])
