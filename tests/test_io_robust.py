@@ -553,3 +553,36 @@ def test_finalizers_failing_at_teardown_after_ctrl_c_stay_quiet(tmp_path: Path) 
     p = subprocess.run([sys.executable, str(script), "finish"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and "_owned" in p.stderr  # other finalizer errors are not hidden
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_simulate_killed_between_its_renames_over_an_old_set_leaves_no_mismatched_pair(tmp_path: Path) -> None:
+    """Over an existing simulation, a process killed (no clean-up at all) right before the
+    new log is renamed into place leaves the new maps and NO log: the old log is removed
+    once every temporary is complete, before any rename (it was left beside the new maps, a
+    pair a rerun of `paper` would reuse as if it belonged together). An error while writing
+    still keeps the old set whole (test above)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from tofloc.simulation import simulate, write_simulation
+
+    out = tmp_path / "x.h5"
+    write_simulation(simulate("paper", 1), out)
+    old = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    code = textwrap.dedent(f"""
+        import os
+        from tofloc.simulation import simulate, write_simulation
+        real = os.replace
+        def replace(src, dst):
+            if str(dst) == {str(out)!r}:
+                os._exit(9)  # killed: no clean-up, no later rename
+            real(src, dst)
+        os.replace = replace
+        write_simulation(simulate("paper", 2), {str(out)!r})
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 9, r.stderr[-2000:]
+    left = {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")}
+    assert left == {"x.map.ply", "x.cad.ply"}, left  # the new maps, no log
+    assert (tmp_path / "x.map.ply").read_bytes() != old["x.map.ply"]

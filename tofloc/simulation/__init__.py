@@ -29,6 +29,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -181,6 +182,19 @@ def simulation_paths(out: str | Path) -> dict[str, Path]:
     return {"log": out, "map": out.parent / f"{stem}.map.ply", "cad": out.parent / f"{stem}.cad.ply"}
 
 
+def _remove_old_log_when_complete(log_path: Path) -> Callable[..., bool]:
+    """An exit callback for :func:`write_simulation`'s stack: when the block ends without an
+    error (every temporary complete), remove the log an earlier run left at ``log_path``
+    before any new file is renamed into place; on an error, nothing."""
+
+    def exit_(exc_type: type[BaseException] | None, exc: BaseException | None, tb: Any) -> bool:
+        if exc_type is None:
+            log_path.unlink(missing_ok=True)
+        return False
+
+    return exit_
+
+
 def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Path]:
     """Write ``OUT`` (the log), ``<stem>.map.ply`` (the map the estimators get, named in
     the log's ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. The true
@@ -189,10 +203,11 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     All or nothing: the three files are written to temporaries and renamed only once all
     of them are complete; on any error (a full disk included, refused before the first
     byte when the free space is known to be short) or an interruption the temporaries
-    are removed and existing files keep their content. The log is renamed last: a process
-    killed between the renames (SIGKILL, no clean-up) in a new folder may leave new maps,
-    never a log without the maps it was written with (over an existing set, the old log
-    may be left beside new maps).
+    are removed and existing files keep their content. Once every temporary is complete, an
+    existing log at ``OUT`` is removed first and the new log is renamed last: a process
+    killed between these steps (SIGKILL, no clean-up) may leave new maps without a log,
+    never a log beside maps it was not written with (a rerun of ``paper`` or ``scenes``
+    then simulates again instead of reusing a mismatched pair).
     """
     import io
     from contextlib import ExitStack, redirect_stderr
@@ -218,6 +233,7 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
             # log without its maps (a rerun of paper/scenes reuses the folder's log as it finds it)
             with ExitStack() as stack:
                 tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("log", "cad", "map")}
+                stack.push(_remove_old_log_when_complete(paths["log"]))  # runs first on the way out
                 tmp["map"].write_bytes(data["map"])
                 tmp["cad"].write_bytes(data["cad"])
                 write_log(log, tmp["log"])
