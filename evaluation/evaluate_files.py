@@ -366,7 +366,11 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     iv = log_bootstrap(logs, names, seed=int(views[0].get("seed", 0)))
     lines = head + [f"The {len(logs)} logs of the {len(views)} files as one run (each file's trials as they ran), with "
                     + ("no intervals (too few logs)." if iv is None else
-                       f"{iv['level'] * 100:.0f} % intervals from resampling the pooled logs (evaluation/log_bootstrap.py)."),
+                       f"{iv['level'] * 100:.0f} % intervals from resampling the pooled logs (evaluation/log_bootstrap.py)"
+                       + ("." if iv["units"] == len(logs) else
+                          f" in {iv['units']} units: logs of one file name drew the same trials (the same seeds, "
+                          "docs/evaluation.md \"Pairing\"), so their errors are not independent and they are "
+                          "resampled together.")),
                     "", "| estimator | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
                     "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|"]
     orc = error_summary([r for lg in logs.values() for r in lg["oracle"]["records"]])

@@ -6,7 +6,10 @@ unit of resampling is therefore the *log* (a cluster bootstrap): a resample draw
 logs as the run has, with replacement, and takes every trial of each drawn log. Every
 estimator and the oracle floor are resampled with the **same** logs (paired), so a
 ratio to the oracle is computed on the same trials in each resample, as it is on the
-whole run.
+whole run. Logs whose trials were drawn from the same seeds (logs of one file name, such
+as two flights' ``drone0-node000``: the same prior offsets and sample positions,
+docs/evaluation.md "Pairing") are not independent either: they form one *unit*, resampled
+together (:func:`_units`); a run without such logs (one flight) has a unit per log.
 
 For each estimator :func:`log_bootstrap` gives the percentile interval (``level``, 90 %
 by default) of
@@ -39,7 +42,7 @@ only repeats it.
 from __future__ import annotations
 
 import warnings
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,8 +65,9 @@ MIN_LOGS = 2
 _CHUNK_VALUES = 4_000_000
 #: How the resamples are drawn (recorded in results.json).
 BOOTSTRAP_DERIVATION = (
-    "rng = default_rng(SeedSequence([seed, 0xB005])); per resample: rng.integers(0, n_logs, n_logs) into the logs sorted by label "
-    "(logs with replacement, every trial of a drawn log; the same logs for every estimator and the oracle); "
+    "rng = default_rng(SeedSequence([seed, 0xB005])); per resample: rng.integers(0, n_units, n_units) into the units, "
+    "the logs sorted by label and those whose trials share their seeds (logs of one file name) grouped into one unit "
+    "(units with replacement, every trial of a drawn unit; the same units for every estimator and the oracle); "
     "percentile interval of the resampled statistics; failure rates: Clopper-Pearson on the trials over their design effect"
 )
 
@@ -121,6 +125,35 @@ def _check_settings(resamples: Any, level: Any) -> None:
         raise ParameterError(f"resamples must be an integer in [100, 100000], got {resamples!r}")
     if not isinstance(level, float) or not 0.0 < level < 1.0:
         raise ParameterError(f"level must be a float in (0, 1), got {level!r}")
+
+
+def _units(labels: Sequence[str], seeds: Callable[[str], Sequence[Any]]) -> list[list[str]]:
+    """The resampling units: the logs (``labels``, in their order) grouped so that logs whose
+    trials were drawn from the same seeds, in the same order (``seeds(label)``, every
+    record's ``seed``), are one unit, the others one each. Logs of one file name share
+    their seeds (docs/evaluation.md "Pairing": two flights' ``drone0-node000``): their
+    draws (prior offsets, sample positions) are the same, so their errors are not
+    independent and they are resampled together. A log whose records lack a seed is a
+    unit of its own. Units come in the order of their first log."""
+    units: list[list[str]] = []
+    by_key: dict[tuple[Any, ...], list[str]] = {}
+    for label in labels:
+        key = tuple(seeds(label))
+        if not key or any(s is None for s in key):
+            units.append([label])
+            continue
+        if key in by_key:
+            by_key[key].append(label)
+        else:
+            by_key[key] = [label]
+            units.append(by_key[key])
+    return units
+
+
+def _record_seeds(lg: Mapping[str, Any], name: str | None = None) -> list[Any]:
+    """The ``seed`` of every record of a log's oracle (``name`` None) or of estimator ``name``."""
+    part = lg["oracle"] if name is None else lg["estimators"][name]
+    return [r.get("seed") for r in part.get("records", [])]
 
 
 def _resample_indices(seed: int, n_logs: int, resamples: int) -> NDArray[np.int64]:
@@ -206,20 +239,30 @@ def log_bootstrap(
     Returns
     -------
     dict or None
-        ``{"level", "resamples", "logs", "unit": "log", "derivation", "oracle":
+        ``{"level", "resamples", "logs", "units", "unit", "derivation", "oracle":
         {"e_x_m_median": [lo, hi], "e_gamma_deg_median": [...], "failure_rate": [...]},
         "estimators": {name: {... the same, "nees_mean": [lo, hi], "ratio_to_oracle": {"e_x_m": [lo, hi],
         "e_gamma_deg": [lo, hi]}, "ratio_to_reference": {...}}}, "reference": name}``;
         ``ratio_to_reference``: an estimator's medians over the first estimator's (the
         reference, e.g. the paper's method listed first; not for the first itself; the
         reference is ``None`` for a single estimator). An interval is ``None`` where no
-        resample defines the statistic. ``None`` for fewer than :data:`MIN_LOGS` logs.
+        resample defines the statistic. ``None`` for fewer than :data:`MIN_LOGS` logs
+        (or units). ``units``: how many resampling units the logs form (:func:`_units`:
+        logs whose trials share their seeds go together); ``unit`` is ``"log"`` when
+        every log is its own, else ``"logs of shared draws"``.
     """
     _check_settings(resamples, level)
     labels = sorted(logs)  # the resamples' indices must not depend on the order the logs were given
     if len(labels) < MIN_LOGS:
         return None
-    idx = _resample_indices(seed, len(labels), resamples)
+    units = _units(labels, lambda lb: _record_seeds(logs[lb]))  # logs of shared draws together
+    if len(units) < MIN_LOGS:
+        return None
+    idx = _resample_indices(seed, len(units), resamples)
+
+    def records(part: Callable[[str], Sequence[Mapping[str, Any]]]) -> list[list[Mapping[str, Any]]]:
+        """Per unit, the records of its logs, one after the other."""
+        return [[r for lb in unit for r in part(lb)] for unit in units]
 
     def stats(per_log: Sequence[Sequence[Mapping[str, Any]]]) -> tuple[dict[str, Any], NDArray[np.float64]]:
         err, fail, nees = _padded(per_log)
@@ -230,11 +273,11 @@ def log_bootstrap(
             out["nees_mean"] = _interval(_resampled(nees, idx, "mean"), level)
         return out, med
 
-    oracle_out, oracle_med = stats([logs[lb]["oracle"]["records"] for lb in labels])
+    oracle_out, oracle_med = stats(records(lambda lb: logs[lb]["oracle"]["records"]))
     by_est: dict[str, Any] = {}
     meds: dict[str, NDArray[np.float64]] = {}
     for name in estimators:
-        out, meds[name] = stats([logs[lb]["estimators"][name]["records"] for lb in labels])
+        out, meds[name] = stats(records(lambda lb, name=name: logs[lb]["estimators"][name]["records"]))
         out["ratio_to_oracle"] = _ratio_interval(meds[name], oracle_med, level)
         by_est[name] = out
     reference = estimators[0] if len(estimators) > 1 else None
@@ -245,7 +288,8 @@ def log_bootstrap(
         "level": level,
         "resamples": resamples,
         "logs": len(labels),
-        "unit": "log",
+        "units": len(units),
+        "unit": "log" if len(units) == len(labels) else "logs of shared draws",
         "derivation": BOOTSTRAP_DERIVATION,
         "reference": reference,
         "oracle": oracle_out,
@@ -332,7 +376,7 @@ def paired_runs(
     Returns
     -------
     dict
-        ``{"level", "resamples", "estimators": {name: {"logs": n, "e_x_m": {"ratio", "interval"},
+        ``{"level", "resamples", "estimators": {name: {"logs": n, "units": u, "e_x_m": {"ratio", "interval"},
         "e_gamma_deg": {...}, "failures": [a, b], "fixed": k, "broken": j}}}``; an estimator
         with fewer than :data:`MIN_LOGS` paired logs has its counts and ``null`` ratios.
     """
@@ -349,12 +393,15 @@ def paired_runs(
         entry: dict[str, Any] = {"logs": len(labels), "failures": [int(sum(fa)), int(sum(fb))],
                                  "fixed": int(sum(a and not b for a, b in zip(fa, fb))),
                                  "broken": int(sum(b and not a for a, b in zip(fa, fb)))}
-        if len(labels) < MIN_LOGS:
+        units = _units([la for la, _ in labels], lambda la: _record_seeds(logs_a[la], name))
+        entry["units"] = len(units)
+        if len(labels) < MIN_LOGS or len(units) < MIN_LOGS:
             entry.update({key: {"ratio": None, "interval": None} for key in _KEYS})
         else:
-            idx = _resample_indices(seed, len(labels), resamples)
-            err_a, _, _ = _padded(recs_a)
-            err_b, _, _ = _padded(recs_b)
+            idx = _resample_indices(seed, len(units), resamples)
+            where = {la: i for i, (la, _) in enumerate(labels)}
+            err_a, _, _ = _padded([[r for la in u for r in recs_a[where[la]]] for u in units])
+            err_b, _, _ = _padded([[r for la in u for r in recs_b[where[la]]] for u in units])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 whole = np.nanmedian(err_b.reshape(-1, 2), axis=0) / np.nanmedian(err_a.reshape(-1, 2), axis=0)

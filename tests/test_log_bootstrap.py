@@ -269,3 +269,43 @@ def test_paired_runs_pair_a_log_by_identity_not_label() -> None:
     assert paired_runs(b, a, ["a"], seed=0)["estimators"]["a"]["logs"] == 4
     assert paired_runs({"log0": a["log0"]}, {"four/log0": other_flight}, ["a"], seed=0)["estimators"]["a"]["logs"] == 0
     assert paired_runs({"log0": a["log0"]}, {"two/log9": b["two/log0"]}, ["a"], seed=0)["estimators"]["a"]["logs"] == 0
+
+
+def test_logs_that_drew_the_same_trials_are_resampled_together() -> None:
+    """Logs of one file name from two flights draw their trials from the same seeds (docs/
+    evaluation.md "Pairing"), so their errors are not independent: the bootstrap resamples
+    them as one unit. The intervals then equal those of a run where each such pair is one
+    log holding both logs' trials; logs without shared seeds stay units of their own (a run
+    of one flight gives the intervals it gave before). paired_runs does the same."""
+    rng = np.random.default_rng(7)
+    base = _random_logs(rng, 8, 3)
+    names = sorted(base)
+    seeds = {lab: [1000 * i + t for t in range(3)] for i, lab in enumerate(names)}
+    logs, merged = {}, {}
+    for i, lab in enumerate(names):  # flight "a" holds every node, flight "b" repeats the first five by name
+        lg = base[lab]
+        for part in (lg["oracle"], lg["estimators"]["a"]):
+            for r, s in zip(part["records"], seeds[lab]):
+                r["seed"] = s
+        logs[f"a/{lab}"] = lg
+        merged[f"a/{lab}"] = {"oracle": {"records": list(lg["oracle"]["records"])},
+                              "estimators": {"a": {"records": list(lg["estimators"]["a"]["records"])}}}
+    for i, lab in enumerate(names[:5]):
+        twin = _random_logs(np.random.default_rng(100 + i), 2, 3)["log0"]
+        for part in (twin["oracle"], twin["estimators"]["a"]):
+            for r, s in zip(part["records"], seeds[lab]):
+                r["seed"] = s
+        logs[f"b/{lab}"] = twin
+        merged[f"a/{lab}"]["oracle"]["records"] += twin["oracle"]["records"]
+        merged[f"a/{lab}"]["estimators"]["a"]["records"] += twin["estimators"]["a"]["records"]
+    got = log_bootstrap(logs, ["a"], seed=3, resamples=500)
+    want = log_bootstrap(merged, ["a"], seed=3, resamples=500)
+    assert got is not None and want is not None
+    assert (got["logs"], got["units"], got["unit"]) == (13, 8, "logs of shared draws")
+    assert (want["logs"], want["units"], want["unit"]) == (8, 8, "log")
+    assert got["oracle"] == want["oracle"] and got["estimators"] == want["estimators"]
+    alone = log_bootstrap({k: v for k, v in logs.items() if k.startswith("a/")}, ["a"], seed=3, resamples=500)
+    assert alone is not None and alone["units"] == 8 and alone["unit"] == "log"
+    # the same run against itself: every paired log counted, in 8 units
+    pr = paired_runs(logs, logs, ["a"], seed=3, resamples=500)
+    assert pr["estimators"]["a"]["logs"] == 13 and pr["estimators"]["a"]["units"] == 8
