@@ -18,6 +18,8 @@ is silent. Results are plain objects with the JSON document the CLI writes
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import os
 import threading
 import time
@@ -52,12 +54,15 @@ __all__ = [
     "check_selection",
     "MAX_TRIALS",
     "MAX_FAILURE_PLOTS",
+    "MAX_CALIBRATION_ITER",
 ]
 
 #: Largest number of trials or samples a run accepts (bounds the work a typo can ask for).
 MAX_TRIALS = 100_000
 #: Most failed trials ``evaluate`` draws (each is solved again).
 MAX_FAILURE_PLOTS = 1000
+#: Most EM iterations :func:`calibrate` accepts (``--max-iter``).
+MAX_CALIBRATION_ITER = 10_000
 
 
 class Reporter:
@@ -136,6 +141,33 @@ def _warm_plotting(n_workers: int, scheduler: Any) -> threading.Thread | None:
     return thread
 
 
+def _is_int(value: Any) -> bool:
+    """An integer, not a bool (``True`` would count as 1)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _as_list(value: Any, name: str) -> list[Any]:
+    """A sequence argument as a list; a bare string or path (whose iteration would give its
+    characters) or a non-iterable refused, naming ``name``."""
+    if isinstance(value, (str, bytes, os.PathLike)):
+        raise ParameterError(f"{name} expects a sequence (e.g. a list), got the single value {value!r}: write [{value!r}]")
+    try:
+        return list(value)
+    except TypeError:
+        raise ParameterError(f"{name} expects a sequence (e.g. a list), got {value!r}") from None
+
+
+def _check_statuses(valid_statuses: Any) -> frozenset[int]:
+    """``valid_statuses`` as a frozenset of ints in [0, 255] (what ``--valid-statuses`` accepts)."""
+    try:
+        values = None if isinstance(valid_statuses, (str, bytes)) else frozenset(valid_statuses)
+    except TypeError:
+        values = None
+    if not values or not all(_is_int(v) and 0 <= v <= 255 for v in values):
+        raise ParameterError(f"valid_statuses must be a non-empty set of integers in [0, 255], got {valid_statuses!r}")
+    return frozenset(int(v) for v in values)
+
+
 def check_selection(name: str) -> str:
     """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
     a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
@@ -152,6 +184,10 @@ def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
     from evaluation.trials import make_estimator
     from tofloc.registry import ESTIMATORS
 
+    if not isinstance(name, str):
+        raise ParameterError(f"name must be a registered estimator's name (a string), got {name!r}")
+    if params is not None and not isinstance(params, Mapping):
+        raise ParameterError(f"params must be a mapping of parameter names to values, got {params!r}")
     return make_estimator(ESTIMATORS.load(name), dict(params or {}), name)
 
 
@@ -229,6 +265,9 @@ def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[s
 
     if rig_variant is not None and rig_variant not in RIG_VARIANTS:
         raise ParameterError(f"rig_variant expects one of {', '.join(RIG_VARIANTS)}, got {rig_variant!r}")
+    for key, value in (("seed", seed), ("hardware_seed", hardware_seed)):
+        if value is not None and not _is_int(value):
+            raise ParameterError(f"{key} must be an integer >= 0, got {value!r}")
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ParameterError(f"seeds must be >= 0, got seed {seed}, hardware seed {hardware_seed}")
     result = run(scenario, seed, hardware_seed=hardware_seed, base=base, rig_variant=rig_variant)
@@ -285,11 +324,23 @@ def calibrate(
         the mounting fit's solver evaluations, the EM iterations).
     """
     from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
+    from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc.maps import Map
+    from tofloc.zone_caster import MAX_FOOTPRINT
 
+    logs = _as_list(logs, "logs")
     if not logs:
         raise ParameterError("calibrate needs at least one log")
-    given = list(maps or [])
+    if not _is_int(footprint) or not 1 <= footprint <= MAX_FOOTPRINT:
+        raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
+    if not _is_int(max_iter) or not 1 <= max_iter <= MAX_CALIBRATION_ITER:
+        raise ParameterError(f"max_iter must be an integer in [1, {MAX_CALIBRATION_ITER}], got {max_iter!r}")
+    b = support_yaw_bound_deg
+    if not isinstance(b, numbers.Real) or isinstance(b, bool) or not SUPPORT_YAW_STEP_DEG <= b <= 90.0:
+        raise ParameterError(f"support_yaw_bound_deg must be in [{SUPPORT_YAW_STEP_DEG:g}, 90] degrees (the search's grid "
+                             f"step is {SUPPORT_YAW_STEP_DEG:g} deg), got {b!r}")
+    valid_statuses = _check_statuses(valid_statuses)
+    given = [] if maps is None else _as_list(maps, "maps")
     if given and len(given) not in (1, len(logs)):
         raise ParameterError(f"maps must be given once (for every log) or once per log ({len(logs)}), got {len(given)}")
     lo, hi = (float(v) for v in distance_range)
@@ -416,10 +467,13 @@ def localize(
 
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
-    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+    if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
-    if samples is not None and (not isinstance(samples, int) or not 1 <= samples <= MAX_TRIALS):
+    if samples is not None and (not _is_int(samples) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
+    if prior is not None and not isinstance(prior, PriorSpec):
+        raise ParameterError(f"prior must be an evaluation.priors.PriorSpec or None, got {prior!r}")
+    valid_statuses = _check_statuses(valid_statuses)
     est = estimator(estimator_name, params)
     check_selection(selection)
     full_params = jsonable(est.get_params())
@@ -579,32 +633,35 @@ def paper(
     from evaluation.trials import DESIGNS, SEED_DERIVATION, SEED_DERIVATION_NESTED, TrialContext, jsonable, sample_pool
     from tofloc.provenance import provenance
 
-    names = list(estimators)
+    names = _as_list(estimators, "estimators")
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
-    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+    if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
-    if not isinstance(k_max, int) or not 1 <= k_max <= 1000:
+    if not _is_int(k_max) or not 1 <= k_max <= 1000:
         raise ParameterError(f"k_max must be in [1, 1000], got {k_max!r}")
-    ks = list(range(1, k_max + 1)) if k_values is None else sorted({int(k) for k in k_values})
+    given_ks = None if k_values is None else _as_list(k_values, "k_values")
+    if given_ks is not None and not all(_is_int(k) for k in given_ks):
+        raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
+    ks = list(range(1, k_max + 1)) if given_ks is None else sorted({int(k) for k in given_ks})
     if not ks or ks[0] < 1 or ks[-1] > 1000:
         raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
     from evaluation.priors import ALL_PRIOR_MODES, PRIOR_MODES as _MODES
     from evaluation.trials import TIP_SOURCES as _TIPS
 
-    modes = list(_MODES if prior_modes is None else prior_modes)
+    modes = list(_MODES) if prior_modes is None else _as_list(prior_modes, "prior_modes")
     if not modes or any(m not in ALL_PRIOR_MODES for m in modes) or len(set(modes)) != len(modes):
         raise ParameterError(f"prior modes must be distinct among {list(ALL_PRIOR_MODES)}, got {modes!r}")
     if region is not None and "global" not in modes:
         raise ParameterError("a region goes with the global prior mode")
-    tips = list(tip_sources)
+    tips = _as_list(tip_sources, "tip_sources")
     if not tips or any(t not in _TIPS for t in tips) or len(set(tips)) != len(tips):
         raise ParameterError(f"tip sources must be distinct among {list(_TIPS)}, got {tips!r}")
     from tofloc.simulation import RIG_VARIANTS
 
     if rig_variant is not None and rig_variant not in RIG_VARIANTS:
         raise ParameterError(f"rig variant must be one of {list(RIG_VARIANTS)}, got {rig_variant!r}")
-    if not isinstance(seed, int) or seed < 0:
+    if not _is_int(seed) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
@@ -766,10 +823,13 @@ def scenes(
     from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
-    names = list(scene_names or builtin_scenarios())
+    names = list((None if scene_names is None else _as_list(scene_names, "scene_names")) or builtin_scenarios())
     unknown = sorted(set(names) - set(builtin_scenarios()))
     if unknown:
         raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
+    estimators = _as_list(estimators, "estimators")
+    if not _is_int(k) or not 1 <= k <= 1000:
+        raise ParameterError(f"k must be in [1, 1000], got {k!r}")
     _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
     out_dir = Path(out)
     rows: list[dict[str, Any]] = []
@@ -1013,7 +1073,8 @@ def evaluate(
 
     t0 = time.perf_counter()
     out_dir = check_output_path(Path(out), kind="dir", option="out")
-    names = list(estimators)
+    logs = _as_list(logs, "logs")
+    names = _as_list(estimators, "estimators")
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not isinstance(trials, int) or isinstance(trials, bool) or not 1 <= trials <= MAX_TRIALS:
@@ -1029,6 +1090,7 @@ def evaluate(
     if not isinstance(plot_failures, int) or isinstance(plot_failures, bool) or not 0 <= plot_failures <= MAX_FAILURE_PLOTS:
         raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
+    valid_statuses = _check_statuses(valid_statuses)
     check_selection(selection)
     per_est, ests = _estimators(names, params, estimator_params)
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
