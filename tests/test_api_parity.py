@@ -8,6 +8,7 @@ for a log: the tests take milliseconds.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -133,3 +134,76 @@ def test_evaluate_refuses_bad_arguments_before_reading_a_log(tmp_path: Path, kwa
     with pytest.raises(ParameterError, match=needle):
         api.evaluate(out=tmp_path / "evaluate", **args)
 
+
+@pytest.fixture(scope="module")
+def pillars(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small simulated log (the pillars scene) with its map beside it."""
+    out = tmp_path_factory.mktemp("pillars") / "pillars.h5"
+    api.simulate("pillars", 1, out=out)
+    return out
+
+
+def test_localize_prior_is_the_commands_prior(pillars: Path, tmp_path: Path, capsys) -> None:
+    """``tofloc localize``'s prior options (a given mean, whose height and tilt are the
+    truth's; ``--base-z``; the prior modes) had no API counterpart: the command built the
+    prior itself from the log, so a script had to redo it. :func:`tofloc.api.localize_prior`
+    makes it, the command calls it, and both localize alike."""
+    import json
+
+    from evaluation.priors import PriorSpec, base_pose_parts
+    from tofloc.logs import read_log
+
+    log = read_log(pillars)
+    _, z, roll, pitch = base_pose_parts(log.truth_per_sample()[0])
+    given = api.localize_prior(pillars, mean=(0.1, -0.2, 30.0), sigma_xy=0.05, sigma_yaw_deg=5.0)
+    assert given == PriorSpec("given", 0.05, 5.0, (0.1, -0.2, math.radians(30.0)), z, roll, pitch)
+    assert api.localize_prior(log, mean=(0.1, -0.2, 30.0), base_z=0.7).z == 0.7
+    assert api.localize_prior(log) == PriorSpec("offset")
+    assert api.localize_prior(log, mode="paper", sigma_xy=0.1) == PriorSpec("paper", 0.1, 20.0)
+    assert api.localize_prior(log, mode="global", region=(-1, 1, -1, 1)) == PriorSpec("global", region=(-1, 1, -1, 1))
+
+    out = tmp_path / "cli.json"
+    assert main(["localize", str(pillars), "--estimator", "icp_pf", "--samples", "2", "--param", "n_particles=30",
+                 "--workers", "1", "--prior-x", "0.1", "--prior-y", "-0.2", "--prior-yaw-deg", "30",
+                 "--prior-sigma-xy", "0.05", "--prior-sigma-yaw-deg", "5", "--json", str(out)]) == 0, capsys.readouterr().err
+    cli = json.loads(out.read_text())
+    res = api.localize(pillars, "icp_pf", params={"n_particles": 30}, samples=2, prior=given)
+    assert cli["prior"] == res.document["prior"]
+    for key in ("estimate", "covariance", "sample_indices", "e_x_m"):
+        assert cli["trials"][0][key] == res.records[0][key], key
+
+
+@pytest.mark.parametrize(("kwargs", "truth", "needle"), [
+    ({"mode": "wide"}, True, r"prior mode must be one of paper, offset, global, got 'wide'"),
+    ({"mode": "paper", "mean": (0, 0, 0)}, True, r"cannot be combined with a prior mode .*got mode 'paper'"),
+    ({"mean": (0, 0)}, True, r"mean expects \(x, y, yaw_deg\): three finite numbers, got \(0, 0\)"),
+    ({"mean": (0, 0, float("nan"))}, True, r"mean expects .*got \(0, 0, nan\)"),
+    ({"mean": (0, 0, 0), "base_z": float("inf")}, True, r"base_z expects a finite number \(m\), got inf"),
+    ({"region": (0, 1, 0, 1)}, True, r"a region goes with the global prior mode"),
+    ({"mode": "global", "base_z": 0.5}, True, r"base_z \(--base-z\): .* whose height the global prior takes"),
+    ({"sigma_xy": -1.0}, True, r"prior sigma_xy_m must be a finite number > 0, got -1.0"),
+    ({"mean": (0, 0, 0)}, False, r"no /truth/T_map_base: give the base height \(base_z; --base-z\)"),
+    ({"mode": "global"}, False, r"no /truth/T_map_base: give the base height \(base_z; --base-z\)"),
+    ({}, False, r"no /truth/T_map_base: give the prior mean \(mean; --prior-x"),
+])
+def test_localize_prior_refuses_naming_the_parameter(pillars: Path, kwargs, truth, needle) -> None:
+    import dataclasses
+
+    from tofloc.logs import read_log
+
+    log = read_log(pillars)
+    if not truth:
+        log = dataclasses.replace(log, T_map_base=None)
+    with pytest.raises(ParameterError, match=needle):
+        api.localize_prior(log, **kwargs)
+
+
+def test_localize_prior_without_truth(pillars: Path) -> None:
+    import dataclasses
+
+    from evaluation.priors import PriorSpec
+    from tofloc.logs import read_log
+
+    log = dataclasses.replace(read_log(pillars), T_map_base=None)
+    assert api.localize_prior(log, mean=(0.0, 0.0, 90.0), base_z=0.4) == PriorSpec("given", mean=(0.0, 0.0, math.pi / 2), z=0.4)
+    assert api.localize_prior(log, mode="global", base_z=0.4) == PriorSpec("global", z=0.4)

@@ -45,6 +45,7 @@ __all__ = [
     "calibrate",
     "CalibrationRun",
     "localize",
+    "localize_prior",
     "LocalizeResult",
     "paper",
     "PaperResult",
@@ -407,6 +408,101 @@ class LocalizeResult:
     has_truth: bool
 
 
+def localize_prior(
+    log: Any,
+    *,
+    mode: str | None = None,
+    sigma_xy: float = 0.2,
+    sigma_yaw_deg: float = 20.0,
+    mean: tuple[float, float, float] | None = None,
+    base_z: float | None = None,
+    region: Sequence[float] | None = None,
+) -> Any:
+    """The prior of :func:`localize` on ``log``, as ``tofloc localize`` makes it from its
+    prior options (``--prior-mode``, ``--prior-sigma-xy``, ``--prior-sigma-yaw-deg``,
+    ``--prior-x/-y/-yaw-deg``, ``--base-z``, ``--region``).
+
+    Parameters
+    ----------
+    log : Log or path
+        The log to localize from: its ground truth (when it has one) gives the base height
+        and tilt of a given prior, and of the global prior.
+    mode : {"paper", "offset", "global"}, optional
+        How each trial's prior is drawn (:class:`evaluation.priors.PriorSpec`); default
+        ``offset``. Not with ``mean``.
+    sigma_xy, sigma_yaw_deg : float
+        The prior's standard deviations (m, deg): the paper's by default. Not used by the
+        global prior.
+    mean : (x, y, yaw_deg), optional
+        A fixed prior mean (m, m, deg) instead of one drawn around the truth (mode
+        ``given``); its height and tilt are the truth's, or ``base_z`` and a level base on
+        a log without truth.
+    base_z : float, optional
+        The base height (m): needed on a log without truth (with ``mean`` or the global
+        prior); with ``mean`` it replaces the truth's height; refused with the global prior
+        on a log with truth.
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with mode ``global``: the rectangle (m) the base is in (default: the map's x-y
+        bounds).
+
+    Returns
+    -------
+    evaluation.priors.PriorSpec
+        For :func:`localize`'s ``prior``.
+
+    Raises
+    ------
+    ParameterError
+        An unknown mode, a mode with ``mean``, a ``mean`` that is not three finite numbers,
+        a non-finite ``base_z`` or sigma, a region without the global mode, no truth in the
+        log and no ``mean`` or base height to stand for it, or a ``base_z`` the global prior
+        would not use.
+    FormatError
+        The log cannot be read.
+    """
+    from evaluation.priors import ALL_PRIOR_MODES, PriorSpec, base_pose_parts
+
+    if mode is not None and mode not in ALL_PRIOR_MODES:
+        raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {mode!r}")
+    if mean is not None and mode is not None:
+        raise ParameterError(f"a given prior mean (mean, --prior-x/-y/-yaw-deg) cannot be combined with a prior mode "
+                             f"(which draws the prior around the truth), got mode {mode!r}")
+    if mean is not None:
+        try:
+            parts = tuple(float(v) for v in mean)
+        except (TypeError, ValueError):
+            parts = ()
+        if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
+            raise ParameterError(f"mean expects (x, y, yaw_deg): three finite numbers, got {mean!r}")
+    if base_z is not None and (not isinstance(base_z, numbers.Real) or isinstance(base_z, bool) or not math.isfinite(base_z)):
+        raise ParameterError(f"base_z expects a finite number (m), got {base_z!r}")
+    mode = "offset" if mode is None else mode
+    if region is not None and (mean is not None or mode != "global"):
+        raise ParameterError("a region goes with the global prior mode (--region with --prior-mode global)")
+    lg = _as_log(log)
+    has_truth = lg.T_map_base is not None
+    if mean is not None:
+        if has_truth:
+            _, z_truth, roll, pitch = base_pose_parts(lg.truth_per_sample()[0])
+            z = z_truth if base_z is None else base_z
+        else:
+            if base_z is None:
+                raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
+            z, roll, pitch = base_z, 0.0, 0.0
+        x, y, yaw_deg = mean
+        return PriorSpec("given", sigma_xy, sigma_yaw_deg, (x, y, math.radians(yaw_deg)), z, roll, pitch)
+    if mode == "global":
+        if has_truth and base_z is not None:
+            raise ParameterError(f"base_z (--base-z): {lg.path} has /truth/T_map_base, whose height the global prior takes")
+        if not has_truth and base_z is None:
+            raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
+        return PriorSpec("global", z=0.0 if base_z is None else base_z, region=region)
+    if not has_truth:
+        raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the prior mean (mean; --prior-x, --prior-y, "
+                             "--prior-yaw-deg) or the global mode, and the base height (base_z; --base-z)")
+    return PriorSpec(mode, sigma_xy, sigma_yaw_deg)
+
+
 def localize(
     log: Any,
     estimator_name: str,
@@ -446,7 +542,8 @@ def localize(
     tip_source : {"mocap", "knn"}
     kinematics : KinematicsModel or path, optional
     prior : evaluation.priors.PriorSpec, optional
-        Default: ``offset`` with the paper's spread.
+        Default: ``offset`` with the paper's spread; :func:`localize_prior` makes one from
+        ``tofloc localize``'s prior options (a given mean, ``--base-z``, ``--region``).
     plot : path, optional
         Draw the first trial (re-run in this process: same seed, same numbers) as a top
         view here (:func:`evaluation.localize_plot.plot_localization`).
