@@ -207,3 +207,63 @@ def test_localize_prior_without_truth(pillars: Path) -> None:
     log = dataclasses.replace(read_log(pillars), T_map_base=None)
     assert api.localize_prior(log, mean=(0.0, 0.0, 90.0), base_z=0.4) == PriorSpec("given", mean=(0.0, 0.0, math.pi / 2), z=0.4)
     assert api.localize_prior(log, mode="global", base_z=0.4) == PriorSpec("global", z=0.4)
+
+
+def _public_functions() -> list[tuple[str, object]]:
+    import inspect
+
+    names = [n for n in api.__all__ if inspect.isfunction(getattr(api, n))] + ["scenes_markdown", "changed_params"]
+    out = [(n, getattr(api, n)) for n in names]
+    out += [(f"Reporter.{m}", getattr(api.Reporter, m)) for m in ("note", "stage", "progress")]
+    return out
+
+
+def _section(doc: str, title: str) -> list[str]:
+    """The entry lines (not indented) of a numpydoc section; None when the section is absent."""
+    lines = doc.splitlines()
+    for i in range(len(lines) - 1):
+        if lines[i].strip() == title and set(lines[i + 1].strip()) == {"-"}:
+            entries = []
+            for line in lines[i + 2:]:
+                if line and not line.startswith(" ") and entries and line.strip() and set(line.strip()) == {"-"}:
+                    entries.pop()  # the next section's title
+                    break
+                if line.strip() and not line.startswith(" "):
+                    entries.append(line.strip())
+            return entries
+    return None  # type: ignore[return-value]
+
+
+#: Public functions that refuse nothing themselves (no Raises section).
+_RAISE_NOTHING = {"footprint_mismatches", "scenes_markdown", "changed_params", "Reporter.note", "Reporter.stage",
+                  "Reporter.progress"}
+
+
+@pytest.mark.parametrize(("name", "func"), _public_functions(), ids=[n for n, _ in _public_functions()])
+def test_public_api_functions_have_numpydoc_matching_their_signature(name: str, func) -> None:
+    """Every public function of :mod:`tofloc.api` documents each of its parameters, in the
+    signature's order, under Parameters, has Returns unless it returns None, and Raises
+    (naming errors that exist) unless it refuses nothing: paper and scenes had no sections,
+    localize left out valid_statuses, workers, scheduler and reporter, evaluate region."""
+    import importlib
+    import inspect
+
+    from tofloc.errors import TofLocError
+    from tofloc.param_docs import numpydoc_parameters
+
+    doc = inspect.getdoc(func) or ""
+    sig = inspect.signature(func)
+    wanted = [p for p in sig.parameters if p != "self"]
+    assert list(numpydoc_parameters(doc)) == wanted, name
+    if wanted:
+        assert _section(doc, "Parameters") is not None, name
+    returns = _section(doc, "Returns")
+    assert (returns is None) == (sig.return_annotation in ("None", None)), name
+    raises = _section(doc, "Raises")
+    if name in _RAISE_NOTHING:
+        return
+    assert raises, name
+    for entry in raises:
+        module, _, cls = entry.rpartition(".")
+        err = getattr(importlib.import_module(module or "tofloc.errors"), cls)
+        assert issubclass(err, TofLocError), (name, entry)

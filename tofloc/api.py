@@ -73,14 +73,36 @@ class Reporter:
     """
 
     def note(self, message: str) -> None:
-        """A one-line message (what was reused, fitted, written)."""
+        """A one-line message (what was reused, fitted, written).
+
+        Parameters
+        ----------
+        message : str
+        """
 
     def stage(self, message: str) -> ContextManager[Any]:
-        """A context around a stage of unknown length (a spinner in the CLI)."""
+        """A context around a stage of unknown length (a spinner in the CLI).
+
+        Parameters
+        ----------
+        message : str
+            What the stage does.
+
+        Returns
+        -------
+        context manager
+            Entered for the stage's duration.
+        """
         return nullcontext()
 
     def progress(self, done: int, total: int, label: str) -> None:
-        """``done`` of ``total`` units of the work named ``label``."""
+        """``done`` of ``total`` units of the work named ``label``.
+
+        Parameters
+        ----------
+        done, total : int
+        label : str
+        """
 
 
 class NoteList(Reporter):
@@ -98,7 +120,24 @@ _SILENT = Reporter()
 
 
 def resolve_workers(workers: int | None, n_tasks: int) -> int:
-    """``None`` -> one process per core (at most one per task); 1 runs inline."""
+    """The number of local worker processes a run uses.
+
+    Parameters
+    ----------
+    workers : int or None
+        ``None``: one process per core, at most one per task; 1 runs inline.
+    n_tasks : int
+        The run's tasks (bounds the default).
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ParameterError
+        ``workers`` is not an integer >= 1.
+    """
     if workers is None:
         return max(1, min(os.cpu_count() or 1, n_tasks))
     if not isinstance(workers, int) or workers < 1:
@@ -170,8 +209,25 @@ def _check_statuses(valid_statuses: Any) -> frozenset[int]:
 
 
 def check_selection(name: str) -> str:
-    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
-    a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
+    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`).
+
+    Parameters
+    ----------
+    name : str
+        ``"random"`` (the paper's protocol), ``"active"`` or a plug-in's name.
+
+    Returns
+    -------
+    str
+        ``name``.
+
+    Raises
+    ------
+    ParameterError
+        Not a registered policy (the message names the available ones).
+    PluginError
+        The policy's plug-in cannot be loaded.
+    """
     from tofloc.selection import make_policy, policy_names
 
     if not isinstance(name, str) or name not in policy_names():
@@ -181,7 +237,28 @@ def check_selection(name: str) -> str:
 
 
 def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
-    """The registered estimator ``name`` built with ``params`` (validated now)."""
+    """The registered estimator ``name`` built with ``params`` (validated now).
+
+    Parameters
+    ----------
+    name : str
+        A registered estimator (``tofloc list``), plug-ins included.
+    params : mapping, optional
+        Its parameters (``tofloc list --params NAME``); a sensor model's under
+        ``sensor_model_params``.
+
+    Returns
+    -------
+    tofloc.problem.Estimator
+
+    Raises
+    ------
+    PluginError
+        An unknown estimator, or one whose plug-in cannot be loaded.
+    ParameterError
+        A parameter it does not have (:class:`~tofloc.errors.UnknownParameterError`) or a
+        value out of its domain; ``params`` not a mapping.
+    """
     from evaluation.trials import make_estimator
     from tofloc.registry import ESTIMATORS
 
@@ -203,6 +280,10 @@ def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalib
     estimators : mapping of str to Estimator
         By the names the user gave them.
     calibration : SensorCalibration or None
+
+    Returns
+    -------
+    list of str
     """
     fitted = None if calibration is None else calibration.meta.get("footprint")
     if fitted is None:
@@ -214,7 +295,22 @@ def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalib
 
 
 def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | None) -> SensorCalibration | None:
-    """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None."""
+    """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None.
+
+    Parameters
+    ----------
+    calibration : SensorCalibration, path or None
+
+    Returns
+    -------
+    SensorCalibration or None
+        ``calibration`` itself unless a path was given.
+
+    Raises
+    ------
+    FormatError
+        The file is missing or breaks the calibration format.
+    """
     if calibration is None or isinstance(calibration, SensorCalibration):
         return calibration
     return SensorCalibration.from_toml(calibration)
@@ -260,7 +356,10 @@ def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[s
     Raises
     ------
     ParameterError
-        An unknown rig variant, a negative seed, or a base outside free space.
+        An unknown rig variant, a seed that is not an integer >= 0, a base that is not
+        three finite numbers (yaw in [-180, 180]) or outside free space.
+    FormatError
+        A scenario file that breaks its format, or neither a file nor a built-in name.
     """
     from tofloc.simulation import RIG_VARIANTS, simulate as run, write_simulation
 
@@ -312,17 +411,42 @@ def calibrate(
     Parameters
     ----------
     logs : sequence of Log or path
+        Logs with ``/truth/T_map_base`` and ``/samples/T_base_tip``.
     maps : sequence of Map or path, optional
         One for every log, or one per log; default each log's (a CAD mesh beside it preferred).
     out : path, optional
         Write the calibration TOML here.
-    footprint, valid_statuses, max_iter, support_yaw, support_yaw_bound_deg, mounting
-        As ``tofloc calibrate``.
+    footprint : int
+        Sub-rays per side of a zone's footprint, in [1, 9] (1: the centre ray only).
+    valid_statuses : frozenset of int
+        Zone statuses counted as valid returns, in [0, 255].
+    max_iter : int
+        EM iterations at most, in [1, :data:`MAX_CALIBRATION_ITER`].
     distance_range : (float, float)
         Use only zones expected within this range (m) in the EM fits.
+    support_yaw : bool
+        Also fit the sensor support's rotation about the tip axis.
+    support_yaw_bound_deg : float
+        Search that rotation within +- this, in [2, 90] deg (the search's grid step is 2 deg).
+    mounting : bool
+        Also fit each sensor's mounting error.
     reporter : Reporter
         Gets every stage's progress (zones cast per log, the support-rotation candidates,
         the mounting fit's solver evaluations, the EM iterations).
+
+    Returns
+    -------
+    CalibrationRun
+        With ``path`` set when written.
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc calibrate`` refuses it), maps
+        neither one nor one per log, or too few zones with an expected distance.
+    FormatError
+        A log without ground truth or configurations, or without a map and none given; a
+        file that breaks its format.
     """
     from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
     from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
@@ -544,6 +668,14 @@ def localize(
     prior : evaluation.priors.PriorSpec, optional
         Default: ``offset`` with the paper's spread; :func:`localize_prior` makes one from
         ``tofloc localize``'s prior options (a given mean, ``--base-z``, ``--region``).
+    valid_statuses : frozenset of int
+        Zone statuses counted as valid, in [0, 255].
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets the notes and the trials' progress.
     plot : path, optional
         Draw the first trial (re-run in this process: same seed, same numbers) as a top
         view here (:func:`evaluation.localize_plot.plot_localization`).
@@ -551,8 +683,23 @@ def localize(
         How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
         protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
 
-    Every trial record carries the data-fit check (``fit``), the posterior's ``modes`` and
-    ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
+    Returns
+    -------
+    LocalizeResult
+        Every trial record carries the data-fit check (``fit``), the posterior's ``modes``
+        and ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc localize`` refuses it), tip source
+        knn without a kinematics model, or a log without truth and no prior.
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A log, map or model file that breaks its format or lacks what the run needs.
+    tofloc.problem.ProblemError
+        Fewer usable samples than a trial needs.
     """
     from evaluation.executors import run_tasks
     from evaluation.priors import PriorSpec
@@ -701,27 +848,85 @@ def paper(
     design: str | None = None,
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
-    prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
+    prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out`` (what
+    ``tofloc paper`` does).
 
-    ``calibrate`` (default: when some estimator :meth:`~tofloc.problem.Estimator.uses_calibration`
-    and no ``calibration`` is given) fits the sensor model on a calibration session of the
-    same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
-    scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
-    ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
-    both tip sources, the paper's two prior modes; ``"global"`` is the third: uniform over the
-    map's free space at the base height, or over ``region`` ``(xmin, xmax, ymin, ymax)``,
-    and every yaw, :mod:`tofloc.free_space`). ``params`` go to every estimator;
-    ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
-    :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
-    written to ``out/config.toml`` (``--config`` reads it back). ``selection`` names the
-    policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in turn,
-    :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
-    ``design`` says how the trials of different k relate (:mod:`evaluation.trials`,
-    "Designs"): ``"nested"`` (the default with random selection: each trial draws
-    ``max(k)`` samples and a prior once, the trial with k samples uses the first k; a
-    particle filter answers every k from one pass) or ``"independent"`` (each ``(k, trial)``
-    draws its own; the default with a selection policy), recorded as ``results.json``'s
-    ``design``.
+    Parameters
+    ----------
+    estimators : sequence of str
+        Distinct registered estimators.
+    out : path
+        Output folder: the data (simulated unless ``out/<scenario>.h5`` exists), the k-NN
+        model, ``results.json``, ``table.md``, the plots, ``config.toml`` (the resolved
+        parameters of every estimator; ``--config`` reads it back) and the finished batches
+        in ``out/partial`` (reused by a rerun).
+    trials : int
+        Trials per k, in [1, :data:`MAX_TRIALS`].
+    k_max : int
+        The largest k, in [1, 1000] (k = 1..``k_max`` unless ``k_values``).
+    seed : int
+        Seed of the simulation, the k-NN split and the trials (>= 0).
+    scenario : str
+        Any scene of the library (:func:`tofloc.simulation.builtin_scenarios`) or a scenario file.
+    params : mapping, optional
+        Parameters given to every estimator.
+    estimator_params : mapping of str to mapping, optional
+        ``{name: parameters}`` of single estimators, over ``params`` (e.g. resolved from
+        ``--config``, :mod:`tofloc.estimator_config`); names not in the run are refused.
+    prior_sigma_xy, prior_sigma_yaw_deg : float
+        The prior's spread (m, deg): the paper's by default.
+    calibration : SensorCalibration or path, optional
+        Applied for every estimator that uses one, instead of calibrating.
+    calibrate : bool, optional
+        Fit the sensor model on a calibration session of the same set-up
+        (:func:`evaluation.paper_data.calibrate_for_paper`); default: when some estimator
+        :meth:`~tofloc.problem.Estimator.uses_calibration` and no ``calibration`` is given.
+    surface : bool
+        Give the ray-casting models the CAD mesh beside the map when it exists.
+    rig_variant : {"exact", "perturbed"}, optional
+        The scene's exact or perturbed rig; None: as the scene file writes it.
+    k_values : sequence of int, optional
+        The numbers of samples, each in [1, 1000], instead of 1..``k_max``.
+    tip_sources : sequence of {"knn", "mocap"}
+        Distinct tip sources.
+    prior_modes : sequence of {"paper", "offset", "global"}, optional
+        Distinct prior modes; default the paper's two. ``"global"``: uniform over the map's
+        free space at the base height (or over ``region``) and every yaw
+        (:mod:`tofloc.free_space`).
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with the global prior mode: the rectangle (m) the base is in.
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets the notes, the stages and the trials' progress.
+    selection : str
+        The policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in
+        turn, :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
+    design : {"nested", "independent"}, optional
+        How the trials of different k relate (:mod:`evaluation.trials`, "Designs"):
+        ``"nested"`` (the default with random selection: each trial draws ``max(k)``
+        samples and a prior once, the trial with k samples uses the first k; a particle
+        filter answers every k from one pass) or ``"independent"`` (each ``(k, trial)``
+        draws its own; the default with a selection policy), recorded as
+        ``results.json``'s ``design``.
+
+    Returns
+    -------
+    PaperResult
+        The ``results.json`` document and the files written.
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc paper`` refuses it), both
+        ``calibration`` and ``calibrate=True``, design nested with a selection policy, or
+        ``out`` an existing file.
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A scenario, calibration or data file that breaks its format.
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
@@ -905,16 +1110,60 @@ def scenes(
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
-    the table of mean errors against the mean sqrt(CRLB) of the same trials. Each scene's
-    log and maps are named after it (``out/pillars-exact/pillars.h5``, ``pillars.map.ply``,
-    ``pillars.cad.ply``; a folder from before, holding ``paper.h5``, is reused as it is:
-    :func:`evaluation.paper_data.experiment_log_path`).
+    the table of mean errors against the mean sqrt(CRLB) of the same trials (what
+    ``tofloc scenes`` does). Each scene's log and maps are named after it
+    (``out/pillars-exact/pillars.h5``, ``pillars.map.ply``, ``pillars.cad.ply``; a folder
+    from before, holding ``paper.h5``, is reused as it is:
+    :func:`evaluation.paper_data.experiment_log_path`). Writes ``scenes.json``,
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
 
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
-    tips, offset prior, 20 trials; every estimator with its default parameters
-    (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
-    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``. ``selection``: as
-    :func:`paper` (recorded in ``scenes.json``).
+    tips, offset prior, 20 trials; every estimator with its default parameters.
+
+    Parameters
+    ----------
+    estimators : sequence of str
+        Distinct registered estimators.
+    out : path
+        Output folder.
+    scene_names : sequence of str, optional
+        Scenes of the library (:func:`tofloc.simulation.builtin_scenarios`); default all.
+    rig_variant : {"exact", "perturbed"}
+        The scenes' rigs.
+    k : int
+        Samples per trial, in [1, 1000].
+    trials : int
+        Trials per scene, in [1, :data:`MAX_TRIALS`].
+    seed : int
+        Seed of the simulations and the trials (>= 0).
+    tip_source : {"mocap", "knn"}
+    prior_mode : {"offset", "paper", "global"}
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with the global prior mode: the rectangle (m) the base is in, on every scene.
+    params, estimator_params : mapping, optional
+        As :func:`paper`.
+    calibrate : bool, optional
+        As :func:`paper`.
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets a note per scene and what :func:`paper` reports.
+    selection : str
+        As :func:`paper` (recorded in ``scenes.json``).
+
+    Returns
+    -------
+    ScenesResult
+
+    Raises
+    ------
+    ParameterError
+        An unknown scene, or an argument out of its domain (each as ``tofloc scenes``
+        refuses it), before the first scene runs.
+    PluginError
+        An unknown estimator or selection policy.
     """
     from evaluation.report import write_json_atomic, write_text_atomic
     from tofloc.provenance import provenance
@@ -963,7 +1212,18 @@ def scenes(
 
 def scenes_markdown(doc: Mapping[str, Any]) -> str:
     """The scene table: per scene and estimator, mean e_x and e_gamma, the mean sqrt(CRLB) of
-    the same trials and their ratio (within 2 is the model core's bar), mean NEES."""
+    the same trials and their ratio (within 2 is the model core's bar), mean NEES.
+
+    Parameters
+    ----------
+    doc : mapping
+        :attr:`ScenesResult.document` (``scenes.json``).
+
+    Returns
+    -------
+    str
+        Markdown (``scenes.md``).
+    """
     def f(v: Any, fmt: str) -> str:
         return "n/a" if v is None else format(v, fmt)
 
@@ -1055,7 +1315,16 @@ def changed_params(est: Any) -> dict[str, Any] | None:
     """An estimator's parameters that differ from its class's defaults (``sensor_model_params``
     key by key, as ``sensor_model_params.KEY``), JSON-ready: what a table must say so that
     its rows can be told apart from the defaults'. None when the class has no defaults to
-    compare with (a plug-in whose constructor needs arguments)."""
+    compare with (a plug-in whose constructor needs arguments).
+
+    Parameters
+    ----------
+    est : Estimator
+
+    Returns
+    -------
+    dict or None
+    """
     from evaluation.trials import jsonable
 
     try:
@@ -1129,6 +1398,8 @@ def evaluate(
         ``region``) and every yaw.
     prior_sigma_xy, prior_sigma_yaw_deg : float
         The prior's spread (m, deg): the paper's by default.
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with prior mode ``global``: the rectangle (m) the base is in.
     calibration : SensorCalibration or path, optional
         Applied for every estimator that uses one, and to the oracle floor.
     params : dict, optional
@@ -1153,6 +1424,22 @@ def evaluate(
         A log with fewer usable samples than a trial needs is left out, named with why in
         the note, ``results.json`` (``set_aside``) and ``table.md``, instead of refusing the
         run (:func:`evaluation.evaluate.prepare_logs`).
+
+    Returns
+    -------
+    EvaluateResult
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc evaluate`` refuses it).
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A log, map or calibration file that breaks its format or lacks what the run needs
+        (e.g. ground truth).
+    tofloc.problem.ProblemError
+        A log with fewer usable samples than a trial needs (without ``set_aside_unusable``).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
