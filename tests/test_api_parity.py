@@ -69,6 +69,8 @@ def test_localize_refuses_bad_arguments_before_reading_the_log(kwargs, needle) -
     ({"support_yaw_bound_deg": 1.5}, r"support_yaw_bound_deg must be in \[2, 90\] degrees.*got 1.5"),
     ({"support_yaw_bound_deg": 200.0}, r"support_yaw_bound_deg must be in \[2, 90\] degrees.*got 200.0"),
     ({"valid_statuses": frozenset({-1})}, r"valid_statuses must be .*got frozenset\(\{-1\}\)"),
+    ({"distance_range": (0.0, 1.0, 2.0)}, r"distance_range expects \(min, max\) in m, got \(0.0, 1.0, 2.0\)"),
+    ({"distance_range": (0.0, "far")}, r"distance_range expects \(min, max\) in m, got \(0.0, 'far'\)"),
 ])
 def test_calibrate_refuses_bad_arguments_before_reading_a_log(kwargs, needle) -> None:
     """The command's ranges (``--max-iter`` at most 10000, ``--support-yaw-bound``) held for

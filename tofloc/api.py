@@ -468,7 +468,10 @@ def calibrate(
     given = [] if maps is None else _as_list(maps, "maps")
     if given and len(given) not in (1, len(logs)):
         raise ParameterError(f"maps must be given once (for every log) or once per log ({len(logs)}), got {len(given)}")
-    lo, hi = (float(v) for v in distance_range)
+    try:
+        lo, hi = (float(v) for v in distance_range)
+    except (TypeError, ValueError):
+        raise ParameterError(f"distance_range expects (min, max) in m, got {distance_range!r}") from None
     if not 0.0 <= lo < hi:
         raise ParameterError(f"expected 0 <= min distance < max distance, got {lo} and {hi}")
     pairs: list[tuple[Any, Any]] = []
