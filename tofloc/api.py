@@ -18,6 +18,8 @@ is silent. Results are plain objects with the JSON document the CLI writes
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import os
 import threading
 import time
@@ -43,6 +45,7 @@ __all__ = [
     "calibrate",
     "CalibrationRun",
     "localize",
+    "localize_prior",
     "LocalizeResult",
     "paper",
     "PaperResult",
@@ -52,12 +55,15 @@ __all__ = [
     "check_selection",
     "MAX_TRIALS",
     "MAX_FAILURE_PLOTS",
+    "MAX_CALIBRATION_ITER",
 ]
 
 #: Largest number of trials or samples a run accepts (bounds the work a typo can ask for).
 MAX_TRIALS = 100_000
 #: Most failed trials ``evaluate`` draws (each is solved again).
 MAX_FAILURE_PLOTS = 1000
+#: Most EM iterations :func:`calibrate` accepts (``--max-iter``).
+MAX_CALIBRATION_ITER = 10_000
 
 
 class Reporter:
@@ -67,14 +73,36 @@ class Reporter:
     """
 
     def note(self, message: str) -> None:
-        """A one-line message (what was reused, fitted, written)."""
+        """A one-line message (what was reused, fitted, written).
+
+        Parameters
+        ----------
+        message : str
+        """
 
     def stage(self, message: str) -> ContextManager[Any]:
-        """A context around a stage of unknown length (a spinner in the CLI)."""
+        """A context around a stage of unknown length (a spinner in the CLI).
+
+        Parameters
+        ----------
+        message : str
+            What the stage does.
+
+        Returns
+        -------
+        context manager
+            Entered for the stage's duration.
+        """
         return nullcontext()
 
     def progress(self, done: int, total: int, label: str) -> None:
-        """``done`` of ``total`` units of the work named ``label``."""
+        """``done`` of ``total`` units of the work named ``label``.
+
+        Parameters
+        ----------
+        done, total : int
+        label : str
+        """
 
 
 class NoteList(Reporter):
@@ -92,7 +120,24 @@ _SILENT = Reporter()
 
 
 def resolve_workers(workers: int | None, n_tasks: int) -> int:
-    """``None`` -> one process per core (at most one per task); 1 runs inline."""
+    """The number of local worker processes a run uses.
+
+    Parameters
+    ----------
+    workers : int or None
+        ``None``: one process per core, at most one per task; 1 runs inline.
+    n_tasks : int
+        The run's tasks (bounds the default).
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ParameterError
+        ``workers`` is not an integer >= 1.
+    """
     if workers is None:
         return max(1, min(os.cpu_count() or 1, n_tasks))
     if not isinstance(workers, int) or workers < 1:
@@ -136,9 +181,53 @@ def _warm_plotting(n_workers: int, scheduler: Any) -> threading.Thread | None:
     return thread
 
 
+def _is_int(value: Any) -> bool:
+    """An integer, not a bool (``True`` would count as 1)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _as_list(value: Any, name: str) -> list[Any]:
+    """A sequence argument as a list; a bare string or path (whose iteration would give its
+    characters) or a non-iterable refused, naming ``name``."""
+    if isinstance(value, (str, bytes, os.PathLike)):
+        raise ParameterError(f"{name} expects a sequence (e.g. a list), got the single value {value!r}: write [{value!r}]")
+    try:
+        return list(value)
+    except TypeError:
+        raise ParameterError(f"{name} expects a sequence (e.g. a list), got {value!r}") from None
+
+
+def _check_statuses(valid_statuses: Any) -> frozenset[int]:
+    """``valid_statuses`` as a frozenset of ints in [0, 255] (what ``--valid-statuses`` accepts)."""
+    try:
+        values = None if isinstance(valid_statuses, (str, bytes)) else frozenset(valid_statuses)
+    except TypeError:
+        values = None
+    if not values or not all(_is_int(v) and 0 <= v <= 255 for v in values):
+        raise ParameterError(f"valid_statuses must be a non-empty set of integers in [0, 255], got {valid_statuses!r}")
+    return frozenset(int(v) for v in values)
+
+
 def check_selection(name: str) -> str:
-    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`);
-    a :class:`~tofloc.errors.ParameterError` naming the available ones otherwise."""
+    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`).
+
+    Parameters
+    ----------
+    name : str
+        ``"random"`` (the paper's protocol), ``"active"`` or a plug-in's name.
+
+    Returns
+    -------
+    str
+        ``name``.
+
+    Raises
+    ------
+    ParameterError
+        Not a registered policy (the message names the available ones).
+    PluginError
+        The policy's plug-in cannot be loaded.
+    """
     from tofloc.selection import make_policy, policy_names
 
     if not isinstance(name, str) or name not in policy_names():
@@ -148,10 +237,35 @@ def check_selection(name: str) -> str:
 
 
 def estimator(name: str, params: Mapping[str, Any] | None = None) -> Estimator:
-    """The registered estimator ``name`` built with ``params`` (validated now)."""
+    """The registered estimator ``name`` built with ``params`` (validated now).
+
+    Parameters
+    ----------
+    name : str
+        A registered estimator (``tofloc list``), plug-ins included.
+    params : mapping, optional
+        Its parameters (``tofloc list --params NAME``); a sensor model's under
+        ``sensor_model_params``.
+
+    Returns
+    -------
+    tofloc.problem.Estimator
+
+    Raises
+    ------
+    PluginError
+        An unknown estimator, or one whose plug-in cannot be loaded.
+    ParameterError
+        A parameter it does not have (:class:`~tofloc.errors.UnknownParameterError`) or a
+        value out of its domain; ``params`` not a mapping.
+    """
     from evaluation.trials import make_estimator
     from tofloc.registry import ESTIMATORS
 
+    if not isinstance(name, str):
+        raise ParameterError(f"name must be a registered estimator's name (a string), got {name!r}")
+    if params is not None and not isinstance(params, Mapping):
+        raise ParameterError(f"params must be a mapping of parameter names to values, got {params!r}")
     return make_estimator(ESTIMATORS.load(name), dict(params or {}), name)
 
 
@@ -166,6 +280,10 @@ def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalib
     estimators : mapping of str to Estimator
         By the names the user gave them.
     calibration : SensorCalibration or None
+
+    Returns
+    -------
+    list of str
     """
     fitted = None if calibration is None else calibration.meta.get("footprint")
     if fitted is None:
@@ -177,7 +295,22 @@ def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalib
 
 
 def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | None) -> SensorCalibration | None:
-    """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None."""
+    """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None.
+
+    Parameters
+    ----------
+    calibration : SensorCalibration, path or None
+
+    Returns
+    -------
+    SensorCalibration or None
+        ``calibration`` itself unless a path was given.
+
+    Raises
+    ------
+    FormatError
+        The file is missing or breaks the calibration format.
+    """
     if calibration is None or isinstance(calibration, SensorCalibration):
         return calibration
     return SensorCalibration.from_toml(calibration)
@@ -223,12 +356,18 @@ def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[s
     Raises
     ------
     ParameterError
-        An unknown rig variant, a negative seed, or a base outside free space.
+        An unknown rig variant, a seed that is not an integer >= 0, a base that is not
+        three finite numbers (yaw in [-180, 180]) or outside free space.
+    FormatError
+        A scenario file that breaks its format, or neither a file nor a built-in name.
     """
     from tofloc.simulation import RIG_VARIANTS, simulate as run, write_simulation
 
     if rig_variant is not None and rig_variant not in RIG_VARIANTS:
         raise ParameterError(f"rig_variant expects one of {', '.join(RIG_VARIANTS)}, got {rig_variant!r}")
+    for key, value in (("seed", seed), ("hardware_seed", hardware_seed)):
+        if value is not None and not _is_int(value):
+            raise ParameterError(f"{key} must be an integer >= 0, got {value!r}")
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ParameterError(f"seeds must be >= 0, got seed {seed}, hardware seed {hardware_seed}")
     result = run(scenario, seed, hardware_seed=hardware_seed, base=base, rig_variant=rig_variant)
@@ -272,27 +411,67 @@ def calibrate(
     Parameters
     ----------
     logs : sequence of Log or path
+        Logs with ``/truth/T_map_base`` and ``/samples/T_base_tip``.
     maps : sequence of Map or path, optional
         One for every log, or one per log; default each log's (a CAD mesh beside it preferred).
     out : path, optional
         Write the calibration TOML here.
-    footprint, valid_statuses, max_iter, support_yaw, support_yaw_bound_deg, mounting
-        As ``tofloc calibrate``.
+    footprint : int
+        Sub-rays per side of a zone's footprint, in [1, 9] (1: the centre ray only).
+    valid_statuses : frozenset of int
+        Zone statuses counted as valid returns, in [0, 255].
+    max_iter : int
+        EM iterations at most, in [1, :data:`MAX_CALIBRATION_ITER`].
     distance_range : (float, float)
         Use only zones expected within this range (m) in the EM fits.
+    support_yaw : bool
+        Also fit the sensor support's rotation about the tip axis.
+    support_yaw_bound_deg : float
+        Search that rotation within +- this, in [2, 90] deg (the search's grid step is 2 deg).
+    mounting : bool
+        Also fit each sensor's mounting error.
     reporter : Reporter
         Gets every stage's progress (zones cast per log, the support-rotation candidates,
         the mounting fit's solver evaluations, the EM iterations).
+
+    Returns
+    -------
+    CalibrationRun
+        With ``path`` set when written.
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc calibrate`` refuses it), maps
+        neither one nor one per log, or too few zones with an expected distance.
+    FormatError
+        A log without ground truth or configurations, or without a map and none given; a
+        file that breaks its format.
     """
     from sensor_models.calibration import ZoneSamples, calibrate_rig, collect_zones, resolve_calibration_map
+    from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc.maps import Map
+    from tofloc.zone_caster import MAX_FOOTPRINT
 
+    logs = _as_list(logs, "logs")
     if not logs:
         raise ParameterError("calibrate needs at least one log")
-    given = list(maps or [])
+    if not _is_int(footprint) or not 1 <= footprint <= MAX_FOOTPRINT:
+        raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
+    if not _is_int(max_iter) or not 1 <= max_iter <= MAX_CALIBRATION_ITER:
+        raise ParameterError(f"max_iter must be an integer in [1, {MAX_CALIBRATION_ITER}], got {max_iter!r}")
+    b = support_yaw_bound_deg
+    if not isinstance(b, numbers.Real) or isinstance(b, bool) or not SUPPORT_YAW_STEP_DEG <= b <= 90.0:
+        raise ParameterError(f"support_yaw_bound_deg must be in [{SUPPORT_YAW_STEP_DEG:g}, 90] degrees (the search's grid "
+                             f"step is {SUPPORT_YAW_STEP_DEG:g} deg), got {b!r}")
+    valid_statuses = _check_statuses(valid_statuses)
+    given = [] if maps is None else _as_list(maps, "maps")
     if given and len(given) not in (1, len(logs)):
         raise ParameterError(f"maps must be given once (for every log) or once per log ({len(logs)}), got {len(given)}")
-    lo, hi = (float(v) for v in distance_range)
+    try:
+        lo, hi = (float(v) for v in distance_range)
+    except (TypeError, ValueError):
+        raise ParameterError(f"distance_range expects (min, max) in m, got {distance_range!r}") from None
     if not 0.0 <= lo < hi:
         raise ParameterError(f"expected 0 <= min distance < max distance, got {lo} and {hi}")
     pairs: list[tuple[Any, Any]] = []
@@ -356,6 +535,101 @@ class LocalizeResult:
     has_truth: bool
 
 
+def localize_prior(
+    log: Any,
+    *,
+    mode: str | None = None,
+    sigma_xy: float = 0.2,
+    sigma_yaw_deg: float = 20.0,
+    mean: tuple[float, float, float] | None = None,
+    base_z: float | None = None,
+    region: Sequence[float] | None = None,
+) -> Any:
+    """The prior of :func:`localize` on ``log``, as ``tofloc localize`` makes it from its
+    prior options (``--prior-mode``, ``--prior-sigma-xy``, ``--prior-sigma-yaw-deg``,
+    ``--prior-x/-y/-yaw-deg``, ``--base-z``, ``--region``).
+
+    Parameters
+    ----------
+    log : Log or path
+        The log to localize from: its ground truth (when it has one) gives the base height
+        and tilt of a given prior, and of the global prior.
+    mode : {"paper", "offset", "global"}, optional
+        How each trial's prior is drawn (:class:`evaluation.priors.PriorSpec`); default
+        ``offset``. Not with ``mean``.
+    sigma_xy, sigma_yaw_deg : float
+        The prior's standard deviations (m, deg): the paper's by default. Not used by the
+        global prior.
+    mean : (x, y, yaw_deg), optional
+        A fixed prior mean (m, m, deg) instead of one drawn around the truth (mode
+        ``given``); its height and tilt are the truth's, or ``base_z`` and a level base on
+        a log without truth.
+    base_z : float, optional
+        The base height (m): needed on a log without truth (with ``mean`` or the global
+        prior); with ``mean`` it replaces the truth's height; refused with the global prior
+        on a log with truth.
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with mode ``global``: the rectangle (m) the base is in (default: the map's x-y
+        bounds).
+
+    Returns
+    -------
+    evaluation.priors.PriorSpec
+        For :func:`localize`'s ``prior``.
+
+    Raises
+    ------
+    ParameterError
+        An unknown mode, a mode with ``mean``, a ``mean`` that is not three finite numbers,
+        a non-finite ``base_z`` or sigma, a region without the global mode, no truth in the
+        log and no ``mean`` or base height to stand for it, or a ``base_z`` the global prior
+        would not use.
+    FormatError
+        The log cannot be read.
+    """
+    from evaluation.priors import ALL_PRIOR_MODES, PriorSpec, base_pose_parts
+
+    if mode is not None and mode not in ALL_PRIOR_MODES:
+        raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {mode!r}")
+    if mean is not None and mode is not None:
+        raise ParameterError(f"a given prior mean (mean, --prior-x/-y/-yaw-deg) cannot be combined with a prior mode "
+                             f"(which draws the prior around the truth), got mode {mode!r}")
+    if mean is not None:
+        try:
+            parts = tuple(float(v) for v in mean)
+        except (TypeError, ValueError):
+            parts = ()
+        if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
+            raise ParameterError(f"mean expects (x, y, yaw_deg): three finite numbers, got {mean!r}")
+    if base_z is not None and (not isinstance(base_z, numbers.Real) or isinstance(base_z, bool) or not math.isfinite(base_z)):
+        raise ParameterError(f"base_z expects a finite number (m), got {base_z!r}")
+    mode = "offset" if mode is None else mode
+    if region is not None and (mean is not None or mode != "global"):
+        raise ParameterError("a region goes with the global prior mode (--region with --prior-mode global)")
+    lg = _as_log(log)
+    has_truth = lg.T_map_base is not None
+    if mean is not None:
+        if has_truth:
+            _, z_truth, roll, pitch = base_pose_parts(lg.truth_per_sample()[0])
+            z = z_truth if base_z is None else base_z
+        else:
+            if base_z is None:
+                raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
+            z, roll, pitch = base_z, 0.0, 0.0
+        x, y, yaw_deg = mean
+        return PriorSpec("given", sigma_xy, sigma_yaw_deg, (x, y, math.radians(yaw_deg)), z, roll, pitch)
+    if mode == "global":
+        if has_truth and base_z is not None:
+            raise ParameterError(f"base_z (--base-z): {lg.path} has /truth/T_map_base, whose height the global prior takes")
+        if not has_truth and base_z is None:
+            raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
+        return PriorSpec("global", z=0.0 if base_z is None else base_z, region=region)
+    if not has_truth:
+        raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the prior mean (mean; --prior-x, --prior-y, "
+                             "--prior-yaw-deg) or the global mode, and the base height (base_z; --base-z)")
+    return PriorSpec(mode, sigma_xy, sigma_yaw_deg)
+
+
 def localize(
     log: Any,
     estimator_name: str,
@@ -395,7 +669,16 @@ def localize(
     tip_source : {"mocap", "knn"}
     kinematics : KinematicsModel or path, optional
     prior : evaluation.priors.PriorSpec, optional
-        Default: ``offset`` with the paper's spread.
+        Default: ``offset`` with the paper's spread; :func:`localize_prior` makes one from
+        ``tofloc localize``'s prior options (a given mean, ``--base-z``, ``--region``).
+    valid_statuses : frozenset of int
+        Zone statuses counted as valid, in [0, 255].
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets the notes and the trials' progress.
     plot : path, optional
         Draw the first trial (re-run in this process: same seed, same numbers) as a top
         view here (:func:`evaluation.localize_plot.plot_localization`).
@@ -403,8 +686,23 @@ def localize(
         How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
         protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
 
-    Every trial record carries the data-fit check (``fit``), the posterior's ``modes`` and
-    ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
+    Returns
+    -------
+    LocalizeResult
+        Every trial record carries the data-fit check (``fit``), the posterior's ``modes``
+        and ``ambiguous``; the summary counts the trials not ok (``summary.fit``).
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc localize`` refuses it), tip source
+        knn without a kinematics model, or a log without truth and no prior.
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A log, map or model file that breaks its format or lacks what the run needs.
+    tofloc.problem.ProblemError
+        Fewer usable samples than a trial needs.
     """
     from evaluation.executors import run_tasks
     from evaluation.priors import PriorSpec
@@ -416,10 +714,13 @@ def localize(
 
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
-    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+    if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
-    if samples is not None and (not isinstance(samples, int) or not 1 <= samples <= MAX_TRIALS):
+    if samples is not None and (not _is_int(samples) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
+    if prior is not None and not isinstance(prior, PriorSpec):
+        raise ParameterError(f"prior must be an evaluation.priors.PriorSpec or None, got {prior!r}")
+    valid_statuses = _check_statuses(valid_statuses)
     est = estimator(estimator_name, params)
     check_selection(selection)
     full_params = jsonable(est.get_params())
@@ -550,27 +851,85 @@ def paper(
     design: str | None = None,
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
-    prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out``.
+    prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out`` (what
+    ``tofloc paper`` does).
 
-    ``calibrate`` (default: when some estimator :meth:`~tofloc.problem.Estimator.uses_calibration`
-    and no ``calibration`` is given) fits the sensor model on a calibration session of the
-    same set-up (:func:`evaluation.paper_data.calibrate_for_paper`). ``scenario`` is any
-    scene of the library (``rig_variant``: its exact or perturbed rig); ``k_values``,
-    ``tip_sources`` and ``prior_modes`` restrict the protocol (default: k = 1..``k_max``,
-    both tip sources, the paper's two prior modes; ``"global"`` is the third: uniform over the
-    map's free space at the base height, or over ``region`` ``(xmin, xmax, ymin, ymax)``,
-    and every yaw, :mod:`tofloc.free_space`). ``params`` go to every estimator;
-    ``estimator_params[name]`` to one (over ``params``; e.g. resolved from ``--config``,
-    :mod:`tofloc.estimator_config`). The resolved parameters of every estimator are
-    written to ``out/config.toml`` (``--config`` reads it back). ``selection`` names the
-    policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in turn,
-    :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
-    ``design`` says how the trials of different k relate (:mod:`evaluation.trials`,
-    "Designs"): ``"nested"`` (the default with random selection: each trial draws
-    ``max(k)`` samples and a prior once, the trial with k samples uses the first k; a
-    particle filter answers every k from one pass) or ``"independent"`` (each ``(k, trial)``
-    draws its own; the default with a selection policy), recorded as ``results.json``'s
-    ``design``.
+    Parameters
+    ----------
+    estimators : sequence of str
+        Distinct registered estimators.
+    out : path
+        Output folder: the data (simulated unless ``out/<scenario>.h5`` exists), the k-NN
+        model, ``results.json``, ``table.md``, the plots, ``config.toml`` (the resolved
+        parameters of every estimator; ``--config`` reads it back) and the finished batches
+        in ``out/partial`` (reused by a rerun).
+    trials : int
+        Trials per k, in [1, :data:`MAX_TRIALS`].
+    k_max : int
+        The largest k, in [1, 1000] (k = 1..``k_max`` unless ``k_values``).
+    seed : int
+        Seed of the simulation, the k-NN split and the trials (>= 0).
+    scenario : str
+        Any scene of the library (:func:`tofloc.simulation.builtin_scenarios`) or a scenario file.
+    params : mapping, optional
+        Parameters given to every estimator.
+    estimator_params : mapping of str to mapping, optional
+        ``{name: parameters}`` of single estimators, over ``params`` (e.g. resolved from
+        ``--config``, :mod:`tofloc.estimator_config`); names not in the run are refused.
+    prior_sigma_xy, prior_sigma_yaw_deg : float
+        The prior's spread (m, deg): the paper's by default.
+    calibration : SensorCalibration or path, optional
+        Applied for every estimator that uses one, instead of calibrating.
+    calibrate : bool, optional
+        Fit the sensor model on a calibration session of the same set-up
+        (:func:`evaluation.paper_data.calibrate_for_paper`); default: when some estimator
+        :meth:`~tofloc.problem.Estimator.uses_calibration` and no ``calibration`` is given.
+    surface : bool
+        Give the ray-casting models the CAD mesh beside the map when it exists.
+    rig_variant : {"exact", "perturbed"}, optional
+        The scene's exact or perturbed rig; None: as the scene file writes it.
+    k_values : sequence of int, optional
+        The numbers of samples, each in [1, 1000], instead of 1..``k_max``.
+    tip_sources : sequence of {"knn", "mocap"}
+        Distinct tip sources.
+    prior_modes : sequence of {"paper", "offset", "global"}, optional
+        Distinct prior modes; default the paper's two. ``"global"``: uniform over the map's
+        free space at the base height (or over ``region``) and every yaw
+        (:mod:`tofloc.free_space`).
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with the global prior mode: the rectangle (m) the base is in.
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets the notes, the stages and the trials' progress.
+    selection : str
+        The policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in
+        turn, :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
+    design : {"nested", "independent"}, optional
+        How the trials of different k relate (:mod:`evaluation.trials`, "Designs"):
+        ``"nested"`` (the default with random selection: each trial draws ``max(k)``
+        samples and a prior once, the trial with k samples uses the first k; a particle
+        filter answers every k from one pass) or ``"independent"`` (each ``(k, trial)``
+        draws its own; the default with a selection policy), recorded as
+        ``results.json``'s ``design``.
+
+    Returns
+    -------
+    PaperResult
+        The ``results.json`` document and the files written.
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc paper`` refuses it), both
+        ``calibration`` and ``calibrate=True``, design nested with a selection policy, or
+        ``out`` an existing file.
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A scenario, calibration or data file that breaks its format.
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
@@ -579,32 +938,35 @@ def paper(
     from evaluation.trials import DESIGNS, SEED_DERIVATION, SEED_DERIVATION_NESTED, TrialContext, jsonable, sample_pool
     from tofloc.provenance import provenance
 
-    names = list(estimators)
+    names = _as_list(estimators, "estimators")
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
-    if not isinstance(trials, int) or not 1 <= trials <= MAX_TRIALS:
+    if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
-    if not isinstance(k_max, int) or not 1 <= k_max <= 1000:
+    if not _is_int(k_max) or not 1 <= k_max <= 1000:
         raise ParameterError(f"k_max must be in [1, 1000], got {k_max!r}")
-    ks = list(range(1, k_max + 1)) if k_values is None else sorted({int(k) for k in k_values})
+    given_ks = None if k_values is None else _as_list(k_values, "k_values")
+    if given_ks is not None and not all(_is_int(k) for k in given_ks):
+        raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
+    ks = list(range(1, k_max + 1)) if given_ks is None else sorted({int(k) for k in given_ks})
     if not ks or ks[0] < 1 or ks[-1] > 1000:
         raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
     from evaluation.priors import ALL_PRIOR_MODES, PRIOR_MODES as _MODES
     from evaluation.trials import TIP_SOURCES as _TIPS
 
-    modes = list(_MODES if prior_modes is None else prior_modes)
+    modes = list(_MODES) if prior_modes is None else _as_list(prior_modes, "prior_modes")
     if not modes or any(m not in ALL_PRIOR_MODES for m in modes) or len(set(modes)) != len(modes):
         raise ParameterError(f"prior modes must be distinct among {list(ALL_PRIOR_MODES)}, got {modes!r}")
     if region is not None and "global" not in modes:
         raise ParameterError("a region goes with the global prior mode")
-    tips = list(tip_sources)
+    tips = _as_list(tip_sources, "tip_sources")
     if not tips or any(t not in _TIPS for t in tips) or len(set(tips)) != len(tips):
         raise ParameterError(f"tip sources must be distinct among {list(_TIPS)}, got {tips!r}")
     from tofloc.simulation import RIG_VARIANTS
 
     if rig_variant is not None and rig_variant not in RIG_VARIANTS:
         raise ParameterError(f"rig variant must be one of {list(RIG_VARIANTS)}, got {rig_variant!r}")
-    if not isinstance(seed, int) or seed < 0:
+    if not _is_int(seed) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
@@ -751,25 +1113,72 @@ def scenes(
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
-    the table of mean errors against the mean sqrt(CRLB) of the same trials. Each scene's
-    log and maps are named after it (``out/pillars-exact/pillars.h5``, ``pillars.map.ply``,
-    ``pillars.cad.ply``; a folder from before, holding ``paper.h5``, is reused as it is:
-    :func:`evaluation.paper_data.experiment_log_path`).
+    the table of mean errors against the mean sqrt(CRLB) of the same trials (what
+    ``tofloc scenes`` does). Each scene's log and maps are named after it
+    (``out/pillars-exact/pillars.h5``, ``pillars.map.ply``, ``pillars.cad.ply``; a folder
+    from before, holding ``paper.h5``, is reused as it is:
+    :func:`evaluation.paper_data.experiment_log_path`). Writes ``scenes.json``,
+    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``.
 
     The defaults are the scene check of the model core: exact rigs, k = 10, motion-capture
-    tips, offset prior, 20 trials; every estimator with its default parameters
-    (``params``, ``estimator_params``: as :func:`paper`). Writes ``scenes.json``,
-    ``scenes.md`` and ``config.toml`` (the parameters used) in ``out``. ``selection``: as
-    :func:`paper` (recorded in ``scenes.json``).
+    tips, offset prior, 20 trials; every estimator with its default parameters.
+
+    Parameters
+    ----------
+    estimators : sequence of str
+        Distinct registered estimators.
+    out : path
+        Output folder.
+    scene_names : sequence of str, optional
+        Scenes of the library (:func:`tofloc.simulation.builtin_scenarios`); default all.
+    rig_variant : {"exact", "perturbed"}
+        The scenes' rigs.
+    k : int
+        Samples per trial, in [1, 1000].
+    trials : int
+        Trials per scene, in [1, :data:`MAX_TRIALS`].
+    seed : int
+        Seed of the simulations and the trials (>= 0).
+    tip_source : {"mocap", "knn"}
+    prior_mode : {"offset", "paper", "global"}
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with the global prior mode: the rectangle (m) the base is in, on every scene.
+    params, estimator_params : mapping, optional
+        As :func:`paper`.
+    calibrate : bool, optional
+        As :func:`paper`.
+    workers : int or None
+        Local worker processes (None: one per core; 1: inline).
+    scheduler : str, optional
+        A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
+    reporter : Reporter
+        Gets a note per scene and what :func:`paper` reports.
+    selection : str
+        As :func:`paper` (recorded in ``scenes.json``).
+
+    Returns
+    -------
+    ScenesResult
+
+    Raises
+    ------
+    ParameterError
+        An unknown scene, or an argument out of its domain (each as ``tofloc scenes``
+        refuses it), before the first scene runs.
+    PluginError
+        An unknown estimator or selection policy.
     """
     from evaluation.report import write_json_atomic, write_text_atomic
     from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
-    names = list(scene_names or builtin_scenarios())
+    names = list((None if scene_names is None else _as_list(scene_names, "scene_names")) or builtin_scenarios())
     unknown = sorted(set(names) - set(builtin_scenarios()))
     if unknown:
         raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
+    estimators = _as_list(estimators, "estimators")
+    if not _is_int(k) or not 1 <= k <= 1000:
+        raise ParameterError(f"k must be in [1, 1000], got {k!r}")
     _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
     out_dir = Path(out)
     rows: list[dict[str, Any]] = []
@@ -806,7 +1215,18 @@ def scenes(
 
 def scenes_markdown(doc: Mapping[str, Any]) -> str:
     """The scene table: per scene and estimator, mean e_x and e_gamma, the mean sqrt(CRLB) of
-    the same trials and their ratio (within 2 is the model core's bar), mean NEES."""
+    the same trials and their ratio (within 2 is the model core's bar), mean NEES.
+
+    Parameters
+    ----------
+    doc : mapping
+        :attr:`ScenesResult.document` (``scenes.json``).
+
+    Returns
+    -------
+    str
+        Markdown (``scenes.md``).
+    """
     def f(v: Any, fmt: str) -> str:
         return "n/a" if v is None else format(v, fmt)
 
@@ -898,7 +1318,16 @@ def changed_params(est: Any) -> dict[str, Any] | None:
     """An estimator's parameters that differ from its class's defaults (``sensor_model_params``
     key by key, as ``sensor_model_params.KEY``), JSON-ready: what a table must say so that
     its rows can be told apart from the defaults'. None when the class has no defaults to
-    compare with (a plug-in whose constructor needs arguments)."""
+    compare with (a plug-in whose constructor needs arguments).
+
+    Parameters
+    ----------
+    est : Estimator
+
+    Returns
+    -------
+    dict or None
+    """
     from evaluation.trials import jsonable
 
     try:
@@ -972,6 +1401,8 @@ def evaluate(
         ``region``) and every yaw.
     prior_sigma_xy, prior_sigma_yaw_deg : float
         The prior's spread (m, deg): the paper's by default.
+    region : (xmin, xmax, ymin, ymax), optional
+        Only with prior mode ``global``: the rectangle (m) the base is in.
     calibration : SensorCalibration or path, optional
         Applied for every estimator that uses one, and to the oracle floor.
     params : dict, optional
@@ -996,6 +1427,22 @@ def evaluate(
         A log with fewer usable samples than a trial needs is left out, named with why in
         the note, ``results.json`` (``set_aside``) and ``table.md``, instead of refusing the
         run (:func:`evaluation.evaluate.prepare_logs`).
+
+    Returns
+    -------
+    EvaluateResult
+
+    Raises
+    ------
+    ParameterError
+        An argument out of its domain (each as ``tofloc evaluate`` refuses it).
+    PluginError
+        An unknown estimator or selection policy.
+    FormatError
+        A log, map or calibration file that breaks its format or lacks what the run needs
+        (e.g. ground truth).
+    tofloc.problem.ProblemError
+        A log with fewer usable samples than a trial needs (without ``set_aside_unusable``).
     """
     from evaluation.evaluate import (
         EstimatorSpec,
@@ -1013,7 +1460,8 @@ def evaluate(
 
     t0 = time.perf_counter()
     out_dir = check_output_path(Path(out), kind="dir", option="out")
-    names = list(estimators)
+    logs = _as_list(logs, "logs")
+    names = _as_list(estimators, "estimators")
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not isinstance(trials, int) or isinstance(trials, bool) or not 1 <= trials <= MAX_TRIALS:
@@ -1029,6 +1477,7 @@ def evaluate(
     if not isinstance(plot_failures, int) or isinstance(plot_failures, bool) or not 0 <= plot_failures <= MAX_FAILURE_PLOTS:
         raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
+    valid_statuses = _check_statuses(valid_statuses)
     check_selection(selection)
     per_est, ests = _estimators(names, params, estimator_params)
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]

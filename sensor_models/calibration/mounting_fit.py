@@ -26,7 +26,7 @@ from tofloc.mounting import corrected_T_tip_sensor
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, edge_zone_mask
 
-__all__ = ["SupportYawFit", "MountingFit", "RigCalibration", "fit_support_yaw", "fit_mounting", "calibrate_rig",
+__all__ = ["SUPPORT_YAW_STEP_DEG", "SupportYawFit", "MountingFit", "RigCalibration", "fit_support_yaw", "fit_mounting", "calibrate_rig",
            "JACKKNIFE_BLOCKS", "MIN_SUPPORT_YAW_SIGMA_DEG"]
 
 #: Blocks of samples of the support-yaw jackknife.
@@ -68,13 +68,18 @@ def _even_rows(n: int, at_most: int) -> NDArray[np.intp]:
     return np.unique(np.linspace(0, n - 1, min(n, at_most)).round().astype(np.intp))
 
 
+#: The grid step (deg) of the support rotation's search (:func:`fit_support_yaw`): the
+#: search bound (``tofloc calibrate --support-yaw-bound``) is at least one step.
+SUPPORT_YAW_STEP_DEG = 2.0
+
+
 def fit_support_yaw(
     logs_and_maps: Sequence[tuple[Any, Any]],
     *,
     footprint: int = 3,
     valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
     bound_deg: float = 20.0,
-    step_deg: float = 2.0,
+    step_deg: float = SUPPORT_YAW_STEP_DEG,
     max_samples: int = 150,
     max_iter: int = 60,
     progress: ProgressFn | None = None,

@@ -49,6 +49,7 @@ def calibrate(
         check_output_path(plot, option="--plot")
         check_output_path(zone_plot_path(plot), option="--plot")
     from sensor_models.calibration import plot_calibration
+    from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc import api
     from tofloc.cli.options import parse_statuses
 
@@ -57,12 +58,12 @@ def calibrate(
         raise ParameterError(f"--map must be given once (for every log) or once per log ({len(logs)}), got {len(map_paths)}")
     if not 1 <= footprint <= 9:
         raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
-    if not 1 <= max_iter <= 10_000:
-        raise ParameterError(f"--max-iter must be in [1, 10000], got {max_iter}")
+    if not 1 <= max_iter <= api.MAX_CALIBRATION_ITER:
+        raise ParameterError(f"--max-iter must be in [1, {api.MAX_CALIBRATION_ITER}], got {max_iter}")
     if not 0.0 <= min_distance < max_distance:
         raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
-    if not 1.0 <= support_yaw_bound <= 90.0:
-        raise ParameterError(f"--support-yaw-bound must be in [1, 90] degrees, got {support_yaw_bound}")
+    if not SUPPORT_YAW_STEP_DEG <= support_yaw_bound <= 90.0:  # at least one step of the search's grid
+        raise ParameterError(f"--support-yaw-bound must be in [{SUPPORT_YAW_STEP_DEG:g}, 90] degrees, got {support_yaw_bound}")
     with RichReporter() as reporter:
         run = api.calibrate(logs, maps=map_paths, out=out, footprint=footprint, valid_statuses=statuses, max_iter=max_iter,
                             distance_range=(min_distance, max_distance), support_yaw=support_yaw,

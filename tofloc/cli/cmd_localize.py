@@ -120,7 +120,7 @@ def localize(
         check_output_path(estimates_out, option="--estimates-out")
         if json_out is not None and estimates_out.resolve() == json_out.resolve():
             raise ParameterError("--json and --estimates-out must name different files")
-    from evaluation.priors import PriorSpec, base_pose_parts
+    from evaluation.priors import base_pose_parts
     from evaluation.report import write_json_atomic
     from tofloc import api
     from tofloc.logs import read_log
@@ -170,27 +170,9 @@ def localize(
     has_truth = log.T_map_base is not None
     if plot_nees is not None and not has_truth:
         raise ParameterError(f"--plot-nees: {log_path} has no /truth/T_map_base, so the trials have no NEES")
-    if all(given):
-        if has_truth:
-            _, z_truth, roll, pitch = base_pose_parts(log.truth_per_sample()[0])
-            z = z_truth if base_z is None else base_z
-        else:
-            if base_z is None:
-                raise ParameterError(f"{log_path} has no /truth/T_map_base: give the base height with --base-z (m)")
-            z, roll, pitch = base_z, 0.0, 0.0
-        prior = PriorSpec("given", prior_sigma_xy, prior_sigma_yaw_deg,
-                          (prior_x, prior_y, math.radians(prior_yaw_deg)), z, roll, pitch)  # type: ignore[arg-type]
-    elif mode == "global":
-        if has_truth and base_z is not None:
-            raise ParameterError(f"--base-z: {log_path} has /truth/T_map_base, whose height the global prior takes")
-        if not has_truth and base_z is None:
-            raise ParameterError(f"{log_path} has no /truth/T_map_base: give the base height with --base-z (m)")
-        prior = PriorSpec("global", z=0.0 if base_z is None else base_z, region=rect)
-    else:
-        if not has_truth:
-            raise ParameterError(f"{log_path} has no /truth/T_map_base: give the prior with --prior-x, --prior-y, "
-                                 "--prior-yaw-deg (or --prior-mode global) and the base height with --base-z")
-        prior = PriorSpec(mode, prior_sigma_xy, prior_sigma_yaw_deg)
+    prior = api.localize_prior(log, mode=None if prior_mode is None else mode, sigma_xy=prior_sigma_xy,
+                               sigma_yaw_deg=prior_sigma_yaw_deg, base_z=base_z, region=rect,
+                               mean=(prior_x, prior_y, prior_yaw_deg) if all(given) else None)  # type: ignore[arg-type]
     with RichReporter() as reporter:
         result = api.localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,

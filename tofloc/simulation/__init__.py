@@ -105,24 +105,28 @@ def simulate(
     Raises
     ------
     ParameterError
-        A rig variant the scenario cannot give, or a base that leaves the robot outside
-        free space (a wall, a box, the floor within its reach).
+        A rig variant the scenario cannot give, a negative seed, a base that is not three
+        finite numbers (yaw in [-180, 180]), or one that leaves the robot outside free
+        space (a wall, a box, the floor within its reach).
     """
     from tofloc.logs import Log
 
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     sc = with_rig_variant(sc, rig_variant)
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
-        raise ValueError(f"seeds must be non-negative, got seed={seed}, hardware_seed={hardware_seed}")
+        raise ParameterError(f"seeds must be non-negative, got seed={seed}, hardware_seed={hardware_seed}")
     r_env, r_map, r_robot, r_mocap, r_tof, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
     if hardware_seed is not None:
         r_env, r_map, _, _, _, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(hardware_seed).spawn(6))
     if base is not None:
         import dataclasses
 
-        bx, by, byaw = (float(v) for v in base)
+        try:
+            bx, by, byaw = (float(v) for v in base)
+        except (TypeError, ValueError):
+            bx = by = byaw = math.nan
         if not all(np.isfinite([bx, by, byaw])) or not -180.0 <= byaw <= 180.0:
-            raise ValueError(f"base must be finite (x, y, yaw_deg) with yaw in [-180, 180], got {base}")
+            raise ParameterError(f"base must be finite (x, y, yaw_deg) with yaw in [-180, 180], got {base}")
         sc = dataclasses.replace(sc, base=dataclasses.replace(sc.base, x=bx, y=by, yaw_deg=byaw))
     problem = base_clearance_problem(sc)
     if problem is not None:
