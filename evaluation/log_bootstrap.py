@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from evaluation.metrics import json_float
 from tofloc.errors import ParameterError
 
-__all__ = ["log_identity", "BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
+__all__ = ["resampling_units", "resampled_text", "log_identity", "BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
            "design_effect", "failure_rate_interval", "paired_runs"]
 
 #: Mixed into the run's seed for the resamples, so they do not reuse a trial's stream.
@@ -129,25 +129,52 @@ def _check_settings(resamples: Any, level: Any) -> None:
 
 def _units(labels: Sequence[str], seeds: Callable[[str], Sequence[Any]]) -> list[list[str]]:
     """The resampling units: the logs (``labels``, in their order) grouped so that logs whose
-    trials were drawn from the same seeds, in the same order (``seeds(label)``, every
-    record's ``seed``), are one unit, the others one each. Logs of one file name share
-    their seeds (docs/evaluation.md "Pairing": two flights' ``drone0-node000``): their
-    draws (prior offsets, sample positions) are the same, so their errors are not
-    independent and they are resampled together. A log whose records lack a seed is a
-    unit of its own. Units come in the order of their first log."""
-    units: list[list[str]] = []
-    by_key: dict[tuple[Any, ...], list[str]] = {}
-    for label in labels:
-        key = tuple(seeds(label))
-        if not key or any(s is None for s in key):
-            units.append([label])
-            continue
-        if key in by_key:
-            by_key[key].append(label)
-        else:
-            by_key[key] = [label]
-            units.append(by_key[key])
-    return units
+    trials share a seed (``seeds(label)``, every record's ``seed``) are one unit, the
+    others one each. Logs of one file name draw their trials from the same seeds
+    (docs/evaluation.md "Pairing": two flights' ``drone0-node000``; with 2 and 3 trials,
+    their first two): their draws (prior offsets, sample positions) are the same, so their
+    errors are not independent and they are resampled together. Grouping is transitive
+    (a log sharing a seed with either of two grouped logs joins them). A record without a
+    seed shares nothing. Units come in the order of their first log, their logs in the
+    order given."""
+    parent = list(range(len(labels)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    first: dict[Any, int] = {}
+    for i, label in enumerate(labels):
+        for s in seeds(label):
+            if s is None:
+                continue
+            j = first.setdefault(s, i)
+            a, b = root(i), root(j)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    groups: dict[int, list[str]] = {}
+    for i, label in enumerate(labels):
+        groups.setdefault(root(i), []).append(label)
+    return [groups[r] for r in sorted(groups)]
+
+
+def resampling_units(logs: Mapping[str, Mapping[str, Any]]) -> int:
+    """How many resampling units a run's ``logs`` (``results.json``'s ``logs``) form
+    (:func:`_units`: logs whose trials share their seeds go together)."""
+    labels = sorted(logs)
+    return len(_units(labels, lambda lb: _record_seeds(logs[lb])))
+
+
+def resampled_text(iv: Mapping[str, Any]) -> str:
+    """What a :func:`log_bootstrap` result resampled, in words: ``"the 30 logs"``, or with
+    units of shared draws ``"the 62 logs in 46 units (logs of one file name drew the same
+    trials: resampled together)"``; results written before units existed name the logs."""
+    n, units = iv["logs"], iv.get("units", iv["logs"])
+    if units == n:
+        return f"the {n} logs"
+    return f"the {n} logs in {units} units (logs of one file name drew the same trials: resampled together)"
 
 
 def _record_seeds(lg: Mapping[str, Any], name: str | None = None) -> list[Any]:
@@ -378,7 +405,8 @@ def paired_runs(
     dict
         ``{"level", "resamples", "estimators": {name: {"logs": n, "units": u, "e_x_m": {"ratio", "interval"},
         "e_gamma_deg": {...}, "failures": [a, b], "fixed": k, "broken": j}}}``; an estimator
-        with fewer than :data:`MIN_LOGS` paired logs has its counts and ``null`` ratios.
+        with fewer than :data:`MIN_LOGS` paired logs has its counts and ``null`` ratios; with
+        fewer than :data:`MIN_LOGS` resampling units (``units``), its ratios and ``null`` intervals.
     """
     from evaluation.evaluate import is_failure
 
@@ -395,17 +423,19 @@ def paired_runs(
                                  "broken": int(sum(b and not a for a, b in zip(fa, fb)))}
         units = _units([la for la, _ in labels], lambda la: _record_seeds(logs_a[la], name))
         entry["units"] = len(units)
-        if len(labels) < MIN_LOGS or len(units) < MIN_LOGS:
+        if len(labels) < MIN_LOGS:
             entry.update({key: {"ratio": None, "interval": None} for key in _KEYS})
         else:
-            idx = _resample_indices(seed, len(units), resamples)
             where = {la: i for i, (la, _) in enumerate(labels)}
             err_a, _, _ = _padded([[r for la in u for r in recs_a[where[la]]] for u in units])
             err_b, _, _ = _padded([[r for la in u for r in recs_b[where[la]]] for u in units])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 whole = np.nanmedian(err_b.reshape(-1, 2), axis=0) / np.nanmedian(err_a.reshape(-1, 2), axis=0)
-            spans = _ratio_interval(_resampled(err_b, idx, "median"), _resampled(err_a, idx, "median"), level)
+            spans: dict[str, Any] = {key: None for key in _KEYS}
+            if len(units) >= MIN_LOGS:  # one unit: the ratio, but nothing to resample
+                idx = _resample_indices(seed, len(units), resamples)
+                spans = _ratio_interval(_resampled(err_b, idx, "median"), _resampled(err_a, idx, "median"), level)
             for c, key in enumerate(_KEYS):
                 entry[key] = {"ratio": json_float(whole[c]), "interval": spans[key]}
         out["estimators"][name] = entry

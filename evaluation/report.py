@@ -184,12 +184,13 @@ def _add_nees_and_crlb(
         out["excluded_samples"] = excl
 
 
-def excluded_text(samples: Sequence[int]) -> str:
+def excluded_text(samples: Sequence[int], where: str = "; see `excluded_samples` in --json") -> str:
     """The console line for samples an estimate left out because no particle could explain
-    them (a trial record's ``excluded_samples``, log sample indices)."""
+    them (a trial record's ``excluded_samples``, log sample indices); ``where`` ends it
+    (where to read more; ``""`` for live localization, which writes no JSON)."""
     listed = ", ".join(str(int(i)) for i in samples)
     return (f"sample(s) {listed} left out of the weights: their likelihood was zero at every particle "
-            "(no particle explains them; see `excluded_samples` in --json)")
+            f"(no particle explains them{where})")
 
 
 def excluded_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:

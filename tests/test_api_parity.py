@@ -89,6 +89,14 @@ def test_calibrate_command_support_yaw_bound_is_the_searchs(tmp_path: Path, caps
     code = main(["calibrate", NO_LOG, "--out", str(tmp_path / "c.toml"), "--support-yaw-bound", "1.5"])
     err = capsys.readouterr().err
     assert code == 2 and "--support-yaw-bound must be in [2, 90] degrees, got 1.5" in err, err
+    # without the support fit the bound is not used, and not checked (the combination ran before)
+    code = main(["calibrate", NO_LOG, "--out", str(tmp_path / "c.toml"), "--support-yaw-bound", "1.5", "--no-support-yaw"])
+    err = capsys.readouterr().err
+    assert code == 2 and "support-yaw-bound" not in err and "never.h5" in err, err
+    from tofloc.errors import FormatError
+
+    with pytest.raises(FormatError, match="never.h5"):  # the missing log, not the unused bound
+        api.calibrate([NO_LOG], support_yaw=False, support_yaw_bound_deg=1.5)
 
 
 @pytest.mark.parametrize(("kwargs", "needle"), [
@@ -180,6 +188,8 @@ def test_localize_prior_is_the_commands_prior(pillars: Path, tmp_path: Path, cap
     ({"mode": "paper", "mean": (0, 0, 0)}, True, r"cannot be combined with a prior mode .*got mode 'paper'"),
     ({"mean": (0, 0)}, True, r"mean expects \(x, y, yaw_deg\): three finite numbers, got \(0, 0\)"),
     ({"mean": (0, 0, float("nan"))}, True, r"mean expects .*got \(0, 0, nan\)"),
+    ({"mean": ("0.1", "0.2", "30")}, True, r"mean expects .*got \('0.1', '0.2', '30'\)"),  # a bare TypeError before
+    ({"mean": (True, 0, 0)}, True, r"mean expects .*got \(True, 0, 0\)"),  # accepted before
     ({"mean": (0, 0, 0), "base_z": float("inf")}, True, r"base_z expects a finite number \(m\), got inf"),
     ({"region": (0, 1, 0, 1)}, True, r"a region goes with the global prior mode"),
     ({"mode": "global", "base_z": 0.5}, True, r"base_z \(--base-z\): .* whose height the global prior takes"),
@@ -269,3 +279,25 @@ def test_public_api_functions_have_numpydoc_matching_their_signature(name: str, 
         module, _, cls = entry.rpartition(".")
         err = getattr(importlib.import_module(module or "tofloc.errors"), cls)
         assert issubclass(err, TofLocError), (name, entry)
+
+
+def test_localize_prior_takes_any_iterable_mean(pillars: Path) -> None:
+    """A mean given as an iterator is read once (it was checked as a converted copy, then
+    unpacked again from the spent iterator: ValueError)."""
+    from tofloc.logs import read_log
+
+    spec = api.localize_prior(read_log(pillars), mean=iter([0.1, 0.2, 30.0]))
+    assert spec.mean == pytest.approx((0.1, 0.2, math.radians(30.0)))
+
+
+def test_numpy_integers_are_integers(pillars: Path) -> None:
+    """A numpy integer (what a script gets from ``np.arange`` or an array) passes where an int
+    does and comes out as Python's int: ``trials=np.int64(1)`` was refused deeper down with a
+    message that called it not an integer, and ``seed=np.int64(0)`` wrote a document JSON
+    could not hold."""
+    import json
+
+    import numpy as np
+
+    run = api.localize(str(pillars), "icp_pf", params=FEW, trials=np.int64(1), samples=np.int64(2), seed=np.int64(0))
+    assert len(run.records) == 1 and json.dumps(run.document)

@@ -586,3 +586,40 @@ def test_simulate_killed_between_its_renames_over_an_old_set_leaves_no_mismatche
     left = {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")}
     assert left == {"x.map.ply", "x.cad.ply"}, left  # the new maps, no log
     assert (tmp_path / "x.map.ply").read_bytes() != old["x.map.ply"]
+
+
+def test_simulate_over_an_old_set_keeps_it_whole_when_a_temporary_cannot_be_synced(tmp_path: Path, monkeypatch) -> None:
+    """The old log is removed only once every temporary is written AND synced: a failed
+    sync of the new map (an I/O error) keeps the old log, maps and all, and the error says
+    nothing was written (the first version removed the old log before the syncs and said the
+    same); a rename that fails after the removal says the old log was removed."""
+    import errno
+    import os as os_mod
+
+    from tofloc.simulation import simulate, write_simulation
+
+    out = tmp_path / "x.h5"
+    write_simulation(simulate("pillars", 1), out)
+    old = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real_fsync, real_replace = os_mod.fsync, os_mod.replace
+
+    def failing_fsync(fd: int) -> None:
+        if ".x.map.ply." in os_mod.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.EIO, "Input/output error")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os_mod, "fsync", failing_fsync)
+    with pytest.raises(OSError, match="Input/output error; nothing was written"):
+        write_simulation(simulate("pillars", 2), out)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == old  # the old set, whole; no temporary
+    monkeypatch.setattr(os_mod, "fsync", real_fsync)
+
+    def failing_replace(src, dst) -> None:
+        if str(dst).endswith("x.map.ply"):
+            raise OSError(errno.EIO, "Input/output error")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os_mod, "replace", failing_replace)
+    with pytest.raises(OSError, match=f"the old log {out} was removed"):
+        write_simulation(simulate("pillars", 2), out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.cad.ply", "x.map.ply"]  # no log beside old maps

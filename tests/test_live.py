@@ -300,3 +300,45 @@ def test_a_sample_no_particle_explains_is_named(paper) -> None:
                                   sensors_present=(True,) * 3)) for i in range(3)]
         # the window holds samples (10), (10, 11), (11, 12): its first one is left out
         assert [u.excluded_samples for u in ups] == ([(10,), (10,), (11,)] if first else [(), (), ()])
+
+
+def test_live_names_a_left_out_sample_once(paper, monkeypatch, capsys) -> None:
+    """The live loop warns about a sample left out of the weights once, not at every update
+    that still holds it in its window, and without pointing to a --json live mode does not
+    write (it warned four times over four updates, each saying "see ... in --json")."""
+    from excluding_model import FirstStepExcluded
+
+    import tofloc.io.capture as capture
+    from tofloc.cli import live_cmd
+    from tofloc.io.samples import Sample
+
+    sim, model = paper
+    log = sim.log.subset(model.validation_indices[:4])
+    prior = Prior(frames.xyyaw_from_se3(sim.log.T_map_base), np.array([0.05, 0.05, 0.1]), z=0.5)
+    samples = [Sample(index=i, t_s=float(i), t_host_s=float(i), distance_mm=log.distance_mm[i], status=log.status[i],
+                      sigma_mm=None, pressure_kpa=log.pressure_kpa[i], sample_id=i, sensors_present=(True,) * 3)
+               for i in range(4)]
+    live = LiveLocalizer(ICPScorePF(n_particles=100, sensor_model=FirstStepExcluded()), log.rig, sim.map_cloud, prior,
+                         model, window=10)
+
+    class OneByOne:  # the background capture, replaced by four one-sample batches
+        def __init__(self, cap) -> None:
+            self.batches = [[s] for s in samples] + [None]
+
+        def start(self) -> None: ...
+        def stop(self) -> None: ...
+        def join(self) -> None: ...
+
+        def take(self, timeout: float):
+            return self.batches.pop(0)
+
+    class Stats:
+        def summary(self) -> str:
+            return "4 samples"
+
+    monkeypatch.setattr(capture, "BackgroundCapture", OneByOne)
+    capsys.readouterr()
+    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
+    err = " ".join(capsys.readouterr().err.split())
+    assert err.count("left out of the weights") == 1, err
+    assert "warning: sample 0: sample(s) 0 left out of the weights" in err and "--json" not in err

@@ -309,3 +309,29 @@ def test_logs_that_drew_the_same_trials_are_resampled_together() -> None:
     # the same run against itself: every paired log counted, in 8 units
     pr = paired_runs(logs, logs, ["a"], seed=3, resamples=500)
     assert pr["estimators"]["a"]["logs"] == 13 and pr["estimators"]["a"]["units"] == 8
+
+
+def test_units_join_logs_that_share_any_seed_and_the_texts_say_so() -> None:
+    """Runs of 2 and 3 trials pooled: the same-named logs share their first two seeds and are
+    one unit (whole-tuple equality kept them apart); grouping is transitive and a record
+    without a seed shares nothing. Two logs in one unit: no interval, and table.md says why
+    (it said the file was of a version without intervals); paired_runs keeps the point
+    ratio (a ratio of medians needs no resampling) with a null interval."""
+    from evaluation.evaluate_report import interval_lines
+    from evaluation.log_bootstrap import _units, resampled_text
+
+    seeds = {"a/x": [1, 2], "b/x": [1, 2, 3], "a/y": [9, 8], "c/z": [None], "b/w": [7, 3]}
+    assert _units(list(seeds), seeds.__getitem__) == [["a/x", "b/x", "b/w"], ["a/y"], ["c/z"]]
+    logs = _logs([[(0.01, 1.0), (0.02, 2.0)], [(0.03, 1.5), (0.01, 0.5), (0.02, 1.0)]],
+                 [[(0.01, 0.5), (0.01, 0.6)], [(0.02, 0.7), (0.01, 0.4), (0.01, 0.5)]])
+    for lg, ss in zip(logs.values(), ([1, 2], [1, 2, 3])):
+        for part in (lg["oracle"], lg["estimators"]["a"]):
+            for r, s in zip(part["records"], ss):
+                r["seed"] = s
+    assert log_bootstrap(logs, ["a"], seed=0, resamples=200) is None
+    text = " ".join(interval_lines({"logs": logs, "intervals": None}))
+    assert "No interval: 2 logs in 1 resampling unit(s)" in text and "version without them" not in text
+    pr = paired_runs(logs, logs, ["a"], seed=0, resamples=200)["estimators"]["a"]
+    assert pr["units"] == 1 and pr["e_x_m"]["ratio"] == 1.0 and pr["e_x_m"]["interval"] is None
+    assert resampled_text({"logs": 62, "units": 46}).startswith("the 62 logs in 46 units")
+    assert resampled_text({"logs": 30}) == "the 30 logs"  # a results.json of before the units

@@ -370,6 +370,7 @@ def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[s
             raise ParameterError(f"{key} must be an integer >= 0, got {value!r}")
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ParameterError(f"seeds must be >= 0, got seed {seed}, hardware seed {hardware_seed}")
+    seed, hardware_seed = int(seed), None if hardware_seed is None else int(hardware_seed)
     result = run(scenario, seed, hardware_seed=hardware_seed, base=base, rig_variant=rig_variant)
     result.paths = write_simulation(result, out) if out is not None else {}
     return result
@@ -427,7 +428,8 @@ def calibrate(
     support_yaw : bool
         Also fit the sensor support's rotation about the tip axis.
     support_yaw_bound_deg : float
-        Search that rotation within +- this, in [2, 90] deg (the search's grid step is 2 deg).
+        Search that rotation within +- this, in [2, 90] deg (the search's grid step is 2 deg;
+        not used, nor checked, without ``support_yaw``).
     mounting : bool
         Also fit each sensor's mounting error.
     reporter : Reporter
@@ -460,8 +462,9 @@ def calibrate(
         raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
     if not _is_int(max_iter) or not 1 <= max_iter <= MAX_CALIBRATION_ITER:
         raise ParameterError(f"max_iter must be an integer in [1, {MAX_CALIBRATION_ITER}], got {max_iter!r}")
+    footprint, max_iter = int(footprint), int(max_iter)  # numpy integers as Python's
     b = support_yaw_bound_deg
-    if not isinstance(b, numbers.Real) or isinstance(b, bool) or not SUPPORT_YAW_STEP_DEG <= b <= 90.0:
+    if support_yaw and (not isinstance(b, numbers.Real) or isinstance(b, bool) or not SUPPORT_YAW_STEP_DEG <= b <= 90.0):
         raise ParameterError(f"support_yaw_bound_deg must be in [{SUPPORT_YAW_STEP_DEG:g}, 90] degrees (the search's grid "
                              f"step is {SUPPORT_YAW_STEP_DEG:g} deg), got {b!r}")
     valid_statuses = _check_statuses(valid_statuses)
@@ -594,11 +597,11 @@ def localize_prior(
     if mean is not None and mode is not None:
         raise ParameterError(f"a given prior mean (mean, --prior-x/-y/-yaw-deg) cannot be combined with a prior mode "
                              f"(which draws the prior around the truth), got mode {mode!r}")
+    parts: tuple[float, ...] = ()
     if mean is not None:
-        try:
-            parts = tuple(float(v) for v in mean)
-        except (TypeError, ValueError):
-            parts = ()
+        given = list(mean) if not isinstance(mean, (str, bytes)) and hasattr(mean, "__iter__") else [mean]
+        if all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in given):
+            parts = tuple(float(v) for v in given)
         if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
             raise ParameterError(f"mean expects (x, y, yaw_deg): three finite numbers, got {mean!r}")
     if base_z is not None and (not isinstance(base_z, numbers.Real) or isinstance(base_z, bool) or not math.isfinite(base_z)):
@@ -616,7 +619,7 @@ def localize_prior(
             if base_z is None:
                 raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
             z, roll, pitch = base_z, 0.0, 0.0
-        x, y, yaw_deg = mean
+        x, y, yaw_deg = parts
         return PriorSpec("given", sigma_xy, sigma_yaw_deg, (x, y, math.radians(yaw_deg)), z, roll, pitch)
     if mode == "global":
         if has_truth and base_z is not None:
@@ -718,6 +721,9 @@ def localize(
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
     if samples is not None and (not _is_int(samples) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
+    if not _is_int(seed) or seed < 0:
+        raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
+    trials, samples, seed = int(trials), None if samples is None else int(samples), int(seed)  # numpy integers as Python's
     if prior is not None and not isinstance(prior, PriorSpec):
         raise ParameterError(f"prior must be an evaluation.priors.PriorSpec or None, got {prior!r}")
     valid_statuses = _check_statuses(valid_statuses)
@@ -945,6 +951,7 @@ def paper(
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
     if not _is_int(k_max) or not 1 <= k_max <= 1000:
         raise ParameterError(f"k_max must be in [1, 1000], got {k_max!r}")
+    trials, k_max = int(trials), int(k_max)  # numpy integers as Python's
     given_ks = None if k_values is None else _as_list(k_values, "k_values")
     if given_ks is not None and not all(_is_int(k) for k in given_ks):
         raise ParameterError(f"k values must be integers in [1, 1000], got {k_values!r}")
@@ -968,6 +975,7 @@ def paper(
         raise ParameterError(f"rig variant must be one of {list(RIG_VARIANTS)}, got {rig_variant!r}")
     if not _is_int(seed) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
+    seed = int(seed)
     if calibrate and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True, not both")
     check_selection(selection)
@@ -1179,6 +1187,7 @@ def scenes(
     estimators = _as_list(estimators, "estimators")
     if not _is_int(k) or not 1 <= k <= 1000:
         raise ParameterError(f"k must be in [1, 1000], got {k!r}")
+    k = int(k)
     _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
     out_dir = Path(out)
     rows: list[dict[str, Any]] = []

@@ -62,7 +62,7 @@ def calibrate(
         raise ParameterError(f"--max-iter must be in [1, {api.MAX_CALIBRATION_ITER}], got {max_iter}")
     if not 0.0 <= min_distance < max_distance:
         raise ParameterError(f"expected 0 <= --min-distance < --max-distance, got {min_distance} and {max_distance}")
-    if not SUPPORT_YAW_STEP_DEG <= support_yaw_bound <= 90.0:  # at least one step of the search's grid
+    if support_yaw and not SUPPORT_YAW_STEP_DEG <= support_yaw_bound <= 90.0:  # at least one step of the search's grid
         raise ParameterError(f"--support-yaw-bound must be in [{SUPPORT_YAW_STEP_DEG:g}, 90] degrees, got {support_yaw_bound}")
     with RichReporter() as reporter:
         run = api.calibrate(logs, maps=map_paths, out=out, footprint=footprint, valid_statuses=statuses, max_iter=max_iter,

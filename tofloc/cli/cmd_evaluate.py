@@ -132,7 +132,9 @@ def interval_line(doc: dict[str, Any]) -> str:
         return ""
     parts = [f"{name} {format_span(v['ratio_to_oracle']['e_x_m'], '.2f')} / {format_span(v['ratio_to_oracle']['e_gamma_deg'], '.2f')}"
              for name, v in iv["estimators"].items()]
-    return (f"{iv['level'] * 100:.0f} % intervals of e_x / e_γ over the oracle's, resampling the {iv['logs']} logs: "
+    from evaluation.log_bootstrap import resampled_text
+
+    return (f"{iv['level'] * 100:.0f} % intervals of e_x / e_γ over the oracle's, resampling {resampled_text(iv)}: "
             + ", ".join(parts) + " (table.md: How sure these figures are)")
 
 

@@ -158,6 +158,7 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
     if in_main:
         signal.signal(signal.SIGINT, lambda *_: bg.stop())
     skipped_total = 0
+    warned: set[int] = set()  # samples already named as left out of the weights
     if suggest is not None:
         suggest(None, -1)
     bg.start()
@@ -185,10 +186,12 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
             if fit is not None and not fit.ok:
                 err_console.print(f"warning: sample {upd.sample_index}: {fit.warning()}", style="yellow", highlight=False,
                                   markup=False)
-            if upd.excluded_samples:
+            new_excluded = [i for i in upd.excluded_samples if i not in warned]
+            if new_excluded:  # once per sample, not at every update that still holds it in its window
                 from evaluation.report import excluded_text
 
-                err_console.print(f"warning: sample {upd.sample_index}: {excluded_text(upd.excluded_samples)}",
+                warned.update(new_excluded)
+                err_console.print(f"warning: sample {upd.sample_index}: {excluded_text(new_excluded, where='')}",
                                   style="yellow", highlight=False, markup=False)
             if writer is not None:
                 writer.write(upd, batch[-1].t_s)

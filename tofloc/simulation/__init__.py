@@ -186,17 +186,25 @@ def simulation_paths(out: str | Path) -> dict[str, Path]:
     return {"log": out, "map": out.parent / f"{stem}.map.ply", "cad": out.parent / f"{stem}.cad.ply"}
 
 
-def _remove_old_log_when_complete(log_path: Path) -> Callable[..., bool]:
+def _remove_old_log_when_complete(log_path: Path, removed: list[bool]) -> Callable[..., bool]:
     """An exit callback for :func:`write_simulation`'s stack: when the block ends without an
-    error (every temporary complete), remove the log an earlier run left at ``log_path``
-    before any new file is renamed into place; on an error, nothing."""
+    error (every temporary written and synced), remove the log an earlier run left at
+    ``log_path`` before any new file is renamed into place (``removed`` gets ``True`` when
+    there was one); on an error, nothing."""
 
     def exit_(exc_type: type[BaseException] | None, exc: BaseException | None, tb: Any) -> bool:
-        if exc_type is None:
-            log_path.unlink(missing_ok=True)
+        if exc_type is None and (log_path.exists() or log_path.is_symlink()):
+            log_path.unlink()
+            removed.append(True)
         return False
 
     return exit_
+
+
+def _synced(path: Path) -> None:
+    """Flush a written temporary to the disk (so that the renames that follow cannot fail on it)."""
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
 
 
 def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Path]:
@@ -207,11 +215,12 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     All or nothing: the three files are written to temporaries and renamed only once all
     of them are complete; on any error (a full disk included, refused before the first
     byte when the free space is known to be short) or an interruption the temporaries
-    are removed and existing files keep their content. Once every temporary is complete, an
-    existing log at ``OUT`` is removed first and the new log is renamed last: a process
-    killed between these steps (SIGKILL, no clean-up) may leave new maps without a log,
-    never a log beside maps it was not written with (a rerun of ``paper`` or ``scenes``
-    then simulates again instead of reusing a mismatched pair).
+    are removed and existing files keep their content. Once every temporary is written and
+    synced to the disk, an existing log at ``OUT`` is removed first, then the maps are
+    renamed and the new log last: a process stopped between these steps (SIGKILL, no
+    clean-up; or a rename that fails, which the error then says) may leave new or old maps
+    without a log, never a log beside maps it was not written with (a rerun of ``paper`` or
+    ``scenes`` then simulates again instead of reusing a mismatched pair).
     """
     import io
     from contextlib import ExitStack, redirect_stderr
@@ -229,6 +238,7 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     check_free_space(paths["log"].parent, needed, f"{paths['log']} and its maps")
     log.map = paths["map"].name
     failed: OSError | None = None
+    removed: list[bool] = []  # set once an old log at OUT was removed (just before the renames)
     # h5py prints a failed write's error again for every object it cleans up: keep it quiet
     with redirect_stderr(io.StringIO()):
         try:
@@ -237,13 +247,17 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
             # log without its maps (a rerun of paper/scenes reuses the folder's log as it finds it)
             with ExitStack() as stack:
                 tmp = {key: stack.enter_context(atomic_path(paths[key])) for key in ("log", "cad", "map")}
-                stack.push(_remove_old_log_when_complete(paths["log"]))  # runs first on the way out
+                stack.push(_remove_old_log_when_complete(paths["log"], removed))  # runs first on the way out
                 tmp["map"].write_bytes(data["map"])
                 tmp["cad"].write_bytes(data["cad"])
                 write_log(log, tmp["log"])
+                for key in ("map", "cad", "log"):  # synced before the old log goes, not only at the renames
+                    _synced(tmp[key])
         except OSError as e:  # a full disk, an I/O error: say what happened to the files
             reason = os.strerror(e.errno) if e.errno else str(e).splitlines()[0]
-            failed = OSError(e.errno, f"cannot write {paths['log']} and its maps: {reason}; nothing was written")
+            what = (f"the old log {paths['log']} was removed (its maps may be the old or the new ones)" if removed
+                    else "nothing was written")
+            failed = OSError(e.errno, f"cannot write {paths['log']} and its maps: {reason}; {what}")
     if failed is not None:
         raise failed
     return paths
