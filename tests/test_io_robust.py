@@ -568,7 +568,7 @@ def test_simulate_killed_between_its_renames_over_an_old_set_leaves_no_mismatche
     from tofloc.simulation import simulate, write_simulation
 
     out = tmp_path / "x.h5"
-    write_simulation(simulate("paper", 1), out)
+    write_simulation(simulate("pillars", 1), out)  # pillars: a few hundredths of a second to simulate
     old = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     code = textwrap.dedent(f"""
         import os
@@ -579,7 +579,7 @@ def test_simulate_killed_between_its_renames_over_an_old_set_leaves_no_mismatche
                 os._exit(9)  # killed: no clean-up, no later rename
             real(src, dst)
         os.replace = replace
-        write_simulation(simulate("paper", 2), {str(out)!r})
+        write_simulation(simulate("pillars", 2), {str(out)!r})
     """)
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 9, r.stderr[-2000:]
