@@ -421,7 +421,7 @@ def paired_runs(
         entry: dict[str, Any] = {"logs": len(labels), "failures": [int(sum(fa)), int(sum(fb))],
                                  "fixed": int(sum(a and not b for a, b in zip(fa, fb))),
                                  "broken": int(sum(b and not a for a, b in zip(fa, fb)))}
-        units = _units([la for la, _ in labels], lambda la: _record_seeds(logs_a[la], name))
+        units = _units([la for la, _ in labels], lambda la, name=name: _record_seeds(logs_a[la], name))
         entry["units"] = len(units)
         if len(labels) < MIN_LOGS:
             entry.update({key: {"ratio": None, "interval": None} for key in _KEYS})

@@ -282,7 +282,7 @@ def test_logs_that_drew_the_same_trials_are_resampled_together() -> None:
     names = sorted(base)
     seeds = {lab: [1000 * i + t for t in range(3)] for i, lab in enumerate(names)}
     logs, merged = {}, {}
-    for i, lab in enumerate(names):  # flight "a" holds every node, flight "b" repeats the first five by name
+    for lab in names:  # flight "a" holds every node, flight "b" repeats the first five by name
         lg = base[lab]
         for part in (lg["oracle"], lg["estimators"]["a"]):
             for r, s in zip(part["records"], seeds[lab]):
