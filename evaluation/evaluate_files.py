@@ -337,7 +337,7 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     file's seed). More logs, narrower intervals. Otherwise one sentence says why the files
     are not pooled; empty for a single file."""
     from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, error_summary
-    from evaluation.log_bootstrap import MIN_LOGS, log_bootstrap, log_identity, resampling_units
+    from evaluation.log_bootstrap import log_bootstrap, log_identity, no_interval_reason, resampled_text
 
     if len(views) < 2:
         return []
@@ -365,13 +365,9 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     logs = {f"{lab}/{label}": lg for v, lab in zip(views, labels) for label, lg in v["logs"].items()}
     iv = log_bootstrap(logs, names, seed=int(views[0].get("seed", 0)))
     lines = head + [f"The {len(logs)} logs of the {len(views)} files as one run (each file's trials as they ran), with "
-                    + (f"no intervals (too few logs: {resampling_units(logs)} resampling unit(s), at least {MIN_LOGS} needed)."
-                       if iv is None else
-                       f"{iv['level'] * 100:.0f} % intervals from resampling the pooled logs (evaluation/log_bootstrap.py)"
-                       + ("." if iv["units"] == len(logs) else
-                          f" in {iv['units']} units: logs of one file name drew the same trials (the same seeds, "
-                          "docs/evaluation.md \"Pairing\"), so their errors are not independent and they are "
-                          "resampled together.")),
+                    + (f"no intervals ({no_interval_reason(logs)})." if iv is None else
+                       f"{iv['level'] * 100:.0f} % intervals from resampling {resampled_text(iv)} "
+                       "(evaluation/log_bootstrap.py; docs/evaluation.md \"Pairing\")."),
                     "", "| estimator | logs | trials | median e_x (mm) | median e_gamma (deg) | failures | NEES | "
                     "ratio to oracle e_x / e_gamma |", "|---|---|---|---|---|---|---|---|"]
     orc = error_summary([r for lg in logs.values() for r in lg["oracle"]["records"]])

@@ -8,7 +8,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from evaluation.log_bootstrap import MIN_LOGS, resampled_text, resampling_units
+from evaluation.log_bootstrap import no_interval_reason, resampled_text
 from evaluation.metrics import ratio_or_none
 
 __all__ = ["table_markdown", "interval_lines", "format_span", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
@@ -305,13 +305,7 @@ def interval_lines(doc: Mapping[str, Any]) -> list[str]:
     iv = doc.get("intervals")
     lines = ["", "## How sure these figures are", ""]
     if not iv:
-        logs = doc.get("logs", {})
-        n = len(logs)
-        units = resampling_units(logs) if n >= MIN_LOGS else n
-        why = (f"{n} log(s); resampling needs at least {MIN_LOGS}" if n < MIN_LOGS else
-               f"{n} logs in {units} resampling unit(s) (logs of one file name drew the same trials and go together); "
-               f"resampling needs at least {MIN_LOGS}" if units < MIN_LOGS else
-               "the results file is of a version without them")
+        why = no_interval_reason(doc.get("logs", {})) or "the results file is of a version without them"
         return lines + [f"No interval: {why} (evaluation/log_bootstrap.py).", ""]
     pct = f"{iv['level'] * 100:.0f} %"
     lines += [

@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from evaluation.metrics import json_float
 from tofloc.errors import ParameterError
 
-__all__ = ["resampling_units", "resampled_text", "log_identity", "BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
+__all__ = ["resampling_units", "resampled_text", "no_interval_reason", "log_identity", "BOOTSTRAP_KEY", "BOOTSTRAP_DERIVATION", "DEFAULT_RESAMPLES", "DEFAULT_LEVEL", "MIN_LOGS", "log_bootstrap",
            "design_effect", "failure_rate_interval", "paired_runs"]
 
 #: Mixed into the run's seed for the resamples, so they do not reuse a trial's stream.
@@ -165,6 +165,19 @@ def resampling_units(logs: Mapping[str, Mapping[str, Any]]) -> int:
     (:func:`_units`: logs whose trials share their seeds go together)."""
     labels = sorted(logs)
     return len(_units(labels, lambda lb: _record_seeds(logs[lb])))
+
+
+def no_interval_reason(logs: Mapping[str, Mapping[str, Any]]) -> str | None:
+    """Why :func:`log_bootstrap` gives no interval for these logs, in words (too few logs, or
+    too few resampling units), or None when it gives one."""
+    n = len(logs)
+    if n < MIN_LOGS:
+        return f"{n} log(s); resampling needs at least {MIN_LOGS}"
+    units = resampling_units(logs)
+    if units < MIN_LOGS:
+        return (f"{n} logs in {units} resampling unit(s) (logs of one file name drew the same trials and go together); "
+                f"resampling needs at least {MIN_LOGS}")
+    return None
 
 
 def resampled_text(iv: Mapping[str, Any]) -> str:
@@ -364,8 +377,7 @@ def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, M
         other = logs_b[match]
         if name not in lg["estimators"] or name not in other["estimators"]:
             continue
-        sa = [r.get("seed") for r in lg["estimators"][name]["records"]]
-        sb = [r.get("seed") for r in other["estimators"][name]["records"]]
+        sa, sb = _record_seeds(lg, name), _record_seeds(other, name)
         if sa and sa == sb and all(x is not None for x in sa):
             out.append((label, match))
     return out

@@ -191,8 +191,9 @@ def test_localize_prior_is_the_commands_prior(pillars: Path, tmp_path: Path, cap
     ({"mean": ("0.1", "0.2", "30")}, True, r"mean expects .*got \('0.1', '0.2', '30'\)"),  # a bare TypeError before
     ({"mean": (True, 0, 0)}, True, r"mean expects .*got \(True, 0, 0\)"),  # accepted before
     ({"mean": (0, 0, 0), "base_z": float("inf")}, True, r"base_z expects a finite number \(m\), got inf"),
-    ({"region": (0, 1, 0, 1)}, True, r"a region goes with the global prior mode"),
-    ({"mode": "global", "base_z": 0.5}, True, r"base_z \(--base-z\): .* whose height the global prior takes"),
+    ({"region": (0, 1, 0, 1)}, True, r"a region goes with the global prior mode .*got mode 'offset'"),
+    ({"region": (0, 1, 0, 1), "mean": (0, 0, 0)}, True, r"a region goes with the global prior mode .*got a given mean"),
+    ({"mode": "global", "base_z": 0.5}, True, r"base_z \(--base-z\): expected none, got 0.5: .* whose height the global prior takes"),
     ({"sigma_xy": -1.0}, True, r"prior sigma_xy_m must be a finite number > 0, got -1.0"),
     ({"mean": (0, 0, 0)}, False, r"no /truth/T_map_base: give the base height \(base_z; --base-z\)"),
     ({"mode": "global"}, False, r"no /truth/T_map_base: give the base height \(base_z; --base-z\)"),
@@ -301,3 +302,25 @@ def test_numpy_integers_are_integers(pillars: Path) -> None:
 
     run = api.localize(str(pillars), "icp_pf", params=FEW, trials=np.int64(1), samples=np.int64(2), seed=np.int64(0))
     assert len(run.records) == 1 and json.dumps(run.document)
+
+
+def test_numpy_integers_in_evaluate_workers_and_simulate(tmp_path: Path) -> None:
+    """The same integer rule everywhere in the API (tofloc.problem.is_int): evaluate's trials,
+    samples, seed and plot_failures and the worker count accept numpy integers (they were
+    refused as "not an integer"), a bool is still refused, and simulate's seed may not be
+    None (it raised a bare TypeError comparing None with 0)."""
+    import json
+
+    import numpy as np
+
+    sim = api.simulate("pillars", 2, out=tmp_path / "p.h5")
+    run = api.evaluate([sim.paths["log"]], ["icp_pf"], out=tmp_path / "ev", params=FEW, trials=np.int64(1),
+                       samples=np.int64(3), seed=np.int64(0), plot_failures=np.int64(0))
+    doc = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert doc["trials"] == 1 and doc["seed"] == 0 and len(next(iter(doc["logs"].values()))["estimators"]["icp_pf"]["records"]) == 1
+    assert run.document["trials"] == 1
+    assert api.resolve_workers(np.int64(2), 4) == 2 and type(api.resolve_workers(np.int64(2), 4)) is int
+    with pytest.raises(ParameterError, match="workers must be an integer >= 1, got True"):
+        api.resolve_workers(True, 4)
+    with pytest.raises(ParameterError, match="seed must be an integer >= 0, got None"):
+        api.simulate("pillars", None)

@@ -101,10 +101,11 @@ def test_intervals_do_not_depend_on_the_order_the_logs_were_given() -> None:
         for r in lg["estimators"]["a"]["records"]:
             r["e_x_m"] = None if r["e_x_m"] is None else r["e_x_m"] * (0.5 + 0.1 * i)
     for run in (logs, other):
-        for lg in run.values():
+        for i, lg in enumerate(run.values()):  # each log its own seeds: one resampling unit per log
             for t, r in enumerate(lg["estimators"]["a"]["records"]):
-                r["seed"] = t
+                r["seed"] = 100 * i + t
     want, want_paired = log_bootstrap(logs, ["a"], seed=0), paired_runs(logs, other, ["a"], seed=0)
+    assert want_paired["estimators"]["a"]["units"] == 10 and want_paired["estimators"]["a"]["e_x_m"]["interval"] is not None
     keys = list(logs)
     for order in (keys[::-1], [keys[i] for i in np.random.default_rng(7).permutation(len(keys))]):
         assert log_bootstrap({k: logs[k] for k in order}, ["a"], seed=0) == want

@@ -8,9 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
+@pytest.mark.slow  # 12-20 s: a fresh interpreter simulates a scene and runs two estimators
 def test_readme_python_api_example_runs_as_printed(tmp_path: Path) -> None:
     text = README.read_text(encoding="utf-8")
     start = text.index("## Python API")

@@ -85,6 +85,8 @@ def test_draws_near_one_stay_on_particles_with_weight(name: str) -> None:
     for v in (0.0, u):
         idx = rs.RESAMPLERS[name](w, _FixedDraws(v))
         assert np.all(w[idx] > 0) and idx.size == 5
+    # the round-off guard itself: the cumulative weight is exactly 1 from the last particle with weight
+    assert rs._cumsum(np.array([0.1] * 10 + [0.0]))[9:].tolist() == [1.0, 1.0]
 
 
 def test_counts_sum_to_n_and_are_unbiased_for_systematic_and_stratified() -> None:
@@ -106,6 +108,10 @@ def test_counts_sum_to_n_and_are_unbiased_for_systematic_and_stratified() -> Non
         sd = np.sqrt(n * w * (1 - w) / draws)  # a multinomial's spread bounds both schemes'
         assert np.all(np.abs(mean - n * w) <= 5 * sd + 1e-12), scheme.__name__
         assert np.all(mean[w == 0] == 0)
+    # stratified: one draw per stratum keeps the counts far less spread than a multinomial's
+    # (measured 4.7 against 33.1 summed over the particles; a multinomial draw gives ~33)
+    counts = np.array([np.bincount(rs.stratified(w, rng, n), minlength=w.size) for _ in range(draws)])
+    assert counts.var(axis=0).sum() < 0.5 * (n * w * (1 - w)).sum()
 
 
 def test_infinite_log_weights_take_the_weight() -> None:

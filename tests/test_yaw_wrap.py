@@ -184,3 +184,17 @@ def test_rotated_problem_refuses_an_anisotropic_prior() -> None:
     prior = dataclasses.replace(p.prior, sigma=np.array([0.05, 0.02, 0.1]))
     with pytest.raises(ParameterError, match="sigma_x and sigma_y differ"):
         rotated_problem(dataclasses.replace(p, prior=prior), truth, 1.0)
+
+
+def test_rotated_problem_refuses_a_global_prior_saying_what_it_expected() -> None:
+    """A global prior's free space is not turned: refused, naming what was expected and found."""
+    import dataclasses
+
+    from tofloc.errors import ParameterError
+    from tofloc.free_space import FreeSpace
+    from tofloc.problem import Prior
+
+    p, truth = easy_problem()
+    prior = Prior.uniform(FreeSpace.from_map(p.map, p.prior.z))
+    with pytest.raises(ParameterError, match=r"expected a Gaussian prior \(sigma_x = sigma_y\), got a global prior"):
+        rotated_problem(dataclasses.replace(p, prior=prior), truth, 1.0)

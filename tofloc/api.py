@@ -31,7 +31,7 @@ from typing import Any, ContextManager, Mapping, Sequence
 
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
-from tofloc.problem import Estimator
+from tofloc.problem import Estimator, check_int, is_int as _is_int  # one integer rule: tofloc/problem.py
 from tofloc.problem_builder import check_configuration_uncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES
 
@@ -140,9 +140,9 @@ def resolve_workers(workers: int | None, n_tasks: int) -> int:
     """
     if workers is None:
         return max(1, min(os.cpu_count() or 1, n_tasks))
-    if not isinstance(workers, int) or workers < 1:
+    if not _is_int(workers) or workers < 1:
         raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
-    return workers
+    return int(workers)
 
 
 def _start_server_early(workers: int | None, scheduler: Any) -> None:
@@ -179,11 +179,6 @@ def _warm_plotting(n_workers: int, scheduler: Any) -> threading.Thread | None:
     thread = threading.Thread(target=warm, name="tofloc-warm-plotting", daemon=True)
     thread.start()
     return thread
-
-
-def _is_int(value: Any) -> bool:
-    """An integer, not a bool (``True`` would count as 1)."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _as_list(value: Any, name: str) -> list[Any]:
@@ -366,7 +361,7 @@ def simulate(scenario: Any = "paper", seed: int = 0, *, out: str | os.PathLike[s
     if rig_variant is not None and rig_variant not in RIG_VARIANTS:
         raise ParameterError(f"rig_variant expects one of {', '.join(RIG_VARIANTS)}, got {rig_variant!r}")
     for key, value in (("seed", seed), ("hardware_seed", hardware_seed)):
-        if value is not None and not _is_int(value):
+        if (value is not None or key == "seed") and not _is_int(value):
             raise ParameterError(f"{key} must be an integer >= 0, got {value!r}")
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ParameterError(f"seeds must be >= 0, got seed {seed}, hardware seed {hardware_seed}")
@@ -458,10 +453,8 @@ def calibrate(
     logs = _as_list(logs, "logs")
     if not logs:
         raise ParameterError("calibrate needs at least one log")
-    if not _is_int(footprint) or not 1 <= footprint <= MAX_FOOTPRINT:
-        raise ParameterError(f"footprint must be an integer in [1, {MAX_FOOTPRINT}], got {footprint!r}")
-    if not _is_int(max_iter) or not 1 <= max_iter <= MAX_CALIBRATION_ITER:
-        raise ParameterError(f"max_iter must be an integer in [1, {MAX_CALIBRATION_ITER}], got {max_iter!r}")
+    check_int("footprint", footprint, 1, MAX_FOOTPRINT)
+    check_int("max_iter", max_iter, 1, MAX_CALIBRATION_ITER)
     footprint, max_iter = int(footprint), int(max_iter)  # numpy integers as Python's
     b = support_yaw_bound_deg
     if support_yaw and (not isinstance(b, numbers.Real) or isinstance(b, bool) or not SUPPORT_YAW_STEP_DEG <= b <= 90.0):
@@ -608,7 +601,8 @@ def localize_prior(
         raise ParameterError(f"base_z expects a finite number (m), got {base_z!r}")
     mode = "offset" if mode is None else mode
     if region is not None and (mean is not None or mode != "global"):
-        raise ParameterError("a region goes with the global prior mode (--region with --prior-mode global)")
+        raise ParameterError(f"a region goes with the global prior mode (--region with --prior-mode global), got "
+                             f"{'a given mean' if mean is not None else f'mode {mode!r}'}")
     lg = _as_log(log)
     has_truth = lg.T_map_base is not None
     if mean is not None:
@@ -623,7 +617,8 @@ def localize_prior(
         return PriorSpec("given", sigma_xy, sigma_yaw_deg, (x, y, math.radians(yaw_deg)), z, roll, pitch)
     if mode == "global":
         if has_truth and base_z is not None:
-            raise ParameterError(f"base_z (--base-z): {lg.path} has /truth/T_map_base, whose height the global prior takes")
+            raise ParameterError(f"base_z (--base-z): expected none, got {base_z!r}: {lg.path} has /truth/T_map_base, "
+                                 "whose height the global prior takes")
         if not has_truth and base_z is None:
             raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the base height (base_z; --base-z) in m")
         return PriorSpec("global", z=0.0 if base_z is None else base_z, region=region)
@@ -1473,18 +1468,19 @@ def evaluate(
     names = _as_list(estimators, "estimators")
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
-    if not isinstance(trials, int) or isinstance(trials, bool) or not 1 <= trials <= MAX_TRIALS:
+    if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
         raise ParameterError(f"trials must be in [1, {MAX_TRIALS}], got {trials!r}")
-    if samples is not None and (not isinstance(samples, int) or isinstance(samples, bool) or not 1 <= samples <= MAX_TRIALS):
+    if samples is not None and (not _is_int(samples) or not 1 <= samples <= MAX_TRIALS):
         raise ParameterError(f"samples must be in [1, {MAX_TRIALS}] or None (all), got {samples!r}")
     if prior_mode not in ALL_PRIOR_MODES:
         raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES)}, got {prior_mode!r}")
-    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+    if not _is_int(seed) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if not logs:
         raise ParameterError("evaluate needs at least one log")
-    if not isinstance(plot_failures, int) or isinstance(plot_failures, bool) or not 0 <= plot_failures <= MAX_FAILURE_PLOTS:
-        raise ParameterError(f"plot_failures must be an integer in [0, {MAX_FAILURE_PLOTS}], got {plot_failures!r}")
+    check_int("plot_failures", plot_failures, 0, MAX_FAILURE_PLOTS)
+    trials, seed, plot_failures = int(trials), int(seed), int(plot_failures)  # numpy integers as Python's
+    samples = None if samples is None else int(samples)
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     valid_statuses = _check_statuses(valid_statuses)
     check_selection(selection)

@@ -15,7 +15,7 @@ from typing import Iterator
 
 from tofloc.errors import ParameterError
 
-__all__ = ["atomic_path", "check_output_path", "check_free_space", "free_space_bytes"]
+__all__ = ["atomic_path", "sync_file", "check_output_path", "check_free_space", "free_space_bytes"]
 
 
 def _umask() -> int:
@@ -26,6 +26,12 @@ def _umask() -> int:
 
 #: read once at import (reading the umask means setting it, which is not thread-safe)
 _UMASK = _umask()
+
+
+def sync_file(path: str | Path) -> None:
+    """Flush a written file's data to the disk (``fsync``)."""
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
 
 
 @contextmanager
@@ -47,8 +53,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
+        sync_file(tmp)
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:

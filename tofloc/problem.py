@@ -430,7 +430,12 @@ def check_in(name: str, value: Any, allowed: Iterable[Any]) -> None:
         raise ParameterError(f"{name} must be one of {allowed}, got {value!r}")
 
 
+def is_int(value: Any) -> bool:
+    """Whether ``value`` is an integer, Python's or numpy's, and not a bool (``True`` would count as 1)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 def check_int(name: str, value: Any, lo: int, hi: int) -> None:
     """Raise :class:`ParameterError` unless ``value`` is an integer (not a bool) in ``[lo, hi]``."""
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not lo <= value <= hi:
+    if not is_int(value) or not lo <= value <= hi:
         raise ParameterError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")

@@ -101,7 +101,8 @@ def rotated_problem(problem: Problem, truth: np.ndarray, angle: float) -> tuple[
     from tofloc.maps import Map
 
     if problem.prior.is_global:
-        raise ParameterError("rotated_problem: a global prior's free space is not turned")
+        raise ParameterError("rotated_problem: expected a Gaussian prior (sigma_x = sigma_y), got a global prior, whose "
+                             "free space is not turned")
     sx, sy = (float(v) for v in problem.prior.sigma[:2])
     if sx != sy:
         raise ParameterError(f"rotated_problem: the prior's sigma_x and sigma_y differ ({sx} and {sy}): an "

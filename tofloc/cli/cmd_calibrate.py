@@ -56,8 +56,10 @@ def calibrate(
     statuses = parse_statuses(valid_statuses)
     if map_paths and len(map_paths) not in (1, len(logs)):
         raise ParameterError(f"--map must be given once (for every log) or once per log ({len(logs)}), got {len(map_paths)}")
-    if not 1 <= footprint <= 9:
-        raise ParameterError(f"--footprint must be in [1, 9], got {footprint}")
+    from tofloc.zone_caster import MAX_FOOTPRINT
+
+    if not 1 <= footprint <= MAX_FOOTPRINT:
+        raise ParameterError(f"--footprint must be in [1, {MAX_FOOTPRINT}], got {footprint}")
     if not 1 <= max_iter <= api.MAX_CALIBRATION_ITER:
         raise ParameterError(f"--max-iter must be in [1, {api.MAX_CALIBRATION_ITER}], got {max_iter}")
     if not 0.0 <= min_distance < max_distance:

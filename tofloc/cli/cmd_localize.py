@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import typer
 from rich.markup import escape
@@ -219,6 +219,17 @@ def localize(
 MAX_FIT_WARNINGS = 10
 
 
+def _warn_trials(recs: list[dict[str, Any]], of: int, text: Callable[[dict[str, Any]], str], what: str, key: str) -> None:
+    """One warning line per trial of ``recs`` (``text(record)``), at most
+    :data:`MAX_FIT_WARNINGS`, then one line counting the rest (``what``: how they are
+    described; ``key``: the record field --json holds them in; ``of``: the trials in all)."""
+    for r in recs[:MAX_FIT_WARNINGS]:
+        err_console.print(f"warning: trial {r['trial']}: {text(r)}", style="yellow", highlight=False, markup=False)
+    if len(recs) > MAX_FIT_WARNINGS:
+        err_console.print(f"warning: {len(recs) - MAX_FIT_WARNINGS} more trial(s) {what} ({len(recs)} of {of} in all; "
+                          f"see `{key}` in --json)", style="yellow", highlight=False, markup=False)
+
+
 def _warn_fit(recs: list[dict[str, Any]]) -> None:
     """One warning line per trial whose data do not fit the map at the estimate (at most
     :data:`MAX_FIT_WARNINGS`, then a count), and a line per ambiguous posterior count; the
@@ -226,11 +237,7 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
     from tofloc.fit_check import warning_text
 
     flagged = [r for r in recs if isinstance(r.get("fit"), dict) and not r["fit"].get("ok", True)]
-    for r in flagged[:MAX_FIT_WARNINGS]:
-        err_console.print(f"warning: trial {r['trial']}: {warning_text(r['fit'])}", style="yellow", highlight=False, markup=False)
-    if len(flagged) > MAX_FIT_WARNINGS:
-        err_console.print(f"warning: {len(flagged) - MAX_FIT_WARNINGS} more trial(s) flagged ({len(flagged)} of {len(recs)} "
-                          "in all; see `fit` in --json)", style="yellow", highlight=False, markup=False)
+    _warn_trials(flagged, len(recs), lambda r: warning_text(r["fit"]), "flagged", "fit")
     n_amb = sum(bool(r.get("ambiguous")) for r in recs)
     if n_amb:
         err_console.print(f"note: {n_amb} of {len(recs)} trial(s) have an ambiguous posterior (a second mode holds more "
@@ -240,13 +247,7 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
     from evaluation.evaluate_report import fitted_parameters
 
     excluded = [r for r in recs if r.get("excluded_samples")]
-    for r in excluded[:MAX_FIT_WARNINGS]:
-        err_console.print(f"warning: trial {r['trial']}: {excluded_text(r['excluded_samples'])}", style="yellow",
-                          highlight=False, markup=False)
-    if len(excluded) > MAX_FIT_WARNINGS:
-        err_console.print(f"warning: {len(excluded) - MAX_FIT_WARNINGS} more trial(s) left samples out ({len(excluded)} "
-                          f"of {len(recs)} in all; see `excluded_samples` in --json)", style="yellow", highlight=False,
-                          markup=False)
+    _warn_trials(excluded, len(recs), lambda r: excluded_text(r["excluded_samples"]), "left samples out", "excluded_samples")
     ref = refit_summary(recs)
     if ref is not None:
         err_console.print(f"note: the model refitted itself to the data at a first estimate in {ref['trials']} of "

@@ -201,12 +201,6 @@ def _remove_old_log_when_complete(log_path: Path, removed: list[bool]) -> Callab
     return exit_
 
 
-def _synced(path: Path) -> None:
-    """Flush a written temporary to the disk (so that the renames that follow cannot fail on it)."""
-    with open(path, "rb+") as fh:
-        os.fsync(fh.fileno())
-
-
 def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Path]:
     """Write ``OUT`` (the log), ``<stem>.map.ply`` (the map the estimators get, named in
     the log's ``map`` attribute) and ``<stem>.cad.ply`` (the CAD mesh) beside it. The true
@@ -225,7 +219,7 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
     import io
     from contextlib import ExitStack, redirect_stderr
 
-    from tofloc.atomic import atomic_path, check_free_space
+    from tofloc.atomic import atomic_path, check_free_space, sync_file
     from tofloc.logs import write_log
     from tofloc.map_files import ply_bytes
 
@@ -252,7 +246,7 @@ def write_simulation(result: SimulationResult, out: str | Path) -> dict[str, Pat
                 tmp["cad"].write_bytes(data["cad"])
                 write_log(log, tmp["log"])
                 for key in ("map", "cad", "log"):  # synced before the old log goes, not only at the renames
-                    _synced(tmp[key])
+                    sync_file(tmp[key])
         except OSError as e:  # a full disk, an I/O error: say what happened to the files
             reason = os.strerror(e.errno) if e.errno else str(e).splitlines()[0]
             what = (f"the old log {paths['log']} was removed (its maps may be the old or the new ones)" if removed
