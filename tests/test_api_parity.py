@@ -122,11 +122,14 @@ def test_paper_refuses_bad_arguments_naming_them(tmp_path: Path, kwargs, needle)
     ({"k": 0}, r"^k must be in \[1, 1000\], got 0$"),
     ({"k": 5000}, r"^k must be in \[1, 1000\], got 5000$"),
     ({"scene_names": "pillars"}, r"scene_names expects a sequence .*'pillars'"),
+    ({"scene_names": []}, r"^scene_names is empty: expected at least one scene of the library \[.*'pillars'.*\], or None"),
+    ({"scene_names": ["pillars", "paper", "pillars"]}, r"^scene_names repeats \['pillars'\]: expected each scene once$"),
     ({"estimators": "icp_pf"}, r"estimators expects a sequence .*'icp_pf'"),
 ])
 def test_scenes_refuses_bad_arguments_naming_them(tmp_path: Path, kwargs, needle) -> None:
     """``k`` out of range was refused by the :func:`~tofloc.api.paper` call under it as
-    ``k_max``; a scene's name as a string gave six unknown scenes ``['a', 'i', ...]``."""
+    ``k_max``; a scene's name as a string gave six unknown scenes ``['a', 'i', ...]``; an
+    empty list ran every scene and a repeated scene ran twice, with two rows per estimator."""
     args = {"estimators": ["icp_pf"], "scene_names": ["pillars"], "trials": 1, "k": 2, "params": FEW, "calibrate": False,
             "workers": 1, **kwargs}
     with pytest.raises(ParameterError, match=needle):

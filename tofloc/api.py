@@ -1133,7 +1133,8 @@ def scenes(
     out : path
         Output folder.
     scene_names : sequence of str, optional
-        Scenes of the library (:func:`tofloc.simulation.builtin_scenarios`); default all.
+        Distinct scenes of the library (:func:`tofloc.simulation.builtin_scenarios`); None
+        (the default): all of them. An empty sequence is refused.
     rig_variant : {"exact", "perturbed"}
         The scenes' rigs.
     k : int
@@ -1166,7 +1167,7 @@ def scenes(
     Raises
     ------
     ParameterError
-        An unknown scene, or an argument out of its domain (each as ``tofloc scenes``
+        An unknown, repeated or empty list of scenes, or an argument out of its domain (each as ``tofloc scenes``
         refuses it), before the first scene runs.
     PluginError
         An unknown estimator or selection policy.
@@ -1175,7 +1176,13 @@ def scenes(
     from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
-    names = list((None if scene_names is None else _as_list(scene_names, "scene_names")) or builtin_scenarios())
+    names = builtin_scenarios() if scene_names is None else _as_list(scene_names, "scene_names")
+    if not names:
+        raise ParameterError(f"scene_names is empty: expected at least one scene of the library {builtin_scenarios()}, "
+                             "or None for all of them")
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ParameterError(f"scene_names repeats {repeated}: expected each scene once")
     unknown = sorted(set(names) - set(builtin_scenarios()))
     if unknown:
         raise ParameterError(f"unknown scenes {unknown}; the library has {builtin_scenarios()}")
