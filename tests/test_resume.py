@@ -56,9 +56,10 @@ def test_the_lock_is_released_when_the_run_ends(tmp_path: Path, monkeypatch) -> 
     import evaluation.paper_data as pd
 
     monkeypatch.setattr(pd, "prepare_data", _interrupt)
+    (tmp_path / "run").mkdir()
     with pytest.raises(KeyboardInterrupt):
         api.paper(["icp_pf"], out=tmp_path / "run", trials=1)
-    assert list((tmp_path / "run").iterdir()) == []
+    assert list((tmp_path / "run").iterdir()) == []  # no lock file left
     with OutputLock.folder(tmp_path / "run"):  # free again
         pass
 
@@ -115,3 +116,11 @@ def test_an_interrupted_scenes_run_counts_every_scene_once(tmp_path: Path, monke
     assert kept == [f"kept 2 finished batches in 2 partial/ folders under {out}; the same command again (same "
                     "arguments) reuses them and runs only the rest"]
     assert info.value.__notes__ == kept
+
+
+def test_a_run_refused_once_it_started_leaves_no_empty_folder(tmp_path: Path) -> None:
+    """The folder made for the lock goes again when the run wrote nothing (an unknown scene
+    is found by the data step, after the lock was taken)."""
+    out = tmp_path / "run"
+    assert main(["paper", "--scenario", "no_such_scene", "--trials", "1", "--out", str(out)]) == 2
+    assert not out.exists()

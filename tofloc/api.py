@@ -23,7 +23,7 @@ import numbers
 import os
 import threading
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ContextManager, Iterator, Mapping, Sequence
@@ -95,6 +95,7 @@ def _output_folder(out_dir: Path, reporter: "Reporter") -> Iterator[None]:
     (a scene of ``scenes``) leaves that to the outer one, which counts every batch kept."""
     from tofloc.locks import OutputLock
 
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     depth = getattr(_FOLDERS, "depth", 0)
     _FOLDERS.depth = depth + 1
@@ -102,6 +103,9 @@ def _output_folder(out_dir: Path, reporter: "Reporter") -> Iterator[None]:
         with OutputLock.folder(out_dir, "output folder"):
             yield
     except BaseException as e:
+        if created:  # made for this run, which wrote nothing (bad input found late): not left behind
+            with suppress(OSError):
+                out_dir.rmdir()
         if depth or isinstance(e, (Exception, SystemExit, GeneratorExit)):
             raise
         try:
