@@ -32,3 +32,34 @@ def test_failure_keeps_the_previous_file_and_leaves_no_temporary(tmp_path) -> No
             raise RuntimeError("crash")
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_a_full_disk_names_the_file_it_could_not_write(tmp_path) -> None:
+    """A write into the open temporary fails with an OSError that names no file (ENOSPC
+    from ``fh.write`` or a plotting library): the error must name the output, so that the
+    CLI's one line says which file ("error: No space left on device: .../table.md")."""
+    import errno
+
+    from evaluation.report import _atomic
+
+    target = tmp_path / "table.md"
+    target.write_text("old")
+
+    class FullDisk:
+        def write(self, text: str) -> None:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.raises(OSError) as info:
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            FullDisk().write("x")
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(target)
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["table.md"]
+
+    def no_room(fh) -> None:  # the writer of a results file (or a plot) on a full file system
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.raises(OSError) as info:
+        _atomic(target, no_room, "w")
+    assert info.value.filename == str(target)
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["table.md"]

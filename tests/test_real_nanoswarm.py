@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 from pathlib import Path
 
@@ -829,3 +830,61 @@ def test_odometry_bias_of_a_flight_that_never_turns_is_refused_naming_it(flights
     with pytest.raises(ValueError, match=r"fit_odometry_bias: .*two-drones: \d+ frames counted \(at least 20 needed\), "
                                          r"their yaw rates spread over 0\.0 deg/s \(at least 5 needed\): not measurable"):
         fit_odometry_bias([frozen])
+
+
+def test_an_interrupted_import_leaves_the_folder_as_it_was(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Ctrl-C (or a full disk) while the logs are written: no part of the flight's logs (which
+    `tofloc evaluate DIR/*.h5` would take for the whole flight), no maps, no temporaries;
+    the same command again imports it without --force."""
+    import errno
+
+    import tofloc.io.nanoswarm_maps as nm
+    from tofloc.cli import main
+
+    folder = make_flight(tmp_path / "f")
+    real = nm.write_log
+    calls = {"n": 0}
+
+    def fail_third(exc: BaseException):
+        def write(log, path):
+            calls["n"] += 1
+            if calls["n"] == 3:
+                raise exc
+            return real(log, path)
+        return write
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(nm, "write_log", fail_third(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        write_flight(import_flight(folder), out)
+    assert list(out.iterdir()) == []
+    calls["n"] = 0
+    monkeypatch.setattr(nm, "write_log", fail_third(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+    with pytest.raises(OSError, match=f"cannot write the flight's logs and maps into {re.escape(str(out))}: No space left "
+                                      "on device; nothing was written there"):
+        write_flight(import_flight(folder), out)
+    assert list(out.iterdir()) == []
+    calls["n"] = 0
+    monkeypatch.setattr(nm, "write_log", fail_third(KeyboardInterrupt()))
+    cli_out = tmp_path / "cli"
+    assert main(["import", "nanoswarm", str(folder), "--out", str(cli_out)]) == 130
+    assert not cli_out.exists()  # made by the run, and nothing was written into it
+    monkeypatch.setattr(nm, "write_log", real)
+    assert main(["import", "nanoswarm", str(folder), "--out", str(cli_out)]) == 0  # no --force needed
+    assert sorted(p.name for p in cli_out.glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5",
+                                                          "drone1-node000.h5", "drone1-node001.h5"]
+    assert sorted(p.name for p in cli_out.iterdir()) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node000.h5",
+                                                        "drone1-node001.h5", "maps"]
+
+
+def test_a_second_import_into_the_same_folder_is_refused(tmp_path: Path, capsys) -> None:
+    from tofloc.cli import main
+    from tofloc.locks import OutputLock
+
+    folder = make_flight(tmp_path / "f")
+    out = tmp_path / "out"
+    out.mkdir()
+    with OutputLock.folder(out):  # another import, still writing
+        assert main(["import", "nanoswarm", str(folder), "--out", str(out)]) == 2
+        assert "is in use by pid" in capsys.readouterr().err
+    assert list(out.iterdir()) == []

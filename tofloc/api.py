@@ -23,10 +23,10 @@ import numbers
 import os
 import threading
 import time
-from contextlib import nullcontext
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ContextManager, Mapping, Sequence
+from typing import Any, ContextManager, Iterator, Mapping, Sequence
 
 
 from tofloc.calibration_file import SensorCalibration
@@ -65,6 +65,59 @@ MAX_FAILURE_PLOTS = 1000
 #: Most EM iterations :func:`calibrate` accepts (``--max-iter``).
 MAX_CALIBRATION_ITER = 10_000
 
+
+#: How the note an interrupted run leaves on its interruption begins (:func:`_output_folder`).
+_KEPT_NOTE = "kept "
+
+
+def _kept_note(out_dir: Path) -> str:
+    """What an interrupted run into ``out_dir`` kept, and how to resume (one line)."""
+    saved = sorted(p for p in out_dir.rglob("*.json") if p.parent.name == "partial")
+    if not saved:
+        return (f"{_KEPT_NOTE}no finished batch yet (none saved in {out_dir}); the same command again runs them all, "
+                f"reusing any data already prepared there")
+    folders = sorted({str(p.parent) for p in saved})
+    where = folders[0] if len(folders) == 1 else f"{len(folders)} partial/ folders under {out_dir}"
+    return (f"{_KEPT_NOTE}{len(saved)} finished batch{'es' if len(saved) != 1 else ''} in {where}; the same command "
+            f"again (same arguments) reuses {'them' if len(saved) != 1 else 'it'} and runs only the rest")
+
+
+#: How many :func:`_output_folder` blocks this thread is in (``scenes`` runs ``paper`` per scene).
+_FOLDERS = threading.local()
+
+
+@contextmanager
+def _output_folder(out_dir: Path, reporter: "Reporter") -> Iterator[None]:
+    """While a run writes into ``out_dir``: hold the folder's lock (:meth:`tofloc.locks.OutputLock.folder`:
+    a second run into it is refused, naming the first), and on an interruption (Ctrl-C,
+    SIGTERM) say what was kept and how to resume: a note to ``reporter`` (the CLI prints it
+    before "interrupted") and on the exception (``add_note``). A block inside another
+    (a scene of ``scenes``) leaves that to the outer one, which counts every batch kept."""
+    from tofloc.locks import OutputLock
+
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    depth = getattr(_FOLDERS, "depth", 0)
+    _FOLDERS.depth = depth + 1
+    try:
+        with OutputLock.folder(out_dir, "output folder"):
+            yield
+    except BaseException as e:
+        if created:  # made for this run, which wrote nothing (bad input found late): not left behind
+            with suppress(OSError):
+                out_dir.rmdir()
+        if depth or isinstance(e, (Exception, SystemExit, GeneratorExit)):
+            raise
+        try:
+            note: str | None = _kept_note(out_dir)
+        except OSError:  # pragma: no cover - never fail while reporting an interruption
+            note = None
+        if note is not None:
+            e.add_note(note)
+            reporter.note(note)
+        raise
+    finally:
+        _FOLDERS.depth = depth
 
 class Reporter:
     """Where long work reports: one-line notes, named stages and progress counts.
@@ -986,100 +1039,101 @@ def paper(
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
     per_est, ests = _estimators(names, params, estimator_params)
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
-    t0 = time.perf_counter()
-    _start_server_early(workers, scheduler)
-    data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
-    for n in data.notes:
-        reporter.note(n)
-    cal = load_calibration(calibration)
-    cal_path = None if cal is None else cal.source
-    if calibrate is None:
-        calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
-    footprint_cals: dict[int, Any] = {}
-    footprint_paths: dict[str, str] = {}
-    footprints = sorted({int(e.calibration_footprint()) for e in ests.values() if e.uses_calibration()})
-    if calibrate:
-        cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
-                                     progress=reporter.progress)
-        cal_path = str(p)
-        for f in (f for f in footprints if f != 1):  # a model casting footprints gets a calibration fitted with them
-            footprint_cals[f], p = calibrate_for_paper(data, out_dir, scenario, seed, sub_rays=f, note=reporter.note,
-                                                       stage=reporter.stage, progress=reporter.progress)
-            footprint_paths[str(f)] = str(p)
-    else:
-        for message in footprint_mismatches(ests, cal):
-            reporter.note(message)
-    k_values = ks
-    pool = sample_pool(data.log, data.kinematics, max(ks))
-    reporter.note(f"samples: {pool.note}")
-    context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal,
-                           map_tolerance_m=data.map_tolerance_m, footprint_calibrations=footprint_cals)
-    batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
-               for n in names for tip in tips for prior in priors]
-    n_tasks = len(batches) * (1 if design == "nested" else len(k_values)) * trials
-    n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
-    label = (f"{len(batches)} batches x {trials} nested trials (k = {', '.join(map(str, k_values))})" if design == "nested"
-             else f"{len(batches)} batches x {len(k_values)} k x {trials} trials")
-    warming = _warm_plotting(n_workers, scheduler)
-    by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
-                           on_progress=lambda d, t: reporter.progress(d, t, label),
-                           on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
-                                                                          f"({len(recs)} trials)"),
-                           design=design)
-    records = {(b.estimator, b.tip_source, b.prior.mode): by_group[b.group] for b in batches}
-    doc = results_document(
-        records, k_values, trials, seed,
-        extra={
-            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
-                               "changed": changed_params(ests[n])}
-                           for n in names},
-            "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes,
-                      "specs": {p.mode: p.to_json() for p in priors}},
-            "tip_sources": tips,
-            "selection": selection,
-            "design": design,
-            "k_values": k_values,
-            "scenario": scenario,
-            "rig_variant": rig_variant,
-            "log": str(data.log.path),
-            "log_source": data.log.source,
-            "map": str(data.map_path),
-            "kinematics": {"path": str(out_dir / KNN_NAME), "k": int(data.kinematics.k),
-                           "n_validation": int(data.kinematics.validation_indices.size)},
-            "pool": pool.to_json(),
-            "seeds": {"seed": seed, "derivation": SEED_DERIVATION_NESTED if design == "nested" else SEED_DERIVATION,
-                      "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
-            "calibration": cal_path,
-            **({"footprint_calibrations": footprint_paths} if footprint_paths else {}),
-            "wall_time_s": round(time.perf_counter() - t0, 3),
-            "provenance": provenance(),
-        },
-    )
-    from evaluation.compare import series_of
-    from evaluation.error_plots import plot_errors_vs_k, plot_nees
-    from evaluation.report import PAPER_TABLE_I
+    with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
+        t0 = time.perf_counter()
+        _start_server_early(workers, scheduler)
+        data = prepare_data(out_dir, scenario, seed, surface, rig_variant=rig_variant, stage=reporter.stage)
+        for n in data.notes:
+            reporter.note(n)
+        cal = load_calibration(calibration)
+        cal_path = None if cal is None else cal.source
+        if calibrate is None:
+            calibrate = cal is None and any(e.uses_calibration() for e in ests.values())
+        footprint_cals: dict[int, Any] = {}
+        footprint_paths: dict[str, str] = {}
+        footprints = sorted({int(e.calibration_footprint()) for e in ests.values() if e.uses_calibration()})
+        if calibrate:
+            cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
+                                         progress=reporter.progress)
+            cal_path = str(p)
+            for f in (f for f in footprints if f != 1):  # a model casting footprints gets a calibration fitted with them
+                footprint_cals[f], p = calibrate_for_paper(data, out_dir, scenario, seed, sub_rays=f, note=reporter.note,
+                                                           stage=reporter.stage, progress=reporter.progress)
+                footprint_paths[str(f)] = str(p)
+        else:
+            for message in footprint_mismatches(ests, cal):
+                reporter.note(message)
+        k_values = ks
+        pool = sample_pool(data.log, data.kinematics, max(ks))
+        reporter.note(f"samples: {pool.note}")
+        context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal,
+                               map_tolerance_m=data.map_tolerance_m, footprint_calibrations=footprint_cals)
+        batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
+                   for n in names for tip in tips for prior in priors]
+        n_tasks = len(batches) * (1 if design == "nested" else len(k_values)) * trials
+        n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
+        label = (f"{len(batches)} batches x {trials} nested trials (k = {', '.join(map(str, k_values))})" if design == "nested"
+                 else f"{len(batches)} batches x {len(k_values)} k x {trials} trials")
+        warming = _warm_plotting(n_workers, scheduler)
+        by_group = run_batches(context, batches, k_values, trials, seed, n_workers, scheduler, partial_dir=out_dir / "partial",
+                               on_progress=lambda d, t: reporter.progress(d, t, label),
+                               on_batch=lambda b, recs, reused: reporter.note(f"{'reused' if reused else 'finished'} {b.group} "
+                                                                              f"({len(recs)} trials)"),
+                               design=design)
+        records = {(b.estimator, b.tip_source, b.prior.mode): by_group[b.group] for b in batches}
+        doc = results_document(
+            records, k_values, trials, seed,
+            extra={
+                "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
+                                   "changed": changed_params(ests[n])}
+                               for n in names},
+                "prior": {"sigma_xy_m": prior_sigma_xy, "sigma_yaw_deg": prior_sigma_yaw_deg, "modes": modes,
+                          "specs": {p.mode: p.to_json() for p in priors}},
+                "tip_sources": tips,
+                "selection": selection,
+                "design": design,
+                "k_values": k_values,
+                "scenario": scenario,
+                "rig_variant": rig_variant,
+                "log": str(data.log.path),
+                "log_source": data.log.source,
+                "map": str(data.map_path),
+                "kinematics": {"path": str(out_dir / KNN_NAME), "k": int(data.kinematics.k),
+                               "n_validation": int(data.kinematics.validation_indices.size)},
+                "pool": pool.to_json(),
+                "seeds": {"seed": seed, "derivation": SEED_DERIVATION_NESTED if design == "nested" else SEED_DERIVATION,
+                          "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
+                "calibration": cal_path,
+                **({"footprint_calibrations": footprint_paths} if footprint_paths else {}),
+                "wall_time_s": round(time.perf_counter() - t0, 3),
+                "provenance": provenance(),
+            },
+        )
+        from evaluation.compare import series_of
+        from evaluation.error_plots import plot_errors_vs_k, plot_nees
+        from evaluation.report import PAPER_TABLE_I
 
-    if warming is not None:
-        warming.join()
+        if warming is not None:
+            warming.join()
 
-    nees_panels = [(f"{tip} tip poses", [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
-                                                                    if r.get("nees") is not None],
-                                          {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
-                                         for i, n in enumerate(names) for m in priors]) for tip in tips]
-    config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
-    paths = [
-        write_json_atomic(doc, out_dir / "results.json"),
-        write_text_atomic(config_text, out_dir / "config.toml"),
-        write_text_atomic(table_markdown(doc), out_dir / "table.md"),
-        *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
-        plot_errors_vs_k([("this run", series_of(doc, out_dir / "results.json")[1])], out_dir / "errors_vs_k.png",
-                         paper=PAPER_TABLE_I if scenario == "paper" else None,
-                         title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)"),
-    ]
-    if any(entry[1] for _, panel in nees_panels for entry in panel):
-        paths.append(plot_nees(nees_panels, out_dir / "nees.png",
-                               title="NEES of every trial against chi2(3): a consistent estimator follows the black curve"))
-    return PaperResult(doc, paths)
+        nees_panels = [(f"{tip} tip poses", [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
+                                                                        if r.get("nees") is not None],
+                                              {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
+                                             for i, n in enumerate(names) for m in priors]) for tip in tips]
+        config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
+        paths = [
+            write_json_atomic(doc, out_dir / "results.json"),
+            write_text_atomic(config_text, out_dir / "config.toml"),
+            write_text_atomic(table_markdown(doc), out_dir / "table.md"),
+            *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
+            plot_errors_vs_k([("this run", series_of(doc, out_dir / "results.json")[1])], out_dir / "errors_vs_k.png",
+                             paper=PAPER_TABLE_I if scenario == "paper" else None,
+                             title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)"),
+        ]
+        if any(entry[1] for _, panel in nees_panels for entry in panel):
+            paths.append(plot_nees(nees_panels, out_dir / "nees.png",
+                                   title="NEES of every trial against chi2(3): a consistent estimator follows the black curve"))
+        return PaperResult(doc, paths)
 
 
 # -- the scene library -----------------------------------------------------------------------------
@@ -1192,36 +1246,37 @@ def scenes(
     k = int(k)
     _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
     out_dir = Path(out)
-    rows: list[dict[str, Any]] = []
-    for scene in names:
-        reporter.note(f"scene {scene} ({rig_variant} rig)")
-        run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
-                    params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
-                    k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
-                    workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
-        for est in estimators:
-            g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
-            crlb = g.get("crlb") or {}
-            row: dict[str, Any] = {"scene": scene, "estimator": est, "n": g["n"]}
-            for key, bound in (("e_x_m", "position_m"), ("e_gamma_deg", "yaw_deg")):
-                mean = g[key]["mean"]
-                b = crlb.get(bound)
-                row[key] = mean
-                row[f"crlb_{bound}"] = b
-                row[f"ratio_{key}"] = None if (mean is None or not b) else mean / b
-            for other in ("crlb_map_tolerance", "crlb_all_valid"):
-                row[f"{other}_position_m"] = (g.get(other) or {}).get("position_m")
-            row["nees_mean"] = (g.get("nees") or {}).get("mean")
-            row["found"] = g.get("found")  # within 1 cm and 1 deg; the truth among the modes; median runtime
-            rows.append(row)
-    doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-           "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
-           "provenance": provenance()}
-    config_text = _config_text({n: e["params"] for n, e in run.document["estimators"].items()},
-                               doc["provenance"]["command"], "on every scene")
-    paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
-             write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
-    return ScenesResult(rows, doc, paths)
+    with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
+        rows: list[dict[str, Any]] = []
+        for scene in names:
+            reporter.note(f"scene {scene} ({rig_variant} rig)")
+            run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
+                        params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
+                        k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
+                        workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
+            for est in estimators:
+                g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
+                crlb = g.get("crlb") or {}
+                row: dict[str, Any] = {"scene": scene, "estimator": est, "n": g["n"]}
+                for key, bound in (("e_x_m", "position_m"), ("e_gamma_deg", "yaw_deg")):
+                    mean = g[key]["mean"]
+                    b = crlb.get(bound)
+                    row[key] = mean
+                    row[f"crlb_{bound}"] = b
+                    row[f"ratio_{key}"] = None if (mean is None or not b) else mean / b
+                for other in ("crlb_map_tolerance", "crlb_all_valid"):
+                    row[f"{other}_position_m"] = (g.get(other) or {}).get("position_m")
+                row["nees_mean"] = (g.get("nees") or {}).get("mean")
+                row["found"] = g.get("found")  # within 1 cm and 1 deg; the truth among the modes; median runtime
+                rows.append(row)
+        doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
+               "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
+               "provenance": provenance()}
+        config_text = _config_text({n: e["params"] for n, e in run.document["estimators"].items()},
+                                   doc["provenance"]["command"], "on every scene")
+        paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
+                 write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
+        return ScenesResult(rows, doc, paths)
 
 
 def scenes_markdown(doc: Mapping[str, Any]) -> str:
@@ -1502,54 +1557,55 @@ def evaluate(
                            on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
     for why in (set_aside or {}).values():
         reporter.note(f"set aside: {why}")  # the reason names the log
-    ks = sorted({en.k for en in entries})
-    reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "
-                  f"{ks[0] if len(ks) == 1 else f'{ks[0]}..{ks[-1]}'} sample(s) per trial")
-    oracle = oracle_floor(entries, trials, on_progress=lambda d, t: reporter.progress(d, t, "oracle floor"))
-    n_tasks = len(entries) * len(names) * trials
-    n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
-    label = f"{len(entries)} log(s) x {len(names)} estimator(s) x {trials} trial(s)"
-    warming = _warm_plotting(n_workers, scheduler)
-    records = run_estimators(
-        entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
-        partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
-        selection=selection,
-        on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
-    )
-    if selection == "random" and len(names) > 1:  # every estimator's target at every answer
-        from evaluation.cross_check import cross_check
-        from evaluation.evaluate import TIP_SOURCE
+    with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
+        ks = sorted({en.k for en in entries})
+        reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "
+                      f"{ks[0] if len(ks) == 1 else f'{ks[0]}..{ks[-1]}'} sample(s) per trial")
+        oracle = oracle_floor(entries, trials, on_progress=lambda d, t: reporter.progress(d, t, "oracle floor"))
+        n_tasks = len(entries) * len(names) * trials
+        n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
+        label = f"{len(entries)} log(s) x {len(names)} estimator(s) x {trials} trial(s)"
+        warming = _warm_plotting(n_workers, scheduler)
+        records = run_estimators(
+            entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
+            partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
+            selection=selection,
+            on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
+        )
+        if selection == "random" and len(names) > 1:  # every estimator's target at every answer
+            from evaluation.cross_check import cross_check
+            from evaluation.evaluate import TIP_SOURCE
 
-        cross_check(entries, specs, records, trials=trials, prior=prior, tip_source=TIP_SOURCE,
-                    on_progress=lambda d, t: reporter.progress(d, t, "cross-check of the answers"))
-    doc = results_document(
-        entries, specs, records, oracle, trials=trials, samples=samples, seed=seed, prior=prior,
-        extra={
-            "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
-                               "changed": changed_params(ests[n])}
-                           for n in names},
-            "calibration": None if cal is None else cal.source,
-            "valid_statuses": sorted(valid_statuses),
-            "selection": selection,
-            "set_aside": set_aside or {},
-            "wall_time_s": round(time.perf_counter() - t0, 3),
-            "provenance": provenance(),
-        },
-    )
-    if warming is not None:
-        warming.join()
-    config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
-    paths = [
-        write_json_atomic(doc, out_dir / "results.json"),
-        write_text_atomic(config_text, out_dir / "config.toml"),
-        write_text_atomic(table_markdown(doc), out_dir / "table.md"),
-        plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
-        plot_nees(doc, out_dir / "nees.png"),
-        plot_errors_by_log(doc, out_dir / "errors_by_log.png"),
-    ]
-    if plot_failures:
-        from evaluation.failure_plots import plot_failures as draw_failures
+            cross_check(entries, specs, records, trials=trials, prior=prior, tip_source=TIP_SOURCE,
+                        on_progress=lambda d, t: reporter.progress(d, t, "cross-check of the answers"))
+        doc = results_document(
+            entries, specs, records, oracle, trials=trials, samples=samples, seed=seed, prior=prior,
+            extra={
+                "estimators": {n: {"params": jsonable(ests[n].get_params()), "uses_calibration": ests[n].uses_calibration(),
+                                   "changed": changed_params(ests[n])}
+                               for n in names},
+                "calibration": None if cal is None else cal.source,
+                "valid_statuses": sorted(valid_statuses),
+                "selection": selection,
+                "set_aside": set_aside or {},
+                "wall_time_s": round(time.perf_counter() - t0, 3),
+                "provenance": provenance(),
+            },
+        )
+        if warming is not None:
+            warming.join()
+        config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
+        paths = [
+            write_json_atomic(doc, out_dir / "results.json"),
+            write_text_atomic(config_text, out_dir / "config.toml"),
+            write_text_atomic(table_markdown(doc), out_dir / "table.md"),
+            plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
+            plot_nees(doc, out_dir / "nees.png"),
+            plot_errors_by_log(doc, out_dir / "errors_by_log.png"),
+        ]
+        if plot_failures:
+            from evaluation.failure_plots import plot_failures as draw_failures
 
-        paths += draw_failures(entries, specs, doc, prior, out_dir / "failures", plot_failures, selection=selection,
-                               on_progress=lambda d, t: reporter.progress(d, t, "failure plots"))
-    return EvaluateResult(doc, paths)
+            paths += draw_failures(entries, specs, doc, prior, out_dir / "failures", plot_failures, selection=selection,
+                                   on_progress=lambda d, t: reporter.progress(d, t, "failure plots"))
+        return EvaluateResult(doc, paths)

@@ -38,7 +38,9 @@ def sync_file(path: str | Path) -> None:
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is synced and renamed to ``path``.
 
-    The destination folder is created when missing.
+    The destination folder is created when missing. An ``OSError`` that names no file (a
+    write into the temporary on a full disk) is raised again naming ``path``, so that the
+    one-line error says which output could not be written; the temporary is removed.
 
     Examples
     --------
@@ -56,6 +58,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         sync_file(tmp)
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename is None and e.errno is not None:  # a write into an open file (a full disk) names no file
+            raise OSError(e.errno, e.strerror or os.strerror(e.errno), str(path)) from e
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -7,6 +7,11 @@ a small lock file beside the protected one (``run.h5`` -> ``.run.h5.lock``) that
 who holds it (process id, command line, start time); a second writer is refused with
 those details. The kernel releases the lock when its holder dies, so a crash never leaves
 a stale lock; the lock file is removed when the holder releases it.
+
+A command that writes many files into one folder (``tofloc paper``, ``evaluate``,
+``scenes``, ``import nanoswarm``) holds :meth:`OutputLock.folder`: the lock file
+``.tofloc.lock`` inside the folder, so that a second run into the same folder is refused
+instead of mixing its files with the first's.
 """
 
 from __future__ import annotations
@@ -22,10 +27,12 @@ from typing import Any
 
 from tofloc.errors import ParameterError
 
-__all__ = ["OutputLock", "LockedError", "lock_path_for", "lock_holder"]
+__all__ = ["OutputLock", "LockedError", "lock_path_for", "lock_holder", "FOLDER_LOCK_NAME"]
 
 #: Longest lock file read (it holds one short JSON object).
 _MAX_LOCK_BYTES = 8192
+#: The lock file of a folder a run writes into (:meth:`OutputLock.folder`).
+FOLDER_LOCK_NAME = ".tofloc.lock"
 
 
 class LockedError(ParameterError):
@@ -40,8 +47,12 @@ def lock_path_for(path: str | Path) -> Path:
 
 def lock_holder(path: str | Path) -> dict[str, Any]:
     """What the lock file of ``path`` says about its holder (empty when unreadable)."""
+    return _read_holder(lock_path_for(path))
+
+
+def _read_holder(lock_file: Path) -> dict[str, Any]:
     try:
-        with open(lock_path_for(path), "rb") as fh:
+        with open(lock_file, "rb") as fh:
             data = json.loads(fh.read(_MAX_LOCK_BYTES).decode("utf-8", "replace"))
     except (OSError, ValueError):
         return {}
@@ -66,6 +77,9 @@ class OutputLock:
         The file to protect (it need not exist).
     option : str
         The option that named it (``--out``, ``--journal``), for the refusal message.
+    lock_file : Path, optional
+        The lock file (default :func:`lock_path_for` of ``path``; :meth:`folder` puts it
+        inside a folder).
 
     Raises
     ------
@@ -79,11 +93,17 @@ class OutputLock:
     ...     record_into("run.h5")
     """
 
-    def __init__(self, path: str | Path, option: str = "--out") -> None:
+    def __init__(self, path: str | Path, option: str = "--out", *, lock_file: str | Path | None = None) -> None:
         self.path = Path(path)
         self.option = option
-        self.lock_file = lock_path_for(self.path)
+        self.lock_file = lock_path_for(self.path) if lock_file is None else Path(lock_file)
         self._fd: int | None = None
+
+    @classmethod
+    def folder(cls, path: str | Path, option: str = "--out") -> "OutputLock":
+        """The lock of a whole output folder (``path/.tofloc.lock``); the folder must exist
+        when the lock is taken."""
+        return cls(path, option, lock_file=Path(path) / FOLDER_LOCK_NAME)
 
     @property
     def held(self) -> bool:
@@ -107,7 +127,7 @@ class OutputLock:
                 os.close(fd)
                 if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     raise LockedError(
-                        f"{self.option} {self.path} is in use by {_describe(lock_holder(self.path))}: "
+                        f"{self.option} {self.path} is in use by {_describe(_read_holder(self.lock_file))}: "
                         "wait for it to finish, or choose another name"
                     ) from None
                 raise ParameterError(f"{self.option} {self.path}: cannot lock {self.lock_file}: {e.strerror}") from None

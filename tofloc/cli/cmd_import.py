@@ -63,7 +63,9 @@ def nanoswarm(
     covariance, Vicon truth) and leave-one-drone-out wall maps, or one map from another flight
     (docs/real-data.md). Prints how far the nodes' points at the truth lie from their maps."""
     from tofloc.io.nanoswarm import BAD_SCAN_POLICIES, MISSING_POSE_POLICIES, check_policy
+    from tofloc.atomic import check_output_path
     from tofloc.io.nanoswarm_maps import import_flight, write_flight
+    from tofloc.locks import FOLDER_LOCK_NAME, OutputLock
     from tofloc.scan_maps import WallFitSettings
 
     if base not in ("level", "mocap"):
@@ -80,14 +82,24 @@ def nanoswarm(
     selected = None if drones is None else parse_drones(drones)
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
-    with status(f"importing {flight_dir}"):
-        fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
-        imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit, map_from=map_from,  # type: ignore[arg-type]
-                            duplicates=duplicates, missing_poses=missing_poses, drones=selected, bad_scans=bad_scans)
-        write_flight(imp, out)
-        at_truth = imp.distances_at_truth()
+    check_output_path(out, kind="dir", option="--out")
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with OutputLock.folder(out, "--out"):  # a second import into the same folder is refused, naming this one
+            if any(p.name != FOLDER_LOCK_NAME for p in out.iterdir()) and not force:
+                raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
+            with status(f"importing {flight_dir}"):
+                fit = WallFitSettings(voxel_m=voxel, carve=carve, fit_radius_m=fit_radius)
+                imp = import_flight(flight_dir, base=base, range_cut_m=range_cut, voxel_m=voxel, wall_fit=fit,  # type: ignore[arg-type]
+                                    map_from=map_from, duplicates=duplicates, missing_poses=missing_poses, drones=selected,
+                                    bad_scans=bad_scans)
+                write_flight(imp, out)  # all or nothing: an interruption leaves the folder as it was
+                at_truth = imp.distances_at_truth()
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # made here, and nothing was written into it
+        raise
     s = imp.summary()
     nodes = ", ".join(f"drone {d}: {n}" for d, n in s["nodes_per_drone"].items())  # type: ignore[union-attr]
     built = ("leave-one-drone-out" if imp.map_from is None else f"from every drone of {imp.map_from}") + (

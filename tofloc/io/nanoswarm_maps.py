@@ -494,38 +494,72 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
     Each log carries an ``/import`` group: ``notes`` (JSON: flight, drone, node, base,
     odometry pose, Vicon row, map parameters), ``in_scan_motion`` (15, 3) float32 as sent,
     ``odometry_pose`` (3,), ``vicon_pose`` (7,) and, when the flight re-broadcast the node
-    after its optimisation, ``optimized_poses`` (L, 3). Files are written atomically.
+    after its optimisation, ``optimized_poses`` (L, 3).
+
+    All or nothing: every file is first written (and synced) into a hidden staging folder
+    in ``out_dir`` and moved to its name only once all of them are complete, the maps
+    before the logs that name them. An error (a full disk) or an interruption removes the
+    staging folder and leaves ``out_dir`` as it was, never a part of the flight's logs that
+    a later ``tofloc evaluate DIR/*.h5`` would take for the whole flight. A process killed
+    without clean-up (SIGKILL) may leave the staging folder (``.import-*.tmp``) and, in the
+    moment of the moves, the maps without every log.
 
     Returns
     -------
     list of Path
         The maps, then the logs.
+
+    Raises
+    ------
+    OSError
+        A file could not be written (its message names ``out_dir`` and says nothing was
+        written there).
     """
+    import shutil
+    import tempfile
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for name, m in sorted(imp.maps.items()):
-        written.append(m.save(out / name))
+    staging = Path(tempfile.mkdtemp(prefix=".import-", suffix=".tmp", dir=out))
     f = imp.flight
     params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict(),
               "built_from": (f"every drone of flight {imp.map_from.resolve().name}" if imp.map_from is not None else
                              "leave-one-drone-out" + ("" if f.selected is None else
                                                       f" among drones {', '.join(map(str, f.selected))}"))}
-    for i, log in enumerate(f.logs):
-        dest = out / log_name(int(f.drone[i]), int(f.node[i]))
-        with atomic_path(dest) as tmp:
-            write_log(log, tmp)
-            with open_for_extras(tmp) as h:
-                g = h.create_group("import")
-                write_text_attribute(g, "importer", "nanoswarm")
-                write_text_attribute(g, "notes", json.dumps({**f.notes(i), "map": params, "unused_rows": f.unused}, sort_keys=True))
-                write_checksummed_dataset(g, "in_scan_motion", f.motion[i], "<f4")
-                write_checksummed_dataset(g, "odometry_pose", f.odometry_pose[i], "<f8")
-                write_checksummed_dataset(g, "vicon_pose", f.vicon[i], "<f8")
-                if f.optimized_poses[i].shape[0]:
-                    write_checksummed_dataset(g, "optimized_poses", f.optimized_poses[i], "<f8")
-        written.append(dest)
-    return written
+    try:
+        try:
+            map_names = [name for name, _ in sorted(imp.maps.items())]
+            for name, m in sorted(imp.maps.items()):
+                m.save(staging / name)
+            log_names = []
+            for i, log in enumerate(f.logs):
+                name = log_name(int(f.drone[i]), int(f.node[i]))
+                with atomic_path(staging / name) as tmp:
+                    write_log(log, tmp)
+                    with open_for_extras(tmp) as h:
+                        g = h.create_group("import")
+                        write_text_attribute(g, "importer", "nanoswarm")
+                        write_text_attribute(g, "notes", json.dumps({**f.notes(i), "map": params, "unused_rows": f.unused},
+                                                                    sort_keys=True))
+                        write_checksummed_dataset(g, "in_scan_motion", f.motion[i], "<f4")
+                        write_checksummed_dataset(g, "odometry_pose", f.odometry_pose[i], "<f8")
+                        write_checksummed_dataset(g, "vicon_pose", f.vicon[i], "<f8")
+                        if f.optimized_poses[i].shape[0]:
+                            write_checksummed_dataset(g, "optimized_poses", f.optimized_poses[i], "<f8")
+                log_names.append(name)
+        except OSError as e:  # a full disk, an I/O error: nothing reached out_dir
+            reason = e.strerror or (os.strerror(e.errno) if e.errno else str(e).splitlines()[0])
+            raise OSError(e.errno, f"cannot write the flight's logs and maps into {out}: {reason}; nothing was written "
+                                   "there") from None
+        staged = [p for p in sorted(staging.rglob("*")) if p.is_file()]
+        logs_last = sorted(staged, key=lambda p: p.parent == staging)  # the maps (maps/...) first, the logs that name them last
+        for p in logs_last:
+            dest = out / p.relative_to(staging)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(p, dest)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [out / name for name in map_names] + [out / name for name in log_names]
 
 
 #: Settings compared in docs/real-data.md (each changes one thing from the defaults).
