@@ -119,6 +119,7 @@ def _output_folder(out_dir: Path, reporter: "Reporter") -> Iterator[None]:
     finally:
         _FOLDERS.depth = depth
 
+
 class Reporter:
     """Where long work reports: one-line notes, named stages and progress counts.
 
