@@ -24,6 +24,7 @@ __all__ = [
     "ERROR_KEYS",
     "write_json_atomic",
     "write_text_atomic",
+    "write_run_outputs",
     "summarize_trials",
     "excluded_summary",
     "excluded_text",
@@ -67,6 +68,54 @@ def write_json_atomic(obj: Any, path: str | Path) -> Path:
 def write_text_atomic(text: str, path: str | Path) -> Path:
     """Write a text file atomically."""
     return _atomic(path, lambda fh: fh.write(text), "w")
+
+
+def write_run_outputs(out_dir: str | Path, index: tuple[str, Any], others: Sequence[tuple[str, Any]],
+                      picture_folder: str | None = None) -> list[Path]:
+    """Replace a run's output files in ``out_dir`` as one set: ``index`` (``results.json``,
+    ``scenes.json``) last.
+
+    A folder a run wrote into before holds that run's outputs. Each file is written
+    atomically, but one after another; so the previous index is removed first, then every
+    other output this command writes (those this run writes again, and those it does not,
+    such as a ``nees.png`` with no NEES this time) and the pictures in ``picture_folder``;
+    then the new files are written, the index last. An interruption while writing leaves
+    new files beside none of the old ones, and no index: a folder with an index holds one
+    run's outputs. (The saved batches in ``partial/`` are not outputs: the same command again
+    reuses them and writes the outputs anew.)
+
+    Parameters
+    ----------
+    out_dir : path
+        The run's folder.
+    index : (str, callable)
+        The index file's name and ``write(path) -> Path``.
+    others : sequence of (str, callable or None)
+        The other outputs' names and their writers; None: this run does not write that
+        file, a previous run's is removed. ``picture_folder``'s writer gets the folder.
+    picture_folder : str, optional
+        A subfolder whose ``*.png`` are outputs (``failures``): removed before the writes
+        (the writer that draws new ones is among ``others``).
+
+    Returns
+    -------
+    list of Path
+        The files written: the index first, then the others in their order (a writer may
+        return a list of paths, which is spliced in).
+    """
+    out = Path(out_dir)
+    name, write_index = index
+    for n in [name, *(n for n, _ in others if n != picture_folder)]:
+        (out / n).unlink(missing_ok=True)
+    if picture_folder is not None and (out / picture_folder).is_dir():
+        for p in (out / picture_folder).glob("*.png"):
+            p.unlink(missing_ok=True)
+    written: list[Path] = []
+    for n, write in others:
+        if write is not None:
+            got = write(out / n)
+            written.extend(got if isinstance(got, list) else [got])
+    return [write_index(out / name), *written]
 
 
 # -- summaries ------------------------------------------------------------------------------------

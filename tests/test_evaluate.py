@@ -357,6 +357,41 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
     assert not any(n.startswith("reused") for n in rep2.notes)
 
 
+def test_a_rerun_replaces_the_previous_outputs_as_one_set(run: dict, logs: list[Path], tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each output was replaced on its own: a run interrupted while plotting left its new
+    results.json and table.md beside the previous run's plots, and a previous run's failure
+    pictures stayed beside a run that drew none (evaluation.report.write_run_outputs)."""
+    import shutil
+
+    import evaluation.evaluate_report as er
+    from tofloc import api
+
+    out = tmp_path / "again"
+    shutil.copytree(run["out"], out)  # a finished run: its outputs and saved batches
+    (out / "failures").mkdir()
+    (out / "failures" / "old-trial.png").write_bytes(b"a previous run's picture")
+    old_table = (out / "table.md").read_text()
+    (out / "table.md").write_text(old_table + "\nA PREVIOUS RUN\n")
+    args = {"trials": 2, "samples": 3, "seed": 5, "params": {"n_particles": 100}, "workers": 1}
+
+    def interrupted(doc: object, path: Path) -> Path:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(er, "plot_nees", interrupted)  # stopped after table.md and the first plot
+    with pytest.raises(KeyboardInterrupt):
+        api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, **args)
+    left = sorted(p.name for p in out.iterdir())
+    assert left == ["config.toml", "errors_cdf.png", "failures", "partial", "table.md"], left  # no results.json
+    assert "A PREVIOUS RUN" not in (out / "table.md").read_text()
+    assert list((out / "failures").iterdir()) == []
+    monkeypatch.undo()
+    res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, **args)  # the same command again: from the saved batches
+    assert res.paths[0] == out / "results.json" and len(res.paths) == 6
+    assert {p.name for p in out.iterdir()} == {p.name for p in res.paths} | {"failures", "partial"}
+    assert (out / "table.md").read_text() == old_table
+
+
 def test_one_pool_for_several_logs_matches_inline(run: dict) -> None:
     """The trials of several logs in one pool of worker processes (a context per group)."""
     from evaluation.evaluate import EstimatorSpec, prepare_logs, run_estimators

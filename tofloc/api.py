@@ -988,7 +988,8 @@ def paper(
     """
     from evaluation.paper_data import KNN_NAME, KNN_STREAM, calibrate_for_paper, prepare_data
     from evaluation.priors import PriorSpec
-    from evaluation.report import plot_errors, results_document, table_markdown, write_json_atomic, write_text_atomic
+    from evaluation.report import (plot_errors, results_document, table_markdown, write_json_atomic, write_run_outputs,
+                                   write_text_atomic)
     from evaluation.result_cache import Batch, run_batches
     from evaluation.trials import DESIGNS, SEED_DERIVATION, SEED_DERIVATION_NESTED, TrialContext, jsonable, sample_pool
     from tofloc.provenance import provenance
@@ -1122,18 +1123,18 @@ def paper(
                                               {"color": f"C{i % 10}", "ls": "-" if m.mode == "paper" else "--"})
                                              for i, n in enumerate(names) for m in priors]) for tip in tips]
         config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
-        paths = [
-            write_json_atomic(doc, out_dir / "results.json"),
-            write_text_atomic(config_text, out_dir / "config.toml"),
-            write_text_atomic(table_markdown(doc), out_dir / "table.md"),
-            *(plot_errors(doc, tip, out_dir / f"errors_{tip}.png") for tip in tips),
-            plot_errors_vs_k([("this run", series_of(doc, out_dir / "results.json")[1])], out_dir / "errors_vs_k.png",
-                             paper=PAPER_TABLE_I if scenario == "paper" else None,
-                             title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)"),
-        ]
-        if any(entry[1] for _, panel in nees_panels for entry in panel):
-            paths.append(plot_nees(nees_panels, out_dir / "nees.png",
-                                   title="NEES of every trial against chi2(3): a consistent estimator follows the black curve"))
+        has_nees = any(entry[1] for _, panel in nees_panels for entry in panel)
+        paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [
+            ("config.toml", lambda p: write_text_atomic(config_text, p)),
+            ("table.md", lambda p: write_text_atomic(table_markdown(doc), p)),
+            *((f"errors_{tip}.png", (lambda p, tip=tip: plot_errors(doc, tip, p)) if tip in tips else None)
+              for tip in ("knn", "mocap")),
+            ("errors_vs_k.png", lambda p: plot_errors_vs_k(
+                [("this run", series_of(doc, out_dir / "results.json")[1])], p, paper=PAPER_TABLE_I if scenario == "paper" else None,
+                title=f"Localization error against k, {scenario} scenario (mean over {trials} trials; log scale)")),
+            ("nees.png", (lambda p: plot_nees(nees_panels, p, title="NEES of every trial against chi2(3): a consistent "
+                                              "estimator follows the black curve")) if has_nees else None),
+        ])
         return PaperResult(doc, paths)
 
 
@@ -1227,7 +1228,7 @@ def scenes(
     PluginError
         An unknown estimator or selection policy.
     """
-    from evaluation.report import write_json_atomic, write_text_atomic
+    from evaluation.report import write_json_atomic, write_run_outputs, write_text_atomic
     from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
@@ -1275,8 +1276,9 @@ def scenes(
                "provenance": provenance()}
         config_text = _config_text({n: e["params"] for n, e in run.document["estimators"].items()},
                                    doc["provenance"]["command"], "on every scene")
-        paths = [write_json_atomic(doc, out_dir / "scenes.json"), write_text_atomic(config_text, out_dir / "config.toml"),
-                 write_text_atomic(scenes_markdown(doc), out_dir / "scenes.md")]
+        paths = write_run_outputs(out_dir, ("scenes.json", lambda p: write_json_atomic(doc, p)), [
+            ("config.toml", lambda p: write_text_atomic(config_text, p)),
+            ("scenes.md", lambda p: write_text_atomic(scenes_markdown(doc), p))])
         return ScenesResult(rows, doc, paths)
 
 
@@ -1520,7 +1522,7 @@ def evaluate(
     )
     from evaluation.evaluate_report import plot_error_cdfs, plot_errors_by_log, plot_nees, table_markdown
     from evaluation.priors import ALL_PRIOR_MODES, PriorSpec
-    from evaluation.report import write_json_atomic, write_text_atomic
+    from evaluation.report import write_json_atomic, write_run_outputs, write_text_atomic
     from evaluation.trials import jsonable
     from tofloc.atomic import check_output_path
     from tofloc.provenance import provenance
@@ -1596,17 +1598,16 @@ def evaluate(
         if warming is not None:
             warming.join()
         config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
-        paths = [
-            write_json_atomic(doc, out_dir / "results.json"),
-            write_text_atomic(config_text, out_dir / "config.toml"),
-            write_text_atomic(table_markdown(doc), out_dir / "table.md"),
-            plot_error_cdfs(doc, out_dir / "errors_cdf.png"),
-            plot_nees(doc, out_dir / "nees.png"),
-            plot_errors_by_log(doc, out_dir / "errors_by_log.png"),
-        ]
-        if plot_failures:
-            from evaluation.failure_plots import plot_failures as draw_failures
+        from evaluation.failure_plots import plot_failures as draw_failures
 
-            paths += draw_failures(entries, specs, doc, prior, out_dir / "failures", plot_failures, selection=selection,
-                                   on_progress=lambda d, t: reporter.progress(d, t, "failure plots"))
+        paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [
+            ("config.toml", lambda p: write_text_atomic(config_text, p)),
+            ("table.md", lambda p: write_text_atomic(table_markdown(doc), p)),
+            ("errors_cdf.png", lambda p: plot_error_cdfs(doc, p)),
+            ("nees.png", lambda p: plot_nees(doc, p)),
+            ("errors_by_log.png", lambda p: plot_errors_by_log(doc, p)),
+            ("failures", (lambda p: draw_failures(entries, specs, doc, prior, p, plot_failures, selection=selection,
+                                                  on_progress=lambda d, t: reporter.progress(d, t, "failure plots")))
+             if plot_failures else None),
+        ], picture_folder="failures")
         return EvaluateResult(doc, paths)
