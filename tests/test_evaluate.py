@@ -339,7 +339,7 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
     rep = api.NoteList()
     res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, trials=2, samples=3, seed=5, params={"n_particles": 100},
                        workers=1, reporter=rep)
-    assert "reused 3 of 4 saved (log, estimator) batches" in rep.notes
+    assert "reused 3 saved (log, estimator) batches of the run's 4" in rep.notes
     assert missing.exists()
     first = run["doc"]["logs"]
     for label, lg in res.document["logs"].items():

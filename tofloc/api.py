@@ -1573,7 +1573,7 @@ def evaluate(
             entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
             partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
             selection=selection,
-            on_reused=lambda r, t: reporter.note(f"reused {r} of {t} saved (log, estimator) batches") if r else None,
+            on_reused=lambda r, t: reporter.note(f"reused {r} saved (log, estimator) batch{'es' if r != 1 else ''} of the run's {t}") if r else None,
         )
         if selection == "random" and len(names) > 1:  # every estimator's target at every answer
             from evaluation.cross_check import cross_check
