@@ -18,6 +18,7 @@ import numpy as np
 
 from evaluation.compare import Series
 from tofloc.atomic import atomic_path
+from tofloc.plot_style import SAVE_DPI, estimator_colours
 
 __all__ = ["plot_errors_vs_k", "plot_nees", "nees_band", "MODE_MARKERS", "FILE_STYLES"]
 
@@ -32,7 +33,7 @@ def _write_png(fig: Any, path: str | Path) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(p) as tmp, open(tmp, "wb") as fh:
-        fig.savefig(fh, format="png")
+        fig.savefig(fh, format="png", dpi=SAVE_DPI)
     return p
 
 
@@ -44,7 +45,8 @@ def plot_errors_vs_k(files: Sequence[tuple[str, Sequence[Series]]], path: str | 
     ----------
     files : sequence of (label, series)
         One entry per results file (:func:`evaluation.compare.load_results`); each file
-        gets a line style (:data:`FILE_STYLES`), each estimator a colour, each prior mode a
+        gets a line style (:data:`FILE_STYLES`), each estimator its colour
+        (:mod:`tofloc.plot_style`), each prior mode a
         marker. A series with a single k (a ``localize`` file) is a hollow marker labelled
         with its file's label.
     path : path
@@ -68,7 +70,7 @@ def plot_errors_vs_k(files: Sequence[tuple[str, Sequence[Series]]], path: str | 
                 estimators.append(s.estimator)
             if s.prior_mode not in modes:
                 modes.append(s.prior_mode)
-    colours = {e: f"C{i % 10}" for i, e in enumerate(estimators)}
+    colours = estimator_colours(estimators)  # the same as in every other figure of the run
     fig = Figure(figsize=(5.2 * max(1, len(tips)) + 0.6, 7.6), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, max(1, len(tips)), squeeze=False, sharex=True)

@@ -202,7 +202,10 @@ def localize(
 
         values = [r["nees"] for r in doc["trials"] if r.get("nees") is not None]
         label = f"{estimator}, {doc['tip_source']} tips, prior {doc['prior']['mode']}, k = {doc['samples']}"
-        draw_nees([(f"{Path(doc['log']).name}: {len(doc['trials'])} trial(s)", [(label, values)])], plot_nees)
+        from tofloc.plot_style import estimator_colours
+
+        style = {"color": estimator_colours([estimator])[estimator]}  # its colour in the other figures
+        draw_nees([(f"{Path(doc['log']).name}: {len(doc['trials'])} trial(s)", [(label, values, style)])], plot_nees)
     _print(doc, result.has_truth)
     _warn_fit(doc["trials"])
     if json_out is not None:

@@ -1,0 +1,65 @@
+"""One look for every figure of a run: each estimator's colour and line style.
+
+The same estimator gets the same colour in every figure tofloc draws (the Fig. 4 bars,
+the error-vs-k lines and NEES of ``tofloc paper``, the error CDFs and NEES of ``tofloc
+evaluate``, their re-plots by ``tofloc plot``), whichever estimators a run holds and in
+whatever order they were given: the built-in estimators keep fixed slots of matplotlib's
+default colour cycle (tab10, readable by most colour-blind readers), a plug-in takes the
+first free slot in the order the figure is given its estimators. Where lines carry no
+other meaning in their style (the error CDFs), each estimator also has a line style of
+its own, so that the lines can be told apart in greyscale. Every PNG is written at
+:data:`SAVE_DPI` (the figures' sizes are in inches; 80-110 dots per inch, matplotlib's
+screen resolutions, blur when a figure is printed or shrunk to a column).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable
+
+__all__ = ["BUILTIN_COLOURS", "ORACLE_STYLE", "SAVE_DPI", "estimator_colours", "estimator_linestyles"]
+
+#: Resolution of every PNG tofloc writes (dots per inch).
+SAVE_DPI = 200
+#: Fixed colours of the built-in estimators (the first four colours of the default cycle).
+BUILTIN_COLOURS = {"icp_pf": "C0", "beam_pf": "C1", "likelihood_field_pf": "C2", "gtsam_smoother": "C3"}
+#: Colours left for plug-ins, in order (C7, grey, is left out: the reference lines are grey).
+_FREE_COLOURS = ("C4", "C5", "C6", "C8", "C9")
+#: Line styles, one per estimator in :func:`estimator_linestyles` (the oracle floor's is ``"--"``).
+_LINESTYLES: tuple[Any, ...] = ("-", "-.", ":", (0, (5, 1, 1, 1, 1, 1)), (0, (8, 2)), (0, (1, 1)))
+#: The oracle floor's line in the error CDFs: black, dashed.
+ORACLE_STYLE = {"color": "black", "linestyle": "--"}
+
+
+def estimator_colours(names: Iterable[str]) -> dict[str, str]:
+    """Each estimator's matplotlib colour: a built-in's fixed one (:data:`BUILTIN_COLOURS`),
+    a plug-in the next free slot of the default cycle in the order of ``names`` (the cycle
+    repeats after the fifth plug-in)."""
+    out: dict[str, str] = {}
+    free = 0
+    for name in names:
+        if name in out:
+            continue
+        if name in BUILTIN_COLOURS:
+            out[name] = BUILTIN_COLOURS[name]
+        else:
+            out[name] = _FREE_COLOURS[free % len(_FREE_COLOURS)]
+            free += 1
+    return out
+
+
+def estimator_linestyles(names: Iterable[str]) -> dict[str, Any]:
+    """Each estimator's line style: a built-in's fixed one (solid for ``icp_pf``, then
+    dash-dot, dotted, dash-dot-dot), a plug-in the next one in the order of ``names``;
+    never the oracle floor's dashes."""
+    builtin = {n: _LINESTYLES[i] for i, n in enumerate(BUILTIN_COLOURS)}
+    out: dict[str, Any] = {}
+    free = len(builtin)
+    for name in names:
+        if name in out:
+            continue
+        if name in builtin:
+            out[name] = builtin[name]
+        else:
+            out[name] = _LINESTYLES[free % len(_LINESTYLES)]
+            free += 1
+    return out
