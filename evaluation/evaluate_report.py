@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -358,30 +358,41 @@ def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:
 
 
 def _write_png(fig: Any, path: str | Path) -> Path:
+    from tofloc.plot_style import SAVE_DPI
     from evaluation.report import _atomic
 
-    return _atomic(path, lambda fh: fig.savefig(fh, format="png"), "wb")
+    return _atomic(path, lambda fh: fig.savefig(fh, format="png", dpi=SAVE_DPI), "wb")
 
 
-def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path) -> Path:
+def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path, estimators: Sequence[str] = ()) -> Path:
     """Empirical CDFs of e_x (mm) and e_gamma (deg) over every trial of every log: one line
     per estimator, the oracle floor's as a black dashed reference, the failure thresholds
-    as dotted lines (log-scaled error axes)."""
+    as dotted lines (log-scaled error axes).
+
+    Each estimator has its colour and line style of :mod:`tofloc.plot_style` (the same
+    in every figure of a run, told apart in greyscale too); ``estimators``, every estimator
+    of the figures drawn together (e.g. ``tofloc plot``'s files), orders the plug-ins' colours.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+    from tofloc.plot_style import ORACLE_STYLE, estimator_colours, estimator_linestyles
+
     ests = list(doc["summary"])
+    colours = estimator_colours([*estimators, *ests])
+    styles = estimator_linestyles([*estimators, *ests])
     fig = Figure(figsize=(10.0, 4.6), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     fail = doc["failure"]
     for ax, key, scale, label, limit in (
-        (axes[0], "e_x_m", 1000.0, "position error $e_x$ (mm)", fail["e_x_m"] * 1000.0),
-        (axes[1], "e_gamma_deg", 1.0, r"yaw error $e_\gamma$ (deg)", fail["e_gamma_deg"]),
+        (axes[0], "e_x_m", 1000.0, "position error $e_x$ (mm, log scale)", fail["e_x_m"] * 1000.0),
+        (axes[1], "e_gamma_deg", 1.0, r"yaw error $e_\gamma$ (deg, log scale)", fail["e_gamma_deg"]),
     ):
-        series = [(e, _all(doc, e, key) * scale, {"color": f"C{i}", "linewidth": 1.6}) for i, e in enumerate(ests)]
-        series.append(("oracle floor", _all(doc, None, key) * scale, {"color": "black", "linestyle": "--", "linewidth": 1.4}))
+        series = [(e, _all(doc, e, key) * scale, {"color": colours[e], "linestyle": styles[e], "linewidth": 1.6})
+                  for e in ests]
+        series.append(("oracle floor", _all(doc, None, key) * scale, {**ORACLE_STYLE, "linewidth": 1.4}))
         finite = np.concatenate([v[np.isfinite(v)] for _, v, _ in series])
         lo = max(float(np.min(finite[finite > 0])) if np.any(finite > 0) else 1e-3, 1e-3)
         hi = max(float(np.max(finite)) if finite.size else 1.0, limit * 1.5)
@@ -393,7 +404,7 @@ def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path) -> Path:
             y = np.concatenate([[0.0], np.arange(1, v.size + 1) / v.size])
             ax.step(x, y, where="post", label=f"{name} (n={v.size})", **style)
         ax.axvline(limit, color="grey", linestyle=":", linewidth=1.0)
-        ax.text(limit, 0.02, " failure", color="grey", fontsize=8, rotation=90, va="bottom", ha="right")
+        ax.text(limit, 0.02, " failure threshold", color="grey", fontsize=8, rotation=90, va="bottom", ha="right")
         ax.set_xscale("log")
         ax.set_xlim(lo / 1.3, hi * 1.3)
         decades = np.log10(hi / lo)
@@ -413,19 +424,24 @@ def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path) -> Path:
     return _write_png(fig, path)
 
 
-def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
+def plot_nees(doc: Mapping[str, Any], path: str | Path, estimators: Sequence[str] = ()) -> Path:
     """Every trial's NEES per estimator (jittered points, log scale) against the central
     95 % band of chi2(3) (shaded) and its mean 3 (line); a diamond marks each estimator's
     mean NEES. Trials whose NEES is undefined (singular covariance) are counted under the
     estimator's name. When logs declare their truth's uncertainty the points are the NEES
     that uses it, a hollow square marks the mean NEES against the truth taken as exact, and
-    the title says so."""
+    the title says so. The legend is drawn beside the axes, never over a point; each
+    estimator has its colour of :mod:`tofloc.plot_style` (``estimators`` as in
+    :func:`plot_error_cdfs`)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter
 
+    from tofloc.plot_style import estimator_colours
+
     ests = list(doc["summary"])
-    fig = Figure(figsize=(max(6.0, 1.7 * len(ests) + 2.0), 4.8), dpi=110)
+    colours = estimator_colours([*estimators, *ests])
+    fig = Figure(figsize=(max(6.0, 1.7 * len(ests) + 2.0) + 2.2, 4.8), dpi=110)
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     rng = np.random.default_rng(0)  # jitter only
@@ -439,14 +455,14 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
         ok = v[np.isfinite(v) & (v > 0)]
         all_vals.append(ok)
         x = i + rng.uniform(-0.18, 0.18, size=ok.size)
-        ax.scatter(x, ok, s=10, color=f"C{i}", alpha=0.6, linewidths=0)
+        ax.scatter(x, ok, s=10, color=colours[e], alpha=0.6, linewidths=0)
         if ok.size:
-            ax.scatter([i + 0.3], [ok.mean()], marker="D", s=40, color=f"C{i}", edgecolors="black", zorder=5)
+            ax.scatter([i + 0.3], [ok.mean()], marker="D", s=40, color=colours[e], edgecolors="black", zorder=5)
         exact = _all(doc, e, "nees_exact_truth")
         exact = exact[np.isfinite(exact) & (exact > 0)]
         if declared and exact.size:
             all_vals.append(exact.mean(keepdims=True))
-            ax.scatter([i + 0.3], [exact.mean()], marker="s", s=40, facecolors="none", edgecolors=f"C{i}", linewidths=1.5,
+            ax.scatter([i + 0.3], [exact.mean()], marker="s", s=40, facecolors="none", edgecolors=colours[e], linewidths=1.5,
                        zorder=5)
         inside = np.mean((ok >= CHI2_3_BAND[0]) & (ok <= CHI2_3_BAND[1])) if ok.size else float("nan")
         undefined = int(v.size - ok.size)
@@ -462,9 +478,9 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path) -> Path:
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.set_xlim(-0.6, len(ests) - 0.4)
     ax.set_xticks(range(len(ests)), ticks, fontsize=8)
-    ax.set_ylabel("NEES (x, y, yaw)")
+    ax.set_ylabel("NEES (x, y, yaw; log scale)")
     ax.grid(axis="y", alpha=0.3, which="major")
-    ax.legend(fontsize=8, loc="best", framealpha=0.8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, frameon=False)
     title = f"NEES per trial ({len(doc['logs'])} log(s) x {doc['trials']} trial(s))"
     if declared:
         title += f"\nwith the truth's declared uncertainty ({declared} of {len(doc['logs'])} log(s))"
@@ -497,7 +513,7 @@ def errors_by_log_figure(doc: Mapping[str, Any]) -> Any:
     from matplotlib import colormaps
     from matplotlib.colors import LogNorm
     from matplotlib.figure import Figure
-    from matplotlib.ticker import FuncFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     labels, columns, e_x, e_g, failed = _log_medians(doc)
     fail = doc["failure"]
@@ -509,7 +525,8 @@ def errors_by_log_figure(doc: Mapping[str, Any]) -> Any:
         rows = np.sort(np.argsort(-worst, kind="stable")[:MAX_LOG_ROWS])
     shown = [labels[i] for i in rows]
     trials = int(doc["trials"])
-    fig = Figure(figsize=(max(9.0, 2.2 * len(columns) + 3.0), 1.9 + 0.22 * len(rows)), dpi=110)
+    # at least 3.4 inches high: the colour bars' labels (two lines) fit beside a bar of few logs
+    fig = Figure(figsize=(max(9.0, 2.2 * len(columns) + 3.0), max(3.4, 1.9 + 0.22 * len(rows))), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2, sharey=True)
     for ax, values, scale, unit, limit in ((axes[0], e_x, 1000.0, "median $e_x$ (mm)", fail["e_x_m"] * 1000.0),
@@ -523,8 +540,11 @@ def errors_by_log_figure(doc: Mapping[str, Any]) -> Any:
                        norm=LogNorm(vmin=lo, vmax=hi), interpolation="nearest")
         bar = fig.colorbar(im, ax=ax, fraction=0.05, pad=0.02)
         bar.ax.axhline(limit, color="red", linewidth=1.5)
+        # labels at 1, 2, 5 x 10^n over a short range (matplotlib's own minor labels, 2 x 10^1, ..., crowd)
+        bar.ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0) if hi / lo <= 1e3 else (1.0,)))
         bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
-        bar.set_label(f"{unit}; red: failure threshold", fontsize=8)
+        bar.ax.yaxis.set_minor_formatter(NullFormatter())
+        bar.set_label(f"{unit}, log scale\nred line: failure threshold", fontsize=8)
         for (r, c), n in np.ndenumerate(failed[rows]):
             if n:
                 ax.text(c, r, f"{n}/{trials}", ha="center", va="center", fontsize=7, color="red",
@@ -534,7 +554,8 @@ def errors_by_log_figure(doc: Mapping[str, Any]) -> Any:
                       fontsize=8)
         ax.set_title(unit, fontsize=10)
     axes[0].set_yticks(range(len(rows)), shown, fontsize=7 if len(rows) > 30 else 8)
-    title = f"Per log: median errors over {trials} trial(s), failed trials in red (prior {doc['prior']['mode']})"
+    title = (f"Per log: median errors over {trials} trial(s); in red, failed/trials where some failed "
+             f"(prior {doc['prior']['mode']})")
     if len(rows) < n_logs:
         title += f"\nthe {len(rows)} of {n_logs} logs with the largest errors relative to the failure thresholds"
     fig.suptitle(title, fontsize=10)

@@ -77,6 +77,90 @@ def _cdf_colours(fig) -> dict[str, str]:
     return {line.get_label().split(" (n=")[0]: to_hex(line.get_color()) for line in ax.get_lines() if "(n=" in line.get_label()}
 
 
+def test_an_estimator_has_one_colour_and_style_in_every_figure(monkeypatch) -> None:
+    """beam_pf after icp_pf in one run and first in another: the same colour in both runs'
+    CDFs and NEES, in the Fig. 4 bars and the error-vs-k lines; every estimator's CDF line
+    has a style of its own (greyscale), none the oracle floor's dashes."""
+    import evaluation.evaluate_report as er
+    from tofloc.plot_style import estimator_colours
+
+    figs = _captured(monkeypatch, er)
+    er.plot_error_cdfs(_evaluate_doc(["icp_pf", "beam_pf"]), "a.png")
+    er.plot_error_cdfs(_evaluate_doc(["beam_pf", "gtsam_smoother", "my_plugin"]), "b.png")
+    er.plot_nees(_evaluate_doc(["beam_pf", "gtsam_smoother"]), "c.png")
+    a, b = _cdf_colours(figs[0]), _cdf_colours(figs[1])
+    assert a["beam_pf"] == b["beam_pf"] == to_hex("C1") and a["icp_pf"] == to_hex("C0")
+    assert len(set(b.values())) == 4 and b["my_plugin"] not in {to_hex(c) for c in ("C0", "C1", "C2", "C3", "C7")}
+    styles = {line.get_label(): (line.get_linestyle(), tuple(line._unscaled_dash_pattern[1] or ()))  # the dashes themselves
+              for line in figs[1].axes[0].get_lines() if "(n=" in line.get_label()}
+    assert len(set(styles.values())) == len(styles) == 4  # three estimators and the oracle floor
+    nees_points = figs[2].axes[0].collections
+    beam = [c for c in nees_points if c.get_offsets().shape[0] == 6][0]  # 2 logs x 3 trials, the first estimator
+    assert to_hex(beam.get_facecolor()[0]) == to_hex("C1")
+    # a plug-in keeps its colour when a figure is told every estimator of the run (tofloc plot's files)
+    er.plot_error_cdfs(_evaluate_doc(["beam_pf", "y"]), "d.png", estimators=["x", "beam_pf", "y"])
+    assert _cdf_colours(figs[3])["y"] == to_hex(estimator_colours(["x", "y"])["y"])
+
+
+def test_tofloc_plot_draws_an_estimator_in_one_colour_in_both_figures(tmp_path: Path, monkeypatch) -> None:
+    """`tofloc plot` of a paper run (icp_pf, likelihood_field_pf) and a localize file
+    (beam_pf): beam_pf's NEES line has its colour of errors_vs_k.png (before, the NEES took
+    the first colour of the cycle, icp_pf's), and the file's line style there."""
+    import evaluation.error_plots as ep
+    from test_outputs_ux import _localize_doc, _paper_doc
+
+    figs = _captured(monkeypatch, ep)
+    (tmp_path / "paper.json").write_text(json.dumps(_paper_doc()))
+    (tmp_path / "loc.json").write_text(json.dumps(_localize_doc()))
+    assert main(["plot", str(tmp_path / "paper.json"), str(tmp_path / "loc.json"), "--out", str(tmp_path / "out")]) == 0
+    lines, nees = figs
+    legend = {t.get_text(): h for t, h in zip(lines.legends[0].get_texts(), lines.legends[0].legend_handles)}
+    handles, labels = nees.axes[0].get_legend_handles_labels()
+    beam = [h for h, lab in zip(handles, labels) if "beam_pf" in lab][0]
+    assert to_hex(beam.get_color()) == to_hex(legend["beam_pf"].get_color()) == to_hex("C1")
+    assert to_hex(legend["icp_pf"].get_color()) == to_hex("C0")
+    assert beam.get_linestyle() == legend["loc"].get_linestyle() != "-"
+
+
+def test_the_nees_legend_covers_no_point(monkeypatch) -> None:
+    import evaluation.evaluate_report as er
+
+    figs = _captured(monkeypatch, er)
+    er.plot_nees(_evaluate_doc(["icp_pf", "beam_pf", "likelihood_field_pf", "gtsam_smoother"], n_logs=10), "n.png")
+    fig = figs[0]
+    r = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    assert not ax.get_legend().get_window_extent(r).overlaps(ax.get_window_extent(r))
+    assert "log scale" in ax.get_ylabel()
+    _texts_inside(fig)
+
+
+def test_error_cdf_axes_say_log_scale(monkeypatch) -> None:
+    import evaluation.evaluate_report as er
+
+    figs = _captured(monkeypatch, er)
+    er.plot_error_cdfs(_evaluate_doc(["beam_pf"]), "a.png")
+    for ax in figs[0].axes:
+        assert ax.get_xscale() == "log" and "log scale" in ax.get_xlabel()
+    _texts_inside(figs[0])
+
+
+def test_errors_by_log_of_few_logs_keeps_its_text_on_the_canvas() -> None:
+    """Two logs: the colour bars' labels fitted the bars of a 2.3-inch figure badly (cut at
+    the top and bottom) and their minor tick labels (2 x 10^1, 3 x 10^1, ...) ran into each other."""
+    from evaluation.evaluate_report import errors_by_log_figure
+
+    fig = errors_by_log_figure(_evaluate_doc(["icp_pf", "beam_pf"], n_logs=2))
+    fig.canvas.draw()
+    _texts_inside(fig)
+    r = fig.canvas.get_renderer()
+    for bar in fig.axes[2:]:
+        ticks = sorted((t for t in [*bar.get_yticklabels(), *bar.get_yticklabels(minor=True)] if t.get_text()),
+                       key=lambda t: t.get_window_extent(r).y0)
+        _no_overlap(ticks, r)
+        assert "log scale" in bar.get_ylabel()
+
+
 @pytest.mark.parametrize("name", ["icp_pf", "beam_pf", "likelihood_field_pf", "gtsam_smoother"])
 def test_builtin_colours_do_not_depend_on_the_company(name: str) -> None:
     from tofloc.plot_style import estimator_colours, estimator_linestyles

@@ -39,7 +39,8 @@ def plot(
     """Re-plot and compare saved results: error against k (log scale, one line style per file) and a comparison table;
     for `tofloc evaluate` results, their error CDFs, NEES and per-log plots and a comparison table."""
     from evaluation.compare import comparison_markdown, comparison_rows, file_labels, load_results
-    from evaluation.error_plots import plot_errors_vs_k, plot_nees
+    from evaluation.error_plots import FILE_STYLES, plot_errors_vs_k, plot_nees
+    from tofloc.plot_style import estimator_colours
     from evaluation.report import PAPER_TABLE_I, write_text_atomic
     from tofloc.atomic import check_output_path
 
@@ -61,8 +62,11 @@ def plot(
     with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
     written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / "errors_vs_k.png",
                                 paper=PAPER_TABLE_I if with_paper else None)]
-    nees = [(f"{lab}: {s.estimator}, {s.tip_source} tips, prior {s.prior_mode}", s.nees)
-            for lab, f in zip(labels, files) for s in f.series if s.nees.size]
+    # each estimator in its colour of errors_vs_k.png, each file in its line style there
+    colours = estimator_colours([s.estimator for f in files for s in f.series])
+    nees = [(f"{lab}: {s.estimator}, {s.tip_source} tips, prior {s.prior_mode}", s.nees,
+             {"color": colours[s.estimator], "ls": FILE_STYLES[i % len(FILE_STYLES)]})
+            for i, (lab, f) in enumerate(zip(labels, files)) for s in f.series if s.nees.size]
     if nees:
         written.append(plot_nees([("per-trial NEES of the localize files", nees)], out / "nees.png"))
     rows = comparison_rows(files, labels)
@@ -90,10 +94,11 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     from evaluation.report import write_text_atomic
 
     written = []
+    every = [e for f in files for e in f.document["summary"]]  # a plug-in keeps its colour in every file's plots
     for f, lab in zip(files, labels):
         prefix = "" if len(files) == 1 else lab.replace("/", "_") + "_"
-        written += [plot_error_cdfs(f.document, out / f"{prefix}errors_cdf.png"),
-                    plot_nees(f.document, out / f"{prefix}nees.png"),
+        written += [plot_error_cdfs(f.document, out / f"{prefix}errors_cdf.png", every),
+                    plot_nees(f.document, out / f"{prefix}nees.png", every),
                     plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.png")]
     rows = evaluate_comparison_rows([f.document for f in files], labels)
     text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)],
