@@ -35,6 +35,7 @@ __all__ = [
     "paired_comparison",
     "table_markdown",
     "plot_errors",
+    "errors_figure",
     "results_document",
 ]
 
@@ -469,16 +470,32 @@ def _crlb_per_k(series: Sequence[tuple[str, str, Mapping[str, Any]]], k_values: 
 
 
 def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Path:
+    """:func:`errors_figure` written as PNG to ``path`` with the Agg canvas (no display, no
+    global backend change), atomically."""
+    from tofloc.plot_style import SAVE_DPI
+
+    fig = errors_figure(doc, tip_source)
+
+    def write(fh: Any) -> None:
+        fig.savefig(fh, format="png", dpi=SAVE_DPI)
+
+    return _atomic(path, write, "wb")
+
+
+def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:
     """Fig. 4 of the paper for one tip source: bars of mean e_x and e_gamma (± std) per k.
 
-    One colour per estimator; the ``offset`` prior mode is hatched beside the ``paper``
-    one; the paper's overall mean is a dashed line; the mean sqrt(CRLB) per k (when the
-    records have it) is a black line. Written as PNG with the Agg canvas
-    (no display, no global backend change), atomically.
+    One colour per estimator (:mod:`tofloc.plot_style`); the ``offset`` prior mode is hatched beside the ``paper``
+    one; the paper's overall mean is a dashed line (on the paper's scene only); the mean
+    sqrt(CRLB) per k (when the records have it) is a black line. When a bar is under 3 % of
+    its axis (one estimator's millimetres beside another's decimetres) the title says so and
+    points to ``errors_vs_k.png``. A matplotlib ``Figure`` on the Agg canvas.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
+
+    from tofloc.plot_style import estimator_colours
 
     results = doc["results"]
     k_values = [int(k) for k in range(1, int(doc["k_max"]) + 1)]
@@ -489,19 +506,24 @@ def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Pa
     fig = Figure(figsize=(max(6.0, 0.9 * len(k_values) + 2.0), 6.0), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
-    colours = {est: f"C{i}" for i, est in enumerate(results)}
+    colours = estimator_colours(results)  # the same as in every other figure of the run
     width = 0.8 / max(1, len(series))
     x = np.arange(len(k_values), dtype=float)
+    # the paper's robot's value is a reference for the paper's scene only (as in errors_vs_k.png)
+    paper_drawn = doc.get("scenario", "paper") == "paper" and bool(doc.get("paper", {}).get(tip_source))
+    slivers = False  # a bar under 3 % of its axis (millimetres beside decimetres) reads as no bar
     for ax, key, label in ((axes[0], "e_x_m", "$e_x$ (m)"), (axes[1], "e_gamma_deg", r"$e_\gamma$ (deg)")):
+        means = []
         for j, (est, mode, group) in enumerate(series):
             mean = [group["per_k"].get(str(k), {}).get(key, {}).get("mean") for k in k_values]
             std = [group["per_k"].get(str(k), {}).get(key, {}).get("std") for k in k_values]
             m = np.array([np.nan if v is None else v for v in mean])
             s = np.array([np.nan if v is None else v for v in std])
+            means.append(m)
             ax.bar(x - 0.4 + width * (j + 0.5), m, width, yerr=s, capsize=2, color=colours[est],
                    hatch="//" if mode != "paper" else None, edgecolor="black", linewidth=0.4,
                    error_kw={"elinewidth": 0.8})
-        paper = doc.get("paper", {}).get(tip_source, {}).get(key)
+        paper = doc.get("paper", {}).get(tip_source, {}).get(key) if paper_drawn else None
         if paper:
             ax.axhline(paper[0], color="grey", linestyle="--", linewidth=1.0)
         bound = _crlb_per_k(series, k_values, "position_m" if key == "e_x_m" else "yaw_deg")
@@ -510,11 +532,15 @@ def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Pa
         ax.set_ylabel(label)
         ax.set_ylim(bottom=0)
         ax.grid(axis="y", alpha=0.3)
+        drawn = np.concatenate(means) if means else np.zeros(0)
+        drawn = drawn[np.isfinite(drawn)]
+        slivers = slivers or bool(np.any(drawn < 0.03 * ax.get_ylim()[1]))
     axes[1].set_xticks(x, [str(k) for k in k_values])
     axes[1].set_xlabel("number of samples k")
     handles = [Patch(facecolor=colours[e], edgecolor="black", hatch="//" if m != "paper" else None, label=f"{e}, prior {m}")
                for e, m, _ in series]
-    handles.append(Patch(facecolor="none", edgecolor="grey", linestyle="--", label="paper, Table I mean"))
+    if paper_drawn:
+        handles.append(Patch(facecolor="none", edgecolor="grey", linestyle="--", label="paper, Table I mean"))
     if any(_crlb_per_k(series, k_values, key) is not None for key in ("position_m", "yaw_deg")):
         from matplotlib.lines import Line2D
 
@@ -522,17 +548,20 @@ def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Pa
     n_cols = min(len(handles), 3)
     n_rows = math.ceil(len(handles) / n_cols)
     h = fig.get_figheight()
-    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - (0.45 + 0.22 * n_rows) / h))
+    title = (f"Localization error, {_TIP_TITLES.get(tip_source, tip_source)} "
+             f"(mean ± std, {doc['trials']} trials per k)")
+    if slivers:  # wrapped to the figure's width (about 11 characters of 11-point text an inch)
+        import textwrap
+
+        title += "\n" + "\n".join(textwrap.wrap("some bars are too small to read on this linear axis: errors_vs_k.png "
+                                               "draws them on a log scale", int(11 * fig.get_figwidth())))
+    extra = 0.2 * title.count("\n")  # inches: one more line of the title
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - (0.45 + extra + 0.22 * n_rows) / h))
     # added after the layout, so that it does not reserve room for them a second time
-    fig.suptitle(f"Localization error, {_TIP_TITLES.get(tip_source, tip_source)} "
-                 f"(mean ± std, {doc['trials']} trials per k)", y=1.0 - 0.08 / h, va="top", fontsize=11)
+    fig.suptitle(title, y=1.0 - 0.08 / h, va="top", fontsize=11)
     fig.legend(handles=handles, fontsize=8, loc="upper center", ncol=n_cols, frameon=False,
-               bbox_to_anchor=(0.5, 1.0 - 0.36 / h))
-
-    def write(fh: Any) -> None:
-        fig.savefig(fh, format="png")
-
-    return _atomic(path, write, "wb")
+               bbox_to_anchor=(0.5, 1.0 - (0.36 + extra) / h))
+    return fig
 
 
 # -- results.json ---------------------------------------------------------------------------------

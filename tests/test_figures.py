@@ -168,3 +168,25 @@ def test_builtin_colours_do_not_depend_on_the_company(name: str) -> None:
     alone, together = estimator_colours([name]), estimator_colours(["p1", "gtsam_smoother", name, "icp_pf"])
     assert alone[name] == together[name]
     assert estimator_linestyles([name])[name] == estimator_linestyles(["p1", name])[name] != "--"
+
+
+def test_fig4_bars_say_when_some_are_too_small_and_draw_the_papers_line_on_its_scene_only() -> None:
+    """icp_pf's decimetres beside the likelihood field's millimetres: the title points to
+    errors_vs_k.png; the paper's Table I line (its real robot) only on the paper's scene."""
+    from evaluation.report import errors_figure
+    from test_outputs_ux import _paper_doc
+
+    doc = _paper_doc()
+    fig = errors_figure(doc, "mocap")
+    fig.canvas.draw()
+    assert "errors_vs_k.png draws them on a log scale" in fig._suptitle.get_text().replace("\n", " ")
+    assert "paper, Table I mean" in [t.get_text() for t in fig.legends[0].get_texts()]
+    assert all(len([ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]) == 1 for ax in fig.axes)
+    _texts_inside(fig)
+    pillars = errors_figure({**doc, "scenario": "pillars"}, "mocap")
+    pillars.canvas.draw()
+    assert "paper, Table I mean" not in [t.get_text() for t in pillars.legends[0].get_texts()]
+    assert not any(ln.get_linestyle() == "--" for ax in pillars.axes for ln in ax.get_lines())
+    _texts_inside(pillars)
+    close = errors_figure({**doc, "results": {"icp_pf": doc["results"]["icp_pf"]}}, "mocap")
+    assert "log scale" not in close._suptitle.get_text()
