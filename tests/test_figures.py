@@ -161,6 +161,29 @@ def test_errors_by_log_of_few_logs_keeps_its_text_on_the_canvas() -> None:
         assert "log scale" in bar.get_ylabel()
 
 
+def test_the_calibration_plot_says_what_its_axis_leaves_out() -> None:
+    """Short readings far below the hits are beyond the error axis (the central 99 % of the
+    readings): the panel's title says how many; the legend is below the panels, over no point."""
+    from sensor_models.calibration import ZoneSamples, fit_em
+    from sensor_models.calibration.plots import calibration_figure
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    d = rng.uniform(0.3, 0.6, n)
+    z = d + 0.01 * rng.normal(size=n)
+    z[:15] = rng.uniform(0.0, 0.05, 15)  # 0.4 %: short readings hundreds of mm below the axis
+    zs = ZoneSamples(z, d, rng.random(n) < 0.3, np.zeros(n, bool), np.full(n, 4.0), {"used": n})
+    fig = calibration_figure(fit_em(zs, max_iter=5))
+    fig.canvas.draw()
+    notes = [ax.get_title().split("\n")[1] for ax in fig.axes if "\n" in ax.get_title()]
+    assert notes and all(t.startswith("beyond the axis, not shown: 0 above, ") for t in notes)
+    assert sum(int(t.rsplit(", ", 1)[1].split()[0]) for t in notes) == 15
+    r = fig.canvas.get_renderer()
+    legend = fig.legends[0].get_window_extent(r)
+    assert not any(legend.overlaps(ax.get_window_extent(r)) for ax in fig.axes)
+    _texts_inside(fig)
+
+
 @pytest.mark.parametrize("name", ["icp_pf", "beam_pf", "likelihood_field_pf", "gtsam_smoother"])
 def test_builtin_colours_do_not_depend_on_the_company(name: str) -> None:
     from tofloc.plot_style import estimator_colours, estimator_linestyles

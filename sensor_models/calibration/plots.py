@@ -10,17 +10,32 @@ import numpy as np
 
 from sensor_models.calibration.em import CalibrationResult
 from tofloc.atomic import atomic_path
+from tofloc.plot_style import SAVE_DPI
 
-__all__ = ["plot_calibration", "plot_zone_residuals", "zone_statistics", "zone_plot_path", "MAD_TO_SIGMA"]
+__all__ = ["plot_calibration", "calibration_figure", "plot_zone_residuals", "zone_statistics", "zone_plot_path", "MAD_TO_SIGMA"]
 
 
 def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "", max_points: int = 20000,
                      rng: np.random.Generator | None = None) -> Path:
+    """:func:`calibration_figure` written as PNG to ``path`` (Agg canvas, atomically)."""
+    fig = calibration_figure(result, title, max_points, rng)
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        with open(tmp, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=SAVE_DPI)
+    return p
+
+
+def calibration_figure(result: CalibrationResult, title: str = "", max_points: int = 20000,
+                       rng: np.random.Generator | None = None) -> Any:
     """Error (measured - expected) against expected distance per zone class, with the fitted
     bias and bias +- 2 sigma curves and binned empirical statistics of the hit readings.
 
     Points are coloured by their most likely mixture component. At most ``max_points``
-    points per class are drawn (a sub-sample drawn with ``rng``, default seed 0).
+    points per class are drawn (a sub-sample drawn with ``rng``, default seed 0). The error
+    axis spans the central 99 % of the valid readings (padded): each panel's title says how
+    many of its drawn points lie beyond it, above and below. The legend is drawn below the
+    panels, over no point. A matplotlib ``Figure`` on the Agg canvas.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -30,22 +45,25 @@ def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "
     ok = ~sm.no_return
     err = sm.measured_m - sm.expected_m
     comp = np.argmax(result.responsibilities, axis=1)
-    fig = Figure(figsize=(11.0, 4.8), dpi=110)
+    fig = Figure(figsize=(11.0, 5.4), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2, sharey=True)
     unc = result.uncertainty
     lo, hi = float(np.min(sm.expected_m)), float(np.max(sm.expected_m))
     grid = np.linspace(max(0.0, lo), hi, 200)
-    colours = {0: "tab:blue", 1: "tab:orange", 3: "tab:red"}
+    colours = {0: "tab:blue", 1: "tab:orange", 3: "tab:purple"}
+    drawn: list[np.ndarray] = []
+    counts: dict[tuple[bool, int], int] = {}
     labels = {0: "hit", 1: "short", 3: "random"}
     for ax, is_edge, name in ((axes[0], False, "inner zones"), (axes[1], True, "edge zones")):
         sel = np.flatnonzero(ok & (sm.edge == is_edge))
         if sel.size > max_points:
             sel = np.sort(rng.choice(sel, max_points, replace=False))
+        drawn.append(sel)
         for c in (0, 1, 3):
             m = sel[comp[sel] == c]
-            ax.scatter(sm.expected_m[m], 1000 * err[m], s=3, alpha=0.3, color=colours[c], label=f"{labels[c]} ({m.size} drawn)",
-                       rasterized=True)
+            ax.scatter(sm.expected_m[m], 1000 * err[m], s=3, alpha=0.3, color=colours[c], label=labels[c], rasterized=True)
+            counts[(is_edge, c)] = m.size
         e = np.full(grid.shape, is_edge)
         b = np.where(e, unc.edge_bias_offset + unc.edge_bias_slope * grid, unc.bias_offset + unc.bias_slope * grid)
         s = np.maximum(unc.sigma_floor, unc.sigma_slope * grid) * (unc.edge_factor if is_edge else 1.0)
@@ -64,24 +82,32 @@ def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "
             centre = np.bincount(idx, sm.expected_m[cls], minlength=edges.size - 1) / np.maximum(np.bincount(idx, minlength=edges.size - 1), 1)
             ax.errorbar(centre, 1000 * mean, yerr=2000 * np.sqrt(var), fmt="o", color="green", ms=4, capsize=3,
                         label="binned hit mean ± 2 sd")
-        ax.set_title(f"{name} (edge factor {unc.edge_factor:.2f})" if is_edge else name)
+        ax.set_title(f"{name} (edge factor {unc.edge_factor:.2f})" if is_edge else name, fontsize=10)
         ax.set_xlabel("expected distance z* (m)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower left")
     axes[0].set_ylabel("measured - expected (mm)")
     ok_err = 1000 * err[ok]
     if ok_err.size:
         q = np.quantile(ok_err, [0.005, 0.995])
         pad = 0.2 * (q[1] - q[0]) + 5
-        axes[0].set_ylim(q[0] - pad, q[1] + pad)
+        y_lo, y_hi = q[0] - pad, q[1] + pad
+        axes[0].set_ylim(y_lo, y_hi)
+        for ax, sel in zip(axes, drawn):  # the points the axis leaves out, said on the panel
+            e_mm = 1000 * err[sel]
+            below, above = int(np.sum(e_mm < y_lo)), int(np.sum(e_mm > y_hi))
+            if below or above:  # under the panel's title, over no point
+                ax.set_title(f"{ax.get_title()}\nbeyond the axis, not shown: {above} above, {below} below", fontsize=10)
+    handles, texts = axes[0].get_legend_handles_labels()
+    texts = [f"{t} ({counts[(False, c)]} inner, {counts[(True, c)]} edge zones drawn)" if c is not None else t
+             for t, c in zip(texts, [0, 1, 3] + [None] * len(texts))]
     fig.suptitle(title or f"Calibration: {sm.n} zones, z_hit {result.beam.z_hit:.3f}, z_short {result.beam.z_short:.3f}, "
                  f"z_max {result.beam.z_max:.3f}, z_rand {result.beam.z_rand:.3f}", fontsize=10)
-    fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        with open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png")
-    return p
+    fig.tight_layout(rect=(0.0, 0.12, 1.0, 1.0))
+    legend = fig.legend(handles, texts, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    for handle in legend.legend_handles[:3]:  # the points' entries: as large and opaque as a marker
+        handle.set_sizes([25.0])
+        handle.set_alpha(1.0)
+    return fig
 
 
 #: Normal-consistent scale of the median absolute deviation (the robust spread).
@@ -209,5 +235,5 @@ def plot_zone_residuals(result: CalibrationResult, rig: Any, path: str | Path, m
     p = Path(path)
     with atomic_path(p) as tmp:
         with open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png")
+            fig.savefig(fh, format="png", dpi=SAVE_DPI)
     return p
