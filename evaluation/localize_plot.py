@@ -111,6 +111,7 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     from tofloc.errors import ParameterError
     from tofloc.fit_check import check_fit, nuisance_means, zone_residuals
@@ -248,6 +249,8 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
     ax.set_ylim(lo[1] - margin, hi[1] + margin)
     axz.set_xlim(pose[0] - half, pose[0] + half)
     axz.set_ylim(pose[1] - half, pose[1] + half)
+    for axis in (axz.xaxis, axz.yaxis):  # at most 5 labels: a few centimetres' labels (-0.005, 0.000, ...) run into each other
+        axis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 5, 10]))
     ax.set_title("top view", fontsize=10)
     axz.set_title(f"near the estimate ({200 * half:.0f} cm across; ellipse not scaled)", fontsize=10)
     verdict = ("the data fit the map at the estimate" if fit.ok else f"NOT OK: {fit.reason}")
@@ -262,7 +265,10 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         if lab not in labels:
             handles.append(h)
             labels.append(lab)
-    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8.5, frameon=False)
+    legend = fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8.5, frameon=False)
+    for text, handle in zip(legend.get_texts(), legend.legend_handles):
+        if text.get_text().startswith("final particles"):  # drawn as the lightest particle otherwise: invisible
+            handle.set_color((0.0, 0.0, 0.85, 0.8))
     lines = heading.count("\n") + 1  # 0.19 inch a line of the heading, 0.15 inch above it
     fig.subplots_adjust(left=0.06, right=0.98, top=min(0.86, 1.0 - (0.15 + 0.19 * lines + 0.3) / 6.8), bottom=0.25, wspace=0.2)
     return _write_png(fig, path)

@@ -184,6 +184,27 @@ def test_the_calibration_plot_says_what_its_axis_leaves_out() -> None:
     _texts_inside(fig)
 
 
+def test_the_zoom_panels_tick_labels_do_not_run_into_each_other(monkeypatch) -> None:
+    """A zoom 4 cm across (a converged filter): its x labels were -0.015, -0.010, ..., 0.030,
+    less than a pixel apart (they read as -0.010-0.005); now at least half a label's height."""
+    import evaluation.localize_plot as lp
+    from tofloc.maps import Map
+    from tofloc.problem import Estimate, Prior, Problem
+    from tofloc.rig import Rig, Sensor
+
+    figs = _captured(monkeypatch, lp)
+    rig = Rig((Sensor(name="a", resolution=(1, 1), distance="radial", zone_directions=np.array([[0.0, 0.0, 1.0]])),))
+    p = Problem(rig=rig, distance_m=np.full((1, 1, 1), 0.35), status=np.full((1, 1, 1), 5, np.uint8),
+                T_base_tip=np.eye(4)[None], map=Map.cuboid(open_faces=()), prior=Prior(np.zeros(3), np.array([0.1, 0.1, 0.2]), z=0.3))
+    est = Estimate(pose=np.array([0.0093, -0.0043, 0.0]), covariance=np.diag([1e-5, 1e-5, 1e-4]))
+    lp.plot_localization("p.png", p, est, truth=np.array([0.021, -0.013, 0.0]), title="beam_pf on paper.h5")
+    fig = figs[0]
+    r = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        _no_overlap(ax.get_xticklabels(), r, gap=0.5)
+    _texts_inside(fig)
+
+
 @pytest.mark.parametrize("name", ["icp_pf", "beam_pf", "likelihood_field_pf", "gtsam_smoother"])
 def test_builtin_colours_do_not_depend_on_the_company(name: str) -> None:
     from tofloc.plot_style import estimator_colours, estimator_linestyles
@@ -213,3 +234,22 @@ def test_fig4_bars_say_when_some_are_too_small_and_draw_the_papers_line_on_its_s
     _texts_inside(pillars)
     close = errors_figure({**doc, "results": {"icp_pf": doc["results"]["icp_pf"]}}, "mocap")
     assert "log scale" not in close._suptitle.get_text()
+
+
+def test_the_particles_legend_entry_is_visible(monkeypatch) -> None:
+    import evaluation.localize_plot as lp
+    from tofloc.maps import Map
+    from tofloc.problem import Estimate, Prior, Problem
+    from tofloc.rig import Rig, Sensor
+
+    figs = _captured(monkeypatch, lp)
+    rig = Rig((Sensor(name="a", resolution=(1, 1), distance="radial", zone_directions=np.array([[0.0, 0.0, 1.0]])),))
+    p = Problem(rig=rig, distance_m=np.full((1, 1, 1), 0.35), status=np.full((1, 1, 1), 5, np.uint8),
+                T_base_tip=np.eye(4)[None], map=Map.cuboid(open_faces=()), prior=Prior(np.zeros(3), np.array([0.1, 0.1, 0.2]), z=0.3))
+    w = np.r_[1e-6, np.full(99, 1.0)]
+    est = Estimate(pose=np.zeros(3), covariance=np.diag([1e-5, 1e-5, 1e-4]),
+                   diagnostics={"particles": np.random.default_rng(0).normal(0, 0.003, (100, 3)), "weights": w / w.sum()})
+    lp.plot_localization("p.png", p, est)
+    legend = figs[0].legends[0]
+    handle = [h for t, h in zip(legend.get_texts(), legend.legend_handles) if t.get_text().startswith("final particles")][0]
+    assert handle.get_facecolor()[0][3] >= 0.8  # not the lightest particle's 0.2
