@@ -12,9 +12,9 @@ What it shows, in the map's x-y plane:
 * the posterior's modes (:mod:`tofloc.posterior_modes`), each with its share of the weight;
 * the estimate with its 2-sigma covariance ellipse, scaled up by the power of 10 that
   makes it visible (the legend says by how much: "x 10");
-* every valid zone's point placed at the estimate, coloured by the data-fit check
-  (:mod:`tofloc.fit_check`): within 3 sigma of the map, beyond, or a misfit (a reading
-  where the map has no surface in range); optionally (``zones_at_truth``, the failure
+* every valid zone's point placed at the estimate, coloured and marked (dot, triangle,
+  cross) by the data-fit check (:mod:`tofloc.fit_check`): within 3 sigma of the map,
+  beyond, or a misfit (a reading where the map has no surface in range); optionally (``zones_at_truth``, the failure
   plots of ``tofloc evaluate``) the same points placed at the truth.
 
 The title says whether the data fit the map at the estimate.
@@ -207,11 +207,12 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         if not zoom:
             a.scatter(pts_map[inlier][:, 0], pts_map[inlier][:, 1], s=8, c="tab:green", lw=0,
                       label="zones placed at the estimate: within 3 sigma of the map")
+            # a marker per class as well as a colour: green, orange and red are one colour to many colour-blind readers
             if beyond.any():
-                a.scatter(pts_map[beyond][:, 0], pts_map[beyond][:, 1], s=10, c="tab:orange", lw=0,
+                a.scatter(pts_map[beyond][:, 0], pts_map[beyond][:, 1], s=14, c="tab:orange", marker="^", lw=0,
                           label="zones beyond 3 sigma")
             if misfit.any():
-                a.scatter(pts_map[misfit][:, 0], pts_map[misfit][:, 1], s=10, c="tab:red", lw=0,
+                a.scatter(pts_map[misfit][:, 0], pts_map[misfit][:, 1], s=16, c="tab:red", marker="x", lw=1.0,
                           label="misfit zones: no surface expected in range")
             if pts_truth is not None and pts_truth.size:
                 a.scatter(pts_truth[:, 0], pts_truth[:, 1], s=14, facecolors="none", edgecolors="tab:blue", lw=0.7,

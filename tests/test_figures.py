@@ -253,3 +253,22 @@ def test_the_particles_legend_entry_is_visible(monkeypatch) -> None:
     legend = figs[0].legends[0]
     handle = [h for t, h in zip(legend.get_texts(), legend.legend_handles) if t.get_text().startswith("final particles")][0]
     assert handle.get_facecolor()[0][3] >= 0.8  # not the lightest particle's 0.2
+
+
+def test_the_zone_classes_differ_by_marker_too(monkeypatch) -> None:
+    """Within 3 sigma, beyond, misfit: green, orange, red, told apart by their markers as well."""
+    import evaluation.localize_plot as lp
+    from tofloc.maps import Map
+    from tofloc.problem import Estimate, Prior, Problem
+    from tofloc.rig import Rig, Sensor
+
+    figs = _captured(monkeypatch, lp)
+    dirs = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [-0.3, 0.0, 1.0]])
+    rig = Rig((Sensor(name="a", resolution=(1, 3), distance="radial", zone_directions=dirs / np.linalg.norm(dirs, axis=1)[:, None]),))
+    p = Problem(rig=rig, distance_m=np.array([[[0.35, 0.6, 3.5]]]), status=np.full((1, 1, 3), 5, np.uint8),
+                T_base_tip=np.eye(4)[None], map=Map.cuboid(open_faces=()), prior=Prior(np.zeros(3), np.array([0.1, 0.1, 0.2]), z=0.3))
+    lp.plot_localization("p.png", p, Estimate(pose=np.zeros(3), covariance=np.diag([1e-5, 1e-5, 1e-4])))
+    ax = figs[0].axes[0]
+    zones = [c for c in ax.collections if str(c.get_label()).startswith(("zones placed at the estimate", "zones beyond", "misfit"))]
+    paths = [tuple(map(tuple, np.round(c.get_paths()[0].vertices, 3))) for c in zones]
+    assert len(zones) >= 2 and len(set(paths)) == len(paths)
