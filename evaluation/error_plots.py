@@ -18,14 +18,13 @@ import numpy as np
 
 from evaluation.compare import Series
 from tofloc.atomic import atomic_path
-from tofloc.plot_style import SAVE_DPI, estimator_colours
+from tofloc.plot_style import SAVE_DPI, TIP_TITLES, estimator_colours
 
 __all__ = ["plot_errors_vs_k", "plot_nees", "nees_band", "MODE_MARKERS", "FILE_STYLES"]
 
 #: Marker of each prior mode; line style of each compared file (dashes are the paper's value).
 MODE_MARKERS = {"paper": "o", "offset": "s", "given": "^"}
 FILE_STYLES: tuple[Any, ...] = ("-", ":", "-.", (0, (1, 1, 4, 1)), (0, (6, 1, 1, 1, 1, 1)))
-_TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
 _ERRORS = (("e_x_m", 1000.0, "$e_x$ (mm)", "position_m"), ("e_gamma_deg", 1.0, r"$e_\gamma$ (deg)", "yaw_deg"))
 
 
@@ -114,7 +113,7 @@ def plot_errors_vs_k(files: Sequence[tuple[str, Sequence[Series]]], path: str | 
             if col == 0:
                 ax.set_ylabel(f"mean {label}")
             if row == 0:
-                ax.set_title(_TIP_TITLES.get(tip, tip), fontsize=11)
+                ax.set_title(TIP_TITLES.get(tip, tip), fontsize=11)
             if row == 1:
                 ax.set_xlabel("number of samples k")
     ks_sorted = sorted(all_k)

@@ -15,6 +15,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from tofloc.atomic import atomic_path
+from tofloc.plot_style import TIP_TITLES
 
 from evaluation.failure_cause import count_causes
 from evaluation.metrics import json_float, summarize
@@ -46,7 +47,6 @@ PAPER_TABLE_I: dict[str, dict[str, list[float]]] = {
 }
 #: The two error measures, as named in every JSON file.
 ERROR_KEYS = ("e_x_m", "e_gamma_deg")
-_TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
 
 
 # -- atomic writes -----------------------------------------------------------------------------
@@ -548,7 +548,7 @@ def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:
     n_cols = min(len(handles), 3)
     n_rows = math.ceil(len(handles) / n_cols)
     h = fig.get_figheight()
-    title = (f"Localization error, {_TIP_TITLES.get(tip_source, tip_source)} "
+    title = (f"Localization error, {TIP_TITLES.get(tip_source, tip_source)} "
              f"(mean ± std, {doc['trials']} trials per k)")
     if slivers:  # wrapped to the figure's width (about 11 characters of 11-point text an inch)
         import textwrap

@@ -1118,14 +1118,14 @@ def paper(
         if warming is not None:
             warming.join()
 
-        from tofloc.plot_style import estimator_colours
+        from tofloc.plot_style import TIP_TITLES, estimator_colours
 
         colours = estimator_colours(names)  # each estimator's colour in every figure of the run
-        tip_titles = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}  # as errors_vs_k.png's panels
-        nees_panels = [(tip_titles.get(tip, f"{tip} tip poses"), [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)]
-                                                                        if r.get("nees") is not None],
-                                              {"color": colours[n], "ls": "-" if m.mode == "paper" else "--"})
-                                             for n in names for m in priors]) for tip in tips]
+        nees_panels = [(TIP_TITLES.get(tip, f"{tip} tip poses"),
+                        [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)] if r.get("nees") is not None],
+                          {"color": colours[n], "ls": "-" if m.mode == "paper" else "--"})
+                         for n in names for m in priors])
+                       for tip in tips]
         config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
         has_nees = any(entry[1] for _, panel in nees_panels for entry in panel)
         paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [

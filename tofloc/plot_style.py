@@ -16,8 +16,10 @@ from __future__ import annotations
 
 from typing import Any, Iterable
 
-__all__ = ["BUILTIN_COLOURS", "ORACLE_STYLE", "SAVE_DPI", "estimator_colours", "estimator_linestyles"]
+__all__ = ["BUILTIN_COLOURS", "ORACLE_STYLE", "SAVE_DPI", "TIP_TITLES", "estimator_colours", "estimator_linestyles"]
 
+#: How a figure names the tip poses' source (panel titles of Fig. 4, errors_vs_k.png, nees.png).
+TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
 #: Resolution of every PNG tofloc writes (dots per inch).
 SAVE_DPI = 200
 #: Fixed colours of the built-in estimators (the first four colours of the default cycle).
