@@ -202,6 +202,19 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     for png in ("errors_knn.png", "errors_mocap.png", "errors_vs_k.png", "nees.png"):
         blob = (out / png).read_bytes()
         assert blob[:8] == b"\x89PNG\r\n\x1a\n" and len(blob) > 10_000
+    # trials.csv: every trial the summaries came from (results.json keeps only the summaries)
+    import csv
+
+    from evaluation.trials_csv import PAPER_COLUMNS
+
+    with open(out / "trials.csv", newline="") as fh:
+        reader = csv.DictReader(fh)
+        assert tuple(reader.fieldnames or ()) == PAPER_COLUMNS
+        rows = list(reader)
+    assert len(rows) == 2 * 2 * 2 * 2  # tip sources x prior modes x k values x trials
+    got = [r for r in rows if (r["tip_source"], r["prior_mode"]) == ("knn", "paper")]
+    assert [float(r["e_x_m"]) for r in got] == [rec["e_x_m"] for rec in part["records"]]
+    assert {r["estimator"] for r in rows} == {"icp_pf"} and {r["k"] for r in rows} == {"1", "2"}
     # the parameters used, as a config file that --config reads back (issue 14 item 16)
     from tofloc.estimator_config import read_config, resolve_params
 

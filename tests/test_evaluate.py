@@ -72,9 +72,41 @@ def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str,
 # -- outputs ---------------------------------------------------------------------------------------
 
 
+def test_trials_csv_holds_every_trial_as_results_json_does(run: dict) -> None:
+    import csv
+
+    from evaluation.evaluate import is_failure
+    from evaluation.trials_csv import EVALUATE_COLUMNS
+
+    doc = run["doc"]
+    with open(run["out"] / "trials.csv", newline="") as fh:
+        reader = csv.DictReader(fh)
+        assert tuple(reader.fieldnames or ()) == EVALUATE_COLUMNS
+        rows = list(reader)
+    assert len(rows) == 2 * 3 * 2  # 2 logs x (oracle + 2 estimators) x 2 trials
+    for label, lg in doc["logs"].items():
+        for name, recs in [("oracle", lg["oracle"]["records"]),
+                           *((n, e["records"]) for n, e in lg["estimators"].items())]:
+            got = [r for r in rows if r["log"] == label and r["estimator"] == name]
+            assert [int(r["trial"]) for r in got] == [rec["trial"] for rec in recs]
+            for r, rec in zip(got, recs):
+                assert float(r["e_x_m"]) == rec["e_x_m"] and float(r["e_gamma_deg"]) == rec["e_gamma_deg"]  # every digit
+                assert int(r["seed"]) == rec["seed"] and int(r["k"]) == rec["k"] == 3
+                assert r["failed"] == str(int(is_failure(rec)))
+                pose = rec.get("estimate", rec.get("pose"))
+                assert [float(r[f"estimate_{c}"]) for c in ("x_m", "y_m", "yaw_rad")] == pose
+                assert [float(r[f"truth_{c}"]) for c in ("x_m", "y_m", "yaw_rad")] == rec["truth"]
+                if name == "oracle":  # no covariance, NEES or runtime: empty cells
+                    assert r["sigma_x_m"] == r["nees"] == r["runtime_s"] == r["flagged"] == ""
+                else:
+                    assert float(r["sigma_yaw_rad"]) ** 2 == pytest.approx(rec["covariance"][2][2], rel=1e-12)
+                    assert (r["nees"] == "") == (rec.get("nees") is None)
+                    assert r["flagged"] in ("0", "1") and float(r["runtime_s"]) == rec["runtime_s"]
+
+
 def test_outputs_and_summaries(run: dict) -> None:
     out, doc = run["out"], run["doc"]
-    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png", "errors_by_log.png"):
+    for name in ("results.json", "table.md", "errors_cdf.png", "nees.png", "errors_by_log.png", "trials.csv"):
         assert (out / name).stat().st_size > 0, name
     assert len(list((out / "partial").glob("*.json"))) == 4  # one per (log, estimator)
     assert list(doc["logs"]) == ["paper", "l_room"]
@@ -387,7 +419,7 @@ def test_a_rerun_replaces_the_previous_outputs_as_one_set(run: dict, logs: list[
     assert list((out / "failures").iterdir()) == []
     monkeypatch.undo()
     res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, **args)  # the same command again: from the saved batches
-    assert res.paths[0] == out / "results.json" and len(res.paths) == 6
+    assert res.paths[0] == out / "results.json" and len(res.paths) == 7
     assert {p.name for p in out.iterdir()} == {p.name for p in res.paths} | {"failures", "partial"}
     assert (out / "table.md").read_text() == old_table
 

@@ -1118,6 +1118,7 @@ def paper(
         if warming is not None:
             warming.join()
 
+        from evaluation.trials_csv import PAPER_COLUMNS, paper_rows, write_trials_csv
         from tofloc.plot_style import TIP_TITLES, estimator_colours
 
         colours = estimator_colours(names)  # each estimator's colour in every figure of the run
@@ -1131,6 +1132,7 @@ def paper(
         paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [
             ("config.toml", lambda p: write_text_atomic(config_text, p)),
             ("table.md", lambda p: write_text_atomic(table_markdown(doc), p)),
+            ("trials.csv", lambda p: write_trials_csv(paper_rows(records), p, PAPER_COLUMNS)),
             *((f"errors_{tip}.png", (lambda p, tip=tip: plot_errors(doc, tip, p)) if tip in tips else None)
               for tip in ("knn", "mocap")),
             ("errors_vs_k.png", lambda p: plot_errors_vs_k(
@@ -1603,6 +1605,7 @@ def evaluate(
             warming.join()
         config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
         from evaluation.failure_plots import plot_failures as draw_failures
+        from evaluation.trials_csv import EVALUATE_COLUMNS, evaluate_rows, write_trials_csv
 
         paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [
             ("config.toml", lambda p: write_text_atomic(config_text, p)),
@@ -1610,6 +1613,7 @@ def evaluate(
             ("errors_cdf.png", lambda p: plot_error_cdfs(doc, p)),
             ("nees.png", lambda p: plot_nees(doc, p)),
             ("errors_by_log.png", lambda p: plot_errors_by_log(doc, p)),
+            ("trials.csv", lambda p: write_trials_csv(evaluate_rows(doc), p, EVALUATE_COLUMNS)),
             ("failures", (lambda p: draw_failures(entries, specs, doc, prior, p, plot_failures, selection=selection,
                                                   on_progress=lambda d, t: reporter.progress(d, t, "failure plots")))
              if plot_failures else None),
