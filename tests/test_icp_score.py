@@ -122,6 +122,28 @@ def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs, compil
         assert counted and all(counted) == (compiled != "no room for crowded pairs")
 
 
+def test_dense_cloud_candidate_table_is_bounded(monkeypatch) -> None:
+    """A dense cloud does not make the candidate table grow with its density (100 000
+    points on the paper's cuboid took 873 MB, 4 million would take ~30 GB): the table
+    stays within MAX_CANDIDATE_BYTES (here a small one), the rows beyond it are crowded,
+    and the counts are still the KD-tree's; rows are filled in several KD-tree queries."""
+    import tofloc.distance_grid as dg
+
+    monkeypatch.setattr(dg, "MAX_CANDIDATE_BYTES", 1_000_000)
+    monkeypatch.setattr(dg, "BUILD_ROWS", 1000)
+    rng = np.random.default_rng(5)
+    floor = rng.random((20_000, 3)) * np.array([0.3, 0.3, 0.0]) + np.array([0, 0, 0.2])  # ~200 points per row
+    g = DistanceGrid(floor, 0.005, 0.02)
+    assert g._cand.nbytes <= 1_000_000 and g._crowded.mean() > 0.5
+    cloud = rng.random((300, 3)) * np.array([0.4, 0.4, 0.0]) - 0.05
+    cloud[:, 2] = 0.2 + rng.normal(size=300) * 0.015
+    poses = np.column_stack([rng.normal(0, 0.02, 60), rng.normal(0, 0.02, 60), rng.uniform(-0.3, 0.3, 60)])
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    moved = np.stack([c * cloud[None, :, 0] - s * cloud[None, :, 1] + poses[:, :1], s * cloud[None, :, 0] + c * cloud[None, :, 1] + poses[:, 1:2], np.broadcast_to(cloud[None, :, 2], (60, 300))], -1)
+    d, _ = cKDTree(floor).query(moved.reshape(-1, 3))
+    np.testing.assert_array_equal(g.count_within_planar(cloud, poses), (d < 0.02).reshape(60, 300).sum(axis=1))
+
+
 @pytest.mark.parametrize("kw", [{"max_correspondence": 0.0}, {"voxel_size": -1.0}, {"crop_margin": 20.0}, {"log_floor": 1.0}])
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):

@@ -42,7 +42,7 @@ from tofloc import numba_kernels
 from tofloc.threads import kdtree_workers
 from tofloc.zone_caster import rotate_z
 
-__all__ = ["DistanceGrid", "distance_grid_for"]
+__all__ = ["DistanceGrid", "distance_grid_for", "MAX_CANDIDATE_BYTES"]
 
 #: Largest grid (cells) we build; beyond it the cell size grows.
 MAX_CELLS = 8_000_000
@@ -51,6 +51,16 @@ SUB = 4
 #: Target number of (point, pose) pairs per chunk of :meth:`DistanceGrid.count_within_planar`
 #: (its temporaries, ~13 bytes a pair, then stay in the L2 cache).
 CHUNK_PAIRS = 131_072
+#: Bytes the candidate table (``3 x rows x width`` float64) may take. A dense cloud (1e5
+#: points or more on a room's walls) would otherwise ask for a width of hundreds to
+#: thousands of points per row (100 000 points on the paper's cuboid: 873 MB, 4 million:
+#: ~30 GB); the width is then capped and the rows with more candidates are crowded (the
+#: KD-tree answers them: the same exact test, slower). The scanned maze maps of the real
+#: flights take 310-370 MB.
+MAX_CANDIDATE_BYTES = 512 * 2**20
+#: Rows filled per KD-tree query while the candidate table is built (bounds the query's
+#: own ``rows x width`` temporaries).
+BUILD_ROWS = 16_384
 
 
 class DistanceGrid:
@@ -97,19 +107,23 @@ class DistanceGrid:
         radius = self.r_max + margin + 1e-9
         rc = centres[amb]
         lens_all = np.asarray(self.tree.query_ball_point(rc, radius, return_length=True), dtype=np.intp).reshape(-1)
-        # cap the width at the 99th percentile; the rare crowded row is answered apart
+        # cap the width at the 99th percentile; the rare crowded row is answered apart.
+        # The table also stays within MAX_CANDIDATE_BYTES: on a dense cloud more rows are
+        # crowded instead of the table growing with the density
         width = int(max(1, np.percentile(lens_all, 99))) if amb.size else 1
+        width = max(1, min(width, MAX_CANDIDATE_BYTES // (3 * 8 * max(1, amb.size))))
         self._crowded = lens_all > width
         far = 1e9
         table = np.full((3, amb.size, width), far)
-        if amb.size:
+        for a in range(0, amb.size, BUILD_ROWS):  # chunks of rows: bounded query temporaries
+            b = min(amb.size, a + BUILD_ROWS)
             # the `width` nearest points within the radius: every candidate of a row that is not crowded
-            dist, idx = self.tree.query(rc, k=width, distance_upper_bound=radius, workers=kdtree_workers())
-            dist = np.asarray(dist).reshape(amb.size, width)
-            idx = np.asarray(idx).reshape(amb.size, width)
-            ok = np.isfinite(dist) & ~self._crowded[:, None]
+            dist, idx = self.tree.query(rc[a:b], k=width, distance_upper_bound=radius, workers=kdtree_workers())
+            dist = np.asarray(dist).reshape(b - a, width)
+            idx = np.asarray(idx).reshape(b - a, width)
+            ok = np.isfinite(dist) & ~self._crowded[a:b, None]
             for axis in range(3):
-                table[axis][ok] = self.points[idx[ok], axis]
+                table[axis, a:b][ok] = self.points[idx[ok], axis]
         #: candidates, coordinate-major ``(3, rows, width)``: one contiguous (rows, width)
         #: table per axis, so that a gather of rows is three fast ``np.take`` calls
         self._cand = table
@@ -397,8 +411,9 @@ class DistanceGrid:
                     d2 = diff if d2 is None else np.add(d2, diff, out=d2)
                 d = np.sqrt(np.maximum(d2.min(axis=2), 0.0))
                 out[sel] = np.where(d + margin < r, 1, np.where(d - margin < r, 2, 0))
-        busy = np.flatnonzero(crowded)  # rows with too many candidates: the KD-tree
-        if busy.size:
+        busy_all = np.flatnonzero(crowded)  # rows with too many candidates: the KD-tree
+        for a in range(0, busy_all.size, 4096):  # chunks of rows: (4096 x SUB^3, 3) queries
+            busy = busy_all[a : a + 4096]
             centres = (self._row_centre[rows[busy]][:, None, :] + offsets[None] * h).reshape(-1, 3)
             d, _ = self.tree.query(centres, k=1, distance_upper_bound=r + margin)
             d = d.reshape(busy.size, -1)
