@@ -877,6 +877,23 @@ def test_an_interrupted_import_leaves_the_folder_as_it_was(tmp_path: Path, monke
                                                         "drone1-node001.h5", "maps"]
 
 
+def test_a_staging_folder_left_by_a_killed_import_is_removed(tmp_path: Path, capsys) -> None:
+    """A SIGKILLed import leaves its hidden staging folder; the next import into the folder
+    asked for --force (the folder was not empty) and kept the leftover. Under the folder's
+    lock no other import writes there: the leftover is removed and named."""
+    from tofloc.cli import main
+
+    folder = make_flight(tmp_path / "f")
+    out = tmp_path / "out"
+    leftover = out / ".import-k1ll3d.tmp"
+    (leftover / "maps").mkdir(parents=True)
+    (leftover / "drone0-node000.h5").write_bytes(b"half a log")
+    assert main(["import", "nanoswarm", str(folder), "--out", str(out)]) == 0
+    assert f"removed {leftover}" in " ".join(capsys.readouterr().err.split())
+    assert sorted(p.name for p in out.iterdir()) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node000.h5",
+                                                    "drone1-node001.h5", "maps"]
+
+
 def test_a_second_import_into_the_same_folder_is_refused(tmp_path: Path, capsys) -> None:
     from tofloc.cli import main
     from tofloc.locks import OutputLock

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from tofloc.cli.app import app, console, status
+from tofloc.cli.app import app, console, err_console, status
 from tofloc.errors import ParameterError
 
 #: median point-to-map distance at the truth (cm) above which ``import nanoswarm`` warns
@@ -64,7 +64,7 @@ def nanoswarm(
     (docs/real-data.md). Prints how far the nodes' points at the truth lie from their maps."""
     from tofloc.io.nanoswarm import BAD_SCAN_POLICIES, MISSING_POSE_POLICIES, check_policy
     from tofloc.atomic import check_output_path
-    from tofloc.io.nanoswarm_maps import import_flight, write_flight
+    from tofloc.io.nanoswarm_maps import import_flight, remove_stale_staging, write_flight
     from tofloc.locks import FOLDER_LOCK_NAME, OutputLock
     from tofloc.scan_maps import WallFitSettings
 
@@ -87,6 +87,8 @@ def nanoswarm(
     out.mkdir(parents=True, exist_ok=True)
     try:
         with OutputLock.folder(out, "--out"):  # a second import into the same folder is refused, naming this one
+            for p in remove_stale_staging(out):  # an import killed without clean-up (SIGKILL) left it
+                err_console.print(f"removed {p}: the staging folder of an import that was killed")
             if any(p.name != FOLDER_LOCK_NAME for p in out.iterdir()) and not force:
                 raise ParameterError(f"--out {out}: folder is not empty; pass --force to write into it")
             with status(f"importing {flight_dir}"):

@@ -487,6 +487,29 @@ def sibling_map_flight(flight: Flight, *, duplicates: str = "refuse", bad_scans:
     return next(d for d, n in counts.items() if n == most), passed_over
 
 
+#: Name of the hidden staging folder :func:`write_flight` writes into (``.import-XXXX.tmp``).
+STAGING_PREFIX, STAGING_SUFFIX = ".import-", ".tmp"
+
+
+def remove_stale_staging(out_dir: str | Path) -> list[Path]:
+    """Remove the staging folders an import killed without clean-up (SIGKILL, a power cut)
+    left in ``out_dir``. Call it only while holding the folder's lock
+    (:meth:`tofloc.locks.OutputLock.folder`): no other import is then writing there.
+
+    Returns
+    -------
+    list of Path
+        The folders removed.
+    """
+    import shutil
+
+    out = Path(out_dir)
+    stale = sorted(p for p in out.glob(f"{STAGING_PREFIX}*{STAGING_SUFFIX}") if p.is_dir()) if out.is_dir() else []
+    for p in stale:
+        shutil.rmtree(p)
+    return stale
+
+
 def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
     """Write the maps (``maps/without-droneD.ply``, or ``maps/from-<flight>.ply``) and one
     ``droneD-nodeNNN.h5`` per node into ``out_dir``.
@@ -501,8 +524,9 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
     before the logs that name them. An error (a full disk) or an interruption removes the
     staging folder and leaves ``out_dir`` as it was, never a part of the flight's logs that
     a later ``tofloc evaluate DIR/*.h5`` would take for the whole flight. A process killed
-    without clean-up (SIGKILL) may leave the staging folder (``.import-*.tmp``) and, in the
-    moment of the moves, the maps without every log.
+    without clean-up (SIGKILL) may leave the staging folder (``.import-*.tmp``, which the
+    next ``tofloc import nanoswarm`` into the folder removes: :func:`remove_stale_staging`)
+    and, in the moment of the moves, the maps without every log.
 
     Returns
     -------
@@ -520,7 +544,7 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".import-", suffix=".tmp", dir=out))
+    staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, suffix=STAGING_SUFFIX, dir=out))
     f = imp.flight
     params = {"range_cut_m": imp.range_cut_m, "voxel_m": imp.voxel_m, "normal_k": imp.normal_k, "wall_fit": imp.wall_fit.to_dict(),
               "built_from": (f"every drone of flight {imp.map_from.resolve().name}" if imp.map_from is not None else
