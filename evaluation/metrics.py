@@ -37,6 +37,7 @@ __all__ = [
     "planar_truth_covariance",
     "summarize",
     "json_float",
+    "one_sigma",
     "ratio_or_none",
     "FOUND_POSITION_M",
     "FOUND_YAW_DEG",
@@ -191,6 +192,20 @@ def json_float(x: Any) -> float | None:
         return None
     v = float(x)
     return v if math.isfinite(v) else None
+
+
+def one_sigma(covariance: Any) -> list[float | None]:
+    """The reported one-sigma of x, y and yaw: square roots of a pose covariance's diagonal
+    (a record's ``covariance``, as JSON keeps it), a negative round-off variance as 0; None
+    where the covariance or its entry is missing or not finite (a plug-in's NaN covariance,
+    stored as ``null``)."""
+    if covariance is None:
+        return [None, None, None]
+    out: list[float | None] = []
+    for i in range(3):
+        v = json_float(covariance[i][i])
+        out.append(None if v is None else math.sqrt(max(v, 0.0)))
+    return out
 
 
 def ratio_or_none(a: Any, b: Any) -> float | None:

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from evaluation.evaluate import is_failure, is_flagged
+from evaluation.metrics import json_float, one_sigma
 from evaluation.report import write_text_atomic
 
 __all__ = ["TRIAL_COLUMNS", "EVALUATE_COLUMNS", "PAPER_COLUMNS", "ORACLE", "evaluate_rows", "paper_rows", "write_trials_csv"]
@@ -41,32 +41,27 @@ PAPER_COLUMNS = ("tip_source", "prior_mode", *TRIAL_COLUMNS)
 ORACLE = "oracle"
 
 
-def _number(value: Any) -> float | None:
-    return None if value is None or not math.isfinite(float(value)) else float(value)
-
-
 def _trial_row(estimator: str, rec: Mapping[str, Any]) -> dict[str, Any]:
     """The :data:`TRIAL_COLUMNS` of one trial record (an estimator's or the oracle's)."""
     pose = rec.get("estimate", rec.get("pose"))
     truth = rec.get("truth")
-    cov = rec.get("covariance")
-    sigma = [None] * 3 if cov is None else [math.sqrt(max(float(cov[i][i]), 0.0)) for i in range(3)]
+    sigma = one_sigma(rec.get("covariance"))
     crlb = rec.get("crlb") or {}
     cause = rec.get("failure_cause")
     return {
         "estimator": estimator, "k": rec.get("k"), "trial": rec.get("trial"), "seed": rec.get("seed"),
-        "e_x_m": _number(rec.get("e_x_m")), "e_gamma_deg": _number(rec.get("e_gamma_deg")),
+        "e_x_m": json_float(rec.get("e_x_m")), "e_gamma_deg": json_float(rec.get("e_gamma_deg")),
         "failed": int(is_failure(rec)),
         "flagged": int(is_flagged(rec)) if ("covariance_widened" in rec or "ambiguous" in rec) else None,
         "covariance_widened": None if "covariance_widened" not in rec else int(bool(rec["covariance_widened"])),
-        "nees": _number(rec.get("nees")), "nees_exact_truth": _number(rec.get("nees_exact_truth")),
-        "nees_model": _number(rec.get("nees_model")),
-        **{f"estimate_{c}": (None if pose is None else float(pose[i])) for i, c in enumerate(("x_m", "y_m", "yaw_rad"))},
-        **{f"truth_{c}": (None if truth is None else float(truth[i])) for i, c in enumerate(("x_m", "y_m", "yaw_rad"))},
+        "nees": json_float(rec.get("nees")), "nees_exact_truth": json_float(rec.get("nees_exact_truth")),
+        "nees_model": json_float(rec.get("nees_model")),
+        **{f"estimate_{c}": (None if pose is None else json_float(pose[i])) for i, c in enumerate(("x_m", "y_m", "yaw_rad"))},
+        **{f"truth_{c}": (None if truth is None else json_float(truth[i])) for i, c in enumerate(("x_m", "y_m", "yaw_rad"))},
         **{f"sigma_{c}": sigma[i] for i, c in enumerate(("x_m", "y_m", "yaw_rad"))},
-        "crlb_position_m": _number(crlb.get("position_m")), "crlb_yaw_deg": _number(crlb.get("yaw_deg")),
+        "crlb_position_m": json_float(crlb.get("position_m")), "crlb_yaw_deg": json_float(crlb.get("yaw_deg")),
         "failure_cause": (cause.get("cause") if isinstance(cause, Mapping) else cause) if is_failure(rec) else None,
-        "runtime_s": _number(rec.get("runtime_s")),
+        "runtime_s": json_float(rec.get("runtime_s")),
     }
 
 

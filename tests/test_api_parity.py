@@ -327,3 +327,15 @@ def test_numpy_integers_in_evaluate_workers_and_simulate(tmp_path: Path) -> None
         api.resolve_workers(True, 4)
     with pytest.raises(ParameterError, match="seed must be an integer >= 0, got None"):
         api.simulate("pillars", None)
+
+
+def test_scenes_cli_names_a_repeated_scene_as_its_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--scene pillars --scene pillars`` was refused by the API as ``scene_names``, an
+    argument the command line user never typed."""
+    from tofloc.cli import main
+
+    assert main(["scenes", "--estimators", "icp_pf", "--scene", "pillars", "--scene", "pillars", "--out",
+                 str(tmp_path / "s")]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "--scene pillars is given more than once: expected each scene once" in err and "scene_names" not in err
+    assert not (tmp_path / "s").exists()

@@ -75,7 +75,7 @@ def _run(capsys: pytest.CaptureFixture[str], args: list[str]) -> tuple[int, str,
 def test_trials_csv_holds_every_trial_as_results_json_does(run: dict) -> None:
     import csv
 
-    from evaluation.evaluate import is_failure
+    from evaluation.evaluate import is_failure, is_flagged
     from evaluation.trials_csv import EVALUATE_COLUMNS
 
     doc = run["doc"]
@@ -99,9 +99,22 @@ def test_trials_csv_holds_every_trial_as_results_json_does(run: dict) -> None:
                 if name == "oracle":  # no covariance, NEES or runtime: empty cells
                     assert r["sigma_x_m"] == r["nees"] == r["runtime_s"] == r["flagged"] == ""
                 else:
-                    assert float(r["sigma_yaw_rad"]) ** 2 == pytest.approx(rec["covariance"][2][2], rel=1e-12)
-                    assert (r["nees"] == "") == (rec.get("nees") is None)
-                    assert r["flagged"] in ("0", "1") and float(r["runtime_s"]) == rec["runtime_s"]
+                    for i, c in enumerate(("x_m", "y_m", "yaw_rad")):
+                        assert float(r[f"sigma_{c}"]) ** 2 == pytest.approx(rec["covariance"][i][i], rel=1e-12)
+                    for key in ("nees", "nees_exact_truth", "nees_model"):
+                        assert r[key] == ("" if rec.get(key) is None else repr(rec[key])), key
+                    assert r["flagged"] == str(int(is_flagged(rec)))
+                    assert r["covariance_widened"] == str(int(rec["covariance_widened"]))
+                    assert r["crlb_position_m"] == repr(rec["crlb"]["position_m"])
+                    assert r["crlb_yaw_deg"] == repr(rec["crlb"]["yaw_deg"])
+                    cause = rec.get("failure_cause")
+                    assert r["failure_cause"] == (cause["cause"] if is_failure(rec) and cause else "")
+                    assert float(r["runtime_s"]) == rec["runtime_s"]
+    # the trials differ where these columns are checked: a column read from the wrong key would show
+    est_rows = [r for r in rows if r["estimator"] != "oracle"]
+    assert len({r["sigma_x_m"] for r in est_rows}) > 1 and len({r["nees_model"] for r in est_rows}) > 1
+    assert {r["flagged"] for r in est_rows} == {r["covariance_widened"] for r in est_rows} == {"0", "1"}
+    assert {r["failure_cause"] for r in est_rows} == {"", "model"}
 
 
 def test_outputs_and_summaries(run: dict) -> None:
@@ -1088,3 +1101,41 @@ def test_excluded_samples_summary_and_section() -> None:
     assert lines[0] == "## Samples no particle could explain"
     assert "| beam_pf | 2/3 | 3 |" in lines and not any(ln.startswith("| icp_pf") for ln in lines)
     assert excluded_lines({"summary": {"icp_pf": error_summary(recs[1:2])}}) == []
+
+
+@dataclass(frozen=True, eq=False)
+class _NaNTest(Estimator):
+    """A plug-in that answers the prior mean with a NaN covariance (the interface does not
+    forbid it; a NaN pose is refused, naming the trial)."""
+
+    name = "nan_test"
+
+    def _estimate(self, problem, rng):
+        return Estimate(pose=problem.prior.mean.copy(), covariance=np.full((3, 3), np.nan))
+
+
+def test_a_nan_answer_is_an_undefined_trial_in_every_output(logs: list[Path], tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """trials.csv took the square root of a covariance's null diagonal and raised after the
+    previous results.json had been removed (every rerun the same); localize's table took it
+    too. Now: empty cells, an undefined NEES, 'n/a' in the console."""
+    import csv
+
+    from tofloc import api
+    from tofloc.registry import ESTIMATORS
+
+    ESTIMATORS.register(_NaNTest.name, _NaNTest)
+    try:
+        res = api.evaluate(logs[:1], ["nan_test"], out=tmp_path / "out", trials=1, samples=3, workers=1)
+        code = main(["localize", str(logs[0]), "--estimator", "nan_test", "--samples", "3", "--workers", "1"])
+    finally:
+        ESTIMATORS.unregister(_NaNTest.name)
+    assert (tmp_path / "out" / "results.json").exists()
+    rec = res.document["logs"]["paper"]["estimators"]["nan_test"]["records"][0]
+    with open(tmp_path / "out" / "trials.csv", newline="") as fh:
+        row = next(r for r in csv.DictReader(fh) if r["estimator"] == "nan_test")
+    assert float(row["e_x_m"]) == rec["e_x_m"] and float(row["estimate_x_m"]) == rec["estimate"][0]
+    assert row["sigma_x_m"] == row["sigma_y_m"] == row["sigma_yaw_rad"] == row["nees"] == "" and rec["nees"] is None
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "n/a" in out

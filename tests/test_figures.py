@@ -214,6 +214,30 @@ def test_builtin_colours_do_not_depend_on_the_company(name: str) -> None:
     assert estimator_linestyles([name])[name] == estimator_linestyles(["p1", name])[name] != "--"
 
 
+def test_plug_ins_are_told_apart_from_each_other_and_from_the_built_ins() -> None:
+    """Plug-ins took C4, C5, C6, C8, C9 and then C4 again (the sixth plug-in looked like
+    the first) while the built-ins' slots stayed free; their line styles cycled onto the
+    built-ins' (the third plug-in drew icp_pf's solid line)."""
+    from tofloc.plot_style import BUILTIN_COLOURS, estimator_colours, estimator_linestyles
+
+    six = [f"p{i}" for i in range(6)]
+    assert len(set(estimator_colours(six).values())) == 6
+    every = [*BUILTIN_COLOURS, *six[:5]]
+    assert len(set(estimator_colours(every).values())) == 9  # the ten-colour cycle less the reference grey
+    assert "C7" not in estimator_colours([*BUILTIN_COLOURS, *six]).values()
+    with_icp = estimator_linestyles(["icp_pf", "p0", "p1", "p2"])
+    assert len({repr(v) for v in with_icp.values()}) == 4 and "--" not in with_icp.values()
+    assert estimator_colours(["p0", "icp_pf"]) == estimator_colours(["p0", "icp_pf"])  # the same in every figure
+
+
+def test_builtin_colours_cover_the_registrys_built_ins() -> None:
+    """A new built-in estimator would otherwise be coloured as a plug-in."""
+    from tofloc.plot_style import BUILTIN_COLOURS
+    from tofloc.registry import ESTIMATORS
+
+    assert set(BUILTIN_COLOURS) == {n for n, spec in ESTIMATORS._specs.items() if spec.target.startswith("estimators.")}
+
+
 def test_fig4_bars_say_when_some_are_too_small_and_draw_the_papers_line_on_its_scene_only() -> None:
     """icp_pf's decimetres beside the likelihood field's millimetres: the title points to
     errors_vs_k.png; the paper's Table I line (its real robot) only on the paper's scene."""
@@ -272,3 +296,27 @@ def test_the_zone_classes_differ_by_marker_too(monkeypatch) -> None:
     zones = [c for c in ax.collections if str(c.get_label()).startswith(("zones placed at the estimate", "zones beyond", "misfit"))]
     paths = [tuple(map(tuple, np.round(c.get_paths()[0].vertices, 3))) for c in zones]
     assert len(zones) >= 2 and len(set(paths)) == len(paths)
+
+
+def test_every_png_is_written_at_the_print_resolution(tmp_path: Path) -> None:
+    """Figures were written at matplotlib's screen resolutions (80-110 dpi), blurred in print."""
+    import struct
+
+    import evaluation.evaluate_report as er
+    from evaluation.error_plots import plot_nees
+    from tofloc.plot_style import SAVE_DPI
+
+    def dpi(path: Path) -> float:
+        blob = path.read_bytes()
+        i = blob.index(b"pHYs")  # pixels per metre, x then y, then the unit (1: metre)
+        ppm_x, _, unit = struct.unpack(">IIB", blob[i + 4 : i + 13])
+        assert unit == 1
+        return ppm_x * 0.0254
+
+    doc = _evaluate_doc(["icp_pf", "beam_pf"])
+    written = [er.plot_error_cdfs(doc, tmp_path / "c.png"), er.plot_nees(doc, tmp_path / "n.png"),
+               er.plot_errors_by_log(doc, tmp_path / "b.png"),
+               plot_nees([("panel", [("icp_pf", [1.0, 2.0, 4.0], {})])], tmp_path / "e.png")]
+    assert SAVE_DPI == 200
+    for p in written:
+        assert dpi(p) == pytest.approx(SAVE_DPI, abs=0.5), p.name

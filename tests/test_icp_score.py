@@ -144,6 +144,24 @@ def test_dense_cloud_candidate_table_is_bounded(monkeypatch) -> None:
     np.testing.assert_array_equal(g.count_within_planar(cloud, poses), (d < 0.02).reshape(60, 300).sum(axis=1))
 
 
+def test_crowded_rows_sub_cells_are_decided_for_every_row(monkeypatch) -> None:
+    """The crowded rows' sub-cells are decided by the KD-tree in chunks of 4096 rows: a
+    call over 19,336 crowded rows decides each as a call over 1000 of them does (a chunk
+    that skipped a row would leave its sub-cells at 0, 'no point within reach')."""
+    import tofloc.distance_grid as dg
+
+    monkeypatch.setattr(dg, "MAX_CANDIDATE_BYTES", 1_000_000)
+    rng = np.random.default_rng(5)
+    floor = rng.random((20_000, 3)) * np.array([0.3, 0.3, 0.0]) + np.array([0, 0, 0.2])
+    g = DistanceGrid(floor, 0.005, 0.02)
+    rows = np.flatnonzero(g._crowded)
+    assert rows.size > 4 * 4096
+    every = g._sub_states(rows)
+    np.testing.assert_array_equal(every, np.concatenate([g._sub_states(rows[a : a + 1000])
+                                                         for a in range(0, rows.size, 1000)]))
+    assert (every == 1).any(axis=1).mean() > 0.5  # most rows have sub-cells within reach: a skipped row shows
+
+
 @pytest.mark.parametrize("kw", [{"max_correspondence": 0.0}, {"voxel_size": -1.0}, {"crop_margin": 20.0}, {"log_floor": 1.0}])
 def test_bad_parameters_are_refused(kw) -> None:
     with pytest.raises(ParameterError):

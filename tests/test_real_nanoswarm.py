@@ -877,6 +877,28 @@ def test_an_interrupted_import_leaves_the_folder_as_it_was(tmp_path: Path, monke
                                                         "drone1-node001.h5", "maps"]
 
 
+def test_the_maps_are_moved_into_place_before_the_logs_that_name_them(tmp_path: Path, monkeypatch) -> None:
+    """A reader of the folder must never find a log whose map is not there yet."""
+    import os
+
+    folder = make_flight(tmp_path / "f")
+    out = tmp_path / "out"
+    moved: list[Path] = []
+    real = os.replace
+
+    def replace(src, dst):
+        moved.append(Path(dst))
+        return real(src, dst)
+
+    imp = import_flight(folder)
+    monkeypatch.setattr(os, "replace", replace)
+    write_flight(imp, out)
+    final = [p for p in moved if p.parent in (out, out / "maps")]  # not the writes into the staging folder
+    maps = [i for i, p in enumerate(final) if p.parent == out / "maps"]
+    logs = [i for i, p in enumerate(final) if p.suffix == ".h5" and p.parent == out]
+    assert maps and logs and max(maps) < min(logs), final
+
+
 def test_a_staging_folder_left_by_a_killed_import_is_removed(tmp_path: Path, capsys) -> None:
     """A SIGKILLed import leaves its hidden staging folder; the next import into the folder
     asked for --force (the folder was not empty) and kept the leftover. Under the folder's

@@ -76,13 +76,13 @@ def test_an_interrupted_paper_says_what_it_kept_and_how_to_resume(tmp_path: Path
     with pytest.raises(KeyboardInterrupt) as info:
         api.paper(["icp_pf"], out=out, trials=1, reporter=notes)
     kept = [n for n in notes.notes if n.startswith("kept")]
-    assert kept == [f"kept 2 finished batches in {out / 'partial'}; the same command again (same arguments) reuses "
-                    "them and runs only the rest"]
+    assert kept == [f"kept 2 saved batches in {out / 'partial'}; the same command again (same arguments) reuses "
+                    "every batch this run finished and runs only the rest"]
     assert info.value.__notes__ == kept  # for a script, on the exception too
     # the CLI prints it (then "interrupted" for a real Ctrl-C), exit code 130, no traceback
     assert main(["paper", "--trials", "1", "--out", str(out)]) == 130
     err = capsys.readouterr().err
-    assert "kept 2 finished batches" in err and "Traceback" not in err
+    assert "kept 2 saved batches" in err and "Traceback" not in err
 
 
 def test_an_interrupted_evaluate_says_what_it_kept(tmp_path: Path, monkeypatch, fake_logs: None) -> None:
@@ -96,12 +96,14 @@ def test_an_interrupted_evaluate_says_what_it_kept(tmp_path: Path, monkeypatch, 
     with pytest.raises(KeyboardInterrupt):
         api.evaluate(["a.h5"], ["icp_pf"], out=out, trials=1, reporter=notes)
     assert [n for n in notes.notes if n.startswith("kept")] == [
-        f"kept 1 finished batch in {out / 'partial'}; the same command again (same arguments) reuses it and runs only "
-        "the rest"]
+        f"kept 1 saved batch in {out / 'partial'}; the same command again (same arguments) reuses every batch this "
+        "run finished and runs only the rest"]
 
 
 def test_an_interrupted_scenes_run_counts_every_scene_once(tmp_path: Path, monkeypatch) -> None:
-    """``scenes`` runs ``paper`` per scene: one note, from the outer run, over every scene's batches."""
+    """``scenes`` runs ``paper`` per scene: one note, from the outer run, over every scene's
+    batches in the folder (a scene of an earlier run among them: counted as saved, and the
+    note promises reuse only of this run's)."""
     import evaluation.paper_data as pd
 
     out = tmp_path / "run"
@@ -113,8 +115,8 @@ def test_an_interrupted_scenes_run_counts_every_scene_once(tmp_path: Path, monke
     with pytest.raises(KeyboardInterrupt) as info:
         api.scenes(["icp_pf"], out=out, scene_names=["paper"], trials=1, reporter=notes)
     kept = [n for n in notes.notes if n.startswith("kept")]
-    assert kept == [f"kept 2 finished batches in 2 partial/ folders under {out}; the same command again (same "
-                    "arguments) reuses them and runs only the rest"]
+    assert kept == [f"kept 2 saved batches in 2 partial/ folders under {out}; the same command again (same "
+                    "arguments) reuses every batch this run finished and runs only the rest"]
     assert info.value.__notes__ == kept
 
 

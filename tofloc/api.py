@@ -78,8 +78,9 @@ def _kept_note(out_dir: Path) -> str:
                 f"reusing any data already prepared there")
     folders = sorted({str(p.parent) for p in saved})
     where = folders[0] if len(folders) == 1 else f"{len(folders)} partial/ folders under {out_dir}"
-    return (f"{_KEPT_NOTE}{len(saved)} finished batch{'es' if len(saved) != 1 else ''} in {where}; the same command "
-            f"again (same arguments) reuses {'them' if len(saved) != 1 else 'it'} and runs only the rest")
+    # the folder may also hold batches of earlier runs with other arguments: counted, but only this run's are promised
+    return (f"{_KEPT_NOTE}{len(saved)} saved batch{'es' if len(saved) != 1 else ''} in {where}; the same command "
+            f"again (same arguments) reuses every batch this run finished and runs only the rest")
 
 
 #: How many :func:`_output_folder` blocks this thread is in (``scenes`` runs ``paper`` per scene).

@@ -14,7 +14,7 @@ screen resolutions, blur when a figure is printed or shrunk to a column).
 
 from __future__ import annotations
 
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 __all__ = ["BUILTIN_COLOURS", "ORACLE_STYLE", "SAVE_DPI", "TIP_TITLES", "estimator_colours", "estimator_linestyles"]
 
@@ -32,36 +32,32 @@ _LINESTYLES: tuple[Any, ...] = ("-", "-.", ":", (0, (5, 1, 1, 1, 1, 1)), (0, (8,
 ORACLE_STYLE = {"color": "black", "linestyle": "--"}
 
 
+def _assign(names: Iterable[str], fixed: dict[str, Any], pool: Sequence[Any]) -> dict[str, Any]:
+    """Built-ins their ``fixed`` value; plug-ins, in order, the values of ``pool`` that no
+    estimator of ``names`` holds, then the fixed values no built-in of ``names`` holds,
+    then (more estimators than values) ``pool`` again."""
+    order = list(dict.fromkeys(names))
+    out = {n: fixed[n] for n in order if n in fixed}
+    taken = list(out.values())
+    free = [v for v in (*pool, *fixed.values()) if v not in taken]
+    plugins = [n for n in order if n not in fixed]
+    for i, n in enumerate(plugins):
+        out[n] = free[i] if i < len(free) else pool[(i - len(free)) % len(pool)]
+    return {n: out[n] for n in order}
+
+
 def estimator_colours(names: Iterable[str]) -> dict[str, str]:
-    """Each estimator's matplotlib colour: a built-in's fixed one (:data:`BUILTIN_COLOURS`),
-    a plug-in the next free slot of the default cycle in the order of ``names`` (the cycle
-    repeats after the fifth plug-in)."""
-    out: dict[str, str] = {}
-    free = 0
-    for name in names:
-        if name in out:
-            continue
-        if name in BUILTIN_COLOURS:
-            out[name] = BUILTIN_COLOURS[name]
-        else:
-            out[name] = _FREE_COLOURS[free % len(_FREE_COLOURS)]
-            free += 1
-    return out
+    """Each estimator's matplotlib colour: a built-in's fixed one (:data:`BUILTIN_COLOURS`);
+    a plug-in the next colour of the default cycle that no estimator of ``names`` holds
+    (C4, C5, C6, C8, C9, then the slots of built-ins not in ``names``; grey, C7, is the
+    reference lines'), so up to nine estimators are told apart; the same ``names`` give
+    the same colours in every figure."""
+    return _assign(names, BUILTIN_COLOURS, _FREE_COLOURS)
 
 
 def estimator_linestyles(names: Iterable[str]) -> dict[str, Any]:
     """Each estimator's line style: a built-in's fixed one (solid for ``icp_pf``, then
-    dash-dot, dotted, dash-dot-dot), a plug-in the next one in the order of ``names``;
-    never the oracle floor's dashes."""
+    dash-dot, dotted, dash-dot-dot), a plug-in the next one no estimator of ``names``
+    holds; never the oracle floor's dashes."""
     builtin = {n: _LINESTYLES[i] for i, n in enumerate(BUILTIN_COLOURS)}
-    out: dict[str, Any] = {}
-    free = len(builtin)
-    for name in names:
-        if name in out:
-            continue
-        if name in builtin:
-            out[name] = builtin[name]
-        else:
-            out[name] = _LINESTYLES[free % len(_LINESTYLES)]
-            free += 1
-    return out
+    return _assign(names, builtin, _LINESTYLES[len(builtin):])

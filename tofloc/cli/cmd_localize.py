@@ -261,6 +261,8 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
     """The trials (up to 10, or every estimate without truth) and the error summary; errors
     in millimetres and degrees, poses in metres and degrees; fits 80 columns."""
+    from evaluation.metrics import json_float, one_sigma
+
     recs = doc["trials"]
     src = doc.get("configuration_source")
     tips = f"tip source {doc['tip_source']}" + (f" (configurations from {src})" if src and src != doc["tip_source"] else "")
@@ -272,13 +274,16 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
         cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x mm", "e_γ deg"] if has_truth else [])
         for col in cols:
             t.add_column(col, justify="right")
+        def cell(v: float | None, fmt: str) -> str:  # a plug-in's NaN estimate or covariance is null in the JSON
+            return "n/a" if v is None else format(v, fmt)
+
         for r in recs:
-            x, y, yaw = r["estimate"]
-            sd = [math.sqrt(max(float(r["covariance"][i][i]), 0.0)) for i in range(3)]
-            row = [str(r["trial"]), f"{x:.4f}", f"{y:.4f}", f"{math.degrees(yaw):.2f}", f"{sd[0]:.4f}", f"{sd[1]:.4f}",
-                   f"{math.degrees(sd[2]):.2f}"]
+            x, y, yaw = (json_float(v) for v in r["estimate"])
+            sd = one_sigma(r["covariance"])
+            row = [str(r["trial"]), cell(x, ".4f"), cell(y, ".4f"), cell(None if yaw is None else math.degrees(yaw), ".2f"),
+                   cell(sd[0], ".4f"), cell(sd[1], ".4f"), cell(None if sd[2] is None else math.degrees(sd[2]), ".2f")]
             if has_truth:
-                row += [f"{1000 * r['e_x_m']:.1f}", f"{r['e_gamma_deg']:.2f}"]
+                row += [cell(None if r["e_x_m"] is None else 1000 * r["e_x_m"], ".1f"), cell(r["e_gamma_deg"], ".2f")]
             t.add_row(*row)
         console.print(t)
     if not has_truth:
@@ -289,7 +294,8 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
     for col in ("mean", "std", "median", "rmse"):
         t.add_column(col, justify="right")
     for key, label, scale, digits in (("e_x_m", "e_x (mm)", 1000.0, 1), ("e_gamma_deg", "e_γ (deg)", 1.0, 3)):
-        t.add_row(label, *(f"{scale * s[key][c]:.{digits}f}" for c in ("mean", "std", "median", "rmse")))
+        t.add_row(label, *("n/a" if s[key][c] is None else f"{scale * s[key][c]:.{digits}f}"
+                           for c in ("mean", "std", "median", "rmse")))
     console.print(t)
     rt = s["runtime_s"]
     extra = f"median runtime {rt['median']:.3f} s per trial"

@@ -58,6 +58,9 @@ def scenes(
         raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
     if tip_source not in ("mocap", "knn"):
         raise ParameterError(f"--tip-source must be mocap or knn, got {tip_source!r}")
+    repeated = sorted({n for n in scene or [] if (scene or []).count(n) > 1})
+    if repeated:
+        raise ParameterError(f"--scene {', '.join(repeated)} is given more than once: expected each scene once")
     prior_mode = parse_prior_mode(prior_mode)
     rect = parse_region_option(region, [prior_mode])
     per_estimator, notes = estimator_params(config, names, param)

@@ -572,7 +572,7 @@ def write_flight(imp: FlightImport, out_dir: str | Path) -> list[Path]:
                             write_checksummed_dataset(g, "optimized_poses", f.optimized_poses[i], "<f8")
                 log_names.append(name)
         except OSError as e:  # a full disk, an I/O error: nothing reached out_dir
-            reason = e.strerror or (os.strerror(e.errno) if e.errno else str(e).splitlines()[0])
+            reason = e.strerror or (os.strerror(e.errno) if e.errno else (str(e).splitlines() or [type(e).__name__])[0])
             raise OSError(e.errno, f"cannot write the flight's logs and maps into {out}: {reason}; nothing was written "
                                    "there") from None
         staged = [p for p in sorted(staging.rglob("*")) if p.is_file()]
