@@ -17,8 +17,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from evaluation.compare import Series
-from tofloc.atomic import atomic_path
-from tofloc.plot_style import SAVE_DPI, TIP_TITLES, estimator_colours
+from tofloc.plot_style import TIP_TITLES, estimator_colours, write_figure
 
 __all__ = ["plot_errors_vs_k", "plot_nees", "nees_band", "MODE_MARKERS", "FILE_STYLES"]
 
@@ -29,11 +28,8 @@ _ERRORS = (("e_x_m", 1000.0, "$e_x$ (mm)", "position_m"), ("e_gamma_deg", 1.0, r
 
 
 def _write_png(fig: Any, path: str | Path) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(p) as tmp, open(tmp, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=SAVE_DPI)
-    return p
+    """The figure written as the type ``path``'s suffix names (:func:`tofloc.plot_style.write_figure`)."""
+    return write_figure(fig, path)
 
 
 def plot_errors_vs_k(files: Sequence[tuple[str, Sequence[Series]]], path: str | Path,

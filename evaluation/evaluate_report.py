@@ -358,10 +358,10 @@ def _all(doc: Mapping[str, Any], est: str | None, key: str) -> np.ndarray:
 
 
 def _write_png(fig: Any, path: str | Path) -> Path:
-    from tofloc.plot_style import SAVE_DPI
-    from evaluation.report import _atomic
+    """The figure written as the type ``path``'s suffix names (:func:`tofloc.plot_style.write_figure`)."""
+    from tofloc.plot_style import write_figure
 
-    return _atomic(path, lambda fh: fig.savefig(fh, format="png", dpi=SAVE_DPI), "wb")
+    return write_figure(fig, path)
 
 
 def plot_error_cdfs(doc: Mapping[str, Any], path: str | Path, estimators: Sequence[str] = ()) -> Path:

@@ -472,14 +472,9 @@ def _crlb_per_k(series: Sequence[tuple[str, str, Mapping[str, Any]]], k_values: 
 def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Path:
     """:func:`errors_figure` written as PNG to ``path`` with the Agg canvas (no display, no
     global backend change), atomically."""
-    from tofloc.plot_style import SAVE_DPI
+    from tofloc.plot_style import write_figure
 
-    fig = errors_figure(doc, tip_source)
-
-    def write(fh: Any) -> None:
-        fig.savefig(fh, format="png", dpi=SAVE_DPI)
-
-    return _atomic(path, write, "wb")
+    return write_figure(errors_figure(doc, tip_source), path)
 
 
 def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:

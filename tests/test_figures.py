@@ -320,3 +320,37 @@ def test_every_png_is_written_at_the_print_resolution(tmp_path: Path) -> None:
     assert SAVE_DPI == 200
     for p in written:
         assert dpi(p) == pytest.approx(SAVE_DPI, abs=0.5), p.name
+
+
+@pytest.mark.parametrize(("fmt", "magic"), [("pdf", b"%PDF"), ("svg", b"<?xml")])
+def test_tofloc_plot_writes_vector_figures_for_a_paper(tmp_path: Path, fmt: str, magic: bytes, capsys) -> None:
+    """`--format pdf|svg`: every figure of `tofloc plot` as a vector file (of paper and
+    localize results, and of evaluate results); another type is refused, naming the option."""
+    from test_outputs_ux import _localize_doc, _paper_doc
+
+    (tmp_path / "paper.json").write_text(json.dumps(_paper_doc()))
+    (tmp_path / "loc.json").write_text(json.dumps(_localize_doc()))
+    out = tmp_path / "out"
+    assert main(["plot", str(tmp_path / "paper.json"), str(tmp_path / "loc.json"), "--out", str(out), "--format", fmt]) == 0
+    figures = sorted(p.name for p in out.iterdir() if p.suffix != ".md")
+    assert figures == [f"errors_vs_k.{fmt}", f"nees.{fmt}"]
+    assert all((out / name).read_bytes().startswith(magic) for name in figures)
+    ev = tmp_path / "ev.json"
+    ev.write_text(json.dumps(_evaluate_doc(["icp_pf"])))
+    from evaluation.evaluate_report import plot_error_cdfs
+
+    assert plot_error_cdfs(json.loads(ev.read_text()), tmp_path / f"cdf.{fmt}").read_bytes().startswith(magic)
+    capsys.readouterr()
+    assert main(["plot", str(tmp_path / "paper.json"), "--out", str(tmp_path / "x"), "--format", "jpg"]) == 2
+    assert "--format: expected one of png, pdf, svg, got 'jpg'" in capsys.readouterr().err
+
+
+def test_a_figure_of_an_unknown_type_is_refused_naming_the_path(tmp_path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    from tofloc.errors import ParameterError
+    from tofloc.plot_style import write_figure
+
+    with pytest.raises(ParameterError, match=r"fig\.tiff: a figure is written as png, pdf, svg \(by its suffix\), got '\.tiff'"):
+        write_figure(Figure(), tmp_path / "fig.tiff")
+    assert not list(tmp_path.iterdir())

@@ -14,14 +14,20 @@ screen resolutions, blur when a figure is printed or shrunk to a column).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-__all__ = ["BUILTIN_COLOURS", "ORACLE_STYLE", "SAVE_DPI", "TIP_TITLES", "estimator_colours", "estimator_linestyles"]
+__all__ = ["BUILTIN_COLOURS", "FIGURE_FORMATS", "ORACLE_STYLE", "SAVE_DPI", "TIP_TITLES", "estimator_colours",
+           "estimator_linestyles", "write_figure"]
 
 #: How a figure names the tip poses' source (panel titles of Fig. 4, errors_vs_k.png, nees.png).
 TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
-#: Resolution of every PNG tofloc writes (dots per inch).
+#: Resolution of every PNG tofloc writes (dots per inch; a PDF's or SVG's text and lines
+#: are vectors, its images rasterized at this resolution).
 SAVE_DPI = 200
+#: The file types a figure is written as, by the path's suffix: PNG for a look, PDF and SVG
+#: (vector) for a paper (``tofloc plot --format``).
+FIGURE_FORMATS = ("png", "pdf", "svg")
 #: Fixed colours of the built-in estimators (the first four colours of the default cycle).
 BUILTIN_COLOURS = {"icp_pf": "C0", "beam_pf": "C1", "likelihood_field_pf": "C2", "gtsam_smoother": "C3"}
 #: Colours left for plug-ins, in order (C7, grey, is left out: the reference lines are grey).
@@ -61,3 +67,25 @@ def estimator_linestyles(names: Iterable[str]) -> dict[str, Any]:
     holds; never the oracle floor's dashes."""
     builtin = {n: _LINESTYLES[i] for i, n in enumerate(BUILTIN_COLOURS)}
     return _assign(names, builtin, _LINESTYLES[len(builtin):])
+
+
+def write_figure(fig: Any, path: str | Path) -> Path:
+    """Write a matplotlib ``Figure`` to ``path`` atomically, as the type its suffix names
+    (:data:`FIGURE_FORMATS`; PNG at :data:`SAVE_DPI`), creating the folder.
+
+    Raises
+    ------
+    ParameterError
+        The suffix is not one of :data:`FIGURE_FORMATS`.
+    """
+    from tofloc.atomic import atomic_path
+    from tofloc.errors import ParameterError
+
+    p = Path(path)
+    fmt = p.suffix[1:].lower()
+    if fmt not in FIGURE_FORMATS:
+        raise ParameterError(f"{p}: a figure is written as {', '.join(FIGURE_FORMATS)} (by its suffix), got {p.suffix!r}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(p) as tmp, open(tmp, "wb") as fh:
+        fig.savefig(fh, format=fmt, dpi=SAVE_DPI)
+    return p

@@ -9,8 +9,7 @@ from typing import Any
 import numpy as np
 
 from sensor_models.calibration.em import CalibrationResult
-from tofloc.atomic import atomic_path
-from tofloc.plot_style import SAVE_DPI
+from tofloc.plot_style import write_figure
 
 __all__ = ["plot_calibration", "calibration_figure", "plot_zone_residuals", "zone_statistics", "zone_plot_path", "MAD_TO_SIGMA"]
 
@@ -18,12 +17,7 @@ __all__ = ["plot_calibration", "calibration_figure", "plot_zone_residuals", "zon
 def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "", max_points: int = 20000,
                      rng: np.random.Generator | None = None) -> Path:
     """:func:`calibration_figure` written as PNG to ``path`` (Agg canvas, atomically)."""
-    fig = calibration_figure(result, title, max_points, rng)
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        with open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=SAVE_DPI)
-    return p
+    return write_figure(calibration_figure(result, title, max_points, rng), path)
 
 
 def calibration_figure(result: CalibrationResult, title: str = "", max_points: int = 20000,
@@ -232,8 +226,4 @@ def plot_zone_residuals(result: CalibrationResult, rig: Any, path: str | Path, m
     used = int(st["count"].sum())
     fig.suptitle(f"Per-zone residuals of the calibration: {used} hit readings, zones with fewer than {min_count} blank",
                  fontsize=10)
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        with open(tmp, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=SAVE_DPI)
-    return p
+    return write_figure(fig, path)

@@ -9,7 +9,8 @@ Writes ``DIR/errors_vs_k.png`` (error against k on a log scale, one line style p
 files (compared only with each other: they hold no error-against-k series) get their
 plots drawn again, ``DIR/errors_cdf.png``, ``DIR/nees.png`` and ``DIR/errors_by_log.png``
 (each prefixed ``LABEL_`` when there are several files), and ``DIR/comparison.md`` one row
-per estimator and oracle floor of each file.
+per estimator and oracle floor of each file. ``--format pdf`` or ``svg`` writes the figures
+as vector files for a paper (``errors_vs_k.pdf``, ...).
 """
 
 from __future__ import annotations
@@ -35,16 +36,20 @@ def plot(
                                          help="results.json of `tofloc paper` or `tofloc localize --json` files (one or more), "
                                               "or results.json of `tofloc evaluate` (compared with each other only)."),
     out: Path = typer.Option(..., "--out", metavar="DIR", help="Output folder: errors_vs_k.png, comparison.md (and nees.png)."),
+    fmt: str = typer.Option("png", "--format", metavar="png|pdf|svg",
+                            help="The figures' file type: png, or pdf and svg (vector, for a paper)."),
 ) -> None:
     """Re-plot and compare saved results: error against k (log scale, one line style per file) and a comparison table;
     for `tofloc evaluate` results, their error CDFs, NEES and per-log plots and a comparison table."""
     from evaluation.compare import comparison_markdown, comparison_rows, file_labels, load_results
     from evaluation.error_plots import FILE_STYLES, plot_errors_vs_k, plot_nees
-    from tofloc.plot_style import estimator_colours
     from evaluation.report import PAPER_TABLE_I, write_text_atomic
+    from tofloc.plot_style import FIGURE_FORMATS, estimator_colours
     from tofloc.atomic import check_output_path
 
     check_output_path(out, kind="dir", option="--out")
+    if fmt not in FIGURE_FORMATS:
+        raise ParameterError(f"--format: expected one of {', '.join(FIGURE_FORMATS)}, got {fmt!r}")
     if len(results) > MAX_FILES:
         raise ParameterError(f"tofloc plot compares at most {MAX_FILES} files, got {len(results)}")
     if len({p.resolve() for p in results}) != len(results):
@@ -57,10 +62,10 @@ def plot(
         raise ParameterError(f"tofloc plot: results of `tofloc evaluate` ({evaluated[0].path}) cannot be compared with "
                              f"{other.kind} results ({other.path}): plot them apart")
     if evaluated:
-        _plot_evaluated(files, labels, out)
+        _plot_evaluated(files, labels, out, fmt)
         return
     with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
-    written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / "errors_vs_k.png",
+    written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / f"errors_vs_k.{fmt}",
                                 paper=PAPER_TABLE_I if with_paper else None)]
     # each estimator in its colour of errors_vs_k.png, each file in its line style there
     colours = estimator_colours([s.estimator for f in files for s in f.series])
@@ -68,7 +73,7 @@ def plot(
              {"color": colours[s.estimator], "ls": FILE_STYLES[i % len(FILE_STYLES)]})
             for i, (lab, f) in enumerate(zip(labels, files)) for s in f.series if s.nees.size]
     if nees:
-        written.append(plot_nees([("per-trial NEES of the localize files", nees)], out / "nees.png"))
+        written.append(plot_nees([("per-trial NEES of the localize files", nees)], out / f"nees.{fmt}"))
     rows = comparison_rows(files, labels)
     text = comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)]) + _made_by()
     written.append(write_text_atomic(text, out / "comparison.md"))
@@ -86,7 +91,7 @@ def _made_by() -> str:
             f"{', git ' + prov['git_commit'] if prov['git_commit'] else ''}) at {prov['utc']}.\n")
 
 
-def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
+def _plot_evaluated(files: list, labels: list[str], out: Path, fmt: str = "png") -> None:
     """``tofloc plot`` on ``tofloc evaluate`` files: each file's plots again, and one comparison."""
     from evaluation.evaluate_files import evaluate_comparison_markdown, evaluate_comparison_rows, paired_lines, pooled_lines
     from evaluation.evaluate_report import format_or_na as na
@@ -97,9 +102,9 @@ def _plot_evaluated(files: list, labels: list[str], out: Path) -> None:
     every = [e for f in files for e in f.document["summary"]]  # a plug-in keeps its colour in every file's plots
     for f, lab in zip(files, labels):
         prefix = "" if len(files) == 1 else lab.replace("/", "_") + "_"
-        written += [plot_error_cdfs(f.document, out / f"{prefix}errors_cdf.png", every),
-                    plot_nees(f.document, out / f"{prefix}nees.png", every),
-                    plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.png")]
+        written += [plot_error_cdfs(f.document, out / f"{prefix}errors_cdf.{fmt}", every),
+                    plot_nees(f.document, out / f"{prefix}nees.{fmt}", every),
+                    plot_errors_by_log(f.document, out / f"{prefix}errors_by_log.{fmt}")]
     rows = evaluate_comparison_rows([f.document for f in files], labels)
     text = evaluate_comparison_markdown(rows, [(lab, f.path) for lab, f in zip(labels, files)],
                                         [f.document["changed"] for f in files])
