@@ -325,7 +325,8 @@ def test_every_png_is_written_at_the_print_resolution(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("fmt", "magic"), [("pdf", b"%PDF"), ("svg", b"<?xml")])
 def test_tofloc_plot_writes_vector_figures_for_a_paper(tmp_path: Path, fmt: str, magic: bytes, capsys) -> None:
     """`--format pdf|svg`: every figure of `tofloc plot` as a vector file (of paper and
-    localize results, and of evaluate results); another type is refused, naming the option."""
+    localize results, the paper run's Fig. 4 bars among them, and of evaluate results);
+    another type is refused, naming the option."""
     from test_outputs_ux import _localize_doc, _paper_doc
 
     (tmp_path / "paper.json").write_text(json.dumps(_paper_doc()))
@@ -333,7 +334,7 @@ def test_tofloc_plot_writes_vector_figures_for_a_paper(tmp_path: Path, fmt: str,
     out = tmp_path / "out"
     assert main(["plot", str(tmp_path / "paper.json"), str(tmp_path / "loc.json"), "--out", str(out), "--format", fmt]) == 0
     figures = sorted(p.name for p in out.iterdir() if p.suffix != ".md")
-    assert figures == [f"errors_vs_k.{fmt}", f"nees.{fmt}"]
+    assert figures == [f"errors_vs_k.{fmt}", f"nees.{fmt}", f"paper_errors_knn.{fmt}", f"paper_errors_mocap.{fmt}"]
     assert all((out / name).read_bytes().startswith(magic) for name in figures)
     ev = tmp_path / "ev.json"
     ev.write_text(json.dumps(_evaluate_doc(["icp_pf"])))

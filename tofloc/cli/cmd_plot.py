@@ -3,6 +3,8 @@
 running anything again.
 
 Writes ``DIR/errors_vs_k.png`` (error against k on a log scale, one line style per file),
+each ``paper`` run's Fig. 4 bars again (``DIR/errors_knn.png``, ``errors_mocap.png``; each
+prefixed ``LABEL_`` when there are several files),
 ``DIR/comparison.md`` (one row per estimator, tip source and prior mode of every file, as
 ``evo_res`` compares trajectories' statistics) and, when a file holds per-trial NEES (a
 ``localize`` file), ``DIR/nees.png``; prints the comparison table. ``tofloc evaluate``
@@ -43,7 +45,7 @@ def plot(
     for `tofloc evaluate` results, their error CDFs, NEES and per-log plots and a comparison table."""
     from evaluation.compare import comparison_markdown, comparison_rows, file_labels, load_results
     from evaluation.error_plots import FILE_STYLES, plot_errors_vs_k, plot_nees
-    from evaluation.report import PAPER_TABLE_I, write_text_atomic
+    from evaluation.report import PAPER_TABLE_I, plot_errors, write_text_atomic
     from tofloc.plot_style import FIGURE_FORMATS, estimator_colours
     from tofloc.atomic import check_output_path
 
@@ -67,6 +69,11 @@ def plot(
     with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
     written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / f"errors_vs_k.{fmt}",
                                 paper=PAPER_TABLE_I if with_paper else None)]
+    for f, lab in zip(files, labels):  # Fig. 4 of each paper run again (in --format, e.g. PDF for a paper)
+        if f.kind == "paper":
+            prefix = "" if len(files) == 1 else lab.replace("/", "_") + "_"
+            tips = [t for t in ("knn", "mocap") if any(t in by_tip for by_tip in f.document["results"].values())]
+            written += [plot_errors(f.document, tip, out / f"{prefix}errors_{tip}.{fmt}") for tip in tips]
     # each estimator in its colour of errors_vs_k.png, each file in its line style there
     colours = estimator_colours([s.estimator for f in files for s in f.series])
     nees = [(f"{lab}: {s.estimator}, {s.tip_source} tips, prior {s.prior_mode}", s.nees,
