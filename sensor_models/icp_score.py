@@ -27,8 +27,10 @@ Parameters the paper leaves open, and our choices:
 
 from __future__ import annotations
 
+import operator
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,7 +42,7 @@ from tofloc.distance_grid import DistanceGrid, distance_grid_for
 from tofloc.errors import ParameterError
 from tofloc.problem import Problem
 
-__all__ = ["ICPScore", "icp_fitness", "open3d_fitness", "merged_clouds"]
+__all__ = ["ICPScore", "icp_fitness", "open3d_fitness", "merged_clouds", "MergedClouds"]
 
 
 def icp_fitness(
@@ -101,25 +103,86 @@ def merged_clouds(
 ) -> list[NDArray[np.float64]]:
     """``X_1 .. X_K``: the union of the samples' valid points (base frame), cropped and
     voxel down-sampled after each union (paper II.A and III.C)."""
-    from tofloc.maps import voxel_down_sample_points
+    return list(MergedClouds(problem, voxel_size, crop_margin))
 
-    lo, hi = problem.map.bounds()
-    lo = np.asarray(lo) - crop_margin
-    hi = np.asarray(hi) + crop_margin
-    T_map_base_prior = problem.prior.T_map_base(problem.prior.mean)
-    pts = problem.points_in_base()  # (K, S, Z, 3)
-    clouds = []
-    X = np.zeros((0, 3))
-    for k in range(problem.n_samples):  # a loop over samples (<= tens), not over points
-        p = pts[k].reshape(-1, 3)
-        p = p[np.all(np.isfinite(p), axis=1)]
-        in_map = frames.transform_points(T_map_base_prior, p)
-        p = p[np.all((in_map >= lo) & (in_map <= hi), axis=1)]
-        X = np.concatenate([X, p])
-        if X.shape[0]:
-            X = voxel_down_sample_points(X, voxel_size)
-        clouds.append(X)
-    return clouds
+
+#: Problems of at most this many samples keep every merged cloud (the paper's k <= 10; a
+#: scan node's 15) ...
+KEEP_ALL_STEPS = 256
+#: ... longer ones keep every this-many-th and recompute the others from it when asked
+#: (a cloud is ~2,000 points, ~50 kB: 16,000 samples kept them in 1.9 GB).
+CLOUD_CHECKPOINT = 32
+
+
+class MergedClouds(Sequence[NDArray[np.float64]]):
+    """``X_1 .. X_K`` of :func:`merged_clouds` in bounded memory: every cloud when the
+    problem has at most :data:`KEEP_ALL_STEPS` samples; else every
+    :data:`CLOUD_CHECKPOINT`-th, the others recomputed from the checkpoint before them (or
+    from the last cloud asked for, as a filter steps through them in order), by the same
+    operations in the same order: the same arrays bit for bit.
+
+    Parameters
+    ----------
+    problem : Problem
+    voxel_size, crop_margin : float
+        As :class:`ICPScore`'s.
+    """
+
+    def __init__(self, problem: Problem, voxel_size: float, crop_margin: float) -> None:
+        lo, hi = problem.map.bounds()
+        lo = np.asarray(lo) - crop_margin
+        hi = np.asarray(hi) + crop_margin
+        T_map_base_prior = problem.prior.T_map_base(problem.prior.mean)
+        pts = problem.points_in_base()  # (K, S, Z, 3)
+        self.voxel_size = voxel_size
+        #: each sample's valid points inside the cropped map box: what X_k adds to X_{k-1}
+        self._added: list[NDArray[np.float64]] = []
+        for k in range(problem.n_samples):  # a loop over samples, not over points
+            p = pts[k].reshape(-1, 3)
+            p = p[np.all(np.isfinite(p), axis=1)]
+            in_map = frames.transform_points(T_map_base_prior, p)
+            self._added.append(p[np.all((in_map >= lo) & (in_map <= hi), axis=1)])
+        self.keep_all = len(self._added) <= KEEP_ALL_STEPS
+        self._stored: dict[int, NDArray[np.float64]] = {}
+        X = np.zeros((0, 3))
+        for k in range(len(self._added)):
+            X = self._grow(X, k)
+            if self.keep_all or k % CLOUD_CHECKPOINT == 0:
+                self._stored[k] = X
+        self._last: tuple[int, NDArray[np.float64]] = (-1, np.zeros((0, 3)))
+
+    def _grow(self, X: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+        """``X_k`` from ``X_{k-1}``."""
+        from tofloc.maps import voxel_down_sample_points
+
+        X = np.concatenate([X, self._added[k]])
+        return voxel_down_sample_points(X, self.voxel_size) if X.shape[0] else X
+
+    def __len__(self) -> int:
+        return len(self._added)
+
+    @overload
+    def __getitem__(self, k: int) -> NDArray[np.float64]: ...
+    @overload
+    def __getitem__(self, k: slice) -> list[NDArray[np.float64]]: ...
+    def __getitem__(self, k: int | slice) -> NDArray[np.float64] | list[NDArray[np.float64]]:
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        n = len(self)
+        i = operator.index(k)
+        i = i + n if i < 0 else i
+        if not 0 <= i < n:
+            raise IndexError(f"merged cloud {k} of {n}")
+        if i in self._stored:
+            return self._stored[i]
+        j, X = self._last
+        base = i - i % CLOUD_CHECKPOINT
+        if not base <= j <= i:  # start from the checkpoint unless the last cloud asked for is nearer
+            j, X = base, self._stored[base]
+        for step in range(j + 1, i + 1):
+            X = self._grow(X, step)
+        self._last = (i, X)
+        return X
 
 
 @dataclass(frozen=True)
@@ -171,17 +234,30 @@ class BoundICPScore(BoundSensorModel):
     def __init__(self, model: ICPScore, problem: Problem) -> None:
         self.model = model
         self.problem = problem
-        self.clouds = merged_clouds(problem, model.voxel_size, model.crop_margin)
+        self.clouds = MergedClouds(problem, model.voxel_size, model.crop_margin)
         self.n_steps = len(self.clouds)
         # exact inlier test accelerated by a distance grid (cell = max_correspondence / 8)
         self.tree = distance_grid_for(problem.map, model.max_correspondence / 8.0, model.max_correspondence)
         # the known height, roll and pitch applied once: a planar pose then moves the points
-        T_fixed = problem.prior.T_map_base(np.zeros(3))
-        self.clouds_lifted = [frames.transform_points(T_fixed, c) for c in self.clouds]
+        self._T_fixed = problem.prior.T_map_base(np.zeros(3))
+        #: every lifted cloud when every cloud is kept; else the last one asked for (annealing
+        #: asks for one step several times in a row)
+        self._lifted: dict[int, NDArray[np.float64]] = (
+            {k: frames.transform_points(self._T_fixed, c) for k, c in enumerate(self.clouds)} if self.clouds.keep_all else {})
+
+    def lifted_cloud(self, step: int) -> NDArray[np.float64]:
+        """``X_step`` at the known height, roll and pitch (map frame up to a planar pose)."""
+        step = operator.index(step)
+        step = step + self.n_steps if step < 0 else step
+        X = self._lifted.get(step)
+        if X is None:
+            X = frames.transform_points(self._T_fixed, self.clouds[step])
+            self._lifted = {step: X}
+        return X
 
     def fitness(self, poses: NDArray[np.float64], step: int) -> NDArray[np.float64]:
         """Fitness ``(M,)`` in [0, 1] of ``X_step`` for planar poses ``(M, 3)``."""
-        X = self.clouds_lifted[step]
+        X = self.lifted_cloud(step)
         if X.shape[0] == 0:
             return np.zeros(poses.shape[0])
         return self.tree.count_within_planar(X, poses) / X.shape[0]

@@ -56,6 +56,34 @@ def test_merged_clouds_grow_and_are_voxel_down_sampled(bound) -> None:
     assert len({tuple(k) for k in keys}) == len(keys)
 
 
+def test_a_long_problem_keeps_checkpoints_and_gives_the_same_clouds_and_estimate(monkeypatch) -> None:
+    """A problem of 16,000 samples kept every merged cloud twice (1.9 GB); beyond
+    KEEP_ALL_STEPS only every CLOUD_CHECKPOINT-th is kept and the others are recomputed:
+    the same arrays bit for bit in any order of access, and the same estimate."""
+    import sensor_models.icp_score as ic
+    from estimators.particle_filter import ICPScorePF
+
+    problem, _ = easy_problem(n_samples=11)
+    every = ICPScore().bind(problem)
+    assert every.clouds.keep_all and len(every.clouds._stored) == 11
+    est = ICPScorePF(n_particles=300).estimate(problem, np.random.default_rng(4))
+    monkeypatch.setattr(ic, "KEEP_ALL_STEPS", 3)
+    monkeypatch.setattr(ic, "CLOUD_CHECKPOINT", 4)
+    few = ICPScore().bind(problem)
+    assert not few.clouds.keep_all and sorted(few.clouds._stored) == [0, 4, 8]
+    order = [10, 9, 3, 5, 6, 6, 0, 7, -1, 2, 1, 8]  # backwards, forwards, repeated, negative
+    for k in order:
+        np.testing.assert_array_equal(few.clouds[k], every.clouds[k])
+        np.testing.assert_array_equal(few.lifted_cloud(k), every.lifted_cloud(k))
+    assert len(few._lifted) == 1 and len(every._lifted) == 11
+    assert [c.shape for c in few.clouds[2:5]] == [c.shape for c in every.clouds[2:5]]
+    with pytest.raises(IndexError):
+        few.clouds[11]
+    again = ICPScorePF(n_particles=300).estimate(problem, np.random.default_rng(4))
+    np.testing.assert_array_equal(again.pose, est.pose)
+    np.testing.assert_array_equal(again.covariance, est.covariance)
+
+
 def test_distance_grid_within_is_exact() -> None:
     rng = np.random.default_rng(3)
     pts = rng.random((500, 3))
