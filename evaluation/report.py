@@ -493,11 +493,14 @@ def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:
     from tofloc.plot_style import estimator_colours
 
     results = doc["results"]
-    k_values = [int(k) for k in range(1, int(doc["k_max"]) + 1)]
     series = []  # (estimator, mode, group)
     for est, by_tip in results.items():
         for mode in sorted(by_tip.get(tip_source, {}), key=lambda m: (m != "paper", m)):
             series.append((est, mode, by_tip[tip_source][mode]))
+    # k = 1 .. k_max (a results.json from before k_max, or written by hand: its largest k)
+    k_max = doc.get("k_max") or max((int(k) for _, _, g in series for k in g.get("per_k", {})), default=1)
+    k_values = [int(k) for k in range(1, int(k_max) + 1)]
+    paper_means = doc.get("paper") or {}  # null in a file written by hand
     fig = Figure(figsize=(max(6.0, 0.9 * len(k_values) + 2.0), 6.0), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
@@ -505,7 +508,7 @@ def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:
     width = 0.8 / max(1, len(series))
     x = np.arange(len(k_values), dtype=float)
     # the paper's robot's value is a reference for the paper's scene only (as in errors_vs_k.png)
-    paper_drawn = doc.get("scenario", "paper") == "paper" and bool(doc.get("paper", {}).get(tip_source))
+    paper_drawn = doc.get("scenario", "paper") == "paper" and bool(paper_means.get(tip_source))
     slivers = False  # a bar under 3 % of its axis (millimetres beside decimetres) reads as no bar
     for ax, key, label in ((axes[0], "e_x_m", "$e_x$ (m)"), (axes[1], "e_gamma_deg", r"$e_\gamma$ (deg)")):
         means = []
@@ -518,7 +521,7 @@ def errors_figure(doc: Mapping[str, Any], tip_source: str) -> Any:
             ax.bar(x - 0.4 + width * (j + 0.5), m, width, yerr=s, capsize=2, color=colours[est],
                    hatch="//" if mode != "paper" else None, edgecolor="black", linewidth=0.4,
                    error_kw={"elinewidth": 0.8})
-        paper = doc.get("paper", {}).get(tip_source, {}).get(key) if paper_drawn else None
+        paper = paper_means.get(tip_source, {}).get(key) if paper_drawn else None
         if paper:
             ax.axhline(paper[0], color="grey", linestyle="--", linewidth=1.0)
         bound = _crlb_per_k(series, k_values, "position_m" if key == "e_x_m" else "yaw_deg")

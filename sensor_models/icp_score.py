@@ -249,6 +249,8 @@ class BoundICPScore(BoundSensorModel):
         """``X_step`` at the known height, roll and pitch (map frame up to a planar pose)."""
         step = operator.index(step)
         step = step + self.n_steps if step < 0 else step
+        if not 0 <= step < self.n_steps:
+            raise IndexError(f"step {step} of {self.n_steps}")
         X = self._lifted.get(step)
         if X is None:
             X = frames.transform_points(self._T_fixed, self.clouds[step])

@@ -437,6 +437,15 @@ def test_a_rerun_replaces_the_previous_outputs_as_one_set(run: dict, logs: list[
     assert (out / "table.md").read_text() == old_table
 
 
+def test_plot_writes_an_evaluate_runs_figures_in_the_format_asked(run: dict, tmp_path: Path) -> None:
+    """`tofloc plot RESULTS --format svg` of one evaluate run: its three figures as SVG,
+    named as evaluate names them (no prefix for a single file), and the comparison."""
+    out = tmp_path / "p"
+    assert main(["plot", str(run["out"] / "results.json"), "--out", str(out), "--format", "svg"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["comparison.md", "errors_by_log.svg", "errors_cdf.svg", "nees.svg"]
+    assert all(p.read_bytes().startswith(b"<?xml") for p in out.glob("*.svg"))
+
+
 def test_one_pool_for_several_logs_matches_inline(run: dict) -> None:
     """The trials of several logs in one pool of worker processes (a context per group)."""
     from evaluation.evaluate import EstimatorSpec, prepare_logs, run_estimators

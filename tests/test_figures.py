@@ -352,6 +352,45 @@ def test_a_figure_of_an_unknown_type_is_refused_naming_the_path(tmp_path: Path) 
     from tofloc.errors import ParameterError
     from tofloc.plot_style import write_figure
 
-    with pytest.raises(ParameterError, match=r"fig\.tiff: a figure is written as png, pdf, svg \(by its suffix\), got '\.tiff'"):
+    with pytest.raises(ParameterError, match=r"fig\.tiff: a figure is written as png, pdf, svg, chosen by the file's "
+                                             r"suffix; got '\.tiff'"):
         write_figure(Figure(), tmp_path / "fig.tiff")
     assert not list(tmp_path.iterdir())
+    upper = write_figure(Figure(), tmp_path / "new" / "F.PDF")  # any case; the folder made
+    assert upper.read_bytes().startswith(b"%PDF")
+
+
+def test_a_figure_path_of_no_known_type_is_refused_before_the_work(tmp_path: Path, capsys) -> None:
+    """`localize --plot top.jpg` ran every trial, then failed in the figure writer and wrote
+    no --json; `calibrate --plot` wrote its TOML, then failed. Refused at once now."""
+    from tofloc import api
+    from tofloc.errors import ParameterError
+
+    for args, option in ((["localize", "/nonexistent/log.h5", "--estimator", "icp_pf", "--json", str(tmp_path / "j.json"),
+                           "--plot", str(tmp_path / "top.jpg")], "--plot"),
+                         (["localize", "/nonexistent/log.h5", "--estimator", "icp_pf", "--plot-nees", str(tmp_path / "n")],
+                          "--plot-nees"),
+                         (["calibrate", "/nonexistent/log.h5", "--out", str(tmp_path / "c.toml"), "--plot",
+                           str(tmp_path / "c.jpeg")], "--plot")):
+        assert main(args) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert f"{option} " in err and "a figure is written as png, pdf, svg, chosen by the file's suffix; got" in err, err
+        assert "nonexistent" not in err  # refused before the log is read
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(ParameterError, match=r"^plot .*top\.gif: a figure is written as png, pdf, svg, chosen by the "
+                                             r"file's suffix; got '\.gif'$"):
+        api.localize("/nonexistent/log.h5", "icp_pf", plot=tmp_path / "top.gif")
+
+
+def test_fig4_of_a_hand_written_results_file_without_k_max_or_paper_means() -> None:
+    """`tofloc plot` draws Fig. 4 of every paper file; one without `k_max`, or with
+    `"paper": null`, raised KeyError / AttributeError (the checks of `tofloc plot` do not
+    require them)."""
+    from evaluation.report import errors_figure
+    from test_outputs_ux import _paper_doc
+
+    doc = _paper_doc()
+    del doc["k_max"]
+    doc["paper"] = None
+    fig = errors_figure(doc, "knn")
+    assert len(fig.axes[1].get_xticks()) == 3  # k = 1..3, the largest k of its series

@@ -79,6 +79,12 @@ def test_a_long_problem_keeps_checkpoints_and_gives_the_same_clouds_and_estimate
     assert [c.shape for c in few.clouds[2:5]] == [c.shape for c in every.clouds[2:5]]
     with pytest.raises(IndexError):
         few.clouds[11]
+    for b in (few, every):  # -12 is out of range (it was taken as -1 after a second wrap)
+        with pytest.raises(IndexError):
+            b.lifted_cloud(-12)
+    assert len(every._lifted) == 11
+    monkeypatch.setattr(ic, "KEEP_ALL_STEPS", 11)  # at the bound: every cloud kept
+    assert ICPScore().bind(problem).clouds.keep_all
     again = ICPScorePF(n_particles=300).estimate(problem, np.random.default_rng(4))
     np.testing.assert_array_equal(again.pose, est.pose)
     np.testing.assert_array_equal(again.covariance, est.covariance)

@@ -777,6 +777,10 @@ def localize(
     if prior is not None and not isinstance(prior, PriorSpec):
         raise ParameterError(f"prior must be an evaluation.priors.PriorSpec or None, got {prior!r}")
     valid_statuses = _check_statuses(valid_statuses)
+    if plot is not None:
+        from tofloc.plot_style import check_figure_path
+
+        check_figure_path(plot, "plot")  # before the trials, not after them
     est = estimator(estimator_name, params)
     check_selection(selection)
     full_params = jsonable(est.get_params())

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 __all__ = ["BUILTIN_COLOURS", "FIGURE_FORMATS", "ORACLE_STYLE", "SAVE_DPI", "TIP_TITLES", "estimator_colours",
-           "estimator_linestyles", "write_figure"]
+           "estimator_linestyles", "check_figure_path", "write_figure"]
 
 #: How a figure names the tip poses' source (panel titles of Fig. 4, errors_vs_k.png, nees.png).
 TIP_TITLES = {"knn": "k-NN tip poses", "mocap": "motion-capture tip poses"}
@@ -69,6 +69,25 @@ def estimator_linestyles(names: Iterable[str]) -> dict[str, Any]:
     return _assign(names, builtin, _LINESTYLES[len(builtin):])
 
 
+def check_figure_path(path: str | Path, option: str = "figure path") -> Path:
+    """``path`` as a :func:`write_figure` destination, refused before any work when its
+    suffix names no type of :data:`FIGURE_FORMATS` (``--plot top.jpg``, ``--plot top``).
+
+    Raises
+    ------
+    ParameterError
+        Naming ``option``, the path and the suffix found.
+    """
+    from tofloc.errors import ParameterError
+
+    p = Path(path)
+    if p.suffix[1:].lower() not in FIGURE_FORMATS:
+        found = repr(p.suffix) if p.suffix else "no suffix"
+        raise ParameterError(f"{option} {p}: a figure is written as {', '.join(FIGURE_FORMATS)}, chosen by the file's "
+                             f"suffix; got {found}")
+    return p
+
+
 def write_figure(fig: Any, path: str | Path) -> Path:
     """Write a matplotlib ``Figure`` to ``path`` atomically, as the type its suffix names
     (:data:`FIGURE_FORMATS`; PNG at :data:`SAVE_DPI`), creating the folder.
@@ -79,12 +98,9 @@ def write_figure(fig: Any, path: str | Path) -> Path:
         The suffix is not one of :data:`FIGURE_FORMATS`.
     """
     from tofloc.atomic import atomic_path
-    from tofloc.errors import ParameterError
 
-    p = Path(path)
+    p = check_figure_path(path)
     fmt = p.suffix[1:].lower()
-    if fmt not in FIGURE_FORMATS:
-        raise ParameterError(f"{p}: a figure is written as {', '.join(FIGURE_FORMATS)} (by its suffix), got {p.suffix!r}")
     p.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(p) as tmp, open(tmp, "wb") as fh:
         fig.savefig(fh, format=fmt, dpi=SAVE_DPI)

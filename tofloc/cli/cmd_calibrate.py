@@ -20,9 +20,9 @@ def calibrate(
     logs: list[Path] = typer.Argument(..., metavar="LOG...", help="Logs (format v1) with /truth/T_map_base and /samples/T_base_tip."),
     out: Path = typer.Option(..., "--out", help=escape("Calibration TOML to write ([uncertainty] range model, [mounting], [beam] mixture, [calibration] record).")),
     plot: Optional[Path] = typer.Option(
-        None, "--plot", metavar="PLOT.png",
-        help="Save a PNG of error vs distance per zone class here, and per-zone maps (median residual after the fitted "
-             "bias and its robust spread, per sensor) beside it as PLOT_zones.png."),
+        None, "--plot", metavar="PLOT.png|pdf|svg",
+        help="Save a figure (the suffix chooses png, pdf or svg) of error vs distance per zone class here, and per-zone maps (median residual after the fitted "
+             "bias and its robust spread, per sensor) beside it as PLOT_zones.png (same type)."),
     map_paths: Optional[list[Path]] = typer.Option(
         None, "--map", help="Map to ray cast: once for every log, or once per log in order. Default: the CAD mesh "
         "<stem>.cad.ply beside a log's map when it exists, else the log's map."),
@@ -43,10 +43,12 @@ def calibrate(
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
     from tofloc.atomic import check_output_path
+    from tofloc.plot_style import check_figure_path
 
     check_output_path(out, option="--out")
     if plot is not None:
         check_output_path(plot, option="--plot")
+        check_figure_path(plot, "--plot")
         check_output_path(zone_plot_path(plot), option="--plot")
     from sensor_models.calibration import plot_calibration
     from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG

@@ -60,11 +60,12 @@ def localize(
     base_z: Optional[float] = typer.Option(None, "--base-z", help="Base height (m); needed when the log has no truth."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the results as JSON here."),
     plot_nees: Optional[Path] = typer.Option(
-        None, "--plot-nees", metavar="PNG",
-        help="Plot the trials' NEES (ECDF) against chi2(3) with its 95 % interval here (needs ground truth)."),
+        None, "--plot-nees", metavar="FIG.png|pdf|svg",
+        help="Plot the trials' NEES (ECDF) against chi2(3) with its 95 % interval here (needs ground truth); the "
+             "suffix chooses the type."),
     plot: Optional[Path] = typer.Option(
-        None, "--plot", metavar="PNG",
-        help="Draw the first trial as a top view here: the map near the base height, truth, prior, particles or "
+        None, "--plot", metavar="FIG.png|pdf|svg",
+        help="Draw the first trial as a top view here (the suffix chooses the type): the map near the base height, truth, prior, particles or "
              "smoother starts, the estimate with its (scaled-up) ellipse and the zones at the estimate."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
@@ -103,6 +104,7 @@ def localize(
 ) -> None:
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
     from tofloc.atomic import check_output_path
+    from tofloc.plot_style import check_figure_path
 
     if json_out is not None:
         check_output_path(json_out, option="--json")
@@ -110,10 +112,12 @@ def localize(
         if port is not None:
             raise ParameterError("--plot-nees needs trials against ground truth: it is for offline runs (not --port)")
         check_output_path(plot_nees, option="--plot-nees")
+        check_figure_path(plot_nees, "--plot-nees")
     if plot is not None:
         if port is not None:
             raise ParameterError("--plot draws the first trial of an offline run (not --port)")
         check_output_path(plot, option="--plot")
+        check_figure_path(plot, "--plot")
     if suggest_next is not None and port is None:
         raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:

@@ -37,7 +37,8 @@ def plot(
     results: list[Path] = typer.Argument(..., metavar="RESULTS.json...",
                                          help="results.json of `tofloc paper` or `tofloc localize --json` files (one or more), "
                                               "or results.json of `tofloc evaluate` (compared with each other only)."),
-    out: Path = typer.Option(..., "--out", metavar="DIR", help="Output folder: errors_vs_k.png, comparison.md (and nees.png)."),
+    out: Path = typer.Option(..., "--out", metavar="DIR", help="Output folder: comparison.md and the figures (errors_vs_k, Fig. 4, nees; evaluate's errors_cdf, "
+                                  "nees, errors_by_log) in --format."),
     fmt: str = typer.Option("png", "--format", metavar="png|pdf|svg",
                             help="The figures' file type: png, or pdf and svg (vector, for a paper)."),
 ) -> None:
