@@ -68,6 +68,7 @@ from tofloc.rig import DEFAULT_VALID_STATUSES
 from tofloc.problem import ProblemError
 
 __all__ = [
+    "has_warnings",
     "is_flagged",
     "detection_summary",
     "FAILURE_E_X_M",
@@ -488,6 +489,12 @@ def refit_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None
     return {"trials": len(refits), "of": len(records), "params": params}
 
 
+def has_warnings(record: Mapping[str, Any]) -> bool:
+    """Whether a trial record carries the warnings :func:`is_flagged` reads (an estimator
+    run with the fit check or posterior modes; the oracle's fits and some plug-ins' do not)."""
+    return "covariance_widened" in record or "ambiguous" in record
+
+
 def is_flagged(record: Mapping[str, Any]) -> bool:
     """Whether a trial warned its user: its data-fit check failed (``covariance_widened``)
     or its posterior was ambiguous (``ambiguous``: several modes, :mod:`tofloc.posterior_modes`)."""
@@ -513,7 +520,7 @@ def detection_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | 
     and ``successes_fit_known``: the trials the fit check flagged whose data contradict the
     space the map knows, not only its unknown space (the flags worth the most attention).
     None when the records carry neither warning (an estimator run without the fit check)."""
-    if not any("covariance_widened" in r or "ambiguous" in r for r in records):
+    if not any(has_warnings(r) for r in records):
         return None
     failed = [is_failure(r) for r in records]
     flagged = [is_flagged(r) for r in records]

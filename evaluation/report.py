@@ -470,8 +470,9 @@ def _crlb_per_k(series: Sequence[tuple[str, str, Mapping[str, Any]]], k_values: 
 
 
 def plot_errors(doc: Mapping[str, Any], tip_source: str, path: str | Path) -> Path:
-    """:func:`errors_figure` written as PNG to ``path`` with the Agg canvas (no display, no
-    global backend change), atomically."""
+    """:func:`errors_figure` written to ``path``, PNG, PDF or SVG as its suffix says
+    (:func:`tofloc.plot_style.write_figure`), with the Agg canvas (no display, no global
+    backend change), atomically."""
     from tofloc.plot_style import write_figure
 
     return write_figure(errors_figure(doc, tip_source), path)

@@ -19,7 +19,7 @@ import io
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from evaluation.evaluate import is_failure, is_flagged
+from evaluation.evaluate import has_warnings, is_failure, is_flagged
 from evaluation.metrics import json_float, one_sigma
 from evaluation.report import write_text_atomic
 
@@ -52,7 +52,7 @@ def _trial_row(estimator: str, rec: Mapping[str, Any]) -> dict[str, Any]:
         "estimator": estimator, "k": rec.get("k"), "trial": rec.get("trial"), "seed": rec.get("seed"),
         "e_x_m": json_float(rec.get("e_x_m")), "e_gamma_deg": json_float(rec.get("e_gamma_deg")),
         "failed": int(is_failure(rec)),
-        "flagged": int(is_flagged(rec)) if ("covariance_widened" in rec or "ambiguous" in rec) else None,
+        "flagged": int(is_flagged(rec)) if has_warnings(rec) else None,
         "covariance_widened": None if "covariance_widened" not in rec else int(bool(rec["covariance_widened"])),
         "nees": json_float(rec.get("nees")), "nees_exact_truth": json_float(rec.get("nees_exact_truth")),
         "nees_model": json_float(rec.get("nees_model")),

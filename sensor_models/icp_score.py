@@ -247,10 +247,10 @@ class BoundICPScore(BoundSensorModel):
 
     def lifted_cloud(self, step: int) -> NDArray[np.float64]:
         """``X_step`` at the known height, roll and pitch (map frame up to a planar pose)."""
-        step = operator.index(step)
-        step = step + self.n_steps if step < 0 else step
+        asked = operator.index(step)
+        step = asked + self.n_steps if asked < 0 else asked
         if not 0 <= step < self.n_steps:
-            raise IndexError(f"step {step} of {self.n_steps}")
+            raise IndexError(f"step {asked} is out of range: expected -{self.n_steps} .. {self.n_steps - 1}")
         X = self._lifted.get(step)
         if X is None:
             X = frames.transform_points(self._T_fixed, self.clouds[step])

@@ -228,6 +228,8 @@ def test_plug_ins_are_told_apart_from_each_other_and_from_the_built_ins() -> Non
     with_icp = estimator_linestyles(["icp_pf", "p0", "p1", "p2"])
     assert len({repr(v) for v in with_icp.values()}) == 4 and "--" not in with_icp.values()
     assert estimator_colours(["p0", "icp_pf"]) == estimator_colours(["p0", "icp_pf"])  # the same in every figure
+    assert estimator_colours(["p0", "icp_pf", "p1"]) == {"p0": "C4", "icp_pf": "C0", "p1": "C5"}  # plug-ins: the free slots
+    assert estimator_colours(["p0"]) == {"p0": "C4"}
 
 
 def test_builtin_colours_cover_the_registrys_built_ins() -> None:

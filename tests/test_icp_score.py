@@ -80,7 +80,7 @@ def test_a_long_problem_keeps_checkpoints_and_gives_the_same_clouds_and_estimate
     with pytest.raises(IndexError):
         few.clouds[11]
     for b in (few, every):  # -12 is out of range (it was taken as -1 after a second wrap)
-        with pytest.raises(IndexError):
+        with pytest.raises(IndexError, match=r"^step -12 is out of range: expected -11 \.\. 10$"):
             b.lifted_cloud(-12)
     assert len(every._lifted) == 11
     monkeypatch.setattr(ic, "KEEP_ALL_STEPS", 11)  # at the bound: every cloud kept

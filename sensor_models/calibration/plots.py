@@ -16,7 +16,8 @@ __all__ = ["plot_calibration", "calibration_figure", "plot_zone_residuals", "zon
 
 def plot_calibration(result: CalibrationResult, path: str | Path, title: str = "", max_points: int = 20000,
                      rng: np.random.Generator | None = None) -> Path:
-    """:func:`calibration_figure` written as PNG to ``path`` (Agg canvas, atomically)."""
+    """:func:`calibration_figure` written to ``path`` as its suffix says, PNG, PDF or SVG
+    (:func:`tofloc.plot_style.write_figure`: Agg canvas, atomically)."""
     return write_figure(calibration_figure(result, title, max_points, rng), path)
 
 
@@ -166,7 +167,7 @@ def plot_zone_residuals(result: CalibrationResult, rig: Any, path: str | Path, m
     (mm), each zone at its place in the sensor's grid (row-major, as the log orders zones;
     row 0 at the top). Sensors with explicit zone tables (no grid) are drawn as one strip:
     a row per sensor, a column per zone. Zones with fewer than ``min_count`` readings are
-    left blank. Written as PNG (Agg canvas, atomically).
+    left blank. Written as ``path``'s suffix says (:func:`tofloc.plot_style.write_figure`).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import TwoSlopeNorm

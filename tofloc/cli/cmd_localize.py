@@ -265,6 +265,7 @@ def _warn_fit(recs: list[dict[str, Any]]) -> None:
 def _print(doc: dict[str, Any], has_truth: bool) -> None:
     """The trials (up to 10, or every estimate without truth) and the error summary; errors
     in millimetres and degrees, poses in metres and degrees; fits 80 columns."""
+    from evaluation.evaluate_report import format_or_na as na
     from evaluation.metrics import json_float, one_sigma
 
     recs = doc["trials"]
@@ -278,16 +279,14 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
         cols = ["#", "x", "y", "yaw", "sd x", "sd y", "sd yaw"] + (["e_x mm", "e_γ deg"] if has_truth else [])
         for col in cols:
             t.add_column(col, justify="right")
-        def cell(v: float | None, fmt: str) -> str:  # a plug-in's NaN estimate or covariance is null in the JSON
-            return "n/a" if v is None else format(v, fmt)
-
-        for r in recs:
+        deg = 180.0 / math.pi
+        for r in recs:  # a plug-in's non-finite covariance is null in the JSON: "n/a"
             x, y, yaw = (json_float(v) for v in r["estimate"])
             sd = one_sigma(r["covariance"])
-            row = [str(r["trial"]), cell(x, ".4f"), cell(y, ".4f"), cell(None if yaw is None else math.degrees(yaw), ".2f"),
-                   cell(sd[0], ".4f"), cell(sd[1], ".4f"), cell(None if sd[2] is None else math.degrees(sd[2]), ".2f")]
+            row = [str(r["trial"]), na(x, ".4f"), na(y, ".4f"), na(yaw, ".2f", deg), na(sd[0], ".4f"), na(sd[1], ".4f"),
+                   na(sd[2], ".2f", deg)]
             if has_truth:
-                row += [cell(None if r["e_x_m"] is None else 1000 * r["e_x_m"], ".1f"), cell(r["e_gamma_deg"], ".2f")]
+                row += [na(r["e_x_m"], ".1f", 1000.0), na(r["e_gamma_deg"], ".2f")]
             t.add_row(*row)
         console.print(t)
     if not has_truth:
@@ -298,8 +297,7 @@ def _print(doc: dict[str, Any], has_truth: bool) -> None:
     for col in ("mean", "std", "median", "rmse"):
         t.add_column(col, justify="right")
     for key, label, scale, digits in (("e_x_m", "e_x (mm)", 1000.0, 1), ("e_gamma_deg", "e_γ (deg)", 1.0, 3)):
-        t.add_row(label, *("n/a" if s[key][c] is None else f"{scale * s[key][c]:.{digits}f}"
-                           for c in ("mean", "std", "median", "rmse")))
+        t.add_row(label, *(na(s[key][c], f".{digits}f", scale) for c in ("mean", "std", "median", "rmse")))
     console.print(t)
     rt = s["runtime_s"]
     extra = f"median runtime {rt['median']:.3f} s per trial"
