@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -479,6 +480,90 @@ def test_an_interruption_python_ignores_in_a_callback_is_delivered_again(which: 
                 time.sleep(0.005)
     assert "Traceback" not in capsys.readouterr().err
     assert sys.unraisablehook is before  # restored
+
+
+def test_ctrl_c_while_numba_compiles_is_deferred_until_the_kernel_returns(tmp_path: Path) -> None:
+    """CI saw a process interrupted ~1 s into `tofloc simulate` die of a segmentation fault
+    (exit -11, nothing printed): an interruption landing in numba's Python code, while it
+    compiles a kernel or loads one from its cache, leaves LLVM objects half built. The CLI's
+    handler defers it until the main thread has left numba and llvmlite: here a SIGINT sent
+    once the main thread is seen inside numba's compiler arrives after the kernel returned
+    its result, and no frame of the interruption's traceback is numba's."""
+    pytest.importorskip("numba")
+    script = tmp_path / "compile.py"
+    script.write_text(textwrap.dedent("""
+        import os, signal, sys, threading, time, traceback
+        import numba, numpy as np
+        from tofloc.cli import _Signals
+
+        @numba.njit(cache=False)
+        def fresh(x):
+            s = 0.0
+            for i in range(x.shape[0]):
+                s += np.sqrt(x[i]) * np.cos(x[i])
+            return s
+
+        main_id = threading.get_ident()
+        sent = []
+
+        def watch():
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                f = sys._current_frames().get(main_id)
+                while f is not None:
+                    if f.f_globals.get("__name__", "").split(".")[0] in ("numba", "llvmlite"):
+                        sent.append(f.f_globals["__name__"])
+                        os.kill(os.getpid(), signal.SIGINT)
+                        return
+                    f = f.f_back
+                time.sleep(0.0002)
+
+        threading.Thread(target=watch, daemon=True).start()
+        time.sleep(0.05)
+        result = None
+        try:
+            with _Signals():
+                result = fresh(np.arange(5.0))
+                for _ in range(400):
+                    time.sleep(0.005)
+        except KeyboardInterrupt as e:
+            inside = [f.filename for f in traceback.extract_tb(e.__traceback__)
+                      if os.sep + "numba" + os.sep in f.filename or os.sep + "llvmlite" + os.sep in f.filename]
+            print("sent-in", sent, "result", result, "numba-frames", len(inside), inside[-3:])
+            sys.exit(0)
+        print("no interruption", sent)
+        sys.exit(3)
+    """))
+    p = subprocess.run([sys.executable, "-X", "faulthandler", str(script)], capture_output=True, text=True,
+                       timeout=180, cwd=tmp_path)
+    assert p.returncode == 0, (p.returncode, p.stdout, p.stderr[-2000:])
+    assert "sent-in ['numba" in p.stdout or "sent-in ['llvmlite" in p.stdout, p.stdout
+    expected = sum(x ** 0.5 * __import__("math").cos(x) for x in range(5))
+    words = p.stdout.split()
+    assert abs(float(words[words.index("result") + 1]) - expected) < 1e-9, p.stdout  # the compile finished
+    assert "numba-frames 0" in p.stdout, p.stdout
+
+
+def test_a_crash_in_a_compiled_library_says_where_python_was(tmp_path: Path) -> None:
+    """A segmentation fault inside a command (a compiled library's bug) printed nothing at
+    all (exit -11, empty stderr, as CI saw once): the CLI enables :mod:`faulthandler`, so
+    the user gets Python's stack to report."""
+    script = tmp_path / "crash.py"
+    script.write_text(textwrap.dedent("""
+        import ctypes, sys
+        from tofloc.cli import main
+        from tofloc.cli.app import app
+
+        @app.command("crash-here")
+        def crash_here() -> None:
+            ctypes.string_at(0)  # reads address 0: SIGSEGV
+
+        sys.argv[1:] = ["crash-here"]
+        sys.exit(main())
+    """))
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert p.returncode == -signal.SIGSEGV, (p.returncode, p.stderr[-1500:])
+    assert "Fatal Python error: Segmentation fault" in p.stderr and "crash_here" in p.stderr, p.stderr[-1500:]
 
 
 def test_a_redelivery_after_the_command_ended_is_dropped_and_main_restores_the_hook() -> None:

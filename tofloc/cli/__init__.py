@@ -8,6 +8,7 @@ into a one-line message and exit code 2; ``--debug`` shows the traceback.
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import importlib
 import os
 import pkgutil
@@ -77,21 +78,25 @@ class _Signals:
         (raised here, it would be ignored again) and unwinds as usual; should it land in such
         a callback again, it comes back here."""
         if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)):
-            import _thread
-
             sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
-            _thread.start_new_thread(_redeliver, (self, sig))  # not threading.Thread: its start() waits, here
+            _thread_redeliver(self, sig)  # not threading.Thread: its start() waits, here
             return
         if self.received is not None and not debug_enabled():
             return  # a finalizer of an object the interruption left half built (see _after_interruption)
         (self._previous_unraisable or sys.__unraisablehook__)(unraisable)
 
-    def _on_int(self, signum: int, frame: object) -> None:
+    def _on_int(self, signum: int, frame: Any) -> None:
         self.received = signum
+        if _inside_fragile_code(frame):
+            _thread_redeliver(self, signum)
+            return
         raise KeyboardInterrupt
 
-    def _on_term(self, signum: int, frame: object) -> None:
+    def _on_term(self, signum: int, frame: Any) -> None:
         self.received = signum
+        if _inside_fragile_code(frame):
+            _thread_redeliver(self, signum)
+            return
         raise Terminated
 
     def __exit__(self, *exc: object) -> None:
@@ -100,6 +105,37 @@ class _Signals:
             signal.signal(sig, handler)  # type: ignore[arg-type]
         if sys.unraisablehook == self._on_unraisable:  # not if a later hook replaced it (main's restore)
             sys.unraisablehook = self._previous_unraisable
+
+
+#: Packages whose Python code must not be left half way by an exception raised at an
+#: arbitrary instruction: numba compiling or loading a kernel from its cache drives LLVM
+#: through llvmlite, and an interruption landing there left LLVM objects half built, whose
+#: clean-up crashed the process (a segmentation fault, exit -11 with no message, seen in
+#: CI) or failed at teardown (llvmlite's ``OutputString.__del__``).
+FRAGILE_PACKAGES = ("numba", "llvmlite")
+
+
+def _inside_fragile_code(frame: Any, max_depth: int = 500) -> bool:
+    """Whether the main thread, stopped at ``frame`` by a signal, is inside one of
+    :data:`FRAGILE_PACKAGES` (at any depth of the stack)."""
+    depth = 0
+    while frame is not None and depth < max_depth:
+        name = frame.f_globals.get("__name__", "") if hasattr(frame, "f_globals") else ""
+        if isinstance(name, str) and name.split(".", 1)[0] in FRAGILE_PACKAGES:
+            return True
+        frame = frame.f_back
+        depth += 1
+    return False
+
+
+def _thread_redeliver(signals: "_Signals", sig: int) -> None:
+    """Deliver ``sig`` again, from another thread, 20 ms from now: an interruption that landed
+    inside :data:`FRAGILE_PACKAGES` is deferred until the main thread has left them (each
+    redelivery that lands there again is deferred again; a compiled kernel takes seconds at
+    most)."""
+    import _thread
+
+    _thread.start_new_thread(_redeliver, (signals, sig))
 
 
 def _redeliver(signals: _Signals, sig: int) -> None:
@@ -183,6 +219,10 @@ def _recorded_command(argv: list[str]) -> Iterator[None]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns (and, as a script, exits with) the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
+    if argv is None and not faulthandler.is_enabled():
+        # a crash in a compiled library (a segmentation fault) prints where Python was,
+        # instead of ending the process without a word
+        faulthandler.enable()
     if "--debug" in args[:1]:
         from tofloc.cli.app import _state
 
