@@ -150,56 +150,56 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
     return r, out
 
 
-@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
+@pytest.mark.slow  # ~45 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
 def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
-    """`make real-data` takes every flight folder of NANOSWARM (another experiment's flights
-    too): a single drone's flight takes its map from the flight beside it (``--map-from
-    auto``), a corrupt scan row is left out and reported (``--bad-scans skip``), a flight
-    that cannot be imported at all is named, the other flights are still imported and
-    evaluated, and make fails."""
+    """`make real-data` takes every flight folder of NANOSWARM, at its top (``FLIGHT``) and
+    in experiments (``EXP/FLIGHT``, imported and evaluated as ``EXP-FLIGHT``), as in a copy
+    of the whole data set: a single drone's flight takes its map from its own experiment's
+    other flight (``--map-from auto``), a corrupt scan row is left out and reported
+    (``--bad-scans skip``), a flight that cannot be imported at all is named, the other
+    flights are still imported and evaluated, and make fails."""
 
     def edit(ns: Path) -> None:
         (ns / "notes").mkdir()  # not a flight: no scans.csv
         rows = (ns / "pair" / "scans.csv").read_text().splitlines()
         rows[1] = rows[1][:-10]  # drone 1 node 0 truncated
         (ns / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
-        (ns / "broken" / "scans.csv").write_bytes(b"0/0,\xe9\n")  # a non-ASCII file: refused whole
+        (ns / "expA" / "broken" / "scans.csv").write_bytes(b"0/0,\xe9\n")  # a non-ASCII file: refused whole
 
-    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"solo flight": (0,), "pair": (0, 1), "broken": (0, 1)}, edit=edit)
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"pair": (0, 1), "expA/solo": (0,), "expA/pair": (0, 1),
+                                                                 "expA/broken": (0, 1)}, edit=edit)
     text = " ".join((r.stdout + r.stderr).split())
     assert r.returncode != 0, text
-    assert f"real-data: failed: broken (the others are in {out})" in text and "ASCII text" in text
-    assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
+    assert f"real-data: failed: expA/broken (the others are in {out})" in text and "ASCII text" in text
     assert "note: --map-from auto passed over broken (unreadable): " in text  # solo's choice of map
-    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-pair", "eval-solo flight", "pair", "solo flight"]
+    assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
+    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-expA-pair", "eval-expA-solo", "eval-pair",
+                                                    "expA-pair", "expA-solo", "pair"]
     table = (out / "compare-flights" / "comparison.md").read_text()  # every flight evaluated, in one table
-    assert "| eval-pair | icp_pf |" in table and "| eval-solo flight | icp_pf |" in table and "eval-broken" not in table
+    for name in ("eval-pair", "eval-expA-solo", "eval-expA-pair"):
+        assert f"| {name} | icp_pf |" in table
+        assert (out / name / "results.json").is_file() and (out / name / "table.md").is_file()
+    assert "eval-expA-broken" not in table
     assert sorted(p.name for p in (out / "pair").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node001.h5"]
-    assert [p.name for p in (out / "solo flight" / "maps").glob("*.ply")] == ["from-pair.ply"]  # a name with a space
-    for name in ("pair", "solo flight"):
-        assert (out / f"eval-{name}" / "results.json").is_file() and (out / f"eval-{name}" / "table.md").is_file()
+    assert [p.name for p in (out / "expA-solo" / "maps").glob("*.ply")] == ["from-pair.ply"]  # its own experiment's pair
 
 
-@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
-def test_make_real_data_takes_the_flights_of_every_experiment_of_a_copy(tmp_path: Path) -> None:
-    """NANOSWARM at a copy of the whole data set: its EXP/FLIGHT folders are the flights,
-    imported and evaluated as EXP-FLIGHT, a single drone mapped from its own experiment's
-    other flight; REAL_IMPORT="--map-from auto" keeps the strict import (a corrupt row
-    refuses its flight)."""
+def test_make_real_data_passes_real_import_to_every_import(tmp_path: Path) -> None:
+    """REAL_IMPORT="--map-from auto" keeps the strict import (a corrupt row then refuses its
+    flight): the variable replaces the default options of every import the recipe runs."""
+    import shutil
+    import subprocess
 
-    def edit(ns: Path) -> None:
-        rows = (ns / "expB" / "pair" / "scans.csv").read_text().splitlines()
-        rows[1] = rows[1][:-10]
-        (ns / "expB" / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
-
-    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"expA/solo": (0,), "expA/pair": (0, 1), "expB/pair": (0, 1)},
-                                          "REAL_IMPORT=--map-from auto", edit=edit)
-    text = " ".join((r.stdout + r.stderr).split())
-    assert r.returncode != 0 and f"real-data: failed: expB/pair (the others are in {out})" in text, text
-    assert "row 2, field hex: expected 1144 bytes" in text
-    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-expA-pair", "eval-expA-solo", "expA-pair", "expA-solo"]
-    assert [p.name for p in (out / "expA-solo" / "maps").glob("*.ply")] == ["from-pair.ply"]
-    assert (out / "eval-expA-solo" / "results.json").is_file()
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    (tmp_path / "ns" / "f").mkdir(parents=True)
+    (tmp_path / "ns" / "f" / "scans.csv").write_text("")
+    args = ["make", "-n", "-o", "install", "-C", str(ROOT), "real-data", f"NANOSWARM={tmp_path / 'ns'}", f"REAL_DIR={tmp_path / 'out'}"]
+    default = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    strict = subprocess.run([*args, "REAL_IMPORT=--map-from auto"], capture_output=True, text=True, timeout=60)
+    assert default.returncode == 0 and strict.returncode == 0, default.stderr + strict.stderr
+    assert "import nanoswarm" in default.stdout and "--map-from auto --bad-scans skip --missing-poses skip" in default.stdout
+    assert "import nanoswarm" in strict.stdout and "--bad-scans" not in strict.stdout and "--map-from auto" in strict.stdout
 
 
 @pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
