@@ -93,6 +93,7 @@ from sensor_models.base import built_from_scans, check_bool_or_auto, check_place
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
+from tofloc.step_progress import report_step
 from tofloc.threads import kdtree_workers
 
 __all__ = ["GTSAMSmoother", "RESIDUALS", "DEFAULT_KNN_SIGMA_M", "DEFAULT_KNN_SIGMA_ROT_DEG"]
@@ -405,6 +406,8 @@ class GTSAMSmoother(Estimator):
         finished: list[FloatArray] = []  # base poses of the starts that ran to the end (batch, merge_starts)
         finished_idx: list[int] = []
         for i, s0 in enumerate(starts):
+            if i:
+                report_step(i, len(starts))  # the starts before this one are done
             try:
                 run = (graph.solve_isam2(meas0, s0) if self.incremental
                        else graph.solve_batch(meas0, s0, finished=finished if self.merge_starts else None))
@@ -426,6 +429,7 @@ class GTSAMSmoother(Estimator):
             finished_idx.append(i)
             if best is None or run["error"] < best["error"]:
                 best, best_i = run, i
+        report_step(len(starts), len(starts))
         diag: dict[str, Any] = {"starts": runs, "residual": self.residual, "robust": self.robust,
                                 "incremental": self.incremental, "nuisance": problem.nuisance.to_json(),
                                 "configurations": "marginalized" if graph.marginalize else "estimated"}

@@ -90,6 +90,7 @@ from sensor_models.base import WEIGHT_UPDATES, SensorModel, held_states
 from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
+from tofloc.step_progress import report_step
 
 __all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step",
            "KLD_MODES", "POINT_ESTIMATES", "SCHEDULES", "BatchLikelihood", "pose_bins"]
@@ -740,6 +741,7 @@ class ParticleFilter(Estimator):
             if do:
                 particles = self._resample(particles, w, floors, adapt, rng)
                 log_w = np.zeros(particles.shape[0])
+            report_step(k + 1, bound.n_steps)
         final = self._finish(particles, w, state, model, adapt, ess, resampled, stages, counts, scored, recovery, excluded)
         if self.move_steps:
             final.diagnostics["move_acceptance"] = list(acceptance)

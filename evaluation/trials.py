@@ -75,7 +75,7 @@ from evaluation.metrics import (
     yaw_error_deg,
 )
 from evaluation.priors import PriorSpec, base_pose_parts
-from tofloc import frames
+from tofloc import frames, step_progress
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.problem import Estimator, ProblemError
 from tofloc.problem_builder import TIP_SOURCES, problem_from_log
@@ -458,7 +458,8 @@ def warm_up(est: Estimator, task: TrialTask, problem: Any, context: TrialContext
         est.prepare(problem)  # every trial: what its own samples need (nothing new when cached)
         if key not in _WARMED:
             _WARMED.add(key)
-            est.estimate(problem, np.random.default_rng(0))
+            with step_progress.phase("set-up run, untimed"):
+                est.estimate(problem, np.random.default_rng(0))
     except Exception:  # noqa: BLE001 - the trial itself reports what is wrong with its input
         pass
     return time.perf_counter() - t0

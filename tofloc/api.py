@@ -828,7 +828,13 @@ def localize(
         reporter.progress(done[0], len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
 
     reporter.progress(0, len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
-    records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
+    steps: ContextManager[Any] = nullcontext()
+    if n_workers == 1 and not scheduler:  # trials in this process: a long one shows its steps
+        from tofloc.step_progress import StepBar, listening
+
+        steps = listening(StepBar(reporter, lambda: f"{estimator_name}: steps of trial {done[0] + 1}/{len(tasks)}"))
+    with steps:
+        records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
     summary = summarize_trials(records)
     if plot is not None:
         _plot_first_trial(plot, context, tasks[0], estimator_name, lg)
