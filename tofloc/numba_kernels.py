@@ -45,6 +45,9 @@ try:  # pragma: no cover - exercised when numba is installed (the test extra has
             _nb.config.THREADING_LAYER = "default"
         else:
             _nb.config.THREADING_LAYER = "workqueue"
+    from tofloc.numba_cache_lock import install as _install_cache_lock
+
+    _install_cache_lock()  # kernels compiled or loaded by several processes at once (tofloc.numba_cache_lock)
     # the plain-loop twins (_loop_twin) go through the parallel pipeline on purpose and
     # have no parallel loop, which numba reports at their first compilation: expected here
     warnings.filterwarnings("ignore", message="\nThe keyword argument 'parallel=True' was specified but no transformation",
