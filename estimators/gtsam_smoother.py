@@ -406,8 +406,7 @@ class GTSAMSmoother(Estimator):
         finished: list[FloatArray] = []  # base poses of the starts that ran to the end (batch, merge_starts)
         finished_idx: list[int] = []
         for i, s0 in enumerate(starts):
-            if i:
-                report_step(i, len(starts))  # the starts before this one are done
+            report_step(i, len(starts))  # the starts before this one are done
             try:
                 run = (graph.solve_isam2(meas0, s0) if self.incremental
                        else graph.solve_batch(meas0, s0, finished=finished if self.merge_starts else None))

@@ -662,6 +662,7 @@ class ParticleFilter(Estimator):
         valid_per_step = problem.valid.reshape(problem.n_samples, -1).sum(axis=1)
         excluded: list[int] = []  # the samples of the steps whose likelihood excluded every particle (not applied)
         w = np.full(M, 1.0 / M)
+        report_step(0, bound.n_steps)
         for k in range(bound.n_steps):
             ll = bound.log_likelihood_chunked(particles, k)
             n_scored = particles.shape[0]

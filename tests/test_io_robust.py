@@ -544,6 +544,105 @@ def test_ctrl_c_while_numba_compiles_is_deferred_until_the_kernel_returns(tmp_pa
     assert "numba-frames 0" in p.stdout, p.stdout
 
 
+def _named(module: str, source: str) -> dict:
+    """The functions of ``source`` compiled as if they were module ``module``'s (a frame's
+    package is read from its globals' ``__name__``)."""
+    ns: dict = {"__name__": module, "signal": signal, "time": time, "os": os}
+    exec(textwrap.dedent(source), ns)
+    return ns
+
+
+def test_an_interruption_inside_numba_is_deferred_once_and_a_second_press_is_not() -> None:
+    """Deferred: one KeyboardInterrupt after numba's code returned, however long it ran
+    (the redelivery repeats every 20 ms, never as a burst that would land in the clean-up);
+    a second Ctrl-C while one is deferred is raised at once (the user insists)."""
+    from tofloc.cli import _Signals
+
+    numba_like = _named("numba.core.fake_compiler", """
+        def compile_for(seconds, presses):
+            for _ in range(presses):
+                signal.raise_signal(signal.SIGINT)
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                pass
+            return "compiled"
+    """)
+    log: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        with _Signals():
+            try:
+                log.append(numba_like["compile_for"](0.3, 1))
+                time.sleep(2.0)  # the deferred interruption arrives here, waking the sleep
+                log.append("slept")
+            finally:
+                log.append("clean-up started")
+                end = time.monotonic() + 0.2
+                while time.monotonic() < end:  # a second interruption would land here
+                    pass
+                log.append("clean-up done")
+    assert log == ["compiled", "clean-up started", "clean-up done"]
+    log.clear()
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        with _Signals():
+            log.append(numba_like["compile_for"](5.0, 2))
+    assert log == [] and time.monotonic() - t0 < 2.0
+
+
+def test_our_code_that_numba_called_is_interrupted_as_usual() -> None:
+    """A wait of ours inside numba's call (the cache's file lock while a kernel loads) is
+    not deferred: only numba's and llvmlite's own frames are."""
+    from tofloc.cli import _Signals
+
+    ours = _named("tofloc.fake_lock", """
+        def wait_for_lock(log):
+            signal.raise_signal(signal.SIGINT)
+            log.append("not interrupted")
+    """)
+    numba_like = _named("numba.core.fake_caching", """
+        def load(callback, log):
+            callback(log)
+    """)
+    log: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        with _Signals():
+            numba_like["load"](ours["wait_for_lock"], log)
+    assert log == []
+
+
+def test_an_interruption_deferred_when_the_command_ends_sets_its_exit_code(tmp_path: Path) -> None:
+    """SIGTERM deferred inside numba, then the command returned before the redelivery:
+    the process still ends with 143 and says so (it exited 0 and the signal was lost)."""
+    script = tmp_path / "late.py"
+    script.write_text(textwrap.dedent("""
+        import os, signal, sys
+        from tofloc.cli import main
+        from tofloc.cli.app import app
+
+        ns = {"__name__": "numba.core.fake", "os": os, "signal": signal}
+        exec("def step():\\n    signal.raise_signal(signal.SIGTERM)\\n", ns)
+
+        @app.command("quick")
+        def quick() -> None:
+            ns["step"]()
+
+        sys.argv[1:] = ["quick"]
+        sys.exit(main())
+    """))
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert p.returncode == 143 and "terminated" in p.stderr and "Traceback" not in p.stderr, (p.returncode, p.stderr)
+
+
+def test_the_cli_runs_with_stderr_closed(tmp_path: Path) -> None:
+    """`tofloc list 2>&-`: no stderr at all must not stop the command (faulthandler needs one)."""
+    import shlex
+
+    code = "import sys; from tofloc.cli import main; sys.exit(main())"
+    p = subprocess.run(["sh", "-c", f"{shlex.quote(sys.executable)} -c {shlex.quote(code)} list 2>&-"],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert p.returncode == 0 and "icp_pf" in p.stdout, (p.returncode, p.stdout[-500:])
+
+
 def test_a_crash_in_a_compiled_library_says_where_python_was(tmp_path: Path) -> None:
     """A segmentation fault inside a command (a compiled library's bug) printed nothing at
     all (exit -11, empty stderr, as CI saw once): the CLI enables :mod:`faulthandler`, so

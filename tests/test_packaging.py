@@ -166,22 +166,23 @@ def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path:
         (ns / "pair" / "scans.csv").write_text("\n".join(rows) + "\n")
         (ns / "expA" / "broken" / "scans.csv").write_bytes(b"0/0,\xe9\n")  # a non-ASCII file: refused whole
 
-    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"pair": (0, 1), "expA/solo": (0,), "expA/pair": (0, 1),
+    r, out = _make_with_synthetic_flights(tmp_path, "real-data", {"pair": (0, 1), "expA/solo flight": (0,), "expA/pair": (0, 1),
                                                                  "expA/broken": (0, 1)}, edit=edit)
     text = " ".join((r.stdout + r.stderr).split())
     assert r.returncode != 0, text
     assert f"real-data: failed: expA/broken (the others are in {out})" in text and "ASCII text" in text
     assert "note: --map-from auto passed over broken (unreadable): " in text  # solo's choice of map
     assert "note: scans.csv: 1 row(s) not used" in text and "row 2 (field hex: expected 1144 bytes" in text
-    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-expA-pair", "eval-expA-solo", "eval-pair",
-                                                    "expA-pair", "expA-solo", "pair"]
+    assert sorted(p.name for p in out.iterdir()) == ["compare-flights", "eval-expA-pair", "eval-expA-solo flight", "eval-pair",
+                                                    "expA-pair", "expA-solo flight", "pair"]
     table = (out / "compare-flights" / "comparison.md").read_text()  # every flight evaluated, in one table
-    for name in ("eval-pair", "eval-expA-solo", "eval-expA-pair"):
+    for name in ("eval-pair", "eval-expA-solo flight", "eval-expA-pair"):
         assert f"| {name} | icp_pf |" in table
         assert (out / name / "results.json").is_file() and (out / name / "table.md").is_file()
     assert "eval-expA-broken" not in table
     assert sorted(p.name for p in (out / "pair").glob("*.h5")) == ["drone0-node000.h5", "drone0-node001.h5", "drone1-node001.h5"]
-    assert [p.name for p in (out / "expA-solo" / "maps").glob("*.ply")] == ["from-pair.ply"]  # its own experiment's pair
+    # from its own experiment's pair (it passed over expA/broken above); a name with a space
+    assert [p.name for p in (out / "expA-solo flight" / "maps").glob("*.ply")] == ["from-pair.ply"]
 
 
 def test_make_real_data_passes_real_import_to_every_import(tmp_path: Path) -> None:

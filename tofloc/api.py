@@ -150,13 +150,17 @@ class Reporter:
         """
         return nullcontext()
 
-    def progress(self, done: int, total: int, label: str) -> None:
+    def progress(self, done: int, total: int, label: str, started: float | None = None) -> None:
         """``done`` of ``total`` units of the work named ``label``.
 
         Parameters
         ----------
         done, total : int
         label : str
+        started : float, optional
+            When the work began (``time.monotonic()``), if before this label's first call
+            (a bar drawn only once its work has run a while:
+            :class:`tofloc.step_progress.StepBar`).
         """
 
 
@@ -829,10 +833,10 @@ def localize(
 
     reporter.progress(0, len(tasks), f"{estimator_name}: {trials} trial(s) of {k} sample(s)")
     steps: ContextManager[Any] = nullcontext()
-    if n_workers == 1 and not scheduler:  # trials in this process: a long one shows its steps
+    if not scheduler and (n_workers == 1 or len(tasks) <= 1):  # trials in this process: a long one shows its steps
         from tofloc.step_progress import StepBar, listening
 
-        steps = listening(StepBar(reporter, lambda: f"{estimator_name}: steps of trial {done[0] + 1}/{len(tasks)}"))
+        steps = listening(StepBar(reporter, f"{estimator_name}: steps of the running trial"))
     with steps:
         records = run_tasks(context, tasks, workers=n_workers, scheduler=scheduler, on_result=on_result)
     summary = summarize_trials(records)

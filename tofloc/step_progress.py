@@ -32,8 +32,8 @@ _phase: ContextVar[str | None] = ContextVar("tofloc_step_phase", default=None)
 def report_step(done: int, total: int) -> None:
     """Tell the listener, if any, that ``done`` of the estimate's ``total`` steps are done.
 
-    ``done`` starts again from 1 when the estimator begins another pass (a refit, a
-    basin check's second look)."""
+    An estimator reports ``(0, total)`` when a pass over its steps begins (again for each
+    further pass, e.g. a particle filter's run after a refit), then each step done."""
     listener = _listener.get()
     if listener is not None:
         listener(int(done), int(total))
@@ -65,32 +65,48 @@ class _Progress(Protocol):
 
 
 class StepBar:
-    """A listener that draws the running trial's steps as a bar of ``reporter``'s, labelled
-    ``label()`` (and the :func:`phase`, when one is set), once the pass has run for :data:`SHOW_AFTER_S` (short trials draw none)
-    and at most every :data:`REDRAW_EVERY_S`.
+    """A listener that draws the running pass's steps as one bar of ``reporter``'s,
+    labelled ``label`` (plus the :func:`phase`, when one is set: a second bar), once the
+    pass has run for :data:`SHOW_AFTER_S` (short passes draw nothing) and at most every
+    :data:`REDRAW_EVERY_S`. Each pass (each trial) draws on the same bar again.
 
     Parameters
     ----------
     reporter : object with ``progress(done, total, label)``
-        Where the bar goes (:class:`tofloc.api.Reporter`).
-    label : callable
-        The bar's label, asked when it is drawn (e.g. the number of the trial running).
+        Where the bar goes (:class:`tofloc.api.Reporter`); when its ``progress`` takes a
+        ``started`` keyword (:class:`tofloc.api.Reporter` does), it gets the time
+        (``time.monotonic()``) the pass began, so that a bar drawn late says how long the
+        pass took.
+    label : str
+        The bar's label.
     """
 
-    def __init__(self, reporter: _Progress, label: Callable[[], str]) -> None:
+    def __init__(self, reporter: _Progress, label: str) -> None:
+        import inspect
+
         self.reporter = reporter
         self.label = label
-        self._t0 = 0.0
+        try:
+            self._takes_started = "started" in inspect.signature(reporter.progress).parameters
+        except (TypeError, ValueError):
+            self._takes_started = False
+        self._t0 = time.monotonic()
         self._last = 0.0
+        self._done = 0
 
     def __call__(self, done: int, total: int) -> None:
         now = time.monotonic()
-        if done <= 1:  # a pass begins
+        if done <= 0 or done < self._done:  # a pass begins (an estimator that does not say so: its count falls)
             self._t0, self._last = now, 0.0
+        self._done = done
         if now - self._t0 < SHOW_AFTER_S:
             return
         if done < total and now - self._last < REDRAW_EVERY_S:
             return
         self._last = now
         name = _phase.get()
-        self.reporter.progress(done, total, self.label() if name is None else f"{self.label()} ({name})")
+        label = self.label if name is None else f"{self.label} ({name})"
+        if self._takes_started:
+            self.reporter.progress(done, total, label, started=self._t0)  # type: ignore[call-arg]
+        else:
+            self.reporter.progress(done, total, label)

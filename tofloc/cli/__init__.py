@@ -60,6 +60,14 @@ class _Signals:
         #: False once the block is left: a redelivery still on its way is then dropped (the
         #: default handler it would meet would print a traceback)
         self.active = False
+        #: the interruption deferred and not raised yet (see _on_signal), and whether a
+        #: redelivery is on its way or being delivered
+        self._pending: int | None = None
+        self._chain = False
+        self._redelivering = False
+        self._lock = threading.Lock()
+        #: an interruption still deferred when the block was left (main exits with its code)
+        self.lost: int | None = None
 
     def __enter__(self) -> "_Signals":
         if threading.current_thread() is threading.main_thread():
@@ -79,28 +87,49 @@ class _Signals:
         a callback again, it comes back here."""
         if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)):
             sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
-            _thread_redeliver(self, sig)  # not threading.Thread: its start() waits, here
+            self._defer(sig)
             return
         if self.received is not None and not debug_enabled():
             return  # a finalizer of an object the interruption left half built (see _after_interruption)
         (self._previous_unraisable or sys.__unraisablehook__)(unraisable)
 
     def _on_int(self, signum: int, frame: Any) -> None:
-        self.received = signum
-        if _inside_fragile_code(frame):
-            _thread_redeliver(self, signum)
-            return
-        raise KeyboardInterrupt
+        self._on_signal(signum, frame, KeyboardInterrupt)
 
     def _on_term(self, signum: int, frame: Any) -> None:
+        self._on_signal(signum, frame, Terminated)
+
+    def _on_signal(self, signum: int, frame: Any, exc: type[BaseException]) -> None:
+        """Raise ``exc``, unless the main thread is inside :data:`FRAGILE_PACKAGES`: then the
+        interruption is deferred (delivered again every 20 ms until it lands outside them).
+        A second Ctrl-C while one is deferred is raised at once: the user insists."""
         self.received = signum
-        if _inside_fragile_code(frame):
-            _thread_redeliver(self, signum)
+        with self._lock:
+            redelivered, self._redelivering = self._redelivering, False
+            defer = (self._pending is None or redelivered) and _inside_fragile_code(frame)
+            if not defer:
+                self._pending = None
+        if defer:
+            self._defer(signum)
             return
-        raise Terminated
+        raise exc
+
+    def _defer(self, sig: int) -> None:
+        """Deliver ``sig`` again 20 ms from now, from another thread (one such thread at a
+        time: presses that arrive meanwhile do not pile up into a burst)."""
+        with self._lock:
+            self._pending = sig
+            if self._chain:
+                return
+            self._chain = True
+        import _thread
+
+        _thread.start_new_thread(_redeliver, (self,))  # not threading.Thread: its start() waits, here
 
     def __exit__(self, *exc: object) -> None:
-        self.active = False
+        with self._lock:
+            self.active = False
+            self.lost, self._pending = self._pending, None
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
         if sys.unraisablehook == self._on_unraisable:  # not if a later hook replaced it (main's restore)
@@ -115,38 +144,43 @@ class _Signals:
 FRAGILE_PACKAGES = ("numba", "llvmlite")
 
 
+#: This project's packages: code of theirs that numba or llvmlite called (a file lock while
+#: numba loads a kernel, :mod:`tofloc.numba_cache_lock`) is interrupted as usual.
+OWN_PACKAGES = ("tofloc", "estimators", "sensor_models", "evaluation")
+
+
 def _inside_fragile_code(frame: Any, max_depth: int = 500) -> bool:
     """Whether the main thread, stopped at ``frame`` by a signal, is inside one of
-    :data:`FRAGILE_PACKAGES` (at any depth of the stack)."""
+    :data:`FRAGILE_PACKAGES`: the innermost frame that is either theirs or
+    :data:`OWN_PACKAGES`' is theirs."""
     depth = 0
     while frame is not None and depth < max_depth:
         name = frame.f_globals.get("__name__", "") if hasattr(frame, "f_globals") else ""
-        if isinstance(name, str) and name.split(".", 1)[0] in FRAGILE_PACKAGES:
+        top = name.split(".", 1)[0] if isinstance(name, str) else ""
+        if top in FRAGILE_PACKAGES:
             return True
+        if top in OWN_PACKAGES:
+            return False
         frame = frame.f_back
         depth += 1
     return False
 
 
-def _thread_redeliver(signals: "_Signals", sig: int) -> None:
-    """Deliver ``sig`` again, from another thread, 20 ms from now: an interruption that landed
-    inside :data:`FRAGILE_PACKAGES` is deferred until the main thread has left them (each
-    redelivery that lands there again is deferred again; a compiled kernel takes seconds at
-    most)."""
-    import _thread
-
-    _thread.start_new_thread(_redeliver, (signals, sig))
-
-
-def _redeliver(signals: _Signals, sig: int) -> None:
-    """Signal ``sig`` to the main thread again, 20 ms from now (after the hook that asked
-    returned), unless the guarded block has been left meanwhile."""
-    import _thread
+def _redeliver(signals: _Signals) -> None:
+    """Signal the pending interruption to the main thread again, 20 ms from now (after the
+    handler or hook that asked returned), unless the guarded block has been left
+    meanwhile. A real signal (``pthread_kill``), not ``_thread.interrupt_main``: it also
+    wakes a main thread blocked in a wait or a sleep."""
     import time
 
     time.sleep(0.02)
-    if signals.active:
-        _thread.interrupt_main(sig)
+    with signals._lock:
+        signals._chain = False
+        sig = signals._pending
+        if not signals.active or sig is None:
+            return
+        signals._redelivering = True
+    signal.pthread_kill(threading.main_thread().ident, sig)  # type: ignore[arg-type]
 
 
 def _interrupted_by(e: BaseException, signals: _Signals) -> int | None:
@@ -222,7 +256,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None and not faulthandler.is_enabled():
         # a crash in a compiled library (a segmentation fault) prints where Python was,
         # instead of ending the process without a word
-        faulthandler.enable()
+        with contextlib.suppress(RuntimeError, ValueError, OSError, AttributeError):  # stderr closed or not a file
+            faulthandler.enable()
     if "--debug" in args[:1]:
         from tofloc.cli.app import _state
 
@@ -273,6 +308,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             # the exit code into 1 (seen in CI); the atomic writers have already removed their
             # temporaries, so leave with the interruption's code now
             hard_exit = argv is None and _h5py_has_open_files()
+    if signals.lost is not None and code not in (130, 143):  # deferred, and the command ended first
+        code = 130 if signals.lost == signal.SIGINT else 143
+        err_console.print("interrupted" if code == 130 else "terminated", highlight=False)
     if argv is None and signals.received is not None and not debug_enabled():
         sys.unraisablehook = _after_interruption  # the process exits: teardown's finalizers
     if hard_exit:

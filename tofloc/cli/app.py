@@ -138,14 +138,14 @@ class RichReporter:
         finally:
             self._stop_status()
 
-    def progress(self, done: int, total: int, label: str) -> None:
+    def progress(self, done: int, total: int, label: str, started: float | None = None) -> None:
         """Update the bar of ``label``; when it completes, also a line ``label: done/total (time)``
         that stays (the bars vanish with the reporter, and are not drawn when stderr is not a
         terminal)."""
         import time
 
         now = time.monotonic()
-        started = self._started.setdefault(label, now)
+        started = self._started.setdefault(label, now if started is None else min(started, now))
         if done >= total and label not in self._finished:
             self._finished.add(label)
             self.note(f"{label}: {done}/{total} ({now - started:.1f} s)")
