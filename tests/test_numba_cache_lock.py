@@ -24,13 +24,16 @@ SAVER = textwrap.dedent("""
         from tofloc.numba_cache_lock import install
         assert install()
     cls = caching.IndexDataCacheFile
-    load_index, save_data = cls._load_index, cls._save_data
+    load_index, save_index, save_data = cls._load_index, cls._save_index, cls._save_data
 
     def mark(name):
         open(os.path.join(folder, name), "w").close()
 
-    def wait_for(name, timeout=3.0):  # the other process's step, or go on (it may be locked out)
-        end = time.monotonic() + timeout
+    # the other's step: it comes unless the lock keeps it out (then 1 s proves it does)
+    patience = 1.0 if lock == "lock" else 120.0
+
+    def wait_for(name, timeout=None):
+        end = time.monotonic() + (patience if timeout is None else timeout)
         while not os.path.exists(os.path.join(folder, name)) and time.monotonic() < end:
             time.sleep(0.01)
 
@@ -38,7 +41,13 @@ SAVER = textwrap.dedent("""
         out = load_index(self)
         mark("loaded-" + role)
         wait_for("loaded-" + other)
+        if role == "B":  # B writes its index after A's
+            wait_for("index-A")
         return out
+
+    def marked_save_index(self, overloads):
+        save_index(self, overloads)
+        mark("index-" + role)
 
     def slow_save_data(self, name, data):  # A writes its data after B wrote its own
         if role == "A":
@@ -47,7 +56,11 @@ SAVER = textwrap.dedent("""
         mark("saved-" + role)
         return out
 
-    cls._load_index, cls._save_data = slow_load_index, slow_save_data
+    cls._load_index, cls._save_index, cls._save_data = slow_load_index, marked_save_index, slow_save_data
+    mark("started-" + role)  # both imported: A goes first
+    wait_for("started-" + other, timeout=120.0)
+    if role == "B":
+        time.sleep(0.2)
     cls(cache_path=folder, filename_base="kernel", source_stamp=("stamp", 1)).save(("signature", role), "code of " + role)
 """)
 
