@@ -129,6 +129,7 @@ def test_localize_shows_the_running_trials_steps_when_trials_run_here(pillars: P
     from evaluation import trials
 
     monkeypatch.setattr(trials, "_WARMED", set())  # as in a fresh process, whatever ran here before
+    monkeypatch.setattr(trials, "WARM_UP_S", 1e9)  # the set-up run whole, however slow this machine
     log = pillars
     rec = Recorder()
     api.localize(log, "icp_pf", params={"n_particles": 30}, samples=3, trials=2, workers=1, reporter=rec)
@@ -147,3 +148,55 @@ def test_one_trial_runs_here_whatever_the_workers_and_shows_its_steps(pillars: P
     rec = Recorder()
     api.localize(log, "icp_pf", params={"n_particles": 30}, samples=2, trials=1, workers=4, reporter=rec)
     assert "icp_pf: steps of the running trial" in rec.labels()
+
+
+def test_the_untimed_set_up_run_of_a_long_trial_stops_after_its_first_steps(monkeypatch: pytest.MonkeyPatch) -> None:
+    """warm_up ran the whole estimate once before a process's first trial: a trial of 2,000
+    samples ran twice. It now stops at the first step report after WARM_UP_S with two
+    steps done; an estimator that reports no steps, or a short one, still runs whole."""
+    import time
+    from types import SimpleNamespace
+
+    from evaluation import trials
+    from tofloc.problem import Estimate
+
+    class Slow:
+        steps_run = 0
+
+        def __init__(self, report: bool) -> None:
+            self.report = report
+
+        def prepare(self, problem) -> None:
+            return None
+
+        def estimate(self, problem, rng) -> Estimate:
+            if self.report:
+                report_step(0, 40)
+            for done in range(1, 41):
+                time.sleep(0.01)
+                Slow.steps_run += 1
+                if self.report:
+                    report_step(done, 40)
+            return Estimate(pose=np.zeros(3), covariance=np.eye(3))
+
+    monkeypatch.setattr(trials, "_WARMED", set())
+    monkeypatch.setattr(trials, "WARM_UP_S", 0.1)
+    context = SimpleNamespace(map=SimpleNamespace(fingerprint=lambda: "map"))
+    for report, key in ((True, 1), (False, 2)):
+        Slow.steps_run = 0
+        task = SimpleNamespace(estimator_cls=Slow, params={"key": key})
+        trials.warm_up(Slow(report), task, None, context)
+        if report:
+            assert 2 <= Slow.steps_run < 40, Slow.steps_run  # cut short, no error
+        else:
+            assert Slow.steps_run == 40
+    monkeypatch.setattr(trials, "WARM_UP_S", 1e9)
+    Slow.steps_run = 0
+    trials.warm_up(Slow(True), SimpleNamespace(estimator_cls=Slow, params={"key": 3}), None, context)
+    assert Slow.steps_run == 40  # short enough: whole, as before
+    # whoever listened hears the steps of the cut run too
+    seen: list[int] = []
+    monkeypatch.setattr(trials, "WARM_UP_S", 0.1)
+    with listening(lambda done, total: seen.append(done)):
+        trials.warm_up(Slow(True), SimpleNamespace(estimator_cls=Slow, params={"key": 4}), None, context)
+    assert seen[:3] == [0, 1, 2] and seen[-1] < 40

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Callable, Iterator, Protocol
 
-__all__ = ["SHOW_AFTER_S", "StepBar", "listening", "phase", "report_step"]
+__all__ = ["SHOW_AFTER_S", "StepBar", "cut_short_after", "listening", "phase", "report_step"]
 
 #: A trial shorter than this shows no bar of its steps (seconds).
 SHOW_AFTER_S = 1.0
@@ -58,6 +58,40 @@ def phase(name: str) -> Iterator[None]:
         yield
     finally:
         _phase.reset(token)
+
+
+class _CutShort(BaseException):
+    """Raised from :func:`report_step` to end an estimate early (:func:`cut_short_after`);
+    a BaseException, so that an estimator's ``except Exception`` does not swallow it."""
+
+
+@contextmanager
+def cut_short_after(seconds: float, min_steps: int = 2) -> Iterator[bool]:
+    """Within the block, an estimate that reports its steps ends (the block is left, no
+    error) at the first step report with at least ``min_steps`` steps done once ``seconds``
+    have passed since the block began; whoever listened before still hears every report.
+
+    For an untimed run whose only purpose is to pay one-off costs (the first call into each
+    library and cache: they fall in a pass's first steps, :func:`evaluation.trials.warm_up`).
+    An estimator that reports no steps runs to its end. Yields True; the caller cannot
+    tell from it whether the estimate was cut short.
+    """
+    outer = _listener.get()
+    t0 = time.monotonic()
+
+    def listener(done: int, total: int) -> None:
+        if outer is not None:
+            outer(done, total)
+        if done >= min_steps and done < total and time.monotonic() - t0 >= seconds:
+            raise _CutShort
+
+    token = _listener.set(listener)
+    try:
+        yield True
+    except _CutShort:
+        pass
+    finally:
+        _listener.reset(token)
 
 
 class _Progress(Protocol):
