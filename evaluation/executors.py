@@ -111,14 +111,39 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = F
     return map_cache.bundle(*[c.map for c in _contexts_of(context) if hasattr(c.map, "fingerprint")], by_file=by_file)
 
 
+#: The environment variables of this process that its workers take over
+#: (:meth:`_Payload.apply_environment`): the kernels' back-end (``TOFLOC_NUMBA``), which the
+#: results record and their saved batches are keyed by, and, for local workers, the cache
+#: folder (``TOFLOC_CACHE_DIR``). A local worker is forked from a server started once per
+#: process, with the environment of that moment: a variable set later (a script, a
+#: notebook) reached this process but not its workers, which then computed with numba
+#: while the results said numpy.
+WORKER_ENVIRONMENT = ("TOFLOC_NUMBA", "TOFLOC_CACHE_DIR")
+#: Of those, what a Dask worker process takes over (it may run on another machine, where
+#: this process's cache folder means nothing).
+REMOTE_ENVIRONMENT = ("TOFLOC_NUMBA",)
+
+
 class _Payload:
-    """What a worker gets once: the context(s) and the per-map caches built here."""
+    """What a worker gets once: the context(s), the per-map caches built here and this
+    process's :data:`WORKER_ENVIRONMENT`."""
 
     def __init__(self, context: Contexts, caches: map_cache.MapCacheBundle | None) -> None:
         self.context = context
         self.caches = caches
         self.token = uuid.uuid4().hex
         self.parent_pid = os.getpid()
+        self.environment = {k: os.environ.get(k) for k in WORKER_ENVIRONMENT}
+
+    def apply_environment(self, names: Sequence[str] = WORKER_ENVIRONMENT) -> None:
+        """Set (or unset) the variables ``names`` as they were in the process that made the
+        payload."""
+        for k in names:
+            v = self.environment.get(k)
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
     def install(self) -> None:
         """Install the caches in this process, once per payload."""
@@ -134,6 +159,7 @@ def _init_worker(payload: _Payload) -> None:
     Open3D and one BLAS thread per worker."""
     global _WORKER_CONTEXT
     _WORKER_CONTEXT = payload.context
+    payload.apply_environment()  # before anything reads it (the caches' folder, the kernels' back-end)
     payload.install()
     from tofloc.threads import limit_to_one_thread
 
@@ -167,6 +193,8 @@ def _run_in_process(task: TrialTask) -> dict[str, Any]:
 def _run_with_context(task: TrialTask, payload: "_Payload | _Shared | TrialContext") -> dict[str, Any]:
     """A Dask task: install the payload's caches (once per worker process) and run."""
     if isinstance(payload, _Payload):
+        if os.getpid() != payload.parent_pid:
+            payload.apply_environment(REMOTE_ENVIRONMENT)
         payload.install()
         if os.getpid() != payload.parent_pid:  # a worker process of its own (not a thread of ours)
             from tofloc.heap import reuse_freed_memory

@@ -71,6 +71,22 @@ class CountsGridBuilds(Estimator):
         return Estimate(pose=pose, covariance=np.diag(problem.prior.sigma**2))
 
 
+class ReportsItsEnvironment(Estimator):
+    """Returns the prior mean shifted in x by 1 when this process's kernels are numpy's and
+    in y by 1 when its cache folder is off (how a test sees a worker's environment)."""
+
+    name: ClassVar[str] = "test_reports_its_environment"
+
+    def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
+        import os
+
+        from tofloc import numba_kernels
+
+        shift = np.array([float(numba_kernels.backend() == "numpy"),
+                          float(os.environ.get("TOFLOC_CACHE_DIR") == "off"), 0.0])
+        return Estimate(pose=problem.prior.mean + shift, covariance=np.diag(problem.prior.sigma**2))
+
+
 TRUTH = (0.021, -0.013, math.radians(6.5))
 TRUTH_Z = 0.25
 
@@ -520,6 +536,36 @@ def test_workers_get_the_caches_built_once_here_and_keep_them_across_calls() -> 
     other = TrialContext(log, the_map, sample_pool(log, None, 1))
     with WorkerPool(ctx, 1, caches) as pool, pytest.raises(ParameterError, match="another context"):
         run_tasks(other, tasks, pool=pool)
+
+
+def test_workers_take_the_kernels_back_end_and_cache_folder_set_here_after_their_server_started(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Local workers are forked from a server started once per process: TOFLOC_NUMBA=0 set
+    afterwards (a script, a notebook) reached this process, whose results then recorded
+    numpy, but not the workers, which computed with numba. Each worker now takes this
+    process's TOFLOC_NUMBA and TOFLOC_CACHE_DIR. Both settings are tried, one of which
+    differs from the server's."""
+    from evaluation.executors import start_server
+    from tofloc.maps import Map
+
+    start_server()  # the server runs, with whatever environment it started in
+    log = small_log(K=6)
+    ctx = TrialContext(log, Map.cuboid((0.8, 0.8, 0.6), (-0.4, -0.4, 0.0)), sample_pool(log, None, 1))
+    tasks = make_tasks("g", "test_reports_its_environment", ReportsItsEnvironment, {}, "mocap", PriorSpec("paper"),
+                       [1], 2, 0)
+    for numba_off, cache_off in ((True, True), (False, False)):
+        for name, off, value in (("TOFLOC_NUMBA", numba_off, "0"), ("TOFLOC_CACHE_DIR", cache_off, "off")):
+            if off:
+                monkeypatch.setenv(name, value)
+            else:
+                monkeypatch.delenv(name, raising=False)
+        records = run_tasks(ctx, tasks, workers=2)
+        seen = {(round(r["estimate"][0] - r["prior_mean"][0], 9), round(r["estimate"][1] - r["prior_mean"][1], 9))
+                for r in records}
+        from tofloc import numba_kernels
+
+        here = float(numba_kernels.backend() == "numpy")
+        assert seen == {(here, float(cache_off))}, (numba_off, cache_off, seen)
 
 
 def test_local_workers_read_persisted_caches_from_their_files(cache_folder: Path) -> None:
