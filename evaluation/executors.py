@@ -419,6 +419,27 @@ def workers_on_this_machine(client: Any) -> bool:
     return bool(addresses)
 
 
+def check_scheduler(scheduler: Any) -> None:
+    """Refuse, before any work, a Dask scheduler given as an address that is not one
+    (``tcp://HOST:PORT``, or ``HOST:PORT``; ``tls://``, ``ucx://`` and ``inproc://`` are
+    taken as they are): a malformed one failed only after the logs and maps were loaded,
+    with a traceback and a 20 s wait. A client object, or None, passes."""
+    if scheduler is None or not isinstance(scheduler, str):
+        return
+    from urllib.parse import urlparse
+
+    addr = scheduler.strip()
+    url = urlparse(addr if "://" in addr else f"tcp://{addr}")
+    if url.scheme == "inproc":
+        return
+    try:
+        port = url.port
+    except ValueError:
+        port = None
+    if not url.hostname or port is None:
+        raise ParameterError(f"scheduler {scheduler!r}: expected a Dask scheduler's address, tcp://HOST:PORT")
+
+
 def _run_dask(
     context: Contexts, tasks: Sequence[TrialTask], scheduler: Any, done: Callable[[int, dict[str, Any]], None], timeout_s: float
 ) -> None:
@@ -428,6 +449,7 @@ def _run_dask(
         raise ParameterError("--scheduler needs dask.distributed: pip install 'dask[distributed]'") from e
     own = not isinstance(scheduler, Client)
     if own:
+        check_scheduler(scheduler)
         addr = str(scheduler)
         try:
             client = Client(addr, timeout=timeout_s, set_as_default=False)

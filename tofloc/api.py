@@ -769,6 +769,9 @@ def localize(
     from tofloc.maps import Map, load_map
     from tofloc.provenance import provenance
 
+    from evaluation.executors import check_scheduler
+
+    check_scheduler(scheduler)
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1010,6 +1013,9 @@ def paper(
     from tofloc.provenance import provenance
 
     names = _as_list(estimators, "estimators")
+    from evaluation.executors import check_scheduler
+
+    check_scheduler(scheduler)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1552,6 +1558,9 @@ def evaluate(
     out_dir = check_output_path(Path(out), kind="dir", option="out")
     logs = _as_list(logs, "logs")
     names = _as_list(estimators, "estimators")
+    from evaluation.executors import check_scheduler
+
+    check_scheduler(scheduler)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:

@@ -15,7 +15,7 @@ from typing import Iterator
 
 from tofloc.errors import ParameterError
 
-__all__ = ["atomic_path", "sync_file", "check_output_path", "check_free_space", "free_space_bytes"]
+__all__ = ["atomic_path", "sync_file", "check_output_path", "check_distinct_paths", "check_free_space", "free_space_bytes"]
 
 
 def _umask() -> int:
@@ -154,6 +154,44 @@ def check_output_path(
             raise ParameterError(f"{option} {p}: cannot write in the folder {base}: {why}")
         raise ParameterError(f"{option} {p}: cannot create the folder {folder}: cannot write in {base}: {why}")
     return p
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file: the same existing file (links included), or the
+    same absolute path."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def check_distinct_paths(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None] | None = None) -> None:
+    """Refuse, before any work, two outputs that name one file, and an output that names
+    one of the inputs (it would be replaced by what the command writes: a log overwritten
+    by a model, a calibration by a figure).
+
+    Parameters
+    ----------
+    outputs, inputs : dict
+        Option (or argument) name -> path; None entries are ignored.
+
+    Raises
+    ------
+    ParameterError
+        Naming both options and the path.
+    """
+    outs = [(name, Path(p)) for name, p in outputs.items() if p is not None]
+    ins = [(name, Path(p)) for name, p in (inputs or {}).items() if p is not None]
+    for i, (name, path) in enumerate(outs):
+        for other, q in outs[:i]:
+            if _same_file(path, q):
+                raise ParameterError(f"{other} and {name} name the same file {path}: give each output its own name")
+        for other, q in ins:
+            if _same_file(path, q):
+                raise ParameterError(f"{name} {path} is the input {other}: writing it would replace the input; "
+                                     "choose another name")
 
 
 def free_space_bytes(folder: str | Path) -> int:

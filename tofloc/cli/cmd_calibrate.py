@@ -45,11 +45,15 @@ def calibrate(
     from tofloc.atomic import check_output_path
     from tofloc.plot_style import check_figure_path
 
+    from tofloc.atomic import check_distinct_paths
+
     check_output_path(out, option="--out")
     if plot is not None:
         check_output_path(plot, option="--plot")
         check_figure_path(plot, "--plot")
         check_output_path(zone_plot_path(plot), option="--plot")
+    check_distinct_paths({"--out": out, "--plot": plot, "--plot (its zone maps)": None if plot is None else zone_plot_path(plot)},
+                         {**{f"LOG {lg}": lg for lg in logs}, **{f"--map {m}": m for m in (map_paths or [])}})
     from sensor_models.calibration import plot_calibration
     from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc import api

@@ -52,6 +52,9 @@ def fit(
     if not validation_fraction < 1.0:
         raise ParameterError(f"--validation-fraction: expected a value in [0, 1), found {validation_fraction}")
     check_output_path(out, option="--out")
+    from tofloc.atomic import check_distinct_paths
+
+    check_distinct_paths({"--out": out}, {"LOG": log})
 
     with status(f"reading {log}"):
         data = read_log(log)

@@ -118,12 +118,17 @@ def localize(
             raise ParameterError("--plot draws the first trial of an offline run (not --port)")
         check_output_path(plot, option="--plot")
         check_figure_path(plot, "--plot")
+    from tofloc.atomic import check_distinct_paths
+
+    check_distinct_paths(
+        {"--json": json_out, "--plot-nees": plot_nees, "--plot": plot, "--estimates-out": estimates_out,
+         "--out": out, "--journal": journal, "--suggest-next": suggest_next},
+        {"LOG": log_path, "--map": map_path, "--surface": surface_path, "--kinematics": kinematics, "--config": config,
+         "--calibration": calibration, "--rig": rig_path})
     if suggest_next is not None and port is None:
         raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:
         check_output_path(estimates_out, option="--estimates-out")
-        if json_out is not None and estimates_out.resolve() == json_out.resolve():
-            raise ParameterError("--json and --estimates-out must name different files")
     from evaluation.priors import base_pose_parts
     from evaluation.report import write_json_atomic
     from tofloc import api

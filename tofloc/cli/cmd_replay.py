@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 from pathlib import Path
@@ -31,6 +32,15 @@ def replay(
 
     if pty == (port is not None):
         raise ParameterError("give exactly one of --pty and --port")
+    if link is not None:
+        if link.exists() and not link.is_symlink():
+            raise ParameterError(f"--link {link}: exists and is not a symbolic link: it would be replaced by the link "
+                                 "(and removed at the end); choose another path")
+        if not link.parent.is_dir():
+            raise ParameterError(f"--link {link}: the folder {link.parent} does not exist")
+        if link.is_symlink() and not os.path.realpath(link).startswith("/dev/"):
+            raise ParameterError(f"--link {link}: is a link to {os.readlink(link)}, not to a terminal device; "
+                                 "choose another path")
     data = read_log(log)
     idx = None
     if sensor is not None:

@@ -1,0 +1,92 @@
+"""Outputs that name an input or each other, and addresses that are not addresses, are
+refused before any work (found by combining options: `kinematics fit v.h5 --out v.h5`
+replaced the log by the model; `calibrate --out c.svg --plot c.svg` lost the calibration;
+`replay --link FILE` deleted FILE; `--scheduler foo` failed after 20 s with a traceback)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from tofloc import api
+from tofloc.atomic import check_distinct_paths
+from tofloc.cli import main
+from tofloc.errors import ParameterError
+
+
+@pytest.fixture(scope="module")
+def pillars(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    log = tmp_path_factory.mktemp("pillars") / "pillars.h5"
+    api.simulate("pillars", 1, out=log)
+    return log
+
+
+def _err(capsys: pytest.CaptureFixture[str]) -> str:
+    return " ".join(capsys.readouterr().err.split())
+
+
+@pytest.mark.parametrize("args, message", [
+    (["kinematics", "fit", "{log}", "--out", "{log}"], "--out {log} is the input LOG"),
+    (["localize", "{log}", "--estimator", "icp_pf", "--json", "{log}"], "--json {log} is the input LOG"),
+    (["localize", "{log}", "--estimator", "icp_pf", "--plot", "{tmp}/same.png", "--estimates-out", "{tmp}/same.png"],
+     "--plot and --estimates-out name the same file"),
+    (["localize", "{log}", "--estimator", "icp_pf", "--plot", "{tmp}/a.png", "--plot-nees", "{tmp}/a.png"],
+     "--plot-nees and --plot name the same file"),
+    (["calibrate", "{log}", "--out", "{tmp}/same.svg", "--plot", "{tmp}/same.svg"], "--out and --plot name the same file"),
+    (["calibrate", "{log}", "--out", "{tmp}/z_zones.svg", "--plot", "{tmp}/z.svg"],
+     "--out and --plot (its zone maps) name the same file"),
+    (["calibrate", "{log}", "--out", "{log}"], "--out {log} is the input LOG"),
+])
+def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work(
+        pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:
+    log = tmp_path / "v.h5"
+    log.write_bytes(pillars.read_bytes())
+    before = log.read_bytes()
+    fill = {"log": str(log), "tmp": str(tmp_path)}
+    t0 = time.perf_counter()
+    assert main([a.format(**fill) for a in args]) == 2
+    assert message.format(**fill) in _err(capsys)
+    assert time.perf_counter() - t0 < 10.0  # refused up front, not after a fit
+    assert log.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.h5"]
+
+
+def test_check_distinct_paths_sees_links_and_relative_names(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "log.h5").write_bytes(b"x")
+    (tmp_path / "alias.h5").symlink_to(tmp_path / "log.h5")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ParameterError, match="is the input LOG"):
+        check_distinct_paths({"--out": tmp_path / "alias.h5"}, {"LOG": Path("log.h5")})
+    with pytest.raises(ParameterError, match="name the same file"):
+        check_distinct_paths({"--a": Path("new.png"), "--b": tmp_path / "new.png"})
+    check_distinct_paths({"--a": Path("a.png"), "--b": None, "--c": Path("c.png")}, {"LOG": Path("log.h5"), "--map": None})
+
+
+def test_replay_refuses_a_link_path_that_is_a_file(pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    victim = tmp_path / "victim.h5"
+    victim.write_bytes(b"precious")
+    assert main(["replay", str(pillars), "--pty", "--wait", "1", "--link", str(victim)]) == 2
+    assert "exists and is not a symbolic link" in _err(capsys)
+    assert victim.read_bytes() == b"precious"
+    assert main(["replay", str(pillars), "--pty", "--wait", "1", "--link", str(tmp_path / "no" / "dev")]) == 2
+    assert f"the folder {tmp_path / 'no'} does not exist" in _err(capsys)
+    (tmp_path / "to-file").symlink_to(victim)
+    assert main(["replay", str(pillars), "--pty", "--wait", "1", "--link", str(tmp_path / "to-file")]) == 2
+    assert "not to a terminal device" in _err(capsys) and victim.read_bytes() == b"precious"
+
+
+@pytest.mark.parametrize("address", ["foo", "localhost:abc", "tcp://:8786"])
+def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str], address: str) -> None:
+    t0 = time.perf_counter()
+    assert main(["localize", str(pillars), "--estimator", "icp_pf", "--samples", "2", "--scheduler", address]) == 2
+    assert f"scheduler {address!r}: expected a Dask scheduler's address, tcp://HOST:PORT" in _err(capsys)
+    assert main(["evaluate", str(pillars), "--estimators", "icp_pf", "--out", str(tmp_path / "e"), "--scheduler", address]) == 2
+    assert "expected a Dask scheduler's address" in _err(capsys)
+    assert time.perf_counter() - t0 < 10.0
+    from evaluation.executors import check_scheduler
+
+    for ok in ("tcp://127.0.0.1:8786", "localhost:8786", "inproc://10.0.0.1/1234/1", None):
+        check_scheduler(ok)
