@@ -373,8 +373,12 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         A ``results.json`` document (see ``docs/evaluation.md``).
     """
     k_max = doc.get("k_max", "?")
+    ks = doc.get("k_values")
+    listed = isinstance(ks, list) and ks != list(range(1, len(ks) + 1))  # --k-values other than 1..k_max
+    over = f"k in {{{', '.join(str(k) for k in ks)}}}" if listed else f"k = 1..{k_max}"
+    n_k = len(ks) if isinstance(ks, list) else k_max
     lines = [
-        f"# Localization error over k = 1..{k_max} samples, {doc['trials']} trials per k (seed {doc['seed']})",
+        f"# Localization error over {over} samples, {doc['trials']} trials per k (seed {doc['seed']})",
         "",
         "Mean ± standard deviation over every trial of every k (the paper's Table I reports the same).",
         "Tip poses from the k-NN model (k-NN) or from motion capture (mocap, the paper's OptiTrack).",
@@ -418,7 +422,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "",
         "## Spread of the per-k means",
         "",
-        f"The paper's ± may instead be the standard deviation of the {k_max} per-k means (its values are small",
+        f"The paper's ± may instead be the standard deviation of the {n_k} per-k means (its values are small",
         "for e_gamma); ours, for that reading:",
         "",
         "| estimator | prior | k-NN e_x (m) | k-NN e_gamma (deg) | mocap e_x (m) | mocap e_gamma (deg) |",

@@ -684,6 +684,9 @@ def localize_prior(
     if not has_truth:
         raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the prior mean (mean; --prior-x, --prior-y, "
                              "--prior-yaw-deg) or the global mode, and the base height (base_z; --base-z)")
+    if base_z is not None:
+        raise ParameterError(f"base_z (--base-z): expected none with the {mode} prior, got {base_z!r}: it is centred "
+                             f"on {lg.path}'s /truth/T_map_base, whose height it takes (give a prior mean to set both)")
     return PriorSpec(mode, sigma_xy, sigma_yaw_deg)
 
 
@@ -1047,8 +1050,9 @@ def paper(
     if not _is_int(seed) or seed < 0:
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     seed = int(seed)
-    if calibrate and calibration is not None:
-        raise ParameterError("give either a calibration or calibrate=True, not both")
+    if calibrate is not None and calibration is not None:
+        raise ParameterError("give either a calibration or calibrate=True/False, not both: calibrate=False runs the "
+                             "datasheet's model, a calibration applies the file's")
     check_selection(selection)
     if design is None:
         design = "nested" if selection == "random" else "independent"

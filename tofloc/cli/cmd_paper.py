@@ -89,8 +89,9 @@ def paper(
     names = [n.strip() for n in estimators.split(",") if n.strip()]
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"--estimators expects distinct comma-separated names, got {estimators!r}")
-    if calibrate and calibration is not None:
-        raise ParameterError("give either --calibrate or --calibration, not both")
+    if calibrate is not None and calibration is not None:
+        raise ParameterError("give either --calibrate/--no-calibrate or --calibration, not both: --no-calibrate runs "
+                             "the datasheet's model, --calibration applies the file's")
     if not 1 <= trials <= api.MAX_TRIALS:
         raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
     if not 1 <= k_max <= 1000:
