@@ -168,6 +168,10 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert u.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.08)
     data = tomllib.loads(out.read_text())
     assert data["calibration"]["maps"] == [str(tmp_path / "sim.cad.ply")]
+    from tofloc.calibration_file import SensorCalibration, rig_signature
+
+    assert data["calibration"]["rig"] == rig_signature(read_log(log_path).rig)  # the rig it applies to
+    SensorCalibration.from_toml(out).check_rig(read_log(log_path).rig)
     # the clean scenario's rig is the CAD one: the fitted mounting stays near zero (on these 204
     # samples the fit scatters by ~0.5 deg, and by ~2 mm in translation, which a few walls
     # barely constrain: measured 0.07 deg support, rotations <= 0.5 deg, translations <= 2.1 mm)

@@ -53,3 +53,34 @@ def test_table_md_names_the_k_values_a_paper_run_used() -> None:
     assert "over k in {1, 3} samples" in table and "of the 2 per-k means" in table
     table = table_markdown(dict(doc, k_values=[1, 2, 3]))
     assert "over k = 1..3 samples" in table and "of the 3 per-k means" in table
+
+
+def test_a_calibration_is_refused_on_another_rig(pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A calibration of the paper's three sensors was applied to the pillars rig, whose
+    first three sensors share their names: every correction on the wrong sensor (NEES 517
+    instead of 5.5). `tofloc calibrate` records the rig ([calibration].rig); another rig is
+    refused; a file without the record (older, hand-written) is taken as before."""
+    import dataclasses
+
+    from tofloc.calibration_file import SensorCalibration, rig_signature
+    from tofloc.logs import read_log
+    from tofloc.range_model import RangeUncertainty
+
+    pillars_rig = read_log(pillars).rig
+    other = dataclasses.replace(pillars_rig, sensors=pillars_rig.sensors[:3])
+    cal = SensorCalibration(RangeUncertainty(), support_yaw_deg=1.0, support_yaw_sigma_deg=0.5,
+                            meta={"rig": rig_signature(other)}, source="cal.toml")
+    with pytest.raises(ParameterError, match=r"fitted on another rig \(sensors \['tof0', 'tof1', 'tof2'\]"):
+        cal.corrected_rig(pillars_rig)
+    cal.corrected_rig(other)  # its own rig
+    dataclasses.replace(cal, meta={}).corrected_rig(pillars_rig)  # no record: as before
+    path = tmp_path / "cal.toml"
+    cal.write(path, "test")
+    assert main(["localize", str(pillars), "--estimator", "icp_pf", "--samples", "2", "--param", "n_particles=30",
+                 "--calibration", str(path)]) == 2
+    assert "fitted on another rig" in capsys.readouterr().err
+    path.write_text(path.read_text().replace('fingerprint = "', 'fingerprint = 7 # "'))
+    from tofloc.errors import FormatError
+
+    with pytest.raises(FormatError, match=r"\[calibration\]\.rig"):
+        SensorCalibration.from_toml(path)

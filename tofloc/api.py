@@ -567,8 +567,11 @@ def calibrate(
                        progress=reporter.progress)
     from tofloc.provenance import provenance
 
+    from tofloc.calibration_file import rig_signature
+
     meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,
-            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi], "provenance": provenance()}
+            "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi],
+            "rig": rig_signature(pairs[0][0].rig), "provenance": provenance()}
     path = None if out is None else Path(out)
     cal = rc.sensor_calibration(meta, source=str(path) if path else "<memory>")
     if path is not None:

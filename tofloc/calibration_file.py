@@ -42,12 +42,28 @@ from tofloc.rig import Rig
 from tofloc.toml_tables import dumps, params_from_table, read_toml
 from tofloc.toml_tables import toml_safe as _toml_safe
 
-__all__ = ["SensorCalibration", "MAX_SUPPORT_YAW_DEG"]
+__all__ = ["SensorCalibration", "MAX_SUPPORT_YAW_DEG", "rig_signature"]
 
 #: Largest support rotation a calibration may hold (degrees).
 MAX_SUPPORT_YAW_DEG = 90.0
 #: Tables with a meaning here; every other table belongs to a sensor model.
 _OWN_TABLES = ("uncertainty", "mounting", "calibration")
+
+
+def rig_signature(rig: Rig) -> dict[str, Any]:
+    """``{"sensors": [names], "fingerprint": hex}``: the rig a calibration was fitted on, as
+    ``tofloc calibrate`` records it (``[calibration].rig``): its sensors' names and a hash of
+    their nominal poses in the tip frame (to 1 nm and 1e-9 of a rotation entry)."""
+    import json
+
+    import numpy as np
+
+    from tofloc.fingerprints import sha256_arrays
+
+    names = [s.name for s in rig.sensors]
+    h = sha256_arrays(np.round(np.asarray(rig.T_tip_sensor, dtype=float), 9) + 0.0,
+                      prefix=json.dumps(names).encode())
+    return {"sensors": names, "fingerprint": h.hexdigest()[:16]}
 
 
 def _angle(value: Any, source: str, where: str, lo: float, hi: float) -> float:
@@ -112,7 +128,30 @@ class SensorCalibration:
         ParameterError
             The calibration names a sensor the rig does not have.
         """
+        self.check_rig(rig)
         return rig_with_mounting(rig, self.support_yaw_deg or 0.0, self.sensor_mounting)
+
+    def check_rig(self, rig: Rig) -> None:
+        """Refuse a rig other than the one the calibration was fitted on, when the file
+        records it (``[calibration].rig``, written by ``tofloc calibrate`` since December
+        2026): a calibration of the paper's three sensors was applied to a four-sensor rig
+        whose first three sensors share their names (every correction on the wrong
+        sensor: NEES 517 instead of 5.5).
+
+        Raises
+        ------
+        ParameterError
+            Naming both rigs' sensors.
+        """
+        rec = self.meta.get("rig")
+        if not isinstance(rec, Mapping) or "fingerprint" not in rec:
+            return  # an older or hand-written file: nothing recorded
+        mine = rig_signature(rig)
+        if rec["fingerprint"] != mine["fingerprint"]:
+            raise ParameterError(f"fitted on another rig (sensors {list(rec.get('sensors', []))}, "
+                                 f"rig {rec['fingerprint']}) than this log's (sensors {mine['sensors']}, rig "
+                                 f"{mine['fingerprint']}): a calibration applies to the rig it was fitted on "
+                                 "([calibration].rig)")
 
     def table(self, name: str) -> Mapping[str, Any] | None:
         """A sensor model's table (``"beam"``), or None when the file has none."""
@@ -179,6 +218,12 @@ class SensorCalibration:
         meta = data.get("calibration", {})
         if not isinstance(meta, Mapping):
             raise FormatError(source, "[calibration]", "a table", type(meta).__name__)
+        rig_rec = meta.get("rig")
+        if rig_rec is not None and not (
+                isinstance(rig_rec, Mapping) and isinstance(rig_rec.get("fingerprint"), str)
+                and isinstance(rig_rec.get("sensors"), list) and all(isinstance(n, str) for n in rig_rec["sensors"])):
+            raise FormatError(source, "[calibration].rig", "a table with sensors (names) and fingerprint (a string), "
+                              "as tofloc calibrate writes it", repr(rig_rec)[:60])
         fp = meta.get("footprint")
         if fp is not None and (isinstance(fp, bool) or not isinstance(fp, int) or not 1 <= fp <= 9):
             raise FormatError(source, "[calibration].footprint", "an integer in [1, 9] (sub-rays per zone side the "
