@@ -84,3 +84,23 @@ def test_a_calibration_is_refused_on_another_rig(pillars: Path, tmp_path: Path, 
 
     with pytest.raises(FormatError, match=r"\[calibration\]\.rig"):
         SensorCalibration.from_toml(path)
+
+
+@pytest.mark.parametrize("args, refused", [
+    (["{log}", "--out", "{tmp}/cap.h5", "--window", "2"], "an offline run (a LOG, no --port) reads no --window, --out"),
+    (["{log}", "--journal", "{tmp}/j.txt", "--duration", "1", "--rig", "{log}"],
+     "an offline run (a LOG, no --port) reads no --rig, --duration, --journal"),
+    (["--port", "/dev/null", "--trials", "5", "--json", "{tmp}/live.json", "--samples", "7"],
+     "a live run (--port) reads no --samples, --trials, --json"),
+    (["{log}", "--port", "/dev/null", "--workers", "2", "--selection", "active"],
+     "a live run (--port) reads no LOG, --workers, --selection"),
+])
+def test_localize_refuses_the_other_modes_options(pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                  args: list[str], refused: str) -> None:
+    """`localize LOG --out cap.h5 --window 2` exited 0 and wrote no cap.h5; `localize --port
+    DEV --trials 5 --json f` checked f and never wrote it: options of the other mode were
+    silently ignored."""
+    fill = {"log": str(pillars), "tmp": str(tmp_path)}
+    assert main(["localize", "--estimator", "icp_pf", *(a.format(**fill) for a in args)]) == 2
+    assert refused in " ".join(capsys.readouterr().err.split())
+    assert list(tmp_path.iterdir()) == []

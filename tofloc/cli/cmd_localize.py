@@ -32,8 +32,28 @@ from tofloc.errors import ParameterError
 __all__ = ["localize"]
 
 
+#: Options only a live run (--port) reads, and only an offline run (a LOG) reads: the other
+#: mode refuses them when they are given (they were silently ignored).
+LIVE_ONLY = {"baud": "--baud", "fmt": "--format", "rig_path": "--rig", "window": "--window", "duration": "--duration",
+             "journal": "--journal", "out": "--out", "timeout": "--timeout"}
+OFFLINE_ONLY = {"log_path": "LOG", "samples": "--samples", "trials": "--trials", "tip_source": "--tip-source",
+                "prior_mode": "--prior-mode", "region": "--region", "json_out": "--json", "workers": "--workers",
+                "scheduler": "--scheduler", "selection": "--selection"}
+
+
+def _given(ctx: typer.Context, names: dict[str, str]) -> list[str]:
+    """The options of ``names`` given on the command line (or by environment), not defaulted."""
+    out = []
+    for name, shown in names.items():
+        source = ctx.get_parameter_source(name)  # an enum of click's (typer may vendor its own copy): by name
+        if source is not None and getattr(source, "name", "") not in ("DEFAULT", "DEFAULT_MAP"):
+            out.append(shown)
+    return out
+
+
 @app.command()
 def localize(
+    ctx: typer.Context,
     log_path: Optional[Path] = typer.Argument(None, metavar="[LOG]", help="Log file (format v1, HDF5); omit with --port."),
     map_path: Optional[Path] = typer.Option(None, "--map", help="Map file; default: the log's `map` attribute."),
     surface_path: Optional[Path] = typer.Option(
@@ -105,6 +125,11 @@ def localize(
     """Localize the robot base from a log (paper protocol), or live from a serial device (--port)."""
     from tofloc.atomic import check_output_path
     from tofloc.plot_style import check_figure_path
+
+    wrong = _given(ctx, OFFLINE_ONLY if port is not None else LIVE_ONLY)
+    if wrong:
+        mode = "a live run (--port) reads no" if port is not None else "an offline run (a LOG, no --port) reads no"
+        raise ParameterError(f"{mode} {', '.join(wrong)}: leave {'it' if len(wrong) == 1 else 'them'} out")
 
     if json_out is not None:
         check_output_path(json_out, option="--json")
