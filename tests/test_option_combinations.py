@@ -104,3 +104,21 @@ def test_localize_refuses_the_other_modes_options(pillars: Path, tmp_path: Path,
     assert main(["localize", "--estimator", "icp_pf", *(a.format(**fill) for a in args)]) == 2
     assert refused in " ".join(capsys.readouterr().err.split())
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command, args", [
+    ("paper", ["--estimators", "icp_pf", "--workers", "0"]),
+    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--workers", "0"]),
+    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--selection", "bogus"]),
+])
+def test_paper_and_scenes_refuse_bad_options_before_simulating(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                               command: str, args: list[str]) -> None:
+    """`paper --workers 0` failed only after simulating and fitting the k-NN model, `scenes
+    --selection bogus` after starting the scene."""
+    import time
+
+    t0 = time.perf_counter()
+    assert main([command, *args, "--out", str(tmp_path / "o")]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "workers must be an integer >= 1" in err or "selection must be one of" in err, err
+    assert time.perf_counter() - t0 < 5.0 and not (tmp_path / "o" / "paper.h5").exists()

@@ -778,6 +778,7 @@ def localize(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
+    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1022,6 +1023,7 @@ def paper(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
+    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1281,6 +1283,11 @@ def scenes(
         raise ParameterError(f"k must be in [1, 1000], got {k!r}")
     k = int(k)
     _estimators(list(estimators), params, estimator_params)  # a bad name or parameter fails before the first scene
+    from evaluation.executors import check_scheduler
+
+    check_scheduler(scheduler)
+    resolve_workers(workers, 1)
+    check_selection(selection)
     out_dir = Path(out)
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         rows: list[dict[str, Any]] = []
@@ -1568,6 +1575,7 @@ def evaluate(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
+    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
