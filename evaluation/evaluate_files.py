@@ -295,14 +295,22 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
         return []
     lines = ["", f"## Paired with the first file ({labels[0]})", "",
              "Each file's medians over the first file's on the trials both ran alike (the same logs, by file name and "
-             f"true pose, and the same trial seeds: the same samples and priors), with {DEFAULT_LEVEL * 100:.0f} % intervals "
+             "true pose, and the same trial seeds: the same samples and priors when the two runs' protocols agree; "
+             f"a file whose prior, samples or selection differ is named below the table), with {DEFAULT_LEVEL * 100:.0f} % intervals "
              "from resampling those logs (evaluation/log_bootstrap.py), "
              "and the trials that failed in one run only. An interval that holds 1 is a change these logs cannot tell "
              "from the nodes' spread.", "",
              "| file | estimator | paired logs | median e_x / first's | median e_gamma / first's | failures, first -> this | "
              "fixed | broken |", "|---|---|---|---|---|---|---|---|"]
     base = views[0]
+    notes: list[str] = []
     for view, label in zip(views[1:], labels[1:]):
+        differs = [f"{what} {_describe(view, key)} (the first file: {_describe(base, key)})"
+                   for what, key in (("prior", "prior"), ("samples per trial", "samples"), ("selection", "selection"))
+                   if _describe(view, key) != _describe(base, key)]
+        if differs:
+            notes.append(f"- {label} ran another protocol: {'; '.join(differs)}. Its trials share the first file's logs and "
+                         "seeds, not its protocol: the ratios compare the two protocols, not two estimates of the same trials.")
         names = [e for e in view["summary"] if e in base["summary"]]
         got = paired_runs(base["logs"], view["logs"], names, seed=int(base.get("seed", 0)))
         if names and all(got["estimators"][e]["logs"] == 0 for e in names):
@@ -315,7 +323,17 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
                          f"{r['fixed']} | {r['broken']} |")
         if not names:
             lines.append(f"| {label} | (no estimator in common) | | | | | | |")
-    return lines
+    return lines + ([""] + notes if notes else [])
+
+
+def _describe(view: Mapping[str, Any], key: str) -> str:
+    """A run's ``prior`` (mode and its parameters), ``samples`` or ``selection``, as text."""
+    value = view.get(key)
+    if isinstance(value, Mapping):
+        mode = value.get("mode")
+        rest = ", ".join(f"{k} {v}" for k, v in sorted(value.items()) if k != "mode" and v is not None)
+        return f"{mode}" + (f" ({rest})" if rest else "")
+    return str(value)
 
 
 def _protocol(view: Mapping[str, Any], names: Sequence[str]) -> tuple[Any, ...]:

@@ -904,6 +904,17 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
         row = next(line for line in table.splitlines() if line.startswith(f"| b | {e} | 2 |"))
         assert "| 1.00 [1.00-1.00] | 1.00 [1.00-1.00] |" in row and row.endswith("| 0 | 0 |")
     assert "beam_pf" in out and "wrote" in err
+    assert "ran another protocol" not in table
+    # the same trials under another prior: paired on logs and seeds, and said to be another protocol
+    # (the table claimed "the same samples and priors")
+    prior = json.loads(json.dumps(doc))
+    prior["prior"]["mode"] = "paper"
+    (tmp_path / "pp").mkdir()
+    (tmp_path / "pp" / "results.json").write_text(json.dumps(prior))
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "pp" / "results.json"),
+                         "--out", str(tmp_path / "ppd")])[0] == 0
+    table_d = " ".join((tmp_path / "ppd" / "comparison.md").read_text().split())
+    assert "- pp ran another protocol: prior paper" in table_d and f"(the first file: {doc['prior']['mode']}" in table_d
     # other logs under the same file names (drone0-node000 is in every flight of a data set), run
     # with the same seed: the same trial seeds, other true poses; not paired
     moved = json.loads(json.dumps(doc))
