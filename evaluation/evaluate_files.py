@@ -329,6 +329,8 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
 def _describe(view: Mapping[str, Any], key: str) -> str:
     """A run's ``prior`` (mode and its parameters), ``samples`` or ``selection``, as text."""
     value = view.get(key)
+    if key == "selection" and value is None:
+        value = "random"  # results from before the selection was recorded (1 December 2026) ran random
     if isinstance(value, Mapping):
         mode = value.get("mode")
         rest = ", ".join(f"{k} {v}" for k, v in sorted(value.items()) if k != "mode" and v is not None)
@@ -340,7 +342,7 @@ def _protocol(view: Mapping[str, Any], names: Sequence[str]) -> tuple[Any, ...]:
     """What two runs must share to be pooled: prior (mode and spread), samples per trial,
     sample selection, failure thresholds, and each estimator's changed parameters."""
     changed = view.get("changed") or {}
-    return (tuple(sorted(view["prior"].items())), view.get("samples"), view.get("selection"),
+    return (tuple(sorted(view["prior"].items())), view.get("samples"), view.get("selection") or "random",
             view["failure"]["e_x_m"], view["failure"]["e_gamma_deg"], tuple(repr(changed.get(e)) for e in names))
 
 

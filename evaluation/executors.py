@@ -429,14 +429,14 @@ def check_scheduler(scheduler: Any) -> None:
     from urllib.parse import urlparse
 
     addr = scheduler.strip()
-    url = urlparse(addr if "://" in addr else f"tcp://{addr}")
-    if url.scheme == "inproc":
-        return
     try:
-        port = url.port
-    except ValueError:
-        port = None
-    if not url.hostname or port is None:
+        url = urlparse(addr if "://" in addr else f"tcp://{addr}")
+        if url.scheme == "inproc":
+            return
+        host, port = url.hostname, url.port
+    except ValueError:  # an unclosed IPv6 bracket, a port that is no number
+        host = port = None
+    if not host or port is None:
         raise ParameterError(f"scheduler {scheduler!r}: expected a Dask scheduler's address, tcp://HOST:PORT")
 
 

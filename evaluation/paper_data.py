@@ -345,8 +345,11 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
             cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
     from tofloc.provenance import provenance
 
+    from tofloc.calibration_file import rig_signature
+
     sc = cal.sensor_calibration({"log": str(cal_log.path), "samples": what, "map": str(data.map_path),
-                                 "footprint": sub_rays, "key": key, "provenance": provenance()}, source=str(path))
+                                 "footprint": sub_rays, "key": key, "rig": rig_signature(cal_log_used.rig),
+                                 "provenance": provenance()}, source=str(path))
     sc.write(path, "Sensor model fitted by `tofloc paper` (the calibration of `tofloc calibrate`).")
     u = sc.uncertainty
     worst = max([float(np.linalg.norm(e["rotation_deg"])) for e in sc.sensor_mounting.values()] or [0.0])

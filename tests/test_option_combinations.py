@@ -122,3 +122,26 @@ def test_paper_and_scenes_refuse_bad_options_before_simulating(tmp_path: Path, c
     err = " ".join(capsys.readouterr().err.split())
     assert "workers must be an integer >= 1" in err or "selection must be one of" in err, err
     assert time.perf_counter() - t0 < 5.0 and not (tmp_path / "o" / "paper.h5").exists()
+
+
+def test_calibrate_refuses_logs_of_different_rigs_before_fitting(pillars: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """`calibrate paper.h5 corridor.h5` recorded the first log's rig only (the file was then
+    refused on the second), or failed after 14 s of fitting: refused at once."""
+    import time
+
+    other = tmp_path / "l_room.h5"
+    api.simulate("l_room", 1, out=other)
+    t0 = time.perf_counter()
+    assert main(["calibrate", str(pillars), str(other), "--out", str(tmp_path / "c.toml"), "--no-mounting",
+                 "--no-support-yaw", "--footprint", "1"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "every log must carry the same rig" in err and "l_room.h5" in err, err
+    assert time.perf_counter() - t0 < 10.0 and not (tmp_path / "c.toml").exists()
+
+
+def test_an_older_results_file_without_selection_ran_the_random_protocol() -> None:
+    """Files from before the selection was recorded said "another protocol" beside new ones."""
+    from evaluation.evaluate_files import _describe
+
+    assert _describe({"selection": None}, "selection") == _describe({"selection": "random"}, "selection") == "random"

@@ -77,7 +77,7 @@ def test_replay_refuses_a_link_path_that_is_a_file(pillars: Path, tmp_path: Path
     assert "not to a terminal device" in _err(capsys) and victim.read_bytes() == b"precious"
 
 
-@pytest.mark.parametrize("address", ["foo", "localhost:abc", "tcp://:8786"])
+@pytest.mark.parametrize("address", ["foo", "localhost:abc", "tcp://:8786", "tcp://[::1:8786"])
 def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str], address: str) -> None:
     t0 = time.perf_counter()
@@ -88,5 +88,5 @@ def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_pat
     assert time.perf_counter() - t0 < 10.0
     from evaluation.executors import check_scheduler
 
-    for ok in ("tcp://127.0.0.1:8786", "localhost:8786", "inproc://10.0.0.1/1234/1", None):
+    for ok in ("tcp://127.0.0.1:8786", "localhost:8786", "inproc://10.0.0.1/1234/1", "tcp://[::1]:8786", "tls://h:1", None):
         check_scheduler(ok)

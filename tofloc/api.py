@@ -547,6 +547,14 @@ def calibrate(
             m = loaded[name]
         pairs.append((log, m))
         used.append(name)
+    from tofloc.calibration_file import rig_signature
+
+    rigs = [rig_signature(lg.rig) for lg, _ in pairs]
+    if any(r != rigs[0] for r in rigs[1:]):  # one calibration is of one rig: refused before any fit
+        other = next(i for i, r in enumerate(rigs) if r != rigs[0])
+        raise ParameterError(f"every log must carry the same rig: {getattr(pairs[0][0], 'path', 'log 1')} has sensors "
+                             f"{rigs[0]['sensors']} (rig {rigs[0]['fingerprint']}), {getattr(pairs[other][0], 'path', f'log {other + 1}')} "
+                             f"sensors {rigs[other]['sensors']} (rig {rigs[other]['fingerprint']})")
     counts = []
     reporter.progress(0, len(pairs), "casting every zone of the logs")
     for i, (log, m) in enumerate(pairs):
@@ -624,8 +632,8 @@ def localize_prior(
         a log without truth.
     base_z : float, optional
         The base height (m): needed on a log without truth (with ``mean`` or the global
-        prior); with ``mean`` it replaces the truth's height; refused with the global prior
-        on a log with truth.
+        prior); with ``mean`` it replaces the truth's height; refused on a log with truth
+        otherwise (the paper, offset and global priors take the truth's height).
     region : (xmin, xmax, ymin, ymax), optional
         Only with mode ``global``: the rectangle (m) the base is in (default: the map's x-y
         bounds).
@@ -640,8 +648,8 @@ def localize_prior(
     ParameterError
         An unknown mode, a mode with ``mean``, a ``mean`` that is not three finite numbers,
         a non-finite ``base_z`` or sigma, a region without the global mode, no truth in the
-        log and no ``mean`` or base height to stand for it, or a ``base_z`` the global prior
-        would not use.
+        log and no ``mean`` or base height to stand for it, or a ``base_z`` the prior would
+        not use (a log with truth and no ``mean``).
     FormatError
         The log cannot be read.
     """
@@ -802,6 +810,11 @@ def localize(
     for message in footprint_mismatches({estimator_name: est}, cal):
         reporter.note(message)
     lg = _as_log(log)
+    if cal is not None and est.uses_calibration():
+        try:
+            cal.check_rig(lg.rig)  # before any trial
+        except ParameterError as e:
+            raise ParameterError(f"calibration {cal.source}: {e}") from None
     if tip_source == "mocap" and lg.T_base_tip is None:
         raise FormatError(lg.path, "/samples/T_base_tip", "measured tip poses for tip source mocap "
                           "(or use tip source knn with a kinematics model)", "no such dataset")
@@ -1004,7 +1017,7 @@ def paper(
     ------
     ParameterError
         An argument out of its domain (each as ``tofloc paper`` refuses it), both
-        ``calibration`` and ``calibrate=True``, design nested with a selection policy, or
+        ``calibration`` with ``calibrate`` True or False, design nested with a selection policy, or
         ``out`` an existing file.
     PluginError
         An unknown estimator or selection policy.

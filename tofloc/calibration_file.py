@@ -149,7 +149,7 @@ class SensorCalibration:
         mine = rig_signature(rig)
         if rec["fingerprint"] != mine["fingerprint"]:
             raise ParameterError(f"fitted on another rig (sensors {list(rec.get('sensors', []))}, "
-                                 f"rig {rec['fingerprint']}) than this log's (sensors {mine['sensors']}, rig "
+                                 f"rig {rec['fingerprint']}) than this one (sensors {mine['sensors']}, rig "
                                  f"{mine['fingerprint']}): a calibration applies to the rig it was fitted on "
                                  "([calibration].rig)")
 

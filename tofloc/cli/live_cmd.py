@@ -98,6 +98,11 @@ def run_live(
     kin = KinematicsModel.load(kinematics_path)
     est = api.estimator(estimator, params)
     cal = api.load_calibration(calibration) if est.uses_calibration() else None
+    if cal is not None:
+        try:
+            cal.check_rig(rig)  # before the port opens and the journal starts
+        except ParameterError as e:
+            raise ParameterError(f"--calibration {calibration}: {e}") from None
     for message in api.footprint_mismatches({estimator: est}, cal):
         err_console.print(f"[yellow]{message}[/]", highlight=False)
     prior = Prior(
