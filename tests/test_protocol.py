@@ -594,10 +594,12 @@ def test_local_workers_read_persisted_caches_from_their_files(cache_folder: Path
         assert _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)) == [0.0] * 4
     path.unlink()
     with WorkerPool(ctx, 2, caches) as pool:
-        assert all(n >= 1 for n in _grid_builds_seen(run_tasks(ctx, tasks, pool=pool)))
-    # bundle() sends an object whose file is gone as the object (a worker that rebuilt the
-    # grid may have persisted it again: its forkserver, when started in this test, sees the
-    # cache folder; then it is removed once more)
+        # a build, not a failure: the first worker to miss the file builds the grid; the other
+        # may then read what that one persisted (the workers share this process's cache folder)
+        seen = _grid_builds_seen(run_tasks(ctx, tasks, pool=pool))
+        assert len(seen) == 4 and max(seen) >= 1, seen
+    # bundle() sends an object whose file is gone as the object (the worker that rebuilt the
+    # grid persisted it again into the shared cache folder: removed once more)
     path.unlink(missing_ok=True)
     again = map_cache.bundle(the_map, by_file=True)
     assert again.files == {} and again.kinds() == ["distance_grid"]
