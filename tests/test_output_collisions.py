@@ -90,3 +90,15 @@ def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_pat
 
     for ok in ("tcp://127.0.0.1:8786", "localhost:8786", "inproc://10.0.0.1/1234/1", "tcp://[::1]:8786", "tls://h:1", None):
         check_scheduler(ok)
+
+
+def test_simulate_refuses_to_write_over_its_scenario_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`simulate --scenario s.toml --out s.toml` replaced the scenario by the log."""
+    import tofloc.simulation
+
+    scenario = tmp_path / "s.toml"
+    scenario.write_text((Path(tofloc.simulation.__file__).parent / "scenarios" / "pillars.toml").read_text())
+    before = scenario.read_bytes()
+    assert main(["simulate", "--scenario", str(scenario), "--out", str(scenario)]) == 2
+    assert f"--out {scenario} is the input --scenario" in _err(capsys)
+    assert scenario.read_bytes() == before

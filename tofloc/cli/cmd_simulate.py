@@ -36,8 +36,14 @@ def simulate(
     from tofloc import api
     from tofloc.simulation import RIG_VARIANTS, load_scenario, simulation_paths
 
-    for key, path in simulation_paths(out).items():
-        check_output_path(path, option="--out" if key == "log" else f"--out (its {key} file)")
+    from pathlib import Path
+
+    from tofloc.atomic import check_distinct_paths
+
+    outputs = {("--out" if key == "log" else f"--out (its {key} file)"): path for key, path in simulation_paths(out).items()}
+    for option, path in outputs.items():
+        check_output_path(path, option=option)
+    check_distinct_paths(outputs, {"--scenario": Path(scenario) if Path(scenario).is_file() else None})
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if hardware_seed is not None and hardware_seed < 0:
