@@ -102,3 +102,19 @@ def test_simulate_refuses_to_write_over_its_scenario_file(tmp_path: Path, capsys
     assert main(["simulate", "--scenario", str(scenario), "--out", str(scenario)]) == 2
     assert f"--out {scenario} is the input --scenario" in _err(capsys)
     assert scenario.read_bytes() == before
+
+
+def test_live_localize_refuses_an_output_that_is_an_input_or_its_journal(pillars: Path, tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Live outputs (the capture, its journal beside it, the estimates) against each other and
+    against the rig, map and model files: one check (check_distinct_paths), before the port opens."""
+    the_map = tmp_path / "m.ply"
+    the_map.write_bytes(b"keep")
+    live = ["localize", "--port", "/dev/null", "--rig", str(pillars), "--map", str(the_map), "--kinematics",
+            str(tmp_path / "k.npz"), "--estimator", "icp_pf", "--prior-x", "0", "--prior-y", "0", "--prior-yaw-deg", "0",
+            "--base-z", "0.5"]
+    assert main([*live, "--out", str(the_map)]) == 2
+    assert f"--out {the_map} is the input --map" in _err(capsys)
+    assert main([*live, "--out", str(tmp_path / "cap.h5"), "--estimates-out", str(tmp_path / "cap.h5.journal")]) == 2
+    assert "--journal and --estimates-out name the same file" in _err(capsys)
+    assert the_map.read_bytes() == b"keep" and sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"]

@@ -72,10 +72,13 @@ def run_live(
         check_output_path(estimates_out, option="--estimates-out")
     if suggest_next is not None:
         check_output_path(suggest_next, option="--suggest-next")
+    from tofloc.atomic import check_distinct_paths
+
     outputs = [(journal, "--journal")] + [(p, o) for p, o in ((out, "--out"), (estimates_out, "--estimates-out"),
                                                               (suggest_next, "--suggest-next")) if p is not None]
-    if len({p.resolve() for p, _ in outputs}) != len(outputs):
-        raise ParameterError(f"{', '.join(o for _, o in outputs)} must name different files")
+    check_distinct_paths({"--journal": journal, "--out": out, "--estimates-out": estimates_out, "--suggest-next": suggest_next},
+                         {"--rig": rig_path, "--map": map_path, "--surface": surface_path, "--kinematics": kinematics_path,
+                          "--calibration": calibration})
 
     missing = [n for n, v in (("--rig", rig_path), ("--map", map_path), ("--kinematics", kinematics_path),
                               ("--prior-x", prior_x), ("--prior-y", prior_y), ("--prior-yaw-deg", prior_yaw_deg),
