@@ -207,6 +207,18 @@ def params_sentence(doc: Mapping[str, Any]) -> list[str]:
     return ["Parameters not at their defaults: " + "; ".join(parts) + " (`config.toml` beside this file lists them all)."]
 
 
+def prior_words(prior: Mapping[str, Any]) -> str:
+    """The prior of ``results.json``'s ``prior`` record in words: its sigmas, or for the
+    global prior (which has none: uniform) its support."""
+    if prior.get("mode") == "global":
+        region = prior.get("region")
+        where = "the map" if region is None else "x {} to {} m, y {} to {} m".format(*region)
+        clearance = prior.get("clearance_m")
+        return (f"uniform over the free space of {where} at the base height"
+                + ("" if clearance is None else f", {clearance:g} m from the walls") + ", every yaw")
+    return f"sigma {prior['sigma_xy_m']} m, {prior['sigma_yaw_deg']} deg"
+
+
 def table_markdown(doc: Mapping[str, Any]) -> str:
     """``table.md``: estimators by summary over every log, the oracle row, the ratios to the
     oracle floor, then one row per log (medians over its trials)."""
@@ -220,7 +232,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         f"# tofloc evaluate: {len(ests)} estimator(s) on {len(logs)} log(s), {doc['trials']} trial(s) per log (seed {doc['seed']})",
         "",
         f"Each trial: {samples} of the log in a random order, prior `{prior['mode']}` "
-        f"(sigma {prior['sigma_xy_m']} m, {prior['sigma_yaw_deg']} deg), the log's own configurations "
+        f"({prior_words(prior)}), the log's own configurations "
         f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
         "NEES: 3 for a consistent estimator (chi2(3)); an estimate whose data do not fit the map (the fit check, "

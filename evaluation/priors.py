@@ -146,7 +146,13 @@ class PriorSpec:
             if truth is None:
                 z, roll, pitch = self.z, self.roll, self.pitch
             else:
-                _, z, roll, pitch = base_pose_parts(truth)
+                xyyaw, z, roll, pitch = base_pose_parts(truth)
+                if self.region is not None and not (self.region[0] <= xyyaw[0] <= self.region[1]
+                                                    and self.region[2] <= xyyaw[1] <= self.region[3]):
+                    r = ",".join(f"{v:g}" for v in self.region)
+                    raise ParameterError(f"--region {r}: the true base position ({xyyaw[0]:.3f}, {xyyaw[1]:.3f}) m lies outside "
+                                         "it, so the global prior cannot hold the answer (every trial would fail): "
+                                         "give a region that holds the base")
             return Prior.uniform(free_space_of(the_map, z, self.region, self.clearance_m), roll=roll, pitch=pitch)
         if truth is None:
             raise ParameterError(f"prior mode {self.mode!r} needs the true base pose; without truth give the prior explicitly")

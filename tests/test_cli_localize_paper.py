@@ -119,6 +119,9 @@ def test_localize_without_truth_prints_the_estimate(data: dict[str, Path], tmp_p
     assert t["prior_mean"] == pytest.approx([0.0, 0.0, math.radians(5.0)])
     assert doc["prior"]["mode"] == "given"
     assert doc["summary"]["e_x_m"] is None and "median" in doc["summary"]["runtime_s"]
+    # nothing of it to compare: tofloc plot refuses it instead of drawing empty axes
+    code, _, err = _run(capsys, ["plot", str(out), "--out", str(tmp_path / "cmp")])
+    assert code == 2 and f"{out} holds no errors" in err and not (tmp_path / "cmp").exists()
     # no base height: a clear one-line refusal
     code, _, err = _run(capsys, ["localize", str(no_truth), "--estimator", "icp_pf", "--prior-x", "0", "--prior-y", "0",
                                  "--prior-yaw-deg", "0", *FEW])

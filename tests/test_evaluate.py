@@ -241,6 +241,17 @@ def test_failure_rule() -> None:
     assert is_failure({"e_x_m": None, "e_gamma_deg": 0.0})
 
 
+def test_table_describes_the_prior_it_ran() -> None:
+    """A global prior has no sigmas: table.md names its support (it printed the unused sigmas)."""
+    from evaluation.evaluate_report import prior_words
+
+    assert prior_words(PriorSpec("offset", 0.2, 20.0).to_json()) == "sigma 0.2 m, 20.0 deg"
+    words = prior_words(PriorSpec("global", region=(-1, 2, 0, 0.5)).to_json())
+    assert words.startswith("uniform over the free space of x -1.0 to 2.0 m, y 0.0 to 0.5 m at the base height")
+    assert "sigma" not in words and words.endswith("every yaw")
+    assert prior_words(PriorSpec("global").to_json()).startswith("uniform over the free space of the map")
+
+
 def test_detection_counts_the_failures_the_warnings_caught() -> None:
     """A failure is caught when its fit check failed or its posterior was ambiguous; a good
     trial so flagged is a false alarm; records without either warning give no detection."""

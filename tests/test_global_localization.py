@@ -89,6 +89,9 @@ def test_prior_spec_global_takes_the_truths_height_and_refuses_a_region_elsewher
         PriorSpec("offset", region=(0, 1, 0, 1))
     with pytest.raises(ParameterError, match="needs the map"):
         PriorSpec("global").make(T, np.zeros(3))
+    # a region that leaves the true base out cannot hold the answer: refused, naming where the base is
+    with pytest.raises(ParameterError, match=r"--region 0.3,1,-0.2,0.2: the true base position \(0.000, 0.300\) m lies outside"):
+        PriorSpec("global", region=(0.3, 1.0, -0.2, 0.2)).make(frames.se3_from_xyyaw(0.0, 0.3, 0.3, 0.5), np.zeros(3), _cuboid())
 
 
 # -- KLD sampling ------------------------------------------------------------------------------------
@@ -322,7 +325,8 @@ def test_localize_global_writes_modes_and_found(paper_log: Path, tmp_path: Path,
     assert sum(b["weight"] for b in check["basins"]) == pytest.approx(1.0)
     assert sum(b["filter_basin"] for b in check["basins"]) == 1 and (t["ambiguous"] or not check["ambiguous"])
     # --region without the global prior, and a bad region: one line, exit 2
-    for extra in (["--region", "-0.2,0.2,-0.2,0.2"], ["--prior-mode", "global", "--region", "0,1,2"]):
+    for extra in (["--region", "-0.2,0.2,-0.2,0.2"], ["--prior-mode", "global", "--region", "0,1,2"],
+                  ["--prior-mode", "global", "--region", "5,6,5,6"]):
         code = main(["localize", str(paper_log), "--estimator", "likelihood_field_pf", "--trials", "1", *extra])
         err = capsys.readouterr().err
         assert code == 2 and "region" in err, err

@@ -115,29 +115,32 @@ def test_paper_and_scenes_refuse_bad_options_before_simulating(tmp_path: Path, c
                                                                command: str, args: list[str]) -> None:
     """`paper --workers 0` failed only after simulating and fitting the k-NN model, `scenes
     --selection bogus` after starting the scene."""
-    import time
-
-    t0 = time.perf_counter()
     assert main([command, *args, "--out", str(tmp_path / "o")]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert "workers must be an integer >= 1" in err or "selection must be one of" in err, err
-    assert time.perf_counter() - t0 < 5.0 and not (tmp_path / "o" / "paper.h5").exists()
+    assert not list(tmp_path.rglob("*.h5"))  # nothing simulated (paper.h5, SCENE-VARIANT/SCENE.h5)
 
 
 def test_calibrate_refuses_logs_of_different_rigs_before_fitting(pillars: Path, tmp_path: Path,
-                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+                                                                 capsys: pytest.CaptureFixture[str],
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """`calibrate paper.h5 corridor.h5` recorded the first log's rig only (the file was then
     refused on the second), or failed after 14 s of fitting: refused at once."""
-    import time
+    import sensor_models.calibration as calibration
 
     other = tmp_path / "l_room.h5"
     api.simulate("l_room", 1, out=other)
-    t0 = time.perf_counter()
+
+    def no_fit(*args: object, **kwargs: object) -> None:
+        raise AssertionError("started fitting before checking the rigs")
+
+    monkeypatch.setattr(calibration, "collect_zones", no_fit)
+    monkeypatch.setattr(calibration, "calibrate_rig", no_fit)
     assert main(["calibrate", str(pillars), str(other), "--out", str(tmp_path / "c.toml"), "--no-mounting",
                  "--no-support-yaw", "--footprint", "1"]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert "every log must carry the same rig" in err and "l_room.h5" in err, err
-    assert time.perf_counter() - t0 < 10.0 and not (tmp_path / "c.toml").exists()
+    assert not (tmp_path / "c.toml").exists()
 
 
 def test_an_older_results_file_without_selection_ran_the_random_protocol() -> None:

@@ -5,7 +5,6 @@ replaced the log by the model; `calibrate --out c.svg --plot c.svg` lost the cal
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import pytest
@@ -38,6 +37,12 @@ def _err(capsys: pytest.CaptureFixture[str]) -> str:
     (["calibrate", "{log}", "--out", "{tmp}/z_zones.svg", "--plot", "{tmp}/z.svg"],
      "--out and --plot (its zone maps) name the same file"),
     (["calibrate", "{log}", "--out", "{log}"], "--out {log} is the input LOG"),
+    (["record", "--recover", "{log}", "--out", "{log}", "--force"], "--out {log} is the input --recover"),
+    (["record", "--port", "loop://", "--rig", "{log}", "--out", "{log}", "--force"], "--out {log} is the input --rig"),
+    (["record", "--port", "loop://", "--rig", "{log}", "--out", "{tmp}/r.h5", "--journal", "{log}"],
+     "--journal {log} is the input --rig"),
+    (["record", "--port", "loop://", "--rig", "{log}", "--out", "{tmp}/r.h5", "--journal", "{tmp}/r.h5"],
+     "--out and --journal name the same file"),
 ])
 def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work(
         pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:
@@ -45,10 +50,8 @@ def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work
     log.write_bytes(pillars.read_bytes())
     before = log.read_bytes()
     fill = {"log": str(log), "tmp": str(tmp_path)}
-    t0 = time.perf_counter()
     assert main([a.format(**fill) for a in args]) == 2
     assert message.format(**fill) in _err(capsys)
-    assert time.perf_counter() - t0 < 10.0  # refused up front, not after a fit
     assert log.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.h5"]
 
@@ -77,15 +80,30 @@ def test_replay_refuses_a_link_path_that_is_a_file(pillars: Path, tmp_path: Path
     assert "not to a terminal device" in _err(capsys) and victim.read_bytes() == b"precious"
 
 
+@pytest.mark.parametrize("option", [["--wait", "-1"], ["--wait", "0"], ["--wait", "inf"], ["--speed", "-2"]])
+def test_replay_refuses_a_negative_wait_or_speed_before_any_device(pillars: Path, tmp_path: Path, option: list[str],
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    link = tmp_path / "dev"
+    assert main(["replay", str(pillars), "--pty", "--link", str(link), *option]) == 2
+    err = _err(capsys)
+    assert ("--wait" in err and "> 0" in err) if option[0] == "--wait" else "speed must be >= 0" in err
+    assert not link.exists() and not link.is_symlink()
+
+
 @pytest.mark.parametrize("address", ["foo", "localhost:abc", "tcp://:8786", "tcp://[::1:8786"])
 def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_path: Path,
-                                                          capsys: pytest.CaptureFixture[str], address: str) -> None:
-    t0 = time.perf_counter()
+                                                          capsys: pytest.CaptureFixture[str], address: str,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import distributed
+
+    def no_connection(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"tried to connect to {args!r} (took ~20 s to fail before)")
+
+    monkeypatch.setattr(distributed, "Client", no_connection)
     assert main(["localize", str(pillars), "--estimator", "icp_pf", "--samples", "2", "--scheduler", address]) == 2
     assert f"scheduler {address!r}: expected a Dask scheduler's address, tcp://HOST:PORT" in _err(capsys)
     assert main(["evaluate", str(pillars), "--estimators", "icp_pf", "--out", str(tmp_path / "e"), "--scheduler", address]) == 2
     assert "expected a Dask scheduler's address" in _err(capsys)
-    assert time.perf_counter() - t0 < 10.0
     from evaluation.executors import check_scheduler
 
     for ok in ("tcp://127.0.0.1:8786", "localhost:8786", "inproc://10.0.0.1/1234/1", "tcp://[::1]:8786", "tls://h:1", None):

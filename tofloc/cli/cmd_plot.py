@@ -67,6 +67,12 @@ def plot(
     if evaluated:
         _plot_evaluated(files, labels, out, fmt)
         return
+    for f in files:  # a localize run of a log without truth measured no error: nothing of it to draw
+        if f.series and all(not any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (s.overall[key] or {}).values())
+                            for s in f.series):
+            raise ParameterError(f"tofloc plot: {f.path} holds no errors (summary.e_x_m and e_gamma_deg are null: "
+                                 "its log has no truth, so no error was measured); tofloc plot compares errors: "
+                                 "leave it out (`tofloc localize --plot` draws a run's estimates)")
     with_paper = any(f.kind == "paper" and f.document.get("scenario", "paper") == "paper" for f in files)
     written = [plot_errors_vs_k([(lab, f.series) for lab, f in zip(labels, files)], out / f"errors_vs_k.{fmt}",
                                 paper=PAPER_TABLE_I if with_paper else None)]

@@ -78,19 +78,20 @@ def record(
     Stop with Ctrl-C (the log is still written), --duration, or a disconnect. If the
     recorder dies, 'tofloc record --recover OUT.journal --out OUT.h5' rebuilds the log.
     """
-    from tofloc.atomic import check_output_path
+    from tofloc.atomic import check_distinct_paths, check_output_path
     from tofloc.io.formats import check_format
     from tofloc.io.journal import JournalWriteError, journal_path_for
     from tofloc.locks import OutputLock
 
     if (port is None) == (recover_path is None):
         raise ParameterError("give exactly one of --port (record) and --recover JOURNAL (rebuild)")
-    check_output_path(out, option="--out", overwrite=force)
     journal = journal_path or journal_path_for(out)
+    # an output that is an input (--out the journal being recovered, or the rig) would replace it
+    check_distinct_paths({"--out": out, "--journal": journal if recover_path is None else None},
+                         {"--recover": recover_path, "--rig": rig_path})
+    check_output_path(out, option="--out", overwrite=force)
     if recover_path is None:
         check_output_path(journal, option="--journal", overwrite=True)
-        if journal.resolve() == out.resolve():
-            raise ParameterError(f"--journal {journal} is the --out file: give another name")
     rig = _load_rig(rig_path) if rig_path is not None else None
 
     locks = [OutputLock(out, "--out")]
