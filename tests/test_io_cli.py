@@ -125,7 +125,11 @@ def test_record_refuses_bad_combinations(simulated: Path, tmp_path: Path, capsys
     assert main(["record", "--port", "loop://", "--out", str(out)]) == 2
     assert "--rig is required" in capsys.readouterr().err
     assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(simulated)]) == 2
-    assert "--force" in capsys.readouterr().err
+    assert f"--out {simulated} is the input --rig" in capsys.readouterr().err
+    existing = tmp_path / "old.h5"
+    existing.write_bytes(b"an earlier capture")
+    assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(existing)]) == 2
+    assert "--force" in capsys.readouterr().err and existing.read_bytes() == b"an earlier capture"
     assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(out), "--format", "st-uld"]) == 2
     assert "carries one sensor" in capsys.readouterr().err
     code = main(["record", "--port", "/dev/does-not-exist", "--rig", str(simulated), "--out", str(out)])
