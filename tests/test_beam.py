@@ -301,11 +301,11 @@ def test_beam_pf_runs_again_with_the_refitted_weight() -> None:
     c = refitting.estimate(q, np.random.default_rng(5))
     refit = c.diagnostics["refit"]
     assert refit["sensor_model_params"]["mixture"]["z_short"] > 0.15
-    one_pass = plain.estimate(q, np.random.default_rng(5))
+    rng = np.random.default_rng(5)
+    one_pass = plain.estimate(q, rng)
     np.testing.assert_allclose(refit["first_pose"], one_pass.pose, atol=0)  # the first pass is the plain filter
     # the second pass is the plain filter with the fitted mixture, the generator continuing
-    rng = np.random.default_rng(5)
-    plain.estimate(q, rng)
+    # (from where the plain pass above left it)
     again = BeamPF(sensor_model_params=refit["sensor_model_params"]).estimate(q, rng)
     np.testing.assert_array_equal(c.pose, again.pose)
 
