@@ -106,6 +106,34 @@ def test_distance_grid_within_is_exact() -> None:
     np.testing.assert_array_equal(planar, (d2 < 0.05).reshape(50, 400))
 
 
+_PLANAR_CASES: dict[str, tuple] = {}
+
+
+def _planar_case(backend: str) -> tuple:
+    """The grid, cloud and poses of test_count_within_planar_equals_the_kd_tree and the
+    KD-tree's counts: a floor with a dense cluster (crowded cells) and a cloud partly near
+    the floor (undecided cells). The grid is built once per back end (``"numpy"``:
+    TOFLOC_NUMBA=0, ``"numba"``), with that back end, and shared by its cases: they differ
+    only in how the count is run (the grid is not changed by counting); the build itself
+    is compared across back ends in test_numba_kernels."""
+    if backend not in _PLANAR_CASES:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("TOFLOC_NUMBA", "0" if backend == "numpy" else "1")
+            rng = np.random.default_rng(11)
+            walls = rng.random((1500, 3)) * np.array([1.0, 1.0, 0.0]) + np.array([0, 0, 0.2])  # a floor
+            cluster = 0.3 + rng.normal(size=(300, 3)) * 0.004  # crowded cells
+            pts = np.concatenate([walls, cluster, rng.random((200, 3))])
+            g = DistanceGrid(pts, 0.005, 0.04)
+            cloud = rng.random((700, 3)) * np.array([1.6, 1.6, 1.0]) - np.array([0.3, 0.3, 0.2])
+            cloud[:50, 2] = 0.2 + rng.normal(size=50) * 0.03  # near the floor: undecided cells
+            poses = np.column_stack([rng.normal(0.1, 0.3, 400), rng.normal(0.1, 0.3, 400), rng.uniform(-np.pi, np.pi, 400)])
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        moved = np.stack([c * cloud[None, :, 0] - s * cloud[None, :, 1] + poses[:, :1], s * cloud[None, :, 0] + c * cloud[None, :, 1] + poses[:, 1:2], np.broadcast_to(cloud[None, :, 2], (400, 700))], -1)
+        d, _ = cKDTree(pts).query(moved.reshape(-1, 3))
+        _PLANAR_CASES[backend] = (g, cloud, poses, (d < 0.04).reshape(400, 700).sum(axis=1))
+    return _PLANAR_CASES[backend]
+
+
 @pytest.mark.parametrize("chunk_pairs, compiled", [(131_072, "0"), (1_000, "0"), (131_072, "serial"),
                                                     (131_072, "threads"), (131_072, "small buffers"),
                                                     (131_072, "no room for crowded pairs")])
@@ -135,20 +163,10 @@ def test_count_within_planar_equals_the_kd_tree(monkeypatch, chunk_pairs, compil
             return out
 
         monkeypatch.setattr(numba_kernels, "planar_inlier_count", spy)
-    rng = np.random.default_rng(11)
-    walls = rng.random((1500, 3)) * np.array([1.0, 1.0, 0.0]) + np.array([0, 0, 0.2])  # a floor
-    cluster = 0.3 + rng.normal(size=(300, 3)) * 0.004  # crowded cells
-    pts = np.concatenate([walls, cluster, rng.random((200, 3))])
-    g = DistanceGrid(pts, 0.005, 0.04)
+    g, cloud, poses, expected = _planar_case("numpy" if compiled == "0" else "numba")
     assert g._crowded.any()
-    cloud = rng.random((700, 3)) * np.array([1.6, 1.6, 1.0]) - np.array([0.3, 0.3, 0.2])
-    cloud[:50, 2] = 0.2 + rng.normal(size=50) * 0.03  # near the floor: undecided cells
-    poses = np.column_stack([rng.normal(0.1, 0.3, 400), rng.normal(0.1, 0.3, 400), rng.uniform(-np.pi, np.pi, 400)])
     count = g.count_within_planar(cloud, poses)
-    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    moved = np.stack([c * cloud[None, :, 0] - s * cloud[None, :, 1] + poses[:, :1], s * cloud[None, :, 0] + c * cloud[None, :, 1] + poses[:, 1:2], np.broadcast_to(cloud[None, :, 2], (400, 700))], -1)
-    d, _ = cKDTree(pts).query(moved.reshape(-1, 3))
-    np.testing.assert_array_equal(count, (d < 0.04).reshape(400, 700).sum(axis=1))
+    np.testing.assert_array_equal(count, expected)
     np.testing.assert_array_equal(count, g.within_planar(cloud, poses, 0.04).sum(axis=1))
     assert count.max() > count.min() and (g._sub == 2).any()  # the second level has undecided sub-cells
     assert g.count_within_planar(cloud[:0], poses).tolist() == [0] * 400
