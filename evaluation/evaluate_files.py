@@ -17,7 +17,7 @@ from evaluation.compare import checked_int
 from evaluation.compare import checked_name as _name
 from evaluation.compare import checked_number as _number
 from evaluation.compare import checked_stats as _stats
-from evaluation.evaluate_report import changed_text, format_span, share_text
+from evaluation.evaluate_report import changed_text, format_span, prior_words, share_text
 from evaluation.metrics import ratio_or_none
 from evaluation.evaluate_report import format_or_na as f
 from tofloc.errors import FormatError
@@ -199,9 +199,7 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
     return {
         "trials": trials,
         "seed": _count(doc.get("seed", 0), p, "seed"),
-        "prior": {"mode": _name(prior.get("mode"), p, "prior.mode"),
-                  "sigma_xy_m": _number(prior.get("sigma_xy_m"), p, "prior.sigma_xy_m", nonnegative=True),
-                  "sigma_yaw_deg": _number(prior.get("sigma_yaw_deg"), p, "prior.sigma_yaw_deg", nonnegative=True)},
+        "prior": _prior_view(prior, p),
         "samples": _samples(doc.get("samples"), p),
         "selection": None if doc.get("selection") is None else _name(doc.get("selection"), p, "selection"),
         "failure": {"e_x_m": _number(failure.get("e_x_m"), p, "failure.e_x_m", positive=True, null=False),
@@ -326,15 +324,30 @@ def paired_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     return lines + ([""] + notes if notes else [])
 
 
+def _prior_view(prior: Mapping[str, Any], p: Path) -> dict[str, Any]:
+    """A run's ``prior`` record read back: mode, sigmas and, for the global prior, its
+    support (``region``, four finite numbers or null, and ``clearance_m``)."""
+    out: dict[str, Any] = {"mode": _name(prior.get("mode"), p, "prior.mode"),
+                           "sigma_xy_m": _number(prior.get("sigma_xy_m"), p, "prior.sigma_xy_m", nonnegative=True),
+                           "sigma_yaw_deg": _number(prior.get("sigma_yaw_deg"), p, "prior.sigma_yaw_deg", nonnegative=True)}
+    if out["mode"] == "global":
+        region = prior.get("region")
+        if region is not None:
+            if not isinstance(region, list) or len(region) != 4:
+                raise FormatError(p, "prior.region", "[xmin, xmax, ymin, ymax] or null", repr(region)[:40])
+            region = tuple(_number(v, p, f"prior.region[{i}]", null=False) for i, v in enumerate(region))
+        out.update(region=region, clearance_m=_number(prior.get("clearance_m"), p, "prior.clearance_m", nonnegative=True))
+    return out
+
+
 def _describe(view: Mapping[str, Any], key: str) -> str:
-    """A run's ``prior`` (mode and its parameters), ``samples`` or ``selection``, as text."""
+    """A run's ``prior`` (mode and its parameters: :func:`evaluation.evaluate_report.prior_words`),
+    ``samples`` or ``selection``, as text."""
     value = view.get(key)
     if key == "selection" and value is None:
         value = "random"  # results from before the selection was recorded (1 December 2026) ran random
-    if isinstance(value, Mapping):
-        mode = value.get("mode")
-        rest = ", ".join(f"{k} {v}" for k, v in sorted(value.items()) if k != "mode" and v is not None)
-        return f"{mode}" + (f" ({rest})" if rest else "")
+    if key == "prior" and isinstance(value, Mapping):
+        return f"{value.get('mode')} ({prior_words(value)})"
     return str(value)
 
 

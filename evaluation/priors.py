@@ -146,13 +146,8 @@ class PriorSpec:
             if truth is None:
                 z, roll, pitch = self.z, self.roll, self.pitch
             else:
-                xyyaw, z, roll, pitch = base_pose_parts(truth)
-                if self.region is not None and not (self.region[0] <= xyyaw[0] <= self.region[1]
-                                                    and self.region[2] <= xyyaw[1] <= self.region[3]):
-                    r = ",".join(f"{v:g}" for v in self.region)
-                    raise ParameterError(f"--region {r}: the true base position ({xyyaw[0]:.3f}, {xyyaw[1]:.3f}) m lies outside "
-                                         "it, so the global prior cannot hold the answer (every trial would fail): "
-                                         "give a region that holds the base")
+                _, z, roll, pitch = base_pose_parts(truth)
+                self.check_truth_in_region(truth)  # checked before the trials too (api); a trial's own truth here
             return Prior.uniform(free_space_of(the_map, z, self.region, self.clearance_m), roll=roll, pitch=pitch)
         if truth is None:
             raise ParameterError(f"prior mode {self.mode!r} needs the true base pose; without truth give the prior explicitly")
@@ -161,6 +156,38 @@ class PriorSpec:
         if self.mode == "offset":
             mean = mean + np.asarray(offset_normals, dtype=float) * self.sigma
         return Prior(mean=mean, sigma=self.sigma, z=z, roll=roll, pitch=pitch)
+
+    def check_truth_in_region(self, T_map_base: ArrayLike | None, where: str | None = None) -> None:
+        """Refuse a global prior whose ``region`` leaves out a true base position: the prior
+        could not hold the answer, and every trial would fail. Nothing to check for another
+        mode, without a region or without truth.
+
+        Parameters
+        ----------
+        T_map_base : array (4, 4) or (K, 4, 4), optional
+            The true base pose, or one per sample (each is checked: a trial's truth is the
+            mean of its samples', inside the rectangle when all of them are).
+        where : str, optional
+            What the truth belongs to (a log's path, a scene), named in the error.
+
+        Raises
+        ------
+        ParameterError
+            Naming the region, the position (and the sample) and ``where``.
+        """
+        if self.mode != "global" or self.region is None or T_map_base is None:
+            return
+        T = np.asarray(T_map_base, dtype=float).reshape(-1, 4, 4)
+        x, y = T[:, 0, 3], T[:, 1, 3]
+        x0, x1, y0, y1 = self.region
+        outside = ~((x0 <= x) & (x <= x1) & (y0 <= y) & (y <= y1))
+        if not outside.any():
+            return
+        i = int(np.argmax(outside))
+        of = "" if where is None else f" of {where}" + (f" (sample {i})" if T.shape[0] > 1 else "")
+        r = ",".join(f"{v:g}" for v in self.region)
+        raise ParameterError(f"--region {r}: the true base position{of} ({x[i]:.3f}, {y[i]:.3f}) m lies outside it, so the "
+                             "global prior cannot hold the answer (every trial would fail): give a region that holds the base")
 
     def to_json(self) -> dict[str, Any]:
         """``{"mode", "sigma_xy_m", "sigma_yaw_deg"}`` (plus ``mean``, ``z``, ``roll``, ``pitch`` for ``given``;

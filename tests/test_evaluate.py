@@ -241,6 +241,17 @@ def test_failure_rule() -> None:
     assert is_failure({"e_x_m": None, "e_gamma_deg": 0.0})
 
 
+def test_a_region_without_a_logs_base_is_refused_before_any_trial(logs: list[Path], tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The second log's base (l_room, 0.95, 1.0) lies outside the region: refused naming it, before
+    the first log's trials ran (it failed at the second log's first trial, the first's batches written)."""
+    out = tmp_path / "out"
+    code, _, err = _run(capsys, ["evaluate", *map(str, logs), "--estimators", "icp_pf", "--prior-mode", "global",
+                                 "--region", "-0.3,0.3,-0.3,0.3", "--trials", "1", "--out", str(out)])
+    assert code == 2 and f"the true base position of {logs[1]} (0.950, 1.000) m lies outside" in " ".join(err.split())
+    assert not out.exists()
+
+
 def test_table_describes_the_prior_it_ran() -> None:
     """A global prior has no sigmas: table.md names its support (it printed the unused sigmas)."""
     from evaluation.evaluate_report import prior_words
@@ -926,6 +937,18 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
                          "--out", str(tmp_path / "ppd")])[0] == 0
     table_d = " ".join((tmp_path / "ppd" / "comparison.md").read_text().split())
     assert "- pp ran another protocol: prior paper" in table_d and f"(the first file: {doc['prior']['mode']}" in table_d
+    # two global priors over other regions are other protocols too (the region was not read back)
+    for name, region in (("g1", [-1.0, 1.0, -1.0, 1.0]), ("g2", [0.0, 2.0, -1.0, 1.0])):
+        glob = json.loads(json.dumps(doc))
+        glob["prior"].update(mode="global", region=region, clearance_m=0.05)
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(glob))
+    assert _run(capsys, ["plot", str(tmp_path / "g1" / "results.json"), str(tmp_path / "g2" / "results.json"),
+                         "--out", str(tmp_path / "gd")])[0] == 0
+    table_g = " ".join((tmp_path / "gd" / "comparison.md").read_text().split())
+    assert ("- g2 ran another protocol: prior global (uniform over the free space of x 0.0 to 2.0 m, y -1.0 to 1.0 m at "
+            "the base height, 0.05 m from the walls, every yaw) (the first file: global (uniform over the free space of "
+            "x -1.0 to 1.0 m") in table_g, table_g
     # other logs under the same file names (drone0-node000 is in every flight of a data set), run
     # with the same seed: the same trial seeds, other true poses; not paired
     moved = json.loads(json.dumps(doc))

@@ -92,6 +92,12 @@ def test_prior_spec_global_takes_the_truths_height_and_refuses_a_region_elsewher
     # a region that leaves the true base out cannot hold the answer: refused, naming where the base is
     with pytest.raises(ParameterError, match=r"--region 0.3,1,-0.2,0.2: the true base position \(0.000, 0.300\) m lies outside"):
         PriorSpec("global", region=(0.3, 1.0, -0.2, 0.2)).make(frames.se3_from_xyyaw(0.0, 0.3, 0.3, 0.5), np.zeros(3), _cuboid())
+    # before any trial (api.localize, evaluate, paper, scenes): every sample's truth, the log named
+    spec = PriorSpec("global", region=(-0.2, 0.2, -0.2, 0.2))
+    spec.check_truth_in_region(np.stack([T, T]), "a.h5")
+    with pytest.raises(ParameterError, match=r"base position of a.h5 \(sample 1\) \(0.000, 0.300\) m lies outside"):
+        spec.check_truth_in_region(np.stack([T, frames.se3_from_xyyaw(0.0, 0.3, 0.3, 0.5)]), "a.h5")
+    PriorSpec("offset").check_truth_in_region(frames.se3_from_xyyaw(9.0, 9.0, 0.0, 0.5), "a.h5")  # no region: nothing
 
 
 # -- KLD sampling ------------------------------------------------------------------------------------

@@ -45,11 +45,19 @@ def _err(capsys: pytest.CaptureFixture[str]) -> str:
      "--out and --journal name the same file"),
 ])
 def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work(
-        pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:
+        pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+        args: list[str], message: str) -> None:
+    import tofloc.logs
+
     log = tmp_path / "v.h5"
     log.write_bytes(pillars.read_bytes())
     before = log.read_bytes()
     fill = {"log": str(log), "tmp": str(tmp_path)}
+
+    def no_work(*a: object, **kw: object) -> None:  # reading a log is every one of these commands' first work
+        raise AssertionError("read a log before checking the outputs")
+
+    monkeypatch.setattr(tofloc.logs, "read_log", no_work)
     assert main([a.format(**fill) for a in args]) == 2
     assert message.format(**fill) in _err(capsys)
     assert log.read_bytes() == before
@@ -86,7 +94,15 @@ def test_replay_refuses_a_negative_wait_or_speed_before_any_device(pillars: Path
     link = tmp_path / "dev"
     assert main(["replay", str(pillars), "--pty", "--link", str(link), *option]) == 2
     err = _err(capsys)
-    assert ("--wait" in err and "> 0" in err) if option[0] == "--wait" else "speed must be >= 0" in err
+    value = f"{float(option[1]):g}"
+    assert (f"--wait {value}: expected a finite number of seconds > 0" in err if option[0] == "--wait"
+            else f"--speed {value}: expected a finite number >= 0" in err), err
+    assert not link.exists() and not link.is_symlink()
+    from tofloc.io.replay import PtyDevice, replay
+    from tofloc.logs import read_log
+
+    with pytest.raises(ParameterError, match="reader_timeout_s must be a finite number of seconds > 0"):
+        replay(read_log(pillars), "tofloc", PtyDevice(link), reader_timeout_s=0.0)
     assert not link.exists() and not link.is_symlink()
 
 
@@ -94,12 +110,12 @@ def test_replay_refuses_a_negative_wait_or_speed_before_any_device(pillars: Path
 def test_a_malformed_scheduler_address_is_refused_at_once(pillars: Path, tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str], address: str,
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    import distributed
+    import tofloc.logs
 
-    def no_connection(*args: object, **kwargs: object) -> None:
-        raise AssertionError(f"tried to connect to {args!r} (took ~20 s to fail before)")
+    def no_work(*args: object, **kwargs: object) -> None:  # reading the log is the commands' first work
+        raise AssertionError("read the log before checking --scheduler (it then failed after ~20 s of connecting)")
 
-    monkeypatch.setattr(distributed, "Client", no_connection)
+    monkeypatch.setattr(tofloc.logs, "read_log", no_work)
     assert main(["localize", str(pillars), "--estimator", "icp_pf", "--samples", "2", "--scheduler", address]) == 2
     assert f"scheduler {address!r}: expected a Dask scheduler's address, tcp://HOST:PORT" in _err(capsys)
     assert main(["evaluate", str(pillars), "--estimators", "icp_pf", "--out", str(tmp_path / "e"), "--scheduler", address]) == 2

@@ -841,6 +841,7 @@ def localize(
         if not has_truth:
             raise ParameterError(f"{lg.path} has no /truth/T_map_base: give the prior (mean, base height) explicitly")
         prior = PriorSpec("offset")
+    prior.check_truth_in_region(lg.T_map_base, str(lg.path))  # before the trials
     pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
@@ -1084,6 +1085,12 @@ def paper(
         raise ParameterError(f"output folder {out_dir} exists and is not a folder")
     per_est, ests = _estimators(names, params, estimator_params)
     priors = [PriorSpec(m, prior_sigma_xy, prior_sigma_yaw_deg, region=(region if m == "global" else None)) for m in modes]
+    if region is not None:  # before the simulation: the scenario says where the base is
+        from tofloc.simulation.scenario import load_scenario
+
+        base = load_scenario(scenario).base.T_map_base()
+        for spec in priors:
+            spec.check_truth_in_region(base, f"scenario {scenario}")
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         t0 = time.perf_counter()
         _start_server_early(workers, scheduler)
@@ -1301,6 +1308,13 @@ def scenes(
     check_scheduler(scheduler)
     resolve_workers(workers, 1)
     check_selection(selection)
+    if prior_mode == "global" and region is not None:  # one region for every scene: each base in it, before the first
+        from evaluation.priors import PriorSpec
+        from tofloc.simulation.scenario import load_scenario
+
+        spec = PriorSpec("global", region=region)
+        for scene in names:
+            spec.check_truth_in_region(load_scenario(scene).base.T_map_base(), f"scene {scene}")
     out_dir = Path(out)
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         rows: list[dict[str, Any]] = []
@@ -1618,6 +1632,8 @@ def evaluate(
                            on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
     for why in (set_aside or {}).values():
         reporter.note(f"set aside: {why}")  # the reason names the log
+    for en in entries:  # a region that leaves a log's base out: refused before any trial
+        prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         ks = sorted({en.k for en in entries})
         reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "

@@ -200,6 +200,9 @@ def localize(
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
     api.check_selection(selection)
+    from evaluation.executors import check_scheduler
+
+    check_scheduler(scheduler)  # a malformed address too
     log = read_log(log_path)
     has_truth = log.T_map_base is not None
     if plot_nees is not None and not has_truth:

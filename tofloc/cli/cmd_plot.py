@@ -68,7 +68,7 @@ def plot(
         _plot_evaluated(files, labels, out, fmt)
         return
     for f in files:  # a localize run of a log without truth measured no error: nothing of it to draw
-        if f.series and all(not any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (s.overall[key] or {}).values())
+        if f.kind == "localize" and f.series and all(not any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (s.overall[key] or {}).values())
                             for s in f.series):
             raise ParameterError(f"tofloc plot: {f.path} holds no errors (summary.e_x_m and e_gamma_deg are null: "
                                  "its log has no truth, so no error was measured); tofloc plot compares errors: "

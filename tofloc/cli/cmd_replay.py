@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -32,6 +33,11 @@ def replay(
 
     if pty == (port is not None):
         raise ParameterError("give exactly one of --pty and --port")
+    if not (math.isfinite(wait) and wait > 0):
+        raise ParameterError(f"--wait {wait:g}: expected a finite number of seconds > 0")
+    if not (math.isfinite(speed) and speed >= 0):
+        raise ParameterError(f"--speed {speed:g}: expected a finite number >= 0 (1 = recorded rate, 0 = as fast as the "
+                             "reader reads)")
     if link is not None:
         if link.exists() and not link.is_symlink():
             raise ParameterError(f"--link {link}: exists and is not a symbolic link: it would be replaced by the link "

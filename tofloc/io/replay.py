@@ -339,7 +339,7 @@ def replay(
     if speed < 0 or not np.isfinite(speed):
         raise ParameterError(f"speed must be >= 0 (0: as fast as possible), got {speed}")
     if not reader_timeout_s > 0 or not np.isfinite(reader_timeout_s):
-        raise ParameterError(f"reader_timeout_s (--wait) must be a finite number of seconds > 0, got {reader_timeout_s}")
+        raise ParameterError(f"reader_timeout_s must be a finite number of seconds > 0, got {reader_timeout_s}")
     faults = faults or Faults()
     if faults.garbage_every and rng is None:
         raise ParameterError("garbage injection needs an explicit numpy Generator (rng)")

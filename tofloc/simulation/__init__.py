@@ -33,7 +33,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.simulation.robot import mocap_measure, nominal_state, protocol_pressures, reached_state, tip_poses
 from tofloc.simulation.scenario import (
@@ -145,7 +144,7 @@ def simulate(
     T_base_tip_mocap = mocap_measure(sc.robot, T_base_tip_true, r_mocap)
 
     b = sc.base
-    T_map_base = frames.se3_from_xyyaw(b.x, b.y, np.radians(b.yaw_deg), b.z)
+    T_map_base = b.T_map_base()
     actuators = tuple(f"chamber{i + 1}" for i in range(n_ch))
     rig = build_rig(sc.rig, actuators)  # the CAD rig, what the log carries
     rig_true = build_rig(sc.rig, actuators, r_mount)  # how the sensors are really mounted

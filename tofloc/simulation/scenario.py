@@ -114,6 +114,14 @@ class Base:
     yaw_deg: float = field(default=0.0, metadata=_r(-180.0, 180.0))
     z: float = field(default=0.5, metadata=_r(-100.0, 100.0))
 
+    def T_map_base(self) -> Any:
+        """The base pose ``(4, 4)`` the simulated log's truth holds (``/truth/T_map_base``)."""
+        import numpy as np
+
+        from tofloc import frames
+
+        return frames.se3_from_xyyaw(self.x, self.y, np.radians(self.yaw_deg), self.z)
+
 
 @dataclass(frozen=True)
 class Robot:
