@@ -1632,8 +1632,9 @@ def evaluate(
                            on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
     for why in (set_aside or {}).values():
         reporter.note(f"set aside: {why}")  # the reason names the log
-    for en in entries:  # a region that leaves a log's base out: refused before any trial
-        prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))
+    if prior.mode == "global" and prior.region is not None:  # a region that leaves a log's base out: before any trial
+        for en in entries:
+            prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         ks = sorted({en.k for en in entries})
         reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "
