@@ -575,8 +575,6 @@ def calibrate(
                        progress=reporter.progress)
     from tofloc.provenance import provenance
 
-    from tofloc.calibration_file import rig_signature
-
     meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,
             "valid_statuses": sorted(valid_statuses), "distance_range_m": [lo, hi],
             "rig": rig_signature(pairs[0][0].rig), "provenance": provenance()}
@@ -786,7 +784,7 @@ def localize(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
-    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
+    resolve_workers(workers, 1)  # refused before the log and map are read
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1037,7 +1035,7 @@ def paper(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
-    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
+    resolve_workers(workers, 1)  # refused before any work (it failed after simulating)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1602,7 +1600,7 @@ def evaluate(
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)
-    resolve_workers(workers, 1)  # refused before any work (a paper run simulated first)
+    resolve_workers(workers, 1)  # refused before the logs and maps are read
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:

@@ -42,10 +42,8 @@ def calibrate(
 ) -> None:
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
-    from tofloc.atomic import check_output_path
+    from tofloc.atomic import check_distinct_paths, check_output_path
     from tofloc.plot_style import check_figure_path
-
-    from tofloc.atomic import check_distinct_paths
 
     check_output_path(out, option="--out")
     if plot is not None:

@@ -68,8 +68,7 @@ def plot(
         _plot_evaluated(files, labels, out, fmt)
         return
     for f in files:  # a localize run of a log without truth measured no error: nothing of it to draw
-        if f.kind == "localize" and f.series and all(not any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (s.overall[key] or {}).values())
-                            for s in f.series):
+        if f.kind == "localize" and f.series and not any(_has_errors(s) for s in f.series):
             raise ParameterError(f"tofloc plot: {f.path} holds no errors (summary.e_x_m and e_gamma_deg are null: "
                                  "its log has no truth, so no error was measured); tofloc plot compares errors: "
                                  "leave it out (`tofloc localize --plot` draws a run's estimates)")
@@ -94,6 +93,12 @@ def plot(
     _print(rows)
     for p in written:
         err_console.print(f"wrote {p}", highlight=False)
+
+
+def _has_errors(series: object) -> bool:
+    """Whether a series holds a measured error (e_x or e_gamma statistic not null)."""
+    overall = getattr(series, "overall")
+    return any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (overall[key] or {}).values())
 
 
 def _made_by() -> str:
