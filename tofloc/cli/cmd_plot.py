@@ -18,6 +18,7 @@ as vector files for a paper (``errors_vs_k.pdf``, ...).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich import box
@@ -25,6 +26,9 @@ from rich.table import Table
 
 from tofloc.cli.app import app, console, err_console
 from tofloc.errors import ParameterError
+
+if TYPE_CHECKING:
+    from evaluation.compare import Series
 
 __all__ = ["plot"]
 
@@ -95,10 +99,9 @@ def plot(
         err_console.print(f"wrote {p}", highlight=False)
 
 
-def _has_errors(series: object) -> bool:
-    """Whether a series holds a measured error (e_x or e_gamma statistic not null)."""
-    overall = getattr(series, "overall")
-    return any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (overall[key] or {}).values())
+def _has_errors(series: Series) -> bool:
+    """Whether a series holds a measured error (an e_x or e_gamma statistic not null)."""
+    return any(v is not None for key in ("e_x_m", "e_gamma_deg") for v in (series.overall[key] or {}).values())
 
 
 def _made_by() -> str:
