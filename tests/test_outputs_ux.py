@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -252,15 +253,14 @@ def test_config_resolution_order_and_unknown_keys(tmp_path: Path) -> None:
 def test_help_texts_keep_their_brackets(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     """Rich markup swallowed "[uncertainty]" and "[beam]" in --help: no help text of any
     command may lose text to markup, and the literal tables show where they are meant."""
-    import click
     import typer.main
     from rich.text import Text
 
     from tofloc.cli import app
 
-    def walk(cmd: click.Command, path: tuple[str, ...]):
+    def walk(cmd: Any, path: tuple[str, ...]):
         yield path, cmd
-        if isinstance(cmd, click.Group):
+        if isinstance(getattr(cmd, "commands", None), dict):  # a group (typer >= 0.16 vendors its own click)
             for name, sub in cmd.commands.items():
                 yield from walk(sub, path + (name,))
 
@@ -277,6 +277,35 @@ def test_help_texts_keep_their_brackets(capsys: pytest.CaptureFixture[str], monk
         out = capsys.readouterr().out
         for needle in needles:
             assert needle in out, (command, needle)
+
+
+def test_command_list_gives_each_summary_as_one_paragraph(capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """`tofloc --help` listed a docstring's first paragraph with the source's line breaks
+    ("every estimator (updates at 1000 and" / "10,000 particles, ..."): each command's and
+    sub-command's summary is now that paragraph on one line, re-wrapped by the console."""
+    import typer.main
+
+    from tofloc.cli import app
+
+    def walk(cmd: Any):
+        if isinstance(getattr(cmd, "commands", None), dict):  # a group (typer >= 0.16 vendors its own click)
+            for sub in cmd.commands.values():
+                yield sub
+                yield from walk(sub)
+
+    commands = list(walk(typer.main.get_command(app)))
+    assert len(commands) >= 15
+    for cmd in commands:
+        first = (cmd.help or "").split("\n\n", 1)[0]
+        assert (cmd.short_help or first) == " ".join(first.split()), cmd.name  # what the list shows
+    monkeypatch.setenv("COLUMNS", "250")
+    for argv, name, words in ((["--help"], "bench", "every estimator (updates at 1000 and 10,000 particles, estimates,"),
+                              (["--help"], "plot", "a comparison table; for `tofloc evaluate` results"),
+                              (["import", "--help"], "nanoswarm", "(odometry configuration with its covariance, Vicon truth)")):
+        assert main(argv) == 0
+        lines = [ln for ln in capsys.readouterr().out.splitlines() if f" {name} " in ln]
+        assert len(lines) == 1 and words in lines[0], (argv, name, lines)
 
 
 def test_plotting_is_warmed_in_the_background_only_while_workers_run() -> None:

@@ -26,6 +26,22 @@ def _load_commands() -> None:
             importlib.import_module(f"{__name__}.{info.name}")
 
 
+def _one_line_summaries(typer_app: Any) -> None:
+    """Give every command without a ``short_help`` its docstring's first paragraph on one
+    line: ``tofloc --help`` lists that paragraph, and the line breaks of a docstring
+    wrapped at the source's width would show there as ragged breaks (a command's own
+    ``--help`` re-wraps its text; the list of commands does not)."""
+    import inspect
+
+    for info in typer_app.registered_commands:
+        if info.short_help is None:
+            text = info.help or inspect.getdoc(info.callback) or ""
+            first = text.split("\n\n", 1)[0]
+            info.short_help = " ".join(first.split()) or None
+    for group in typer_app.registered_groups:
+        _one_line_summaries(group.typer_instance)
+
+
 try:  # Ctrl-C while the CLI's libraries and commands load: one line, no traceback
     try:  # typer >= 0.16 vendors its own copy of click
         from typer._click import exceptions as _click_exc
@@ -39,6 +55,7 @@ try:  # Ctrl-C while the CLI's libraries and commands load: one line, no traceba
     from tofloc.errors import TofLocError
 
     _load_commands()
+    _one_line_summaries(app)
 except KeyboardInterrupt:
     sys.stderr.write("interrupted\n")
     sys.exit(130)
