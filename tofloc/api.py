@@ -1223,6 +1223,7 @@ def scenes(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
+    random_scenes: int = 0,
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
@@ -1244,7 +1245,8 @@ def scenes(
         Output folder.
     scene_names : sequence of str, optional
         Distinct scenes of the library (:func:`tofloc.simulation.builtin_scenarios`); None
-        (the default): all of them. An empty sequence is refused.
+        (the default): all of them, or none when ``random_scenes`` is given. An empty
+        sequence is refused.
     rig_variant : {"exact", "perturbed"}
         The scenes' rigs.
     k : int
@@ -1269,6 +1271,13 @@ def scenes(
         Gets a note per scene and what :func:`paper` reports.
     selection : str
         As :func:`paper` (recorded in ``scenes.json``).
+    random_scenes : int
+        Also run this many random rooms (0 to
+        :data:`tofloc.simulation.random_scenes.MAX_RANDOM_SCENES`), drawn from ``seed``
+        (:func:`tofloc.simulation.random_scenes.random_scene`: rooms no default was tuned
+        on), after the library's scenes; each one's scenario is written to
+        ``out/random-scenes/<name>.toml`` first (a file already there must hold the same
+        room), and its runs go to ``out/<name>-<variant>/`` as a library scene's.
 
     Returns
     -------
@@ -1286,10 +1295,20 @@ def scenes(
     from tofloc.provenance import provenance
     from tofloc.simulation import builtin_scenarios
 
-    names = builtin_scenarios() if scene_names is None else _as_list(scene_names, "scene_names")
-    if not names:
-        raise ParameterError(f"scene_names is empty: expected at least one scene of the library {builtin_scenarios()}, "
-                             "or None for all of them")
+    from tofloc.simulation.random_scenes import MAX_RANDOM_SCENES
+
+    if not _is_int(random_scenes) or not 0 <= random_scenes <= MAX_RANDOM_SCENES:
+        raise ParameterError(f"random_scenes must be an integer in [0, {MAX_RANDOM_SCENES}], got {random_scenes!r}")
+    random_scenes = int(random_scenes)
+    if not _is_int(seed) or seed < 0:
+        raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
+    if scene_names is None:
+        names = [] if random_scenes else builtin_scenarios()
+    else:
+        names = _as_list(scene_names, "scene_names")
+        if not names:
+            raise ParameterError(f"scene_names is empty: expected at least one scene of the library {builtin_scenarios()}, "
+                                 "or None for all of them")
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
         raise ParameterError(f"scene_names repeats {repeated}: expected each scene once")
@@ -1306,19 +1325,33 @@ def scenes(
     check_scheduler(scheduler)
     resolve_workers(workers, 1)
     check_selection(selection)
+    from tofloc.simulation.random_scenes import random_scene
+    from tofloc.simulation.scenario import load_scenario, scenario_from_dict
+
+    drawn = [random_scene(seed, i) for i in range(random_scenes)]
+    bases = {scene: load_scenario(scene).base.T_map_base() for scene in names}
+    for d in drawn:
+        bases[d["scenario"]["name"]] = scenario_from_dict(d, f"<random scene {d['scenario']['name']}>").base.T_map_base()
     if prior_mode == "global" and region is not None:  # one region for every scene: each base in it, before the first
         from evaluation.priors import PriorSpec
-        from tofloc.simulation.scenario import load_scenario
 
         spec = PriorSpec("global", region=region)
-        for scene in names:
-            spec.check_truth_in_region(load_scenario(scene).base.T_map_base(), f"scene {scene}")
+        for scene, T_map_base in bases.items():
+            spec.check_truth_in_region(T_map_base, f"scene {scene}")
     out_dir = Path(out)
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
+        runs: list[tuple[str, str]] = [(scene, scene) for scene in names]  # (name, what paper() loads)
+        random_files: list[Path] = []
+        for d in drawn:
+            path = _write_random_scene(out_dir / "random-scenes", d)
+            random_files.append(path)
+            runs.append((d["scenario"]["name"], str(path)))
+        if drawn:
+            reporter.note(f"{len(drawn)} random room(s) of seed {seed}: {out_dir / 'random-scenes'}")
         rows: list[dict[str, Any]] = []
-        for scene in names:
+        for scene, scenario in runs:
             reporter.note(f"scene {scene} ({rig_variant} rig)")
-            run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scene,
+            run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scenario,
                         params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
                         k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
@@ -1337,15 +1370,43 @@ def scenes(
                 row["nees_mean"] = (g.get("nees") or {}).get("mean")
                 row["found"] = g.get("found")  # within 1 cm and 1 deg; the truth among the modes; median runtime
                 rows.append(row)
-        doc = {"estimators": list(estimators), "scenes": names, "rig_variant": rig_variant, "k": k, "trials": trials,
-               "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection, "rows": rows,
-               "provenance": provenance()}
+        doc = {"estimators": list(estimators), "scenes": [scene for scene, _ in runs], "rig_variant": rig_variant, "k": k,
+               "trials": trials, "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection,
+               "random_scenes": {"n": random_scenes, "seed": seed, "files": [str(p) for p in random_files],
+                                 "descriptions": [d["scenario"]["description"] for d in drawn]},
+               "rows": rows, "provenance": provenance()}
         config_text = _config_text({n: e["params"] for n, e in run.document["estimators"].items()},
                                    doc["provenance"]["command"], "on every scene")
         paths = write_run_outputs(out_dir, ("scenes.json", lambda p: write_json_atomic(doc, p)), [
             ("config.toml", lambda p: write_text_atomic(config_text, p)),
             ("scenes.md", lambda p: write_text_atomic(scenes_markdown(doc), p))])
         return ScenesResult(rows, doc, paths)
+
+
+def _write_random_scene(folder: Path, doc: Mapping[str, Any]) -> Path:
+    """Write random scene ``doc`` to ``folder/<name>.toml`` (a header comment, then the
+    scenario), atomically; a file already there must hold the same scenario (a folder of an
+    earlier run of the same seed), else :class:`ParameterError`: its sub-folder's log was
+    simulated from another room. Returns the path."""
+    from evaluation.report import write_text_atomic
+    from tofloc.toml_tables import dumps, read_toml
+
+    name = doc["scenario"]["name"]
+    path = folder / f"{name}.toml"
+    if path.exists():
+        try:
+            same = read_toml(path) == dict(doc)
+        except FormatError:
+            same = False
+        if not same:
+            raise ParameterError(f"{path} holds another scenario than random scene {name} of this version of tofloc: "
+                                 "this folder was written by another version; give another --out")
+        return path
+    folder.mkdir(parents=True, exist_ok=True)
+    header = (f"# {doc['scenario']['description']}\n"
+              "# Drawn by tofloc.simulation.random_scenes.random_scene (docs/simulator.md, Random rooms);\n"
+              f"# simulate it again: tofloc simulate --scenario {name}.toml --out DIR\n\n")
+    return write_text_atomic(header + dumps(doc), path)
 
 
 def scenes_markdown(doc: Mapping[str, Any]) -> str:

@@ -21,7 +21,11 @@ __all__ = ["scenes"]
 def scenes(
     estimators: str = typer.Option("beam_pf,likelihood_field_pf,gtsam_smoother", "--estimators",
                                    help="Comma-separated registered estimators."),
-    scene: Optional[list[str]] = typer.Option(None, "--scene", help="A scene of the library (repeatable; default: all)."),
+    scene: Optional[list[str]] = typer.Option(None, "--scene", help="A scene of the library (repeatable; default: all, "
+                                              "or none with --random)."),
+    random: int = typer.Option(0, "--random", metavar="N",
+                               help="Also run N random rooms drawn from --seed (rooms no default was tuned on; "
+                                    "docs/simulator.md), their scenarios written to DIR/random-scenes/."),
     rig_variant: str = typer.Option("exact", "--rig-variant", help="exact or perturbed rigs."),
     k: int = typer.Option(10, "--k", help="Samples per trial."),
     trials: int = typer.Option(20, "--trials", help="Trials per scene."),
@@ -58,6 +62,12 @@ def scenes(
         raise ParameterError(f"--trials must be in [1, {api.MAX_TRIALS}], got {trials}")
     if tip_source not in ("mocap", "knn"):
         raise ParameterError(f"--tip-source must be mocap or knn, got {tip_source!r}")
+    from tofloc.simulation.random_scenes import MAX_RANDOM_SCENES
+
+    if not 0 <= random <= MAX_RANDOM_SCENES:
+        raise ParameterError(f"--random must be in [0, {MAX_RANDOM_SCENES}], got {random}")
+    if seed < 0:
+        raise ParameterError(f"--seed must be >= 0, got {seed}")
     repeated = sorted({n for n in scene or [] if (scene or []).count(n) > 1})
     if repeated:
         raise ParameterError(f"--scene {', '.join(repeated)} is given more than once: expected each scene once")
@@ -70,7 +80,7 @@ def scenes(
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
                          tip_source=tip_source, prior_mode=prior_mode, region=rect, estimator_params=per_estimator,
                          calibrate=calibrate,
-                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
+                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection, random_scenes=random)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):
         t.add_column(col, justify="right")
