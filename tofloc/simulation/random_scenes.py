@@ -60,7 +60,7 @@ def random_scene_name(seed: int, index: int) -> str:
 
 
 def _outline(rng: np.random.Generator) -> tuple[list[list[float]], float, float]:
-    W, D = (float(v) for v in rng.uniform(2.0, 5.0, 2))
+    W, D = (round(float(v), 3) for v in rng.uniform(2.0, 5.0, 2))
     rect = [[0.0, 0.0], [W, 0.0], [W, D], [0.0, D]]
     if rng.random() >= 0.4:
         return rect, W, D
