@@ -232,18 +232,23 @@ def no_work(monkeypatch):
     """Every expensive first step of a command raises: the refusal must come before."""
     import tofloc.cli.cmd_bench as bench
     import tofloc.io.eth_matrix as eth
+    import tofloc.io.journal as journal
     import tofloc.logs as logs
     import tofloc.simulation as simulation
 
     def boom(*a, **k):
         raise AssertionError("the work started before the output was checked")
 
-    for mod, name in ((logs, "read_log"), (simulation, "simulate"), (bench, "run_bench"), (eth, "import_run")):
+    for mod, name in ((logs, "read_log"), (simulation, "simulate"), (bench, "run_bench"), (eth, "import_run"),
+                      (journal, "recover")):
         monkeypatch.setattr(mod, name, boom)
 
 
 def test_every_unwritable_output_is_refused_before_any_work(simulated: Path, tmp_path: Path, readonly_dir: Path, capsys, no_work) -> None:
     log = str(simulated)
+    # every option a live run needs, so that only its outputs can stop it (reading the rig is its first work)
+    live = ["localize", "--port", "loop://", "--estimator", "icp_pf", "--rig", log, "--map", str(simulated.parent / "paper.map.ply"),
+            "--kinematics", str(tmp_path / "knn.npz"), "--prior-x", "0", "--prior-y", "0", "--prior-yaw-deg", "0", "--base-z", "0.5"]
     commands = {
         "localize --json": lambda p: ["localize", log, "--estimator", "icp_pf", "--json", str(p)],
         "kinematics fit --out": lambda p: ["kinematics", "fit", log, "--out", str(p)],
@@ -256,9 +261,9 @@ def test_every_unwritable_output_is_refused_before_any_work(simulated: Path, tmp
         "record --journal": lambda p: ["record", "--port", "loop://", "--rig", log, "--out", str(tmp_path / "r.h5"), "--journal", str(p)],
         "record --recover --out": lambda p: ["record", "--recover", str(tmp_path / "none.journal"), "--out", str(p)],
         "import eth-matrix --out": lambda p: ["import", "eth-matrix", str(tmp_path), "--out", str(p)],
-        "localize --port --out": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--out", str(p)],
-        "localize --port --estimates-out": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--estimates-out", str(p)],
-        "localize --port --journal": lambda p: ["localize", "--port", "loop://", "--estimator", "icp_pf", "--journal", str(p)],
+        "localize --port --out": lambda p: [*live, "--out", str(p)],
+        "localize --port --estimates-out": lambda p: [*live, "--estimates-out", str(p)],
+        "localize --port --journal": lambda p: [*live, "--journal", str(p)],
     }
     before = sorted(p.name for p in tmp_path.iterdir())
     for name, argv in commands.items():
@@ -709,6 +714,20 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
             assert left, (delay, "killed by the signal before the command ended")
         if left or p.returncode in (0, -signal.SIGINT):
             assert left and read_log(folder / "x.h5").n_samples > 0, (delay, p.returncode, left)
+    # the late case for certain (the delays above all land during the simulation on a busy
+    # 2-core machine): Ctrl-C as soon as the log, renamed last, is in place
+    folder = tmp_path / "after_the_renames"
+    folder.mkdir()
+    p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(folder / "x.h5")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (folder / "x.h5").exists() and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode in (130, 0, -signal.SIGINT) and "Traceback" not in err, (p.returncode, err[-1500:])
+    assert sorted(q.name for q in folder.iterdir()) == ["x.cad.ply", "x.h5", "x.map.ply"]
+    assert read_log(folder / "x.h5").n_samples > 0
 
 
 def test_finalizers_failing_at_teardown_after_ctrl_c_stay_quiet(tmp_path: Path) -> None:

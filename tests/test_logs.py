@@ -6,6 +6,8 @@ would never produce.
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 from typing import Any
@@ -856,6 +858,13 @@ def test_flipped_bytes_are_refused_or_harmless(tmp_path: Path, full_log: Log) ->
         counts[region] = (refused, identical)
     assert counts["data"] == (150, 0)  # every chunk byte is covered by Fletcher-32
     assert counts["metadata"][0] > 100  # most metadata bytes matter; the rest (free space, padding) is harmless
+    # the check a harmless flip meets (no flip of this seed is harmless: every one above was
+    # refused): the same file reads back identical, one changed distance or source does not
+    assert _identical(read_log(good_path), ref)
+    d = full_log.distance_mm.copy()
+    d.flat[d.size // 2] += 1.0
+    for changed in (dataclasses.replace(full_log, distance_mm=d), dataclasses.replace(full_log, source=full_log.source + "x")):
+        assert not _identical(read_log(write_log(changed, tmp_path / "changed.h5")), ref)
 
 
 def test_old_unchecksummed_logs_still_read_and_info_says_so(tmp_path: Path, full_log: Log, capsys: pytest.CaptureFixture[str]) -> None:

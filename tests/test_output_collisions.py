@@ -47,6 +47,7 @@ def _err(capsys: pytest.CaptureFixture[str]) -> str:
 def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work(
         pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
         args: list[str], message: str) -> None:
+    import tofloc.io.journal
     import tofloc.logs
 
     log = tmp_path / "v.h5"
@@ -54,10 +55,11 @@ def test_an_output_that_is_an_input_or_another_output_is_refused_before_any_work
     before = log.read_bytes()
     fill = {"log": str(log), "tmp": str(tmp_path)}
 
-    def no_work(*a: object, **kw: object) -> None:  # reading a log is every one of these commands' first work
+    def no_work(*a: object, **kw: object) -> None:  # reading a log (a journal for --recover): each command's first work
         raise AssertionError("read a log before checking the outputs")
 
     monkeypatch.setattr(tofloc.logs, "read_log", no_work)
+    monkeypatch.setattr(tofloc.io.journal, "recover", no_work)
     assert main([a.format(**fill) for a in args]) == 2
     assert message.format(**fill) in _err(capsys)
     assert log.read_bytes() == before
