@@ -1409,6 +1409,15 @@ def _write_random_scene(folder: Path, doc: Mapping[str, Any]) -> Path:
     return write_text_atomic(header + dumps(doc), path)
 
 
+def _random_lines(doc: Mapping[str, Any]) -> list[str]:
+    """scenes.md's lines on the random rooms of ``doc`` (none without any)."""
+    rnd = doc.get("random_scenes") or {}
+    if not rnd.get("n"):
+        return []
+    return ([f"Random rooms ({rnd['n']}, seed {rnd['seed']}; docs/simulator.md, Random rooms), their scenarios beside "
+             "this file in random-scenes/:", ""] + [f"- {d}" for d in rnd.get("descriptions", [])] + [""])
+
+
 def scenes_markdown(doc: Mapping[str, Any]) -> str:
     """The scene table: per scene and estimator, mean e_x and e_gamma, the mean sqrt(CRLB) of
     the same trials and their ratio (within 2 is the model core's bar), mean NEES.
@@ -1437,6 +1446,7 @@ def scenes_markdown(doc: Mapping[str, Any]) -> str:
              "with map tolerance: the map's faces off by the scene's declared CAD tolerance (a bound over "
              "worlds: one simulated world may do better or worse); all valid zones: counting zones that read "
              "objects the map does not hold.", "",
+             *_random_lines(doc),
              "| scene | estimator | e_x (mm) | sqrt CRLB (mm) | ratio | e_gamma (deg) | sqrt CRLB (deg) | ratio | NEES "
              "| sqrt CRLB with map tolerance (mm) | sqrt CRLB, all valid zones (mm) |"
              + (" within 1 cm, 1 deg | truth among modes | s per trial |" if hits else ""),
