@@ -156,12 +156,11 @@ class GTSAMSmoother(Estimator):
         Rounds over which the gate shrinks from ``gate_start_m`` to ``gate_m`` (0: ``gate_m``
         from the first round).
     n_starts : int
-        Levenberg-Marquardt starts per estimate. 10 since 5 December 2026 (5 before): in
-        random rooms (``tofloc scenes --random``) a start 8 cm and 19 deg off the truth
-        ended in another basin, and 5 starts from a 0.2 m / 20 deg prior missed the truth's
-        in 10 of 40 trials of two rooms (2 of 40 with 10 starts; a fresh seed's rooms 2 -> 1
-        of 40); the library's scenes and the real maze scans gave the same answers within
-        4 %, at twice the time (docs/gtsam-smoother.md, "How many starts").
+        Levenberg-Marquardt starts per estimate. 10 starts (tried on 5 December 2026)
+        took the smoother's failures in two random rooms from 10 to 2 of 40 trials, with
+        the same answers in the library and on the real maze scans, but the full protocol
+        from 6 min 29 s to 11 min 32 s; the default stays 5 (docs/gtsam-smoother.md, "How
+        many starts").
     n_candidates : int
         Prior draws (plus the prior mean) scored by a cheap truncated point-to-point cost
         of a subset of the zones (one vectorized KD-tree query); the ``n_starts`` best,
@@ -241,7 +240,7 @@ class GTSAMSmoother(Estimator):
     gate_start_m: float = 0.2
     gate_rounds: int = 3
     gate_sigmas: float = 4.0
-    n_starts: int = 10
+    n_starts: int = 5
     n_candidates: int = 200
     candidate_spread: float = 1.0
     max_rounds: int = 40
