@@ -57,9 +57,11 @@ def test_rooms_are_valid_reproducible_and_varied() -> None:
     assert min(yaws) < -90.0 and max(yaws) > 90.0
 
 
-def test_random_scene_refuses_negative_seeds() -> None:
-    with pytest.raises(ValueError, match="seed and index must be integers >= 0"):
-        random_scene(-1, 0)
+@pytest.mark.parametrize(("seed", "index"), [(-1, 0), (0, -2), (1.5, 0), (True, 0), (0, "1")])
+def test_random_scene_refuses_what_is_not_a_seed_and_index(seed, index) -> None:
+    """1.5 was taken as 1 (int() of it) before the check."""
+    with pytest.raises(ValueError, match=rf"^seed and index must be integers >= 0, got {seed!r} and {index!r}$"):
+        random_scene(seed, index)
 
 
 def test_scenes_runs_random_rooms_and_writes_their_scenarios(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -87,7 +89,7 @@ def test_scenes_runs_random_rooms_and_writes_their_scenarios(tmp_path: Path, cap
     toml.write_text(toml.read_text().replace("tilt_down_deg = ", "tilt_down_deg = 1"))
     assert main([*ARGS, "--out", str(out)]) == 2
     err = " ".join(capsys.readouterr().err.split())
-    assert f"{toml} holds another scenario than random scene {name}" in err
+    assert f"{toml}: expected random scene {name} as random_scene draws it" in err and "found another scenario" in err
 
 
 @pytest.mark.parametrize(("kwargs", "needle"), [
@@ -95,7 +97,8 @@ def test_scenes_runs_random_rooms_and_writes_their_scenarios(tmp_path: Path, cap
     ({"random_scenes": MAX_RANDOM_SCENES + 1}, rf"^random_scenes must be an integer in \[0, {MAX_RANDOM_SCENES}\]"),
     ({"random_scenes": True}, r"^random_scenes must be an integer"),
     ({"random_scenes": 1, "seed": -2}, r"^seed must be an integer >= 0, got -2$"),
-    ({"random_scenes": 2, "prior_mode": "global", "region": (-1.0, 0.0, -1.0, 0.0)}, r"scene random-s0-00"),
+    ({"random_scenes": 2, "prior_mode": "global", "region": (-1.0, 0.0, -1.0, 0.0)},
+     r"^--region -1,0,-1,0: the true base position of scene random-s0-00 \(\d+\.\d{3}, \d+\.\d{3}\) m lies outside it"),
 ])
 def test_scenes_refuses_bad_random_arguments_before_any_work(tmp_path: Path, kwargs, needle) -> None:
     """Refused before anything is written: a global prior's region is checked against every

@@ -1399,13 +1399,14 @@ def _write_random_scene(folder: Path, doc: Mapping[str, Any]) -> Path:
         except FormatError:
             same = False
         if not same:
-            raise ParameterError(f"{path} holds another scenario than random scene {name} of this version of tofloc: "
-                                 "this folder was written by another version; give another --out")
+            raise ParameterError(f"{path}: expected random scene {name} as random_scene draws it (the scenario its run "
+                                 f"folder {name}-* was simulated from), found another scenario (edited, or drawn by another "
+                                 "version of tofloc); give another --out")
         return path
     folder.mkdir(parents=True, exist_ok=True)
     header = (f"# {doc['scenario']['description']}\n"
               "# Drawn by tofloc.simulation.random_scenes.random_scene (docs/simulator.md, Random rooms);\n"
-              f"# simulate it again: tofloc simulate --scenario {name}.toml --out DIR\n\n")
+              f"# simulate it again (from this folder): tofloc simulate --scenario {name}.toml --out DIR\n\n")
     return write_text_atomic(header + dumps(doc), path)
 
 

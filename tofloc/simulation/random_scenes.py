@@ -35,6 +35,7 @@ The distribution (every draw independent and uniform unless said):
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from typing import Any
 
 import numpy as np
@@ -107,9 +108,9 @@ def random_scene(seed: int, index: int) -> dict[str, Any]:
         ``{"scenario": ..., "environment": ..., "base": ..., ...}``, valid for
         :func:`tofloc.simulation.scenario.scenario_from_dict` (``extends = "paper"``).
     """
-    from tofloc.simulation.scenario import Environment, base_clearance_problem, scenario_from_dict
+    from tofloc.simulation.scenario import Environment, base_clearance_problem, scenario_from_dict, scenario_sections
 
-    if isinstance(seed, bool) or isinstance(index, bool) or int(seed) < 0 or int(index) < 0:
+    if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 0 for v in (seed, index)):
         raise ValueError(f"seed and index must be integers >= 0, got {seed!r} and {index!r}")
     rng = np.random.default_rng([int(seed), int(index)])
     name = random_scene_name(seed, index)
@@ -146,23 +147,13 @@ def random_scene(seed: int, index: int) -> dict[str, Any]:
         boxes = [] if last else _boxes(rng, env0, W, D, n_mapped, (0.2, 0.8),
                                        lambda r: z_max if r.random() < 0.5 else round(float(r.uniform(0.4, 1.8)), 3))
         unmapped = [] if last else _boxes(rng, env0, W, D, n_unmapped, (0.2, 0.5), lambda r: round(float(r.uniform(0.3, 1.2)), 3))
+        layout = scenario_sections(document(boxes, unmapped, W / 2, D / 2), f"<random scene {name}>")
+        # the robot made longer by the margin: base_clearance_problem then asks for it beyond the reach
+        wide = dataclasses.replace(layout, robot=dataclasses.replace(layout.robot, length=layout.robot.length + _MARGIN))
         for _ in range(_BASE_DRAWS):
             x, y = round(float(rng.uniform(0.0, W)), 4), round(float(rng.uniform(0.0, D)), 4)
-            doc = document(boxes, unmapped, x, y)
-            probe = _probe(doc)
-            wide = dataclasses.replace(probe, robot=dataclasses.replace(probe.robot, length=probe.robot.length + _MARGIN))
-            if base_clearance_problem(wide) is None:
+            if base_clearance_problem(dataclasses.replace(wide, base=dataclasses.replace(wide.base, x=x, y=y))) is None:
+                doc = document(boxes, unmapped, x, y)
                 scenario_from_dict(doc, f"<random scene {name}>")  # every check of a scenario file
                 return doc
     raise AssertionError("unreachable: an empty room of at least 2 x 2 m always has room for the base")
-
-
-def _probe(doc: dict[str, Any]) -> Any:
-    """The scenario of ``doc`` without its consistency checks (the base's clearance is what
-    :func:`random_scene` is looking for)."""
-    from tofloc.simulation.scenario import Scenario, _resolve_extends, _section
-
-    data = _resolve_extends(doc, "<random scene>")
-    sections = {f.name: f for f in dataclasses.fields(Scenario) if f.name != "source"}
-    built = {name: _section(f.default.__class__, data.get(name, {}), "<random scene>", name) for name, f in sections.items()}
-    return Scenario(**built, source="<random scene>")

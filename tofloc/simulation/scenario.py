@@ -325,9 +325,12 @@ def _resolve_extends(data: Mapping[str, Any], source: str, depth: int = 0) -> di
     return merged
 
 
-def scenario_from_dict(data: Mapping[str, Any], source: str = "<scenario>") -> Scenario:
-    """Validate a parsed scenario (missing keys take the defaults of :class:`Scenario`, or
-    those of the shipped scenario ``[scenario] extends`` names)."""
+def scenario_sections(data: Mapping[str, Any], source: str = "<scenario>") -> Scenario:
+    """A parsed scenario's sections, each key of its type and range (missing keys take the
+    defaults of :class:`Scenario`, or those of the shipped scenario ``[scenario] extends``
+    names), WITHOUT the checks across keys of :func:`scenario_from_dict` (the world's
+    geometry, the base's clearance, the protocol's size): for code that builds a scenario
+    step by step (:func:`tofloc.simulation.random_scenes.random_scene` places the base)."""
     sections = {f.name: f for f in fields(Scenario) if f.name != "source"}
     unknown = sorted(set(data) - set(sections))
     if unknown:
@@ -336,6 +339,13 @@ def scenario_from_dict(data: Mapping[str, Any], source: str = "<scenario>") -> S
     built = {name: _section(f.default.__class__, data.get(name, {}), source, name) for name, f in sections.items()}
     sc = Scenario(**built, source=source)
     _check_environment_keys(data.get("environment", {}), sc.environment.kind, source)
+    return sc
+
+
+def scenario_from_dict(data: Mapping[str, Any], source: str = "<scenario>") -> Scenario:
+    """Validate a parsed scenario (missing keys take the defaults of :class:`Scenario`, or
+    those of the shipped scenario ``[scenario] extends`` names)."""
+    sc = scenario_sections(data, source)
     _check_consistency(sc)
     return sc
 
