@@ -9,7 +9,9 @@ batched query over all samples:
 * ``"point_to_plane"``: the nearest map point and its normal
   (:meth:`tofloc.maps.Map.closest_surface_point`);
 * ``"range"``: the zone's ray cast by the shared zone caster
-  (:meth:`tofloc.zone_caster.ZoneCaster.cast_zone_rays`), the hit's plane.
+  (:meth:`tofloc.zone_caster.ZoneCaster.cast_zone_rays`), the hit's plane; with a
+  footprint caster, the expected reading is the zone's footprint's
+  (:func:`footprint_expectation`), as the beam model expects it.
 
 The samples' zones are concatenated once per solve (:class:`~estimators.gtsam_stack.ZoneStack`,
 kept on the :class:`~estimators.gtsam_stack.AssociatedMeasurements` a round returns for the
@@ -35,7 +37,8 @@ from tofloc.problem import Problem
 from tofloc.zone_caster import ZoneCaster
 
 __all__ = ["RESIDUALS", "measurements", "associate", "AssociatedMeasurements", "ZoneStack", "zone_stack",
-           "rotate_by_sample", "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights"]
+           "rotate_by_sample", "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights",
+           "footprint_expectation"]
 
 RESIDUALS = ("point_to_plane", "range")
 FloatArray = NDArray[np.float64]
@@ -210,10 +213,25 @@ def _finite_normals(n: FloatArray) -> FloatArray:
     return np.where(np.isfinite(n).all(axis=1)[:, None], n, _UP)
 
 
-def _changed_by_sample(stack: ZoneStack, key: NDArray[np.int64], inlier: NDArray[np.bool_]) -> list[bool]:
-    """Per member, whether its zones' keys or inlier flags differ from ``key``, ``inlier``."""
+#: A footprint's expected reading that moves its plane by more than this (m) along the
+#: normal changes the association (the plane is no longer the triangle's: its offset moves
+#: with the pose).
+PLANE_MOVED_M = 1e-6
+
+
+def _changed_by_sample(stack: ZoneStack, key: NDArray[np.int64], inlier: NDArray[np.bool_],
+                       planes: tuple[FloatArray, FloatArray] | None = None) -> list[bool]:
+    """Per member, whether its zones' keys or inlier flags differ from ``key``, ``inlier``;
+    with ``planes`` ``(q, n)`` (footprint expectations), also whether a plane's offset
+    ``n . q`` moved by more than :data:`PLANE_MOVED_M` or its normal turned."""
     old_key, old_inlier = stack.previous_association()
-    diff = np.concatenate([[0], np.cumsum((key != old_key) | (inlier != old_inlier))])
+    moved = (key != old_key) | (inlier != old_inlier)
+    if planes is not None:
+        q, n = planes
+        old_q, old_n = stack.association("q", (0, 3)), stack.association("n", (0, 3))
+        offset = np.einsum("ni,ni->n", n, q) - np.einsum("ni,ni->n", old_n, old_q)
+        moved |= ~(np.abs(offset) <= PLANE_MOVED_M) | np.any(n != old_n, axis=1)
+    diff = np.concatenate([[0], np.cumsum(moved)])
     return (diff[stack.bounds[1:]] != diff[stack.bounds[:-1]]).tolist()
 
 
@@ -231,6 +249,7 @@ def associate(
     information_scale: float = 1.0,
     gate_sigmas: float = 0.0,
     config_cov: NDArray[np.float64] | None = None,
+    footprint: ZoneCaster | None = None,
 ) -> tuple[AssociatedMeasurements, list[bool]]:
     """New measurements associated at the given estimate, and per sample whether its
     association changed.
@@ -264,6 +283,9 @@ def associate(
         The configurations' covariances: each zone's variance gains what its sample's
         configuration error does to the zone's distance along the associated plane's normal
         (:func:`tofloc.configuration_uncertainty.normal_variance`; non-finite: nothing).
+    footprint : ZoneCaster, optional
+        ``"range"`` only: each zone's expected reading is its footprint's
+        (:func:`footprint_expectation`); None: its centre ray's.
 
     Returns
     -------
@@ -285,6 +307,8 @@ def associate(
         t = dist = None
     else:
         q, n, key, t, dist = _cast_planes(problem, p, o, u, zones)
+        if footprint is not None:
+            q, t, dist = footprint_expectation(problem, footprint, T_mt, stack.sample, zones, p, o, u, q, t, dist)
     predict = not problem.range_model.use_reported_sigma and sig.size > 0
     n, n_dot_u, dist, t_exp, usable = plane_geometry(p, o, u, q, n, t, dist, predict)
     # the gate with the smaller of the two sigmas: a reading far short of its plane (an
@@ -308,7 +332,8 @@ def associate(
     b = stack.bounds
     out = [m.associated(q[b[k] : b[k + 1]], n[b[k] : b[k + 1]], s[b[k] : b[k + 1]], inlier[b[k] : b[k + 1]],
                         gate_e[b[k] : b[k + 1]], key[b[k] : b[k + 1]]) for k, m in enumerate(stack.members)]
-    return AssociatedMeasurements(out, dataclasses.replace(stack, members=tuple(out))), _changed_by_sample(stack, key, inlier)
+    changed = _changed_by_sample(stack, key, inlier, (q, n) if footprint is not None else None)
+    return AssociatedMeasurements(out, dataclasses.replace(stack, members=tuple(out))), changed
 
 
 def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, zones: NDArray[np.int64],
@@ -326,6 +351,52 @@ def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, 
     q = np.where(hit[:, None], cast.point, o)
     n = np.where(hit[:, None], cast.normal, _UP)
     return q, n, cast.index, t, np.where(hit, np.abs(L - t), np.inf)
+
+
+def footprint_expectation(problem: Problem, caster: ZoneCaster, T_map_tip: list[FloatArray], sample: NDArray[np.intp],
+                          zones: NDArray[np.int64], p: FloatArray, o: FloatArray, u: FloatArray, q: FloatArray,
+                          t: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The range association with each zone's expected reading taken from its footprint.
+
+    A zone is a cone, not a ray: where its footprint spans an edge, or a plane seen
+    obliquely, the sensor reports the signal-weighted mix of its sub-rays (the beam model's
+    expectation, :func:`tofloc.zone_caster.model_caster`), not the centre ray's hit. The
+    footprints of every zone of every sample are cast at the samples' sensor poses
+    (``T_map_tip[k] @ T_tip_sensor``); a zone whose footprint and centre ray both return gets
+    the expected ray length ``t`` = its footprint's reading (times the zone's range factor),
+    its plane's point moved to ``o + t u`` on its ray (the centre hit's normal kept, which
+    linearizes the reading) and its distance ``|L - t|`` to its measured point (``L = |p -
+    o|``); the others keep the centre ray's ``q``, ``t`` and ``dist``.
+
+    Parameters
+    ----------
+    problem : Problem
+    caster : ZoneCaster
+        With footprints (``n_sub > 1``).
+    T_map_tip : list of array (4, 4)
+        One per member of the stack, in order.
+    sample, zones : array (N,)
+        Each zone's member and flat zone index (``sensor * Z + zone``).
+    p, o, u, q : array (N, 3)
+        The zones' measured points, rays and centre-ray hit points.
+    t, dist : array (N,)
+        The centre rays' lengths and distances along the ray (inf without a hit).
+
+    Returns
+    -------
+    q, t, dist : arrays (N, 3), (N,), (N,)
+    """
+    if not T_map_tip:
+        return q, t, dist
+    T_map_sensor = np.stack([Tk @ problem.rig.T_tip_sensor for Tk in T_map_tip])  # (K, S, 4, 4)
+    reading = caster.cast(problem.map, T_map_sensor).reading  # (K, S, Z)
+    Z = problem.rig.n_zones
+    t_fp = reading[sample, zones // Z, zones % Z] * problem.rig.range_factor.reshape(-1)[zones]
+    ok = np.isfinite(t_fp) & np.isfinite(t)
+    L = np.linalg.norm(p - o, axis=1)
+    t_new = np.where(ok, t_fp, t)
+    return (np.where(ok[:, None], o + u * np.where(ok, t_fp, 0.0)[:, None], q), t_new,
+            np.where(ok, np.abs(L - t_new), dist))
 
 
 def _configuration_variance(stack: ZoneStack, T_mb: FloatArray, C: list[FloatArray], D: FloatArray, points: FloatArray,

@@ -27,16 +27,20 @@ Factors
     Python callback per sample per linearization).
 
 Residual kinds (``residual``)
-    ``"point_to_plane"`` (default): each zone's point against the plane of its nearest
-    map point (the map's normal). ``"range"``: the zone's range against the ray cast of
-    the map from the current sensor pose (expected distance; the hit's plane linearizes
-    it). Both whiten to the same value against the same plane; they differ in the data
-    association. Point-to-plane is the default: the nearest-neighbour association moves
-    smoothly with the pose (a ray cast jumps between surfaces at every edge and corner,
-    and on a 2000-point cloud it hits surfels, whose overhang at the open faces' edges
-    creates false hits), it works on any map with normals, and a KD-tree query costs a
-    fraction of a ray cast. The range residual is kept as an option (meshes, clutter
-    where the nearest surface is not the one the ray sees).
+    ``"auto"`` (default): ``"range"`` on a map with triangles (a mesh, or a cloud with an
+    attached surface), ``"point_to_plane"`` on a bare cloud. ``"range"``: the zone's range
+    against the ray cast of the map from the current sensor pose, in two phases: the centre
+    rays' rounds until they settle (they find the basin from farther), then rounds at the
+    last gate where the expected reading is the zone's footprint's (``sub_rays`` per side,
+    signal-weighted, as the beam model expects it: a zone spanning an edge, or a plane seen
+    obliquely, reads a mix its centre ray does not predict), the centre hit's plane
+    linearizing it. ``"point_to_plane"``: each zone's point against the plane of its
+    nearest map point (the map's normal): smooth in the pose, one KD-tree query, and on a
+    bare cloud no surfel overhang (a ray cast of a cloud hits surfels, whose overhang at
+    open faces makes false hits); on triangles it is the wrong plane wherever the nearest
+    surface is not the one the ray sees (edges, corners). Both whiten to the same value
+    against the same plane; they differ in the association (docs/gtsam-smoother.md
+    measures the three).
 
 Sigma of a zone: the problem's range model (:class:`tofloc.range_model.RangeUncertainty`,
 a calibration's when one was given) at the measured distance (bias removed first), along the ray, projected on the normal, with a
@@ -95,6 +99,7 @@ from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 from tofloc.step_progress import report_step
 from tofloc.threads import kdtree_workers
+from tofloc.zone_caster import check_footprint_params
 
 __all__ = ["GTSAMSmoother", "RESIDUALS", "DEFAULT_KNN_SIGMA_M", "DEFAULT_KNN_SIGMA_ROT_DEG"]
 
@@ -116,8 +121,21 @@ class GTSAMSmoother(Estimator):
 
     Parameters
     ----------
-    residual : {"point_to_plane", "range"}
-        Data association and residual kind (see the module doc).
+    residual : {"auto", "range", "point_to_plane"}
+        Data association and residual kind (see the module doc); ``"auto"`` (default):
+        ``"range"`` on a map with a triangle surface, ``"point_to_plane"`` on a bare cloud
+        (:meth:`residual_kind`).
+    sub_rays : int
+        The range residual's expected reading of a zone: its footprint of ``sub_rays`` x
+        ``sub_rays`` sub-rays (1..5), signal-weighted, as the beam model casts it
+        (:func:`tofloc.zone_caster.model_caster`); 1: the centre ray. A calibration given
+        to the smoother is fitted with the same footprint (:meth:`calibration_footprint`).
+    footprint_tolerance : float
+        Negative (default): cast every zone's footprint (K x S x Z x ``sub_rays``^2 rays per
+        association round: once per round, not per particle as in the beam model). With an odd ``sub_rays > 1`` and a tolerance >= 0:
+        cast a zone's footprint only where its centre depth misses the plane of its grid
+        neighbours by more than this (m), spread it over that plane elsewhere (the beam
+        model's 0.01 m leaves edge zones up to 1 cm off their footprint's reading).
     robust : {"cauchy", "huber", "none"}
         Per-zone robust kernel.
     robust_k : float
@@ -228,7 +246,9 @@ class GTSAMSmoother(Estimator):
 
     name: ClassVar[str] = "gtsam_smoother"
 
-    residual: str = "point_to_plane"
+    residual: str = "auto"
+    sub_rays: int = 3
+    footprint_tolerance: float = -1.0
     robust: str = "cauchy"
     robust_k: float = 2.0
     map_sigma: float = 0.003
@@ -258,7 +278,8 @@ class GTSAMSmoother(Estimator):
     merge_starts: bool = False
 
     def __post_init__(self) -> None:
-        check_in("residual", self.residual, RESIDUALS)
+        check_in("residual", self.residual, RESIDUALS + ("auto",))
+        check_footprint_params("", self.sub_rays, self.footprint_tolerance)
         check_in("robust", self.robust, ROBUST_KERNELS)
         check_positive("gate_sigmas", self.gate_sigmas, strict=False)
         for n in ("robust_k", "map_sigma", "information_scale", "gate_m", "gate_start_m", "mocap_sigma_m",
@@ -282,6 +303,20 @@ class GTSAMSmoother(Estimator):
         if not (isinstance(self.marginalize_configurations, bool) or self.marginalize_configurations == "auto"):
             raise ParameterError("marginalize_configurations must be true, false or \"auto\", "
                                  f"got {self.marginalize_configurations!r}")
+
+    def calibration_footprint(self) -> int:
+        """``sub_rays`` unless the residual is always point-to-plane (1): the range residual's
+        expected readings are footprints, and a calibration's bias is relative to them."""
+        return 1 if self.residual == "point_to_plane" else int(self.sub_rays)
+
+    def residual_kind(self, problem: Problem) -> str:
+        """The data association of ``problem``: ``residual``, with ``"auto"`` resolved from
+        the map: ``"range"`` (each zone's ray cast) where the map has a triangle surface (a
+        mesh, or a cloud with one attached: :attr:`tofloc.maps.Map.has_mesh_surface`),
+        ``"point_to_plane"`` on a bare cloud, whose surfels make false hits at open edges."""
+        if self.residual == "auto":
+            return "range" if problem.map.has_mesh_surface else "point_to_plane"
+        return self.residual
 
     def marginalizes(self, problem: Problem) -> bool:
         """Whether the configurations of ``problem`` are marginalized (held, their covariance
@@ -433,7 +468,8 @@ class GTSAMSmoother(Estimator):
             if best is None or run["error"] < best["error"]:
                 best, best_i = run, i
         report_step(len(starts), len(starts))
-        diag: dict[str, Any] = {"starts": runs, "residual": self.residual, "robust": self.robust,
+        diag: dict[str, Any] = {"starts": runs, "residual": graph.residual,
+                                "sub_rays": 1 if graph.footprint is None else graph.footprint.footprint, "robust": self.robust,
                                 "incremental": self.incremental, "nuisance": problem.nuisance.to_json(),
                                 "configurations": "marginalized" if graph.marginalize else "estimated"}
         if best is None:

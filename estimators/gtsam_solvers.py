@@ -28,6 +28,7 @@ from estimators.gtsam_factors import (CallbackClock, SampleMeasurement, StackedM
                                       make_stacked_factor)
 from tofloc import frames
 from tofloc.problem import Problem
+from tofloc.zone_caster import ZoneCaster, model_caster
 
 if TYPE_CHECKING:
     from estimators.gtsam_smoother import GTSAMSmoother
@@ -93,6 +94,13 @@ class SmootherGraph:
         self.stacked = bool(getattr(est, "stacked_factor", True))
         #: configurations held and their covariance added to the zones' variance (else estimated)
         self.marginalize = est.marginalizes(problem)
+        #: the data association (``residual`` resolved from the map: :meth:`GTSAMSmoother.residual_kind`)
+        self.residual = est.residual_kind(problem)
+        #: the range residual's footprints (None: centre rays; the point-to-plane residual)
+        self.footprint: ZoneCaster | None = None
+        if self.residual == "range":
+            caster = model_caster(problem.rig, est.sub_rays, est.footprint_tolerance)
+            self.footprint = caster if caster.n_sub > 1 else None
         #: time (s) in the zone factors' callbacks, in data association and in the solves
         #: (association included) of this graph so far: :meth:`timing`
         self.clock = CallbackClock()
@@ -194,12 +202,16 @@ class SmootherGraph:
         return v
 
     def associate(self, meas: list[SampleMeasurement], xyyaw: FloatArray, C: list[FloatArray], D: FloatArray, gate: float,
-                  bias: FloatArray | None) -> tuple[list[SampleMeasurement], list[bool]]:
+                  bias: FloatArray | None, footprints: bool = False) -> tuple[list[SampleMeasurement], list[bool]]:
+        """:func:`estimators.gtsam_association.associate` with this graph's parameters; with
+        ``footprints`` (and a footprint caster) the zones' footprints give their expected readings."""
         est, cov = self.est, self.problem.T_base_tip_cov
         config_cov = None if cov is None or not self.marginalize else cov
         t0 = time.perf_counter()
-        out = associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=est.residual, map_sigma=est.map_sigma,
-                        information_scale=est.information_scale, gate_sigmas=est.gate_sigmas, config_cov=config_cov)
+        footprint = self.footprint if footprints else None
+        out = associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=self.residual, footprint=footprint,
+                        map_sigma=est.map_sigma, information_scale=est.information_scale, gate_sigmas=est.gate_sigmas,
+                        config_cov=config_cov)
         self.association_s += time.perf_counter() - t0
         return out
 
@@ -274,14 +286,36 @@ class SmootherGraph:
             priors.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*np.asarray(start, dtype=float)[:3]),
                                               gtsam.noiseModel.Isotropic.Sigma(3, FIXED_BASE_SIGMA)))
         values = self.initial_values(start)
-        gates = self.gates()
+        run = self._rounds(priors, meas, values, self.gates(), False, finished)
+        if self.footprint is None or "merged" in run:
+            return run
+        # the centre rays have found the basin and settled (or used their rounds): refine with
+        # the footprints at the last gate (footprints from the first, wide-gate rounds lost
+        # starts that the centre rays walked to the truth: random rooms s0-00 and s0-01,
+        # docs/gtsam-smoother.md)
+        fine = self._rounds(priors, run["meas"], run["values"], [self.gates()[-1]], True, finished)
+        fine["iterations"] += run["iterations"]
+        fine["rounds"] += run["rounds"]
+        return fine
+
+    def _rounds(self, priors: Any, meas: list[SampleMeasurement], values: Any, gates: list[float], footprints: bool,
+                finished: list[FloatArray] | None) -> dict[str, Any]:
+        """Association rounds, each followed by Levenberg-Marquardt, from ``values``: the
+        ``gates`` in turn, then the last one until the association no longer changes, the
+        base moves less than :data:`_STILL` or ``max_rounds`` rounds are done; with
+        ``footprints``, the zones' footprints give their expected readings."""
+        import gtsam
+
+        est = self.est
+        K = self.problem.n_samples
         iterations, rounds, converged = 0, 0, False
         graph = priors
         moved = np.inf
+        before = None  # the base pose two rounds back
         for rnd in range(max(est.max_rounds, len(gates))):
             gate = gates[min(rnd, len(gates) - 1)]
             xyyaw, C, D = self.read(values, K)
-            meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(values))
+            meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(values), footprints)
             rounds += 1
             if rnd >= len(gates) and (not any(changed) or moved < _STILL):
                 converged = True
@@ -298,6 +332,11 @@ class SmootherGraph:
             iterations += int(opt.iterations())
             x_new = self.read(new_values, K)[0]
             moved = base_change(x_new, xyyaw)
+            if footprints and before is not None and base_change(x_new, before) < _STILL:
+                # back where it was two rounds ago: footprints flipping between two poses
+                # (seen in a wrong basin, 0.5 mm / 0.1 deg apart) settle no further
+                moved = 0.0
+            before = xyyaw
             values = new_values
             for j, P in enumerate(finished or ()):
                 if np.hypot(*(x_new[:2] - P[:2])) <= MERGE_M and abs(float(frames.wrap_angle(x_new[2] - P[2]))) <= MERGE_RAD:
@@ -375,7 +414,8 @@ class SmootherGraph:
                         break
                 est_v = isam.calculateEstimate()
                 xyyaw, C, D = self.read(est_v, k + 1)
-                meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(est_v))
+                # footprints from the last gate on (the batch solve's second phase)
+                meas, changed = self.associate(meas, xyyaw, C, D, gate, self.bias(est_v), rnd >= len(gates) - 1)
                 rounds += 1
                 if rnd >= len(gates) - 1 and not any(changed):
                     ok = True

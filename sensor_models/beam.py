@@ -82,7 +82,7 @@ from tofloc.problem import Problem, check_in, check_int
 from tofloc.range_model import RangeUncertainty, edge_zone_mask
 from tofloc.rig import zone_widths
 from tofloc.toml_tables import params_from_table, params_from_toml
-from tofloc.zone_caster import FOOTPRINT_PIECE_BYTES, PlanarZoneRays, ZoneCaster
+from tofloc.zone_caster import FOOTPRINT_PIECE_BYTES, PlanarZoneRays, check_footprint_params, model_caster
 
 __all__ = ["BeamMixture", "BeamModel", "BoundBeamModel", "NO_TARGET_STATUS", "check_temper", "REFIT_ITERATIONS", "REFIT_TOLERANCE", "REFIT_SHORT_MAX",
            "REFIT_SIGMA_MAX"]
@@ -337,10 +337,7 @@ class BeamModel(SensorModel):
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= 0.3:
             raise ParameterError(f"beam.outlier_floor must be in [0, 0.3], got {v!r}")
         check_temper("beam", self.temper)
-        check_int("beam.sub_rays", self.sub_rays, 1, 5)
-        f = self.footprint_tolerance
-        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f):
-            raise ParameterError(f"beam.footprint_tolerance must be a finite number of metres (negative: every footprint), got {f!r}")
+        check_footprint_params("beam.", self.sub_rays, self.footprint_tolerance)
 
     def calibration_footprint(self) -> int:
         """``sub_rays``: a calibration for this model is fitted with the same footprint."""
@@ -368,9 +365,7 @@ class BoundBeamModel(BoundSensorModel):
             self.mixture, self.mixture_source = BeamMixture(), "defaults"
         self.mixture = self.mixture.with_outlier_floor(model.outlier_floor)
         self.state = declared_state(problem, model.nuisances)
-        tol = float(model.footprint_tolerance)
-        caster = ZoneCaster(problem.rig, footprint=int(model.sub_rays),
-                            footprint_tolerance=tol if tol >= 0 and int(model.sub_rays) % 2 == 1 else None)
+        caster = model_caster(problem.rig, model.sub_rays, model.footprint_tolerance)
         T_lift_tip = problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip
         self.rays = PlanarZoneRays(caster, problem.rig.T_tip_sensor, T_lift_tip)
         self.n_steps = problem.n_samples

@@ -579,6 +579,13 @@ class Map:
         return self._surface
 
     @property
+    def has_mesh_surface(self) -> bool:
+        """Whether ray casts and closest surface points use a triangle mesh (a mesh map, or
+        a cloud with an attached :attr:`surface`), rather than a bare cloud's surfels and
+        estimated normals."""
+        return self.kind == "mesh" or self._surface is not None
+
+    @property
     def known_space(self) -> Any:
         """Where this map knows anything (:class:`tofloc.known_space.KnownSpace`), or None:
         everywhere (a CAD model). A map built from scans carries the cells its scans crossed

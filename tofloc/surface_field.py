@@ -190,7 +190,7 @@ class SurfaceField:
 def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
     """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field`` (a
     cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's)."""
-    if the_map.kind == "mesh" or getattr(the_map, "surface", None) is not None:
+    if the_map.has_mesh_surface:
         closest, normal = the_map.closest_surface_point(nodes)
         diff = nodes - closest
         dist = np.linalg.norm(diff, axis=1)

@@ -70,7 +70,8 @@ from tofloc import numba_kernels
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig, Sensor
 
-__all__ = ["WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions"]
+__all__ = ["WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions",
+           "check_footprint_params", "model_caster"]
 
 WEIGHTINGS = ("signal", "mean")
 #: Largest footprint (sub-rays per side).
@@ -83,6 +84,28 @@ FOOTPRINT_PIECE_BYTES = 32 * 2**20
 CORNER_ANGLE_DEG = 30.0
 
 FloatArray = NDArray[np.float64]
+
+
+def check_footprint_params(prefix: str, sub_rays: Any, footprint_tolerance: Any) -> None:
+    """Refuse a model's ``sub_rays`` outside 1..5 or a non-finite ``footprint_tolerance``
+    (:func:`model_caster`), naming the parameters with ``prefix`` (``"beam."``, ``""``)."""
+    if not isinstance(sub_rays, (int, np.integer)) or isinstance(sub_rays, bool) or not 1 <= sub_rays <= 5:
+        raise ParameterError(f"{prefix}sub_rays must be an integer in [1, 5], got {sub_rays!r}")
+    f = footprint_tolerance
+    if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f):
+        raise ParameterError(f"{prefix}footprint_tolerance must be a finite number of metres (negative: every footprint), "
+                             f"got {f!r}")
+
+
+def model_caster(rig: Rig, sub_rays: int, footprint_tolerance: float) -> "ZoneCaster":
+    """The zone caster of a model's expected readings (the beam model's, the smoother's
+    range residual): footprints of ``sub_rays`` per side, signal-weighted; with an odd
+    ``sub_rays > 1`` and ``footprint_tolerance >= 0`` cast only for the zones whose centre
+    depth misses the plane of their neighbours by more than the tolerance (module doc), a
+    negative tolerance or an even ``sub_rays`` casting every footprint."""
+    tol = float(footprint_tolerance)
+    return ZoneCaster(rig, footprint=int(sub_rays),
+                      footprint_tolerance=tol if tol >= 0 and int(sub_rays) % 2 == 1 else None)
 
 
 def subray_directions(sensor: Sensor, n_sub: int) -> FloatArray:

@@ -1,0 +1,124 @@
+"""The GTSAM smoother's range residual with footprints: a zone's expected reading is the
+signal-weighted reading of its footprint (estimators.gtsam_association.footprint_expectation,
+the beam model's expectation), not its centre ray's hit; ``residual="auto"`` takes the range
+residual on maps with a triangle surface and point-to-plane on bare clouds."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gtsam")
+
+from estimators.gtsam_association import associate, measurements  # noqa: E402
+from estimators.gtsam_smoother import GTSAMSmoother  # noqa: E402
+from tofloc import frames  # noqa: E402
+from tofloc.errors import ParameterError  # noqa: E402
+from tofloc.maps import Map  # noqa: E402
+from tofloc.problem import Problem  # noqa: E402
+from tofloc.testing import easy_problem  # noqa: E402
+from tofloc.zone_caster import ZoneCaster, model_caster  # noqa: E402
+
+ROOM = dict(size=(0.7, 0.7, 0.6), origin=(-0.35, -0.35, 0.0), open_faces=("+z", "+y"))
+
+
+def _footprint_problem() -> tuple[Problem, np.ndarray]:
+    """The easy problem in its CAD room (a mesh), read as 3 x 3 footprints (every footprint
+    cast, no noise): zones that straddle the room's edges and its open face read a mix."""
+    p, truth = easy_problem(n_samples=3)
+    room = Map.cuboid(**ROOM)
+    T_map_sensor = p.prior.T_map_base(truth) @ p.T_base_tip[:, None] @ p.rig.T_tip_sensor[None]
+    reading = ZoneCaster(p.rig, footprint=3).cast(room, T_map_sensor).reading
+    status = np.where(np.isfinite(reading), 5, 255).astype(np.uint8)
+    return dataclasses.replace(p, map=room, distance_m=reading, status=status), truth
+
+
+def _distances(problem: Problem, truth: np.ndarray, footprint: ZoneCaster | None) -> tuple[np.ndarray, np.ndarray]:
+    """Every zone's distance along its ray to its expected reading at the truth, and where
+    its centre ray hits the map (a plane)."""
+    meas = measurements(problem)
+    assoc, _ = associate(problem, meas, truth, list(problem.T_base_tip), np.eye(4), 10.0, residual="range",
+                         footprint=footprint)
+    T = [problem.prior.T_map_base(truth) @ problem.T_base_tip[k] for k in range(problem.n_samples)]
+    out, hit = [], []
+    for k, m in enumerate(assoc):
+        p = frames.transform_points(T[k], m.p_tip)
+        o = frames.transform_points(T[k], m.o_tip)
+        out.append(np.abs(np.linalg.norm(p - o, axis=1) - np.linalg.norm(m.q - o, axis=1)))
+        hit.append(np.linalg.norm(m.q - o, axis=1) > 0)
+    return np.concatenate(out), np.concatenate(hit)
+
+
+def test_the_footprint_association_expects_each_zone_s_footprint_reading() -> None:
+    p, truth = _footprint_problem()
+    est = GTSAMSmoother()
+    with_fp, hit = _distances(p, truth, model_caster(p.rig, est.sub_rays, est.footprint_tolerance))
+    centre, hit_c = _distances(p, truth, None)
+    assert with_fp.size == centre.size == int(p.valid.sum()) > 100
+    # the zones whose centre ray passes through the open face have no plane (10 here)
+    np.testing.assert_array_equal(hit, hit_c)
+    assert 0 < np.sum(~hit) < 20
+    # at the truth each footprint-read zone sits on its expected reading
+    assert np.max(with_fp[hit]) < 1e-9, np.max(with_fp[hit])
+    # the centre rays miss the mixed zones by millimetres to centimetres
+    assert np.max(centre[hit]) > 0.01 and np.sum(centre[hit] > 1e-3) >= 5, (np.max(centre[hit]), np.sum(centre[hit] > 1e-3))
+    # the beam model's tolerance (footprints cast at the rough zones only) leaves edge zones off
+    tol, _ = _distances(p, truth, model_caster(p.rig, 3, 0.01))
+    assert 1e-3 < np.max(tol[hit]) < 0.02
+
+
+def test_the_smoother_recovers_the_truth_from_footprint_readings() -> None:
+    """Noise-free footprint readings, the prior centred on the truth: the footprint
+    expectation is the data's own model, so the answer is the truth; the centre ray and
+    point-to-plane miss the mixed zones and land off it."""
+    p, truth = _footprint_problem()
+    p = dataclasses.replace(p, prior=dataclasses.replace(p.prior, mean=truth))
+    errors = {}
+    for name, kw in (("footprint", {}), ("centre", {"sub_rays": 1}), ("point_to_plane", {"residual": "point_to_plane"})):
+        r = GTSAMSmoother(n_starts=1, n_candidates=0, **kw).estimate(p, np.random.default_rng(0))
+        errors[name] = (float(np.hypot(*(r.pose[:2] - truth[:2]))),
+                        math.degrees(abs(float(frames.wrap_angle(r.pose[2] - truth[2])))))
+        assert (r.diagnostics["residual"], r.diagnostics["sub_rays"]) == {"footprint": ("range", 3), "centre": ("range", 1),
+                                                                         "point_to_plane": ("point_to_plane", 1)}[name]
+    assert errors["footprint"][0] < 1e-6 and errors["footprint"][1] < 1e-4, errors
+    assert errors["centre"][1] > 0.05 and errors["point_to_plane"][1] > 0.05, errors
+
+
+def test_auto_takes_the_range_residual_on_triangles_and_point_to_plane_on_bare_clouds() -> None:
+    cloud_problem, _ = easy_problem(n_samples=2)
+    mesh = Map.cuboid(**ROOM)
+    cases = {"bare cloud": (cloud_problem, "point_to_plane", 1),
+             "mesh": (dataclasses.replace(cloud_problem, map=mesh), "range", 3),
+             "cloud with a surface": (dataclasses.replace(cloud_problem, map=cloud_problem.map.with_surface(mesh)), "range", 3)}
+    for name, (prob, kind, sub) in cases.items():
+        est = GTSAMSmoother(n_starts=1, n_candidates=0)
+        assert est.residual_kind(prob) == kind, name
+        d = est.estimate(prob, np.random.default_rng(0)).diagnostics
+        assert (d["residual"], d["sub_rays"]) == (kind, sub), name
+        assert GTSAMSmoother(residual="point_to_plane").residual_kind(prob) == "point_to_plane"
+        assert GTSAMSmoother(residual="range").residual_kind(prob) == "range"
+    assert [GTSAMSmoother(**kw).calibration_footprint() for kw in
+            ({}, {"residual": "range"}, {"residual": "point_to_plane"}, {"sub_rays": 1}, {"sub_rays": 5})] == [3, 3, 1, 1, 5]
+
+
+@pytest.mark.parametrize("kw,message", [
+    ({"sub_rays": 0}, "sub_rays must be an integer in [1, 5], got 0"),
+    ({"sub_rays": 6}, "sub_rays must be an integer in [1, 5], got 6"),
+    ({"sub_rays": True}, "sub_rays must be an integer in [1, 5], got True"),
+    ({"sub_rays": 2.0}, "sub_rays must be an integer in [1, 5], got 2.0"),
+    ({"footprint_tolerance": float("nan")},
+     "footprint_tolerance must be a finite number of metres (negative: every footprint), got nan"),
+    ({"footprint_tolerance": "0.01"},
+     "footprint_tolerance must be a finite number of metres (negative: every footprint), got '0.01'"),
+    ({"residual": "ray"}, "residual"),
+])
+def test_bad_footprint_parameters_are_refused(kw: dict, message: str) -> None:
+    with pytest.raises(ParameterError) as e:
+        GTSAMSmoother(**kw)
+    if kw.get("residual"):
+        assert "'ray'" in str(e.value) and "auto" in str(e.value)
+    else:
+        assert str(e.value) == message
