@@ -256,7 +256,7 @@ class SmootherGraph:
 
     # -- batch solve ---------------------------------------------------------------------------
     def solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False,
-                    finished: list[FloatArray] | None = None) -> dict[str, Any]:
+                    finished: list[FloatArray] | None = None, refine: bool = True) -> dict[str, Any]:
         """Association rounds, each followed by Levenberg-Marquardt, from ``start``.
 
         ``fix_base``: the base pose is held at ``start`` (a prior of :data:`FIXED_BASE_SIGMA`
@@ -264,17 +264,41 @@ class SmootherGraph:
         profiled over them at that base pose (:meth:`estimators.gtsam_smoother.GTSAMSmoother.log_target`).
         ``finished``: the base poses ``(x, y, yaw)`` other starts converged to; once a round
         leaves this start within :data:`MERGE_M` and :data:`MERGE_RAD` of one of them, it
-        stops there (``"merged"``: that pose's index): it is in that start's basin. The
-        time taken is added to :meth:`timing`.
+        stops there (``"merged"``: that pose's index): it is in that start's basin.
+        ``refine``: with a footprint caster, the second phase (:meth:`refine`) follows the
+        centre rays' (False: the centre rays' alone, as the estimator runs its starts before
+        refining the best). The time taken is added to :meth:`timing`.
         """
         t0, a0, c0 = time.perf_counter(), self.association_s, self.clock.seconds
         try:
-            return self._solve_batch(meas, start, fix_base, finished)
+            return self._solve_batch(meas, start, fix_base, finished, refine)
         finally:
             self._add_solve_time(t0, a0, c0)
 
+    def refine(self, run: dict[str, Any]) -> dict[str, Any]:
+        """The footprints' rounds from a finished batch run of the centre rays (the second
+        phase of :meth:`solve_batch`); ``run`` itself without a footprint caster. The time
+        taken is added to :meth:`timing`."""
+        if self.footprint is None:
+            return run
+        t0, a0, c0 = time.perf_counter(), self.association_s, self.clock.seconds
+        try:
+            return self._refined(self.priors(), run, None)
+        finally:
+            self._add_solve_time(t0, a0, c0)
+
+    def _refined(self, priors: Any, run: dict[str, Any], finished: list[FloatArray] | None) -> dict[str, Any]:
+        """``run`` continued with footprints at the last gate, its iterations and rounds added."""
+        # the centre rays have found the basin and settled (or used their rounds): footprints
+        # from the first, wide-gate rounds lost starts that the centre rays walked to the
+        # truth (random rooms s0-00 and s0-01, docs/gtsam-smoother.md)
+        fine = self._rounds(priors, run["meas"], run["values"], [self.gates()[-1]], True, finished)
+        fine["iterations"] += run["iterations"]
+        fine["rounds"] += run["rounds"]
+        return fine
+
     def _solve_batch(self, meas: list[SampleMeasurement], start: FloatArray, fix_base: bool = False,
-                     finished: list[FloatArray] | None = None) -> dict[str, Any]:
+                     finished: list[FloatArray] | None = None, refine: bool = True) -> dict[str, Any]:
         """The body of :meth:`solve_batch`."""
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
@@ -287,16 +311,9 @@ class SmootherGraph:
                                               gtsam.noiseModel.Isotropic.Sigma(3, FIXED_BASE_SIGMA)))
         values = self.initial_values(start)
         run = self._rounds(priors, meas, values, self.gates(), False, finished)
-        if self.footprint is None or "merged" in run:
+        if self.footprint is None or "merged" in run or not refine:
             return run
-        # the centre rays have found the basin and settled (or used their rounds): refine with
-        # the footprints at the last gate (footprints from the first, wide-gate rounds lost
-        # starts that the centre rays walked to the truth: random rooms s0-00 and s0-01,
-        # docs/gtsam-smoother.md)
-        fine = self._rounds(priors, run["meas"], run["values"], [self.gates()[-1]], True, finished)
-        fine["iterations"] += run["iterations"]
-        fine["rounds"] += run["rounds"]
-        return fine
+        return self._refined(priors, run, finished)
 
     def _rounds(self, priors: Any, meas: list[SampleMeasurement], values: Any, gates: list[float], footprints: bool,
                 finished: list[FloatArray] | None) -> dict[str, Any]:
