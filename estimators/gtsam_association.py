@@ -388,7 +388,7 @@ def footprint_expectation(problem: Problem, caster: ZoneCaster, T_map_tip: list[
     """
     if not T_map_tip:
         return q, t, dist
-    T_map_sensor = np.stack([Tk @ problem.rig.T_tip_sensor for Tk in T_map_tip])  # (K, S, 4, 4)
+    T_map_sensor = np.asarray(T_map_tip)[:, None] @ problem.rig.T_tip_sensor[None]  # (K, S, 4, 4)
     reading = caster.cast(problem.map, T_map_sensor).reading  # (K, S, Z)
     Z = problem.rig.n_zones
     t_fp = reading[sample, zones // Z, zones % Z] * problem.rig.range_factor.reshape(-1)[zones]

@@ -87,6 +87,19 @@ def test_the_smoother_recovers_the_truth_from_footprint_readings() -> None:
     assert errors["centre"][1] > 0.05 and errors["point_to_plane"][1] > 0.05, errors
 
 
+def test_the_incremental_solve_refreshes_footprints_too() -> None:
+    """ISAM2 associates with footprints from the last gate on: the same exact answer."""
+    p, truth = _footprint_problem()
+    p = dataclasses.replace(p, prior=dataclasses.replace(p.prior, mean=truth))
+    r = GTSAMSmoother(n_starts=1, n_candidates=0, incremental=True).estimate(p, np.random.default_rng(0))
+    c = GTSAMSmoother(n_starts=1, n_candidates=0, incremental=True, sub_rays=1).estimate(p, np.random.default_rng(0))
+    assert r.diagnostics["sub_rays"] == 3 and c.diagnostics["sub_rays"] == 1
+    e_g = math.degrees(abs(float(frames.wrap_angle(r.pose[2] - truth[2]))))
+    e_c = math.degrees(abs(float(frames.wrap_angle(c.pose[2] - truth[2]))))
+    assert float(np.hypot(*(r.pose[:2] - truth[:2]))) < 1e-5 and e_g < 1e-3, (r.pose, truth)
+    assert e_c > 0.05, e_c
+
+
 def test_auto_takes_the_range_residual_on_triangles_and_point_to_plane_on_bare_clouds() -> None:
     cloud_problem, _ = easy_problem(n_samples=2)
     mesh = Map.cuboid(**ROOM)

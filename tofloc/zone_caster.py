@@ -89,8 +89,9 @@ FloatArray = NDArray[np.float64]
 def check_footprint_params(prefix: str, sub_rays: Any, footprint_tolerance: Any) -> None:
     """Refuse a model's ``sub_rays`` outside 1..5 or a non-finite ``footprint_tolerance``
     (:func:`model_caster`), naming the parameters with ``prefix`` (``"beam."``, ``""``)."""
-    if not isinstance(sub_rays, (int, np.integer)) or isinstance(sub_rays, bool) or not 1 <= sub_rays <= 5:
-        raise ParameterError(f"{prefix}sub_rays must be an integer in [1, 5], got {sub_rays!r}")
+    from tofloc.problem import check_int
+
+    check_int(f"{prefix}sub_rays", sub_rays, 1, 5)
     f = footprint_tolerance
     if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f):
         raise ParameterError(f"{prefix}footprint_tolerance must be a finite number of metres (negative: every footprint), "
