@@ -250,6 +250,7 @@ def associate(
     gate_sigmas: float = 0.0,
     config_cov: NDArray[np.float64] | None = None,
     footprint: ZoneCaster | None = None,
+    centre: ZoneCaster | None = None,
 ) -> tuple[AssociatedMeasurements, list[bool]]:
     """New measurements associated at the given estimate, and per sample whether its
     association changed.
@@ -286,6 +287,9 @@ def associate(
     footprint : ZoneCaster, optional
         ``"range"`` only: each zone's expected reading is its footprint's
         (:func:`footprint_expectation`); None: its centre ray's.
+    centre : ZoneCaster, optional
+        ``"range"`` only: the caster of the centre rays, the problem's rig's
+        (``ZoneCaster(problem.rig)``, built here when None; a solve passes its own, built once).
 
     Returns
     -------
@@ -306,7 +310,7 @@ def associate(
         q, n, key = problem.map.closest_surface_point_and_key(p)
         t = dist = None
     else:
-        q, n, key, t, dist = _cast_planes(problem, p, o, u, zones)
+        q, n, key, t, dist = _cast_planes(problem, p, o, u, zones, centre)
         if footprint is not None:
             q, t, dist = footprint_expectation(problem, footprint, T_mt, stack.sample, zones, p, o, u, q, t, dist)
     predict = not problem.range_model.use_reported_sigma and sig.size > 0
@@ -337,13 +341,15 @@ def associate(
 
 
 def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, zones: NDArray[np.int64],
+                 centre: ZoneCaster | None = None,
                  ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray, FloatArray]:
     """The planes of the ``"range"`` association: every zone's ray cast by the shared
     zone caster. Returns the hit points ``q`` and normals ``n`` (the ray's origin and
     ``+z`` without a hit), the hit's key, the ray length ``t`` to the hit and the distance
     along the ray between the zone's point and the hit (inf without a hit)."""
     Z = problem.rig.n_zones
-    cast = ZoneCaster(problem.rig).cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
+    caster = ZoneCaster(problem.rig) if centre is None else centre
+    cast = caster.cast_zone_rays(problem.map, o, u, zones // Z, zones % Z)
     assert cast.point is not None and cast.normal is not None and cast.index is not None
     hit = np.isfinite(cast.reading)
     L = np.linalg.norm(p - o, axis=1)  # the measured point's distance along the ray

@@ -98,7 +98,10 @@ class SmootherGraph:
         self.residual = est.residual_kind(problem)
         #: the range residual's footprints (None: centre rays; the point-to-plane residual)
         self.footprint: ZoneCaster | None = None
+        #: the range residual's centre rays (None: point-to-plane)
+        self.centre: ZoneCaster | None = None
         if self.residual == "range":
+            self.centre = ZoneCaster(problem.rig)
             caster = model_caster(problem.rig, est.sub_rays, est.footprint_tolerance)
             self.footprint = caster if caster.n_sub > 1 else None
         #: time (s) in the zone factors' callbacks, in data association and in the solves
@@ -209,7 +212,7 @@ class SmootherGraph:
         config_cov = None if cov is None or not self.marginalize else cov
         t0 = time.perf_counter()
         footprint = self.footprint if footprints else None
-        out = associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=self.residual, footprint=footprint,
+        out = associate(self.problem, meas, xyyaw, C, D, gate, bias, residual=self.residual, footprint=footprint, centre=self.centre,
                         map_sigma=est.map_sigma, information_scale=est.information_scale, gate_sigmas=est.gate_sigmas,
                         config_cov=config_cov)
         self.association_s += time.perf_counter() - t0

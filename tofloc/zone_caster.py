@@ -540,8 +540,9 @@ class ZoneCaster:
         reading = t * self.along[s, z, 0]
         ret = np.isfinite(t) & (reading >= self.min_range) & (reading <= self.max_reading[s])
         nrm = np.asarray(hits.normal, dtype=float)
-        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(nrm), d))
-        facing = np.where((np.einsum("...i,...i->...", np.nan_to_num(nrm), d) > 0)[..., None], -nrm, nrm)
+        n_dot_d = np.einsum("...i,...i->...", np.nan_to_num(nrm), d)
+        cos_i = np.abs(n_dot_d)
+        facing = np.where((n_dot_d > 0)[..., None], -nrm, nrm)
         return ZoneCast(
             reading=np.where(ret, reading, np.nan),
             hit_fraction=ret.astype(float),
