@@ -92,6 +92,7 @@ from numpy.typing import NDArray
 
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
+from estimators.gtsam_map_tolerance import map_tolerance_covariance
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
 from tofloc import frames
@@ -491,7 +492,7 @@ class GTSAMSmoother(Estimator):
         if "refit" in diag or refined:  # the best start's mode is the answer (its error stays the first pass's, comparable)
             runs[best_i]["pose"] = pose.tolist()
         t_cov = time.perf_counter()
-        cov, cov_note = self._covariance(best, values, problem)
+        cov, cov_note = self._covariance(best, values, problem, graph, diag)
         diag["time_s"] = {"starts": starts_s, **graph.timing(), "covariance": time.perf_counter() - t_cov}
         inl = np.concatenate([m.inlier for m in best["meas"]])
         diag.update(
@@ -533,7 +534,12 @@ class GTSAMSmoother(Estimator):
         diag["refit"] = {"first_pose": first.tolist(), "params": {"place_correlation": rho}}
         return run
 
-    def _covariance(self, run: dict[str, Any], values: Any, problem: Problem) -> tuple[FloatArray, str]:
+    def _covariance(self, run: dict[str, Any], values: Any, problem: Problem, graph: SmootherGraph,
+                    diag: dict[str, Any]) -> tuple[FloatArray, str]:
+        """The base's covariance in the map frame and where it came from; with a declared
+        map tolerance on a map with faces, what the faces' offsets add
+        (:func:`estimators.gtsam_map_tolerance.map_tolerance_covariance`, batch solves;
+        ``diag["map_tolerance"]`` says what was added, or why nothing was)."""
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
 
@@ -542,6 +548,21 @@ class GTSAMSmoother(Estimator):
                 body = np.asarray(run["isam"].marginalCovariance(Xk(0)))
             else:
                 body = np.asarray(gtsam.Marginals(run["graph"], values).marginalCovariance(Xk(0)))
+            tol = problem.map_tolerance_m
+            if tol > 0:
+                if not problem.map.has_mesh_surface:
+                    diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
+                                             "reason": "the map has no faces (a bare cloud): nothing added"}
+                elif "isam" in run:
+                    diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
+                                             "reason": "the incremental solve does not add it (batch solves only)"}
+                else:
+                    add, n_faces = map_tolerance_covariance(
+                        problem, run["meas"], values, run["graph"], kernel=self.robust, k=self.robust_k,
+                        use_rig=graph.use_rig, use_bias=graph.use_bias, R_tilt=graph.R_tilt, tolerance_m=tol)
+                    body = body + add
+                    diag["map_tolerance"] = {"tolerance_m": tol, "added": True, "faces": n_faces,
+                                             "added_sigma": np.sqrt(np.clip(np.diag(add), 0.0, None)).tolist()}
         except RuntimeError as e:
             if not is_indeterminate(e):
                 raise

@@ -505,16 +505,10 @@ def crlb_bounds_for_problem(problem: Any, T_map_base_true: ArrayLike, *,
 
 
 def face_labels(mesh: Any) -> NDArray[np.int64]:
-    """``(T,)``: the planar face each triangle of a mesh map belongs to (triangles whose
-    normals agree within 1e-3 and whose planes within 1 mm share a label)."""
-    n = mesh.face_normals()
-    tri = mesh.triangles()
-    if n is None or tri is None:
-        raise ParameterError(f"face labels need a mesh map; {getattr(mesh, 'source', 'the map')!r} is a "
-                             f"{getattr(mesh, 'kind', 'map')!r} map (give its CAD mesh, e.g. DIR/NAME.cad.ply)")
-    offset = np.einsum("ij,ij->i", n, mesh.points[tri[:, 0]])
-    key = np.round(np.column_stack([np.nan_to_num(n) * 1e3, offset * 1e3])).astype(np.int64)
-    return np.unique(key, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+    """``(T,)``: the planar face each triangle of a mesh map belongs to
+    (:meth:`tofloc.maps.Map.planar_faces`: triangles whose normals agree within 1e-3 and
+    whose planes within 1 mm share a label)."""
+    return mesh.planar_faces()
 
 
 def map_tolerance_information(

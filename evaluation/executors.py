@@ -99,7 +99,7 @@ def warm_caches(context: Contexts, tasks: Sequence[TrialTask], by_file: bool = F
             prior = task.prior.make(ctx.truth(idx), normals, ctx.map)  # a global prior: its free space is cached too
             calibration = ctx.calibration_for(est)
             problem = problem_from_log(ctx.log, idx, ctx.map, prior, task.tip_source, ctx.kinematics, calibration,
-                                       ctx.valid_statuses)
+                                       ctx.valid_statuses, ctx.map_tolerance_m)
             if hasattr(est, "make_sensor_model"):
                 est.make_sensor_model().bind(problem)
             elif type(est).prepare is not Estimator.prepare:  # it says what it caches

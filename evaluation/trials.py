@@ -354,7 +354,8 @@ class TrialContext:
         computed with it.
     map_tolerance_m : float
         The map's declared face tolerance (m; 0: exact), counted by the Cramér-Rao bound
-        (:func:`evaluation.crlb.map_tolerance_information`); the estimators do not see it.
+        (:func:`evaluation.crlb.map_tolerance_information`), and given to every problem
+        (:attr:`tofloc.problem.Problem.map_tolerance_m`: the smoother's covariance counts it).
     footprint_calibrations : dict of int to SensorCalibration
         Calibrations fitted with other footprints than the centre ray's, for estimators
         whose model casts one (:meth:`~tofloc.problem.Estimator.calibration_footprint`;
@@ -525,7 +526,7 @@ def trial_problem(context: TrialContext, task: TrialTask, est: Estimator) -> tup
                              "depend on the estimator's own answers)")
     idx, truth_T, prior = _drawn(context, task)
     problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics,
-                               context.calibration_for(est), context.valid_statuses)
+                               context.calibration_for(est), context.valid_statuses, context.map_tolerance_m)
     return problem, idx, truth_T
 
 
@@ -553,7 +554,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
         chosen = choose_sequentially(context, task, est, prior, calibration)
         idx, truth_T = chosen.indices, context.truth(chosen.indices)
         problem = problem_from_log(context.log, idx, context.map, prior, task.tip_source, context.kinematics, calibration,
-                                   context.valid_statuses)
+                                   context.valid_statuses, context.map_tolerance_m)
     setup_s = warm_up(est, task, problem, context)
     _, est_rng = trial_rngs(task.seed)
     result = est.estimate(problem, est_rng)
@@ -578,7 +579,7 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     calibration = context.calibration_for(est)
     idx, _, prior = _drawn(context, task)
     problems = [problem_from_log(context.log, idx[:k], context.map, prior, task.tip_source, context.kinematics, calibration,
-                                 context.valid_statuses) for k in ks]
+                                 context.valid_statuses, context.map_tolerance_m) for k in ks]
     setup_s = warm_up(est, task, problems[-1], context)
     prefixes = getattr(est, "estimate_prefixes", None)
     results = None if prefixes is None else prefixes(problems[-1], trial_rngs(task.seed)[1], ks)

@@ -699,6 +699,13 @@ def localize_prior(
     return PriorSpec(mode, sigma_xy, sigma_yaw_deg)
 
 
+def _map_tolerance(value: Any) -> float:
+    """A declared map tolerance (m) checked: a finite number in [0, 1]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) <= 1.0:
+        raise ParameterError(f"--map-tolerance: expected a number of metres in [0, 1], got {value!r}")
+    return float(value)
+
+
 def localize(
     log: Any,
     estimator_name: str,
@@ -719,6 +726,7 @@ def localize(
     reporter: Reporter = _SILENT,
     plot: str | os.PathLike[str] | None = None,
     selection: str = "random",
+    map_tolerance_m: float = 0.0,
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -754,6 +762,10 @@ def localize(
     selection : str
         How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
         protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
+    map_tolerance_m : float
+        The map's declared face tolerance (m, one sigma; 0: exact): given to every problem
+        (:attr:`tofloc.problem.Problem.map_tolerance_m`, the smoother's covariance) and to
+        the Cramér-Rao bound with map tolerance.
 
     Returns
     -------
@@ -785,6 +797,7 @@ def localize(
 
     check_scheduler(scheduler)
     resolve_workers(workers, 1)  # refused before the log and map are read
+    map_tolerance_m = _map_tolerance(map_tolerance_m)
     if tip_source not in TIP_SOURCES:
         raise ParameterError(f"tip source must be one of {', '.join(TIP_SOURCES)}, got {tip_source!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -842,7 +855,7 @@ def localize(
     prior.check_truth_in_region(lg.T_map_base, str(lg.path))  # before the trials
     pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
     k = pool.indices.size if samples is None else samples
-    context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal)
+    context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal, map_tolerance_m=map_tolerance_m)
     tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
                        selection)
     reporter.note(f"samples: {pool.note}")
@@ -884,6 +897,7 @@ def localize(
         "valid_statuses": sorted(valid_statuses),
         "calibration": None if cal is None else cal.source,
         "calibration_used": bool(cal is not None and est.uses_calibration()),
+        "map_tolerance_m": context.map_tolerance_m,
         "provenance": provenance(),
     }
     return LocalizeResult(records, summary, doc, has_truth)

@@ -242,6 +242,7 @@ class Map:
         self._face_areas: NDArray[np.float64] | None = None
         self._spacing: float | None = None
         self._surface: Map | None = None
+        self._planar_faces: NDArray[np.int64] | None = None
 
     # ---- construction ----------------------------------------------------------------
     @classmethod
@@ -490,6 +491,27 @@ class Map:
     def face_normals(self) -> NDArray[np.float64] | None:
         """``(T, 3)`` unit winding normals of a mesh (NaN for degenerate faces); ``None`` for a cloud."""
         return self._face_normals
+
+    def planar_faces(self) -> NDArray[np.int64]:
+        """``(T,)``: the planar face each triangle of this mesh belongs to (triangles whose
+        normals agree within 1e-3 and whose planes within 1 mm share a label, numbered from
+        0), built once. What a CAD tolerance moves: a face as a whole, not each triangle
+        (:func:`evaluation.crlb.map_tolerance_information`, the smoother's covariance).
+
+        Raises
+        ------
+        ParameterError
+            On a point cloud (give its CAD mesh, or use :attr:`surface`).
+        """
+        n, tri = self._face_normals, self._triangles
+        if n is None or tri is None:
+            raise ParameterError(f"face labels need a mesh map; {self.source!r} is a {self.kind!r} map (give its CAD "
+                                 "mesh, e.g. DIR/NAME.cad.ply)")
+        if self._planar_faces is None:
+            offset = np.einsum("ij,ij->i", n, self.points[tri[:, 0]])
+            key = np.round(np.column_stack([np.nan_to_num(n) * 1e3, offset * 1e3])).astype(np.int64)
+            self._planar_faces = readonly(np.unique(key, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64))
+        return self._planar_faces
 
     def face_areas(self) -> NDArray[np.float64] | None:
         """``(T,)`` triangle areas (m^2) of a mesh; ``None`` for a cloud."""
@@ -1202,6 +1224,7 @@ class Map:
         self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
         self.__dict__.setdefault("_known_space", None)
         self.__dict__.setdefault("_bounded", {})
+        self.__dict__.setdefault("_planar_faces", None)  # pickles made before face labels were kept
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
             a = getattr(self, name, None)
             if a is not None:

@@ -218,6 +218,14 @@ class Problem:
         tables, e.g. ``[beam]``, are read by the models).
     configuration_source : str, optional
         Where the configurations come from (:data:`CONFIGURATION_SOURCES`); None: unknown.
+    map_tolerance_m : float
+        The map's declared face tolerance (m, one sigma): each planar face of a mesh map
+        (or of a cloud's attached surface) stands off its drawing by an unknown offset of
+        this sigma along its normal, shared by every zone that sees it (a CAD model's
+        assembly tolerance). 0: the faces are where the map draws them. Data about the map,
+        never an estimator default: a simulated scene declares its CAD error, a user
+        ``--map-tolerance``; the smoother's covariance counts it
+        (:mod:`estimators.gtsam_map_tolerance`).
 
     Build problems with :func:`tofloc.problem_builder.build_problem` (it applies a
     calibration and the rig's tolerances once); the constructor takes the parts as given.
@@ -238,6 +246,7 @@ class Problem:
     nuisance: NuisancePriors = field(default_factory=NuisancePriors)
     calibration: Any = None
     configuration_source: str | None = None
+    map_tolerance_m: float = 0.0
 
     def __post_init__(self) -> None:
         d = _readonly(self.distance_m)
@@ -276,6 +285,10 @@ class Problem:
             raise ProblemError(f"range_model must be a RangeUncertainty, got {type(self.range_model).__name__}")
         if not isinstance(self.nuisance, NuisancePriors):
             raise ProblemError(f"nuisance must be a NuisancePriors, got {type(self.nuisance).__name__}")
+        tol = self.map_tolerance_m
+        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.floating, np.integer)) or not 0.0 <= float(tol) <= 1.0:
+            raise ProblemError(f"map_tolerance_m must be a number of metres in [0, 1], got {tol!r}")
+        object.__setattr__(self, "map_tolerance_m", float(tol))
         if self.configuration_source is not None and self.configuration_source not in CONFIGURATION_SOURCES:
             raise ProblemError(f"configuration_source must be one of {list(CONFIGURATION_SOURCES)} or None, "
                                f"got {self.configuration_source!r}")

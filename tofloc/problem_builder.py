@@ -76,6 +76,7 @@ def build_problem(
     tip_source: str = "mocap",
     configuration_source: str | None = None,
     sample_indices: ArrayLike | None = None,
+    map_tolerance_m: float = 0.0,
 ) -> Problem:
     """A :class:`~tofloc.problem.Problem` with the calibration applied and the nuisances declared.
 
@@ -98,6 +99,8 @@ def build_problem(
     configuration_source : str, optional
         Where the configurations come from (``"mocap"``, ``"knn"``, ``"odometry"``, ...).
     sample_indices : array (K,), optional
+    map_tolerance_m : float
+        The map's declared face tolerance (m; :attr:`~tofloc.problem.Problem.map_tolerance_m`).
     """
     K = np.shape(distance_m)[0] if np.ndim(distance_m) == 3 else 0
     cov = None
@@ -124,6 +127,7 @@ def build_problem(
         nuisance=nuisance_priors(rig, calibration),
         calibration=calibration,
         configuration_source=configuration_source,
+        map_tolerance_m=map_tolerance_m,
     )
 
 
@@ -192,6 +196,7 @@ def problem_from_log(
     kinematics: Any | None = None,
     calibration: SensorCalibration | None = None,
     valid_statuses: Iterable[int] = DEFAULT_VALID_STATUSES,
+    map_tolerance_m: float = 0.0,
 ) -> Problem:
     """The problem of some samples of a log (:func:`build_problem` on their rows).
 
@@ -213,6 +218,8 @@ def problem_from_log(
         Needed for ``knn``.
     calibration : SensorCalibration, optional
     valid_statuses : iterable of int
+    map_tolerance_m : float
+        The map's declared face tolerance (m; :attr:`~tofloc.problem.Problem.map_tolerance_m`).
 
     Raises
     ------
@@ -289,4 +296,5 @@ def problem_from_log(
         tip_source=tip_source,
         configuration_source=source,
         sample_indices=idx,
+        map_tolerance_m=map_tolerance_m,
     )

@@ -38,7 +38,7 @@ LIVE_ONLY = {"baud": "--baud", "fmt": "--format", "rig_path": "--rig", "window":
              "journal": "--journal", "out": "--out", "timeout": "--timeout"}
 OFFLINE_ONLY = {"log_path": "LOG", "samples": "--samples", "trials": "--trials", "tip_source": "--tip-source",
                 "prior_mode": "--prior-mode", "region": "--region", "json_out": "--json", "workers": "--workers",
-                "scheduler": "--scheduler", "selection": "--selection"}
+                "scheduler": "--scheduler", "selection": "--selection", "map_tolerance": "--map-tolerance"}
 
 
 def _given(ctx: typer.Context, names: dict[str, str]) -> list[str]:
@@ -104,6 +104,12 @@ def localize(
         help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
                     "the sensor models' tables ([beam]), applied to every problem of the estimators that use one."),
     ),
+    map_tolerance: float = typer.Option(
+        0.0, "--map-tolerance", metavar="METRES",
+        help="The map's face tolerance (one sigma, m): each planar face of a mesh map (or of --surface) stands off its "
+             "drawing by an unknown offset of this size, shared by every zone that sees it (a CAD model's assembly "
+             "tolerance). The smoother's covariance counts it and the Cramér-Rao bound with map tolerance uses it; "
+             "0 (default): the faces are where the map draws them."),
     port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
     baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
     fmt: str = typer.Option("tofloc", "--format", help="Live: wire format (tofloc, sparkfun-csv, sparkfun-grid, st-uld)."),
@@ -215,6 +221,7 @@ def localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
             trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
             workers=workers, scheduler=scheduler, reporter=reporter, plot=plot, selection=selection,
+            map_tolerance_m=map_tolerance,
         )
     doc = result.document
     from evaluation.trials import jsonable
