@@ -178,6 +178,7 @@ def test_paper_end_to_end_and_resume(data: dict[str, Path], tmp_path: Path, caps
     assert doc["paper"]["knn"] == {"e_x_m": [0.0300, 0.0076], "e_gamma_deg": [4.438, 0.181]}
     assert doc["paper"]["mocap"] == {"e_x_m": [0.0305, 0.0076], "e_gamma_deg": [4.428, 0.182]}
     assert doc["trials"] == 2 and doc["seed"] == 3
+    assert doc["map_tolerance_m"] == 0.002  # the paper scenario's declared CAD error, every trial's problem's
     assert doc["provenance"]["command"].startswith("tofloc paper --trials 2")
     assert set(doc["results"]) == {"icp_pf"}
     assert not (out / "sensor_model.toml").exists()  # the ICP score takes no range model: nothing to calibrate

@@ -1169,6 +1169,8 @@ def paper(
                           "knn_split": f"default_rng([seed, {KNN_STREAM}])"},
                 "calibration": cal_path,
                 **({"footprint_calibrations": footprint_paths} if footprint_paths else {}),
+                # the map's declared face tolerance every trial's problem carried (and the bound)
+                "map_tolerance_m": data.map_tolerance_m,
                 "wall_time_s": round(time.perf_counter() - t0, 3),
                 "provenance": provenance(),
             },
