@@ -27,13 +27,15 @@ mesh surface; on a bare cloud there are no faces and nothing is added).
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from estimators.gtsam_factors import SampleMeasurement, StackedMeasurements
-from tofloc.problem import Problem
+from estimators.gtsam_factors import StackedMeasurements
+
+if TYPE_CHECKING:
+    from estimators.gtsam_solvers import SmootherGraph
 
 __all__ = ["EPS_M", "map_tolerance_covariance"]
 
@@ -42,46 +44,39 @@ FloatArray = NDArray[np.float64]
 EPS_M = 1e-5
 
 
-def map_tolerance_covariance(problem: Problem, meas: list[SampleMeasurement], values: Any, graph: Any, *,
-                             kernel: str, k: float, use_rig: bool, use_bias: bool, R_tilt: FloatArray,
-                             tolerance_m: float) -> tuple[FloatArray, int]:
+def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolerance_m: float) -> tuple[FloatArray, int]:
     """The base's covariance ``(3, 3)`` (GTSAM's Pose2 tangent: x, y along the base, yaw)
-    that the map's face tolerance adds at a solution, and the number of faces its inlier
-    zones lie on.
+    that the map's face tolerance adds at a batch solution, and the number of faces its
+    inlier zones lie on.
 
     Parameters
     ----------
-    problem : Problem
-        Its map must have a mesh surface (:attr:`tofloc.maps.Map.has_mesh_surface`).
-    meas : list of SampleMeasurement
-        The solution's association (one per sample, ``key`` the triangle of each zone's plane).
-    values, graph
-        The GTSAM solution and its factor graph (priors and zone factors).
-    kernel, k : str, float
-        The robust kernel and its threshold.
-    use_rig, use_bias : bool
-        Whether the support ``D`` and the range bias ``B`` are variables.
-    R_tilt : array (3, 3)
-        The prior's roll and pitch.
+    graph : SmootherGraph
+        The solve's graph (its problem's map must have a mesh surface,
+        :attr:`tofloc.maps.Map.has_mesh_surface`; its robust kernel, variables and tilt).
+    run : dict
+        The batch solution: ``values``, its factor ``graph`` (priors and zone factors) and
+        ``meas``, its association (one per sample, ``key`` the triangle of each zone's plane).
     tolerance_m : float
         The faces' offset sigma (m), > 0.
     """
     import gtsam
     from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
 
+    problem, est = graph.problem, graph.est
+    meas, values = run["meas"], run["values"]
     K = len(meas)
-    st = StackedMeasurements(meas, kernel, k)
-    labels = problem.map.planar_faces() if problem.map.kind == "mesh" else problem.map.surface.planar_faces()
+    st = StackedMeasurements(meas, est.robust, est.robust_k)
+    labels = problem.map.planar_faces()
     key = np.concatenate([np.asarray(m.key, dtype=np.int64) for m in meas]) if meas else np.zeros(0, dtype=np.int64)
     on_face = st.inlier & (key >= 0) & (key < labels.size)
     if not on_face.any():
         return np.zeros((3, 3)), 0
-    P = values.atPose2(Xk(0))
-    xyyaw = np.array([P.x(), P.y(), P.theta()])
-    C = np.stack([values.atPose3(Ck(i)).matrix() for i in range(K)])
-    D = values.atPose3(Dk(0)).matrix() if use_rig else np.eye(4)
-    bias = np.asarray(values.atVector(Bk(0)), dtype=float) if use_bias else None
-    z = problem.prior.z
+    xyyaw, C_list, D = graph.read(values, K)
+    C = np.stack(C_list)
+    bias = graph.bias(values)
+    use_rig, use_bias = graph.use_rig, graph.use_bias
+    z, R_tilt = problem.prior.z, graph.R_tilt
     A = st.system_rows(xyyaw, z, R_tilt, C, D, bias, use_rig, jacobians=True)  # [base 3, own C 6, D 6?, B 1?, e]
     m = A.shape[1] - 1
     shifted = []
@@ -109,7 +104,7 @@ def map_tolerance_covariance(problem: Problem, meas: list[SampleMeasurement], va
     b = np.zeros((n_faces, n_var))
     np.add.at(b, face, Jg)  # (faces, variables): J^T g_f
     keys = [Xk(0)] + [Ck(i) for i in range(K)] + ([Dk(0)] if use_rig else []) + ([Bk(0)] if use_bias else [])
-    joint = gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector(keys))
+    joint = gtsam.Marginals(run["graph"], values).jointMarginalCovariance(gtsam.KeyVector(keys))
     sizes = [3] + [6] * K + ([6] if use_rig else []) + ([1] if use_bias else [])
     starts = np.concatenate([[0], np.cumsum(sizes)])
     Sigma_x = np.zeros((3, n_var))  # the base's rows of the joint covariance

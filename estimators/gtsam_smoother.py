@@ -557,9 +557,7 @@ class GTSAMSmoother(Estimator):
                     diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
                                              "reason": "the incremental solve does not add it (batch solves only)"}
                 else:
-                    add, n_faces = map_tolerance_covariance(
-                        problem, run["meas"], values, run["graph"], kernel=self.robust, k=self.robust_k,
-                        use_rig=graph.use_rig, use_bias=graph.use_bias, R_tilt=graph.R_tilt, tolerance_m=tol)
+                    add, n_faces = map_tolerance_covariance(graph, run, tol)
                     body = body + add
                     diag["map_tolerance"] = {"tolerance_m": tol, "added": True, "faces": n_faces,
                                              "added_sigma": np.sqrt(np.clip(np.diag(add), 0.0, None)).tolist()}

@@ -497,9 +497,9 @@ def crlb_bounds_for_problem(problem: Any, T_map_base_true: ArrayLike, *,
         use, w, Jz = zone_weights(r, J, problem.rig, problem.range_model, mask)
         info = _information(Jz, w)
         out[name] = crlb_from_information(info, int(use.sum()), max_position_m=extent)
-        mesh = problem.map if problem.map.kind == "mesh" else problem.map.surface
-        if name == "explained" and map_tolerance_m > 0 and mesh is not None:
-            info_m = map_tolerance_information(info, g, w, Jz, use, problem.rig, face_labels(mesh), map_tolerance_m)
+        if name == "explained" and map_tolerance_m > 0 and problem.map.has_mesh_surface:
+            info_m = map_tolerance_information(info, g, w, Jz, use, problem.rig, face_labels(problem.map),
+                                               map_tolerance_m)
             out["explained_map_tolerance"] = crlb_from_information(info_m, int(use.sum()), max_position_m=extent)
     return out
 

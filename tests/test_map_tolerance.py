@@ -19,6 +19,7 @@ from test_crlb import FLAT, _horizontal_sensor, _mesh, wall_square  # noqa: E402
 from estimators.gtsam_smoother import GTSAMSmoother  # noqa: E402
 from evaluation import crlb as crlb_mod  # noqa: E402
 from tofloc.cli import main  # noqa: E402
+from tofloc.errors import ParameterError  # noqa: E402
 from tofloc.maps import Map  # noqa: E402
 from tofloc.problem import Prior, Problem, ProblemError  # noqa: E402
 from tofloc.rig import Rig  # noqa: E402
@@ -107,6 +108,10 @@ def test_planar_faces_group_a_wall_s_triangles_and_are_built_once() -> None:
     assert m.planar_faces() is faces
     cloud = m.sample_surface(100, np.random.default_rng(0))
     assert cloud.with_surface(m).surface.planar_faces().tolist() == faces.tolist()
+    # a cloud with its CAD surface attached answers with the surface's faces (its casts' triangles)
+    assert cloud.with_surface(m).planar_faces().tolist() == faces.tolist()
+    with pytest.raises(ParameterError, match="face labels need a mesh map.*'points' map"):
+        cloud.planar_faces()
 
 
 def test_localize_map_tolerance_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

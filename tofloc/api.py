@@ -700,8 +700,10 @@ def localize_prior(
 
 
 def _map_tolerance(value: Any) -> float:
-    """A declared map tolerance (m) checked: a finite number in [0, 1]."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) <= 1.0:
+    """A declared map tolerance (m) checked (:func:`tofloc.problem.is_map_tolerance`)."""
+    from tofloc.problem import is_map_tolerance
+
+    if not is_map_tolerance(value):
         raise ParameterError(f"--map-tolerance: expected a number of metres in [0, 1], got {value!r}")
     return float(value)
 

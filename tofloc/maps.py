@@ -495,14 +495,18 @@ class Map:
     def planar_faces(self) -> NDArray[np.int64]:
         """``(T,)``: the planar face each triangle of this mesh belongs to (triangles whose
         normals agree within 1e-3 and whose planes within 1 mm share a label, numbered from
-        0), built once. What a CAD tolerance moves: a face as a whole, not each triangle
-        (:func:`evaluation.crlb.map_tolerance_information`, the smoother's covariance).
+        0), built once; on a cloud with an attached :attr:`surface`, the surface's (whose
+        triangles its ray casts and closest points index). What a CAD tolerance moves: a
+        face as a whole, not each triangle (:func:`evaluation.crlb.map_tolerance_information`,
+        the smoother's covariance).
 
         Raises
         ------
         ParameterError
-            On a point cloud (give its CAD mesh, or use :attr:`surface`).
+            On a bare point cloud (give its CAD mesh).
         """
+        if self.kind != "mesh" and self._surface is not None:
+            return self._surface.planar_faces()
         n, tri = self._face_normals, self._triangles
         if n is None or tri is None:
             raise ParameterError(f"face labels need a mesh map; {self.source!r} is a {self.kind!r} map (give its CAD "

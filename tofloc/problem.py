@@ -286,7 +286,7 @@ class Problem:
         if not isinstance(self.nuisance, NuisancePriors):
             raise ProblemError(f"nuisance must be a NuisancePriors, got {type(self.nuisance).__name__}")
         tol = self.map_tolerance_m
-        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.floating, np.integer)) or not 0.0 <= float(tol) <= 1.0:
+        if not is_map_tolerance(tol):
             raise ProblemError(f"map_tolerance_m must be a number of metres in [0, 1], got {tol!r}")
         object.__setattr__(self, "map_tolerance_m", float(tol))
         if self.configuration_source is not None and self.configuration_source not in CONFIGURATION_SOURCES:
@@ -427,6 +427,13 @@ class Estimator(ABC):
     @abstractmethod
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         """The algorithm (problem already checked to have valid zones)."""
+
+
+def is_map_tolerance(value: Any) -> bool:
+    """Whether ``value`` is a map's face tolerance: a real number of metres in [0, 1] (not a
+    bool; NaN is not), as :attr:`Problem.map_tolerance_m` and ``--map-tolerance`` take it."""
+    return (not isinstance(value, bool) and isinstance(value, (int, float, np.floating, np.integer))
+            and 0.0 <= float(value) <= 1.0)
 
 
 def check_positive(name: str, value: float, strict: bool = True) -> None:
