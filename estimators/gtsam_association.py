@@ -312,7 +312,8 @@ def associate(
     else:
         q, n, key, t, dist = _cast_planes(problem, p, o, u, zones, centre)
         if footprint is not None:
-            q, t, dist = footprint_expectation(problem, footprint, T_mt, stack.sample, zones, p, o, u, q, t, dist)
+            q, n, key, t, dist = footprint_expectation(problem, footprint, T_mt, stack.sample, zones, p, o, u, q, n, key,
+                                                       t, dist)
     predict = not problem.range_model.use_reported_sigma and sig.size > 0
     n, n_dot_u, dist, t_exp, usable = plane_geometry(p, o, u, q, n, t, dist, predict)
     # the gate with the smaller of the two sigmas: a reading far short of its plane (an
@@ -361,18 +362,29 @@ def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, 
 
 def footprint_expectation(problem: Problem, caster: ZoneCaster, T_map_tip: list[FloatArray], sample: NDArray[np.intp],
                           zones: NDArray[np.int64], p: FloatArray, o: FloatArray, u: FloatArray, q: FloatArray,
-                          t: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+                          n: FloatArray, key: NDArray[np.int64], t: FloatArray, dist: FloatArray,
+                          ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray, FloatArray]:
     """The range association with each zone's expected reading taken from its footprint.
 
     A zone is a cone, not a ray: where its footprint spans an edge, or a plane seen
     obliquely, the sensor reports the signal-weighted mix of its sub-rays (the beam model's
     expectation, :func:`tofloc.zone_caster.model_caster`), not the centre ray's hit. The
     footprints of every zone of every sample are cast at the samples' sensor poses
-    (``T_map_tip[k] @ T_tip_sensor``); a zone whose footprint and centre ray both return gets
-    the expected ray length ``t`` = its footprint's reading (times the zone's range factor),
-    its plane's point moved to ``o + t u`` on its ray (the centre hit's normal kept, which
-    linearizes the reading) and its distance ``|L - t|`` to its measured point (``L = |p -
-    o|``); the others keep the centre ray's ``q``, ``t`` and ``dist``.
+    (``T_map_tip[k] @ T_tip_sensor``); a zone whose footprint returns gets the expected ray
+    length ``t`` = its footprint's reading (times the zone's range factor), its plane's
+    point moved to ``o + t u`` on its ray (the centre hit's normal kept, which linearizes the
+    reading) and its distance ``|L - t|`` to its measured point (``L = |p - o|``); the others
+    keep the centre ray's ``q``, ``n``, ``key``, ``t`` and ``dist``.
+
+    The plane is the centre ray's first hit whether or not that hit is within the sensor's
+    range: a zone looking down a corridor whose centre ray meets the floor beyond the range
+    cut still reads the near part of its footprint (the sub-rays within range), and that
+    reading is the footprint's. Those zones' centre rays, which the range association
+    (:func:`_cast_planes`) counts as misses, are cast again here without the cut for their
+    plane (point, normal, key); a centre ray that hits nothing at any length leaves its
+    zone without a plane. (Before, such a zone had no plane: an outlier wherever the map
+    puts its centre hit beyond the range, which made the corridor's ends, where the end
+    wall comes within range, fit the data 110 nats better than the truth.)
 
     Parameters
     ----------
@@ -383,25 +395,40 @@ def footprint_expectation(problem: Problem, caster: ZoneCaster, T_map_tip: list[
         One per member of the stack, in order.
     sample, zones : array (N,)
         Each zone's member and flat zone index (``sensor * Z + zone``).
-    p, o, u, q : array (N, 3)
-        The zones' measured points, rays and centre-ray hit points.
+    p, o, u, q, n : array (N, 3)
+        The zones' measured points, rays, centre-ray hit points and normals.
+    key : array (N,)
+        The centre hits' keys (-1 without a hit).
     t, dist : array (N,)
         The centre rays' lengths and distances along the ray (inf without a hit).
 
     Returns
     -------
-    q, t, dist : arrays (N, 3), (N,), (N,)
+    q, n, key, t, dist : arrays (N, 3), (N, 3), (N,), (N,), (N,)
     """
     if not T_map_tip:
-        return q, t, dist
+        return q, n, key, t, dist
     T_map_sensor = np.asarray(T_map_tip)[:, None] @ problem.rig.T_tip_sensor[None]  # (K, S, 4, 4)
     reading = caster.cast(problem.map, T_map_sensor).reading  # (K, S, Z)
     Z = problem.rig.n_zones
     t_fp = reading[sample, zones // Z, zones % Z] * problem.rig.range_factor.reshape(-1)[zones]
-    ok = np.isfinite(t_fp) & np.isfinite(t)
+    fp = np.isfinite(t_fp)
+    far = np.flatnonzero(fp & ~np.isfinite(t))  # the footprint returns, its centre ray not within range
+    if far.size:
+        hits = problem.map.raycast(o[far], u[far])  # the centre ray's plane, at any length
+        got = np.isfinite(np.asarray(hits.t, dtype=float))
+        far = far[got]
+        if far.size:
+            nrm = np.asarray(hits.normal, dtype=float)[got]
+            facing = np.where((np.einsum("ni,ni->n", nrm, u[far]) > 0)[:, None], -nrm, nrm)
+            n, key, t = n.copy(), key.copy(), t.copy()
+            n[far] = facing
+            key[far] = np.asarray(hits.index, dtype=np.int64)[got]
+            t[far] = 0.0  # finite: the footprint's reading replaces it below
+    ok = fp & np.isfinite(t)
     L = np.linalg.norm(p - o, axis=1)
     t_new = np.where(ok, t_fp, t)
-    return (np.where(ok[:, None], o + u * np.where(ok, t_fp, 0.0)[:, None], q), t_new,
+    return (np.where(ok[:, None], o + u * np.where(ok, t_fp, 0.0)[:, None], q), n, key, t_new,
             np.where(ok, np.abs(L - t_new), dist))
 
 

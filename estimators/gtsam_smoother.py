@@ -64,7 +64,11 @@ on ``X``): associate every zone with the map at the current estimate (gate shrin
 ``gate_start_m`` to ``gate_m`` over the first rounds), optimize with
 Levenberg-Marquardt, and repeat until the association stops changing (ICP inside the
 factor graph) or ``max_rounds``. The start with the lowest final graph error wins (every
-valid zone contributes to every start's error: gated zones at a constant cost). Every
+valid zone contributes to every start's error: gated zones at a constant cost); with
+footprints (the range residual), the starts run with the centre rays, and when their
+answers lie in more than one basin each is scored by the footprints' association at its
+answer (:meth:`~estimators.gtsam_solvers.SmootherGraph.model_error`; the centre rays'
+error kept as ``centre_error``), the model the winner is then refined with. Every
 start's optimum is in ``diagnostics["starts"]``; its distinct local optima, with relative
 evidence ``exp(-(error - min error))``, are the posterior's modes
 (:func:`tofloc.posterior_modes.modes_from_starts`). The
@@ -114,6 +118,21 @@ DEFAULT_KNN_SIGMA_M = 0.003
 DEFAULT_KNN_SIGMA_ROT_DEG = 2.0
 
 FloatArray = NDArray[np.float64]
+
+
+def _several_basins(poses: list[FloatArray]) -> bool:
+    """Whether the starts' answers lie in more than one basin: two of them apart by more
+    than the modes' merge distance (:data:`tofloc.posterior_modes.STARTS_MERGE_XY`,
+    :data:`~tofloc.posterior_modes.STARTS_MERGE_YAW`, normalized distance above 1)."""
+    from tofloc.posterior_modes import STARTS_MERGE_XY, STARTS_MERGE_YAW
+
+    if len(poses) < 2:
+        return False
+    P = np.asarray(poses, dtype=float)
+    d = P[:, None, :] - P[None, :, :]
+    d[..., 2] = np.asarray(frames.wrap_angle(d[..., 2]))
+    h = np.array([STARTS_MERGE_XY, STARTS_MERGE_XY, STARTS_MERGE_YAW])
+    return bool(np.any(np.linalg.norm(d / h, axis=-1) > 1.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -445,6 +464,7 @@ class GTSAMSmoother(Estimator):
         best_i = -1
         finished: list[FloatArray] = []  # base poses of the starts that ran to the end (batch, merge_starts)
         finished_idx: list[int] = []
+        finished_runs: list[dict[str, Any]] = []
         for i, s0 in enumerate(starts):
             report_step(i, len(starts))  # the starts before this one are done
             try:
@@ -466,9 +486,22 @@ class GTSAMSmoother(Estimator):
             runs.append(rec)
             finished.append(np.array([P.x(), P.y(), P.theta()]))
             finished_idx.append(i)
+            finished_runs.append(run)
             if best is None or run["error"] < best["error"]:
                 best, best_i = run, i
         report_step(len(starts), len(starts))
+        refined = graph.footprint is not None and not self.incremental
+        if refined and best is not None and _several_basins(finished):
+            # the centre rays find the basins, the footprints are the model: a zone whose
+            # centre hit is beyond the range cut while its footprint's near part returns is
+            # an outlier for the centre rays, which favoured the corridor's ends (an end wall
+            # within range) over its middle by 130 nats; scored with footprints at their
+            # answers the basins compare under the model the answer is refined with
+            for j, (i, run) in enumerate(zip(finished_idx, finished_runs)):
+                runs[i]["centre_error"] = runs[i]["error"]
+                run["error"] = runs[i]["error"] = graph.model_error(run)
+                if j == 0 or run["error"] < best["error"]:
+                    best, best_i = run, i
         diag: dict[str, Any] = {"starts": runs, "residual": graph.residual,
                                 "sub_rays": 1 if graph.footprint is None else graph.footprint.footprint, "robust": self.robust,
                                 "incremental": self.incremental, "nuisance": problem.nuisance.to_json(),
@@ -478,7 +511,6 @@ class GTSAMSmoother(Estimator):
             diag["message"] = "every start failed with an indeterminant linear system: returning the prior"
             diag["time_s"] = {"starts": starts_s, **graph.timing()}
             return Estimate(pose=problem.prior.mean, covariance=problem.prior.covariance, diagnostics=diag)
-        refined = graph.footprint is not None and not self.incremental
         if refined:
             # the footprints' rounds for the best start only (all starts: the full protocol
             # 6 min 29 s -> 12 min 24 s, December 2026); its error in ``runs`` stays the

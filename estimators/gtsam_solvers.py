@@ -290,6 +290,29 @@ class SmootherGraph:
         finally:
             self._add_solve_time(t0, a0, c0)
 
+    def model_error(self, run: dict[str, Any]) -> float:
+        """The graph error of a finished batch run of the centre rays with its zones
+        associated by their footprints at its answer (the last gate; no further solve):
+        the starts' answers scored by the model the estimate is refined with, so that
+        starts in different basins are compared under it (:meth:`GTSAMSmoother._estimate`).
+        ``run["error"]`` without a footprint caster. Its time is added to :meth:`timing`."""
+        if self.footprint is None:
+            return float(run["error"])
+        import gtsam
+
+        t0, a0, c0 = time.perf_counter(), self.association_s, self.clock.seconds
+        try:
+            values = run["values"]
+            K = self.problem.n_samples
+            xyyaw, C, D = self.read(values, K)
+            meas, _ = self.associate(run["meas"], xyyaw, C, D, self.gates()[-1], self.bias(values), True)
+            graph = gtsam.NonlinearFactorGraph(self.priors())
+            for f in self.zone_factors(meas):
+                graph.add(f)
+            return float(graph.error(values))
+        finally:
+            self._add_solve_time(t0, a0, c0)
+
     def _refined(self, priors: Any, run: dict[str, Any], finished: list[FloatArray] | None) -> dict[str, Any]:
         """``run`` continued with footprints at the last gate, its iterations and rounds added."""
         # the centre rays have found the basin and settled (or used their rounds): footprints

@@ -100,6 +100,66 @@ def test_the_incremental_solve_refreshes_footprints_too() -> None:
     assert e_c > 0.05, e_c
 
 
+def _deep_corridor_problem() -> tuple[Problem, np.ndarray, np.ndarray]:
+    """The easy problem's rig in a closed corridor 9 m long, 1.6 m wide, its floor 2.5 m
+    below the base, read as 3 x 3 footprints (noise-free): some zones look down the
+    corridor at its floor, whose near part returns within the 4 m range while their centre
+    rays meet it beyond. Returns the problem (prior at the truth), the truth and those
+    zones, flagged ``(K, S, Z)``."""
+    p, truth = easy_problem(n_samples=3)
+    room = Map.cuboid(size=(9.0, 1.6, 4.0), origin=(truth[0] - 4.5, truth[1] - 0.7, p.prior.z - 2.5), open_faces=())
+    T_map_sensor = p.prior.T_map_base(truth) @ p.T_base_tip[:, None] @ p.rig.T_tip_sensor[None]
+    reading = ZoneCaster(p.rig, footprint=3).cast(room, T_map_sensor).reading
+    centre = ZoneCaster(p.rig).cast(room, T_map_sensor).reading
+    status = np.where(np.isfinite(reading), 5, 255).astype(np.uint8)
+    p = dataclasses.replace(p, map=room, distance_m=reading, status=status,
+                            prior=dataclasses.replace(p.prior, mean=truth))
+    return p, truth, np.isfinite(reading) & ~np.isfinite(centre)
+
+
+def test_a_zone_whose_centre_ray_meets_its_plane_beyond_the_range_reads_its_footprint() -> None:
+    """A zone whose footprint's near part returns while its centre ray meets the same
+    floor beyond the range cut reports the footprint's reading: the association gives it
+    the centre ray's plane at any length and the footprint's reading, so at the truth it
+    sits on its expected reading like every other zone (it had no plane before, an
+    outlier wherever the map puts its centre hit beyond the range)."""
+    p, truth, far = _deep_corridor_problem()
+    est = GTSAMSmoother()
+    dist, hit = _distances(p, truth, model_caster(p.rig, est.sub_rays, est.footprint_tolerance))
+    meas = measurements(p)
+    Z = p.rig.n_zones
+    is_far = np.concatenate([far[k, m.zones // Z, m.zones % Z] for k, m in enumerate(meas)])
+    assert is_far.sum() >= 5, is_far.sum()
+    assert hit[is_far].all()
+    assert np.max(dist[is_far]) < 1e-9 and np.max(dist[hit]) < 1e-9, np.max(dist[is_far])
+
+
+def test_starts_in_different_basins_are_scored_by_their_footprints(monkeypatch: pytest.MonkeyPatch) -> None:
+    """In the deep corridor a start 0.5 m along it settles 1 m from the truth, where the
+    centre rays explain 44 nats more of the data than at the truth (zones whose centre hit
+    comes within the range there) while the footprints, the model, prefer the truth. The
+    starts are scored by the footprints at their answers (the centre rays' errors kept as
+    ``centre_error``), so the smoother answers the truth."""
+    from estimators.gtsam_solvers import SmootherGraph
+
+    p, truth, _ = _deep_corridor_problem()
+    p = dataclasses.replace(p, prior=dataclasses.replace(p.prior, sigma=np.array([3.0, 0.2, 0.3])))  # wide along it
+    est = GTSAMSmoother()
+    graph = SmootherGraph(est, p)
+    meas0 = est.weighted_measurements(p)
+    at_truth = graph.solve_batch(meas0, truth, refine=False)
+    along = graph.solve_batch(meas0, truth + np.array([0.5, 0.0, 0.0]), refine=False)
+    assert along["error"] < at_truth["error"] - 20.0, (along["error"], at_truth["error"])
+    assert graph.model_error(at_truth) < graph.model_error(along) - 3.0, (graph.model_error(at_truth), graph.model_error(along))
+    monkeypatch.setattr(GTSAMSmoother, "starts", lambda self, problem, meas, rng: np.array([truth + [0.5, 0.0, 0.0], truth]))
+    r = est.estimate(p, np.random.default_rng(0))
+    # the truth's basin (x is weakly held along the corridor: 3 cm off, sigma 15 cm), not the one 1 m along
+    assert float(np.hypot(*(r.pose[:2] - truth[:2]))) < 0.1, (r.pose, truth)
+    runs = r.diagnostics["starts"]
+    assert all("centre_error" in s for s in runs) and runs[0]["pose"][0] - truth[0] > 0.5
+    assert runs[1]["error"] < runs[0]["error"] and runs[1]["centre_error"] > runs[0]["centre_error"]
+
+
 @pytest.mark.parametrize("residual,sub_rays", [("range", 1), ("range", 3), ("point_to_plane", 1)])
 def test_rounds_flipping_between_two_poses_stop(residual: str, sub_rays: int) -> None:
     """An association that sends the solve back to where it was two rounds ago (here the
