@@ -158,6 +158,10 @@ def test_starts_in_different_basins_are_scored_by_their_footprints(monkeypatch: 
     runs = r.diagnostics["starts"]
     assert all("centre_error" in s for s in runs) and runs[0]["pose"][0] - truth[0] > 0.5
     assert runs[1]["error"] < runs[0]["error"] and runs[1]["centre_error"] > runs[0]["centre_error"]
+    # starts that end in one basin keep the centre rays' errors (nothing scored again)
+    monkeypatch.setattr(GTSAMSmoother, "starts", lambda self, problem, meas, rng: np.array([truth, truth + [0.01, 0.0, 0.0]]))
+    one = est.estimate(p, np.random.default_rng(0)).diagnostics["starts"]
+    assert all("centre_error" not in s for s in one) and one[0]["error"] == at_truth["error"], (one, at_truth["error"])
 
 
 @pytest.mark.parametrize("residual,sub_rays", [("range", 1), ("range", 3), ("point_to_plane", 1)])
