@@ -701,13 +701,18 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         time.sleep(delay)
         p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=60)
+        out, err = p.communicate(timeout=60)
         # at the last delay a fast machine may have ended the whole command first (exit 0), or
         # the signal may land while the interpreter shuts down, after the command ended: Python
         # restores the default handler then and the process dies of the signal (-SIGINT, seen
         # once in a full suite run), with every file in place
         codes = (130, 0, -signal.SIGINT) if delay == 2.5 else (130,)
-        assert p.returncode in codes and "Traceback" not in err, (delay, p.returncode, err[-1500:])
+        # seen once in a full suite run, not reproduced since (6 December 2026): exit 0 and
+        # nothing on stderr after 0.6 s, the signal lost; what this process passed on to the
+        # child (a SIGINT ignored or blocked here would be inherited) is in the message
+        assert p.returncode in codes and "Traceback" not in err, (
+            delay, p.returncode, err[-1500:], out[-500:], signal.getsignal(signal.SIGINT),
+            signal.pthread_sigmask(signal.SIG_BLOCK, []))
         left = sorted(q.name for q in folder.iterdir())
         assert left in ([], ["x.cad.ply", "x.h5", "x.map.ply"]), (delay, left)
         if p.returncode == -signal.SIGINT:
