@@ -697,8 +697,17 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
     for delay in (0.6, 1.2, 2.5):
         folder = tmp_path / f"after_{delay}s"
         folder.mkdir()
-        p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(folder / "x.h5")],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # the child starts as from a terminal, SIGINT handled: a test run started as a
+        # background job (`pytest ... &` in a script) ignores SIGINT, and a child inherits an
+        # ignored signal, so that Python installs no handler and a Ctrl-C before the CLI's own
+        # handler is in place is lost (exit 0, nothing on stderr: the failure seen twice on 6
+        # December 2026, in suites started that way)
+        previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            p = subprocess.Popen([sys.executable, "-c", entry, "simulate", "--out", str(folder / "x.h5")],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
         time.sleep(delay)
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=60)
@@ -707,9 +716,7 @@ def test_ctrl_c_during_start_up_of_a_real_process_never_shows_a_traceback(tmp_pa
         # restores the default handler then and the process dies of the signal (-SIGINT, seen
         # once in a full suite run), with every file in place
         codes = (130, 0, -signal.SIGINT) if delay == 2.5 else (130,)
-        # seen once in a full suite run, not reproduced since (6 December 2026): exit 0 and
-        # nothing on stderr after 0.6 s, the signal lost; what this process passed on to the
-        # child (a SIGINT ignored or blocked here would be inherited) is in the message
+        # what this process passed on to the child is in the message
         assert p.returncode in codes and "Traceback" not in err, (
             delay, p.returncode, err[-1500:], out[-500:], signal.getsignal(signal.SIGINT),
             signal.pthread_sigmask(signal.SIG_BLOCK, []))
