@@ -34,7 +34,7 @@ from estimators.gtsam_stack import AssociatedMeasurements, ZoneStack, zone_stack
 from tofloc import frames, numba_kernels
 from tofloc.configuration_uncertainty import normal_variance
 from tofloc.problem import Problem
-from tofloc.zone_caster import ZoneCaster
+from tofloc.zone_caster import ZoneCaster, facing_normals
 
 __all__ = ["RESIDUALS", "measurements", "associate", "AssociatedMeasurements", "ZoneStack", "zone_stack",
            "rotate_by_sample", "zone_frames", "plane_geometry", "expected_sigma", "place_points", "with_place_weights",
@@ -419,10 +419,8 @@ def footprint_expectation(problem: Problem, caster: ZoneCaster, T_map_tip: list[
         got = np.isfinite(np.asarray(hits.t, dtype=float))
         far = far[got]
         if far.size:
-            nrm = np.asarray(hits.normal, dtype=float)[got]
-            facing = np.where((np.einsum("ni,ni->n", nrm, u[far]) > 0)[:, None], -nrm, nrm)
             n, key, t = n.copy(), key.copy(), t.copy()
-            n[far] = facing
+            n[far] = facing_normals(np.asarray(hits.normal, dtype=float)[got], u[far])[0]
             key[far] = np.asarray(hits.index, dtype=np.int64)[got]
             t[far] = 0.0  # finite: the footprint's reading replaces it below
     ok = fp & np.isfinite(t)

@@ -100,6 +100,7 @@ from estimators.gtsam_map_tolerance import map_tolerance_covariance
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
 from tofloc import frames
+from tofloc.posterior_modes import several_basins
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 from tofloc.step_progress import report_step
@@ -118,21 +119,6 @@ DEFAULT_KNN_SIGMA_M = 0.003
 DEFAULT_KNN_SIGMA_ROT_DEG = 2.0
 
 FloatArray = NDArray[np.float64]
-
-
-def _several_basins(poses: list[FloatArray]) -> bool:
-    """Whether the starts' answers lie in more than one basin: two of them apart by more
-    than the modes' merge distance (:data:`tofloc.posterior_modes.STARTS_MERGE_XY`,
-    :data:`~tofloc.posterior_modes.STARTS_MERGE_YAW`, normalized distance above 1)."""
-    from tofloc.posterior_modes import STARTS_MERGE_XY, STARTS_MERGE_YAW
-
-    if len(poses) < 2:
-        return False
-    P = np.asarray(poses, dtype=float)
-    d = P[:, None, :] - P[None, :, :]
-    d[..., 2] = np.asarray(frames.wrap_angle(d[..., 2]))
-    h = np.array([STARTS_MERGE_XY, STARTS_MERGE_XY, STARTS_MERGE_YAW])
-    return bool(np.any(np.linalg.norm(d / h, axis=-1) > 1.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -491,7 +477,7 @@ class GTSAMSmoother(Estimator):
                 best, best_i = run, i
         report_step(len(starts), len(starts))
         refined = graph.footprint is not None and not self.incremental
-        if refined and best is not None and _several_basins(finished):
+        if refined and best is not None and several_basins(finished):
             # the centre rays find the basins, the footprints are the model: a zone whose
             # centre hit is beyond the range cut while its footprint's near part returns is
             # an outlier for the centre rays, which favoured the corridor's ends (an end wall

@@ -140,3 +140,4 @@ def test_localize_map_tolerance_end_to_end(tmp_path: Path, capsys: pytest.Captur
     code = main(["localize", str(log), "--estimator", "gtsam_smoother", "--map-tolerance", "-0.1", "--workers", "1"])
     err = capsys.readouterr().err
     assert code == 2 and "--map-tolerance" in err and len(err.strip().splitlines()) == 1, err
+    assert "expected a number of metres in [0, 1], got -0.1" in err, err

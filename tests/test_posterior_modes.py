@@ -178,3 +178,17 @@ def test_the_per_axis_squared_distance_has_the_stacked_differences_bits() -> Non
         d = _scaled_diff(a, b, h)
         np.testing.assert_array_equal(_scaled_sq(a, b, h), np.sum(d * d, axis=-1))
         np.testing.assert_array_equal(np.sqrt(_scaled_sq(a, b, h)), np.linalg.norm(d, axis=-1))
+
+
+def test_several_basins_uses_the_modes_merge_distance_with_the_yaw_wrapped() -> None:
+    """The smoother scores its starts again when their answers lie in several basins: two
+    answers farther apart than the modes' merge distance (2 cm, 2 deg), never one pose
+    alone, and yaws either side of +-pi are one basin."""
+    from tofloc.posterior_modes import STARTS_MERGE_XY, several_basins
+
+    base = np.array([1.0, 2.0, 0.3])
+    assert not several_basins([base])
+    assert not several_basins([base, base + [0.01, 0.0, 0.0], base + [0.0, 0.0, math.radians(1.0)]])  # pairwise 0.71
+    assert several_basins([base, base + [STARTS_MERGE_XY * 1.01, 0.0, 0.0]])
+    assert several_basins([base, base + [0.0, 0.0, math.radians(2.5)]])
+    assert not several_basins([[0.0, 0.0, math.pi - 0.01], [0.0, 0.0, -math.pi + 0.01]])

@@ -704,7 +704,8 @@ def _map_tolerance(value: Any) -> float:
     from tofloc.problem import is_map_tolerance
 
     if not is_map_tolerance(value):
-        raise ParameterError(f"--map-tolerance: expected a number of metres in [0, 1], got {value!r}")
+        raise ParameterError(f"map tolerance (--map-tolerance, map_tolerance_m): expected a number of metres in [0, 1], "
+                             f"got {value!r}")
     return float(value)
 
 

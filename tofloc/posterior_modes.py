@@ -50,6 +50,7 @@ __all__ = [
     "cluster_poses",
     "pose_mean_covariance",
     "modes_from_starts",
+    "several_basins",
     "modes_of_estimate",
     "is_ambiguous",
 ]
@@ -283,6 +284,17 @@ def _modes_from_seeds(p: NDArray[np.float64], w: NDArray[np.float64], h: NDArray
     used = np.flatnonzero(W > 0)
     order = used[np.argsort(-W[used], kind="stable")]
     return [PosteriorMode(mean[g], cov[g], float(W[g])) for g in order]
+
+
+def several_basins(poses: ArrayLike, merge: tuple[float, float] = (STARTS_MERGE_XY, STARTS_MERGE_YAW)) -> bool:
+    """Whether poses ``(n, 3)`` (a smoother's starts' answers) lie in more than one basin:
+    two of them farther apart than ``merge`` (m, rad; normalized distance above 1, the yaw
+    wrapped), the distance :func:`modes_from_starts` merges optima within."""
+    P = np.asarray(poses, dtype=float).reshape(-1, 3)
+    if P.shape[0] < 2:
+        return False
+    h = np.array([merge[0], merge[0], merge[1]])
+    return bool(np.any(np.linalg.norm(_scaled_diff(P[:, None, :], P[None, :, :], h), axis=-1) > 1.0))
 
 
 def modes_from_starts(starts: Sequence[Mapping[str, Any]], covariance: ArrayLike,

@@ -71,7 +71,7 @@ from tofloc.errors import ParameterError
 from tofloc.rig import Rig, Sensor
 
 __all__ = ["WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions",
-           "check_footprint_params", "model_caster"]
+           "check_footprint_params", "model_caster", "facing_normals"]
 
 WEIGHTINGS = ("signal", "mean")
 #: Largest footprint (sub-rays per side).
@@ -84,6 +84,16 @@ FOOTPRINT_PIECE_BYTES = 32 * 2**20
 CORNER_ANGLE_DEG = 30.0
 
 FloatArray = NDArray[np.float64]
+
+
+def facing_normals(normal: ArrayLike, direction: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Hit normals ``(..., 3)`` turned toward the ray's origin (a mesh's winding, or a
+    surfel's side, says nothing about which side the sensor is on), and each normal's dot
+    product with its ray's ``direction`` before the turn (non-finite normals count as zero
+    there). Every caller that reports a hit's plane uses this one rule."""
+    nrm = np.asarray(normal, dtype=float)
+    n_dot_d = np.einsum("...i,...i->...", np.nan_to_num(nrm), np.asarray(direction, dtype=float))
+    return np.where((n_dot_d > 0)[..., None], -nrm, nrm), n_dot_d
 
 
 def check_footprint_params(prefix: str, sub_rays: Any, footprint_tolerance: Any) -> None:
@@ -301,11 +311,11 @@ class ZoneCaster:
             return self._reduce(t, normal, d)
         reading, frac, ret, n_ret, target, w, wsum = self._weighted(t, normal, d)
         nrm = np.asarray(hits.normal, dtype=float)
-        cos_i = np.abs(np.einsum("...i,...i->...", np.nan_to_num(nrm), d))
+        facing, n_dot_d = facing_normals(nrm, d)  # normals turned toward the sensor
+        cos_i = np.abs(n_dot_d)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_cos = np.where(ret, cos_i, 0.0).sum(axis=-1) / np.maximum(n_ret, 1)
-            # normals turned toward the sensor, weighted like the reading
-            facing = np.where((np.einsum("...i,...i->...", np.nan_to_num(nrm), d) > 0)[..., None], -nrm, nrm)
+            # the turned normals weighted like the reading
             n_sum = np.where(ret[..., None], w[..., None] * np.nan_to_num(facing), 0.0).sum(axis=-2)
             n_len = np.linalg.norm(n_sum, axis=-1, keepdims=True)
             normal_z = np.where(target[..., None] & (n_len > 0), n_sum / n_len, np.nan)
@@ -540,9 +550,8 @@ class ZoneCaster:
         reading = t * self.along[s, z, 0]
         ret = np.isfinite(t) & (reading >= self.min_range) & (reading <= self.max_reading[s])
         nrm = np.asarray(hits.normal, dtype=float)
-        n_dot_d = np.einsum("...i,...i->...", np.nan_to_num(nrm), d)
+        facing, n_dot_d = facing_normals(nrm, d)
         cos_i = np.abs(n_dot_d)
-        facing = np.where((n_dot_d > 0)[..., None], -nrm, nrm)
         return ZoneCast(
             reading=np.where(ret, reading, np.nan),
             hit_fraction=ret.astype(float),
