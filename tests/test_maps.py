@@ -15,7 +15,10 @@ from tofloc.maps import (
     MAX_POINTS,
     Map,
     RayHits,
+    _tangent_basis,
     estimate_normals,
+    surfel_corners,
+    surfel_extents,
     voxel_down_sample_points,
 )
 
@@ -601,3 +604,70 @@ def test_size_bound_constant_is_enforced_for_npy_header(tmp_path: Path) -> None:
         f.write(b"\0" * 48)
     with pytest.raises(FormatError, match=f"at most {MAX_POINTS} points"):
         Map.load(path)
+
+
+# --------------------------------------------------------------------------------------
+# Surfels trimmed at open edges and convex corners
+# --------------------------------------------------------------------------------------
+def _square_cloud(n: int, seed: int) -> Map:
+    """A 1 m x 1 m square in z = 0 sampled at random, normals up (an open edge all round)."""
+    rng = np.random.default_rng(seed)
+    p = np.c_[rng.random(n), rng.random(n), np.zeros(n)]
+    return Map.from_points(p, normals=np.tile([0.0, 0.0, 1.0], (n, 1)))
+
+
+def _down(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.c_[xy, np.ones(len(xy))], np.tile([0.0, 0.0, -1.0], (len(xy), 1))
+
+
+def test_surfels_stop_at_an_open_edge_and_keep_the_inside_covered() -> None:
+    cloud = _square_cloud(4000, seed=1)
+    r, s = cloud.surfel_radius, cloud.spacing()
+    rng = np.random.default_rng(2)
+    inside = rng.uniform(0.1, 0.9, (40000, 2))
+    assert np.mean(~cloud.raycast(*_down(inside)).hit) < 0.01  # holes as with whole hexagons (0.3 %)
+    # rays within one surfel radius beyond the edge x = 1: whole hexagons hit 50 % of them
+    beyond = np.c_[1.0 + r * rng.random(40000), rng.uniform(0.1, 0.9, 40000)]
+    assert np.mean(cloud.raycast(*_down(beyond)).hit) < 0.2
+    # nothing beyond 1.2 spacings past the outermost point (whole hexagons reach 1.5)
+    far = np.c_[cloud.points[:, 0].max() + (1.2 + 0.3 * rng.random(40000)) * s, rng.uniform(0.1, 0.9, 40000)]
+    assert not cloud.raycast(*_down(far)).hit.any()
+
+
+def test_rays_passing_a_pillar_edge_reach_the_wall_behind_it() -> None:
+    # a 0.3 m square pillar (outward normals) in front of a wall at y = 1 (normal toward it)
+    pillar = Map.cuboid(size=(0.3, 0.3, 1.0), origin=(-0.15, -0.15, 0.0), open_faces=("+z", "-z"))
+    rng = np.random.default_rng(3)
+    pts = pillar.sample_surface(3000, rng)
+    nrm = -pts.normals  # the cuboid's faces look into it; a pillar's look out
+    wy = np.c_[rng.uniform(-1, 1, 6000), np.full(6000, 1.0), rng.uniform(0, 1, 6000)]
+    cloud = Map.from_points(np.r_[pts.points, wy], normals=np.r_[nrm, np.tile([0.0, -1.0, 0.0], (6000, 1))])
+    r = cloud.surfel_radius
+    # rays along +y passing the pillar's edge x = 0.15 within 0.5 to 1 surfel radius
+    n = 20000
+    x = 0.15 + r * rng.uniform(0.5, 1.0, n)
+    o = np.c_[x, np.full(n, -0.8), rng.uniform(0.2, 0.8, n)]
+    h = cloud.raycast(o, np.tile([0.0, 1.0, 0.0], (n, 1)))
+    assert np.mean(h.hit & (h.t < 1.0)) < 0.02  # whole hexagons: 34 % of them read the pillar
+    assert np.mean(h.hit & (np.abs(h.t - 1.8) < 1e-3)) > 0.97  # the wall, 1.8 m away
+
+
+def test_surfel_corners_meet_their_sides_in_order() -> None:
+    cloud = Map.cuboid().sample_surface(2000, np.random.default_rng(4))
+    r = cloud.surfel_radius
+    u, v = _tangent_basis(cloud.normals)
+    ang = 2 * np.pi * np.arange(6) / 6
+    dirs = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
+    e = surfel_extents(cloud.points, cloud.normals, dirs, r, 0.5 * cloud.spacing())
+    assert np.all(e > 0) and np.all(e <= r * np.cos(np.pi / 6) + 1e-12)
+    assert np.mean(np.isclose(e, r * np.cos(np.pi / 6)).all(axis=1)) > 0.5  # most surfels whole
+    assert np.any(e < 0.5 * r)  # the open faces' edges trimmed
+    xy = surfel_corners(e, ang)
+    a = np.c_[np.cos(ang), np.sin(ang)]
+    side = xy @ a.T  # (N, corner, side)
+    assert np.all(side <= e[:, None, :] + 1e-12)  # every corner inside every side
+    j = np.arange(6)
+    np.testing.assert_allclose(side[:, j, j], e, atol=1e-12)  # corner j on sides j and j + 1
+    np.testing.assert_allclose(side[:, j, (j + 1) % 6], e[:, (j + 1) % 6], atol=1e-12)
+    turn = np.diff(np.unwrap(np.arctan2(xy[..., 1], xy[..., 0]), axis=1), axis=1)
+    assert np.all(turn >= -1e-9)  # star-shaped about the point: the fan covers it once

@@ -15,9 +15,11 @@ Conventions
   smallest eigenvalue of the neighbourhood covariance) and oriented toward the cloud's
   centroid (``orient="inward"``, the default: the robot is inside the environment), away
   from it (``"outward"``) or toward a given viewpoint.
-* A point-cloud map is ray cast through **surfels**: each point becomes a regular hexagon
-  of circumradius ``r`` in the plane through the point normal to its normal (4 triangles),
-  all put in one ``RaycastingScene``. By default ``r = 1.5 s`` where ``s`` is the cloud's
+* A point-cloud map is ray cast through **surfels**: each point becomes a hexagon in the
+  plane through the point normal to its normal (6 triangles fanned from the point), all put
+  in one ``RaycastingScene``: regular, of circumradius ``r``, inside a surface; trimmed to
+  half a spacing past the point's farthest neighbours where its surface ends (an open edge,
+  a convex corner: :func:`surfel_extents`). By default ``r = 1.5 s`` where ``s`` is the cloud's
   sample spacing (:meth:`Map.spacing`, the side of the square of surface each point
   represents, ``median_i d8_i sqrt(pi / 8)`` with ``d8_i`` the distance to the 8th nearest
   neighbour). See ``docs/maps.md`` for the measured accuracy and why the spacing, not the
@@ -86,9 +88,21 @@ SAVE_SUFFIXES = (".ply", ".npy", ".xyz")
 #: Face names of :meth:`Map.cuboid`.
 CUBOID_FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
 
-#: Triangles per surfel (a hexagon fanned from its first corner).
+#: Corners per surfel (a hexagon fanned from its centre: one triangle per side).
 _SURFEL_CORNERS = 6
-_SURFEL_TRIANGLES = _SURFEL_CORNERS - 2
+_SURFEL_TRIANGLES = _SURFEL_CORNERS
+#: How far (in units of :meth:`Map.spacing`) a surfel reaches beyond the farthest point of
+#: its own surface in a direction: half a spacing, the point's own share of the surface.
+SURFEL_EDGE_MARGIN = 0.5
+#: Neighbours looked at per point to trim its surfel (:func:`surfel_extents`), within
+#: :data:`SURFEL_LOOK` surfel radii: far enough that a random sample's gaps between points
+#: are not taken for the surface's edge.
+SURFEL_NEIGHBOURS = 64
+SURFEL_LOOK = 3.0
+#: A neighbour belongs to a point's surface when their normals differ by less than this (deg).
+SURFEL_SAME_SURFACE_DEG = 30.0
+#: Points trimmed per batch by :func:`surfel_extents`.
+_SURFEL_CHUNK = 20_000
 #: Default surfel circumradius, in units of :meth:`Map.spacing`.
 DEFAULT_SURFEL_SCALE = 1.5
 #: :meth:`Map.with_surface` refuses a surface whose bounding box corners lie farther than
@@ -156,6 +170,79 @@ def _tangent_basis(normals: NDArray[np.float64]) -> tuple[NDArray[np.float64], N
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     v = np.cross(normals, u)
     return u, v
+
+
+def surfel_extents(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    dirs: NDArray[np.float64],
+    radius: float,
+    margin: float,
+) -> NDArray[np.float64]:
+    """How far each point's surfel reaches along each of its side normals: ``(N, C)``.
+
+    A surfel is the polygon ``{x : (x - p) . dirs[i, j] <= e[i, j]}`` in the point's tangent
+    plane (``dirs`` ``(N, C, 3)``, unit tangent directions at equal angles): a regular
+    polygon of inradius ``radius cos(pi / C)`` inside a surface, trimmed at its edge. ``e``
+    is ``margin`` past the farthest projection onto ``dirs[i, j]`` of a neighbour of the same
+    surface lying within 45 deg of that direction (among the point's
+    :data:`SURFEL_NEIGHBOURS` nearest within :data:`SURFEL_LOOK` ``radius``, at most half
+    that distance off the point's plane, normal within :data:`SURFEL_SAME_SURFACE_DEG`, or
+    of another surface in front of the point's plane, on its normal's side: a concave
+    junction such as a room's corner, which the surfel reaches; the point itself projects
+    to 0), never beyond the inradius. Inside a surface every direction
+    has neighbours and the polygon is whole; beyond an open edge or a convex corner there are
+    none and the surfel stops ``margin`` past the point, where a whole one overhung by up to
+    ``radius`` (a ray passing a pillar's edge read the pillar). Redundant sides are moved in
+    to their neighbours' corner (``e_j <= e_{j-1} + e_{j+1}`` at 60 deg steps), so that
+    consecutive sides meet in order (:func:`surfel_corners`).
+    """
+    from scipy.spatial import cKDTree
+
+    n, c = dirs.shape[:2]
+    k = min(SURFEL_NEIGHBOURS + 1, n)
+    look = SURFEL_LOOK * radius
+    inradius = radius * math.cos(math.pi / c)
+    tree = cKDTree(points)
+    cos_same = math.cos(math.radians(SURFEL_SAME_SURFACE_DEG))
+    cos_cone = math.cos(math.radians(45.0))
+    out = np.empty((n, c))
+    for a in range(0, n, _SURFEL_CHUNK):  # bounded temporaries (N x C x k) whatever the cloud's size
+        b = min(n, a + _SURFEL_CHUNK)
+        p, nrm = points[a:b], normals[a:b]
+        dist, idx = tree.query(p, k=k, distance_upper_bound=look)
+        dist = np.asarray(dist).reshape(b - a, k)
+        ok = np.isfinite(dist) & (dist > 0)
+        safe = np.where(ok, np.asarray(idx).reshape(b - a, k), 0)
+        off = points[safe] - p[:, None, :]  # (n, k, 3)
+        height = np.einsum("nkc,nc->nk", off, nrm)  # in front of the point's plane: > 0
+        same = np.abs(np.einsum("nkc,nc->nk", normals[safe], nrm)) >= cos_same
+        # the same surface, or another one in front of this one (a concave junction: the
+        # walls of a room's corner meet there, the surfel reaches it)
+        ok &= (np.abs(height) <= 0.5 * look) & (same | (height > 0))
+        proj = np.einsum("nkc,njc->njk", off, dirs[a:b])  # (n, C, k)
+        in_cone = ok[:, None, :] & (proj >= cos_cone * np.where(ok, dist, 1.0)[:, None, :])
+        reach = np.max(np.where(in_cone, proj, 0.0), axis=2)
+        out[a:b] = np.minimum(reach + margin, inradius)
+    if c == 6:
+        for _ in range(c):  # redundant sides in to their neighbours' corner (a_j = a_{j-1} + a_{j+1})
+            tight = np.minimum(out, np.roll(out, 1, axis=1) + np.roll(out, -1, axis=1))
+            if np.array_equal(tight, out):
+                break
+            out = tight
+    return out
+
+
+def surfel_corners(e: NDArray[np.float64], angles: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The corners ``(N, C, 2)`` (tangent-plane coordinates) of the polygons whose side ``j``
+    lies on ``x . (cos a_j, sin a_j) = e[:, j]``: corner ``j`` is where sides ``j`` and
+    ``j + 1`` meet."""
+    a0, a1 = angles, np.roll(angles, -1)
+    e0, e1 = e, np.roll(e, -1, axis=1)
+    den = np.sin(a1 - a0)
+    x = (e0 * np.sin(a1) - e1 * np.sin(a0)) / den
+    y = (e1 * np.cos(a0) - e0 * np.cos(a1)) / den
+    return np.stack([x, y], axis=-1)
 
 
 def _cuboid_mesh(
@@ -984,11 +1071,16 @@ class Map:
         assert self.normals is not None
         r = float(self.surfel_radius)  # type: ignore[arg-type]
         u, v = _tangent_basis(self.normals)
-        ang = 2.0 * np.pi * np.arange(_SURFEL_CORNERS) / _SURFEL_CORNERS
-        offs = r * (np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :])
-        verts = (self.points[:, None, :] + offs).reshape(-1, 3).astype(np.float32)
-        fan = np.array([[0, j, j + 1] for j in range(1, _SURFEL_CORNERS - 1)], dtype=np.int64)
-        base = _SURFEL_CORNERS * np.arange(self.points.shape[0], dtype=np.int64)
+        ang = 2.0 * np.pi * np.arange(_SURFEL_CORNERS) / _SURFEL_CORNERS  # the sides' normals
+        dirs = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
+        e = surfel_extents(self.points, self.normals, dirs, r, min(r, SURFEL_EDGE_MARGIN * self.spacing()))
+        xy = surfel_corners(e, ang)
+        corners = self.points[:, None, :] + xy[:, :, :1] * u[:, None, :] + xy[:, :, 1:] * v[:, None, :]
+        n = self.points.shape[0]
+        verts = np.concatenate([self.points[:, None, :], corners], axis=1).reshape(-1, 3).astype(np.float32)
+        # fanned from the point (inside its polygon): one triangle per side
+        fan = np.array([[0, 1 + j, 1 + (j + 1) % _SURFEL_CORNERS] for j in range(_SURFEL_CORNERS)], dtype=np.int64)
+        base = (_SURFEL_CORNERS + 1) * np.arange(n, dtype=np.int64)
         tris = (fan[None, :, :] + base[:, None, None]).reshape(-1, 3).astype(np.uint32)
         return verts, tris
 
@@ -1018,13 +1110,16 @@ class Map:
         """First hit of each ray with the map (vectorized, Open3D/Embree, float32 inside).
 
         Meshes are cast against their triangles. Point clouds are cast against surfels:
-        each point becomes a regular hexagon of circumradius :attr:`surfel_radius`
-        (default ``1.5 * spacing()``) centred on it, perpendicular to its normal, split in
-        4 triangles; the hit's normal is the point's normal and ``index`` the point. This
-        fills the gaps between points; near a cloud's open edges surfels overhang by up to
-        the radius, so grazing rays there may hit where the true surface has ended. A
-        cloud with a :attr:`surface` is cast against the surface's triangles instead
-        (``index``: a triangle of the surface).
+        each point becomes a hexagon centred on it, perpendicular to its normal, split in 6
+        triangles fanned from the point; the hit's normal is the point's normal and
+        ``index`` the point. Inside a surface the hexagon is regular, of circumradius
+        :attr:`surfel_radius` (default ``1.5 * spacing()``), which fills the gaps between
+        points; where the surface ends (an open edge, a convex corner) its sides beyond the
+        point's farthest neighbours stop half a spacing past them
+        (:func:`surfel_extents`), so grazing rays there hit where the true surface has ended
+        only within about a spacing of its last points (whole hexagons overhung by the
+        radius; docs/maps.md). A cloud with a :attr:`surface` is cast against the surface's
+        triangles instead (``index``: a triangle of the surface).
 
         Parameters
         ----------

@@ -5,9 +5,10 @@ surface, positive on the side the surface normal points to, clipped to ``+-r_fie
 stored as int16 codes; a query is trilinearly interpolated (a signed field interpolates a
 plane exactly; an unsigned one would round off the V at the surface). The surface is the
 triangles of a mesh map (or of the mesh attached to a cloud,
-:meth:`tofloc.maps.Map.with_surface`), or for a point-cloud map the same surfels
-:meth:`tofloc.maps.Map.raycast` casts against (discs of radius ``surfel_radius`` around
-each point, perpendicular to its normal; the disc of the nearest point is used). Unlike
+:meth:`tofloc.maps.Map.with_surface`), or for a point-cloud map the surfels of
+:meth:`tofloc.maps.Map.raycast` as discs (radius ``surfel_radius`` around each point,
+perpendicular to its normal, the disc of the nearest point used; whole discs, not
+trimmed at a surface's edges as the ray-casting hexagons are). Unlike
 :class:`tofloc.distance_grid.DistanceGrid` (distances to the nearest map *point*, which
 on the 2000-point cuboid map is up to ~2 cm off a wall), this field measures the distance
 to the surface.
