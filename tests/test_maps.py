@@ -15,6 +15,7 @@ from tofloc.maps import (
     MAX_POINTS,
     Map,
     RayHits,
+    SURFEL_SIDE_ANGLES,
     _tangent_basis,
     estimate_normals,
     surfel_corners,
@@ -656,9 +657,8 @@ def test_surfel_corners_meet_their_sides_in_order() -> None:
     cloud = Map.cuboid().sample_surface(2000, np.random.default_rng(4))
     r = cloud.surfel_radius
     u, v = _tangent_basis(cloud.normals)
-    ang = 2 * np.pi * np.arange(6) / 6
-    dirs = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
-    e = surfel_extents(cloud.points, cloud.normals, dirs, r, 0.5 * cloud.spacing())
+    ang = np.asarray(SURFEL_SIDE_ANGLES)
+    e = surfel_extents(cloud.points, cloud.normals, u, v, r, 0.5 * cloud.spacing())
     assert np.all(e > 0) and np.all(e <= r * np.cos(np.pi / 6) + 1e-12)
     assert np.mean(np.isclose(e, r * np.cos(np.pi / 6)).all(axis=1)) > 0.5  # most surfels whole
     assert np.any(e < 0.5 * r)  # the open faces' edges trimmed

@@ -101,6 +101,8 @@ SURFEL_NEIGHBOURS = 64
 SURFEL_LOOK = 3.0
 #: A neighbour belongs to a point's surface when their normals differ by less than this (deg).
 SURFEL_SAME_SURFACE_DEG = 30.0
+#: The directions of a surfel's sides' normals in its tangent plane (:func:`surfel_extents`).
+SURFEL_SIDE_ANGLES = tuple(2.0 * math.pi * j / _SURFEL_CORNERS for j in range(_SURFEL_CORNERS))
 #: Points trimmed per batch by :func:`surfel_extents`.
 _SURFEL_CHUNK = 20_000
 #: Default surfel circumradius, in units of :meth:`Map.spacing`.
@@ -175,39 +177,41 @@ def _tangent_basis(normals: NDArray[np.float64]) -> tuple[NDArray[np.float64], N
 def surfel_extents(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
-    dirs: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
     radius: float,
     margin: float,
 ) -> NDArray[np.float64]:
-    """How far each point's surfel reaches along each of its side normals: ``(N, C)``.
+    """How far each point's surfel reaches along each of its side normals: ``(N, 6)``.
 
-    A surfel is the polygon ``{x : (x - p) . dirs[i, j] <= e[i, j]}`` in the point's tangent
-    plane (``dirs`` ``(N, C, 3)``, unit tangent directions at equal angles): a regular
-    polygon of inradius ``radius cos(pi / C)`` inside a surface, trimmed at its edge. ``e``
-    is ``margin`` past the farthest projection onto ``dirs[i, j]`` of a neighbour of the same
-    surface lying within 45 deg of that direction (among the point's
-    :data:`SURFEL_NEIGHBOURS` nearest within :data:`SURFEL_LOOK` ``radius``, at most half
-    that distance off the point's plane, normal within :data:`SURFEL_SAME_SURFACE_DEG`, or
-    of another surface in front of the point's plane, on its normal's side: a concave
-    junction such as a room's corner, which the surfel reaches; the point itself projects
-    to 0), never beyond the inradius. Inside a surface every direction
-    has neighbours and the polygon is whole; beyond an open edge or a convex corner there are
-    none and the surfel stops ``margin`` past the point, where a whole one overhung by up to
-    ``radius`` (a ray passing a pillar's edge read the pillar). Redundant sides are moved in
-    to their neighbours' corner (``e_j <= e_{j-1} + e_{j+1}`` at 60 deg steps), so that
-    consecutive sides meet in order (:func:`surfel_corners`).
+    A surfel is the hexagon ``{x : (x - p) . a_ij <= e[i, j]}`` in the point's tangent plane,
+    ``a_ij = cos(t_j) u_i + sin(t_j) v_i`` with ``t_j`` = :data:`SURFEL_SIDE_ANGLES` (``u, v``
+    ``(N, 3)``: unit tangents, ``u x v`` the normal): regular, of inradius ``radius cos 30
+    deg``, inside a surface, trimmed at its edge. ``e`` is ``margin`` past the farthest
+    projection onto ``a_ij`` of a neighbour lying within 45 deg of that direction (among the
+    point's :data:`SURFEL_NEIGHBOURS` nearest within :data:`SURFEL_LOOK` ``radius``, at most
+    half that distance off the point's plane, and of the same surface, normal within
+    :data:`SURFEL_SAME_SURFACE_DEG`, or of another surface in front of the point's plane,
+    on its normal's side: a concave junction such as a room's corner, which the surfel
+    reaches; the point itself projects to 0), never beyond the inradius. Inside a surface
+    every direction has neighbours and the hexagon is whole; beyond an open edge or a
+    convex corner there are none and the surfel stops ``margin`` past the point, where a
+    whole one overhung by up to ``radius`` (a ray passing a pillar's edge read the pillar).
+    Redundant sides are moved in to their neighbours' corner (``e_j <= e_{j-1} + e_{j+1}``:
+    ``a_j = a_{j-1} + a_{j+1}`` at 60 deg steps), so that consecutive sides meet in order
+    (:func:`surfel_corners`).
     """
     from scipy.spatial import cKDTree
 
-    n, c = dirs.shape[:2]
+    n = points.shape[0]
     k = min(SURFEL_NEIGHBOURS + 1, n)
     look = SURFEL_LOOK * radius
-    inradius = radius * math.cos(math.pi / c)
+    inradius = radius * math.cos(math.pi / 6)
     tree = cKDTree(points)
     cos_same = math.cos(math.radians(SURFEL_SAME_SURFACE_DEG))
     cos_cone = math.cos(math.radians(45.0))
-    out = np.empty((n, c))
-    for a in range(0, n, _SURFEL_CHUNK):  # bounded temporaries (N x C x k) whatever the cloud's size
+    out = np.empty((n, 6))
+    for a in range(0, n, _SURFEL_CHUNK):  # bounded temporaries (N x k) whatever the cloud's size
         b = min(n, a + _SURFEL_CHUNK)
         p, nrm = points[a:b], normals[a:b]
         dist, idx = tree.query(p, k=k, distance_upper_bound=look)
@@ -220,16 +224,18 @@ def surfel_extents(
         # the same surface, or another one in front of this one (a concave junction: the
         # walls of a room's corner meet there, the surfel reaches it)
         ok &= (np.abs(height) <= 0.5 * look) & (same | (height > 0))
-        proj = np.einsum("nkc,njc->njk", off, dirs[a:b])  # (n, C, k)
-        in_cone = ok[:, None, :] & (proj >= cos_cone * np.where(ok, dist, 1.0)[:, None, :])
-        reach = np.max(np.where(in_cone, proj, 0.0), axis=2)
-        out[a:b] = np.minimum(reach + margin, inradius)
-    if c == 6:
-        for _ in range(c):  # redundant sides in to their neighbours' corner (a_j = a_{j-1} + a_{j+1})
-            tight = np.minimum(out, np.roll(out, 1, axis=1) + np.roll(out, -1, axis=1))
-            if np.array_equal(tight, out):
-                break
-            out = tight
+        ou = np.einsum("nkc,nc->nk", off, u[a:b])
+        ov = np.einsum("nkc,nc->nk", off, v[a:b])
+        cone = cos_cone * np.where(ok, dist, np.inf)  # a neighbour left out is in no cone
+        for j, t in enumerate(SURFEL_SIDE_ANGLES):
+            proj = math.cos(t) * ou + math.sin(t) * ov
+            out[a:b, j] = np.max(np.where(proj >= cone, proj, 0.0), axis=1)
+    out = np.minimum(out + margin, inradius)
+    for _ in range(6):  # redundant sides in to their neighbours' corner
+        tight = np.minimum(out, np.roll(out, 1, axis=1) + np.roll(out, -1, axis=1))
+        if np.array_equal(tight, out):
+            break
+        out = tight
     return out
 
 
@@ -1071,14 +1077,12 @@ class Map:
         assert self.normals is not None
         r = float(self.surfel_radius)  # type: ignore[arg-type]
         u, v = _tangent_basis(self.normals)
-        ang = 2.0 * np.pi * np.arange(_SURFEL_CORNERS) / _SURFEL_CORNERS  # the sides' normals
-        dirs = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
-        e = surfel_extents(self.points, self.normals, dirs, r, min(r, SURFEL_EDGE_MARGIN * self.spacing()))
-        xy = surfel_corners(e, ang)
+        e = surfel_extents(self.points, self.normals, u, v, r, min(r, SURFEL_EDGE_MARGIN * self.spacing()))
+        xy = surfel_corners(e, np.asarray(SURFEL_SIDE_ANGLES))
         corners = self.points[:, None, :] + xy[:, :, :1] * u[:, None, :] + xy[:, :, 1:] * v[:, None, :]
         n = self.points.shape[0]
         verts = np.concatenate([self.points[:, None, :], corners], axis=1).reshape(-1, 3).astype(np.float32)
-        # fanned from the point (inside its polygon): one triangle per side
+        # fanned from the point (inside its hexagon): one triangle per side
         fan = np.array([[0, 1 + j, 1 + (j + 1) % _SURFEL_CORNERS] for j in range(_SURFEL_CORNERS)], dtype=np.int64)
         base = (_SURFEL_CORNERS + 1) * np.arange(n, dtype=np.int64)
         tris = (fan[None, :, :] + base[:, None, None]).reshape(-1, 3).astype(np.uint32)
