@@ -671,3 +671,23 @@ def test_surfel_corners_meet_their_sides_in_order() -> None:
     np.testing.assert_allclose(side[:, j, (j + 1) % 6], e[:, (j + 1) % 6], atol=1e-12)
     turn = np.diff(np.unwrap(np.arctan2(xy[..., 1], xy[..., 0]), axis=1), axis=1)
     assert np.all(turn >= -1e-9)  # star-shaped about the point: the fan covers it once
+
+
+def test_a_map_built_from_scans_keeps_whole_surfels() -> None:
+    """A cloud with a known space (built from scans) ends where the scans stopped, not where
+    its walls do: its surfels stay whole hexagons, overhanging the edge as before trimming."""
+    from tofloc.known_space import KnownSpace
+
+    cloud = _square_cloud(4000, seed=1)
+    r = cloud.surfel_radius
+    rng = np.random.default_rng(2)
+    beyond = np.c_[1.0 + r * rng.random(40000), rng.uniform(0.1, 0.9, 40000)]
+    trimmed = np.mean(cloud.raycast(*_down(beyond)).hit)
+    cloud.raycast(*_down(beyond[:10]))  # the trimmed scene is built: the copy must not keep it
+    scanned = cloud.with_known_space(KnownSpace(np.array([-0.5, -0.5]), 0.05, np.array([-1.0, 2.0]), np.ones((40, 40), bool)))
+    h = scanned.raycast(*_down(beyond))
+    assert trimmed < 0.2 and np.mean(h.hit) > 0.45  # whole hexagons hit half of them
+    hit_points = np.c_[beyond, np.ones(len(beyond))][h.hit] + h.t[h.hit][:, None] * np.array([0.0, 0.0, -1.0])
+    d = np.linalg.norm(hit_points - scanned.points[h.index[h.hit]], axis=1)
+    assert np.all(d <= r + 1e-6)  # index: the point whose hexagon was hit (4 triangles each)
+    assert np.mean(cloud.raycast(*_down(beyond)).hit) == trimmed  # the original keeps its own

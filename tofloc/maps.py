@@ -19,7 +19,8 @@ Conventions
   plane through the point normal to its normal (6 triangles fanned from the point), all put
   in one ``RaycastingScene``: regular, of circumradius ``r``, inside a surface; trimmed to
   half a spacing past the point's farthest neighbours where its surface ends (an open edge,
-  a convex corner: :func:`surfel_extents`). By default ``r = 1.5 s`` where ``s`` is the cloud's
+  a convex corner: :func:`surfel_extents`), except on a map built from scans (one with a
+  :attr:`Map.known_space`), whose edges are where the scans stopped: whole there. By default ``r = 1.5 s`` where ``s`` is the cloud's
   sample spacing (:meth:`Map.spacing`, the side of the square of surface each point
   represents, ``median_i d8_i sqrt(pi / 8)`` with ``d8_i`` the distance to the 8th nearest
   neighbour). See ``docs/maps.md`` for the measured accuracy and why the spacing, not the
@@ -88,9 +89,11 @@ SAVE_SUFFIXES = (".ply", ".npy", ".xyz")
 #: Face names of :meth:`Map.cuboid`.
 CUBOID_FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
 
-#: Corners per surfel (a hexagon fanned from its centre: one triangle per side).
+#: Corners per surfel: a hexagon, fanned from its point when trimmed (one triangle per
+#: side), from its first corner when whole (a map built from scans, :meth:`Map.known_space`).
 _SURFEL_CORNERS = 6
 _SURFEL_TRIANGLES = _SURFEL_CORNERS
+_WHOLE_SURFEL_TRIANGLES = _SURFEL_CORNERS - 2
 #: How far (in units of :meth:`Map.spacing`) a surfel reaches beyond the farthest point of
 #: its own surface in a direction: half a spacing, the point's own share of the surface.
 SURFEL_EDGE_MARGIN = 0.5
@@ -331,6 +334,7 @@ class Map:
         self._tree: cKDTree | None = None
         self._bounded: dict[float, Any] = {}  # BoundedNearestGrid per radius, built on first use
         self._scene: Any = None
+        self._surfel_triangles = 1  # of the scene's triangles per point (set with the scene)
         self._face_normals: NDArray[np.float64] | None = None
         self._face_areas: NDArray[np.float64] | None = None
         self._spacing: float | None = None
@@ -722,6 +726,7 @@ class Map:
         out = copy.copy(self)
         out.__dict__.pop("_fingerprint", None)
         out.__dict__["_known_space"] = known
+        out._scene = None  # a cloud's surfels depend on it (:meth:`raycast`)
         return out
 
     def with_surface(self, surface: Map) -> Map:
@@ -1073,20 +1078,31 @@ class Map:
         return c, n, self.nearest(query)[1]
 
     # ---- ray casting ---------------------------------------------------------------------
-    def _surfel_mesh(self) -> tuple[NDArray[np.float32], NDArray[np.uint32]]:
+    def _surfel_mesh(self) -> tuple[NDArray[np.float32], NDArray[np.uint32], int]:
+        """The surfels' vertices, triangles and triangles per point (see :meth:`raycast`)."""
         assert self.normals is not None
         r = float(self.surfel_radius)  # type: ignore[arg-type]
         u, v = _tangent_basis(self.normals)
+        n = self.points.shape[0]
+        if self.known_space is not None:
+            # a map built from scans: its surfaces end where the scans stopped or its walls'
+            # extrusion was cut, not where the walls end: whole hexagons
+            ang = 2.0 * np.pi * np.arange(_SURFEL_CORNERS) / _SURFEL_CORNERS
+            offs = r * (np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :])
+            verts = (self.points[:, None, :] + offs).reshape(-1, 3).astype(np.float32)
+            fan = np.array([[0, j, j + 1] for j in range(1, _SURFEL_CORNERS - 1)], dtype=np.int64)
+            base = _SURFEL_CORNERS * np.arange(n, dtype=np.int64)
+            tris = (fan[None, :, :] + base[:, None, None]).reshape(-1, 3).astype(np.uint32)
+            return verts, tris, _WHOLE_SURFEL_TRIANGLES
         e = surfel_extents(self.points, self.normals, u, v, r, min(r, SURFEL_EDGE_MARGIN * self.spacing()))
         xy = surfel_corners(e, np.asarray(SURFEL_SIDE_ANGLES))
         corners = self.points[:, None, :] + xy[:, :, :1] * u[:, None, :] + xy[:, :, 1:] * v[:, None, :]
-        n = self.points.shape[0]
         verts = np.concatenate([self.points[:, None, :], corners], axis=1).reshape(-1, 3).astype(np.float32)
         # fanned from the point (inside its hexagon): one triangle per side
         fan = np.array([[0, 1 + j, 1 + (j + 1) % _SURFEL_CORNERS] for j in range(_SURFEL_CORNERS)], dtype=np.int64)
         base = (_SURFEL_CORNERS + 1) * np.arange(n, dtype=np.int64)
         tris = (fan[None, :, :] + base[:, None, None]).reshape(-1, 3).astype(np.uint32)
-        return verts, tris
+        return verts, tris, _SURFEL_TRIANGLES
 
     def _scene_obj(self) -> Any:
         if self._scene is None:
@@ -1095,8 +1111,9 @@ class Map:
                 assert self._triangles is not None
                 verts = self.points.astype(np.float32)
                 tris = self._triangles.astype(np.uint32)
+                self._surfel_triangles = 1
             else:
-                verts, tris = self._surfel_mesh()
+                verts, tris, self._surfel_triangles = self._surfel_mesh()
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
             self._scene = scene
@@ -1122,7 +1139,9 @@ class Map:
         point's farthest neighbours stop half a spacing past them
         (:func:`surfel_extents`), so grazing rays there hit where the true surface has ended
         only within about a spacing of its last points (whole hexagons overhung by the
-        radius; docs/maps.md). A cloud with a :attr:`surface` is cast against the surface's
+        radius; docs/maps.md). A map built from scans (with a :attr:`known_space`) keeps
+        whole hexagons (4 triangles each): its surfaces end where the scans stopped, not
+        where its walls do. A cloud with a :attr:`surface` is cast against the surface's
         triangles instead (``index``: a triangle of the surface).
 
         Parameters
@@ -1184,7 +1203,7 @@ class Map:
             index = np.empty(flat.shape[0], dtype=np.int64)
             normal = np.empty((flat.shape[0], 3))
             numba_kernels.ray_hits(ans["t_hit"].numpy(), ans["primitive_ids"].numpy(), mr,
-                                   np.ascontiguousarray(table, dtype=np.float64), 1 if self.kind == "mesh" else _SURFEL_TRIANGLES,
+                                   np.ascontiguousarray(table, dtype=np.float64), self._surfel_triangles,
                                    flat, bool(toward_origin), t, index, normal)
             return RayHits(t=t.reshape(shape[:-1]), normal=normal.reshape(shape), index=index.reshape(shape[:-1]))
         t = ans["t_hit"].numpy().astype(np.float64)
@@ -1195,7 +1214,7 @@ class Map:
         if self.kind == "mesh":
             index[hit] = prim[hit].astype(np.int64)
         else:
-            index[hit] = prim[hit].astype(np.int64) // _SURFEL_TRIANGLES
+            index[hit] = prim[hit].astype(np.int64) // self._surfel_triangles
         normal = np.full(t.shape + (3,), np.nan)
         normal[hit] = table[index[hit]]
         if toward_origin:
