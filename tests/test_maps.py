@@ -691,3 +691,13 @@ def test_a_map_built_from_scans_keeps_whole_surfels() -> None:
     d = np.linalg.norm(hit_points - scanned.points[h.index[h.hit]], axis=1)
     assert np.all(d <= r + 1e-6)  # index: the point whose hexagon was hit (4 triangles each)
     assert np.mean(cloud.raycast(*_down(beyond)).hit) == trimmed  # the original keeps its own
+
+
+def test_a_single_point_cloud_with_a_given_radius_still_casts() -> None:
+    # no spacing without two distinct points: the surfel keeps a third of the given radius
+    # past its point on every side (the default's ratio, 0.5 of 1.5 spacings)
+    one = Map.from_points(np.array([[0.0, 0.0, 1.0]]), normals=np.array([[0.0, 0.0, 1.0]]), surfel_radius=0.09)
+    o = np.array([[0.0, 0.0, 0.0], [0.025, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    h = one.raycast(o, np.tile([0.0, 0.0, 1.0], (3, 1)))
+    np.testing.assert_allclose(h.t[:2], 1.0, atol=1e-6)
+    assert not h.hit[2] and h.index[0] == 0

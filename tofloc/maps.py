@@ -1094,7 +1094,11 @@ class Map:
             base = _SURFEL_CORNERS * np.arange(n, dtype=np.int64)
             tris = (fan[None, :, :] + base[:, None, None]).reshape(-1, 3).astype(np.uint32)
             return verts, tris, _WHOLE_SURFEL_TRIANGLES
-        e = surfel_extents(self.points, self.normals, u, v, r, min(r, SURFEL_EDGE_MARGIN * self.spacing()))
+        try:
+            margin = min(r, SURFEL_EDGE_MARGIN * self.spacing())
+        except ParameterError:  # too few distinct points for a spacing: a given radius's share
+            margin = r * SURFEL_EDGE_MARGIN / DEFAULT_SURFEL_SCALE
+        e = surfel_extents(self.points, self.normals, u, v, r, margin)
         xy = surfel_corners(e, np.asarray(SURFEL_SIDE_ANGLES))
         corners = self.points[:, None, :] + xy[:, :, :1] * u[:, None, :] + xy[:, :, 1:] * v[:, None, :]
         verts = np.concatenate([self.points[:, None, :], corners], axis=1).reshape(-1, 3).astype(np.float32)
@@ -1345,6 +1349,7 @@ class Map:
         self.__dict__.update(state)
         self.__dict__.setdefault("_surface", None)  # pickles made before surfaces existed
         self.__dict__.setdefault("_known_space", None)
+        self.__dict__.setdefault("_surfel_triangles", 1)
         self.__dict__.setdefault("_bounded", {})
         self.__dict__.setdefault("_planar_faces", None)  # pickles made before face labels were kept
         for name in ("points", "normals", "_triangles", "_face_normals", "_face_areas"):
