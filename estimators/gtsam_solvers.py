@@ -329,8 +329,6 @@ class SmootherGraph:
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
 
-        est = self.est
-        K = self.problem.n_samples
         priors = self.priors()
         if fix_base:
             priors.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*np.asarray(start, dtype=float)[:3]),

@@ -78,7 +78,7 @@ from sensor_models.base import (
 from tofloc import frames, numba_kernels
 from tofloc.configuration_uncertainty import point_covariance, range_variance
 from tofloc.errors import FormatError, ParameterError
-from tofloc.problem import Problem, check_in, check_int
+from tofloc.problem import Problem, check_in
 from tofloc.range_model import RangeUncertainty, edge_zone_mask
 from tofloc.rig import zone_widths
 from tofloc.toml_tables import params_from_table, params_from_toml

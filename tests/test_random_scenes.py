@@ -81,7 +81,7 @@ def test_scenes_runs_random_rooms_and_writes_their_scenarios(tmp_path: Path, cap
     assert doc["random_scenes"]["n"] == 1 and doc["random_scenes"]["files"] == [str(toml)]
     assert doc["random_scenes"]["descriptions"] == [random_scene(4, 0)["scenario"]["description"]]
     md = (out / "scenes.md").read_text()
-    assert f"| {name} | icp_pf |" in md and f"Random rooms (1, seed 4;" in md and f"- {doc['random_scenes']['descriptions'][0]}" in md
+    assert f"| {name} | icp_pf |" in md and "Random rooms (1, seed 4;" in md and f"- {doc['random_scenes']['descriptions'][0]}" in md
     assert main([*ARGS, "--out", str(out)]) == 0  # a rerun reuses the log and the finished batch
     err = " ".join(capsys.readouterr().err.split())
     assert f"reused {out / f'{name}-exact' / f'{name}.h5'}" in err and "reused icp_pf" in err
