@@ -209,7 +209,10 @@ def test_likelihood_peaks_at_the_truth(kind: str) -> None:
         # a zone within a spacing of an open face's edge (y = 0.35, z = 0.6) may read nothing
         hit = p.rig.points_in_map(p.distance_m[:1], p.T_base_tip[:1], frames.se3_from_xyyaw(*truth, p.prior.z))[0]
         s = p.map.spacing()
-        v = v & (hit[..., 1] < 0.35 - s) & (hit[..., 2] < 0.6 - s)
+        near_edge = (hit[..., 1] >= 0.35 - s) | (hit[..., 2] >= 0.6 - s)
+        # and only a few of those do: the surfels still reach half a spacing past the last points
+        assert np.sum(v & near_edge & (frac[0] < 1.0)) <= 2 and np.sum(v & near_edge & (frac[0] == 1.0)) >= 1
+        v = v & ~near_edge
         assert v.sum() > 100
     assert np.all(frac[0][v] == 1.0)
 
