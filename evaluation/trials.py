@@ -541,6 +541,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     """Draw a trial's samples and prior, run its estimator and check the fit (the work of
     :func:`run_trial`; also used to re-run one trial for a plot: same seed, same numbers)."""
     from tofloc.fit_check import check_fit, widen_if_unfit
+    from tofloc.mounting_uncertainty import add_mounting_covariance
 
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
     calibration = context.calibration_for(est)
@@ -559,6 +560,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     _, est_rng = trial_rngs(task.seed)
     result = est.estimate(problem, est_rng)
     if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
+        add_mounting_covariance(problem, result)  # what a declared mounting tolerance adds to it
         result.fit = check_fit(problem, result)
         widen_if_unfit(problem, result)  # a flagged estimate's covariance is widened by the prior's
     return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration, chosen)
@@ -569,6 +571,7 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     increasing order: each the outcome :func:`solve_trial` gives for the first k samples of
     the trial's draw, with its prior (a particle filter's answers from one pass)."""
     from tofloc.fit_check import check_fit, widen_if_unfit
+    from tofloc.mounting_uncertainty import add_mounting_covariance
 
     if task.selection != "random":
         raise ParameterError(f"nested trials: task selection {task.selection!r}: expected 'random'")
@@ -595,6 +598,7 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     out = []
     for i, (k, problem, result) in enumerate(zip(ks, problems, results)):
         if hasattr(problem.map, "raycast"):
+            add_mounting_covariance(problem, result)
             result.fit = check_fit(problem, result)
             widen_if_unfit(problem, result)
         out.append(TrialOutcome(problem, result, context.truth(idx[:k]), idx[:k], setup_s if i == 0 else 0.0,
@@ -617,7 +621,9 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         :meth:`TrialContext.truth_covariance`), when the log declares it),
         ``nees_exact_truth`` (the truth taken as exact: equal to ``nees`` when the log
         declares no truth covariance), ``nees_model`` (``nees`` with the estimator's own
-        covariance, before :func:`tofloc.fit_check.widen_if_unfit`), ``covariance_widened``
+        covariance, before :func:`tofloc.fit_check.widen_if_unfit`; with what a declared mounting
+        tolerance adds, which is also kept alone in ``mounting_covariance`` (3x3, only then):
+        :mod:`tofloc.mounting_uncertainty`), ``covariance_widened``
         (whether the fit check failed and the prior's covariance was added), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up; a nested trial's answer
         read off a pass: the time from the pass's start), ``work_s`` (nested trials only:
@@ -701,6 +707,9 @@ def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> d
     excluded = result.diagnostics.get("all_excluded") if isinstance(result.diagnostics, Mapping) else None
     if excluded:  # samples no particle could explain (likelihood zero everywhere): left out of the weights
         record["excluded_samples"] = [int(idx[int(step)]) for step in excluded]
+    mounting = result.diagnostics.get("mounting_covariance") if isinstance(result.diagnostics, Mapping) else None
+    if mounting is not None:  # what the rig's declared mounting tolerance added to the covariance
+        record["mounting_covariance"] = jsonable(mounting)
     basins = result.diagnostics.get("basin_check") if isinstance(result.diagnostics, Mapping) else None
     if basins is not None:  # other places checked after a global start (estimators/basin_check.py)
         record["basin_check"] = jsonable(basins)

@@ -256,7 +256,8 @@ def test_rig_variant_errors() -> None:
     exact = with_rig_variant(sc, "exact")
     with pytest.raises(ParameterError, match="perturbed.*support_yaw_error_deg or mounting scatter"):
         with_rig_variant(exact, "perturbed")
-    no_tol = dataclasses.replace(sc, rig=dataclasses.replace(sc.rig, support_yaw_tolerance_deg=0.0))
+    no_tol = dataclasses.replace(sc, rig=dataclasses.replace(sc.rig, support_yaw_tolerance_deg=0.0, mounting_rotation_tolerance_deg=0.0,
+                                                             mounting_translation_tolerance=0.0))
     with pytest.raises(ParameterError, match="declared"):
         with_rig_variant(no_tol, "perturbed")
     assert with_rig_variant(sc, None) is sc and with_rig_variant(sc, "perturbed") is sc

@@ -81,6 +81,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.configuration_uncertainty import range_variance
+from tofloc.mounting_uncertainty import mounting_variance, reading_gradients
 from tofloc.errors import ParameterError
 from tofloc.zone_caster import ZoneCaster
 
@@ -136,12 +137,25 @@ class ZoneResiduals:
         Valid zones and "no target" zones.
     misfit : ndarray of bool
         A valid reading with no surface expected, or "no target" with one expected.
+    sigma : ndarray or None
+        Each zone's sigma (m): the range model's, with the configuration's and the mounting
+        tolerance's variances added where declared (1 m's where no surface is expected).
+    mounting_variance : ndarray or None
+        The mounting tolerance's part of ``sigma**2`` (m^2; None when none is declared).
+    pose_gradient, mounting_gradient : ndarray or None
+        ``(K, S, Z, 3)`` and ``(K, S, Z, 6)``: the expected reading's derivatives with
+        respect to the base pose and its sensor's mounting error
+        (:func:`tofloc.mounting_uncertainty.reading_gradients`), when asked for.
     """
 
     expected: NDArray[np.float64]
     r: NDArray[np.float64]
     checked: NDArray[np.bool_]
     misfit: NDArray[np.bool_]
+    sigma: NDArray[np.float64] | None = None
+    mounting_variance: NDArray[np.float64] | None = None
+    pose_gradient: NDArray[np.float64] | None = None
+    mounting_gradient: NDArray[np.float64] | None = None
 
     @property
     def outlier(self) -> NDArray[np.bool_]:
@@ -294,7 +308,8 @@ def configuration_variance(caster: ZoneCaster, T_map_sensor: NDArray[np.float64]
                               np.asarray(T_base_tip_cov, dtype=float)[:, None, None], 1.0 / caster.rig.range_factor)
 
 
-def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0) -> ZoneResiduals:
+def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0, *,
+                   gradients: bool = False) -> ZoneResiduals:
     """Every zone's normalized residual at a planar base pose (see the module doc).
 
     Parameters
@@ -308,6 +323,11 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
         Rotation (rad) of the sensor support about the tip's z axis (a nuisance estimate).
     range_scale : float
         Relative range-scale error: a zone at expected distance ``d`` reads ``(1 + s) d``.
+    gradients : bool
+        Also return the readings' derivatives (``pose_gradient``, ``mounting_gradient``).
+
+    A problem that declares a mounting tolerance (:attr:`tofloc.problem.Problem.mounting`)
+    adds its variance to every zone's (:mod:`tofloc.mounting_uncertainty`).
     """
     p = np.asarray(pose, dtype=float)
     if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -316,11 +336,22 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
     T_map_tip, T_map_sensor = _sensor_poses(problem, p, support_yaw)
     caster = ZoneCaster(rig)
     cov = problem.T_base_tip_cov
-    cast = caster.cast(problem.map, T_map_sensor, geometry=cov is not None)
+    mounting = getattr(problem, "mounting", None)
+    mounted = mounting is not None and mounting.declared
+    cast = caster.cast(problem.map, T_map_sensor, geometry=cov is not None or mounted or gradients)
     expected = cast.reading * (1.0 + float(range_scale))
     config_var = None
     if cov is not None:
         config_var = configuration_variance(caster, T_map_sensor, T_map_tip, cast, cov) * (1.0 + float(range_scale)) ** 2
+    a: NDArray[np.float64] | None = None
+    b: NDArray[np.float64] | None = None
+    mount_var: NDArray[np.float64] | None = None
+    if mounted or gradients:
+        a, b = reading_gradients(caster, T_map_sensor, problem.prior.T_map_base(p), cast)
+        a, b = a * (1.0 + float(range_scale)), b * (1.0 + float(range_scale))
+    if mounted and mounting is not None and b is not None:
+        mount_var = mounting_variance(b, mounting.covariance())
+        config_var = mount_var if config_var is None else config_var + mount_var
     valid = problem.valid
     no_target = (problem.status == NO_TARGET_STATUS) & ~valid
     has = np.isfinite(expected)
@@ -333,7 +364,9 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
         r = np.where(valid & has, (problem.distance_m - mu) / sigma, np.nan)
     r = np.where(no_target & ~has, 0.0, r)
     misfit = (valid & ~has) | (no_target & has)
-    return ZoneResiduals(expected=expected, r=r, checked=valid | no_target, misfit=misfit)
+    return ZoneResiduals(expected=expected, r=r, checked=valid | no_target, misfit=misfit, sigma=sigma,
+                         mounting_variance=mount_var, pose_gradient=a if gradients else None,
+                         mounting_gradient=b if gradients else None)
 
 
 def unknown_space_zones(problem: Any, pose: ArrayLike, res: ZoneResiduals, support_yaw: float = 0.0) -> NDArray[np.bool_] | None:

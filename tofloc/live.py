@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
 from tofloc.fit_check import check_fit, widen_if_unfit
+from tofloc.mounting_uncertainty import add_mounting_covariance
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 from tofloc.problem_builder import build_problem, mm_to_m
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
@@ -168,6 +169,7 @@ class LiveLocalizer:
             est = self.estimator.estimate(problem, rng)
         except ProblemError as e:
             return LiveUpdate(index, problem.n_samples, None, str(e))
+        add_mounting_covariance(problem, est)  # what a declared mounting tolerance adds to its covariance
         est.fit = check_fit(problem, est)  # does the window's data fit the map at the estimate?
         widen_if_unfit(problem, est)  # if not, its covariance is widened by the prior's
         steps = est.diagnostics.get("all_excluded", ()) if isinstance(est.diagnostics, dict) else ()

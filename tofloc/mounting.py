@@ -23,6 +23,7 @@ and cast (or place end points) from the corrected poses; nothing else changes.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
@@ -32,12 +33,58 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
 
-__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "check_sensor_mounting", "corrected_T_tip_sensor", "correction_matrices",
-           "rig_with_mounting"]
+__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "MountingTolerance", "check_sensor_mounting", "corrected_T_tip_sensor",
+           "correction_matrices", "rig_with_mounting"]
 
 #: Largest per-sensor correction we accept: a mounting error, not a different rig.
 MAX_ROTATION_DEG = 30.0
 MAX_TRANSLATION_M = 0.05
+
+
+@dataclass(frozen=True)
+class MountingTolerance:
+    """How far each sensor may sit from its pose in the problem's rig: data, never a default.
+
+    Each sensor ``s`` truly sits at ``T_tip_sensor[s] @ exp(delta_s)``, ``delta_s = (omega,
+    tau)`` in the sensor's own frame (a rotation vector about its optical centre, then a
+    translation), independent from sensor to sensor, ``omega`` of sigma ``rotation_sigma``
+    and ``tau`` of sigma ``translation_sigma`` on every axis. The error is shared by every
+    zone and every sample of the sensor, so it does not average out over samples; no
+    estimator estimates it (six unknowns per sensor): :mod:`tofloc.mounting_uncertainty`
+    adds what it does to the answer to the answer's covariance.
+
+    Parameters
+    ----------
+    rotation_sigma : float
+        Radians (one sigma per axis).
+    translation_sigma : float
+        Metres (one sigma per axis).
+    source : str
+        Where it came from (``"rig tolerance"``; empty when none is declared), for the record.
+    """
+
+    rotation_sigma: float = 0.0
+    translation_sigma: float = 0.0
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        for name, hi in (("rotation_sigma", math.radians(MAX_ROTATION_DEG)), ("translation_sigma", MAX_TRANSLATION_M)):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float, np.floating)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= hi:
+                raise ParameterError(f"mounting tolerance {name} must be a number in [0, {hi:g}], got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    @property
+    def declared(self) -> bool:
+        """True when either sigma is non-zero."""
+        return self.rotation_sigma > 0 or self.translation_sigma > 0
+
+    def covariance(self) -> NDArray[np.float64]:
+        """``(6, 6)`` covariance of ``delta = (omega, tau)`` (rad, m)."""
+        return np.diag([self.rotation_sigma**2] * 3 + [self.translation_sigma**2] * 3)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"rotation_deg": math.degrees(self.rotation_sigma), "translation_m": self.translation_sigma, "source": self.source}
 
 
 def check_sensor_mounting(owner: str, value: Any) -> dict[str, dict[str, list[float]]]:

@@ -22,6 +22,7 @@ from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
+from tofloc.mounting import MountingTolerance
 
 if TYPE_CHECKING:
     from tofloc.fit_check import FitCheck
@@ -226,6 +227,12 @@ class Problem:
         never an estimator default: a simulated scene declares its CAD error, a user
         ``--map-tolerance``; the smoother's covariance counts it
         (:mod:`estimators.gtsam_map_tolerance`).
+    mounting : tofloc.mounting.MountingTolerance
+        Each sensor's own mounting tolerance about ``rig`` (the rig's declared
+        ``mounting_rotation_deg`` / ``mounting_translation_m``; none after a calibration
+        that fitted the mounting). Data about the rig, never an estimator default: every
+        estimate's covariance counts it (:mod:`tofloc.mounting_uncertainty`), and so does
+        the fit check's sigma of each zone.
 
     Build problems with :func:`tofloc.problem_builder.build_problem` (it applies a
     calibration and the rig's tolerances once); the constructor takes the parts as given.
@@ -247,6 +254,7 @@ class Problem:
     calibration: Any = None
     configuration_source: str | None = None
     map_tolerance_m: float = 0.0
+    mounting: MountingTolerance = field(default_factory=MountingTolerance)
 
     def __post_init__(self) -> None:
         d = _readonly(self.distance_m)
@@ -289,6 +297,8 @@ class Problem:
         if not is_map_tolerance(tol):
             raise ProblemError(f"map_tolerance_m must be a number of metres in [0, 1], got {tol!r}")
         object.__setattr__(self, "map_tolerance_m", float(tol))
+        if not isinstance(self.mounting, MountingTolerance):
+            raise ProblemError(f"mounting must be a MountingTolerance, got {type(self.mounting).__name__}")
         if self.configuration_source is not None and self.configuration_source not in CONFIGURATION_SOURCES:
             raise ProblemError(f"configuration_source must be one of {list(CONFIGURATION_SOURCES)} or None, "
                                f"got {self.configuration_source!r}")

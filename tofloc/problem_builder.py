@@ -24,11 +24,13 @@ from numpy.typing import ArrayLike
 
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import FormatError, ParameterError
+from tofloc.mounting import MountingTolerance
 from tofloc.problem import NuisancePriors, Prior, Problem, ProblemError
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig
 
-__all__ = ["STATED_EXACT_SOURCES", "TIP_SOURCES", "build_problem", "check_configuration_uncertainty", "mm_to_m", "nuisance_priors", "problem_from_log"]
+__all__ = ["STATED_EXACT_SOURCES", "TIP_SOURCES", "build_problem", "check_configuration_uncertainty", "mm_to_m", "mounting_tolerance",
+           "nuisance_priors", "problem_from_log"]
 
 #: Where ``T_base_tip`` comes from for a log's samples: its ``/samples/T_base_tip``
 #: (motion capture, odometry, ...) or the k-NN kinematics model fed with the pressures.
@@ -59,6 +61,19 @@ def nuisance_priors(rig: Rig, calibration: SensorCalibration | None = None) -> N
             yaw_src = "calibration" if yaw > 0 else ""
         scale, scale_src = 0.0, ""
     return NuisancePriors(yaw, scale, yaw_src, scale_src)
+
+
+def mounting_tolerance(rig: Rig, calibration: SensorCalibration | None = None) -> MountingTolerance:
+    """Each sensor's mounting tolerance the data declare: the rig's
+    ``tolerances.mounting_rotation_deg`` / ``mounting_translation_m``, unless a calibration
+    fitted the sensors' mounting (its ``[mounting.sensors]``), which replaces it with none:
+    the fitted poses are then taken as exact (as a fitted support yaw without a sigma is),
+    the calibration file carrying no uncertainty for them."""
+    tol = rig.tolerances
+    if calibration is not None and calibration.sensor_mounting:
+        return MountingTolerance()
+    rot, trans = math.radians(tol.mounting_rotation_deg), tol.mounting_translation_m
+    return MountingTolerance(rot, trans, "rig tolerance" if rot > 0 or trans > 0 else "")
 
 
 def build_problem(
@@ -128,6 +143,7 @@ def build_problem(
         calibration=calibration,
         configuration_source=configuration_source,
         map_tolerance_m=map_tolerance_m,
+        mounting=mounting_tolerance(rig, calibration),
     )
 
 

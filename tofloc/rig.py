@@ -393,7 +393,10 @@ def _refuse_unknown_keys(d: Any, source: str) -> None:
 
 
 #: Keys of the rig's optional ``tolerances`` object and their largest accepted value.
-TOLERANCE_LIMITS = {"support_yaw_deg": 45.0, "range_scale": 0.5}
+TOLERANCE_LIMITS = {"support_yaw_deg": 45.0, "range_scale": 0.5, "mounting_rotation_deg": 10.0, "mounting_translation_m": 0.05}
+#: Tolerances written to a rig's JSON only when non-zero (added after the first two, so that
+#: rigs declaring none of them are written as before).
+_WRITTEN_WHEN_SET = ("mounting_rotation_deg", "mounting_translation_m")
 
 
 @dataclass(frozen=True)
@@ -415,10 +418,20 @@ class RigTolerances:
     range_scale : float
         Relative scale error of every reported distance (one sigma, dimensionless): a zone
         at true distance d reads ``(1 + s) d``.
+    mounting_rotation_deg, mounting_translation_m : float
+        Each sensor's own mounting error (one sigma per axis, independent from sensor to
+        sensor): its true pose is ``T_tip_sensor @ exp(delta)`` with ``delta = (omega, tau)``
+        in the sensor's frame, ``omega`` a rotation vector of sigma ``mounting_rotation_deg``
+        (degrees) and ``tau`` a translation of sigma ``mounting_translation_m`` (metres):
+        e.g. a sensor board glued into a printed pocket. Not estimated (six unknowns per
+        sensor); the estimate's covariance counts what they do to it
+        (:mod:`tofloc.mounting_uncertainty`).
     """
 
     support_yaw_deg: float = 0.0
     range_scale: float = 0.0
+    mounting_rotation_deg: float = 0.0
+    mounting_translation_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name, hi in TOLERANCE_LIMITS.items():
@@ -432,8 +445,16 @@ class RigTolerances:
         """True when any tolerance is non-zero."""
         return any(getattr(self, n) > 0 for n in TOLERANCE_LIMITS)
 
+    def describe(self) -> str:
+        """One line for a console: ``support yaw 3 deg, range scale 0[, sensor mounting 1 deg / 1 mm]``."""
+        text = f"support yaw {self.support_yaw_deg:g} deg, range scale {self.range_scale:g}"
+        if self.mounting_rotation_deg > 0 or self.mounting_translation_m > 0:
+            text += f", sensor mounting {self.mounting_rotation_deg:g} deg / {1e3 * self.mounting_translation_m:g} mm"
+        return text
+
     def to_dict(self) -> dict[str, float]:
-        return {n: getattr(self, n) for n in TOLERANCE_LIMITS}
+        """Every tolerance (the mounting ones only when non-zero: rigs without them are written as before)."""
+        return {n: getattr(self, n) for n in TOLERANCE_LIMITS if n not in _WRITTEN_WHEN_SET or getattr(self, n) > 0}
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "<rig>", where: str = "rig.tolerances") -> "RigTolerances":

@@ -40,7 +40,7 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
     t.add_row("sensors", ", ".join(f"{s.name} ({s.model} {s.resolution[0]}x{s.resolution[1]}, {s.distance})" for s in log.rig.sensors))
     t.add_row("zones per sensor", str(log.n_zones))
     tol = log.rig.tolerances
-    t.add_row("rig tolerances (1 sigma)", f"support yaw {tol.support_yaw_deg:g} deg, range scale {tol.range_scale:g}" if tol.declared else "none declared")
+    t.add_row("rig tolerances (1 sigma)", tol.describe() if tol.declared else "none declared")
     valid = log.valid()
     t.add_row(f"valid zones (status in {sorted(DEFAULT_VALID_STATUSES)})", f"{valid.mean():.1%}")
     per_sensor = ", ".join(f"{s.name} {valid[:, i].mean():.1%}" for i, s in enumerate(log.rig.sensors))

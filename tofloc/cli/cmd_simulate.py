@@ -79,6 +79,6 @@ def simulate(
     table.add_row("valid zones (status 5/9)", f"{valid.mean():.1%}")
     table.add_row("no target (255)", f"{(log.status == 255).mean():.1%}")
     tol = log.rig.tolerances
-    table.add_row("declared rig tolerances", f"support yaw {tol.support_yaw_deg:g} deg, range scale {tol.range_scale:g}" if tol.declared else "none (exact rig)")
+    table.add_row("declared rig tolerances", tol.describe() if tol.declared else "none (exact rig)")
     table.add_row("motion capture", f"{int(np.isfinite(log.T_base_tip[:, 0, 0]).sum())} of {log.n_samples} postures")
     console.print(table)

@@ -163,6 +163,8 @@ class RigDesign:
     # declared by the builder, carried by the log's rig (tofloc.rig.RigTolerances), one sigma
     support_yaw_tolerance_deg: float = field(default=0.0, metadata=_r(0.0, 45.0))
     range_scale_tolerance: float = field(default=0.0, metadata=_r(0.0, 0.5))
+    mounting_rotation_tolerance_deg: float = field(default=0.0, metadata=_r(0.0, 10.0))
+    mounting_translation_tolerance: float = field(default=0.0, metadata=_r(0.0, 0.05))
 
 
 @dataclass(frozen=True)
@@ -476,14 +478,16 @@ def with_rig_variant(sc: Scenario, variant: str | None) -> Scenario:
     r = sc.rig
     if variant == "exact":
         exact = dataclasses.replace(r, support_yaw_error_deg=0.0, mounting_sigma_deg=0.0, mounting_sigma=0.0,
-                                    support_yaw_tolerance_deg=0.0, range_scale_tolerance=0.0)
+                                    support_yaw_tolerance_deg=0.0, range_scale_tolerance=0.0,
+                                    mounting_rotation_tolerance_deg=0.0, mounting_translation_tolerance=0.0)
         return dataclasses.replace(sc, rig=exact)
     if r.support_yaw_error_deg == 0.0 and r.mounting_sigma_deg == 0.0 and r.mounting_sigma == 0.0:
         raise ParameterError(f"{sc.source}: rig variant 'perturbed': expected a [rig] support_yaw_error_deg or mounting "
                              "scatter other than 0, found none")
-    if r.support_yaw_tolerance_deg == 0.0 and r.range_scale_tolerance == 0.0:
-        raise ParameterError(f"{sc.source}: rig variant 'perturbed': expected a declared [rig] support_yaw_tolerance_deg "
-                             "or range_scale_tolerance, found none")
+    if (r.support_yaw_tolerance_deg == 0.0 and r.range_scale_tolerance == 0.0 and r.mounting_rotation_tolerance_deg == 0.0
+            and r.mounting_translation_tolerance == 0.0):
+        raise ParameterError(f"{sc.source}: rig variant 'perturbed': expected a declared [rig] support_yaw_tolerance_deg, "
+                             "range_scale_tolerance or mounting tolerance, found none")
     return sc
 
 

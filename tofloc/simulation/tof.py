@@ -29,7 +29,8 @@ def build_rig(design: RigDesign, actuators: tuple[str, ...], rng: np.random.Gene
 
     With ``rng``, the *true* rig: the support rotated about the tip axis by
     ``support_yaw_error_deg`` and every sensor moved by the mounting scatter. Both carry
-    the builder's declared tolerances (``support_yaw_tolerance_deg``, ``range_scale_tolerance``).
+    the builder's declared tolerances (``support_yaw_tolerance_deg``, ``range_scale_tolerance``,
+    ``mounting_rotation_tolerance_deg``, ``mounting_translation_tolerance``).
     """
     sensors = []
     support = frames.se3(frames.rot_z(math.radians(design.support_yaw_error_deg)), np.zeros(3)) if rng is not None else np.eye(4)
@@ -54,7 +55,9 @@ def build_rig(design: RigDesign, actuators: tuple[str, ...], rng: np.random.Gene
                 T_tip_sensor=_mounted(support, frames.se3(R, t), design, rng),
             )
         )
-    tolerances = RigTolerances(support_yaw_deg=design.support_yaw_tolerance_deg, range_scale=design.range_scale_tolerance)
+    tolerances = RigTolerances(support_yaw_deg=design.support_yaw_tolerance_deg, range_scale=design.range_scale_tolerance,
+                               mounting_rotation_deg=design.mounting_rotation_tolerance_deg,
+                               mounting_translation_m=design.mounting_translation_tolerance)
     return Rig(tuple(sensors), actuators, tolerances)
 
 
