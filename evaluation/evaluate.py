@@ -585,7 +585,8 @@ def results_document(
     trials) and ``median_log_ratio`` (the median over logs of the per-log ratios).
     ``oracle_summary``: the same for the oracle floor, with ``not_converged``.
     ``logs[label]``: the file, its map, ``k``, the seeds, ``truth_sigma``
-    (:func:`truth_sigmas`), the oracle's records and summary, and per estimator its
+    (:func:`truth_sigmas`), ``rig_tolerances`` (its rig's declared tolerances,
+    :meth:`tofloc.rig.RigTolerances.to_dict`), the oracle's records and summary, and per estimator its
     records, summary and ``ratio_to_oracle``. ``truth_uncertainty``: how many logs declare
     their truth's uncertainty and the range of their one-sigma x, y (mm) and yaw (deg).
     ``intervals``: how sure the medians, failure rates and ratios are, from resampling whole
@@ -611,6 +612,7 @@ def results_document(
             "map": str(en.map_path),
             "configuration_source": en.configuration_source,
             "truth_sigma": truth_sigmas(en),
+            "rig_tolerances": en.context.log.rig.tolerances.to_dict(),
             "pool": en.context.pool.to_json(),
             "k": en.k,
             "seed": en.seed,

@@ -11,7 +11,7 @@ import numpy as np
 from evaluation.log_bootstrap import no_interval_reason, resampled_text
 from evaluation.metrics import ratio_or_none
 
-__all__ = ["table_markdown", "interval_lines", "format_span", "truth_sentence", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
+__all__ = ["table_markdown", "interval_lines", "format_span", "truth_sentence", "mounting_lines", "params_sentence", "changed_text", "detection_lines", "plot_error_cdfs", "plot_nees", "plot_errors_by_log",
            "errors_by_log_figure", "format_or_na", "CHI2_3_BAND", "MAX_LOG_ROWS"]
 
 #: The central 95 % interval of a chi-square with 3 degrees of freedom (a consistent
@@ -185,6 +185,20 @@ def truth_sentence(doc: Mapping[str, Any]) -> str:
             "NEES vs exact truth takes the truth as exact.")
 
 
+def mounting_lines(doc: Mapping[str, Any]) -> list[str]:
+    """One sentence when some logs' rigs declare each sensor's mounting tolerance (none otherwise)."""
+    tols = [lg.get("rig_tolerances") or {} for lg in doc["logs"].values()]
+    declared = [t for t in tols if t.get("mounting_rotation_deg", 0) > 0 or t.get("mounting_translation_m", 0) > 0]
+    if not declared:
+        return []
+    rots = [float(t.get("mounting_rotation_deg", 0.0)) for t in declared]
+    trans_mm = [1e3 * float(t.get("mounting_translation_m", 0.0)) for t in declared]
+    rot, trans = format_span([min(rots), max(rots)], "g", collapse=True), format_span([min(trans_mm), max(trans_mm)], "g", collapse=True)
+    return [f"{len(declared)} of {len(tols)} log(s) declare each sensor's mounting tolerance ({rot} deg / {trans} mm, one "
+            "sigma): every estimate's covariance, the model's included, has what it does to the answer added (a consider "
+            "covariance, tofloc/mounting_uncertainty.py), unless the calibration fitted the mounting."]
+
+
 def changed_text(changed: Mapping[str, Any] | None) -> str:
     """An estimator's parameters not at their defaults as ```key = value``` items, or what
     to say when its defaults are unknown (None: its class needs parameters)."""
@@ -243,6 +257,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "when it is higher near the truth (the search missed it), unattributed for an estimator that cannot "
         "evaluate its target.",
         truth_sentence(doc),
+        *mounting_lines(doc),
         *params_sentence(doc),
         *set_aside_lines(doc),
         "",

@@ -121,6 +121,7 @@ def test_outputs_and_summaries(run: dict) -> None:
     out, doc = run["out"], run["doc"]
     for name in ("results.json", "table.md", "errors_cdf.png", "nees.png", "errors_by_log.png", "trials.csv"):
         assert (out / name).stat().st_size > 0, name
+    assert "2 of 2 log(s) declare each sensor's mounting tolerance (1 deg / 1 mm, one sigma)" in (out / "table.md").read_text()
     assert len(list((out / "partial").glob("*.json"))) == 4  # one per (log, estimator)
     assert list(doc["logs"]) == ["paper", "l_room"]
     assert doc["samples"] == 3 and doc["trials"] == 2 and doc["prior"]["mode"] == "offset"
@@ -129,6 +130,9 @@ def test_outputs_and_summaries(run: dict) -> None:
     for label, lg in doc["logs"].items():
         assert lg["map"].endswith(f"{label}.map.ply") and lg["k"] == 3
         assert lg["configuration_source"] == "mocap"  # a simulated log declares its motion capture
+        # ... and its rig its sensors' mounting tolerance, which every checked estimate's covariance counts
+        assert (lg["rig_tolerances"]["mounting_rotation_deg"], lg["rig_tolerances"]["mounting_translation_m"]) == (1.0, 0.001)
+        assert all(np.trace(r["mounting_covariance"]) > 0 for e in every for r in lg["estimators"][e]["records"])
         for e in every:
             recs = lg["estimators"][e]["records"]
             assert [r["trial"] for r in recs] == [0, 1] and all(len(r["sample_indices"]) == 3 for r in recs)
