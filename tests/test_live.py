@@ -250,6 +250,8 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
                for i in range(3)]
     good = LiveLocalizer(ICPScorePF(n_particles=100), log.rig, sim.map_cloud, prior, model, window=3).update_latest(samples)
     assert isinstance(good.estimate.fit, FitCheck) and good.estimate.fit.ok, good.estimate.fit
+    # the simulated rig declares its sensors' mounting tolerance: the live covariance counts it too
+    assert log.rig.tolerances.mounting_rotation_deg == 1.0 and np.trace(good.estimate.diagnostics["mounting_covariance"]) > 0
     wall = Map.from_mesh(np.array([[1.0, -2, -1], [1.0, 2, -1], [1.0, 2, 2], [1.0, -2, 2]]), np.array([[0, 1, 2], [0, 2, 3]]))
     live = LiveLocalizer(ICPScorePF(n_particles=100), log.rig, wall, prior, model, window=3)
 
