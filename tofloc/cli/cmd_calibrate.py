@@ -89,6 +89,12 @@ def calibrate(
                               highlight=False)
     if rc.mounting is not None:
         _print_mounting(rc.mounting)
+        tol = run.rig.tolerances
+        if tol.mounting_rotation_deg > 0 or tol.mounting_translation_m > 0:
+            err_console.print(f"note: the rig declares each sensor's mounting tolerance ({tol.mounting_rotation_deg:g} deg / "
+                              f"{1000 * tol.mounting_translation_m:g} mm); problems built with this calibration take the fitted "
+                              "mounting as exact instead (its uncertainty is not estimated, docs/rig.md): --no-mounting keeps "
+                              "the declared tolerance", highlight=False)
     _print(result)
     for note in result.notes:
         err_console.print(f"note: {note}", highlight=False)
