@@ -208,6 +208,7 @@ def test_cli_simulate_then_info(tmp_path, capsys) -> None:
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "816" in text and "truth T_map_base" in text and "chamber1 0.0..18.0 kPa" in text
+    assert "mounting 1 deg / 1 mm" in text  # the paper's declared mounting tolerance
     assert main(["simulate", "--scenario", "nope", "--out", str(out)]) == 2
     assert main(["info", str(tmp_path / "missing.h5")]) == 2
 
