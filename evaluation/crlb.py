@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc.range_model import RangeUncertainty
 from tofloc import frames
+from tofloc.configuration_uncertainty import reading_gradients
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
 from tofloc.zone_caster import ZoneCast, ZoneCaster
@@ -250,19 +251,8 @@ def zone_geometry(T_map_base: ArrayLike, T_base_tip: ArrayLike, rig: Rig, the_ma
     cast = ZoneCast(flat.reading.reshape(K, S, Z), flat.hit_fraction.reshape(K, S, Z), flat.mean_cos.reshape(K, S, Z),
                     flat.normal.reshape(K, S, Z, 3), flat.point.reshape(K, S, Z, 3), flat.index.reshape(K, S, Z),
                     np.zeros((K, S, Z), dtype=bool))
-    r = cast.reading
-    n = cast.normal
-    h = cast.point
-    c = Tb[:, None, None, :3, 3]
-    cos = np.einsum("...i,...i->...", n, u)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lever = h - c
-        # e_z x (h - c) = (-(h-c)_y, (h-c)_x, 0)
-        rot = np.stack([-lever[..., 1], lever[..., 0], np.zeros_like(lever[..., 0])], axis=-1)
-        dt = -np.stack([n[..., 0], n[..., 1], np.einsum("...i,...i->...", n, rot)], axis=-1) / cos[..., None]
-        dt = np.where((np.abs(cos) > 1e-6)[..., None], dt, np.nan)
-    f = rig.range_factor[None, :, :, None]
-    return ZoneGeometry(r, dt / f, caster, T_map_sensor, T_map_tip, cast)
+    _, jacobian = reading_gradients(cast.normal, u, cast.point, Tb[:, None, None, :3, 3], rig.range_factor)
+    return ZoneGeometry(cast.reading, jacobian, caster, T_map_sensor, T_map_tip, cast)
 
 
 def fisher_information(

@@ -14,6 +14,7 @@ import pytest
 
 from tofloc import frames
 from tofloc.calibration_file import SensorCalibration
+from tofloc.configuration_uncertainty import reading_gradients
 from tofloc.errors import FormatError, ParameterError
 from tofloc.fit_check import zone_residuals
 from tofloc.maps import Map
@@ -84,6 +85,21 @@ def test_reading_gradients_match_central_differences(room: dict) -> None:
         ok = np.isfinite(fd) & np.isfinite(res.mounting_gradient[..., j])
         assert np.percentile(np.abs(fd - res.mounting_gradient[..., j])[ok], 99) < 2e-4
         assert np.median(np.abs(res.mounting_gradient[..., j][ok])) > 0.01  # every axis moves the readings
+
+
+def test_the_shared_reading_gradients_by_hand() -> None:
+    """tofloc.configuration_uncertainty.reading_gradients (the bound's Jacobian and the
+    mounting term's): a wall met head on, and a ray grazing a wall, with and without the floor."""
+    n = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # a wall facing the ray; one parallel to it
+    u = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    h = np.array([[1.0, 0.0, 0.0], [1.0, -0.5, 0.0]])
+    g, a = reading_gradients(n, u, h, np.zeros(3), np.array([2.0, 2.0]))  # 2 m of ray per metre of reading
+    np.testing.assert_allclose(g[0], [-0.5, 0.0, 0.0])  # the hit moving 1 m toward the sensor: 0.5 m shorter
+    np.testing.assert_allclose(a[0], [-0.5, 0.0, 0.0])  # turning about z moves a head-on hit across the wall only
+    assert np.all(np.isnan(g[1])) and np.all(np.isnan(a[1]))  # grazing: no derivative
+    g, a = reading_gradients(n, u, h, np.zeros(3), 1.0, min_cos=0.3)
+    np.testing.assert_allclose(g[1], [0.0, -1.0 / 0.3, 0.0])  # floored at 0.3, its sign kept
+    np.testing.assert_allclose(a[1], [0.0, -1.0 / 0.3, -1.0 / 0.3])  # yaw: e_z x h = (0.5, 1, 0)
 
 
 def test_the_consider_covariance_matches_monte_carlo(room: dict) -> None:

@@ -18,7 +18,13 @@ pulls the pose less than one measured by motion capture; the zones of one sample
 configuration's error, which a per-zone variance does not say (the filter's tempering and
 the estimators' covariance do, see docs/sensor-models.md).
 
-All functions are vectorized over leading axes and take every vector in the tip frame.
+All functions are vectorized over leading axes and take every vector in the tip frame,
+but :func:`reading_gradients`, which takes any one frame.
+
+:func:`reading_gradients` is the same first-order geometry as a derivative: the change of a
+zone's reading per displacement of its hit point, and per planar move of the base
+``(x, y, yaw)`` (the Cramér-Rao bound's Jacobian, :func:`evaluation.crlb.zone_geometry`,
+and the mounting tolerance's, :mod:`tofloc.mounting_uncertainty`).
 """
 
 from __future__ import annotations
@@ -26,13 +32,64 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["MIN_COS_INCIDENCE", "point_jacobian", "point_covariance", "normal_variance", "range_variance"]
+__all__ = ["MIN_COS_INCIDENCE", "GRAZING_COS", "point_jacobian", "point_covariance", "normal_variance", "range_variance",
+           "reading_gradients"]
 
 FloatArray = NDArray[np.float64]
 
 #: Smallest |cos(incidence)| used to turn a normal displacement into a reading change (a
 #: ray grazing a wall would otherwise get an unbounded variance).
 MIN_COS_INCIDENCE = 0.3
+
+
+#: Without a floor (:func:`reading_gradients` with ``min_cos=None``), a ray this close to
+#: grazing its surface (``|cos(incidence)|`` at most this) has no derivative: NaN.
+GRAZING_COS = 1e-6
+
+
+def reading_gradients(normals: ArrayLike, directions: ArrayLike, points: ArrayLike, centre: ArrayLike,
+                      range_factor: ArrayLike, min_cos: float | None = None) -> tuple[FloatArray, FloatArray]:
+    """First-order derivatives of zones' readings, all vectors in one frame (the map's).
+
+    A ray of unit direction ``u`` meeting a surface of normal ``n`` at ``h`` gets longer by
+    ``dt = -n . dp / (n . u)`` when the hit point moves rigidly with the sensor by ``dp``;
+    the reading changes by ``dt`` over the zone's range factor (ray length per reading).
+    Moving the base by ``(dx, dy)`` and turning it by ``dyaw`` about the vertical through
+    ``centre`` moves the point by ``(dx, dy, 0) + dyaw e_z x (h - centre)``.
+
+    Parameters
+    ----------
+    normals, directions, points : array (..., 3)
+        Hit normals, unit ray directions and hit points.
+    centre : array (..., 3)
+        The base's origin (broadcast).
+    range_factor : array (...)
+        Ray length per reported distance (:attr:`tofloc.rig.Rig.range_factor`; broadcast).
+    min_cos : float, optional
+        Floor of ``|n . u|`` (its sign kept), as :func:`range_variance` floors it; None: no
+        floor, NaN where ``|n . u| <= GRAZING_COS``.
+
+    Returns
+    -------
+    per_displacement : ndarray (..., 3)
+        ``d reading / d dp``: ``-n / (n . u) / range_factor``.
+    per_pose : ndarray (..., 3)
+        ``d reading / d (x, y, yaw)``.
+    """
+    n = np.asarray(normals, dtype=float)
+    cos = np.einsum("...i,...i->...", n, np.asarray(directions, dtype=float))
+    f = np.asarray(range_factor, dtype=float)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = cos if min_cos is None else np.where(cos < 0, -1.0, 1.0) * np.maximum(np.abs(cos), min_cos)
+        lever = np.asarray(points, dtype=float) - np.asarray(centre, dtype=float)
+        # e_z x (h - c) = (-(h-c)_y, (h-c)_x, 0)
+        rot = np.stack([-lever[..., 1], lever[..., 0], np.zeros_like(lever[..., 0])], axis=-1)
+        dt = -np.stack([n[..., 0], n[..., 1], np.einsum("...i,...i->...", n, rot)], axis=-1) / den[..., None]
+        per_dp = -n / den[..., None]
+        if min_cos is None:
+            grazing = (np.abs(cos) <= GRAZING_COS)[..., None]
+            dt, per_dp = np.where(grazing, np.nan, dt), np.where(grazing, np.nan, per_dp)
+        return per_dp / f, dt / f
 
 
 def point_jacobian(points_tip: ArrayLike) -> FloatArray:

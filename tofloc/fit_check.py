@@ -81,7 +81,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.configuration_uncertainty import range_variance
-from tofloc.mounting_uncertainty import mounting_variance, reading_gradients
+from tofloc.mounting_uncertainty import mounting_variance, pose_and_mounting_gradients
 from tofloc.errors import ParameterError
 from tofloc.zone_caster import ZoneCaster
 
@@ -145,7 +145,7 @@ class ZoneResiduals:
     pose_gradient, mounting_gradient : ndarray or None
         ``(K, S, Z, 3)`` and ``(K, S, Z, 6)``: the expected reading's derivatives with
         respect to the base pose and its sensor's mounting error
-        (:func:`tofloc.mounting_uncertainty.reading_gradients`), when asked for.
+        (:func:`tofloc.mounting_uncertainty.pose_and_mounting_gradients`), when asked for.
     """
 
     expected: NDArray[np.float64]
@@ -347,7 +347,7 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
     b: NDArray[np.float64] | None = None
     mount_var: NDArray[np.float64] | None = None
     if mounted or gradients:
-        a, b = reading_gradients(caster, T_map_sensor, problem.prior.T_map_base(p), cast)
+        a, b = pose_and_mounting_gradients(caster, T_map_sensor, problem.prior.T_map_base(p), cast)
         a, b = a * (1.0 + float(range_scale)), b * (1.0 + float(range_scale))
     if mounted and mounting is not None and b is not None:
         mount_var = mounting_variance(b, mounting.covariance())

@@ -16,11 +16,14 @@ docs/results-history.md).
 that the point ``h`` where the ray meets a surface of normal ``n`` moves by ``dp`` changes
 the ray's length by ``-n . dp / (n . u)`` (``|n . u|`` floored at
 :data:`tofloc.configuration_uncertainty.MIN_COS_INCIDENCE`, as the configuration's
-variance is), and the reading by that times the zone's reading per metre of ray. For the
+variance is), and the reading by that times the zone's reading per metre of ray: the
+shared :func:`tofloc.configuration_uncertainty.reading_gradients`, which the Cramér-Rao
+bound uses too (without the floor). For the
 base pose ``(x, y, yaw)`` (``T_map_base = [Rz(yaw) R_tilt, (x, y, z)]``) the point moves by
 ``e_x``, ``e_y`` and ``e_z x (h - t_base)``; for the mounting error ``delta_s`` by
-``R_map_sensor (omega x p_s + tau)``, ``p_s`` the hit in the sensor's frame.
-:func:`reading_gradients` gives both rows, ``a`` (3) and ``b`` (6), per zone.
+``R_map_sensor (omega x p_s + tau)``, ``p_s`` the hit in the sensor's frame
+(:func:`tofloc.configuration_uncertainty.point_jacobian`).
+:func:`pose_and_mounting_gradients` gives both rows, ``a`` (3) and ``b`` (6), per zone.
 
 **The fit check** adds ``b M b^T`` to each zone's variance (:func:`tofloc.fit_check.zone_residuals`),
 as it adds the configuration's.
@@ -49,19 +52,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tofloc.configuration_uncertainty import MIN_COS_INCIDENCE
+from tofloc.configuration_uncertainty import MIN_COS_INCIDENCE, point_jacobian, reading_gradients
 from tofloc.errors import ParameterError
 
 if TYPE_CHECKING:
     from tofloc.zone_caster import ZoneCast, ZoneCaster
 
-__all__ = ["MountingCovariance", "reading_gradients", "mounting_variance", "mounting_covariance", "add_mounting_covariance"]
+__all__ = ["MountingCovariance", "pose_and_mounting_gradients", "mounting_variance", "mounting_covariance", "add_mounting_covariance"]
 
 FloatArray = NDArray[np.float64]
 
 
-def reading_gradients(caster: "ZoneCaster", T_map_sensor: ArrayLike, T_map_base: ArrayLike,
-                      cast: "ZoneCast") -> tuple[FloatArray, FloatArray]:
+def pose_and_mounting_gradients(caster: "ZoneCaster", T_map_sensor: ArrayLike, T_map_base: ArrayLike,
+                                cast: "ZoneCast") -> tuple[FloatArray, FloatArray]:
     """Each zone's expected reading's derivatives (first order, the module doc).
 
     Parameters
@@ -82,23 +85,17 @@ def reading_gradients(caster: "ZoneCaster", T_map_sensor: ArrayLike, T_map_base:
         frame (m/rad, m/m); NaN where no surface is hit.
     """
     if cast.point is None or cast.normal is None:
-        raise ParameterError("reading_gradients needs a cast with geometry=True")
+        raise ParameterError("pose_and_mounting_gradients needs a cast with geometry=True")
     T_ms = np.asarray(T_map_sensor, dtype=float)
-    T_mb = np.asarray(T_map_base, dtype=float)
     _, u = caster.rays(T_ms)
-    u = u[..., 0, :]  # (K, S, Z, 3): the centre ray
-    h, n = cast.point, cast.normal
-    along = 1.0 / caster.rig.range_factor  # (S, Z): reading per metre of ray
-    with np.errstate(invalid="ignore"):
-        cos_i = np.einsum("...i,...i->...", n, u)
-        denom = np.where(cos_i < 0, -1.0, 1.0) * np.maximum(np.abs(cos_i), MIN_COS_INCIDENCE)
-        g = -n * (along / denom)[..., None]  # d reading / d (hit point's displacement), map frame
-        lever = h - T_mb[:3, 3]
-        a = np.stack([g[..., 0], g[..., 1], g[..., 1] * lever[..., 0] - g[..., 0] * lever[..., 1]], axis=-1)
-        R = T_ms[..., :3, :3]  # (K, S, 3, 3)
-        g_s = np.einsum("ksij,kszi->kszj", R, g)  # R^T g: the same gradient in the sensor's frame
-        p_s = np.einsum("ksij,kszi->kszj", R, h - T_ms[..., None, :3, 3])
-        b = np.concatenate([np.cross(p_s, g_s), g_s], axis=-1)  # g . R (omega x p_s + tau)
+    # d reading / d (hit point's displacement) in the map frame, and / d (x, y, yaw)
+    g, a = reading_gradients(cast.normal, u[..., 0, :], cast.point, np.asarray(T_map_base, dtype=float)[:3, 3],
+                             caster.rig.range_factor, MIN_COS_INCIDENCE)
+    R = T_ms[..., :3, :3]  # (K, S, 3, 3)
+    g_s = np.einsum("ksij,kszi->kszj", R, g)  # R^T g: the same gradient in the sensor's frame
+    p_s = np.einsum("ksij,kszi->kszj", R, cast.point - T_ms[..., None, :3, 3])
+    # a point of the sensor's frame moves by omega x p_s + tau = point_jacobian(p_s) delta
+    b = np.einsum("...i,...ia->...a", g_s, point_jacobian(p_s))
     return a, b
 
 

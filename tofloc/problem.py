@@ -20,9 +20,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
 from tofloc.errors import ParameterError, TofLocError
+from tofloc.mounting import MountingTolerance
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
-from tofloc.mounting import MountingTolerance
 
 if TYPE_CHECKING:
     from tofloc.fit_check import FitCheck
