@@ -171,8 +171,10 @@ def test_rig_tolerances_declare_the_mounting_and_refuse_bad_values() -> None:
         RigTolerances.from_dict({"mounting_rotation_deg": 12.0}, "rig.json")
     with pytest.raises(FormatError, match=r"mounting_translation_m"):
         RigTolerances.from_dict({"mounting_translation_m": -0.001}, "rig.json")
-    with pytest.raises(ParameterError, match="rotation_sigma"):
+    with pytest.raises(ParameterError, match=r"rotation_sigma must be a number of rad in \[0, 0\.523599\], got nan"):
         MountingTolerance(rotation_sigma=math.nan)
+    with pytest.raises(ParameterError, match=r"translation_sigma must be a number of m in \[0, 0\.05\], got 0\.1"):
+        MountingTolerance(translation_sigma=0.1)
 
 
 def test_the_problem_takes_the_rigs_tolerance_unless_a_calibration_fitted_the_mounting(room: dict) -> None:

@@ -68,10 +68,10 @@ class MountingTolerance:
     source: str = ""
 
     def __post_init__(self) -> None:
-        for name, hi in (("rotation_sigma", math.radians(MAX_ROTATION_DEG)), ("translation_sigma", MAX_TRANSLATION_M)):
+        for name, hi, unit in (("rotation_sigma", math.radians(MAX_ROTATION_DEG), "rad"), ("translation_sigma", MAX_TRANSLATION_M, "m")):
             v = getattr(self, name)
             if not isinstance(v, (int, float, np.floating)) or isinstance(v, bool) or not math.isfinite(v) or not 0 <= v <= hi:
-                raise ParameterError(f"mounting tolerance {name} must be a number in [0, {hi:g}], got {v!r}")
+                raise ParameterError(f"mounting tolerance {name} must be a number of {unit} in [0, {hi:g}], got {v!r}")
             object.__setattr__(self, name, float(v))
 
     @property
