@@ -135,7 +135,9 @@ class Log:
     timestamp_s : ndarray of float64, shape (K,)
         Time of every sample in seconds (finite; need not be monotonic).
     distance_mm : ndarray of float32, shape (K, S, Z)
-        Reported distance in millimetres (scene-image zone order), NaN where there is none.
+        Reported distance in millimetres (scene-image zone order), NaN where there is none;
+        finite (a negative value, which the driver's int16 gives on some invalid zones, is
+        kept and never used: :meth:`valid` needs a distance > 0).
     status : ndarray of uint8, shape (K, S, Z)
         VL53L5CX ``target_status`` (5 and 9 valid, 255 no target).
     sigma_mm : ndarray of float32, shape (K, S, Z), optional
@@ -147,7 +149,8 @@ class Log:
     T_base_tip_cov : ndarray of float64, shape (K, 6, 6), optional
         Covariance of every configuration: rotation vector (rad) then translation (m), in
         the tip frame, ``T_base_tip_true = T_base_tip @ exp(delta)``; all NaN where
-        unknown. Needs ``T_base_tip``.
+        unknown. Without ``T_base_tip`` it is read and kept but describes nothing, and
+        nothing uses it.
     T_map_base : ndarray of float64, shape (4, 4) or (K, 4, 4), optional
         Ground-truth base pose (``/truth/T_map_base``).
     T_map_base_cov : ndarray of float64, shape (6, 6) or (K, 6, 6), optional
@@ -390,7 +393,9 @@ class Log:
 
         kSZ = (K, S, Z)
         d = _check_array(self.distance_mm, where, "/samples/distance_mm", _F32, kSZ, _KSZ)
-        _first_bad(~(np.isnan(d) | (d >= 0) & np.isfinite(d)), d, where, "/samples/distance_mm", "NaN or a finite distance >= 0 mm")
+        # a negative distance is read as it is (the driver's int16 dips below 0 on zones that
+        # measured nothing usable) and never used: a zone counts only with a distance > 0
+        _first_bad(np.isinf(d), d, where, "/samples/distance_mm", "NaN or a finite distance in mm")
         _check_array(self.status, where, "/samples/status", _U8, kSZ, _KSZ)
         if self.sigma_mm is not None:
             s = _check_array(self.sigma_mm, where, "/samples/sigma_mm", _F32, kSZ, _KSZ)
@@ -408,9 +413,7 @@ class Log:
                 raise LogFormatError(
                     where, f"/samples/T_base_tip[{k}]", "a finite rigid transform, or all NaN where unknown", _describe_pose(T[k])
                 )
-        if self.T_base_tip_cov is not None:
-            if self.T_base_tip is None:
-                raise LogFormatError(where, "/samples/T_base_tip_cov", "a covariance only alongside /samples/T_base_tip", "no /samples/T_base_tip")
+        if self.T_base_tip_cov is not None:  # without T_base_tip it describes nothing and nothing uses it
             cov = _check_array(self.T_base_tip_cov, where, "/samples/T_base_tip_cov", _F64, (K, 6, 6), "(K, 6, 6)")
             _check_covariances(cov, where, "/samples/T_base_tip_cov")
         if self.T_map_base is not None:

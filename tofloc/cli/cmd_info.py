@@ -83,7 +83,8 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
             spread = f": 1-sigma up to {tr.max() * 1000:.1f} mm, {rot.max():.2f} deg"
         else:
             spread = ""
-        t.add_row("configuration covariance", f"{int(ok.sum())} of {log.n_samples} samples{spread}")
+        unused = "" if log.T_base_tip is not None else " (no T_base_tip it belongs to: unused)"
+        t.add_row("configuration covariance", f"{int(ok.sum())} of {log.n_samples} samples{spread}{unused}")
     if log.T_map_base is not None:
         from tofloc.frames import xyyaw_from_se3
 
