@@ -154,3 +154,41 @@ def test_live_localize_refuses_an_output_that_is_an_input_or_its_journal(pillars
     assert main([*live, "--out", str(tmp_path / "cap.h5"), "--estimates-out", str(tmp_path / "cap.h5.journal")]) == 2
     assert "--journal and --estimates-out name the same file" in _err(capsys)
     assert the_map.read_bytes() == b"keep" and sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["localize", "{log}", "--estimator", "icp_pf", "--json", "{dir}/pillars.map.ply"],
+     "--json {dir}/pillars.map.ply is the input the map v.h5 names"),
+    (["localize", "{log}", "--estimator", "icp_pf", "--estimates-out", "{dir}/pillars.cad.ply"],
+     "--estimates-out {dir}/pillars.cad.ply is the input the CAD mesh beside the map v.h5 names"),
+    (["calibrate", "{log}", "--out", "{dir}/pillars.cad.ply"],
+     "--out {dir}/pillars.cad.ply is the input the CAD mesh beside the map v.h5 names"),
+    (["calibrate", "{log}", "--out", "{dir}/pillars.map.ply", "--map", "{dir}/pillars.cad.ply"],
+     "--out {dir}/pillars.map.ply is the input the map v.h5 names"),
+])
+def test_an_output_that_is_a_map_the_log_names_is_refused(pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          args: list[str], message: str) -> None:
+    """Found by a bad-input audit: `localize --json MAP` and `calibrate --out CAD` replaced the
+    map file the log's `map` attribute names (or the CAD mesh beside it, which calibrate
+    casts against by default): only a map given with --map was protected."""
+    log = tmp_path / "v.h5"
+    log.write_bytes(pillars.read_bytes())
+    files = {}
+    for name in ("pillars.map.ply", "pillars.cad.ply"):
+        (tmp_path / name).write_bytes((pillars.parent / name).read_bytes())
+        files[name] = (tmp_path / name).read_bytes()
+    fill = {"log": str(log), "dir": str(tmp_path)}
+    assert main([a.format(**fill) for a in args]) == 2
+    assert message.format(**fill) in _err(capsys)
+    for name, data in files.items():
+        assert (tmp_path / name).read_bytes() == data
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pillars.cad.ply", "pillars.map.ply", "v.h5"]
+
+
+def test_map_files_named_by_reads_only_the_attribute(pillars: Path, tmp_path: Path) -> None:
+    from tofloc.logs import map_files_named_by
+
+    named = map_files_named_by(pillars)
+    assert list(named.values()) == [pillars.parent / "pillars.map.ply", pillars.parent / "pillars.cad.ply"]
+    (tmp_path / "not.h5").write_bytes(b"not hdf5")
+    assert map_files_named_by(tmp_path / "not.h5") == {} and map_files_named_by(tmp_path / "absent.h5") == {}

@@ -71,6 +71,7 @@ __all__ = [
     "Log",
     "LogFormatError",
     "read_log",
+    "map_files_named_by",
     "write_log",
     "open_for_extras",
     "write_text_attribute",
@@ -585,6 +586,34 @@ def _is_absolute(p: str) -> bool:
 
 
 # -- reading -----------------------------------------------------------------------------
+
+
+def map_files_named_by(path: str | Path) -> dict[str, Path]:
+    """The map files a log names, for refusing an output that would overwrite one: its
+    ``map`` attribute resolved against the log's folder and, for a ``<stem>.map.ply``, the
+    CAD mesh ``<stem>.cad.ply`` beside it (the mesh ``tofloc calibrate`` and ``tofloc paper``
+    prefer), each under a label that says which. Reads that one attribute only; empty when
+    the file is not a readable HDF5 file or its ``map`` is absent or not a relative path
+    (:func:`read_log` names those problems)."""
+    p = Path(path)
+    try:
+        if not p.is_file():
+            return {}
+        with h5py.File(p, "r") as f:
+            value = f.attrs.get("map")
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(-1)[0]
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", errors="replace")
+    if not isinstance(value, str) or not value or len(value) > MAX_TEXT_BYTES or _is_absolute(value):
+        return {}
+    m = p.parent / value
+    out = {f"the map {p.name} names": m}
+    if m.name.endswith(".map.ply"):
+        out[f"the CAD mesh beside the map {p.name} names"] = m.with_name(m.name[: -len(".map.ply")] + ".cad.ply")
+    return out
 
 
 def read_log(path: str | Path) -> Log:

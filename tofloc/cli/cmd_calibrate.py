@@ -43,6 +43,7 @@ def calibrate(
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
     from tofloc.atomic import check_distinct_paths, check_output_path
+    from tofloc.logs import map_files_named_by
     from tofloc.plot_style import check_figure_path
 
     check_output_path(out, option="--out")
@@ -51,7 +52,8 @@ def calibrate(
         check_figure_path(plot, "--plot")
         check_output_path(zone_plot_path(plot), option="--plot")
     check_distinct_paths({"--out": out, "--plot": plot, "--plot (its zone maps)": None if plot is None else zone_plot_path(plot)},
-                         {**{f"LOG {lg}": lg for lg in logs}, **{f"--map {m}": m for m in (map_paths or [])}})
+                         {**{f"LOG {lg}": lg for lg in logs}, **{f"--map {m}": m for m in (map_paths or [])},
+                          **{k: v for lg in logs for k, v in map_files_named_by(lg).items()}})
     from sensor_models.calibration import plot_calibration
     from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc import api

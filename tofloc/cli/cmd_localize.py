@@ -150,12 +150,14 @@ def localize(
         check_output_path(plot, option="--plot")
         check_figure_path(plot, "--plot")
     from tofloc.atomic import check_distinct_paths
+    from tofloc.logs import map_files_named_by
 
     check_distinct_paths(
         {"--json": json_out, "--plot-nees": plot_nees, "--plot": plot, "--estimates-out": estimates_out,
          "--out": out, "--journal": journal, "--suggest-next": suggest_next},
         {"LOG": log_path, "--map": map_path, "--surface": surface_path, "--kinematics": kinematics, "--config": config,
-         "--calibration": calibration, "--rig": rig_path})
+         "--calibration": calibration, "--rig": rig_path,
+         **({} if log_path is None else map_files_named_by(log_path))})
     if suggest_next is not None and port is None:
         raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:
