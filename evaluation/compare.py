@@ -187,14 +187,12 @@ def load_results(path: str | Path) -> ResultsFile:
         Unreadable, too large, not JSON, or neither kind of file (one line naming the file
         and the key).
     """
+    from tofloc.input_files import read_input_bytes
+
     p = Path(path)
+    raw = read_input_bytes(p, MAX_RESULTS_BYTES, "a readable results file")
     try:
-        size = p.stat().st_size
-        if size > MAX_RESULTS_BYTES:
-            raise FormatError(p, "file", f"at most {MAX_RESULTS_BYTES} bytes", f"{size} bytes")
-        doc = json.loads(p.read_text(encoding="utf-8"), object_pairs_hook=unique_keys)
-    except OSError as e:
-        raise FormatError(p, "file", "a readable results file", e.strerror) from None
+        doc = json.loads(raw.decode("utf-8"), object_pairs_hook=unique_keys)
     except DuplicateKey as e:
         raise FormatError(p, "file", "JSON with unique keys in every object", f"the key {e.key!r} twice") from None
     except (ValueError, RecursionError) as e:

@@ -628,13 +628,10 @@ class Rig:
     @classmethod
     def from_file(cls, path: str | Path) -> "Rig":
         """Read a rig from a ``.json`` or ``.toml`` file (TOML: same keys, ``[[sensors]]`` tables)."""
+        from tofloc.input_files import read_input_bytes
+
         p = Path(path)
-        try:
-            raw = p.read_bytes()
-        except OSError as e:
-            raise FormatError(p, "file", "a readable rig file", e.strerror) from None
-        if len(raw) > 16 * 2**20:
-            raise FormatError(p, "file", "a rig file of at most 16 MiB", f"{len(raw)} bytes")
+        raw = read_input_bytes(p, 16 * 2**20, "a readable rig file")
         if p.suffix.lower() == ".toml":
             from tofloc.toml_tables import parse_toml
 

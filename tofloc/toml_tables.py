@@ -27,14 +27,12 @@ MAX_TOML_DEPTH = 32
 
 def read_toml(path: str | Path) -> dict[str, Any]:
     """Parse a TOML file, bounded in size; every failure is a :class:`FormatError` naming the file."""
+    from tofloc.input_files import read_input_bytes
+
     p = Path(path)
+    raw = read_input_bytes(p, MAX_TOML_BYTES, "a readable TOML file")
     try:
-        size = p.stat().st_size
-        if size > MAX_TOML_BYTES:
-            raise FormatError(p, "file", f"at most {MAX_TOML_BYTES} bytes", f"{size} bytes")
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise FormatError(p, "file", "a readable TOML file", e.strerror) from None
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise FormatError(p, "file", "valid TOML", str(e)) from None
     return parse_toml(text, p)

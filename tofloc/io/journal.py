@@ -231,6 +231,10 @@ def read_journal(path: str | Path) -> tuple[dict[str, Any], Iterator[JournalReco
         without it).
     """
     p = Path(path)
+    if p.exists():  # a FIFO or a device would block the read or never end
+        from tofloc.input_files import regular_file_or_refuse
+
+        regular_file_or_refuse(p, "a journal (a regular file)")
     try:
         fh = open(p, "rb")
     except FileNotFoundError:
