@@ -137,6 +137,20 @@ def test_record_refuses_bad_combinations(simulated: Path, tmp_path: Path, capsys
     assert not out.with_name(out.name + ".journal").exists()
 
 
+def test_a_capture_that_received_nothing_leaves_no_journal_in_the_way(simulated: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad-input audit: `record --duration 1` on a silent port said there was nothing to
+    write and left an empty journal, which refused the retry and sent it to --recover, which
+    said the same. The empty journal is removed; one whose lines hold no complete frame is
+    kept and named."""
+    out = tmp_path / "g.h5"
+    journal = out.with_name(out.name + ".journal")
+    for _ in range(2):  # the retry meets nothing in its way
+        assert main(["record", "--port", "loop://", "--rig", str(simulated), "--out", str(out), "--duration", "1"]) == 2
+        assert "no data arrived from loop://: nothing to write to" in " ".join(capsys.readouterr().err.split())
+        assert not journal.exists() and not out.exists()
+
+
 @pytest.mark.skipif(not ETH.is_dir(), reason=f"ETH dataset not found at {ETH}")
 def test_import_eth_matrix_writes_a_valid_log_with_the_panel(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "r1.h5"

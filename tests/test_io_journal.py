@@ -141,3 +141,21 @@ def test_a_damaged_record_loses_only_itself(tmp_path: Path, bad: bytes, why: str
     ok = np.isfinite(rebuilt.distance_mm).all(axis=2)
     assert ok.sum() == 2 * log.n_samples - 1
     np.testing.assert_array_equal(rebuilt.distance_mm[ok], log.distance_mm[ok])
+
+
+def test_recovering_a_journal_without_a_complete_frame_names_it_and_keeps_it(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Lines that hold no complete frame: nothing to write, and the journal is kept and named
+    (not the bare "no complete frame was received" a retry met again and again)."""
+    from tofloc.cli import main
+
+    j = tmp_path / "x.journal"
+    with JournalWriter(j, fmt="tofloc", rig=small_log().rig) as w:
+        w.line(RawLine(b"hello"), 1.0)
+        w.line(RawLine(b"$F,partial", partial=True), 2.0)
+    before = j.read_bytes()
+    out = tmp_path / "x.h5"
+    assert main(["record", "--recover", str(j), "--out", str(out)]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"no complete frame in the journal {j}" in err and f"nothing to write to {out}" in err and "kept" in err
+    assert j.read_bytes() == before and not out.exists()

@@ -37,6 +37,9 @@ def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: floa
     samples, stats, header, warnings = recover(journal, rig, window_s=window, no_target_at_or_below_mm=no_target_mm)
     for w in warnings:
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
+    if not samples:
+        raise ParameterError(f"no complete frame in the journal {journal} ({stats.summary()}): nothing to write to {out}; "
+                             "the journal is kept as it is (read it, or remove it to record again)")
     log = samples_to_log(samples, rig if rig is not None else _rig_from_header(header, journal), source=f"serial:{header['format']}")
     try:
         write_log(log, out)
@@ -181,6 +184,9 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
         signal.signal(signal.SIGTERM, previous)
         if cap.stats.lines and not journal_failed:
             err_console.print(_progress(cap, port, time.monotonic() - t0))
+    if cap.journal_created and journal.exists() and cap.stats.lines == 0:
+        journal.unlink()  # ours, and nothing in it: a retry must not find it in the way
+        raise ParameterError(f"no data arrived from {port}: nothing to write to {out} (the empty journal was removed)")
     if interrupted:
         err_console.print("stopped (Ctrl-C); writing the log from the journal", highlight=False, soft_wrap=True)
     elif cap.ended_by == "disconnect":
