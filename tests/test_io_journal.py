@@ -159,3 +159,23 @@ def test_recovering_a_journal_without_a_complete_frame_names_it_and_keeps_it(tmp
     err = " ".join(capsys.readouterr().err.split())
     assert f"no complete frame in the journal {j}" in err and f"nothing to write to {out}" in err and "kept" in err
     assert j.read_bytes() == before and not out.exists()
+
+
+def test_a_recovered_rejection_names_the_journals_own_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad-input audit: a journal's 4th line, edited, was reported as `line 2` (the count of
+    data lines, without the header and the events)."""
+    from tofloc.cli import main
+
+    log = small_log(3)
+    lines = [line for _, ls, _ in encode_log(log, "tofloc") for line in ls]
+    j = tmp_path / "x.journal"
+    with JournalWriter(j, fmt="tofloc", rig=log.rig) as w:  # line 1: the header
+        w.event(0.5, "connected")                            # line 2
+        w.line(RawLine(lines[0]), 1.0)                       # line 3
+        w.line(RawLine(b"$F,not,a,frame"), 1.1)              # line 4: rejected
+        for i, line in enumerate(lines[1:]):
+            w.line(RawLine(line), 2.0 + i)
+    out = tmp_path / "x.h5"
+    assert main(["record", "--recover", str(j), "--out", str(out)]) == 0
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"first rejected line: line 4: " in err and f"of {j}" in err

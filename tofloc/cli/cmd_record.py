@@ -50,7 +50,8 @@ def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: floa
         ) from None
     console.print(f"wrote {out}: {stats.summary()}", highlight=False, soft_wrap=True)
     if stats.first_rejections:
-        err_console.print(f"first rejected line: {stats.first_rejections[0]} (all lines are kept in {journal})", highlight=False, soft_wrap=True)
+        err_console.print(f"first rejected line: {stats.first_rejections[0]} of {journal} (every line is kept in it)",
+                          highlight=False, soft_wrap=True)
     return log.n_samples
 
 

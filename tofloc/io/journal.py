@@ -205,11 +205,13 @@ class JournalWriter:
 
 @dataclass(frozen=True)
 class JournalRecord:
-    """One record: ``kind`` in {"line", "overflow", "partial", "event"}, host time, payload bytes."""
+    """One record: ``kind`` in {"line", "overflow", "partial", "event"}, host time, payload
+    bytes, and its line in the journal (1 is the header; 0 when not read from a file)."""
 
     kind: str
     t_host_s: float
     data: bytes
+    line_no: int = 0
 
     def raw_line(self) -> RawLine:
         return RawLine(self.data, overflow=self.kind == "overflow", partial=self.kind == "partial")
@@ -291,7 +293,7 @@ def read_journal(path: str | Path) -> tuple[dict[str, Any], Iterator[JournalReco
                     except ValueError as e:
                         damaged.append((n, str(e)))
                         continue
-                    yield rec
+                    yield JournalRecord(rec.kind, rec.t_host_s, rec.data, n)
         finally:
             if damaged:
                 lines = ", ".join(str(k) for k, _ in damaged[:20]) + (", ..." if len(damaged) > 20 else "")
@@ -348,6 +350,6 @@ def recover(path: str | Path, rig: Rig | None = None, *, window_s: float = 0.5, 
             if rec.data.startswith(b"disconnect"):
                 samples += proc.connection_lost()
             continue
-        samples += proc.feed(rec.raw_line(), rec.t_host_s)
+        samples += proc.feed(rec.raw_line(), rec.t_host_s, rec.line_no)  # rejections name the journal's lines
     samples += proc.finish()
     return samples, proc.stats, header, warnings

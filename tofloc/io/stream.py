@@ -106,10 +106,11 @@ class StreamProcessor:
         self.assembler = SampleAssembler(rig, window_s=window_s)
         self.stats = CaptureStats()
 
-    def feed(self, line: RawLine, t_host_s: float) -> list[Sample]:
-        """Decode one line (counted as line number ``stats.lines``)."""
+    def feed(self, line: RawLine, t_host_s: float, line_no: int | None = None) -> list[Sample]:
+        """Decode one line, named in rejections as line ``line_no`` (a journal's own line
+        number) or, without it, as the ``stats.lines``-th line received."""
         self.stats.lines += 1
-        n = self.stats.lines
+        n = self.stats.lines if line_no is None else int(line_no)
         if line.overflow:
             # like an unfinished line (it ends any open block), but it is malformed
             events = self.decoder.feed(b"", t_host_s, n, partial=True)[:-1] + [Rejected("line longer than the length bound", n)]
