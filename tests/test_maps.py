@@ -701,3 +701,22 @@ def test_a_single_point_cloud_with_a_given_radius_still_casts() -> None:
     h = one.raycast(o, np.tile([0.0, 0.0, 1.0], (3, 1)))
     np.testing.assert_allclose(h.t[:2], 1.0, atol=1e-6)
     assert not h.hit[2] and h.index[0] == 0
+
+
+def test_a_coordinate_beyond_ten_kilometres_is_refused(tmp_path) -> None:
+    """A bad-input audit: a 3-point map at 1e30 m was accepted (and its distance grid cached
+    in a file its own reader refused); ray casts run in float32, whose step at 10 km is
+    1 mm. A file names the point; 10 km itself is accepted."""
+    from tofloc.map_validation import MAX_COORDINATE_M
+    from tofloc.maps import load_map
+
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    Map.from_points(pts + [MAX_COORDINATE_M - 1.0, 0.0, 0.0])
+    with pytest.raises(ParameterError, match=r"points 2: expected coordinates within \+-10000 m"):
+        Map.from_points(np.vstack([pts[:2], [[0.0, 1e30, 0.0]], pts[3:]]))
+    path = tmp_path / "far.xyz"
+    np.savetxt(path, np.vstack([pts, [[-2e4, 0.0, 0.0]]]))
+    with pytest.raises(FormatError, match=r"far\.xyz: point 4: expected coordinates within \+-10000 m"):
+        load_map(path)
+    with pytest.raises(ParameterError, match="within"):
+        Map.from_mesh(np.array([[0.0, 0, 0], [1e5, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc.errors import FormatError, ParameterError
 
-__all__ = ["MAX_POINTS", "MAX_TRIANGLES", "MAX_FILE_BYTES", "MAX_HEADER_BYTES", "Fail", "param_fail", "file_fail",
+__all__ = ["MAX_POINTS", "MAX_TRIANGLES", "MAX_COORDINATE_M", "MAX_FILE_BYTES", "MAX_HEADER_BYTES", "Fail", "param_fail", "file_fail",
            "readonly", "check_xyz", "check_normals", "check_triangles", "as_query", "check_rng", "check_box"]
 
 #: Largest number of points (or mesh vertices) a map may have.
@@ -26,6 +26,10 @@ MAX_TRIANGLES = 5_000_000
 MAX_FILE_BYTES = 1 << 30
 #: Largest file header read (PLY, PCD), bytes.
 MAX_HEADER_BYTES = 1 << 16
+#: Largest map coordinate we accept (m): the ray casts run in float32, whose resolution at
+#: 10 km is 1 mm (a map far from its origin, or with a stray point at 1e30, is refused
+#: rather than cast at centimetres' precision or sized into a grid it cannot hold).
+MAX_COORDINATE_M = 10_000.0
 
 class Fail(Protocol):
     """Builds the exception for a broken input: ``fail(where, expected, found=None)``."""
@@ -73,6 +77,11 @@ def check_xyz(values: Any, what: str, fail: Fail, limit: int = MAX_POINTS) -> ND
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise fail(f"{what} {i}", "finite coordinates", a[i].tolist())
+    far = np.abs(a).max(axis=1) > MAX_COORDINATE_M
+    if far.any():
+        i = int(np.flatnonzero(far)[0])
+        raise fail(f"{what} {i}", f"coordinates within +-{MAX_COORDINATE_M:g} m (ray casts run in float32: shift the "
+                   "map's origin near the robot)", a[i].tolist())
     return a
 
 
