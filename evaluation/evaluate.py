@@ -60,7 +60,7 @@ from evaluation.report import excluded_summary
 from evaluation.metrics import json_float, ratio_or_none, summarize
 from evaluation.priors import PriorSpec
 from evaluation.log_bootstrap import log_bootstrap
-from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects
+from evaluation.result_cache import _partial_path, code_fingerprint, context_fingerprint, fingerprint_arrays, plugin_objects, usable_records
 from evaluation.trials import TrialContext, TrialTask, jsonable, make_estimator, sample_pool, trial_seed
 from tofloc.errors import FormatError, ParameterError
 from tofloc.problem_builder import check_configuration_uncertainty
@@ -344,8 +344,7 @@ def run_estimators(
                     saved = json.loads(_partial_path(partial_dir, batch_group(en, e.name)).read_text())
                 except (OSError, ValueError):
                     saved = None
-                if isinstance(saved, dict) and saved.get("key") == key and isinstance(saved.get("records"), list) \
-                        and len(saved["records"]) == trials:
+                if isinstance(saved, dict) and saved.get("key") == key and usable_records(saved.get("records"), [en.k], trials):
                     out[en.label][e.name] = saved["records"]
                     continue
             todo.append((en, e, key))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
@@ -31,7 +32,7 @@ from evaluation.trials import (
 )
 from tofloc.fingerprints import sha256_arrays
 
-__all__ = ["fingerprint_arrays", "Batch", "context_fingerprint", "code_fingerprint", "plugin_objects", "run_batches"]
+__all__ = ["fingerprint_arrays", "usable_records", "Batch", "context_fingerprint", "code_fingerprint", "plugin_objects", "run_batches"]
 
 
 def fingerprint_arrays(*arrays: ArrayLike | None, extra: Any = None) -> str:
@@ -170,6 +171,30 @@ def code_fingerprint(*objects: Any) -> str:
     return h.hexdigest()[:16]
 
 
+def usable_records(records: Any, k_values: Sequence[int], trials: int) -> bool:
+    """Whether a saved batch's ``records`` can stand for its trials: a list of one record
+    per (k, trial) of ``k_values`` x ``range(trials)``, each with integer ``k``, ``trial``
+    and ``seed``, and errors ``e_x_m``, ``e_gamma_deg`` that are absent, None or finite and
+    >= 0. A batch file is ours, but it sits in the user's folder: one edited or damaged
+    (a bad-input audit set an e_x of -3 m, and reran to a table of -3000 mm) is run again,
+    not reported."""
+    if not isinstance(records, list) or len(records) != len(k_values) * trials:
+        return False
+    seen = set()
+    for r in records:
+        if not isinstance(r, dict):
+            return False
+        k, trial, seed = r.get("k"), r.get("trial"), r.get("seed")
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in (k, trial, seed)):
+            return False
+        seen.add((k, trial))
+        for name in ("e_x_m", "e_gamma_deg"):
+            v = r.get(name)
+            if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+                return False
+    return seen == {(int(k), t) for k in k_values for t in range(trials)}
+
+
 def _partial_path(folder: Any, group: str) -> Any:
     from pathlib import Path
 
@@ -250,7 +275,7 @@ def run_batches(
                 saved = json.loads(path.read_text())
             except (OSError, ValueError):
                 saved = None
-            if isinstance(saved, dict) and saved.get("key") == key and isinstance(saved.get("records"), list):
+            if isinstance(saved, dict) and saved.get("key") == key and usable_records(saved.get("records"), k_values, trials):
                 out[b.group] = saved["records"]
                 if on_batch is not None:
                     on_batch(b, saved["records"], True)

@@ -406,17 +406,21 @@ def test_an_interrupted_run_resumes_from_saved_batches(run: dict, logs: list[Pat
     shutil.copytree(run["out"] / "partial", out / "partial")
     missing = out / "partial" / "l_room__beam_pf.json"
     missing.unlink()  # as if the run had stopped before this batch ended
+    edited = out / "partial" / "paper__icp_pf.json"  # a bad-input audit: an e_x of -3 m was reported as saved
+    doc = json.loads(edited.read_text())
+    doc["records"][0]["e_x_m"] = -3.0
+    edited.write_text(json.dumps(doc))
 
     rep = api.NoteList()
     res = api.evaluate(logs, ["icp_pf", "beam_pf"], out=out, trials=2, samples=3, seed=5, params={"n_particles": 100},
                        workers=1, reporter=rep)
-    assert "reused 3 saved (log, estimator) batches of the run's 4" in rep.notes
-    assert missing.exists()
+    assert "reused 2 saved (log, estimator) batches of the run's 4" in rep.notes
+    assert missing.exists() and json.loads(edited.read_text())["records"][0]["e_x_m"] >= 0
     first = run["doc"]["logs"]
     for label, lg in res.document["logs"].items():
         for e, got in lg["estimators"].items():
             old = first[label]["estimators"][e]["records"]
-            if (label, e) == ("l_room", "beam_pf"):  # run again: the same numbers, new timings
+            if (label, e) in (("l_room", "beam_pf"), ("paper", "icp_pf")):  # run again: the same numbers, new timings
                 for a, b in zip(got["records"], old):
                     assert _untimed(a) == _untimed(b)
             else:  # reused as saved, runtimes included

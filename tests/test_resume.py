@@ -126,3 +126,14 @@ def test_a_run_refused_once_it_started_leaves_no_empty_folder(tmp_path: Path) ->
     out = tmp_path / "run"
     assert main(["paper", "--scenario", "no_such_scene", "--trials", "1", "--out", str(out)]) == 2
     assert not out.exists()
+
+
+def test_a_saved_batch_is_reused_only_when_its_records_are_sound() -> None:
+    from evaluation.result_cache import usable_records
+
+    good = [{"k": k, "trial": t, "seed": 7 + t, "e_x_m": 0.01, "e_gamma_deg": 0.5} for k in (1, 5) for t in range(2)]
+    assert usable_records(good, [1, 5], 2)
+    assert usable_records([dict(r, e_x_m=None, e_gamma_deg=None) for r in good], [1, 5], 2)  # no truth
+    for bad in (good[:3], good + good[:1], [dict(good[0], e_x_m=-3.0)] + good[1:], [dict(good[0], e_gamma_deg=float("nan"))] + good[1:],
+                [dict(good[0], k=True)] + good[1:], [dict(good[0], trial=1)] + good[1:], [{"seed": 1}] * 4, "records", None):
+        assert not usable_records(bad, [1, 5], 2)
