@@ -70,8 +70,18 @@ class ResultsFile:
     document: dict[str, Any]
 
 
+#: Largest error statistic read back (metres or degrees): drawn in millimetres, a larger
+#: one would overflow to inf (a bad-input audit: 1e308 m plotted as inf mm).
+MAX_ERROR_STAT = 1e9
+
+
 def _stat(d: Any, path: Path, where: str) -> dict[str, float | None]:
-    return checked_stats(d, path, where, _STATS)
+    """Error statistics: sizes of errors, so >= 0 (an edited -5 m was drawn as -5000 mm)."""
+    out = checked_stats(d, path, where, _STATS, nonnegative=True)
+    for k, v in out.items():
+        if v is not None and v > MAX_ERROR_STAT:
+            raise FormatError(path, f"{where}.{k}", f"a finite number in [0, {MAX_ERROR_STAT:g}] or null", repr(v)[:40])
+    return out
 
 
 def _crlb(d: Any, path: Path, where: str) -> dict[str, float | None] | None:

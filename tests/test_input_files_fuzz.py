@@ -147,7 +147,11 @@ _PER_K = r"results\.icp_pf\.mocap\.paper\.per_k"
 
 @pytest.mark.parametrize("text,where", [
     (json.dumps(_paper_doc()).replace('"mean": 0.01', f'"mean": {BIG}', 1),           # OverflowError
-     _PER_K + r"\.1\.e_x_m\.mean: expected a finite number or null, found 1000"),
+     _PER_K + r"\.1\.e_x_m\.mean: expected a finite number >= 0 or null, found 1000"),
+    (json.dumps(_paper_doc()).replace('"mean": 0.01', '"mean": -5', 1),               # drawn as -5000 mm (an audit)
+     _PER_K + r"\.1\.e_x_m\.mean: expected a finite number >= 0 or null, found -5"),
+    (json.dumps(_paper_doc()).replace('"mean": 0.01', '"mean": 1e308', 1),            # drawn as inf mm (an audit)
+     _PER_K + r"\.1\.e_x_m\.mean: expected a finite number in \[0, 1e\+09\] or null, found 1e\+308"),
     (json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": NaN', 1),  # was read as nan
      _PER_K + r"\.1\.nees\.mean: expected a finite number >= 0 or null, found nan"),
     (json.dumps(_paper_doc()).replace('"nees": {"mean": 1.2', '"nees": {"mean": "x"', 1),  # was dropped silently
