@@ -178,3 +178,20 @@ def test_import_eth_matrix_writes_a_valid_log_with_the_panel(tmp_path: Path, cap
         assert "T_map_panel" not in f["/import"]
     assert main(["import", "eth-matrix", str(ETH / "Rotate" / "R1"), "--out", str(tmp_path / "z.h5"), "--drone-body", "Cf2"]) == 2
     assert "rows of the body 'Cf2'" in capsys.readouterr().err
+
+
+def test_replay_stops_on_sigterm_while_it_waits_for_a_reader(simulated: Path, tmp_path: Path) -> None:
+    """A bad-input audit: `replay --pty --wait 1e12` ignored SIGTERM until a reader came."""
+    rep = subprocess.Popen([sys.executable, "-m", "tofloc", "replay", str(simulated), "--pty", "--wait", "100000"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert rep.stdout is not None
+        device = rep.stdout.readline().strip()  # printed once the device exists: the wait begins
+        assert device.startswith("/dev/")
+        rep.send_signal(signal.SIGTERM)
+        _, err = rep.communicate(timeout=20)
+    finally:
+        rep.kill()
+        rep.wait()
+    assert rep.returncode == 0, err
+    assert "sent 0 lines (stopped by SIGTERM)" in err

@@ -78,5 +78,6 @@ def replay(
         signal.signal(signal.SIGTERM, previous)
         if isinstance(device, PtyDevice):
             device.remove_link()
-    err_console.print(f"sent {report.lines_sent} lines", highlight=False, soft_wrap=True)
+    stopped = " (stopped by SIGTERM)" if stop.is_set() else ""
+    err_console.print(f"sent {report.lines_sent} lines{stopped}", highlight=False, soft_wrap=True)
     return 0

@@ -129,7 +129,7 @@ class Device(Protocol):
     path: str
 
     def open(self) -> str: ...
-    def wait_for_reader(self, timeout_s: float) -> None: ...
+    def wait_for_reader(self, timeout_s: float, stop: threading.Event | None = None) -> None: ...
     def write(self, data: bytes) -> None: ...
     def drain(self, timeout_s: float) -> None: ...
     def close(self) -> None: ...
@@ -182,11 +182,14 @@ class PtyDevice:
         res = p.poll(timeout_s * 1000.0)
         return res[0][1] if res else 0
 
-    def wait_for_reader(self, timeout_s: float, settle_s: float = 0.2) -> None:
+    def wait_for_reader(self, timeout_s: float, stop: threading.Event | None = None, settle_s: float = 0.2) -> None:
         """Return once a reader has the slave open (plus ``settle_s`` for it to configure
-        the port: pyserial discards pending input when it opens)."""
+        the port: pyserial discards pending input when it opens), or at once when ``stop``
+        is set (SIGTERM while waiting: a bad-input audit found the wait ignored it)."""
         deadline = time.monotonic() + timeout_s
         while True:
+            if stop is not None and stop.is_set():
+                return
             ev = self._poll(select.POLLOUT, 0.0)
             if not ev & select.POLLHUP:
                 break
@@ -266,7 +269,7 @@ class SerialDevice:
             raise ReplayError(f"cannot open {self.port_name} at {self.baud} baud: {e}") from None
         return self.path
 
-    def wait_for_reader(self, timeout_s: float) -> None:
+    def wait_for_reader(self, timeout_s: float, stop: threading.Event | None = None) -> None:
         return None
 
     def write(self, data: bytes) -> None:
@@ -351,7 +354,7 @@ def replay(
     report.devices.append(device.path)
     if on_ready:
         on_ready(device.path)
-    device.wait_for_reader(reader_timeout_s)
+    device.wait_for_reader(reader_timeout_s, stop)
     resync = fmt == "tofloc"  # our protocol recovers a line glued behind garbage or a cut line
     n = 0
     prev_cut = False
@@ -393,7 +396,7 @@ def replay(
                     report.devices.append(device.path)
                     if on_ready:
                         on_ready(device.path)
-                    device.wait_for_reader(reader_timeout_s)
+                    device.wait_for_reader(reader_timeout_s, stop)
                     continue
                 if Faults._hit(faults.truncate_every, n):
                     data = data.rstrip(b"\r\n")[: max(1, len(data.rstrip(b"\r\n")) // 2)]
