@@ -192,3 +192,22 @@ def test_map_files_named_by_reads_only_the_attribute(pillars: Path, tmp_path: Pa
     assert list(named.values()) == [pillars.parent / "pillars.map.ply", pillars.parent / "pillars.cad.ply"]
     (tmp_path / "not.h5").write_bytes(b"not hdf5")
     assert map_files_named_by(tmp_path / "not.h5") == {} and map_files_named_by(tmp_path / "absent.h5") == {}
+
+
+def test_simulate_replaces_an_earlier_simulation_but_nothing_else_without_force(tmp_path: Path,
+                                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad-input audit: `simulate --out mycal.toml` replaced a calibration without a word."""
+    cal = tmp_path / "mycal.toml"
+    cal.write_text("x = 1\n")
+    assert main(["simulate", "--seed", "3", "--out", str(cal)]) == 2
+    assert f"--out {cal}: exists and is not a tofloc log: without --force" in _err(capsys)
+    assert cal.read_text() == "x = 1\n" and sorted(p.name for p in tmp_path.iterdir()) == ["mycal.toml"]
+    log = tmp_path / "s.h5"
+    assert main(["simulate", "--seed", "3", "--out", str(log)]) == 0
+    assert main(["simulate", "--seed", "4", "--out", str(log)]) == 0  # an earlier simulation: replaced
+    (tmp_path / "t.map.ply").write_text("notes\n")
+    assert main(["simulate", "--seed", "4", "--out", str(tmp_path / "t.h5")]) == 2
+    assert "--out (its map file)" in _err(capsys) and (tmp_path / "t.map.ply").read_text() == "notes\n"
+    assert main(["simulate", "--seed", "4", "--out", str(tmp_path / "t.h5"), "--force"]) == 0
+    assert (tmp_path / "t.map.ply").read_bytes().startswith(b"ply\n")
+    capsys.readouterr()

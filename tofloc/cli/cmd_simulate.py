@@ -14,6 +14,23 @@ from tofloc.cli.app import app, console, status
 from tofloc.errors import ParameterError
 
 
+def _earlier_output(path: Path, log: bool) -> bool:
+    """Whether ``path`` looks like what ``simulate`` writes there (a tofloc log, a PLY map):
+    replacing an earlier simulation is the usual rerun; replacing anything else (a
+    calibration named by mistake, found by a bad-input audit) needs ``--force``."""
+    try:
+        if not log:
+            with open(path, "rb") as fh:
+                return fh.read(4) == b"ply\n"
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format")
+        return (fmt.decode("utf-8", "replace") if isinstance(fmt, bytes) else fmt) == "tofloc-log"
+    except (OSError, ValueError, TypeError):
+        return False
+
+
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Log to write (HDF5); the maps are written beside it."),
@@ -30,6 +47,7 @@ def simulate(
         None, "--rig-variant",
         help="exact: the log's rig is the true one (no support rotation, no mounting scatter, no declared tolerance); "
         "perturbed: the scenario's support rotation and scatter, with its declared tolerance. Default: the rig as the scenario writes it."),
+    force: bool = typer.Option(False, "--force", help="Replace existing files that are not an earlier simulation's (a log, PLY maps)."),
 ) -> None:
     """Simulate a ToF localization experiment (default: the paper's) into a log and its map."""
     from tofloc.atomic import check_output_path
@@ -43,6 +61,10 @@ def simulate(
     outputs = {("--out" if key == "log" else f"--out (its {key} file)"): path for key, path in simulation_paths(out).items()}
     for option, path in outputs.items():
         check_output_path(path, option=option)
+        if not force and path.is_file() and not _earlier_output(path, option == "--out"):
+            raise ParameterError(f"{option} {path}: exists and is not {'a tofloc log' if option == '--out' else 'a PLY map'}: "
+                                 "without --force only an earlier simulation's files are replaced (choose another name, "
+                                 "or pass --force)")
     check_distinct_paths(outputs, {"--scenario": Path(scenario) if Path(scenario).is_file() else None})
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
