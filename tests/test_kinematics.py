@@ -332,6 +332,7 @@ def _non_rigid(f: dict[str, np.ndarray]) -> np.ndarray:
         ("overlap", "validation_indices", lambda f: {"validation_indices": f["train_indices"][:3]}),
         ("fingerprint", "log_fingerprint", lambda f: {"log_fingerprint": np.asarray("abc")}),
         ("objects", "actuators", lambda f: {"actuators": np.array(["a", {"x": 1}, "c"], dtype=object)}),
+        ("covnan", "configuration_covariance", lambda f: {"configuration_covariance": np.full((6, 6), np.nan)}),
     ],
 )
 def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, case: str, field: str, make: Any) -> None:
@@ -341,6 +342,8 @@ def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, cas
     assert e.value.file == str(bad)
     assert e.value.where == field, str(e.value)
     assert str(bad) in str(e.value)
+    if case == "covnan":  # the message said only "dtype float64, shape (6, 6)" (a bad-input audit)
+        assert "36 NaN or infinite entries" in str(e.value)
 
 
 def test_load_refuses_other_files(tmp_path: Path) -> None:

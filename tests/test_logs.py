@@ -1016,3 +1016,12 @@ def test_written_logs_stay_readable_by_hdf5_1_10_to_1_14(tmp_path: Path, full_lo
         assert fh.read(9)[8] == 3  # superblock version 3 (HDF5 1.10): checksummed
     for name in ("/samples/distance_mm", "/samples/T_base_tip_cov", "/truth/T_map_base"):
         assert _layout_message_version(path, name) == 4, name  # HDF5 1.10's chunked layout (fixed-array index)
+
+
+def test_a_cut_timestamp_dataset_is_named_as_the_source_of_k(tmp_path: Path) -> None:
+    """A bad-input audit: /samples/timestamp_s cut short made the error blame distance_mm
+    alone; it now says where K came from."""
+    _, d = conforming()
+    e = assert_refused(bad_file(tmp_path, datasets={"/samples/timestamp_s": d["/samples/timestamp_s"][:-1]}),
+                       "/samples/distance_mm", f"shape (K, S, Z) = ({K - 1}, {S}, {Z})", f"found shape ({K}, {S}, {Z})")
+    assert f"K = {K - 1} comes from /samples/timestamp_s" in str(e)

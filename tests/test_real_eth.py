@@ -361,3 +361,17 @@ def test_order_scores_and_latency_scan_return_what_they_declare(monkeypatch: pyt
     scan = latency_scan([Path("run")], [0.0, 0.1])
     assert scan == [(0.0, None), (0.1, None)]
     assert _conforms(scan, typing.get_type_hints(latency_scan)["return"])
+
+
+def test_an_empty_table_is_refused_in_one_line_without_numpys_warning() -> None:
+    """A bad-input audit: an empty state_ToF.csv printed numpy's "input contained no data"
+    warning, with its source line, before our error."""
+    import warnings
+
+    from tofloc.errors import FormatError
+    from tofloc.io.eth_matrix import _numeric_table
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(FormatError, match=r"state_ToF\.csv: file: expected numbers, found no data"):
+            _numeric_table(Path("state_ToF.csv"), "", 0, 3, "numbers")

@@ -767,7 +767,9 @@ def _check_covariance(cov: Any, fail: _Fail) -> NDArray[np.float64] | None:
         return None
     c = np.asarray(cov)
     if c.dtype.kind != "f" or c.shape != (6, 6) or not np.all(np.isfinite(c)):
-        raise fail("configuration_covariance", "a finite (6, 6) float array", f"dtype {c.dtype}, shape {c.shape}")
+        found = (f"dtype {c.dtype}, shape {c.shape}" if c.dtype.kind != "f" or c.shape != (6, 6)
+                 else f"{int(np.size(c) - np.isfinite(c).sum())} NaN or infinite entries")
+        raise fail("configuration_covariance", "a finite (6, 6) float array", found)
     c = np.array(c, dtype=np.float64)
     if not np.allclose(c, c.T, atol=1e-12) or np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-12:
         raise fail("configuration_covariance", "a symmetric positive semi-definite matrix", "another matrix")

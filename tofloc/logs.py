@@ -884,7 +884,10 @@ def _check_dataset_meta(ds: h5py.Dataset, file: str, dtype: np.dtype, shape: tup
     if not _same_dtype(ds.dtype, dtype):
         raise LogFormatError(file, name, f"dtype {dtype.name} (either byte order)", _dtype_name(ds.dtype))
     if shape is not None and ds.shape != shape:
-        raise LogFormatError(file, name, f"shape {shape_name} = {shape}", f"shape {ds.shape}")
+        k_note = ""
+        if len(ds.shape) == len(shape) and ds.shape[1:] == shape[1:] and name != "/samples/timestamp_s":
+            k_note = f" (K = {shape[0]} comes from /samples/timestamp_s: one of the two is cut short or too long)"
+        raise LogFormatError(file, name, f"shape {shape_name} = {shape}", f"shape {ds.shape}{k_note}")
     if math.prod(ds.shape) > MAX_DATASET_VALUES:
         raise LogFormatError(file, name, f"at most {MAX_DATASET_VALUES} values", f"{math.prod(ds.shape)}")
     if ds.is_virtual or ds.external:

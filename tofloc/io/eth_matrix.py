@@ -37,6 +37,7 @@ sensor should report in front of the panel.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -121,7 +122,9 @@ def _numeric_table(path: Path, text: str, skip: int, cols: int, what: str) -> ND
     """Parse comma-separated numbers (C parser); on failure name the first bad line."""
     body = text.split("\n", skip)[skip] if skip else text
     try:
-        a = np.loadtxt(body.splitlines(), delimiter=",", dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # "input contained no data": an empty table is refused below, in one line
+            warnings.simplefilter("ignore", UserWarning)
+            a = np.loadtxt(body.splitlines(), delimiter=",", dtype=np.float64, ndmin=2)
     except ValueError:
         for i, line in enumerate(text.splitlines()[skip:], start=skip + 1):
             parts = line.split(",")
