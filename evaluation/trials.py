@@ -217,6 +217,12 @@ def sample_pool(
             all_rows, "all", f"all {all_rows.size} usable samples (with {what}): the kinematics model was fit on another log, "
             "so every sample of this one is held out"
         )
+    for split in ("train_indices", "validation_indices"):  # the model says it was fit on this log: its rows must exist
+        rows = np.asarray(getattr(kinematics, split), dtype=np.intp)
+        if rows.size and (rows.min() < 0 or rows.max() >= log.n_samples):
+            raise ProblemError(f"{name}: the kinematics model was fit on this log (its fingerprint matches) but its {split} "
+                               f"reach row {int(rows.max() if rows.max() >= log.n_samples else rows.min())}, outside the "
+                               f"log's {log.n_samples} samples: the model file is inconsistent; fit it again")
     val = np.intersect1d(np.asarray(kinematics.validation_indices, dtype=np.intp), all_rows)
     if val.size < k_max:
         return SamplePool(

@@ -325,6 +325,14 @@ def test_pool_fallbacks() -> None:
     assert pool.source == "all" and "fit on another log" in pool.note
     with pytest.raises(ProblemError, match="40 of 40 samples are usable"):
         sample_pool(log, None, k_max=41)
+    # a bad-input audit: a model file whose held-out rows lie beyond the log it matches was
+    # used as if it had none (every sample drawn, the training ones too)
+    import copy
+
+    beyond = copy.copy(kin)
+    object.__setattr__(beyond, "validation_indices", kin.validation_indices + 1000)
+    with pytest.raises(ProblemError, match=r"validation_indices reach row 10\d\d, outside the log's 40 samples"):
+        sample_pool(log, beyond, k_max=2)
 
 
 def test_static_base_is_required() -> None:
