@@ -417,7 +417,7 @@ def test_bad_distance_values(tmp_path: Path, value: float, found: str) -> None:
     )
 
 
-def test_a_negative_distance_is_read_and_never_used(tmp_path: Path) -> None:
+def test_a_negative_distance_is_read_and_never_used(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The spec sets no range on a distance, and the driver's int16 dips below 0 on zones
     that measured nothing usable (tofloc.io.protocol maps those to NaN; another converter
     may copy them): the file is read, the value kept, the zone never valid, even with a
@@ -434,6 +434,11 @@ def test_a_negative_distance_is_read_and_never_used(tmp_path: Path) -> None:
     assert ref[1, 0, 5] and not valid[1, 0, 5] and not valid[2, 0, 6]
     ref[1, 0, 5] = ref[2, 0, 6] = False
     assert np.array_equal(valid, ref)
+    from tofloc.cli import main
+
+    assert main(["info", str(tmp_path / "bad.h5")]) == 0
+    out = capsys.readouterr().out  # a table: its cells wrap
+    assert "negative distances" in out and "2 zones (the driver's int16" in out
 
 
 def test_a_covariance_without_configurations_is_read_and_unused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

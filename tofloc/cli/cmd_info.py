@@ -51,6 +51,10 @@ def info(log_path: Path = typer.Argument(..., metavar="LOG", help="A log file (f
     d = log.distance_m[valid]
     if d.size:
         t.add_row("valid distances", f"{d.min():.3f} .. {d.max():.3f} m (median {np.median(d):.3f})")
+    with np.errstate(invalid="ignore"):
+        n_negative = int((log.distance_mm < 0).sum())
+    if n_negative:
+        t.add_row("negative distances", f"{n_negative} zones (the driver's int16 below 0: never used, whatever their status)")
     t.add_row("range sigma", "present" if log.sigma_mm is not None else "absent")
     if log.pressure_kpa is not None and log.n_actuators:
         rng = ", ".join(
