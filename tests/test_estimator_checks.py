@@ -88,3 +88,45 @@ def test_expected_failures_are_strict() -> None:
         expected_failures(Typo())
     assert np.all(np.isfinite(PriorMean().estimate(__import__("tofloc.testing").testing.easy_problem()[0],
                                                     np.random.default_rng(0)).pose))
+
+
+def test_an_answer_that_breaks_the_estimate_contract_is_refused_naming_the_estimator() -> None:
+    """A plug-in audit: a pose of shape (2,) failed with an IndexError deep inside, a
+    `None` answer with an AttributeError, an asymmetric covariance was averaged silently
+    and a non-positive one went on to a NEES of 0.77."""
+    import math
+
+    import numpy as np
+    import pytest
+
+    from tofloc.problem import Estimate, EstimateError, Estimator
+    from tofloc.testing import easy_problem
+
+    answers = {
+        "shape": lambda: Estimate(np.zeros(2), np.eye(3)),
+        "none": lambda: None,
+        "asymmetric": lambda: Estimate(np.zeros(3), np.array([[1.0, 5.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])),
+        "not_psd": lambda: Estimate(np.zeros(3), np.diag([1e-4, -1e-4, 1e-3])),
+        "nan_cov": lambda: Estimate(np.zeros(3), np.full((3, 3), np.nan)),
+        "nan_pose": lambda: Estimate(np.array([0.0, math.nan, 0.0]), np.eye(3)),
+    }
+    why = {"shape": "expected shape (3,), got (2,)", "none": "_estimate returned NoneType, expected a tofloc.problem.Estimate",
+           "asymmetric": "must be symmetric", "not_psd": "positive semi-definite", "nan_cov": "must not hold NaN",
+           "nan_pose": "pose must be finite"}
+    problem, _ = easy_problem(n_samples=1)
+    for case, answer in answers.items():
+        class Bad(Estimator):
+            name: ClassVar[str] = "bad_plugin"
+
+            def _estimate(self, problem, rng):  # type: ignore[no-untyped-def]
+                return answer()
+
+        with pytest.raises(EstimateError, match="estimator 'bad_plugin'") as e:
+            Bad().estimate(problem, np.random.default_rng(0))
+        assert why[case] in str(e.value) and "\n" not in str(e.value), str(e.value)
+    # an open direction (an infinite variance) is allowed, and rounding-level asymmetry averaged
+    ok = Estimate(np.zeros(3), np.diag([np.inf, 1e-4, 1e-4]))
+    ok.check_contract()
+    C = np.diag([1e-4, 1e-4, 1e-4])
+    C[0, 1] = 1e-13
+    assert np.array_equal(Estimate(np.zeros(3), C).covariance, Estimate(np.zeros(3), C).covariance.T)

@@ -27,7 +27,7 @@ from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
 if TYPE_CHECKING:
     from tofloc.fit_check import FitCheck
 
-__all__ = ["Prior", "NuisancePriors", "Problem", "Estimate", "Estimator", "ProblemError", "TipSource",
+__all__ = ["Prior", "NuisancePriors", "Problem", "Estimate", "EstimateError", "Estimator", "ProblemError", "TipSource",
            "CONFIGURATION_SOURCES"]
 
 #: Where a problem's configurations ``T_base_tip`` may come from (log format v1's
@@ -39,6 +39,18 @@ TipSource = Literal["mocap", "knn"]
 
 class ProblemError(TofLocError, ValueError):
     """A problem an estimator cannot work on (e.g. no valid zone in any frame)."""
+
+
+class EstimateError(ParameterError):
+    """An estimator's answer breaks the :class:`Estimate` contract (a pose that is not 3
+    finite numbers, a covariance that is not a 3 x 3 symmetric positive semi-definite
+    matrix, or no :class:`Estimate` at all): a plug-in's bug named in one line, not a
+    traceback from the code that reads the answer later."""
+
+
+#: Relative tolerance of an answer's covariance: asymmetry and negative eigenvalues up to
+#: this fraction of its largest entry are rounding (and the asymmetry is averaged away).
+ESTIMATE_COV_RTOL = 1e-6
 
 
 def _readonly(a: ArrayLike | None, dtype: Any = float) -> NDArray[Any] | None:
@@ -376,10 +388,39 @@ class Estimate:
         return float(m) if isinstance(m, (int, float, np.floating)) and math.isfinite(float(m)) else 0.0
 
     def __post_init__(self) -> None:
-        self.pose = np.asarray(self.pose, dtype=float).copy()
-        self.pose[2] = frames.wrap_angle(self.pose[2])
-        cov = np.asarray(self.covariance, dtype=float)
+        try:
+            pose = np.array(self.pose, dtype=float)
+            cov = np.asarray(self.covariance, dtype=float)
+        except (TypeError, ValueError):
+            raise EstimateError(f"an Estimate needs a pose of 3 numbers and a 3 x 3 covariance, got {type(self.pose).__name__} "
+                                f"and {type(self.covariance).__name__}") from None
+        if pose.shape != (3,):
+            raise EstimateError(f"an Estimate's pose is (x, y, yaw): expected shape (3,), got {pose.shape}")
+        if cov.shape != (3, 3):
+            raise EstimateError(f"an Estimate's covariance is that of (x, y, yaw): expected shape (3, 3), got {cov.shape}")
+        scale = float(np.max(np.abs(cov))) if np.all(np.isfinite(cov)) else 0.0
+        if scale > 0 and np.max(np.abs(cov - cov.T)) > ESTIMATE_COV_RTOL * scale:
+            raise EstimateError(f"an Estimate's covariance must be symmetric: |C - C^T| reaches "
+                                f"{float(np.max(np.abs(cov - cov.T))):.3g} for entries up to {scale:.3g}")
+        pose[2] = frames.wrap_angle(pose[2])
+        self.pose = pose
         self.covariance = 0.5 * (cov + cov.T)
+
+    def check_contract(self) -> None:
+        """Refuse a pose that is not finite and a covariance with NaN or with an eigenvalue
+        below ``-ESTIMATE_COV_RTOL`` times its largest entry (an infinite variance, a
+        direction the data and the prior leave open, is allowed)."""
+        if not np.all(np.isfinite(self.pose)):
+            raise EstimateError(f"an Estimate's pose must be finite, got {self.pose.tolist()}")
+        cov = self.covariance
+        if np.isnan(cov).any():
+            raise EstimateError(f"an Estimate's covariance must not hold NaN, got {cov.tolist()}")
+        if np.all(np.isfinite(cov)):
+            scale = float(np.max(np.abs(cov)))
+            low = float(np.linalg.eigvalsh(cov).min())
+            if low < -ESTIMATE_COV_RTOL * scale:
+                raise EstimateError(f"an Estimate's covariance must be positive semi-definite: its smallest eigenvalue "
+                                    f"is {low:.3g} (largest entry {scale:.3g})")
 
 
 class Estimator(ABC):
@@ -430,7 +471,14 @@ class Estimator(ABC):
             raise ParameterError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
         problem.require_valid_zones()
         t0 = time.perf_counter()
-        est = self._estimate(problem, rng)
+        try:
+            est = self._estimate(problem, rng)
+            if not isinstance(est, Estimate):
+                raise EstimateError(f"_estimate returned {type(est).__name__}, expected a tofloc.problem.Estimate")
+            est.check_contract()
+        except EstimateError as e:
+            name = self.name or type(self).__name__
+            raise EstimateError(f"estimator {name!r} ({type(self).__module__}.{type(self).__qualname__}): {e}") from None
         est.runtime_s = time.perf_counter() - t0
         return est
 

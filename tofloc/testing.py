@@ -136,9 +136,13 @@ def _no_valid_problem() -> Problem:
                    T_base_tip=p.T_base_tip, map=p.map, prior=p.prior)
 
 
+_SAME_SEED_HINT = ("two runs with generators of the same seed differ: all randomness must come from the rng "
+                   "estimate() is given (not numpy's global state, random, or a generator of its own)")
+
+
 def _assert_same(a: Estimate, b: Estimate) -> None:
-    np.testing.assert_array_equal(a.pose, b.pose)
-    np.testing.assert_array_equal(a.covariance, b.covariance)
+    np.testing.assert_array_equal(a.pose, b.pose, err_msg=_SAME_SEED_HINT)
+    np.testing.assert_array_equal(a.covariance, b.covariance, err_msg=_SAME_SEED_HINT)
 
 
 def check_same_seed_same_result(est: Estimator) -> None:
@@ -172,7 +176,7 @@ def check_result_contract(est: Estimator) -> None:
     assert isinstance(r, Estimate)
     assert r.pose.shape == (3,) and np.all(np.isfinite(r.pose)), f"pose {r.pose}"
     assert -math.pi < r.pose[2] <= math.pi, f"yaw {r.pose[2]} not wrapped"
-    assert r.covariance.shape == (3, 3) and np.all(np.isfinite(r.covariance))
+    assert r.covariance.shape == (3, 3) and np.all(np.isfinite(r.covariance)), f"covariance {r.covariance.tolist()} is not a finite 3 x 3 matrix"
     np.testing.assert_allclose(r.covariance, r.covariance.T, atol=1e-12)
     assert np.linalg.eigvalsh(r.covariance).min() >= -1e-12, "covariance is not PSD"
     assert r.runtime_s > 0.0
