@@ -98,6 +98,10 @@ class PriorSpec:
     clearance_m: float = DEFAULT_CLEARANCE_M
 
     def __post_init__(self) -> None:
+        from evaluation.trials import plain_numbers
+
+        for name in ("clearance_m", "sigma_xy_m", "sigma_yaw_deg"):  # numpy scalars as the numbers they hold
+            object.__setattr__(self, name, plain_numbers(getattr(self, name)))
         if self.mode not in ALL_PRIOR_MODES + ("given",):
             raise ParameterError(f"prior mode must be one of {', '.join(ALL_PRIOR_MODES + ('given',))}, got {self.mode!r}")
         if self.region is not None:

@@ -284,13 +284,32 @@ def jsonable(value: Any) -> Any:
     return str(value)
 
 
+def plain_numbers(value: Any) -> Any:
+    """``value`` with every numpy scalar (``np.float32(0.5)``, ``np.int64(3)``, ``np.bool_``)
+    turned into the Python number it holds, through mappings, lists and tuples: parameters
+    from numpy code are taken as the numbers they are (a plug-in audit found
+    ``temper=np.float32(0.5)`` refused as out of (0, 1]) and written back as plain TOML."""
+    if isinstance(value, np.generic) and not isinstance(value, (np.str_, np.bytes_, np.void)):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {k: plain_numbers(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [plain_numbers(v) for v in value]
+    if isinstance(value, tuple):
+        return tuple(plain_numbers(v) for v in value)
+    return value
+
+
 def make_estimator(cls: type, params: Mapping[str, Any], name: str = "") -> Estimator:
     """``cls(**params)``; a parameter name it (or its sensor model) does not take is refused
     before anything is built (:func:`tofloc.param_docs.check_parameter_names`), and any other
-    constructor ``TypeError`` is reported as a :class:`ParameterError`."""
+    constructor ``TypeError`` is reported as a :class:`ParameterError`. Numpy scalars among
+    the values are taken as the Python numbers they hold (:func:`plain_numbers`)."""
     from tofloc.param_docs import build_plugin
 
     label = name or str(getattr(cls, "name", "") or cls.__name__)
+    if isinstance(params, Mapping):
+        params = plain_numbers(params)
     est = build_plugin(cls, params, kind="estimator", name=label)
     if not isinstance(est, Estimator):
         raise ParameterError(f"estimator {label!r} does not follow tofloc.problem.Estimator")

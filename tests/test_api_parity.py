@@ -339,3 +339,21 @@ def test_scenes_cli_names_a_repeated_scene_as_its_option(tmp_path: Path, capsys:
     err = " ".join(capsys.readouterr().err.split())
     assert "--scene pillars is given more than once: expected each scene once" in err and "scene_names" not in err
     assert not (tmp_path / "s").exists()
+
+
+def test_numpy_scalars_in_estimator_parameters_and_priors() -> None:
+    """A plug-in audit: `temper=np.float32(0.5)` was refused as out of (0, 1] and
+    `localize_prior(sigma_xy=np.float32(0.2))` as not a number; numpy scalars are the numbers
+    they hold (and stored as Python numbers, so that configs write back as plain TOML)."""
+    import numpy as np
+
+    from evaluation.priors import PriorSpec
+    from tofloc import api
+
+    e = api.estimator("beam_pf", {"sensor_model_params": {"temper": np.float32(0.5)}, "n_particles": np.int64(300)})
+    assert e.sensor_model_params == {"temper": 0.5} and type(e.sensor_model_params["temper"]) is float
+    assert type(e.n_particles) is int and e.n_particles == 300
+    p = PriorSpec("offset", sigma_xy_m=np.float32(0.25), sigma_yaw_deg=np.int64(20))
+    assert type(p.sigma_xy_m) is float and p.sigma_yaw_deg == 20 and type(p.sigma_yaw_deg) is int
+    with pytest.raises(ParameterError, match="temper"):
+        api.estimator("beam_pf", {"sensor_model_params": {"temper": np.float32(2.0)}})
