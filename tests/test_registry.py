@@ -104,3 +104,31 @@ def test_a_plugin_must_subclass_the_interface_and_carry_its_name(monkeypatch) ->
             r.register("other_name", Named)
     finally:
         del sys.modules["tofloc_test_typed_mod"]
+
+
+def test_a_name_two_plugins_claim_is_used_once_and_the_other_is_listed_as_ignored(monkeypatch, capsys) -> None:
+    """A plug-in audit: an entry point named like a built-in (or like an entry point found
+    earlier on the import path) warned, but `tofloc list` silenced the warning and showed the
+    winner only. The first claim stands (built-ins first, then the import path's order); the
+    others are listed as ignored, with why."""
+    import tofloc.cli.cmd_list as cmd_list
+
+    eps = [metadata.EntryPoint(name="icp_pf", value="nowhere_mod:Fake", group="tofloc.estimators"),
+           metadata.EntryPoint(name="dup", value="first_mod:A", group="tofloc.estimators"),
+           metadata.EntryPoint(name="dup", value="second_mod:B", group="tofloc.estimators")]
+    real = metadata.entry_points
+    monkeypatch.setattr(metadata, "entry_points", lambda **kw: eps if kw.get("group") == "tofloc.estimators" else real(**kw))
+    r = Registry("tofloc.estimators", {"icp_pf": "estimators.particle_filter:ICPScorePF"})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        names = r.names()
+    assert [str(w.message).split("ignored: ")[1].split(":")[0] for w in caught] == [
+        "the name is taken by a built-in", "the name is taken by entry point (found first on the import path)"]
+    assert names == ["dup", "icp_pf"] and r.spec("dup").target == "first_mod:A"
+    assert [(s.target, why.split(":")[0]) for s, why in r.ignored] == [
+        ("nowhere_mod:Fake", "the name is taken by a built-in"),
+        ("second_mod:B", "the name is taken by entry point (found first on the import path)")]
+    monkeypatch.setattr(cmd_list, "ESTIMATORS", r)
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out  # a table: its cells wrap
+    assert out.count("ignored:") == 2 and "second_mod" in out and "nowhere_mod" in out

@@ -407,14 +407,15 @@ class Estimate:
         self.covariance = 0.5 * (cov + cov.T)
 
     def check_contract(self) -> None:
-        """Refuse a pose that is not finite and a covariance with NaN or with an eigenvalue
-        below ``-ESTIMATE_COV_RTOL`` times its largest entry (an infinite variance, a
-        direction the data and the prior leave open, is allowed)."""
+        """Refuse a pose that is not finite, a covariance that is partly NaN, and one with an
+        eigenvalue below ``-ESTIMATE_COV_RTOL`` times its largest entry. Allowed: an all-NaN
+        covariance (an estimator that gives none: every output shows it as undefined) and an
+        infinite variance (a direction the data and the prior leave open)."""
         if not np.all(np.isfinite(self.pose)):
             raise EstimateError(f"an Estimate's pose must be finite, got {self.pose.tolist()}")
         cov = self.covariance
-        if np.isnan(cov).any():
-            raise EstimateError(f"an Estimate's covariance must not hold NaN, got {cov.tolist()}")
+        if np.isnan(cov).any() and not np.isnan(cov).all():
+            raise EstimateError(f"an Estimate's covariance is either given (no NaN) or not (all NaN), got {cov.tolist()}")
         if np.all(np.isfinite(cov)):
             scale = float(np.max(np.abs(cov)))
             low = float(np.linalg.eigvalsh(cov).min())

@@ -69,22 +69,26 @@ class Registry:
         self._specs: dict[str, PluginSpec] = {n: PluginSpec(n, t) for n, t in builtins.items()}
         self._entry_points_scanned = False
         self._cache: dict[str, Any] = {}
+        #: entry points not registered because their name was taken (by a built-in, or by
+        #: an entry point found earlier on the path): ``(spec, why)``, for ``tofloc list``
+        self.ignored: list[tuple[PluginSpec, str]] = []
 
     def _scan(self) -> None:
         if self._entry_points_scanned:
             return
         self._entry_points_scanned = True
-        for ep in metadata.entry_points(group=self.group):
-            if ep.name in self._specs:
-                if self._specs[ep.name].target != ep.value:
-                    warnings.warn(
-                        f"{self.group}: entry point {ep.name!r} = {ep.value!r} ignored: the name is taken by "
-                        f"{self._specs[ep.name].target!r}",
-                        stacklevel=3,
-                    )
-                continue
+        for ep in metadata.entry_points(group=self.group):  # in the order the import path finds them
             dist = getattr(ep, "dist", None)
             origin = dist.name if dist is not None else "entry point"
+            if ep.name in self._specs:
+                taken = self._specs[ep.name]
+                if taken.target != ep.value:
+                    by = "a built-in" if taken.origin == "builtin" else f"{taken.origin} (found first on the import path)"
+                    why = f"the name is taken by {by}: {taken.target!r}"
+                    self.ignored.append((PluginSpec(ep.name, ep.value, origin), why))
+                    warnings.warn(f"{self.group}: entry point {ep.name!r} = {ep.value!r} of {origin} ignored: {why}",
+                                  stacklevel=3)
+                continue
             self._specs[ep.name] = PluginSpec(ep.name, ep.value, origin)
 
     def register(self, name: str, target: str | Any, origin: str = "runtime") -> None:

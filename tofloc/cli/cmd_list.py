@@ -37,6 +37,8 @@ def list_plugins(
             rows = registry.status()
         for spec, state in rows:
             table.add_row(spec.name, spec.target, spec.origin, "[green]ok[/]" if state == "ok" else f"[red]{state}[/]")
+        for spec, why in registry.ignored:  # a name two plug-ins claim: the one not used says so
+            table.add_row(spec.name, spec.target, spec.origin, f"[yellow]ignored: {escape(why)}[/]")
         if not rows:
             table.add_row("-", "none registered", "", "")
         console.print(table)
