@@ -357,3 +357,27 @@ def test_numpy_scalars_in_estimator_parameters_and_priors() -> None:
     assert type(p.sigma_xy_m) is float and p.sigma_yaw_deg == 20 and type(p.sigma_yaw_deg) is int
     with pytest.raises(ParameterError, match="temper"):
         api.estimator("beam_pf", {"sensor_model_params": {"temper": np.float32(2.0)}})
+
+
+def test_a_file_argument_of_another_type_is_a_parameter_error(tmp_path: Path) -> None:
+    """A plug-in audit: `localize(5, ...)`, `map=np.zeros(...)`, `calibration=5`,
+    `calibrate([5])` and `evaluate([5], ...)` failed inside pathlib with a TypeError."""
+    import numpy as np
+
+    from tofloc import api
+
+    log = tmp_path / "a.h5"
+    api.simulate("paper", 1, out=log)
+    cases = [
+        (lambda: api.localize(5, "icp_pf"), "log must be a tofloc.logs.Log or a path to one (str or os.PathLike), got int"),
+        (lambda: api.localize(np.zeros(3), "icp_pf"), "got ndarray"),
+        (lambda: api.localize(log, "icp_pf", map=np.zeros((10, 3))), "map must be a tofloc.maps.Map or a path"),
+        (lambda: api.localize(log, "icp_pf", calibration=5), "calibration must be a SensorCalibration or a path"),
+        (lambda: api.localize_prior(5), "log must be"),
+        (lambda: api.calibrate([5]), "log must be"),
+        (lambda: api.evaluate([5], ["icp_pf"], out=tmp_path / "ev"), "logs[0] must be a tofloc.logs.Log or a path"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ParameterError) as e:
+            call()
+        assert message in str(e.value), str(e.value)

@@ -367,13 +367,22 @@ def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | N
     """
     if calibration is None or isinstance(calibration, SensorCalibration):
         return calibration
-    return SensorCalibration.from_toml(calibration)
+    return SensorCalibration.from_toml(_file_arg(calibration, "calibration", "a SensorCalibration"))
+
+
+def _file_arg(value: Any, name: str, what: str) -> Any:
+    """``value`` unless it is neither a path (str or os.PathLike) nor one of the objects the
+    argument also takes: then a ParameterError naming ``name`` (a plug-in audit found
+    ``localize(5, ...)`` failing inside pathlib with a TypeError)."""
+    if isinstance(value, (str, os.PathLike)):
+        return value
+    raise ParameterError(f"{name} must be {what} or a path to one (str or os.PathLike), got {type(value).__name__}")
 
 
 def _as_log(log: Any) -> Any:
     from tofloc.logs import Log, read_log
 
-    return log if isinstance(log, Log) else read_log(log)
+    return log if isinstance(log, Log) else read_log(_file_arg(log, "log", "a tofloc.logs.Log"))
 
 
 # -- simulate -------------------------------------------------------------------------------------
@@ -541,7 +550,7 @@ def calibrate(
         if isinstance(mp, Map):
             m, name = mp, mp.source
         else:
-            name = str(mp)
+            name = str(_file_arg(mp, "maps[]", "a tofloc.maps.Map"))
             if name not in loaded:
                 loaded[name] = Map.load(mp)
             m = loaded[name]
@@ -843,11 +852,16 @@ def localize(
         map = lg.map_path()
         if map is None:
             raise FormatError(lg.path, "map", "the map's file name in the root attribute `map` (or give a map)", "no such attribute")
+    if not isinstance(map, Map):
+        _file_arg(map, "map", "a tofloc.maps.Map")
+    if surface is not None and not isinstance(surface, Map):
+        _file_arg(surface, "surface", "a tofloc.maps.Map")
     map_path = getattr(map, "source", None) if isinstance(map, Map) else str(map)
     the_map = map if isinstance(map, Map) else load_map(map, surface)
     if isinstance(map, Map) and surface is not None:
         the_map = map.with_surface(surface if isinstance(surface, Map) else Map.load(surface))
-    kin = KinematicsModel.load(kinematics) if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics
+    kin = (KinematicsModel.load(_file_arg(kinematics, "kinematics", "a KinematicsModel"))
+           if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics)
     if kin is not None:  # a model of another robot is refused before any trial runs
         kin.check_actuators(lg.rig.actuators, str(lg.path))
     has_truth = lg.T_map_base is not None
@@ -1704,6 +1718,11 @@ def evaluate(
         raise ParameterError(f"seed must be an integer >= 0, got {seed!r}")
     if not logs:
         raise ParameterError("evaluate needs at least one log")
+    from tofloc.logs import Log
+
+    for i, lg in enumerate(logs):
+        if not isinstance(lg, Log):
+            _file_arg(lg, f"logs[{i}]", "a tofloc.logs.Log")
     check_int("plot_failures", plot_failures, 0, MAX_FAILURE_PLOTS)
     trials, seed, plot_failures = int(trials), int(seed), int(plot_failures)  # numpy integers as Python's
     samples = None if samples is None else int(samples)
