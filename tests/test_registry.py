@@ -132,3 +132,15 @@ def test_a_name_two_plugins_claim_is_used_once_and_the_other_is_listed_as_ignore
     assert main(["list"]) == 0
     out = capsys.readouterr().out  # a table: its cells wrap
     assert out.count("ignored:") == 2 and "second_mod" in out and "nowhere_mod" in out
+
+
+def test_register_refuses_a_taken_name_unless_told_to_replace() -> None:
+    """A plug-in audit: `register("beam_pf", Fake)` replaced the built-in silently."""
+    from tofloc.errors import ParameterError
+
+    r = Registry("tofloc.estimators", {"icp_pf": "estimators.particle_filter:ICPScorePF"})
+    with pytest.raises(ParameterError, match=r"estimator 'icp_pf' is already registered \(estimators.particle_filter:ICPScorePF, builtin\)"):
+        r.register("icp_pf", "somewhere:Else")
+    assert r.spec("icp_pf").target == "estimators.particle_filter:ICPScorePF"
+    r.register("icp_pf", "somewhere:Else", replace=True)
+    assert r.spec("icp_pf").target == "somewhere:Else"

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, Iterator
 
-from tofloc.errors import PluginError
+from tofloc.errors import ParameterError, PluginError
 
 __all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "get_estimator",
            "get_sensor_model", "registry_for"]
@@ -91,9 +91,17 @@ class Registry:
                 continue
             self._specs[ep.name] = PluginSpec(ep.name, ep.value, origin)
 
-    def register(self, name: str, target: str | Any, origin: str = "runtime") -> None:
-        """Register a plug-in at run time: ``target`` is ``"module:attribute"`` or the object itself."""
+    def register(self, name: str, target: str | Any, origin: str = "runtime", *, replace: bool = False) -> None:
+        """Register a plug-in at run time: ``target`` is ``"module:attribute"`` or the object itself.
+
+        A name already registered (a built-in, an entry point, an earlier registration) is
+        refused unless ``replace`` is True (a plug-in audit: ``register("beam_pf", ...)``
+        replaced the built-in without a word, and a wrong string target lost it until the
+        first load failed)."""
         self._scan()
+        if name in self._specs and not replace:
+            raise ParameterError(f"{self.kind} {name!r} is already registered ({self._specs[name].target}, "
+                                 f"{self._specs[name].origin}): choose another name, or pass replace=True")
         if isinstance(target, str):
             self._specs[name] = PluginSpec(name, target, origin)
             self._cache.pop(name, None)
