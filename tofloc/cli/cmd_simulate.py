@@ -61,11 +61,12 @@ def simulate(
     outputs = {("--out" if key == "log" else f"--out (its {key} file)"): path for key, path in simulation_paths(out).items()}
     for option, path in outputs.items():
         check_output_path(path, option=option)
+    check_distinct_paths(outputs, {"--scenario": Path(scenario) if Path(scenario).is_file() else None})
+    for option, path in outputs.items():
         if not force and path.is_file() and not _earlier_output(path, option == "--out"):
             raise ParameterError(f"{option} {path}: exists and is not {'a tofloc log' if option == '--out' else 'a PLY map'}: "
                                  "without --force only an earlier simulation's files are replaced (choose another name, "
                                  "or pass --force)")
-    check_distinct_paths(outputs, {"--scenario": Path(scenario) if Path(scenario).is_file() else None})
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if hardware_seed is not None and hardware_seed < 0:
