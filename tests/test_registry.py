@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import sys
 import types
 import warnings
@@ -26,6 +28,11 @@ def test_missing_dependency_gives_an_install_hint() -> None:
     r = Registry("tofloc.test_group_nothing", {"needs_gtsam": "gtsam_is_not_this_module_xyz:Foo"})
     with pytest.raises(PluginError, match="needs the missing module 'gtsam_is_not_this_module_xyz'.*pip install"):
         r.load("needs_gtsam")
+    # a module whose package has another name gets that package (a plug-in audit: `pip install cv2`)
+    r2 = Registry("tofloc.test_group_nothing", {"needs_cv": "cv2:Foo"})
+    if importlib.util.find_spec("cv2") is None:
+        with pytest.raises(PluginError, match="needs the missing module 'cv2': pip install opencv-python"):
+            r2.load("needs_cv")
     with pytest.raises(PluginError, match="unknown .* 'nope'; available: needs_gtsam"):
         r.load("nope")
 

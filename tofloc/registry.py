@@ -36,6 +36,17 @@ _INSTALL_HINTS = {
     "serial": "pip install pyserial",
     "dask": "pip install 'dask[distributed]'",
     "distributed": "pip install 'dask[distributed]'",
+    # modules whose package has another name (a plug-in audit: the hint was `pip install cv2`)
+    "yaml": "pip install pyyaml",
+    "cv2": "pip install opencv-python",
+    "PIL": "pip install pillow",
+    "skimage": "pip install scikit-image",
+    "sklearn_extra": "pip install scikit-learn-extra",
+    "attr": "pip install attrs",
+    "jwt": "pip install pyjwt",
+    "dateutil": "pip install python-dateutil",
+    "bs4": "pip install beautifulsoup4",
+    "Crypto": "pip install pycryptodome",
 }
 
 
@@ -145,7 +156,8 @@ class Registry:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as e:
             missing = (e.name or "").split(".")[0]
-            hint = _INSTALL_HINTS.get(missing, f"pip install {missing}" if missing else "")
+            hint = _INSTALL_HINTS.get(missing, f"install the package that provides it (most often `pip install {missing}`, "
+                                               "though a package's name can differ from its module's)" if missing else "")
             raise PluginError(
                 f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) needs the missing module "
                 f"{e.name!r}" + (f": {hint}" if hint else "")
