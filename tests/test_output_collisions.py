@@ -192,6 +192,12 @@ def test_map_files_named_by_reads_only_the_attribute(pillars: Path, tmp_path: Pa
     assert list(named.values()) == [pillars.parent / "pillars.map.ply", pillars.parent / "pillars.cad.ply"]
     (tmp_path / "not.h5").write_bytes(b"not hdf5")
     assert map_files_named_by(tmp_path / "not.h5") == {} and map_files_named_by(tmp_path / "absent.h5") == {}
+    from tofloc.logs import root_text_attribute
+    from tofloc.map_files import cad_mesh_beside
+
+    assert cad_mesh_beside("d/room.map.ply") == Path("d/room.cad.ply") and cad_mesh_beside("d/room.ply") is None
+    assert root_text_attribute(pillars, "format") == "tofloc-log" and root_text_attribute(pillars, "absent") is None
+    assert root_text_attribute(tmp_path / "not.h5", "format") is None
 
 
 def test_simulate_replaces_an_earlier_simulation_but_nothing_else_without_force(tmp_path: Path,

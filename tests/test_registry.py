@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 
 import sys
 import types
@@ -24,15 +24,20 @@ def test_builtins_are_listed_without_importing_them() -> None:
     assert {"icp_score", "beam", "likelihood_field"} <= set(SENSOR_MODELS.names())
 
 
-def test_missing_dependency_gives_an_install_hint() -> None:
+def test_missing_dependency_gives_an_install_hint(monkeypatch) -> None:
     r = Registry("tofloc.test_group_nothing", {"needs_gtsam": "gtsam_is_not_this_module_xyz:Foo"})
     with pytest.raises(PluginError, match="needs the missing module 'gtsam_is_not_this_module_xyz'.*pip install"):
         r.load("needs_gtsam")
-    # a module whose package has another name gets that package (a plug-in audit: `pip install cv2`)
+    # a module whose package has another name gets that package (a plug-in audit: `pip install cv2`),
+    # whether or not OpenCV is installed here: its import is made to fail as a missing one does
     r2 = Registry("tofloc.test_group_nothing", {"needs_cv": "cv2:Foo"})
-    if importlib.util.find_spec("cv2") is None:
-        with pytest.raises(PluginError, match="needs the missing module 'cv2': pip install opencv-python"):
-            r2.load("needs_cv")
+
+    def missing_cv2(name: str, *a: object, **kw: object) -> None:
+        raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+    monkeypatch.setattr(importlib, "import_module", missing_cv2)
+    with pytest.raises(PluginError, match="needs the missing module 'cv2': pip install opencv-python"):
+        r2.load("needs_cv")
     with pytest.raises(PluginError, match="unknown .* 'nope'; available: needs_gtsam"):
         r.load("nope")
 

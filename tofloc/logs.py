@@ -72,6 +72,7 @@ __all__ = [
     "LogFormatError",
     "read_log",
     "map_files_named_by",
+    "root_text_attribute",
     "write_log",
     "open_for_extras",
     "write_text_attribute",
@@ -588,6 +589,25 @@ def _is_absolute(p: str) -> bool:
 # -- reading -----------------------------------------------------------------------------
 
 
+def root_text_attribute(path: str | Path, name: str) -> str | None:
+    """One text root attribute of an HDF5 file (``format``, ``map``), read alone; None when the
+    file is not a readable HDF5 file or the attribute is absent or not text (for checks that
+    only look: :func:`read_log` names those problems)."""
+    p = Path(path)
+    try:
+        if not p.is_file():
+            return None
+        with h5py.File(p, "r") as f:
+            value = f.attrs.get(name)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(-1)[0]
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", errors="replace")
+    return value if isinstance(value, str) and len(value) <= MAX_TEXT_BYTES else None
+
+
 def map_files_named_by(path: str | Path) -> dict[str, Path]:
     """The map files a log names, for refusing an output that would overwrite one: its
     ``map`` attribute resolved against the log's folder and, for a ``<stem>.map.ply``, the
@@ -596,23 +616,16 @@ def map_files_named_by(path: str | Path) -> dict[str, Path]:
     the file is not a readable HDF5 file or its ``map`` is absent or not a relative path
     (:func:`read_log` names those problems)."""
     p = Path(path)
-    try:
-        if not p.is_file():
-            return {}
-        with h5py.File(p, "r") as f:
-            value = f.attrs.get("map")
-    except (OSError, ValueError, KeyError, TypeError):
+    value = root_text_attribute(p, "map")
+    if not value or _is_absolute(value):
         return {}
-    if isinstance(value, np.ndarray) and value.size == 1:
-        value = value.reshape(-1)[0]
-    if isinstance(value, bytes):
-        value = value.decode("utf-8", errors="replace")
-    if not isinstance(value, str) or not value or len(value) > MAX_TEXT_BYTES or _is_absolute(value):
-        return {}
+    from tofloc.map_files import cad_mesh_beside
+
     m = p.parent / value
     out = {f"the map {p.name} names": m}
-    if m.name.endswith(".map.ply"):
-        out[f"the CAD mesh beside the map {p.name} names"] = m.with_name(m.name[: -len(".map.ply")] + ".cad.ply")
+    cad = cad_mesh_beside(m)
+    if cad is not None:
+        out[f"the CAD mesh beside the map {p.name} names"] = cad
     return out
 
 

@@ -25,12 +25,20 @@ from tofloc.npy_input import NPY_HEADER_ERRORS, UnsupportedNpyVersion, read_npy_
 if TYPE_CHECKING:
     from tofloc.maps import Map
 
-__all__ = ["READERS", "ply_bytes", "npy_bytes"]
+__all__ = ["READERS", "ply_bytes", "npy_bytes", "cad_mesh_beside"]
 
 
 # --------------------------------------------------------------------------------------
 # Writers
 # --------------------------------------------------------------------------------------
+def cad_mesh_beside(map_path: str | Path) -> Path | None:
+    """The CAD mesh ``<stem>.cad.ply`` the simulator writes beside a ``<stem>.map.ply`` (the
+    mesh calibration prefers, and an output must not replace), whether or not it exists;
+    None for a map named otherwise."""
+    p = Path(map_path)
+    return p.with_name(p.name[: -len(".map.ply")] + ".cad.ply") if p.name.endswith(".map.ply") else None
+
+
 def ply_bytes(m: "Map") -> bytes:
     n = m.points.shape[0]
     head = ["ply", "format binary_little_endian 1.0", "comment written by tofloc"]

@@ -108,15 +108,13 @@ def resolve_calibration_map(log: Any) -> Path | None:
     ``<stem>.cad.ply`` beside it is the better reference (exact faces, no surfels), so it
     is preferred. Otherwise the log's ``map`` attribute; None when it has none.
     """
+    from tofloc.map_files import cad_mesh_beside
+
     p = log.map_path()
     if p is None:
         return None
-    name = p.name
-    if name.endswith(".map.ply"):
-        cad = p.with_name(name[: -len(".map.ply")] + ".cad.ply")
-        if cad.is_file():
-            return cad
-    return p
+    cad = cad_mesh_beside(p)
+    return cad if cad is not None and cad.is_file() else p
 
 
 def collect_zones(

@@ -18,16 +18,14 @@ def _earlier_output(path: Path, log: bool) -> bool:
     """Whether ``path`` looks like what ``simulate`` writes there (a tofloc log, a PLY map):
     replacing an earlier simulation is the usual rerun; replacing anything else (a
     calibration named by mistake, found by a bad-input audit) needs ``--force``."""
-    try:
-        if not log:
-            with open(path, "rb") as fh:
-                return fh.read(4) == b"ply\n"
-        import h5py
+    from tofloc.logs import FORMAT_NAME, root_text_attribute
 
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-        return (fmt.decode("utf-8", "replace") if isinstance(fmt, bytes) else fmt) == "tofloc-log"
-    except (OSError, ValueError, TypeError):
+    if log:
+        return root_text_attribute(path, "format") == FORMAT_NAME
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) == b"ply\n"
+    except OSError:
         return False
 
 
