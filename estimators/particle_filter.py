@@ -86,9 +86,9 @@ from numpy.typing import NDArray
 
 from estimators.global_search import pose_bins
 from estimators.resampling import RESAMPLERS, effective_sample_size, kld_resample, normalize_log_weights
-from sensor_models.base import WEIGHT_UPDATES, SensorModel, held_states
+from sensor_models.base import WEIGHT_UPDATES, SensorModel, bind_checked, held_states
 from tofloc import frames
-from tofloc.errors import ParameterError
+from tofloc.errors import ParameterError, TofLocError
 from tofloc.problem import Estimate, Estimator, Problem, check_in, check_int, check_positive
 from tofloc.step_progress import report_step
 
@@ -383,7 +383,9 @@ class ParticleFilter(Estimator):
                               owner=f"sensor model {self.sensor_model!r} of estimator {self.name!r}")
         try:
             return cls(**dict(self.sensor_model_params))
-        except TypeError as e:
+        except TofLocError:
+            raise
+        except (TypeError, ValueError) as e:  # a plug-in's own refusal of a value, as one line naming it
             raise ParameterError(f"sensor model {self.sensor_model!r}: {e}") from None
 
     def sensor_model_for(self, problem: Problem) -> SensorModel:
@@ -459,7 +461,7 @@ class ParticleFilter(Estimator):
         """Bind the sensor model to ``problem`` (its per-map caches are built then: a
         likelihood field's clipping distance, for one, follows the problem's zone sigmas,
         so a one-sample problem may need another field than the trial's)."""
-        self.sensor_model_for(problem).bind(problem)
+        bind_checked(self.sensor_model_for(problem), problem)
 
     def _estimate(self, problem: Problem, rng: np.random.Generator) -> Estimate:
         """One pass of the filter; when its sensor model refits itself to the problem's data
@@ -470,13 +472,13 @@ class ParticleFilter(Estimator):
         parameters that differ from the configured model's, ``"sensor_model_params"``)."""
         model = self.sensor_model_for(problem)
         check_rng = self._basin_generator(problem, model, rng)  # from rng's state, before the pass draws
-        bound = model.bind(problem)
+        bound = bind_checked(model, problem)
         first = self._filter(problem, model, bound, rng)
         state = np.concatenate([np.asarray(first.pose, dtype=float)[:3], [first.nuisance_mean(v.name) for v in bound.state]])
         refitted = bound.refit(state)
         if refitted is None:
             return self._check_basins(problem, bound, first, check_rng)
-        bound2 = refitted.bind(problem)
+        bound2 = bind_checked(refitted, problem)
         second = self._filter(problem, refitted, bound2, rng)
         # what the refit changed (JSON-safe, unlike a full parameter set with an infinite
         # hit_dof): the model it ends with is the configured one with these replaced
@@ -578,7 +580,7 @@ class ParticleFilter(Estimator):
         model = self.sensor_model_for(problem)
         if model.refits() or self.schedule == "batch" or self._basin_generator(problem, model, rng) is not None:
             return None
-        bound = model.bind(problem)
+        bound = bind_checked(model, problem)
         if bound.n_steps != problem.n_samples:
             return None  # a model whose steps are not the samples
         if not bound.derived_params():
@@ -587,7 +589,7 @@ class ParticleFilter(Estimator):
         # parameters chosen from the data: what each prefix alone chooses, one pass per choice
         groups: dict[str, tuple[dict[str, Any], list[int]]] = {}
         for k in wanted:
-            derived = model.bind(problem.subset(slice(0, k))).derived_params()
+            derived = bind_checked(model, problem.subset(slice(0, k))).derived_params()
             groups.setdefault(repr(sorted(derived.items())), (derived, []))[1].append(k)
         out: dict[int, Estimate] = {}
         start = copy.deepcopy(rng)
@@ -596,7 +598,7 @@ class ParticleFilter(Estimator):
             gen = rng if i == len(groups) - 1 else copy.deepcopy(start)
             if gen is rng:
                 rng.bit_generator.state = start.bit_generator.state
-            out.update(self._pass(problem, fixed, fixed.bind(problem), gen, ks_group, t0)[1])
+            out.update(self._pass(problem, fixed, bind_checked(fixed, problem), gen, ks_group, t0)[1])
         return [out[k] for k in wanted]
 
     def log_target(self, problem: Problem, poses: NDArray[np.float64], estimate: Estimate) -> NDArray[np.float64]:
@@ -617,7 +619,7 @@ class ParticleFilter(Estimator):
         refit = diag.get("refit")
         if refit is not None:  # the configured model with what the refit changed
             model = dataclasses.replace(model, **dict(refit["sensor_model_params"]))
-        bound = model.bind(problem)
+        bound = bind_checked(model, problem)
         P = np.atleast_2d(np.asarray(poses, dtype=float))[:, :3]
         extra = [estimate.nuisance_mean(v.name) for v in bound.state]
         states = held_states(P, extra)

@@ -327,7 +327,7 @@ def run_estimators(
     for e in estimators:
         est = make_estimator(e.cls, e.params, e.name)
         full_params[e.name] = jsonable(est.get_params())
-        codes[e.name] = code_fingerprint(*plugin_objects(est)) if partial_dir is not None else ""
+        codes[e.name] = code_fingerprint(*plugin_objects(est, selection)) if partial_dir is not None else ""
     out: dict[str, dict[str, list[dict[str, Any]]]] = {en.label: {} for en in entries}
     todo: list[tuple[EvalLog, EstimatorSpec, str]] = []
     for en in entries:

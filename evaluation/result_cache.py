@@ -100,13 +100,20 @@ def context_fingerprint(context: TrialContext) -> str:
     )
 
 
-def plugin_objects(estimator: Any) -> list[Any]:
-    """The objects whose code makes an estimator's numbers: its class and, for an estimator
-    that composes a sensor model (``make_sensor_model``), the model's class."""
+def plugin_objects(estimator: Any, selection: str = "random") -> list[Any]:
+    """The objects whose code makes an estimator's numbers: its class, for an estimator
+    that composes a sensor model (``make_sensor_model``) the model's class, and the class
+    of the selection policy ``selection`` that chooses the trials' samples (a plug-in
+    policy's edits re-run its batches, as a plug-in model's do; the built-in policies'
+    code is the toolkit's, already in the key)."""
     objs: list[Any] = [type(estimator)]
     make = getattr(estimator, "make_sensor_model", None)
     if callable(make):
         objs.append(type(make()))
+    if selection != "random":
+        from tofloc.registry import SELECTION_POLICIES
+
+        objs.append(SELECTION_POLICIES.load(selection))
     return objs
 
 
@@ -259,7 +266,7 @@ def run_batches(
         full_params = make_estimator(b.estimator_cls, b.params, b.estimator).get_params()  # defaults included
         key_fields = {
             "data": data_key,
-            "code": code_fingerprint(*plugin_objects(make_estimator(b.estimator_cls, b.params, b.estimator)))
+            "code": code_fingerprint(*plugin_objects(make_estimator(b.estimator_cls, b.params, b.estimator), b.selection))
             if partial_dir is not None else "",
             "estimator": b.estimator, "params": jsonable(full_params), "tip_source": b.tip_source,
             "prior": b.prior.to_json(), "k_values": [int(k) for k in k_values], "trials": int(trials), "seed": int(seed),

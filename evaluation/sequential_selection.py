@@ -12,7 +12,9 @@ among the pool's samples not yet used (the log's recorded postures)::
 
 The last re-estimate is the trial's own estimate (made by :func:`evaluation.trials.solve_trial`
 on the chosen samples, with the trial's estimator generator), so a trial runs its estimator
-``k`` times (``k - 1`` intermediate ones here). The prior is the trial's (same seed, same
+``k`` times (``k - 1`` intermediate ones here); a policy that declares
+``uses_posterior = False`` (a plug-in's fixed design) gets the prior's draws at every choice
+and no intermediate estimate (before December 2026 it paid for ``k - 1`` it never read). The prior is the trial's (same seed, same
 prior as the random draw: for a log whose truth is per sample, made from the randomly
 drawn samples' truth, static within :data:`evaluation.trials.STATIC_BASE_TOL_M`; the errors
 are measured against the chosen samples' truth); the policy sees only the candidates'
@@ -108,7 +110,7 @@ def choose_samples(policy: SelectionPolicy, estimator: Estimator, candidates: An
     chosen: list[int] = []
     out = SequentialChoice(np.empty(0, dtype=np.intp), policy.name)
     for step in range(k):
-        if step:
+        if step and policy.uses_posterior:  # a policy that ignores the posterior is not given a new one
             t0 = time.perf_counter()
             try:
                 est = estimator.estimate(candidates.subset(chosen), est_rngs[step])

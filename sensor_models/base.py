@@ -34,7 +34,7 @@ from typing import Any, ClassVar, Literal, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from tofloc.errors import ParameterError
+from tofloc.errors import ParameterError, PluginError
 from tofloc.problem import Problem
 
 __all__ = ["check_bool_or_auto", "held_states", "place_correlation_of", "NUISANCES", "WEIGHT_UPDATES", "CHUNK_BYTES", "StateVariable", "SensorModel", "BoundSensorModel", "declared_state", "reference_pose", "place_weights", "direction_places", "PLACE_PARAM_BOUNDS", "check_place_params", "built_from_scans"]
@@ -398,8 +398,9 @@ class BoundSensorModel(ABC):
         M = states.shape[0]
         chunk = max(1, (int(max_bytes) - self.reserved_temporaries()) // max(1, self.temporaries_per_state()))
         if M <= chunk:
-            return self.log_likelihood(states, step)
-        return np.concatenate([self.log_likelihood(states[a : a + chunk], step) for a in range(0, M, chunk)])
+            return checked_log_likelihood(self, self.log_likelihood(states, step), M, step)
+        return np.concatenate([checked_log_likelihood(self, self.log_likelihood(states[a : a + chunk], step),
+                                                      min(chunk, M - a), step) for a in range(0, M, chunk)])
 
     def column(self, states: NDArray[np.float64], name: str) -> NDArray[np.float64] | None:
         """The ``(M,)`` column of nuisance ``name`` in ``states``, or None when not declared."""
@@ -407,6 +408,40 @@ class BoundSensorModel(ABC):
             if v.name == name:
                 return states[:, 3 + i]
         return None
+
+
+def checked_log_likelihood(bound: object, ll: object, n_states: int, step: int) -> NDArray[np.float64]:
+    """``ll``, what ``bound.log_likelihood(states, step)`` returned for ``n_states`` states,
+    as a float64 array, or :class:`~tofloc.errors.PluginError` naming the binding's class
+    when it breaks the contract of :meth:`BoundSensorModel.log_likelihood`: a float numpy
+    array shaped ``(n_states,)``, no NaN, no ``+inf`` (``-inf`` excludes a state). What the
+    filters call (through :meth:`BoundSensorModel.log_likelihood_chunked`) and what the
+    common check suite asserts (:func:`tofloc.testing.check_model_output_shape`), so a
+    plug-in that passes the checks is not refused by a filter."""
+    where = (f"sensor model binding {type(bound).__module__}.{type(bound).__qualname__}: "
+             f"log_likelihood(states, step={step}) of {n_states} states")
+    expected = f"a float numpy array shaped ({n_states},) with no NaN and no +inf (-inf excludes a state)"
+    if not isinstance(ll, np.ndarray):
+        raise PluginError(f"{where} returned a {type(ll).__name__}; expected {expected}")
+    if ll.dtype.kind != "f":
+        raise PluginError(f"{where} returned an array of dtype {ll.dtype}; expected {expected}")
+    if ll.shape != (n_states,):
+        raise PluginError(f"{where} returned an array shaped {ll.shape}; expected {expected}")
+    bad = int(np.count_nonzero(np.isnan(ll))), int(np.count_nonzero(np.isposinf(ll)))
+    if bad[0] or bad[1]:
+        raise PluginError(f"{where} returned {bad[0]} NaN and {bad[1]} +inf values; expected {expected}")
+    return ll.astype(np.float64, copy=False)
+
+
+def bind_checked(model: "SensorModel", problem: Problem) -> BoundSensorModel:
+    """``model.bind(problem)``, or :class:`~tofloc.errors.PluginError` naming the model when
+    the plug-in returns something other than a :class:`BoundSensorModel`."""
+    bound = model.bind(problem)
+    if not isinstance(bound, BoundSensorModel):
+        raise PluginError(f"sensor model {model.name!r} ({type(model).__module__}.{type(model).__qualname__}): "
+                          f"bind(problem) returned a {type(bound).__name__}; expected an instance of a subclass of "
+                          "sensor_models.base.BoundSensorModel")
+    return bound
 
 
 class SensorModel(ABC):

@@ -6,7 +6,7 @@ import warnings
 from typing import ClassVar
 
 from tofloc.registry import ESTIMATORS
-from tofloc.testing import parametrize_with_checks, parametrize_with_sensor_model_checks
+from tofloc.testing import parametrize_with_checks, parametrize_with_policy_checks, parametrize_with_sensor_model_checks
 
 #: Smaller-than-default settings so that the suite stays fast; each estimator keeps its
 #: own algorithm. Estimators not listed run with their defaults.
@@ -47,6 +47,54 @@ def _registered_models():
 @parametrize_with_sensor_model_checks(_registered_models())
 def test_registered_sensor_models(model, check) -> None:
     check(model)
+
+
+def _registered_policies():
+    from tofloc.registry import SELECTION_POLICIES
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return [cls() for _, cls in SELECTION_POLICIES.iter_loaded()]
+
+
+@parametrize_with_policy_checks(_registered_policies())
+def test_registered_selection_policies(policy, check) -> None:
+    check(policy)
+
+
+def test_the_policy_checks_catch_a_policy_breaking_the_contract() -> None:
+    """The policy checks can fail: a policy drawing from a generator of its own, one
+    answering NaN, one mutating the candidates."""
+    from dataclasses import dataclass
+
+    import numpy as np
+    import pytest
+
+    from tofloc.errors import PluginError
+    from tofloc.selection import SelectionPolicy
+    from tofloc.testing import (check_policy_does_not_mutate_the_view, check_policy_same_seed_same_choice,
+                                check_policy_scores_contract)
+
+    @dataclass(frozen=True)
+    class Bad(SelectionPolicy):
+        name: ClassVar[str] = "bad"
+        how: str = "seed"
+
+        def scores(self, view, rng):
+            C = len(view.candidates)
+            if self.how == "nan":
+                return np.full(C, np.nan)
+            if self.how == "mutate":
+                view.candidates.T_base_tip[:, 0, 3] += 1.0
+                return np.zeros(C)
+            return np.random.default_rng().random(C)
+
+    with pytest.raises(AssertionError, match="randomness"):
+        check_policy_same_seed_same_choice(Bad("seed"))
+    with pytest.raises(PluginError, match="6 NaN scores of 6"):
+        check_policy_scores_contract(Bad("nan"))
+    with pytest.raises(AssertionError, match="candidates were mutated"):
+        check_policy_does_not_mutate_the_view(Bad("mutate"))
 
 
 def test_expected_failures_are_strict() -> None:

@@ -178,6 +178,39 @@ def test_build_plugin_reports_a_constructor_type_error_as_a_parameter_error() ->
         build_plugin(Needs, {"b": 2.0}, kind="selection policy", name="needs")
 
 
+def test_a_plugins_own_value_check_is_a_parameter_error_naming_it() -> None:
+    """A plug-in that checks its values with a plain ValueError (a plug-in audit: a raw
+    traceback, where a built-in's bad value is one line) is reported as a ParameterError
+    naming the plug-in, for an estimator or policy (build_plugin) and for a sensor model an
+    estimator composes; the toolkit's own ParameterErrors pass unchanged."""
+    from dataclasses import dataclass
+
+    from estimators.particle_filter import ParticleFilter
+    from sensor_models.beam import BeamModel
+    from tofloc.param_docs import build_plugin
+    from tofloc.registry import SENSOR_MODELS
+
+    @dataclass(frozen=True)
+    class Picky(BeamModel):
+        name = "test_picky"
+        temper: float = 1.0
+
+        def __post_init__(self) -> None:
+            if self.temper > 2:
+                raise ValueError(f"temper must be <= 2, got {self.temper}")
+
+    with pytest.raises(ParameterError, match=r"^selection policy 'picky': temper must be <= 2, got 5 \(its parameters: "):
+        build_plugin(Picky, {"temper": 5}, kind="selection policy", name="picky")
+    with pytest.raises(ParameterError, match=r"^n_particles must be"):  # a built-in's message, unchanged
+        build_plugin(ParticleFilter, {"n_particles": -5}, kind="estimator", name="particle_filter")
+    SENSOR_MODELS.register("test_picky", Picky)
+    try:
+        with pytest.raises(ParameterError, match=r"^sensor model 'test_picky': temper must be <= 2, got 5$"):
+            ParticleFilter(sensor_model="test_picky", sensor_model_params={"temper": 5}).make_sensor_model()
+    finally:
+        SENSOR_MODELS.unregister("test_picky")
+
+
 def test_a_nested_param_after_its_table_given_whole_is_refused_naming_both() -> None:
     with pytest.raises(ParameterError, match=r"^--param sensor_model__temper: sensor_model_params is given as a whole too$"):
         parse_params(["sensor_model_params=5", "sensor_model__temper=1"])

@@ -252,3 +252,71 @@ def test_a_batch_step_excluding_every_particle_names_every_sample() -> None:
     assert got.diagnostics["all_excluded"] == [0, 1]
     ok = ParticleFilter(sensor_model=_excluding_model("none"), **kw).estimate(p, np.random.default_rng(2))
     assert "all_excluded" not in ok.diagnostics and abs(ok.pose[0] - 0.1) < 0.01
+
+
+def _returning_model(kind: str):
+    """A sensor model whose ``log_likelihood`` returns what ``kind`` names (a plug-in
+    breaking the contract, or ``"ok"``), and whose ``bind`` returns None for ``"unbound"``."""
+    from dataclasses import dataclass
+
+    from sensor_models.base import BoundSensorModel, SensorModel
+
+    class Bound(BoundSensorModel):
+        def __init__(self, n_steps: int) -> None:
+            self.n_steps = n_steps
+
+        def log_likelihood(self, states, step):
+            M = states.shape[0]
+            good = -0.5 * ((states[:, 0] - 0.1) / 0.01) ** 2
+            return {"ok": good, "list": good.tolist(), "scalar": np.float64(0.0), "column": good[:, None],
+                    "short": good[:-1], "int": np.zeros(M, dtype=int), "bool": np.ones(M, dtype=bool),
+                    "nan": np.where(np.arange(M) == 3, np.nan, good), "posinf": np.where(np.arange(M) == 0, np.inf, good),
+                    "neginf": np.where(np.arange(M) == 0, -np.inf, good)}[kind]
+
+    @dataclass(frozen=True)
+    class Returning(SensorModel):
+        name = "returning"
+        uses_calibration = False
+
+        def bind(self, problem):
+            return None if kind == "unbound" else Bound(problem.n_samples)
+
+    return Returning()
+
+
+@pytest.mark.parametrize("kind, found", [("list", "a list"), ("scalar", "a float64"),
+                                         ("column", r"shaped \(200, 1\)"), ("short", r"shaped \(199,\)"),
+                                         ("int", "an array of dtype int64"), ("bool", "an array of dtype bool"),
+                                         ("nan", "1 NaN and 0 \\+inf"), ("posinf", "0 NaN and 1 \\+inf")])
+def test_a_sensor_model_breaking_the_likelihood_contract_is_named(kind: str, found: str) -> None:
+    """What a plug-in's ``log_likelihood`` returns is checked before it reaches the weights
+    (a scalar, ints or +inf were used silently, an (M, 1) column broadcast to (M, M) and
+    failed only at the end, NaN failed without naming the model): a PluginError names the
+    binding's class, what it returned and what is expected; the common check suite fails the
+    same model with the same message."""
+    from tofloc.errors import PluginError
+    from tofloc.testing import check_model_output_shape
+
+    p, _ = easy_problem(n_samples=1)
+    kw = dict(n_particles=200, basin_check="off")
+    with pytest.raises(PluginError, match=f"sensor model binding .*Bound: log_likelihood\\(states, step=0\\) of 200 states returned .*{found}"):
+        ParticleFilter(sensor_model=_returning_model(kind), **kw).estimate(p, np.random.default_rng(0))
+    with pytest.raises(PluginError, match="of 7 states returned " + ("an array shaped" if "shaped" in found else found)):
+        check_model_output_shape(_returning_model(kind))
+
+
+def test_a_sensor_model_within_the_contract_is_used_as_returned() -> None:
+    """-inf excludes a state (allowed); the checked path leaves a conforming array unchanged."""
+    p, _ = easy_problem(n_samples=1)
+    kw = dict(n_particles=200, basin_check="off", point_estimate="mean")
+    for kind in ("ok", "neginf"):
+        got = ParticleFilter(sensor_model=_returning_model(kind), **kw).estimate(p, np.random.default_rng(0))
+        assert abs(got.pose[0] - 0.1) < 0.02
+
+
+def test_a_sensor_model_whose_bind_returns_no_binding_is_named() -> None:
+    from tofloc.errors import PluginError
+
+    p, _ = easy_problem(n_samples=1)
+    with pytest.raises(PluginError, match=r"sensor model 'returning' .*bind\(problem\) returned a NoneType; expected"):
+        ParticleFilter(sensor_model=_returning_model("unbound"), n_particles=50).estimate(p, np.random.default_rng(0))

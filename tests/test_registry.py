@@ -12,7 +12,7 @@ from importlib import metadata
 import pytest
 
 from tofloc.cli import main
-from tofloc.errors import PluginError
+from tofloc.errors import PluginError, PluginWarning
 from tofloc.registry import ESTIMATORS, SENSOR_MODELS, Registry
 
 
@@ -24,22 +24,44 @@ def test_builtins_are_listed_without_importing_them() -> None:
     assert {"icp_score", "beam", "likelihood_field"} <= set(SENSOR_MODELS.names())
 
 
+def _importing_fails(monkeypatch, missing: str) -> None:
+    """Every ``importlib.import_module`` fails as a plug-in module importing ``missing`` does."""
+
+    def fail(name: str, *a: object, **kw: object) -> None:
+        raise ModuleNotFoundError(f"No module named {missing!r}", name=missing)
+
+    monkeypatch.setattr(importlib, "import_module", fail)
+
+
 def test_missing_dependency_gives_an_install_hint(monkeypatch) -> None:
-    r = Registry("tofloc.test_group_nothing", {"needs_gtsam": "gtsam_is_not_this_module_xyz:Foo"})
-    with pytest.raises(PluginError, match="needs the missing module 'gtsam_is_not_this_module_xyz'.*pip install"):
-        r.load("needs_gtsam")
+    r = Registry("tofloc.test_group_nothing", {"needs_dep": "tofloc_test_plugin_pkg.mod:Foo"})
+    _importing_fails(monkeypatch, "gtsam_is_not_this_module_xyz")
+    with pytest.raises(PluginError, match="needs the missing module 'gtsam_is_not_this_module_xyz'.*pip install "
+                                          "gtsam_is_not_this_module_xyz"):
+        r.load("needs_dep")
     # a module whose package has another name gets that package (a plug-in audit: `pip install cv2`),
     # whether or not OpenCV is installed here: its import is made to fail as a missing one does
-    r2 = Registry("tofloc.test_group_nothing", {"needs_cv": "cv2:Foo"})
-
-    def missing_cv2(name: str, *a: object, **kw: object) -> None:
-        raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-
-    monkeypatch.setattr(importlib, "import_module", missing_cv2)
+    _importing_fails(monkeypatch, "cv2")
     with pytest.raises(PluginError, match="needs the missing module 'cv2': pip install opencv-python"):
-        r2.load("needs_cv")
-    with pytest.raises(PluginError, match="unknown .* 'nope'; available: needs_gtsam"):
+        r.load("needs_dep")
+    with pytest.raises(PluginError, match="unknown .* 'nope'; available: needs_dep"):
         r.load("nope")
+
+
+def test_no_install_hint_for_what_no_install_fixes(monkeypatch) -> None:
+    """A plug-in audit: an entry point whose own package is missing (a typo in its target),
+    or a missing submodule of an installed package, got `pip install <that package>`."""
+    r = Registry("tofloc.test_group_nothing", {"typo": "tofloc_test_no_such_pkg.mod:Foo"}, )
+    with pytest.raises(PluginError, match=r"needs the missing module 'tofloc_test_no_such_pkg': the target's own package "
+                                          r"'tofloc_test_no_such_pkg' cannot be imported: check the target "
+                                          r"'tofloc_test_no_such_pkg.mod:Foo' \(a typo\?\) or reinstall") as e:
+        r.load("typo")
+    assert "pip install" not in str(e.value)
+    r2 = Registry("tofloc.test_group_nothing", {"sub": "tofloc_test_plugin_pkg.mod:Foo"})
+    _importing_fails(monkeypatch, "numpy.no_such_submodule")
+    with pytest.raises(PluginError, match=r"'numpy' is installed but has no module 'numpy.no_such_submodule': check") as e:
+        r2.load("sub")
+    assert "pip install" not in str(e.value)
 
 
 def test_broken_plugin_warns_and_is_skipped() -> None:
@@ -134,6 +156,7 @@ def test_a_name_two_plugins_claim_is_used_once_and_the_other_is_listed_as_ignore
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         names = r.names()
+    assert all(w.category is PluginWarning for w in caught)
     assert [str(w.message).split("ignored: ")[1].split(":")[0] for w in caught] == [
         "the name is taken by a built-in", "the name is taken by entry point (found first on the import path)"]
     assert names == ["dup", "icp_pf"] and r.spec("dup").target == "first_mod:A"
@@ -156,3 +179,16 @@ def test_register_refuses_a_taken_name_unless_told_to_replace() -> None:
     assert r.spec("icp_pf").target == "estimators.particle_filter:ICPScorePF"
     r.register("icp_pf", "somewhere:Else", replace=True)
     assert r.spec("icp_pf").target == "somewhere:Else"
+
+
+def test_the_cli_prints_a_plugin_warning_as_one_line(capsys) -> None:
+    """A plug-in audit: the warning about an ignored entry point came out as Python's
+    UserWarning with the registry's source line, on every command."""
+    from tofloc.cli import _plugin_warnings_as_lines
+
+    with _plugin_warnings_as_lines(), warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.warn("tofloc.estimators: entry point 'beam' ignored: taken", PluginWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert "warning: tofloc.estimators: entry point 'beam' ignored: taken\n" in err
+    assert "PluginWarning" not in err and "registry.py" not in err

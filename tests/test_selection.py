@@ -193,6 +193,10 @@ def test_tofloc_list_shows_the_policies(capsys) -> None:
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "tofloc.selection_policies" in out and "tofloc.selection.active:ActiveSelection" in out
+    assert main(["list", "--params", "active"]) == 0  # a plug-in audit: "no estimator or sensor model named 'active'"
+    out = capsys.readouterr().out
+    assert "selection policy active (tofloc.selection.active.ActiveSelection)" in out and "particles" in out
+    assert "runs with these defaults" in out
 
 
 @dataclass(frozen=True)
@@ -227,3 +231,88 @@ def test_a_registered_plugin_policy_chooses_a_trials_samples() -> None:
         assert rec["selection"]["policy"] == "test_first_free"
     finally:
         SELECTION_POLICIES.unregister("test_first_free")
+
+
+def _run_with_policy(policy_cls: type, k: int = 3) -> dict:
+    """A trial whose samples ``policy_cls`` (registered for the call) chooses."""
+    from tofloc.registry import SELECTION_POLICIES
+
+    SELECTION_POLICIES.register(policy_cls.name, policy_cls)
+    try:
+        log, m = _wall_log(), _two_walls()
+        ctx = TrialContext(log, m, sample_pool(log, None, k))
+        task = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("paper"), [k], 1, 0,
+                          policy_cls.name)[0]
+        return run_trial(ctx, task)
+    finally:
+        SELECTION_POLICIES.unregister(policy_cls.name)
+
+
+def test_a_policy_that_ignores_the_posterior_gets_no_intermediate_estimates() -> None:
+    """``uses_posterior = False`` is read: the policy sees the prior's draws at every choice
+    and the trial runs its estimator once (a plug-in audit: k - 1 estimates were made and
+    thrown away); the choices are the same as with the flag left True."""
+    from tofloc.selection.base import SelectionPolicy
+
+    @dataclass(frozen=True)
+    class FixedOrder(SelectionPolicy):
+        name: ClassVar[str] = "test_fixed_order"
+        uses_posterior: ClassVar[bool] = False
+
+        def scores(self, view: SelectionInput, rng: np.random.Generator) -> np.ndarray:
+            return view.candidates.T_base_tip[:, 0, 3].copy()  # the farthest along x first
+
+    @dataclass(frozen=True)
+    class FixedOrderReading(FixedOrder):
+        name: ClassVar[str] = "test_fixed_order_reading"
+        uses_posterior: ClassVar[bool] = True
+
+    rec, ref = _run_with_policy(FixedOrder), _run_with_policy(FixedOrderReading)
+    assert rec["selection"]["estimate_s"] == [] and len(ref["selection"]["estimate_s"]) == 2
+    assert rec["sample_indices"] == ref["sample_indices"] and rec["estimate"] == ref["estimate"]
+
+
+@pytest.mark.parametrize("answer, message", [
+    ("nan", r"returned 16 NaN scores of 16; expected 16 real numbers \(one per candidate\), no NaN"),
+    ("one_nan", "returned 1 NaN scores of 16"),
+    ("strings", "returned list of dtype <U"),
+    ("short", r"returned scores shaped \(15,\)"),
+])
+def test_a_policy_breaking_the_scores_contract_is_named(answer: str, message: str) -> None:
+    """Scores are real numbers, one per candidate, no NaN: an all-NaN answer chose the first
+    candidate silently, strings failed with numpy's own ValueError (a plug-in audit)."""
+    from tofloc.selection.base import SelectionPolicy
+
+    @dataclass(frozen=True)
+    class Broken(SelectionPolicy):
+        name: ClassVar[str] = "test_broken_scores"
+
+        def scores(self, view: SelectionInput, rng: np.random.Generator):
+            C = len(view.candidates)
+            return {"nan": np.full(C, np.nan), "one_nan": np.where(np.arange(C) == 2, np.nan, 1.0),
+                    "strings": ["a"] * C, "short": np.zeros(C - 1)}[answer]
+
+    with pytest.raises(PluginError, match=f"selection policy 'test_broken_scores' .*Broken\\): scores\\(view, rng\\) {message}"):
+        _run_with_policy(Broken)
+
+
+def test_a_plugin_policys_code_is_part_of_the_saved_batches_key() -> None:
+    """Saved batches are keyed by the code that made them: a plug-in policy's class is in
+    it (a plug-in audit: editing a policy reused the batches it had chosen before)."""
+    from evaluation.result_cache import plugin_objects
+    from tofloc.registry import SELECTION_POLICIES
+    from tofloc.selection.active import ActiveSelection
+
+    est = NoisyPriorMean()
+    assert plugin_objects(est) == [NoisyPriorMean] == plugin_objects(est, "random")
+    assert plugin_objects(est, "active") == [NoisyPriorMean, ActiveSelection]
+    SELECTION_POLICIES.register(RandomSubclass.name, RandomSubclass)
+    try:
+        assert plugin_objects(est, RandomSubclass.name)[-1] is RandomSubclass
+    finally:
+        SELECTION_POLICIES.unregister(RandomSubclass.name)
+
+
+@dataclass(frozen=True)
+class RandomSubclass(RandomSelection):
+    name: ClassVar[str] = "test_random_subclass"

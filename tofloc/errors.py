@@ -73,3 +73,8 @@ class UnknownParameterError(ParameterError):
 
 class PluginError(TofLocError, LookupError):
     """A plug-in is unknown or cannot be loaded."""
+
+
+class PluginWarning(UserWarning):
+    """A plug-in left out (a name another one already took, one that does not load): the
+    CLI prints it as one ``warning:`` line, not as Python's warning with a source line."""

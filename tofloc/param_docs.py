@@ -248,15 +248,18 @@ def build_plugin(cls: type, params: Mapping[str, Any] | None, *, kind: str, name
     Raises
     ------
     tofloc.errors.ParameterError
-        A parameter ``cls`` does not take, or one its constructor refuses by type.
+        A parameter ``cls`` does not take, or one its constructor refuses (``TypeError`` or
+        ``ValueError``: a plug-in's own check of a value, named with the plug-in).
     """
-    from tofloc.errors import ParameterError
+    from tofloc.errors import ParameterError, TofLocError
 
     given = dict(params or {})
     check_parameter_names(cls, given, kind=kind, name=name)
     try:
         return cls(**given)
-    except TypeError as e:
+    except TofLocError:
+        raise
+    except (TypeError, ValueError) as e:  # a plug-in's own refusal of a value (ValueError), as one line naming it
         known = parameter_names(cls)
         raise ParameterError(f"{kind} {name!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")) from None
 

@@ -17,12 +17,13 @@ check suite), a broken one warns and is skipped.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import warnings
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, Iterator
 
-from tofloc.errors import ParameterError, PluginError
+from tofloc.errors import ParameterError, PluginError, PluginWarning
 
 __all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "get_estimator",
            "get_sensor_model", "registry_for"]
@@ -98,7 +99,7 @@ class Registry:
                     why = f"the name is taken by {by}: {taken.target!r}"
                     self.ignored.append((PluginSpec(ep.name, ep.value, origin), why))
                     warnings.warn(f"{self.group}: entry point {ep.name!r} = {ep.value!r} of {origin} ignored: {why}",
-                                  stacklevel=3)
+                                  PluginWarning, stacklevel=3)
                 continue
             self._specs[ep.name] = PluginSpec(ep.name, ep.value, origin)
 
@@ -156,14 +157,22 @@ class Registry:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as e:
             missing = (e.name or "").split(".")[0]
-            hint = _INSTALL_HINTS.get(missing, f"install the package that provides it (most often `pip install {missing}`, "
-                                               "though a package's name can differ from its module's)" if missing else "")
+            if missing and missing == module_name.split(".")[0]:  # the plug-in's own package, not a dependency
+                hint = (f"the target's own package {missing!r} cannot be imported: check the target {spec.target!r} "
+                        f"(a typo?) or reinstall what declares it ({spec.origin})")
+            elif missing and e.name != missing and importlib.util.find_spec(missing) is not None:
+                # the top package is installed, one of its modules is not there: no install fixes that
+                hint = (f"{missing!r} is installed but has no module {e.name!r}: check the entry point's target "
+                        f"{spec.target!r} (or the plug-in's imports) against that package's version")
+            else:
+                hint = _INSTALL_HINTS.get(missing, f"install the package that provides it (most often `pip install {missing}`, "
+                                                   "though a package's name can differ from its module's)" if missing else "")
             raise PluginError(
                 f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) needs the missing module "
                 f"{e.name!r}" + (f": {hint}" if hint else "")
             ) from e
         except Exception as e:  # a plug-in's own import error
-            raise PluginError(f"{self.kind} {name!r} ({spec.target}) failed to import: {e}") from e
+            raise PluginError(f"{self.kind} {name!r} ({spec.target}, from {spec.origin}) failed to import: {e}") from e
         try:
             obj = module
             for part in attr.split(".") if attr else []:
@@ -194,7 +203,7 @@ class Registry:
             try:
                 yield name, self.load(name)
             except PluginError as e:
-                warnings.warn(f"skipping {self.kind} {name!r}: {e}", stacklevel=2)
+                warnings.warn(f"skipping {self.kind} {name!r}: {e}", PluginWarning, stacklevel=2)
 
     def status(self) -> list[tuple[PluginSpec, str]]:
         """``(spec, "ok" | error message)`` for every plug-in (imports them)."""

@@ -48,8 +48,9 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 
-__all__ = ["easy_problem", "rotated_problem", "CHECKS", "SENSOR_MODEL_CHECKS", "check_estimator", "check_sensor_model",
-           "parametrize_with_checks", "parametrize_with_sensor_model_checks", "expected_failures"]
+__all__ = ["easy_problem", "rotated_problem", "CHECKS", "SENSOR_MODEL_CHECKS", "POLICY_CHECKS", "check_estimator",
+           "check_sensor_model", "check_selection_policy", "parametrize_with_checks", "parametrize_with_sensor_model_checks",
+           "parametrize_with_policy_checks", "expected_failures"]
 
 #: the easy problem's truth (x, y, yaw) and base height
 EASY_TRUTH = np.array([0.02, -0.015, math.radians(5.0)])
@@ -362,10 +363,11 @@ def check_model_output_shape(model: Any) -> None:
     bound = model.bind(p)
     assert bound.n_steps == p.n_samples, f"n_steps {bound.n_steps} for {p.n_samples} samples"
     poses = truth + np.random.default_rng(0).normal(size=(7, 3)) * np.array([0.03, 0.03, 0.05])
+    from sensor_models.base import checked_log_likelihood
+
     for k in range(bound.n_steps):
-        ll = np.asarray(bound.log_likelihood(_states(bound, poses), k))
-        assert ll.shape == (7,), f"step {k}: shape {ll.shape}, expected (7,)"
-        assert not np.isnan(ll).any() and not np.isposinf(ll).any(), f"step {k}: {ll}"
+        # what a filter refuses (a list, ints, a wrong shape, NaN, +inf) fails here, with the filter's message
+        checked_log_likelihood(bound, bound.log_likelihood(_states(bound, poses), k), 7, k)
 
 
 def check_model_batch_equals_one_at_a_time(model: Any) -> None:
@@ -454,3 +456,84 @@ SENSOR_MODEL_CHECKS: list[Callable[[Any], None]] = [
     check_model_params_round_trip,
     check_model_scores_a_prefix_as_the_whole,
 ]
+
+
+# -- selection-policy checks -----------------------------------------------------------------
+
+
+def _policy_view(seed: int = 0, measured: int = 0) -> Any:
+    """A :class:`tofloc.selection.SelectionInput` on the easy problem: its six postures as
+    candidates (the first ``measured`` of them as measured), the prior's draws as posterior."""
+    from tofloc.selection import Posterior, Postures, SelectionInput
+
+    p, _ = easy_problem(n_samples=6)
+    cov = p.T_base_tip_cov
+    cand = Postures(np.array(p.T_base_tip[measured:]), None if cov is None else np.array(cov[measured:]))
+    done = Postures(np.array(p.T_base_tip[:measured]), None if cov is None else np.array(cov[:measured])) if measured else None
+    return SelectionInput(p.rig, p.map, p.range_model, p.prior, cand, done,
+                          Posterior.from_prior(p.prior, 32, np.random.default_rng(seed)))
+
+
+def check_policy_interface(policy: Any) -> None:
+    """A :class:`tofloc.selection.SelectionPolicy` with a registry name and a boolean ``uses_posterior``."""
+    from tofloc.selection import SelectionPolicy
+
+    assert isinstance(policy, SelectionPolicy), f"{type(policy).__name__} does not subclass tofloc.selection.SelectionPolicy"
+    assert isinstance(policy.name, str) and policy.name, "a selection policy needs a registry name"
+    assert isinstance(policy.uses_posterior, bool), policy.uses_posterior
+
+
+def check_policy_scores_contract(policy: Any) -> None:
+    """``scores`` gives one real number per candidate, no NaN (what ``choose`` refuses
+    otherwise, with the same message), before and after measured postures; ``choose``
+    returns a candidate's index."""
+    from tofloc.selection.base import checked_scores
+
+    for measured in (0, 2):
+        view = _policy_view(measured=measured)
+        checked_scores(policy, policy.scores(view, np.random.default_rng(0)), len(view.candidates))
+        i = policy.choose(view, np.random.default_rng(0))
+        assert isinstance(i, int) and 0 <= i < len(view.candidates), f"choose returned {i!r} for {len(view.candidates)} candidates"
+
+
+def check_policy_same_seed_same_choice(policy: Any) -> None:
+    """Two generators of the same seed give the same scores (randomness only through ``rng``)."""
+    a = policy.scores(_policy_view(), np.random.default_rng(3))
+    b = policy.scores(_policy_view(), np.random.default_rng(3))
+    np.testing.assert_array_equal(np.asarray(a, dtype=float), np.asarray(b, dtype=float), err_msg=_SAME_SEED_HINT)
+
+
+def check_policy_does_not_mutate_the_view(policy: Any) -> None:
+    """Scoring leaves the candidates, the measured postures and the posterior as they were."""
+    view = _policy_view(measured=2)
+    before = [np.array(x, copy=True) for x in (view.candidates.T_base_tip, view.measured.T_base_tip,
+                                                view.posterior.particles, view.posterior.weights)]
+    policy.scores(view, np.random.default_rng(0))
+    after = (view.candidates.T_base_tip, view.measured.T_base_tip, view.posterior.particles, view.posterior.weights)
+    for name, b, a in zip(("candidates", "measured", "posterior particles", "posterior weights"), before, after):
+        np.testing.assert_array_equal(a, b, err_msg=f"{name} were mutated")
+
+
+def check_policy_params_round_trip(policy: Any) -> None:
+    """``type(policy)(**policy.get_params())`` has the same parameters."""
+    clone = type(policy)(**policy.get_params())
+    assert clone.get_params() == policy.get_params()
+
+
+POLICY_CHECKS: list[Callable[[Any], None]] = [
+    check_policy_interface,
+    check_policy_scores_contract,
+    check_policy_same_seed_same_choice,
+    check_policy_does_not_mutate_the_view,
+    check_policy_params_round_trip,
+]
+
+
+def check_selection_policy(policy: Any) -> None:
+    """Run every selection-policy check on one policy (as :func:`check_estimator`)."""
+    _run_checks(policy, POLICY_CHECKS)
+
+
+def parametrize_with_policy_checks(policies: Sequence[Any]) -> Any:
+    """A ``pytest.mark.parametrize`` over ``(policy, check)`` pairs (see :func:`parametrize_with_checks`)."""
+    return _parametrize(policies, POLICY_CHECKS, "policy, check")

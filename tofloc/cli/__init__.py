@@ -256,6 +256,30 @@ def _restore_hook(previous: Any) -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _plugin_warnings_as_lines() -> Iterator[None]:
+    """While a command runs, a :class:`tofloc.errors.PluginWarning` (a plug-in left out) is
+    printed as one ``warning:`` line (a plug-in audit: Python's warning format added the
+    registry's source line to every command); other warnings as Python shows them."""
+    import warnings
+
+    from tofloc.errors import PluginWarning
+
+    previous = warnings.showwarning
+
+    def show(message: Any, category: type, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        if issubclass(category, PluginWarning) and not debug_enabled():
+            err_console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+        else:
+            previous(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
+
+
+@contextlib.contextmanager
 def _recorded_command(argv: list[str]) -> Iterator[None]:
     """The command line every result file records (:mod:`tofloc.provenance`), while it runs."""
     from tofloc.provenance import set_command
@@ -283,7 +307,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous_hook = sys.unraisablehook
     if not debug_enabled():
         sys.unraisablehook = _quiet_h5py_cleanup
-    with _Signals() as signals, _restore_hook(previous_hook), _recorded_command(["tofloc", *args]):
+    with _Signals() as signals, _restore_hook(previous_hook), _recorded_command(["tofloc", *args]), \
+            _plugin_warnings_as_lines():
         try:
             try:
                 rv = app(args=args, standalone_mode=False, prog_name="tofloc")

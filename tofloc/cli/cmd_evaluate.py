@@ -57,7 +57,8 @@ def evaluate(
                     "used are saved as DIR/config.toml.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
-                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
+                                  "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
+                                  "a plug-in policy's name (tofloc list)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),

@@ -1,5 +1,5 @@
-"""``tofloc list``: the registered estimators and sensor models; ``--params NAME``: one's
-parameters with their defaults and meaning."""
+"""``tofloc list``: the registered estimators, sensor models and selection policies;
+``--params NAME``: one's parameters with their defaults and meaning."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from tofloc.registry import ESTIMATORS, SELECTION_POLICIES, SENSOR_MODELS
 def list_plugins(
     params: Optional[str] = typer.Option(
         None, "--params", metavar="NAME",
-        help="Show the parameters of this estimator or sensor model: default, type and meaning (from its class)."),
+        help="Show the parameters of this estimator, sensor model or selection policy: default, type and meaning (from its class)."),
 ) -> None:
     """List registered estimators, sensor models and selection policies (built-ins and installed plug-ins), or one's parameters."""
     if params is not None:
@@ -47,10 +47,12 @@ def list_plugins(
 def _print_params(name: str) -> None:
     from tofloc.param_docs import parameter_docs
 
-    found = [(kind, reg) for kind, reg in (("estimator", ESTIMATORS), ("sensor model", SENSOR_MODELS)) if name in reg.names()]
+    found = [(kind, reg) for kind, reg in (("estimator", ESTIMATORS), ("sensor model", SENSOR_MODELS),
+                                           ("selection policy", SELECTION_POLICIES)) if name in reg.names()]
     if not found:
-        raise ParameterError(f"--params: no estimator or sensor model named {name!r}; estimators: "
-                             f"{', '.join(ESTIMATORS.names())}; sensor models: {', '.join(SENSOR_MODELS.names())}")
+        raise ParameterError(f"--params: no estimator, sensor model or selection policy named {name!r}; estimators: "
+                             f"{', '.join(ESTIMATORS.names())}; sensor models: {', '.join(SENSOR_MODELS.names())}; "
+                             f"selection policies: {', '.join(SELECTION_POLICIES.names())}")
     for kind, reg in found:
         cls = reg.load(name)
         try:
@@ -72,3 +74,6 @@ def _print_params(name: str) -> None:
             console.print(f"its sensor model's parameters: `tofloc list --params {default_model}` (set them with "
                           f"--param sensor_model__KEY=VALUE or [estimators.{name}.sensor_model_params] in --config)",
                           highlight=False, markup=False)
+        if kind == "selection policy":
+            console.print("a selection policy runs with these defaults: --selection takes its name only "
+                          "(docs/selection.md)", highlight=False, markup=False)

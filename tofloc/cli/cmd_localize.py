@@ -98,7 +98,8 @@ def localize(
                     "(docs/evaluation.md); the resolved parameters are saved in the --json document.")),
     valid_statuses: str = typer.Option("5,9", "--valid-statuses", help="Zone statuses counted as valid."),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
-                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
+                                  "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
+                                  "a plug-in policy's name (tofloc list)."),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
         help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "

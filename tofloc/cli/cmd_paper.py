@@ -65,7 +65,8 @@ def paper(
                                     help="Comma-separated prior modes (paper, offset, global: uniform over free space)."),
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX", help=REGION_HELP),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
-                                  "protocol) or active (in turn, the most informative posture next; docs/selection.md)."),
+                                  "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
+                                  "a plug-in policy's name (tofloc list)."),
     design: Optional[str] = typer.Option(
         None, "--design", help="How the trials of different k relate: nested (each trial draws max(k) samples and a prior "
         "once; the trial with k samples uses the first k, and a particle filter answers every k from one pass) or "

@@ -34,7 +34,7 @@ def scenes(
     prior_mode: str = typer.Option("offset", "--prior-mode", help="offset, paper or global (uniform over free space)."),
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX",
                                          help=REGION_HELP + " The same rectangle for every scene."),
-    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random or active."),
+    selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random, active or a plug-in policy's name (tofloc list)."),
     param: Optional[list[str]] = typer.Option(
         None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
     config: Optional[Path] = typer.Option(

@@ -20,12 +20,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
-from tofloc.errors import ParameterError
+from tofloc.errors import ParameterError, PluginError
 from tofloc.problem import Estimate, Prior
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import Rig
 
-__all__ = ["Postures", "Posterior", "SelectionInput", "SelectionPolicy"]
+__all__ = ["Postures", "Posterior", "SelectionInput", "SelectionPolicy", "checked_scores"]
 
 FloatArray = NDArray[np.float64]
 
@@ -162,6 +162,24 @@ class SelectionInput:
             raise ParameterError("a policy needs at least one candidate posture")
 
 
+def checked_scores(policy: "SelectionPolicy", raw: object, n_candidates: int) -> FloatArray:
+    """``raw``, what ``policy.scores`` returned for ``n_candidates`` candidates, as floats
+    ``(n_candidates,)``, or :class:`~tofloc.errors.PluginError` naming the policy when it is
+    not one real number per candidate or holds NaN (what :meth:`SelectionPolicy.choose` and
+    the common check suite, :func:`tofloc.testing.check_selection_policy`, both apply)."""
+    where = f"selection policy {policy.name!r} ({type(policy).__module__}.{type(policy).__qualname__}): scores(view, rng)"
+    expected = f"expected {n_candidates} real numbers (one per candidate), no NaN"
+    arr = np.asarray(raw)
+    if arr.dtype.kind not in "iuf":
+        raise PluginError(f"{where} returned {type(raw).__name__} of dtype {arr.dtype}; {expected}")
+    s = arr.astype(float)
+    if s.shape != (n_candidates,):
+        raise PluginError(f"{where} returned scores shaped {s.shape}; {expected}")
+    if np.isnan(s).any():
+        raise PluginError(f"{where} returned {int(np.isnan(s).sum())} NaN scores of {s.size}; {expected}")
+    return s
+
+
 class SelectionPolicy(ABC):
     """Interface of every selection policy (a dataclass of validated parameters)."""
 
@@ -182,8 +200,10 @@ class SelectionPolicy(ABC):
         """A score ``(C,)`` per candidate: the larger, the better the posture."""
 
     def choose(self, view: SelectionInput, rng: np.random.Generator) -> int:
-        """The index of the chosen candidate (the best score; the first of equal ones)."""
-        s = np.asarray(self.scores(view, rng), dtype=float)
-        if s.shape != (len(view.candidates),):
-            raise ParameterError(f"policy {self.name!r} returned {s.shape} scores for {len(view.candidates)} candidates")
+        """The index of the chosen candidate (the best score; the first of equal ones).
+
+        Scores must be real numbers, ``(C,)``, with no NaN (an infinite score: never this one, unless all are);
+        :class:`~tofloc.errors.PluginError` names the policy otherwise (an all-NaN answer
+        chose the first candidate silently before December 2026)."""
+        s = checked_scores(self, self.scores(view, rng), len(view.candidates))
         return int(np.argmax(np.where(np.isfinite(s), s, -np.inf)))
