@@ -123,7 +123,7 @@ def plot_errors_vs_k(files: Sequence[tuple[str, Sequence[Series]]], path: str | 
         handles += [Line2D([], [], color="dimgrey", ls=FILE_STYLES[i % len(FILE_STYLES)], lw=1.6, label=lab)
                     for i, (lab, _) in enumerate(files)]
     if bound_drawn:
-        handles.append(Line2D([], [], color="black", lw=2.2, marker="_", ms=12, label="mean sqrt(CRLB)"))
+        handles.append(Line2D([], [], color="black", lw=2.2, marker="_", ms=12, label="mean sqrt(CRLB) (bounds the RMSE, prior left out)"))
     if paper_drawn:
         handles.append(Line2D([], [], color="grey", ls="--", lw=1.2, label="paper, Table I (mean)"))
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), fontsize=8, frameon=False)
@@ -158,7 +158,9 @@ def plot_nees(panels: Sequence[tuple[str, Sequence[tuple[Any, ...]]]], path: str
     Drawn: the chi2(``dof``) CDF (black), its central 95 % interval (shaded, the 2.5 % and
     97.5 % quantiles) and, around the CDF, the 95 % Dvoretzky-Kiefer-Wolfowitz band of an
     ECDF of the series' size (dotted; the smallest series'): an ECDF that leaves it is not
-    chi2-distributed at that confidence. NEES above the axis' right end are counted at it.
+    chi2-distributed at that confidence. NEES above the axis' right end are counted at it
+    (the legend's mean is of the values themselves); a series with undefined NEES (NaN: no
+    covariance) says ``n = defined of all``.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -190,13 +192,16 @@ def plot_nees(panels: Sequence[tuple[str, Sequence[tuple[Any, ...]]]], path: str
         for i, entry in enumerate(series):
             label, v = entry[0], np.asarray(entry[1], dtype=float)
             style = {"color": f"C{i % 10}", "lw": 1.5, **(dict(entry[2]) if len(entry) > 2 else {})}
-            v = np.sort(np.clip(v[np.isfinite(v)], x_lo, x_hi))
-            if v.size == 0:
+            defined = v[np.isfinite(v)]
+            if defined.size == 0:
                 continue
+            mean = float(np.mean(defined))  # of the values, not of the ones drawn at the axis' end (a QA audit: 133 for 453)
+            undefined = f" of {v.size}" if defined.size < v.size else ""
+            v = np.sort(np.clip(defined, x_lo, x_hi))
             inside = float(np.mean((v >= lo) & (v <= hi)))
             y = np.arange(1, v.size + 1) / v.size
             ax.step(np.concatenate([[x_lo], v]), np.concatenate([[0.0], y]), where="post",
-                    label=f"{label}: mean {float(np.mean(v)):.3g}, {100 * inside:.0f} % in band (n = {v.size})", **style)
+                    label=f"{label}: mean {mean:.3g}, {100 * inside:.0f} % in band (n = {v.size}{undefined})", **style)
         ax.set_xscale("log")
         ax.set_xlim(x_lo, x_hi)
         ax.set_ylim(0, 1.0)

@@ -421,7 +421,8 @@ def is_failure(record: Mapping[str, Any]) -> bool:
 
 
 def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """``n``, median and mean of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
+    """``n``, median, mean and ``n`` (the trials with a defined error: an undefined one
+    fails and is left out of both) of ``e_x_m`` and ``e_gamma_deg``, ``failures`` and
     ``failure_rate`` (:func:`is_failure`), ``nees``, ``nees_exact_truth`` and ``nees_model``
     (mean, median, n: the trials with a defined NEES; see the module doc), ``widened`` (trials
     whose fit check failed, their covariance widened by the prior's), the median ``runtime_s``
@@ -433,8 +434,8 @@ def error_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     fails = sum(is_failure(r) for r in records)
     out: dict[str, Any] = {
         "n": n,
-        "e_x_m": summarize(_values(records, "e_x_m"), keys=("median", "mean")),
-        "e_gamma_deg": summarize(_values(records, "e_gamma_deg"), keys=("median", "mean")),
+        "e_x_m": summarize(_values(records, "e_x_m"), keys=("median", "mean", "n")),
+        "e_gamma_deg": summarize(_values(records, "e_gamma_deg"), keys=("median", "mean", "n")),
         "failures": int(fails),
         "failure_rate": json_float(fails / n) if n else None,
     }

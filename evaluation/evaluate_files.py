@@ -370,7 +370,7 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     file's seed). More logs, narrower intervals. Otherwise one sentence says why the files
     are not pooled; empty for a single file."""
     from evaluation.evaluate import FAILURE_E_GAMMA_DEG, FAILURE_E_X_M, error_summary
-    from evaluation.log_bootstrap import log_bootstrap, log_identity, no_interval_reason, resampled_text
+    from evaluation.log_bootstrap import _file_name, log_bootstrap, log_identity, no_interval_reason, resampled_text
 
     if len(views) < 2:
         return []
@@ -380,14 +380,18 @@ def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> l
     twice: list[str] = []
     for v, lab in zip(views, labels):
         for label, lg in v["logs"].items():
-            key = log_identity(lg) or ("no truth", label)
+            # one log: the same file name and the same true poses (as pairing reads it); logs of
+            # one scene simulated with other seeds share their true poses, not their names
+            truth = log_identity(lg)
+            key = (_file_name(label), truth) if truth else ("no truth", label)
             if key in seen:
-                twice.append(f"{label} ({seen[key]}, {lab})")
-            seen.setdefault(key, lab)
+                twice.append(f"{seen[key]} and {label} ({lab})")
+            seen.setdefault(key, f"{label} ({lab})")
     protocols = {_protocol(v, names) for v in views}
     thresholds = {(v["failure"]["e_x_m"], v["failure"]["e_gamma_deg"]) for v in views}
     why = ("the files share no estimator" if not names else
-           f"the files hold {len(twice)} log(s) twice (the same true poses): pooling would count them twice, e.g. "
+           f"the files hold {len(twice)} log(s) twice (the same file name and true poses): pooling would count them "
+           "twice, e.g. "
            + ", ".join(twice[:3]) if twice else
            "the files ran other protocols (prior, samples per trial, selection, failure thresholds or an estimator's "
            "parameters)" if len(protocols) > 1 else

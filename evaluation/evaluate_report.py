@@ -41,10 +41,16 @@ def _row(name: str, s: Mapping[str, Any]) -> str:
     if causes and s["failures"]:
         fails += f": model {causes['model']}, search {causes['search']}" + (
             f", unattributed {causes['unattributed']}" if causes["unattributed"] else "")
-    return (f"| {name} | {format_or_na(s['e_x_m']['median'], '.1f', 1000)} | {format_or_na(s['e_gamma_deg']['median'], '.2f')} | "
-            f"{format_or_na(s['e_x_m']['mean'], '.1f', 1000)} | {format_or_na(s['e_gamma_deg']['mean'], '.2f')} | {fails} | "
-            f"{format_or_na(nees.get('mean'), '.2f')} | {format_or_na(nees.get('median'), '.2f')} | {format_or_na(exact.get('mean'), '.2f')} | "
-            f"{'n/a' if wid is None else wid} | {format_or_na(model.get('mean'), '.2f')} | {format_or_na(rt, '.2f')} |")
+    def of(stats: Mapping[str, Any]) -> str:  # a statistic over fewer trials than the row's says so
+        used = stats.get("n")
+        return f" ({used} of {s['n']})" if used is not None and used < s["n"] else ""
+
+    ex, eg = s["e_x_m"], s["e_gamma_deg"]
+    return (f"| {name} | {format_or_na(ex['median'], '.1f', 1000)}{of(ex)} | {format_or_na(eg['median'], '.2f')}{of(eg)} | "
+            f"{format_or_na(ex['mean'], '.1f', 1000)}{of(ex)} | {format_or_na(eg['mean'], '.2f')}{of(eg)} | {fails} | "
+            f"{format_or_na(nees.get('mean'), '.2f')}{of(nees)} | {format_or_na(nees.get('median'), '.2f')}{of(nees)} | "
+            f"{format_or_na(exact.get('mean'), '.2f')}{of(exact)} | "
+            f"{'n/a' if wid is None else wid} | {format_or_na(model.get('mean'), '.2f')}{of(model)} | {format_or_na(rt, '.2f')} |")
 
 
 def detection_lines(doc: Mapping[str, Any]) -> list[str]:
@@ -479,21 +485,23 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path, estimators: Sequence[str
     declared = int((doc.get("truth_uncertainty") or {}).get("declared_by", 0))
     for i, e in enumerate(ests):
         v = _all(doc, e, "nees")
-        ok = v[np.isfinite(v) & (v > 0)]
+        defined = v[np.isfinite(v)]  # what the table's mean is over (a NEES of 0 too)
+        ok = defined[defined > 0]  # what a log axis can draw
         all_vals.append(ok)
         x = i + rng.uniform(-0.18, 0.18, size=ok.size)
         ax.scatter(x, ok, s=10, color=colours[e], alpha=0.6, linewidths=0)
         if ok.size:
-            ax.scatter([i + 0.3], [ok.mean()], marker="D", s=40, color=colours[e], edgecolors="black", zorder=5)
+            ax.scatter([i + 0.3], [defined.mean()], marker="D", s=40, color=colours[e], edgecolors="black", zorder=5)
         exact = _all(doc, e, "nees_exact_truth")
         exact = exact[np.isfinite(exact) & (exact > 0)]
         if declared and exact.size:
             all_vals.append(exact.mean(keepdims=True))
             ax.scatter([i + 0.3], [exact.mean()], marker="s", s=40, facecolors="none", edgecolors=colours[e], linewidths=1.5,
                        zorder=5)
-        inside = np.mean((ok >= CHI2_3_BAND[0]) & (ok <= CHI2_3_BAND[1])) if ok.size else float("nan")
-        undefined = int(v.size - ok.size)
-        ticks.append(f"{e}\n{inside:.0%} in band" + (f"\n{undefined} undefined" if undefined else ""))
+        inside = np.mean((defined >= CHI2_3_BAND[0]) & (defined <= CHI2_3_BAND[1])) if defined.size else float("nan")
+        undefined, zero = int(v.size - defined.size), int(defined.size - ok.size)
+        ticks.append(f"{e}\n{inside:.0%} in band" + (f"\n{undefined} undefined" if undefined else "")
+                     + (f"\n{zero} at 0 (not drawn)" if zero else ""))
     ax.scatter([], [], marker="D", s=40, color="white", edgecolors="black", label="mean NEES")
     if declared:
         ax.scatter([], [], marker="s", s=40, facecolors="none", edgecolors="black", label="mean NEES vs exact truth")

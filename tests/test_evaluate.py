@@ -147,7 +147,7 @@ def test_outputs_and_summaries(run: dict) -> None:
         assert s["n"] == 4
         for key in ("e_x_m", "e_gamma_deg"):
             v = [r[key] for r in recs]
-            assert s[key] == {"median": pytest.approx(np.median(v)), "mean": pytest.approx(np.mean(v))}
+            assert s[key] == {"median": pytest.approx(np.median(v)), "mean": pytest.approx(np.mean(v)), "n": len(v)}
         fails = sum(r["e_x_m"] > 0.1 or r["e_gamma_deg"] > 10.0 for r in recs)
         assert s["failures"] == fails and s["failure_rate"] == pytest.approx(fails / 4)
         nees = [r["nees"] for r in recs if r["nees"] is not None]
@@ -995,7 +995,10 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
     lo, hi = log_bootstrap(both, list(doc["summary"]), seed=doc["seed"])["estimators"]["icp_pf"]["ratio_to_oracle"]["e_x_m"]
     assert f"[{lo:.2f}-{hi:.2f}] /" in next(line for line in pooled.splitlines() if line.startswith("| icp_pf |"))
     # the same logs twice (a rerun): not pooled, and why (naming them)
-    assert "Not pooled: the files hold 2 log(s) twice (the same true poses): pooling would count them twice, e.g. " in table
+    assert ("Not pooled: the files hold 2 log(s) twice (the same file name and true poses): pooling would count them "
+            "twice, e.g. ") in table
+    first = next(iter(doc["logs"]))  # each named with the file that holds it (a QA audit named another log)
+    assert f"{first} (" in table.split("Not pooled:")[1]
     # ... whatever the trial counts: a rerun with fewer trials holds the same logs
     fewer = json.loads(json.dumps(doc))
     for lg in fewer["logs"].values():
@@ -1006,6 +1009,15 @@ def test_plot_draws_an_evaluate_run_again_and_compares_runs(run: dict, tmp_path:
     assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "d" / "results.json"),
                          "--out", str(tmp_path / "pd")])[0] == 0
     assert "Not pooled: the files hold 2 log(s) twice" in (tmp_path / "pd" / "comparison.md").read_text()
+    # logs of one scene (the same true poses) under other file names are other logs: pooled (a QA audit:
+    # every seed of the default scene has the same base pose, and two such runs were refused)
+    renamed = json.loads(json.dumps(doc))
+    renamed["logs"] = {f"{k}-seed9": v for k, v in renamed["logs"].items()}
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "results.json").write_text(json.dumps(renamed))
+    assert _run(capsys, ["plot", str(run["out"] / "results.json"), str(tmp_path / "r" / "results.json"),
+                         "--out", str(tmp_path / "pr")])[0] == 0
+    assert "The 4 logs of the 2 files as one run" in (tmp_path / "pr" / "comparison.md").read_text()
     # other logs under another prior: not pooled
     moved["prior"]["sigma_xy_m"] = 0.5
     (tmp_path / "c" / "results.json").write_text(json.dumps(moved))

@@ -167,7 +167,7 @@ def test_list_params_shows_defaults_and_meaning(capsys: pytest.CaptureFixture[st
     out = capsys.readouterr().out
     assert "temper" in out and "0.25" in out and "[beam]" in out  # the docstring's table name survives rich markup
     assert main(["list", "--params", "nope"]) == 2
-    assert "no estimator or sensor model named 'nope'" in capsys.readouterr().err
+    assert "no estimator, sensor model or selection policy named 'nope'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("kind", ["estimator", "sensor model"])
@@ -404,3 +404,34 @@ def test_python_dash_m_tofloc_is_the_cli(tmp_path) -> None:
     bad = subprocess.run([sys.executable, "-m", "tofloc", "info", str(tmp_path / "none.h5")], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "none.h5" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_nees_legend_gives_the_mean_of_the_values_not_of_the_clipped_ones(tmp_path, monkeypatch) -> None:
+    """A QA audit: values beyond the axis (drawn at its end) entered the legend's mean
+    clipped: 98 chi2(3) draws plus 5000 and 40000 read "mean 133" for a mean of 453.
+    Undefined NEES (NaN) are named: n = defined of all."""
+    import evaluation.error_plots as ep
+
+    figs = []
+    monkeypatch.setattr(ep, "_write_png", lambda fig, path: figs.append(fig) or path)
+    v = np.concatenate([np.random.default_rng(0).chisquare(3, 98), [5000.0, 40000.0]])
+    ep.plot_nees([("a", [("x", v), ("y", [1.0, np.nan, 2.0, 3.0])])], tmp_path / "n.png")
+    labels = [t.get_text() for t in figs[0].axes[0].get_legend().get_texts()]
+    assert any(t.startswith(f"x: mean {np.mean(v):.3g},") and t.endswith("(n = 100)") for t in labels), labels
+    assert any(t.startswith("y: mean 2,") and t.endswith("(n = 3 of 4)") for t in labels), labels
+
+
+def test_a_table_row_says_when_a_statistic_leaves_trials_out() -> None:
+    """A QA audit: an undefined NEES (collapsed covariance) or error left the mean with
+    fewer trials than the row's n, silently (3 good trials and a collapsed one read "3.00")."""
+    from evaluation.evaluate import error_summary
+    from evaluation.evaluate_report import _row
+
+    recs = [{"e_x_m": 0.01, "e_gamma_deg": 1.0, "nees": 3.0}, {"e_x_m": 0.02, "e_gamma_deg": 2.0, "nees": 2.0},
+            {"e_x_m": 0.03, "e_gamma_deg": 0.5, "nees": 4.0}, {"e_x_m": 0.02, "e_gamma_deg": 1.5, "nees": None}]
+    cells = [c.strip() for c in _row("est", error_summary(recs)).split("|")[1:-1]]
+    assert cells[1:5] == ["20.0", "1.25", "20.0", "1.25"]  # every error defined: no note
+    assert cells[6:8] == ["3.00 (3 of 4)", "3.00 (3 of 4)"]
+    recs[0] = {**recs[0], "e_x_m": None}
+    cells = [c.strip() for c in _row("est", error_summary(recs)).split("|")[1:-1]]
+    assert cells[1] == "20.0 (3 of 4)" and cells[5].startswith("1/4 ")  # left out of the median, counted as a failure

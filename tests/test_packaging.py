@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import os
 import re
 import tomllib
 from pathlib import Path
@@ -144,9 +145,11 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
     if edit is not None:
         edit(tmp_path / "ns")
     out = tmp_path / "out"
+    # one cache folder for the run, as a user's (the flights' maps repeat: each command would build them again)
+    env = {**os.environ, "TOFLOC_CACHE_DIR": str(tmp_path / "cache")}
     r = subprocess.run(["make", "-s", "-o", "install", "-C", str(ROOT), target, f"NANOSWARM={tmp_path / 'ns'}", f"REAL_DIR={out}",
                         "REAL_ESTIMATORS=icp_pf", "REAL_TRIALS=1", f"VENV={Path(sys.executable).parent.parent}", *variables],
-                       capture_output=True, text=True, timeout=600)
+                       capture_output=True, text=True, timeout=600, env=env)
     return r, out
 
 

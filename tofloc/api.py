@@ -1204,12 +1204,13 @@ def paper(
 
         colours = estimator_colours(names)  # each estimator's colour in every figure of the run
         nees_panels = [(TIP_TITLES.get(tip, f"{tip} tip poses"),
-                        [(f"{n}, prior {m.mode}", [r["nees"] for r in records[(n, tip, m.mode)] if r.get("nees") is not None],
+                        [(f"{n}, prior {m.mode}", [math.nan if r.get("nees") is None else r["nees"] for r in records[(n, tip, m.mode)]],
                           {"color": colours[n], "ls": "-" if m.mode == "paper" else "--"})
                          for n in names for m in priors])
                        for tip in tips]
         config_text = _config_text({n: jsonable(ests[n].get_params()) for n in names}, doc["provenance"]["command"])
-        has_nees = any(entry[1] for _, panel in nees_panels for entry in panel)
+        # an undefined NEES (no covariance) stays in as NaN: the legend says n = defined of all
+        has_nees = any(math.isfinite(v) for _, panel in nees_panels for entry in panel for v in entry[1])
         paths = write_run_outputs(out_dir, ("results.json", lambda p: write_json_atomic(doc, p)), [
             ("config.toml", lambda p: write_text_atomic(config_text, p)),
             ("table.md", lambda p: write_text_atomic(table_markdown(doc), p)),

@@ -171,7 +171,7 @@ def summary_table(doc: dict[str, Any]) -> Table:
     n_logs = len(doc["logs"])
     declared = (doc.get("truth_uncertainty") or {}).get("declared_by", 0)
     t = Table(title=f"{n_logs} log(s) x {doc['trials']} trial(s), prior {doc['prior']['mode']}", box=box.SIMPLE_HEAD,
-              caption=f"fail: e_x > {doc['failure']['e_x_m'] * 1000:.0f} mm or e_γ > {doc['failure']['e_gamma_deg']:.0f} deg; "
+              caption=f"e_x, e_γ, t: medians over trials; fail: e_x > {doc['failure']['e_x_m'] * 1000:.0f} mm or e_γ > {doc['failure']['e_gamma_deg']:.0f} deg; "
                       "NEES 3 if consistent" + (f", with the truth's declared uncertainty ({declared} log(s); "
                                                 "table.md: also vs exact truth)" if declared else ""),
               caption_justify="left", pad_edge=False)
