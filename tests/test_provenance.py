@@ -114,3 +114,30 @@ def test_results_record_the_kernels_and_saved_batches_are_keyed_by_them(monkeypa
     assert on != off
     monkeypatch.setenv("TOFLOC_NUMBA", "1")
     assert code_fingerprint() == on  # the same back-end, the same key
+
+
+def test_a_result_made_with_a_plugin_names_it_and_its_version(monkeypatch) -> None:
+    """A plug-in audit: results.json named a plug-in sensor model or policy, not the code
+    or version that made it. Built-ins alone keep the five keys (above)."""
+    from importlib import metadata
+
+    from tofloc.registry import SELECTION_POLICIES, SENSOR_MODELS, PluginSpec
+    from tofloc.selection.random_policy import RandomSelection
+
+    assert "plugins" not in provenance(["x"])
+    monkeypatch.setitem(SENSOR_MODELS._specs, "test_ep_model", PluginSpec("test_ep_model", "sensor_models.beam:BeamModel",
+                                                                          "my-tof-plugins"))
+    monkeypatch.setitem(SENSOR_MODELS._cache, "test_ep_model", object)
+    real_version = metadata.version
+    monkeypatch.setattr(metadata, "version", lambda d: "0.1.0" if d == "my-tof-plugins" else real_version(d))
+
+    class Mine(RandomSelection):
+        name = "test_runtime_policy"
+
+    SELECTION_POLICIES.register("test_runtime_policy", Mine)
+    try:
+        assert provenance(["x"])["plugins"] == {
+            "sensor model test_ep_model": "sensor_models.beam:BeamModel from my-tof-plugins 0.1.0",
+            "selection policy test_runtime_policy": f"{Mine.__module__}:{Mine.__qualname__} registered at run time"}
+    finally:
+        SELECTION_POLICIES.unregister("test_runtime_policy")

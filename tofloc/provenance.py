@@ -1,6 +1,7 @@
 """Where a result came from: the one record every result file carries.
 
-:func:`provenance` returns ``{"tofloc_version", "git_commit", "command", "utc", "kernels"}``:
+:func:`provenance` returns ``{"tofloc_version", "git_commit", "command", "utc", "kernels"}``
+and ``plugins`` when a plug-in ran:
 
 * ``tofloc_version``: the package's version (:data:`tofloc.__version__`; the installed
   distribution's metadata when they differ, e.g. an old editable install: both shown);
@@ -12,6 +13,10 @@
 * ``command``: the command line (``tofloc ...`` as :func:`tofloc.cli.main` received it;
   from the Python API, the interpreter's ``sys.argv``), shell-quoted;
 * ``utc``: when the record was made, ISO 8601 UTC to the second (``2025-01-31T12:00:00Z``);
+* ``plugins`` (only when one was used): every plug-in that is not a built-in and that the
+  process loaded, ``"estimator student_t_pf" -> "my_tof_plugins.estimators:StudentTPF from
+  my-tof-plugins 0.1.0"`` (:func:`tofloc.registry.loaded_plugins`), so a table made with a
+  plug-in names the code and version that made it;
 * ``kernels``: what computed the compiled kernels' numbers (:func:`tofloc.numba_kernels.backend`:
   ``"numba 0.68.1"``, or ``"numpy"`` without numba or with ``TOFLOC_NUMBA=0``); the two
   agree only to rounding, which a particle filter can grow into other estimates
@@ -95,14 +100,20 @@ def provenance(argv: Sequence[str] | None = None) -> dict[str, Any]:
     argv : sequence of str, optional
         The command line to record; default: the CLI's (:func:`set_command`), else ``sys.argv``.
     """
+    from tofloc.registry import loaded_plugins
+
     args = list(argv) if argv is not None else (_command if _command is not None else list(sys.argv))
-    return {
+    out = {
         "tofloc_version": version_string(),
         "git_commit": git_commit(),
         "command": shlex.join(str(a) for a in args),
         "utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "kernels": _kernels(),
     }
+    plugins = loaded_plugins()
+    if plugins:  # only when a plug-in ran: records of built-ins keep their five keys
+        out["plugins"] = plugins
+    return out
 
 
 def _kernels() -> str:

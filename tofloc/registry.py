@@ -25,7 +25,7 @@ from typing import Any, Iterator
 
 from tofloc.errors import ParameterError, PluginError, PluginWarning
 
-__all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "get_estimator",
+__all__ = ["PluginSpec", "Registry", "ESTIMATORS", "SENSOR_MODELS", "SELECTION_POLICIES", "loaded_plugins", "get_estimator",
            "get_sensor_model", "registry_for"]
 
 #: pip package to install when an import of this module fails.
@@ -280,3 +280,25 @@ def registry_for(parameter: str) -> Registry | None:
         if registry.kind.replace(" ", "_") == parameter:
             return registry
     return None
+
+
+def loaded_plugins() -> dict[str, str]:
+    """Every plug-in that is not a built-in and that this process has loaded, for a result's
+    provenance (:func:`tofloc.provenance.provenance`): ``"<kind> <name>" -> "<target> from
+    <distribution> <version>"`` (an entry point's), or ``"... registered at run time"``
+    (:meth:`Registry.register`). Empty when only built-ins ran."""
+    out: dict[str, str] = {}
+    for registry in (ESTIMATORS, SENSOR_MODELS, SELECTION_POLICIES):
+        for name in sorted(registry._cache):
+            spec = registry._specs.get(name)
+            if spec is None or spec.origin == "builtin":
+                continue
+            if spec.origin == "runtime":
+                where = "registered at run time"
+            else:
+                try:
+                    where = f"from {spec.origin} {metadata.version(spec.origin)}"
+                except (metadata.PackageNotFoundError, ValueError):
+                    where = f"from {spec.origin} (version unknown)"
+            out[f"{registry.kind} {name}"] = f"{spec.target} {where}"
+    return out
