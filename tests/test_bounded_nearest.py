@@ -99,3 +99,35 @@ def test_smoother_starts_are_those_of_the_kdtree(monkeypatch) -> None:
     b = est.starts(p, meas, np.random.default_rng(2))
     assert a.shape[0] > 1
     np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("radius", [0.01, 0.05, 0.3])
+def test_may_be_within_keeps_every_query_with_a_point_within_the_radius(radius: float) -> None:
+    """The pre-filter of the per-map builds: a query it drops has no point within the radius
+    (checked against the KD-tree), and it drops many of the far ones; queries beyond the
+    points' box, a radius too small for the cell cap and no point at all are handled."""
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.uniform([0, 0, 0], [2, 0.01, 1], (2000, 3)), rng.uniform([0, 0, 0], [0.01, 2, 1], (2000, 3))])
+    q = rng.uniform([-0.5, -0.5, -0.2], [2.5, 2.5, 1.2], (20000, 3))
+    keep = bn.may_be_within(pts, q, radius)
+    d, _ = cKDTree(pts).query(q, distance_upper_bound=radius)
+    assert keep[np.isfinite(d)].all()
+    assert (~keep[~np.isfinite(d)]).mean() > (0.5 if radius < 0.3 else 0.1)
+    assert bn.may_be_within(pts, q[:5], 1e-7).all()  # the grid would exceed MAX_CELLS: nothing dropped
+    assert bn.may_be_within(np.zeros((0, 3)), q[:5], radius).all()
+
+
+@pytest.mark.parametrize("skip_below", [0.0, 1.1])
+def test_the_per_map_builds_give_the_same_bits_with_or_without_the_prefilter(monkeypatch, skip_below: float) -> None:
+    """The likelihood field and the ICP score's distance grid, built searching every node
+    (SKIP_BELOW 0) or only those the pre-filter keeps (1.1), are the same arrays."""
+    from tofloc.distance_grid import DistanceGrid
+    from tofloc.surface_field import SurfaceField
+
+    p, _ = easy_problem(n_samples=1)
+    m = p.map
+    ref_field, ref_grid = SurfaceField(m, 0.02, 0.1), DistanceGrid(m.points, 0.01, 0.04)
+    monkeypatch.setattr(bn, "SKIP_BELOW", skip_below)
+    field, grid = SurfaceField(m, 0.02, 0.1), DistanceGrid(m.points, 0.01, 0.04)
+    np.testing.assert_array_equal(field.values, ref_field.values)
+    np.testing.assert_array_equal(grid.d, ref_grid.d)

@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from tofloc import numba_kernels
+from tofloc import bounded_nearest
 from tofloc.threads import kdtree_workers
 from tofloc.zone_caster import rotate_z
 
@@ -91,7 +92,13 @@ class DistanceGrid:
         axes = [lo[i] + (np.arange(self.shape[i]) + 0.5) * cell for i in range(3)]
         centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         slack = self.cell * math.sqrt(3.0) / 2.0
-        d, _ = self.tree.query(centres, k=1, distance_upper_bound=self.r_max + slack, workers=kdtree_workers())
+        d = np.full(centres.shape[0], np.inf)
+        # only the centres that may have a point within the bound are searched (the others: inf, as the search says)
+        searched = bounded_nearest.may_be_within(self.points, centres, self.r_max + slack)
+        if searched.mean() >= bounded_nearest.SKIP_BELOW:  # mostly near: one search of all is faster than the gathers
+            searched = slice(None)
+        d[searched] = self.tree.query(centres[searched], k=1, distance_upper_bound=self.r_max + slack,
+                                      workers=kdtree_workers())[0]
         self.d = d.astype(np.float32).reshape(self.shape)
         self.slack = slack
         # Cells whose test at radius r_max is not decided by d_c alone get a row: the list

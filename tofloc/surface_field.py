@@ -198,15 +198,21 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
         side = np.sign(np.einsum("ij,ij->i", np.nan_to_num(normal), diff))
         side[side == 0] = 1.0
         return np.clip(side * dist, -r_field, r_field)
+    from tofloc import bounded_nearest
     from tofloc.threads import kdtree_workers
 
     R = float(the_map.surfel_radius)
     tree = the_map._kdtree()
-    d, idx = tree.query(nodes, k=1, distance_upper_bound=r_field + R, workers=kdtree_workers())  # a one-off build: every core allowed
     out = np.full(nodes.shape[0], r_field)
-    near = np.isfinite(d)
-    diff = nodes[near] - the_map.points[idx[near]]
-    nrm = the_map.normals[idx[near]]
+    mask = bounded_nearest.may_be_within(the_map.points, nodes, r_field + R)  # the others: r_field, as the search says
+    # skipping pays where most nodes are far (a sparse maze at a small r_field); else the gathers cost more
+    searched = np.flatnonzero(mask) if mask.mean() < bounded_nearest.SKIP_BELOW else None  # None: every node
+    d, idx = tree.query(nodes if searched is None else nodes[searched], k=1, distance_upper_bound=r_field + R,
+                        workers=kdtree_workers())  # a one-off build: every core allowed
+    found = np.isfinite(d)
+    near = found if searched is None else searched[found]
+    diff = nodes[near] - the_map.points[idx[found]]
+    nrm = the_map.normals[idx[found]]
     s = np.einsum("ij,ij->i", diff, nrm)
     tangential = np.linalg.norm(diff - s[:, None] * nrm, axis=1)
     disc = np.sqrt(s * s + np.maximum(tangential - R, 0.0) ** 2)
