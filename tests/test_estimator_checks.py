@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from typing import ClassVar
 
-from tofloc.registry import ESTIMATORS
+from tofloc.registry import ESTIMATORS, SELECTION_POLICIES, SENSOR_MODELS
 from tofloc.testing import parametrize_with_checks, parametrize_with_policy_checks, parametrize_with_sensor_model_checks
 
 #: Smaller-than-default settings so that the suite stays fast; each estimator keeps its
@@ -36,28 +36,19 @@ def test_every_registered_estimator_is_checked() -> None:
     assert names == set(ESTIMATORS.names())
 
 
-def _registered_models():
-    from tofloc.registry import SENSOR_MODELS
-
+def _defaults_of_every_loaded(registry):
+    """One instance, with its defaults, of every plug-in of ``registry`` that loads."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return [cls() for _, cls in SENSOR_MODELS.iter_loaded()]
+        return [cls() for _, cls in registry.iter_loaded()]
 
 
-@parametrize_with_sensor_model_checks(_registered_models())
+@parametrize_with_sensor_model_checks(_defaults_of_every_loaded(SENSOR_MODELS))
 def test_registered_sensor_models(model, check) -> None:
     check(model)
 
 
-def _registered_policies():
-    from tofloc.registry import SELECTION_POLICIES
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return [cls() for _, cls in SELECTION_POLICIES.iter_loaded()]
-
-
-@parametrize_with_policy_checks(_registered_policies())
+@parametrize_with_policy_checks(_defaults_of_every_loaded(SELECTION_POLICIES))
 def test_registered_selection_policies(policy, check) -> None:
     check(policy)
 
