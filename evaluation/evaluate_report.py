@@ -492,6 +492,7 @@ def plot_nees(doc: Mapping[str, Any], path: str | Path, estimators: Sequence[str
         ax.scatter(x, ok, s=10, color=colours[e], alpha=0.6, linewidths=0)
         if ok.size:
             ax.scatter([i + 0.3], [defined.mean()], marker="D", s=40, color=colours[e], edgecolors="black", zorder=5)
+            all_vals.append(defined.mean(keepdims=True))  # inside the y range (zeros lower the mean)
         exact = _all(doc, e, "nees_exact_truth")
         exact = exact[np.isfinite(exact) & (exact > 0)]
         if declared and exact.size:

@@ -131,3 +131,16 @@ def test_the_per_map_builds_give_the_same_bits_with_or_without_the_prefilter(mon
     field, grid = SurfaceField(m, 0.02, 0.1), DistanceGrid(m.points, 0.01, 0.04)
     np.testing.assert_array_equal(field.values, ref_field.values)
     np.testing.assert_array_equal(grid.d, ref_grid.d)
+
+
+def test_may_be_within_grid_answers_as_the_nodes_one_by_one() -> None:
+    """The grid form (each coordinate's cell once per axis) gives the per-node answers; a
+    map whose cells would overflow (a review: int64 wrapped and raised) skips nothing."""
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-1, 1, (500, 3)) * [2, 2, 0.3]
+    ax = [np.linspace(-3, 3, 41), np.linspace(-2.5, 2.7, 37), np.linspace(-0.6, 0.6, 9)]
+    nodes = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    grid = bn.may_be_within_grid(p, ax, 0.2)
+    assert grid.shape == (41, 37, 9) and 0.2 < grid.mean() < 0.8
+    np.testing.assert_array_equal(grid.reshape(-1), bn.may_be_within(p, nodes, 0.2))
+    assert bn.may_be_within(np.array([[0.0, 0, 0], [1e19, 0, 0]]), nodes[:3], 1.0).all()

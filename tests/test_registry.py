@@ -57,6 +57,9 @@ def test_no_install_hint_for_what_no_install_fixes(monkeypatch) -> None:
                                           r"'tofloc_test_no_such_pkg.mod:Foo' \(a typo\?\) or reinstall") as e:
         r.load("typo")
     assert "pip install" not in str(e.value)
+    own_sub = Registry("tofloc.test_group_nothing", {"x": "json.no_such_mod:Foo"})  # the target's package is installed
+    with pytest.raises(PluginError, match=r"'json' is installed but has no module 'json.no_such_mod': check the entry point"):
+        own_sub.load("x")
     r2 = Registry("tofloc.test_group_nothing", {"sub": "tofloc_test_plugin_pkg.mod:Foo"})
     _importing_fails(monkeypatch, "numpy.no_such_submodule")
     with pytest.raises(PluginError, match=r"'numpy' is installed but has no module 'numpy.no_such_submodule': check") as e:

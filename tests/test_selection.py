@@ -273,8 +273,10 @@ def test_a_policy_that_ignores_the_posterior_gets_no_intermediate_estimates() ->
 
 
 @pytest.mark.parametrize("answer, message", [
-    ("nan", r"returned 16 NaN scores of 16; expected 16 real numbers \(one per candidate\), no NaN"),
-    ("one_nan", "returned 1 NaN scores of 16"),
+    ("nan", r"returned 16 NaN and 0 \+inf scores of 16; expected 16 real numbers \(one per candidate\), no NaN or \+inf"),
+    ("one_nan", "returned 1 NaN and 0 \\+inf scores of 16"),
+    ("posinf", "returned 0 NaN and 1 \\+inf scores of 16"),
+    ("ragged", "returned list that is not an array"),
     ("strings", "returned list of dtype <U"),
     ("short", r"returned scores shaped \(15,\)"),
 ])
@@ -290,7 +292,8 @@ def test_a_policy_breaking_the_scores_contract_is_named(answer: str, message: st
         def scores(self, view: SelectionInput, rng: np.random.Generator):
             C = len(view.candidates)
             return {"nan": np.full(C, np.nan), "one_nan": np.where(np.arange(C) == 2, np.nan, 1.0),
-                    "strings": ["a"] * C, "short": np.zeros(C - 1)}[answer]
+                    "strings": ["a"] * C, "short": np.zeros(C - 1), "posinf": np.where(np.arange(C) == 1, np.inf, 0.0),
+                    "ragged": [[1.0], [1.0, 2.0]] + [[0.0]] * (C - 2)}[answer]
 
     with pytest.raises(PluginError, match=f"selection policy 'test_broken_scores' .*Broken\\): scores\\(view, rng\\) {message}"):
         _run_with_policy(Broken)

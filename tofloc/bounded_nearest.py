@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from tofloc import numba_kernels
 from tofloc.errors import ParameterError
 
-__all__ = ["BoundedNearestGrid", "MAX_CELLS", "SKIP_BELOW", "grid_applies", "may_be_within"]
+__all__ = ["BoundedNearestGrid", "MAX_CELLS", "SKIP_BELOW", "grid_applies", "may_be_within", "may_be_within_grid"]
 
 #: Largest grid (cells) built; beyond it (a wide map and a small radius) the KD-tree answers.
 MAX_CELLS = 1 << 24
@@ -31,9 +31,11 @@ MAX_CELLS = 1 << 24
 #: nodes that may be near a point (:func:`may_be_within`) when fewer than this share are;
 #: measured on the nano-swarm maze (noisy VM, 3-4 runs each): likelihood field r_field 0.1 m
 #: (24 % near) 5.7-7.0 -> 4.2-5.2 s, the ICP score's grid (r 0.05 m) 10.3-11.8 -> 8.1-9.0 s;
-#: where most nodes are near (r_field 0.3-0.4 m) skipping gained nothing within the noise, so
-#: every node is searched there; the same bits either way (tests/test_bounded_nearest.py).
-SKIP_BELOW = 0.3
+#: where most nodes are near (r_field 0.3-0.4 m: every cell of the mask near a point) skipping
+#: gains nothing, so every node is searched there; the same bits either way
+#: (tests/test_bounded_nearest.py). The share is the mask's (cells within one cell of a point),
+#: larger than the share of nodes really within the radius (41-46 % against 24 % at 0.1 m).
+SKIP_BELOW = 0.5
 
 #: Cells are this much wider than the radius, so that a point closer than the radius is
 #: within one cell of the query's whatever the rounding of the cell coordinates.
@@ -88,6 +90,27 @@ def grid_applies(grid: Any) -> bool:
     return grid is not None and grid.usable and numba_kernels.enabled()
 
 
+def _near_cells(p: NDArray[np.float64], radius: float) -> tuple[NDArray[np.bool_], NDArray[np.float64], float, NDArray[np.int64]] | None:
+    """The cells (edge ``radius``, one empty cell of margin on each side) holding a point of
+    ``p`` or next to one (``scipy.ndimage.binary_dilation``), their origin, ``1 / edge`` and
+    shape; None when nothing can be skipped (no point, a bad radius, more than
+    :data:`MAX_CELLS` cells)."""
+    from scipy import ndimage
+
+    if p.shape[0] == 0 or not (math.isfinite(radius) and radius > 0):
+        return None
+    inv = 1.0 / (float(radius) * (1.0 + _CELL_MARGIN))
+    lo = p.min(axis=0)
+    span = np.floor((p.max(axis=0) - lo) * inv)
+    if not np.all(np.isfinite(span)) or float(np.prod(span + 3.0)) > MAX_CELLS:
+        return None
+    cells = np.floor((p - lo) * inv).astype(np.int64) + 1
+    dims = cells.max(axis=0) + 2
+    occupied = np.zeros(tuple(int(n) for n in dims), dtype=bool)
+    occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+    return ndimage.binary_dilation(occupied, structure=np.ones((3, 3, 3), dtype=bool)), lo, inv, dims
+
+
 def may_be_within(points: ArrayLike, queries: ArrayLike, radius: float) -> NDArray[np.bool_]:
     """Whether each query ``(Q, 3)`` may have a point of ``points`` ``(N, 3)`` within
     ``radius``: False only where none can (no point in the query's cell of edge ``radius``
@@ -95,27 +118,40 @@ def may_be_within(points: ArrayLike, queries: ArrayLike, radius: float) -> NDArr
 
     What the one-off builds of the per-map fields use to skip the nodes far from every
     point (a nearest-neighbour search with ``distance_upper_bound`` still walks the tree for
-    them): the same answers, found faster (:data:`SKIP_BELOW`). All True when the cell grid would exceed
-    :data:`MAX_CELLS` cells (a wide map and a small radius) or there is no point: nothing
-    is skipped then."""
-    from scipy import ndimage
-
+    them): the same answers, found faster (:data:`SKIP_BELOW`). All True when the cell grid
+    would exceed :data:`MAX_CELLS` cells (a wide map and a small radius) or there is no
+    point: nothing is skipped then. :func:`may_be_within_grid` answers for the nodes of a
+    grid at the cost of its axes."""
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     q = np.asarray(queries, dtype=float).reshape(-1, 3)
-    if p.shape[0] == 0 or not (math.isfinite(radius) and radius > 0):
+    cells = _near_cells(p, radius)
+    if cells is None:
         return np.ones(q.shape[0], dtype=bool)
-    inv = 1.0 / (float(radius) * (1.0 + _CELL_MARGIN))
-    lo = p.min(axis=0)
-    cells = np.floor((p - lo) * inv).astype(np.int64) + 1  # one empty cell of margin on each side
-    dims = cells.max(axis=0) + 2
-    if float(np.prod(dims.astype(float))) > MAX_CELLS:
-        return np.ones(q.shape[0], dtype=bool)
-    occupied = np.zeros(tuple(int(n) for n in dims), dtype=bool)
-    occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = True
-    near = ndimage.binary_dilation(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    near, lo, inv, dims = cells
     qc = np.floor((q - lo) * inv)
     inside = np.all((qc >= -1) & (qc < dims - 1), axis=1)  # a query beyond the margin is farther than radius
     out = np.zeros(q.shape[0], dtype=bool)
     c = qc[inside].astype(np.int64) + 1
     out[inside] = near[c[:, 0], c[:, 1], c[:, 2]]
     return out
+
+
+def may_be_within_grid(points: ArrayLike, axes: "tuple[ArrayLike, ArrayLike, ArrayLike]", radius: float) -> NDArray[np.bool_]:
+    """:func:`may_be_within` for the nodes of the grid ``axes`` (x, y and z coordinates):
+    ``(nx, ny, nz)``, node ``(i, j, k)`` at ``(axes[0][i], axes[1][j], axes[2][k])``, the same
+    answers, each coordinate's cell found once per axis (a review: the per-node pass cost
+    ~7 % of a build where nothing could be skipped)."""
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    ax = [np.asarray(a, dtype=float).reshape(-1) for a in axes]
+    shape = tuple(a.size for a in ax)
+    cells = _near_cells(p, radius)
+    if cells is None:
+        return np.ones(shape, dtype=bool)
+    near, lo, inv, dims = cells
+    idx, ok = [], []
+    for i in range(3):
+        c = np.floor((ax[i] - lo[i]) * inv)
+        inside = (c >= -1) & (c < dims[i] - 1)
+        ok.append(inside)
+        idx.append(np.where(inside, c + 1, 0).astype(np.int64))
+    return near[np.ix_(*idx)] & ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]

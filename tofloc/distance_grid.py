@@ -94,7 +94,7 @@ class DistanceGrid:
         slack = self.cell * math.sqrt(3.0) / 2.0
         d = np.full(centres.shape[0], np.inf)
         # only the centres that may have a point within the bound are searched (the others: inf, as the search says)
-        searched = bounded_nearest.may_be_within(self.points, centres, self.r_max + slack)
+        searched = bounded_nearest.may_be_within_grid(self.points, axes, self.r_max + slack).reshape(-1)
         if searched.mean() >= bounded_nearest.SKIP_BELOW:  # mostly near: one search of all is faster than the gathers
             searched = slice(None)
         d[searched] = self.tree.query(centres[searched], k=1, distance_upper_bound=self.r_max + slack,

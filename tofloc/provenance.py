@@ -1,7 +1,7 @@
 """Where a result came from: the one record every result file carries.
 
 :func:`provenance` returns ``{"tofloc_version", "git_commit", "command", "utc", "kernels"}``
-and ``plugins`` when a plug-in ran:
+and ``plugins`` when the process has loaded a plug-in:
 
 * ``tofloc_version``: the package's version (:data:`tofloc.__version__`; the installed
   distribution's metadata when they differ, e.g. an old editable install: both shown);
@@ -13,8 +13,9 @@ and ``plugins`` when a plug-in ran:
 * ``command``: the command line (``tofloc ...`` as :func:`tofloc.cli.main` received it;
   from the Python API, the interpreter's ``sys.argv``), shell-quoted;
 * ``utc``: when the record was made, ISO 8601 UTC to the second (``2025-01-31T12:00:00Z``);
-* ``plugins`` (only when one was used): every plug-in that is not a built-in and that the
-  process loaded, ``"estimator student_t_pf" -> "my_tof_plugins.estimators:StudentTPF from
+* ``plugins`` (only when the process has loaded one): every plug-in that is not a built-in
+  and that the process loaded so far (in one Python session, a later built-in-only run still
+  lists it), ``"estimator student_t_pf" -> "my_tof_plugins.estimators:StudentTPF from
   my-tof-plugins 0.1.0"`` (:func:`tofloc.registry.loaded_plugins`), so a table made with a
   plug-in names the code and version that made it;
 * ``kernels``: what computed the compiled kernels' numbers (:func:`tofloc.numba_kernels.backend`:
@@ -111,7 +112,7 @@ def provenance(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "kernels": _kernels(),
     }
     plugins = loaded_plugins()
-    if plugins:  # only when a plug-in ran: records of built-ins keep their five keys
+    if plugins:  # only when a plug-in was loaded: records of built-in runs keep their five keys
         out["plugins"] = plugins
     return out
 

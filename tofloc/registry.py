@@ -157,7 +157,7 @@ class Registry:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as e:
             missing = (e.name or "").split(".")[0]
-            if missing and missing == module_name.split(".")[0]:  # the plug-in's own package, not a dependency
+            if missing and e.name == missing and missing == module_name.split(".")[0]:  # the plug-in's own package
                 hint = (f"the target's own package {missing!r} cannot be imported: check the target {spec.target!r} "
                         f"(a typo?) or reinstall what declares it ({spec.origin})")
             elif missing and e.name != missing and importlib.util.find_spec(missing) is not None:
@@ -283,7 +283,8 @@ def registry_for(parameter: str) -> Registry | None:
 
 
 def loaded_plugins() -> dict[str, str]:
-    """Every plug-in that is not a built-in and that this process has loaded, for a result's
+    """Every plug-in that is not a built-in and that this process has loaded (or registered
+    as an object) so far, for a result's
     provenance (:func:`tofloc.provenance.provenance`): ``"<kind> <name>" -> "<target> from
     <distribution> <version>"`` (an entry point's), or ``"... registered at run time"``
     (:meth:`Registry.register`). Empty when only built-ins ran."""

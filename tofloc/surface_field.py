@@ -62,12 +62,14 @@ class SurfaceField:
         self.scale = self.r_field / 32767.0
         values = np.empty(int(np.prod(self.shape)), dtype=np.int16)
         ny, nz = self.shape[1], self.shape[2]
+        searched = _searched_nodes(the_map, axes, self.r_field)
         for start in range(0, values.size, _FIELD_CHUNK):  # batches of nodes (memory), not a loop per node
             flat = np.arange(start, min(start + _FIELD_CHUNK, values.size))
             ix, rest = np.divmod(flat, ny * nz)
             iy, iz = np.divmod(rest, nz)
             nodes = np.stack([axes[0][ix], axes[1][iy], axes[2][iz]], axis=-1)
-            values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field) / self.scale).astype(np.int16)
+            values[flat] = np.round(_signed_distance(the_map, nodes, self.r_field,
+                                                     None if searched is None else searched[flat]) / self.scale).astype(np.int16)
         self.values = values.reshape(self.shape)
 
     def to_arrays(self) -> dict[str, NDArray[Any]]:
@@ -188,9 +190,26 @@ class SurfaceField:
         return np.where(inside, c0 * np.float32(self.scale), np.float32(self.r_field)).astype(float).reshape(shape)
 
 
-def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -> NDArray[np.float64]:
+def _searched_nodes(the_map: Any, axes: list[NDArray[np.float64]], r_field: float) -> NDArray[np.bool_] | None:
+    """For a cloud map, the grid nodes (flat, C order) a point may be near enough to matter
+    (:func:`tofloc.bounded_nearest.may_be_within_grid` at ``r_field`` plus the surfels'
+    radius), when fewer than :data:`tofloc.bounded_nearest.SKIP_BELOW` of them are; None:
+    search every node (a mesh map, or most nodes near)."""
+    from tofloc import bounded_nearest
+
+    if the_map.has_mesh_surface:
+        return None
+    mask = bounded_nearest.may_be_within_grid(the_map.points, axes, r_field + float(the_map.surfel_radius)).reshape(-1)
+    return mask if mask.mean() < bounded_nearest.SKIP_BELOW else None
+
+
+def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float,
+                     searched: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
     """Signed distance of ``nodes`` to the map's surface, clipped to ``+-r_field`` (a
-    cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's)."""
+    cloud with an attached surface mesh, :meth:`tofloc.maps.Map.with_surface`: the mesh's).
+    ``searched`` (a cloud map): the nodes to search; the others are farther than
+    ``r_field`` plus the surfels' radius from every point and get ``r_field``, as the
+    search would give them."""
     if the_map.has_mesh_surface:
         closest, normal = the_map.closest_surface_point(nodes)
         diff = nodes - closest
@@ -198,15 +217,12 @@ def _signed_distance(the_map: Any, nodes: NDArray[np.float64], r_field: float) -
         side = np.sign(np.einsum("ij,ij->i", np.nan_to_num(normal), diff))
         side[side == 0] = 1.0
         return np.clip(side * dist, -r_field, r_field)
-    from tofloc import bounded_nearest
     from tofloc.threads import kdtree_workers
 
     R = float(the_map.surfel_radius)
     tree = the_map._kdtree()
     out = np.full(nodes.shape[0], r_field)
-    mask = bounded_nearest.may_be_within(the_map.points, nodes, r_field + R)  # the others: r_field, as the search says
-    # skipping pays where most nodes are far (a sparse maze at a small r_field); else the gathers cost more
-    searched = np.flatnonzero(mask) if mask.mean() < bounded_nearest.SKIP_BELOW else None  # None: every node
+    searched = None if searched is None else np.flatnonzero(searched)  # None: every node
     d, idx = tree.query(nodes if searched is None else nodes[searched], k=1, distance_upper_bound=r_field + R,
                         workers=kdtree_workers())  # a one-off build: every core allowed
     found = np.isfinite(d)

@@ -359,8 +359,10 @@ def check_model_interface(model: Any) -> None:
 
 def check_model_output_shape(model: Any) -> None:
     """``log_likelihood`` returns ``(M,)`` floats, finite or ``-inf``, never NaN, for every step."""
+    from sensor_models.base import bind_checked
+
     p, truth = easy_problem(n_samples=2)
-    bound = model.bind(p)
+    bound = bind_checked(model, p)  # what a filter refuses fails here, with the filter's message
     assert bound.n_steps == p.n_samples, f"n_steps {bound.n_steps} for {p.n_samples} samples"
     poses = truth + np.random.default_rng(0).normal(size=(7, 3)) * np.array([0.03, 0.03, 0.05])
     from sensor_models.base import checked_log_likelihood

@@ -165,18 +165,22 @@ class SelectionInput:
 def checked_scores(policy: "SelectionPolicy", raw: object, n_candidates: int) -> FloatArray:
     """``raw``, what ``policy.scores`` returned for ``n_candidates`` candidates, as floats
     ``(n_candidates,)``, or :class:`~tofloc.errors.PluginError` naming the policy when it is
-    not one real number per candidate or holds NaN (what :meth:`SelectionPolicy.choose` and
+    not one real number per candidate or holds NaN or ``+inf`` (what :meth:`SelectionPolicy.choose` and
     the common check suite, :func:`tofloc.testing.check_selection_policy`, both apply)."""
     where = f"selection policy {policy.name!r} ({type(policy).__module__}.{type(policy).__qualname__}): scores(view, rng)"
-    expected = f"expected {n_candidates} real numbers (one per candidate), no NaN"
-    arr = np.asarray(raw)
-    if arr.dtype.kind not in "iuf":
+    expected = f"expected {n_candidates} real numbers (one per candidate), no NaN or +inf"
+    try:
+        arr = np.asarray(raw)
+    except (TypeError, ValueError) as e:  # a ragged list, an object numpy cannot read
+        raise PluginError(f"{where} returned {type(raw).__name__} that is not an array ({e}); {expected}") from None
+    if arr.dtype.kind not in "biuf":
         raise PluginError(f"{where} returned {type(raw).__name__} of dtype {arr.dtype}; {expected}")
     s = arr.astype(float)
     if s.shape != (n_candidates,):
         raise PluginError(f"{where} returned scores shaped {s.shape}; {expected}")
-    if np.isnan(s).any():
-        raise PluginError(f"{where} returned {int(np.isnan(s).sum())} NaN scores of {s.size}; {expected}")
+    if np.isnan(s).any() or np.isposinf(s).any():
+        raise PluginError(f"{where} returned {int(np.isnan(s).sum())} NaN and {int(np.isposinf(s).sum())} +inf scores "
+                          f"of {s.size}; {expected}")
     return s
 
 
@@ -202,7 +206,7 @@ class SelectionPolicy(ABC):
     def choose(self, view: SelectionInput, rng: np.random.Generator) -> int:
         """The index of the chosen candidate (the best score; the first of equal ones).
 
-        Scores must be real numbers, ``(C,)``, with no NaN (an infinite score: never this one, unless all are);
+        Scores must be real numbers, ``(C,)``, with no NaN or ``+inf`` (``-inf``: never this one, unless all are);
         :class:`~tofloc.errors.PluginError` names the policy otherwise (an all-NaN answer
         chose the first candidate silently before December 2026)."""
         s = checked_scores(self, self.scores(view, rng), len(view.candidates))
