@@ -25,6 +25,12 @@ def cli_process(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def stop_with(proc: subprocess.Popen, sig: int, timeout: float = 20.0) -> str:
+    """Send ``sig`` to a :func:`cli_process` and wait for it to end; its stderr."""
+    proc.send_signal(sig)
+    return proc.communicate(timeout=timeout)[1]
+
+
 def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 20.0) -> None:
     deadline = time.monotonic() + timeout
     while not path.exists():
@@ -97,8 +103,7 @@ def test_ctrl_c_still_writes_the_log_from_the_journal(simulated: Path, tmp_path:
         while not journal.exists() and rec.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(1.5)
-        rec.send_signal(signal.SIGINT)
-        _, err = rec.communicate(timeout=20)
+        err = stop_with(rec, signal.SIGINT)
     finally:
         dev.kill()
         dev.wait()
@@ -182,14 +187,12 @@ def test_import_eth_matrix_writes_a_valid_log_with_the_panel(tmp_path: Path, cap
 
 def test_replay_stops_on_sigterm_while_it_waits_for_a_reader(simulated: Path, tmp_path: Path) -> None:
     """A bad-input audit: `replay --pty --wait 1e12` ignored SIGTERM until a reader came."""
-    rep = subprocess.Popen([sys.executable, "-m", "tofloc", "replay", str(simulated), "--pty", "--wait", "100000"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    rep = cli_process("replay", str(simulated), "--pty", "--wait", "100000")
     try:
         assert rep.stdout is not None
         device = rep.stdout.readline().strip()  # printed once the device exists: the wait begins
         assert device.startswith("/dev/")
-        rep.send_signal(signal.SIGTERM)
-        _, err = rep.communicate(timeout=20)
+        err = stop_with(rep, signal.SIGTERM)
     finally:
         rep.kill()
         rep.wait()

@@ -316,6 +316,35 @@ def test_a_plugin_policys_code_is_part_of_the_saved_batches_key() -> None:
         SELECTION_POLICIES.unregister(RandomSubclass.name)
 
 
+def test_editing_a_plugin_policy_changes_the_saved_batches_code_key(tmp_path, monkeypatch) -> None:
+    """The key itself: a policy in a module of its own (as a plug-in's is), edited, gives
+    another code fingerprint; the estimator alone gives the same one before and after."""
+    import importlib
+    import sys
+
+    from evaluation.result_cache import code_fingerprint, plugin_objects
+    from tofloc.registry import SELECTION_POLICIES
+
+    src = ("from dataclasses import dataclass\nfrom typing import ClassVar\nimport numpy as np\n"
+           "from tofloc.selection.base import SelectionPolicy\n\n@dataclass(frozen=True)\n"
+           "class Edited(SelectionPolicy):\n    name: ClassVar[str] = 'test_edited_policy'\n\n"
+           "    def scores(self, view, rng):\n        return {}\n")
+    mod_file = tmp_path / "tofloc_test_edited_policy.py"
+    mod_file.write_text(src.format("np.zeros(len(view.candidates))"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mod = importlib.import_module("tofloc_test_edited_policy")
+    SELECTION_POLICIES.register("test_edited_policy", mod.Edited)
+    est = NoisyPriorMean()
+    try:
+        before, alone = code_fingerprint(*plugin_objects(est, "test_edited_policy")), code_fingerprint(*plugin_objects(est))
+        mod_file.write_text(src.format("-np.arange(len(view.candidates), dtype=float)"))  # farthest -> nearest, say
+        assert code_fingerprint(*plugin_objects(est, "test_edited_policy")) != before
+        assert code_fingerprint(*plugin_objects(est)) == alone
+    finally:
+        SELECTION_POLICIES.unregister("test_edited_policy")
+        sys.modules.pop("tofloc_test_edited_policy", None)
+
+
 @dataclass(frozen=True)
 class RandomSubclass(RandomSelection):
     name: ClassVar[str] = "test_random_subclass"
