@@ -291,6 +291,7 @@ def run_estimators(
     on_progress: Callable[[int, int], None] | None = None,
     on_reused: Callable[[int, int], None] | None = None,
     selection: str = "random",
+    selection_params: Mapping[str, Any] | None = None,
 ) -> dict[str, dict[str, list[dict[str, Any]]]]:
     """Every estimator's trials on every log, in one pool, saving each finished batch.
 
@@ -313,6 +314,8 @@ def run_estimators(
         ``on_reused(reused_batches, total_batches)`` once the saved batches are read.
     selection : str
         The policy choosing each trial's samples (:class:`evaluation.trials.TrialTask`).
+    selection_params : mapping, optional
+        Its parameters that differ from its defaults (:func:`tofloc.selection.changed_policy_params`).
 
     Returns
     -------
@@ -338,6 +341,7 @@ def run_estimators(
                 "params": full_params[e.name], "tip_source": "log", "prior": prior.to_json(), "k": en.k,
                 "trials": int(trials), "seed": int(run_seed), "log_seed": en.seed,
                 **({} if selection == "random" else {"selection": selection}),
+                **({"selection_params": jsonable(selection_params)} if selection_params else {}),
             })
             if partial_dir is not None:
                 try:
@@ -363,7 +367,8 @@ def run_estimators(
         contexts[g] = en.context
         keys[g] = (en, e, key)
         seeds = en.trial_seeds(trials)
-        tasks += [TrialTask(g, e.name, e.cls, dict(e.params), TIP_SOURCE, prior, en.k, t, seeds[t], selection)
+        tasks += [TrialTask(g, e.name, e.cls, dict(e.params), TIP_SOURCE, prior, en.k, t, seeds[t], selection,
+                            selection_params=dict(selection_params or {}))
                   for t in range(trials)]
     collected: dict[str, dict[int, dict[str, Any]]] = {g: {} for g in keys}
 

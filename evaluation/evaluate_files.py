@@ -132,8 +132,8 @@ def _samples(v: Any, p: Path) -> int | str | None:
 
 
 def _changed(v: Any, p: Path, where: str) -> dict[str, Any]:
-    """An estimator's parameters that differ from its defaults: names to JSON scalars or
-    short lists (at most 200 of them)."""
+    """An estimator's (or the selection policy's) parameters that differ from its defaults:
+    names to JSON scalars or short lists (at most 200 of them)."""
     d = _mapping(v, p, where, "an object {parameter: value}")
     if len(d) > 200:
         raise FormatError(p, where, "at most 200 parameters", len(d))
@@ -202,6 +202,7 @@ def evaluate_view(doc: Mapping[str, Any], source: str | Path = "<results>") -> d
         "prior": _prior_view(prior, p),
         "samples": _samples(doc.get("samples"), p),
         "selection": None if doc.get("selection") is None else _name(doc.get("selection"), p, "selection"),
+        "selection_params": {} if doc.get("selection_params") is None else _changed(doc["selection_params"], p, "selection_params"),
         "failure": {"e_x_m": _number(failure.get("e_x_m"), p, "failure.e_x_m", positive=True, null=False),
                     "e_gamma_deg": _number(failure.get("e_gamma_deg"), p, "failure.e_gamma_deg", positive=True, null=False)},
         "summary": {e: _summary(summary[e], p, f"summary.{e}") for e in names},
@@ -346,6 +347,8 @@ def _describe(view: Mapping[str, Any], key: str) -> str:
     value = view.get(key)
     if key == "selection" and value is None:
         value = "random"  # results from before the selection was recorded (1 December 2026) ran random
+    if key == "selection" and view.get("selection_params"):
+        value = f"{value} ({', '.join(f'{k}={v}' for k, v in sorted(view['selection_params'].items()))})"
     if key == "prior" and isinstance(value, Mapping):
         return f"{value.get('mode')} ({prior_words(value)})"
     return str(value)
@@ -356,7 +359,7 @@ def _protocol(view: Mapping[str, Any], names: Sequence[str]) -> tuple[Any, ...]:
     sample selection, failure thresholds, and each estimator's changed parameters."""
     changed = view.get("changed") or {}
     return (tuple(sorted(view["prior"].items())), view.get("samples"), view.get("selection") or "random",
-            view["failure"]["e_x_m"], view["failure"]["e_gamma_deg"], tuple(repr(changed.get(e)) for e in names))
+            repr(sorted((view.get("selection_params") or {}).items())), view["failure"]["e_x_m"], view["failure"]["e_gamma_deg"], tuple(repr(changed.get(e)) for e in names))
 
 
 def pooled_lines(views: Sequence[Mapping[str, Any]], labels: Sequence[str]) -> list[str]:

@@ -227,6 +227,18 @@ def params_sentence(doc: Mapping[str, Any]) -> list[str]:
     return ["Parameters not at their defaults: " + "; ".join(parts) + " (`config.toml` beside this file lists them all)."]
 
 
+def selection_words(doc: Mapping[str, Any]) -> str:
+    """How a run's trials chose their samples, from ``results.json``'s ``selection`` and
+    ``selection_params``: "in a random order" (the protocol; also a document from before
+    the selection was recorded), or the policy and its parameters not at their defaults."""
+    name = doc.get("selection") or "random"
+    if name == "random":
+        return "in a random order"
+    params = doc.get("selection_params") or {}
+    given = ", ".join(f"{k}={v}" for k, v in sorted(params.items())) if params else "its default parameters"
+    return f"chosen one at a time by the selection policy `{name}` ({given}; docs/selection.md)"
+
+
 def prior_words(prior: Mapping[str, Any]) -> str:
     """The prior of ``results.json``'s ``prior`` record in words: its sigmas, or for the
     global prior (which has none: uniform) its support."""
@@ -251,7 +263,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     lines = [
         f"# tofloc evaluate: {len(ests)} estimator(s) on {len(logs)} log(s), {doc['trials']} trial(s) per log (seed {doc['seed']})",
         "",
-        f"Each trial: {samples} of the log in a random order, prior `{prior['mode']}` "
+        f"Each trial: {samples} of the log {selection_words(doc)}, prior `{prior['mode']}` "
         f"({prior_words(prior)}), the log's own configurations "
         f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "

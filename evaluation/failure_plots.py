@@ -77,6 +77,7 @@ def plot_failures(
     limit: int,
     *,
     selection: str = "random",
+    selection_params: Mapping[str, Any] | None = None,
     on_progress: Callable[[int, int], None] | None = None,
 ) -> list[Path]:
     """Draw up to ``limit`` failed trials of ``doc`` into ``out_dir`` (see the module doc).
@@ -96,6 +97,8 @@ def plot_failures(
         At most this many pictures (0: none).
     selection : str
         The run's selection policy.
+    selection_params : mapping, optional
+        Its parameters.
     on_progress : callable, optional
         ``on_progress(done, total)``.
 
@@ -118,7 +121,7 @@ def plot_failures(
     for i, (label, name, rec) in enumerate(todo):
         en, spec = by_label[label], by_name[name]
         task = TrialTask(batch_group(en, name), name, spec.cls, dict(spec.params), TIP_SOURCE, prior, en.k, int(rec["trial"]),
-                         int(rec["seed"]), selection)
+                         int(rec["seed"]), selection, selection_params=dict(selection_params or {}))
         out = solve_trial(en.context, task)
         same = bool(np.allclose(np.asarray(out.estimate.pose, dtype=float), np.asarray(rec["estimate"], dtype=float),
                                 rtol=0.0, atol=1e-9))

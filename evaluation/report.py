@@ -17,6 +17,7 @@ import numpy as np
 from tofloc.atomic import atomic_path
 from tofloc.plot_style import TIP_TITLES
 
+from evaluation.evaluate_report import selection_words
 from evaluation.failure_cause import count_causes
 from evaluation.metrics import json_float, summarize
 
@@ -382,6 +383,7 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "",
         "Mean ± standard deviation over every trial of every k (the paper's Table I reports the same).",
         "Tip poses from the k-NN model (k-NN) or from motion capture (mocap, the paper's OptiTrack).",
+        *([] if (doc.get("selection") or "random") == "random" else [f"Each trial's samples {selection_words(doc)}."]),
         "",
         "The sqrt(CRLB) columns: the mean over the same trials of the Cramér-Rao bound at the true pose",
         "(position m / yaw deg; evaluation/crlb.py): a bound on an unbiased estimator's RMSE with those zones "

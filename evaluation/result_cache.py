@@ -14,7 +14,7 @@ import functools
 import hashlib
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -61,6 +61,9 @@ class Batch:
     prior : PriorSpec
     selection : str
         The selection policy choosing each trial's samples (``"random"``: the protocol).
+    selection_params : dict
+        Its parameters that differ from its defaults
+        (:func:`tofloc.selection.changed_policy_params`).
     """
 
     estimator: str
@@ -69,6 +72,7 @@ class Batch:
     tip_source: str
     prior: PriorSpec
     selection: str = "random"
+    selection_params: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def group(self) -> str:
@@ -273,6 +277,8 @@ def run_batches(
         }
         if b.selection != "random":  # random keeps the keys batches were saved under before policies existed
             key_fields["selection"] = b.selection
+        if b.selection_params:  # idem before a policy's parameters could be set
+            key_fields["selection_params"] = jsonable(b.selection_params)
         if design != "independent":  # idem before designs existed
             key_fields["design"] = design
         key = fingerprint_arrays(extra=key_fields)
@@ -294,7 +300,7 @@ def run_batches(
     tasks: list[TrialTask] = []
     for b, _ in todo:
         tasks += make_tasks(b.group, b.estimator, b.estimator_cls, b.params, b.tip_source, b.prior, k_values, trials, seed,
-                            b.selection, design)
+                            b.selection, design, b.selection_params)
     position = {int(k): i for i, k in enumerate(k_values)}
     expected = len(k_values) * trials
     collected: dict[str, dict[int, dict[str, Any]]] = {b.group: {} for b, _ in todo}

@@ -131,8 +131,10 @@ def choose_samples(policy: SelectionPolicy, estimator: Estimator, candidates: An
 
 
 def choose_sequentially(context: Any, task: Any, estimator: Estimator, prior: Prior, calibration: Any) -> SequentialChoice:
-    """A trial's samples chosen by its policy (``task.selection``) among the context's pool."""
+    """A trial's samples chosen by its policy (``task.selection``, with ``task.selection_params``)
+    among the context's pool."""
     candidates = problem_from_log(context.log, context.pool.indices, context.map, prior, task.tip_source,
                                   context.kinematics, calibration, context.valid_statuses,
                                   context.map_tolerance_m)
-    return choose_samples(make_policy(task.selection), estimator, candidates, prior, task.k, task.seed)
+    policy = make_policy(task.selection, task.selection_params)
+    return choose_samples(policy, estimator, candidates, prior, task.k, task.seed)

@@ -342,6 +342,8 @@ class TrialTask:
         Empty: one trial with ``k`` samples. Otherwise a nested trial (the module doc):
         ``k`` is the largest of them, and the task answers with one record per prefix
         (:func:`run_trial`).
+    selection_params : dict
+        The selection policy's parameters (its defaults where not given).
     """
 
     group: str
@@ -355,6 +357,7 @@ class TrialTask:
     seed: int
     selection: str = "random"
     prefixes: tuple[int, ...] = ()
+    selection_params: Mapping[str, Any] = field(default_factory=dict)
 
 
 #: How the trials of different k relate (the module doc, "Designs").
@@ -787,10 +790,11 @@ def make_tasks(
     seed: int,
     selection: str = "random",
     design: str = "independent",
+    selection_params: Mapping[str, Any] | None = None,
 ) -> list[TrialTask]:
     """The tasks of one batch: every ``k`` in ``k_values`` times ``trials`` trials, samples
-    chosen by the policy ``selection``; with ``design="nested"`` one task per trial that
-    answers every k (the module doc, "Designs")."""
+    chosen by the policy ``selection`` (with ``selection_params``); with ``design="nested"``
+    one task per trial that answers every k (the module doc, "Designs")."""
     if not isinstance(trials, int) or trials < 1:
         raise ParameterError(f"trials must be an integer >= 1, got {trials!r}")
     if design not in DESIGNS:
@@ -804,7 +808,7 @@ def make_tasks(
                           trial_seed(seed, ks[-1], t), selection, ks) for t in range(trials)]
     return [
         TrialTask(group, estimator, estimator_cls, dict(params), tip_source, prior, int(k), t, trial_seed(seed, int(k), t),
-                  selection)
+                  selection, selection_params=dict(selection_params or {}))
         for k in k_values
         for t in range(trials)
     ]

@@ -1213,3 +1213,26 @@ def test_a_nan_answer_is_an_undefined_trial_in_every_output(logs: list[Path], tm
     assert code == 0
     out = capsys.readouterr().out
     assert "n/a" in out
+
+
+def test_a_selection_policys_parameters_are_run_recorded_and_keyed(logs: list[Path], tmp_path: Path, capsys) -> None:
+    """`--selection active --selection-param particles=4`: recorded in results.json (the
+    parameters not at their defaults) and table.md, and part of the saved batches' key: the
+    default given explicitly reruns the batch (another key), the same parameter again reuses it."""
+    out = tmp_path / "out"
+    base = ["evaluate", str(logs[0]), "--estimators", "icp_pf", "--trials", "1", "--samples", "2", "--out", str(out), *FEW,
+            "--selection", "active"]
+    assert main([*base, "--selection-param", "particles=4"]) == 0
+    assert "reused" not in capsys.readouterr().err
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["selection"] == "active" and doc["selection_params"] == {"particles": 4}
+    (rec,) = next(iter(doc["logs"].values()))["estimators"]["icp_pf"]["records"]
+    assert rec["selection"]["policy"] == "active" and len(rec["sample_indices"]) == 2
+    assert "chosen one at a time by the selection policy `active` (particles=4; docs/selection.md)" in (out / "table.md").read_text()
+    assert main([*base, "--selection-param", "particles=16"]) == 0  # the default: the run without the option
+    assert "reused" not in capsys.readouterr().err
+    doc = json.loads((out / "results.json").read_text())
+    assert "selection_params" not in doc
+    assert "selection policy `active` (its default parameters;" in (out / "table.md").read_text()
+    assert main(base) == 0
+    assert "reused 1 saved (log, estimator) batch" in capsys.readouterr().err

@@ -24,6 +24,7 @@ from tofloc.problem_builder import problem_from_log
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import Rig, Sensor
 from tofloc.selection import Posterior, Postures, SelectionInput, make_policy, policy_names
+from tofloc.selection.base import SelectionPolicy
 from tofloc.selection.random_policy import RandomSelection
 
 FLAT = RangeUncertainty(sigma_slope=0.0, sigma_floor=0.01, edge_factor=1.0)
@@ -196,7 +197,7 @@ def test_tofloc_list_shows_the_policies(capsys) -> None:
     assert main(["list", "--params", "active"]) == 0  # a plug-in audit: "no estimator or sensor model named 'active'"
     out = capsys.readouterr().out
     assert "selection policy active (tofloc.selection.active.ActiveSelection)" in out and "particles" in out
-    assert "runs with these defaults" in out
+    assert "--selection active --selection-param KEY=VALUE" in out
 
 
 @dataclass(frozen=True)
@@ -348,3 +349,95 @@ def test_editing_a_plugin_policy_changes_the_saved_batches_code_key(tmp_path, mo
 @dataclass(frozen=True)
 class RandomSubclass(RandomSelection):
     name: ClassVar[str] = "test_random_subclass"
+
+
+@dataclass(frozen=True)
+class Ordered(SelectionPolicy):
+    """The candidates in the pool's order, or the reverse one."""
+
+    name: ClassVar[str] = "test_ordered"
+    uses_posterior: ClassVar[bool] = False
+    last_first: bool = False
+
+    def scores(self, view: SelectionInput, rng: np.random.Generator) -> np.ndarray:
+        order = np.arange(len(view.candidates), dtype=float)
+        return order if self.last_first else -order
+
+
+def test_a_policys_parameters_reach_its_choices() -> None:
+    """``selection_params`` go from the task to the policy that chooses the samples: the
+    same trial takes the pool's first postures or its last ones as the parameter says."""
+    from tofloc.registry import SELECTION_POLICIES
+    from tofloc.selection import changed_policy_params
+
+    SELECTION_POLICIES.register(Ordered.name, Ordered)
+    try:
+        assert changed_policy_params(Ordered.name, None) == {} == changed_policy_params(Ordered.name, {"last_first": False})
+        assert changed_policy_params(Ordered.name, {"last_first": True}) == {"last_first": True}
+        log, m = _wall_log(), _two_walls()
+        pool = sample_pool(log, None, 3)
+        ctx = TrialContext(log, m, pool)
+        chosen = {}
+        for params in (None, {"last_first": True}):
+            task = make_tasks("g", NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("paper"), [3], 1, 0,
+                              Ordered.name, selection_params=params)[0]
+            chosen[bool(params)] = run_trial(ctx, task)["sample_indices"]
+        assert chosen[False] == pool.indices[:3].tolist()
+        assert chosen[True] == pool.indices[::-1][:3].tolist()
+        with pytest.raises(ParameterError, match="has no parameter 'first'"):
+            changed_policy_params(Ordered.name, {"first": 1})
+    finally:
+        SELECTION_POLICIES.unregister(Ordered.name)
+
+
+@pytest.mark.parametrize("command", [
+    ["paper", "--estimators", "beam_pf", "--trials", "1"],
+    ["localize", "LOG", "--estimator", "beam_pf"],
+    ["evaluate", "LOG", "--estimators", "beam_pf", "--out", "OUT"],
+    ["scenes", "--estimators", "beam_pf", "--out", "OUT"],
+])
+@pytest.mark.parametrize("selection, items, message", [
+    ("active", ["bogus=1"], "selection policy 'active' has no parameter 'bogus'; its parameters: particles"),
+    ("active", ["particles=0"], "active.particles must be an integer in [1, 4096], got 0"),
+    ("random", ["particles=4"], "selection policy 'random' has no parameter 'particles'"),
+    ("active", ["particles"], "--selection-param expects key=value"),
+    ("active", ["particles=4", "particles=5"], "--selection-param particles given twice"),
+])
+def test_a_bad_selection_parameter_is_refused_before_any_work(command, selection, items, message, tmp_path, capsys) -> None:
+    from tofloc.cli import main
+
+    args = [str(tmp_path / a) if a in ("LOG", "OUT") else a for a in command]
+    if command[0] == "paper":
+        args += ["--out", str(tmp_path / "paper")]
+    args += ["--selection", selection]
+    for item in items:
+        args += ["--selection-param", item]
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "paper").exists() and not (tmp_path / "OUT").exists()
+
+
+def test_a_policys_parameters_are_in_the_saved_batches_key(tmp_path) -> None:
+    """The paper's saved batches (evaluation.result_cache.run_batches): a batch run with other
+    selection parameters is run again, with the choices they make; the same ones reuse it."""
+    from evaluation.result_cache import Batch, run_batches
+    from tofloc.registry import SELECTION_POLICIES
+
+    SELECTION_POLICIES.register(Ordered.name, Ordered)
+    try:
+        log, m = _wall_log(), _two_walls()
+        pool = sample_pool(log, None, 3)
+        ctx = TrialContext(log, m, pool)
+        reused = []
+
+        def run(params: dict) -> list[int]:
+            b = Batch(NoisyPriorMean.name, NoisyPriorMean, {}, "mocap", PriorSpec("paper"), Ordered.name, params)
+            out = run_batches(ctx, [b], [3], 1, 0, partial_dir=tmp_path, on_batch=lambda _b, _r, was: reused.append(was))
+            return out[b.group][0]["sample_indices"]
+
+        assert run({}) == pool.indices[:3].tolist()
+        assert run({"last_first": True}) == pool.indices[::-1][:3].tolist()
+        assert run({"last_first": True}) == pool.indices[::-1][:3].tolist()
+        assert reused == [False, False, True]
+    finally:
+        SELECTION_POLICIES.unregister(Ordered.name)

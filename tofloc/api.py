@@ -262,13 +262,16 @@ def _check_statuses(valid_statuses: Any) -> frozenset[int]:
     return frozenset(int(v) for v in values)
 
 
-def check_selection(name: str) -> str:
-    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`).
+def check_selection(name: str, params: Mapping[str, Any] | None = None) -> str:
+    """``name`` when it is a registered selection policy (:data:`tofloc.registry.SELECTION_POLICIES`)
+    that takes ``params``.
 
     Parameters
     ----------
     name : str
         ``"random"`` (the paper's protocol), ``"active"`` or a plug-in's name.
+    params : mapping, optional
+        The policy's parameters (``tofloc list --params NAME``); None: its defaults.
 
     Returns
     -------
@@ -278,7 +281,8 @@ def check_selection(name: str) -> str:
     Raises
     ------
     ParameterError
-        Not a registered policy (the message names the available ones).
+        Not a registered policy (the message names the available ones), or a parameter it
+        does not take or refuses.
     PluginError
         The policy's plug-in cannot be loaded.
     """
@@ -286,7 +290,9 @@ def check_selection(name: str) -> str:
 
     if not isinstance(name, str) or name not in policy_names():
         raise ParameterError(f"selection must be one of {', '.join(policy_names())}, got {name!r}")
-    make_policy(name)  # loads and checks the plug-in now
+    if params is not None and not isinstance(params, Mapping):
+        raise ParameterError(f"selection_params must be a mapping of the policy's parameters, got {params!r}")
+    make_policy(name, params)  # loads and checks the plug-in and its parameters now
     return name
 
 
@@ -739,6 +745,7 @@ def localize(
     plot: str | os.PathLike[str] | None = None,
     selection: str = "random",
     map_tolerance_m: float = 0.0,
+    selection_params: Mapping[str, Any] | None = None,
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -774,6 +781,9 @@ def localize(
     selection : str
         How each trial's samples are chosen (:func:`check_selection`): ``"random"`` (the
         protocol) or ``"active"`` (in turn, :mod:`evaluation.sequential_selection`).
+    selection_params : mapping, optional
+        The policy's parameters (its defaults where not given); those that differ from
+        its defaults are recorded as ``selection_params``.
     map_tolerance_m : float
         The map's declared face tolerance (m, one sigma; 0: exact): given to every problem
         (:attr:`tofloc.problem.Problem.map_tolerance_m`, the smoother's covariance) and to
@@ -798,6 +808,7 @@ def localize(
         Fewer usable samples than a trial needs.
     """
     from evaluation.executors import run_tasks
+    from tofloc.selection import changed_policy_params
     from evaluation.priors import PriorSpec
     from evaluation.report import summarize_trials
     from evaluation.trials import SEED_DERIVATION, TIP_SOURCES, TrialContext, jsonable, make_tasks, sample_pool
@@ -827,7 +838,8 @@ def localize(
 
         check_figure_path(plot, "plot")  # before the trials, not after them
     est = estimator(estimator_name, params)
-    check_selection(selection)
+    check_selection(selection, selection_params)
+    selection_changed = changed_policy_params(selection, selection_params)
     full_params = jsonable(est.get_params())
     cal = load_calibration(calibration)
     for message in footprint_mismatches({estimator_name: est}, cal):
@@ -874,7 +886,7 @@ def localize(
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal, map_tolerance_m=map_tolerance_m)
     tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
-                       selection)
+                       selection, selection_params=selection_changed)
     reporter.note(f"samples: {pool.note}")
     n_workers = 1 if scheduler else resolve_workers(workers, len(tasks))
     done = [0]
@@ -905,6 +917,7 @@ def localize(
         "configuration_source": "knn" if tip_source == "knn" else getattr(lg, "configuration_source", None),
         "samples": int(k),
         "selection": selection,
+        **({"selection_params": selection_changed} if selection_changed else {}),
         "prior": prior.to_json(),
         "trials": records,
         "summary": summary,
@@ -972,6 +985,7 @@ def paper(
     reporter: Reporter = _SILENT,
     selection: str = "random",
     design: str | None = None,
+    selection_params: Mapping[str, Any] | None = None,
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
     prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out`` (what
@@ -1030,6 +1044,9 @@ def paper(
     selection : str
         The policy choosing each trial's samples (:func:`check_selection`; ``"active"``: in
         turn, :mod:`evaluation.sequential_selection`), recorded as ``results.json``'s ``selection``.
+    selection_params : mapping, optional
+        The policy's parameters (its defaults where not given); those that differ from its
+        defaults are recorded as ``results.json``'s ``selection_params``.
     design : {"nested", "independent"}, optional
         How the trials of different k relate (:mod:`evaluation.trials`, "Designs"):
         ``"nested"`` (the default with random selection: each trial draws ``max(k)``
@@ -1101,7 +1118,10 @@ def paper(
     if calibrate is not None and calibration is not None:
         raise ParameterError("give either a calibration or calibrate=True/False, not both: calibrate=False runs the "
                              "datasheet's model, a calibration applies the file's")
-    check_selection(selection)
+    check_selection(selection, selection_params)
+    from tofloc.selection import changed_policy_params
+
+    selection_changed = changed_policy_params(selection, selection_params)
     if design is None:
         design = "nested" if selection == "random" else "independent"
     if design not in DESIGNS:
@@ -1149,7 +1169,7 @@ def paper(
         reporter.note(f"samples: {pool.note}")
         context = TrialContext(data.log, data.map, pool, data.kinematics, calibration=cal,
                                map_tolerance_m=data.map_tolerance_m, footprint_calibrations=footprint_cals)
-        batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection)
+        batches = [Batch(n, type(ests[n]), per_est[n], tip, prior, selection, selection_changed)
                    for n in names for tip in tips for prior in priors]
         n_tasks = len(batches) * (1 if design == "nested" else len(k_values)) * trials
         n_workers = 1 if scheduler else resolve_workers(workers, n_tasks)
@@ -1172,6 +1192,7 @@ def paper(
                           "specs": {p.mode: p.to_json() for p in priors}},
                 "tip_sources": tips,
                 "selection": selection,
+                **({"selection_params": selection_changed} if selection_changed else {}),
                 "design": design,
                 "k_values": k_values,
                 "scenario": scenario,
@@ -1258,6 +1279,7 @@ def scenes(
     reporter: Reporter = _SILENT,
     selection: str = "random",
     random_scenes: int = 0,
+    selection_params: Mapping[str, Any] | None = None,
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
@@ -1303,7 +1325,7 @@ def scenes(
         A Dask scheduler's address (``tcp://HOST:PORT``) to run the trials on.
     reporter : Reporter
         Gets a note per scene and what :func:`paper` reports.
-    selection : str
+    selection, selection_params
         As :func:`paper` (recorded in ``scenes.json``).
     random_scenes : int
         Also run this many random rooms (0 to
@@ -1358,7 +1380,10 @@ def scenes(
 
     check_scheduler(scheduler)
     resolve_workers(workers, 1)
-    check_selection(selection)
+    check_selection(selection, selection_params)
+    from tofloc.selection import changed_policy_params
+
+    selection_changed = changed_policy_params(selection, selection_params)
     from tofloc.simulation.random_scenes import random_scene
     from tofloc.simulation.scenario import load_scenario, scenario_from_dict
 
@@ -1388,7 +1413,8 @@ def scenes(
             run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scenario,
                         params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
                         k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
-                        workers=workers, scheduler=scheduler, reporter=reporter, selection=selection)
+                        workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
+                        selection_params=selection_changed)
             for est in estimators:
                 g = run.document["results"][est][tip_source][prior_mode]["per_k"][str(k)]
                 crlb = g.get("crlb") or {}
@@ -1406,6 +1432,7 @@ def scenes(
                 rows.append(row)
         doc = {"estimators": list(estimators), "scenes": [scene for scene, _ in runs], "rig_variant": rig_variant, "k": k,
                "trials": trials, "seed": seed, "tip_source": tip_source, "prior_mode": prior_mode, "selection": selection,
+               **({"selection_params": selection_changed} if selection_changed else {}),
                "random_scenes": {"n": random_scenes, "seed": seed, "files": [str(p) for p in random_files],
                                  "descriptions": [d["scenario"]["description"] for d in drawn]},
                "rows": rows, "provenance": provenance()}
@@ -1614,6 +1641,7 @@ def evaluate(
     plot_failures: int = 0,
     estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     set_aside_unusable: bool = False,
+    selection_params: Mapping[str, Any] | None = None,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor, each estimator's target checked at every estimator's answer where
@@ -1656,6 +1684,9 @@ def evaluate(
     reporter : Reporter
     selection : str
         How each trial's samples are chosen among the log's (:func:`check_selection`).
+    selection_params : mapping, optional
+        The policy's parameters (its defaults where not given); those that differ from its
+        defaults are recorded as ``results.json``'s ``selection_params``.
     plot_failures : int
         Draw at most this many failed trials, each solved again from its seed
         (:mod:`evaluation.failure_plots`; 0: none).
@@ -1729,7 +1760,10 @@ def evaluate(
     samples = None if samples is None else int(samples)
     prior = PriorSpec(prior_mode, prior_sigma_xy, prior_sigma_yaw_deg, region=region)
     valid_statuses = _check_statuses(valid_statuses)
-    check_selection(selection)
+    check_selection(selection, selection_params)
+    from tofloc.selection import changed_policy_params
+
+    selection_changed = changed_policy_params(selection, selection_params)
     per_est, ests = _estimators(names, params, estimator_params)
     specs = [EstimatorSpec(n, type(ests[n]), dict(per_est[n])) for n in names]
     cal = load_calibration(calibration)
@@ -1756,7 +1790,7 @@ def evaluate(
         records = run_estimators(
             entries, specs, trials=trials, prior=prior, run_seed=seed, workers=n_workers, scheduler=scheduler,
             partial_dir=out_dir / "partial", on_progress=lambda d, t: reporter.progress(d, t, label),
-            selection=selection,
+            selection=selection, selection_params=selection_changed,
             on_reused=lambda r, t: reporter.note(f"reused {r} saved (log, estimator) batch{'es' if r != 1 else ''} of the run's {t}") if r else None,
         )
         if selection == "random" and len(names) > 1:  # every estimator's target at every answer
@@ -1774,6 +1808,7 @@ def evaluate(
                 "calibration": None if cal is None else cal.source,
                 "valid_statuses": sorted(valid_statuses),
                 "selection": selection,
+                **({"selection_params": selection_changed} if selection_changed else {}),
                 "set_aside": set_aside or {},
                 "wall_time_s": round(time.perf_counter() - t0, 3),
                 "provenance": provenance(),
@@ -1793,7 +1828,7 @@ def evaluate(
             ("errors_by_log.png", lambda p: plot_errors_by_log(doc, p)),
             ("trials.csv", lambda p: write_trials_csv(evaluate_rows(doc), p, EVALUATE_COLUMNS)),
             ("failures", (lambda p: draw_failures(entries, specs, doc, prior, p, plot_failures, selection=selection,
-                                                  on_progress=lambda d, t: reporter.progress(d, t, "failure plots")))
+                                                  selection_params=selection_changed, on_progress=lambda d, t: reporter.progress(d, t, "failure plots")))
              if plot_failures else None),
         ], picture_folder="failures")
         return EvaluateResult(doc, paths)

@@ -22,11 +22,13 @@ from rich.table import Table
 from tofloc.cli.app import RichReporter, app, console, err_console
 from tofloc.cli.options import (
     REGION_HELP,
+    SELECTION_PARAM_HELP,
     estimator_params,
     parse_prior_mode,
     parse_region_option,
     parse_samples,
     parse_statuses,
+    selection_option,
 )
 from tofloc.errors import ParameterError
 
@@ -59,6 +61,7 @@ def evaluate(
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
                                   "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
                                   "a plug-in policy's name (tofloc list)."),
+    selection_param: Optional[list[str]] = typer.Option(None, "--selection-param", help=SELECTION_PARAM_HELP),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core; 1 = inline)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
     seed: int = typer.Option(0, "--seed", help="Seed of the trials (each log's trials depend on it and the log's name)."),
@@ -97,7 +100,7 @@ def evaluate(
     per_estimator, notes = estimator_params(config, names, param)
     for n in names:  # unknown names and parameters: refused before any log is read
         api.estimator(n, per_estimator[n])
-    api.check_selection(selection)
+    selection_params = selection_option(selection, selection_param)
     for note in notes:
         err_console.print(f"note: {note}", highlight=False, markup=False)
     with RichReporter() as reporter:
@@ -106,7 +109,7 @@ def evaluate(
             prior_sigma_yaw_deg=prior_sigma_yaw_deg, region=rect, calibration=calibration, estimator_params=per_estimator,
             valid_statuses=statuses,
             seed=seed, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
-            plot_failures=plot_failures, set_aside_unusable=set_aside_unusable,
+            selection_params=selection_params, plot_failures=plot_failures, set_aside_unusable=set_aside_unusable,
         )
     console.print(summary_table(run.document))
     for line in (interval_line(run.document), detection_line(run.document), cross_check_line(run.document)):

@@ -75,5 +75,5 @@ def _print_params(name: str) -> None:
                           f"--param sensor_model__KEY=VALUE or [estimators.{name}.sensor_model_params] in --config)",
                           highlight=False, markup=False)
         if kind == "selection policy":
-            console.print("a selection policy runs with these defaults: --selection takes its name only "
-                          "(docs/selection.md)", highlight=False, markup=False)
+            console.print(f"set them with --selection {name} --selection-param KEY=VALUE (localize, evaluate, paper, "
+                          "scenes; docs/selection.md)", highlight=False, markup=False)

@@ -20,12 +20,14 @@ from rich.table import Table
 from tofloc.cli.app import RichReporter, app, console, err_console
 from tofloc.cli.options import (
     REGION_HELP,
+    SELECTION_PARAM_HELP,
     estimator_params,
     parse_prior_mode,
     parse_region_option,
     parse_samples,
     parse_statuses,
     require_finite,
+    selection_option,
 )
 from tofloc.errors import ParameterError
 
@@ -38,7 +40,8 @@ LIVE_ONLY = {"baud": "--baud", "fmt": "--format", "rig_path": "--rig", "window":
              "journal": "--journal", "out": "--out", "timeout": "--timeout"}
 OFFLINE_ONLY = {"log_path": "LOG", "samples": "--samples", "trials": "--trials", "tip_source": "--tip-source",
                 "prior_mode": "--prior-mode", "region": "--region", "json_out": "--json", "workers": "--workers",
-                "scheduler": "--scheduler", "selection": "--selection", "map_tolerance": "--map-tolerance"}
+                "scheduler": "--scheduler", "selection": "--selection", "selection_param": "--selection-param",
+                "map_tolerance": "--map-tolerance"}
 
 
 def _given(ctx: typer.Context, names: dict[str, str]) -> list[str]:
@@ -100,6 +103,7 @@ def localize(
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
                                   "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
                                   "a plug-in policy's name (tofloc list)."),
+    selection_param: Optional[list[str]] = typer.Option(None, "--selection-param", help=SELECTION_PARAM_HELP),
     calibration: Optional[Path] = typer.Option(
         None, "--calibration", metavar="MODEL.toml",
         help=escape("A calibration (`tofloc calibrate` output): the rig's [mounting], the [uncertainty] range model and "
@@ -208,7 +212,7 @@ def localize(
     if tip_source == "knn" and kinematics is None:
         raise ParameterError("--tip-source knn needs --kinematics MODEL (fit one with `tofloc kinematics fit`)")
     api.estimator(estimator, params)  # a bad name or parameter fails before any file is read
-    api.check_selection(selection)
+    selection_params = selection_option(selection, selection_param)
     from evaluation.executors import check_scheduler
 
     check_scheduler(scheduler)  # a malformed address too
@@ -224,7 +228,7 @@ def localize(
             log, estimator, params=params, map=map_path, surface=surface_path, calibration=calibration, samples=k_asked,
             trials=trials, seed=seed, tip_source=tip_source, kinematics=kinematics, prior=prior, valid_statuses=statuses,
             workers=workers, scheduler=scheduler, reporter=reporter, plot=plot, selection=selection,
-            map_tolerance_m=map_tolerance,
+            selection_params=selection_params, map_tolerance_m=map_tolerance,
         )
     doc = result.document
     from evaluation.trials import jsonable

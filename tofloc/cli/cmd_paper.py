@@ -23,7 +23,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import REGION_HELP, estimator_params, parse_region_option, require_finite
+from tofloc.cli.options import (
+    REGION_HELP,
+    SELECTION_PARAM_HELP,
+    estimator_params,
+    parse_region_option,
+    require_finite,
+    selection_option,
+)
 from tofloc.errors import ParameterError
 
 __all__ = ["paper"]
@@ -67,6 +74,7 @@ def paper(
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random (the paper's "
                                   "protocol), active (in turn, the most informative posture next; docs/selection.md) or "
                                   "a plug-in policy's name (tofloc list)."),
+    selection_param: Optional[list[str]] = typer.Option(None, "--selection-param", help=SELECTION_PARAM_HELP),
     design: Optional[str] = typer.Option(
         None, "--design", help="How the trials of different k relate: nested (each trial draws max(k) samples and a prior "
         "once; the trial with k samples uses the first k, and a particle filter answers every k from one pass) or "
@@ -121,6 +129,7 @@ def paper(
                              f"got --selection {selection}")
     if rig_variant is not None and rig_variant not in ("exact", "perturbed"):
         raise ParameterError(f"--rig-variant must be exact or perturbed, got {rig_variant!r}")
+    selection_params = selection_option(selection, selection_param)
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out {out} exists and is not a folder")
     per_estimator, notes = estimator_params(config, names, param)
@@ -132,7 +141,7 @@ def paper(
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
             calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
             prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
-            design=design,
+            design=design, selection_params=selection_params,
         )
     _print(run.document)
     for p in run.paths:

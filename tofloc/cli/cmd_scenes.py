@@ -11,7 +11,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from tofloc.cli.app import RichReporter, app, console, err_console
-from tofloc.cli.options import REGION_HELP, estimator_params, parse_prior_mode, parse_region_option
+from tofloc.cli.options import (
+    REGION_HELP,
+    SELECTION_PARAM_HELP,
+    estimator_params,
+    parse_prior_mode,
+    parse_region_option,
+    selection_option,
+)
 from tofloc.errors import ParameterError
 
 __all__ = ["scenes"]
@@ -35,6 +42,7 @@ def scenes(
     region: Optional[str] = typer.Option(None, "--region", metavar="XMIN,XMAX,YMIN,YMAX",
                                          help=REGION_HELP + " The same rectangle for every scene."),
     selection: str = typer.Option("random", "--selection", help="How each trial's samples are chosen: random, active or a plug-in policy's name (tofloc list)."),
+    selection_param: Optional[list[str]] = typer.Option(None, "--selection-param", help=SELECTION_PARAM_HELP),
     param: Optional[list[str]] = typer.Option(
         None, "--param", help="Parameter key=value given to every estimator; overrides the same key of --config."),
     config: Optional[Path] = typer.Option(
@@ -73,6 +81,7 @@ def scenes(
         raise ParameterError(f"--scene {', '.join(repeated)} is given more than once: expected each scene once")
     prior_mode = parse_prior_mode(prior_mode)
     rect = parse_region_option(region, [prior_mode])
+    selection_params = selection_option(selection, selection_param)
     per_estimator, notes = estimator_params(config, names, param)
     for note in notes:
         err_console.print(f"note: {note}", highlight=False, markup=False)
@@ -80,7 +89,8 @@ def scenes(
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
                          tip_source=tip_source, prior_mode=prior_mode, region=rect, estimator_params=per_estimator,
                          calibrate=calibrate,
-                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection, random_scenes=random)
+                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection, random_scenes=random,
+                         selection_params=selection_params)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
     for col in ("scene", "estimator", "e_x mm", "ratio", "e_γ deg", "ratio", "NEES"):
         t.add_column(col, justify="right")

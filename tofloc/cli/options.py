@@ -41,13 +41,14 @@ def parse_region_option(text: str | None, modes: Sequence[str]) -> tuple[float, 
     return parse_region(text)
 
 
-def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
+def parse_params(items: Sequence[str] | None, option: str = "--param") -> dict[str, Any]:
     """``["key=value", ...]`` -> dict; values are JSON when they parse (``100``, ``0.5``,
     ``true``, ``{"a": 1}``), strings otherwise. ``model__key=value`` (scikit-learn's nested
     form) sets ``key`` inside the ``model_params`` mapping (``sensor_model__temper=0.5``
     is ``sensor_model_params={"temper": 0.5}``), at any depth (``a__b__c=1`` is
     ``a_params={"b_params": {"c": 1}}``). Names are checked against the estimators by
-    :func:`tofloc.estimator_config.resolve_params`.
+    :func:`tofloc.estimator_config.resolve_params`. ``option`` names the option in the
+    messages (``--selection-param`` parses the same way).
 
     Raises
     ------
@@ -60,24 +61,40 @@ def parse_params(items: Sequence[str] | None) -> dict[str, Any]:
         key, sep, raw = item.partition("=")
         key = key.strip()
         if not sep or not all(part.isidentifier() for part in key.split("__")):
-            raise ParameterError(f"--param expects key=value (or owner__key=value) with Python identifiers, got {item!r}")
+            raise ParameterError(f"{option} expects key=value (or owner__key=value) with Python identifiers, got {item!r}")
         try:
             value = json.loads(raw)
         except ValueError:
             value = raw
         if isinstance(value, float) and not math.isfinite(value):
-            raise ParameterError(f"--param {key}: expected a finite number, got {raw!r}")
+            raise ParameterError(f"{option} {key}: expected a finite number, got {raw!r}")
         *owners, last = key.split("__")
         table = out
         for depth, owner in enumerate(owners):
             nested = table.setdefault(f"{owner}_params", {})
             if not isinstance(nested, dict):
-                raise ParameterError(f"--param {key}: {'__'.join(owners[:depth + 1])}_params is given as a whole too")
+                raise ParameterError(f"{option} {key}: {'__'.join(owners[:depth + 1])}_params is given as a whole too")
             table = nested
         if last in table:
-            raise ParameterError(f"--param {key} given twice")
+            raise ParameterError(f"{option} {key} given twice")
         table[last] = value
     return out
+
+
+#: ``--selection-param``'s help, the same for every command that takes ``--selection``.
+SELECTION_PARAM_HELP = ("A parameter key=value of the --selection policy (repeatable; `tofloc list --params NAME` lists "
+                        "them, e.g. particles=32 for active); those that differ from its defaults are recorded as "
+                        "selection_params.")
+
+
+def selection_option(selection: str, items: Sequence[str] | None) -> dict[str, Any]:
+    """``--selection-param`` items parsed (:func:`parse_params`) and checked with the policy
+    ``selection`` (:func:`tofloc.api.check_selection`) before any file is read."""
+    from tofloc import api
+
+    params = parse_params(items, option="--selection-param")
+    api.check_selection(selection, params)
+    return params
 
 
 def parse_statuses(text: str) -> frozenset[int]:

@@ -13,7 +13,7 @@ from typing import Any, Mapping
 
 from tofloc.selection.base import Posterior, Postures, SelectionInput, SelectionPolicy
 
-__all__ = ["Posterior", "Postures", "SelectionInput", "SelectionPolicy", "make_policy", "policy_names"]
+__all__ = ["Posterior", "Postures", "SelectionInput", "SelectionPolicy", "changed_policy_params", "make_policy", "policy_names"]
 
 
 def policy_names() -> list[str]:
@@ -30,3 +30,21 @@ def make_policy(name: str, params: Mapping[str, Any] | None = None) -> Selection
     from tofloc.registry import SELECTION_POLICIES
 
     return build_plugin(SELECTION_POLICIES.load(name), params, kind="selection policy", name=name)
+
+
+def changed_policy_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The parameters of policy ``name`` built with ``params`` that differ from its
+    defaults, as JSON values (``{}`` when it runs with its defaults): what identifies a
+    run's selection beside its name (the key of saved batches, a protocol's identity in
+    comparisons), so that a default given explicitly is the run without it.
+
+    Raises
+    ------
+    tofloc.errors.ParameterError
+        A parameter the policy does not take or refuses.
+    """
+    from evaluation.trials import jsonable
+
+    full = jsonable(make_policy(name, params).get_params())
+    defaults = jsonable(make_policy(name).get_params())
+    return {k: v for k, v in sorted(full.items()) if defaults.get(k, object()) != v}
