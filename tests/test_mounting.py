@@ -15,7 +15,7 @@ from sensor_models.likelihood_field import LikelihoodFieldModel
 from tofloc import frames
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import ParameterError
-from tofloc.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor, rig_with_mounting
+from tofloc.mounting import check_sensor_mounting, correction_matrices, corrected_T_tip_sensor, mounting_errors, rig_with_mounting
 from tofloc.problem import NuisancePriors
 from tofloc.problem_builder import build_problem, nuisance_priors
 from tofloc.range_model import RangeUncertainty
@@ -103,8 +103,7 @@ def test_mounting_fit_recovers_each_sensor() -> None:
     brings every sensor's orientation closer to the truth than the support's rotation alone."""
     from sensor_models.calibration import collect_zones, fit_em, fit_mounting, fit_support_yaw
     from tofloc.maps import Map
-    from tofloc.simulation import load_scenario, simulate
-    from tofloc.simulation.tof import build_rig
+    from tofloc.simulation import load_scenario, simulate, true_rig
 
     sc = load_scenario("paper")
     sc = dataclasses.replace(
@@ -115,19 +114,16 @@ def test_mounting_fit_recovers_each_sensor() -> None:
         protocol=dataclasses.replace(sc.protocol, pressure_step=2.5),
     )
     sim = simulate(sc, seed=5)
-    true = build_rig(sc.rig, sim.log.rig.actuators, [np.random.default_rng(s) for s in np.random.SeedSequence(5).spawn(6)][5])
+    true = true_rig(sim.log.source, sc)
+    assert np.array_equal(true.T_tip_sensor, sim.rig_true.T_tip_sensor)  # rebuilt from the log's source
     mesh = Map.cuboid(size=sc.environment.size, origin=sc.environment.origin, open_faces=sc.environment.open_faces)
     pairs = [(sim.log, mesh)]
     psi = fit_support_yaw(pairs, footprint=1, bound_deg=10.0, step_deg=2.0, max_samples=80).support_yaw_deg
     em = fit_em(collect_zones(sim.log, mesh, footprint=1, support_yaw=math.radians(psi)))
     fit = fit_mounting(pairs, em.uncertainty, support_yaw_deg=psi, footprint=1, max_samples=120)
 
-    def rot_err(T):
-        return np.array([math.degrees(np.linalg.norm(frames.rotvec_from_matrix(T[i, :3, :3].T @ true.T_tip_sensor[i, :3, :3])))
-                         for i in range(3)])
-
-    before = rot_err(corrected_T_tip_sensor(sim.log.rig, psi))
-    after = rot_err(corrected_T_tip_sensor(sim.log.rig, psi, fit.sensor_mounting))
+    before = mounting_errors(rig_with_mounting(sim.log.rig, psi), true.T_tip_sensor).rotation_deg
+    after = mounting_errors(rig_with_mounting(sim.log.rig, psi, fit.sensor_mounting), true.T_tip_sensor).rotation_deg
     assert before.max() > 1.0  # the per-sensor errors are there
     assert np.all(after < before) and after.max() < 0.6, (before, after)
     assert fit.median_abs_residual_after_m < fit.median_abs_residual_before_m
@@ -187,3 +183,65 @@ def test_mounting_fit_is_not_bent_by_clutter() -> None:
     rot, trans = worst(robust)
     assert rot < 0.6 and trans < 2.5, (rot, trans)
     assert worst(cauchy)[0] > 2 * rot or worst(cauchy)[1] > 2 * trans, (worst(cauchy), (rot, trans))
+
+
+def test_mounting_errors_measure_a_known_rotation() -> None:
+    """A rig turned about the tip axis by 2 deg: every sensor's rotation error is 2 deg, all
+    of it about the tip's z axis, and its translation error is the chord the turn moves it."""
+    p, _ = easy_problem(n_samples=1)
+    T = p.rig.T_tip_sensor
+    turn = frames.se3(frames.rot_z(math.radians(2.0)), np.zeros(3))
+    e = mounting_errors(p.rig, turn @ T)
+    np.testing.assert_allclose(e.rotation_deg, 2.0, atol=1e-9)
+    np.testing.assert_allclose(e.tip_z_deg, 2.0, atol=1e-9)
+    assert e.common_tip_z_deg == pytest.approx(2.0) and e.names == tuple(s.name for s in p.rig.sensors)
+    chord = 2 * np.hypot(T[:, 0, 3], T[:, 1, 3]) * math.sin(math.radians(1.0))
+    np.testing.assert_allclose(e.translation_m, chord, atol=1e-12)
+    # each sensor turned about its own optical axis: a rotation error, not about the tip axis
+    own = T.copy()
+    own[:, :3, :3] = T[:, :3, :3] @ frames.matrix_from_rotvec([math.radians(1.5), 0.0, 0.0])
+    e = mounting_errors(p.rig, own)
+    np.testing.assert_allclose(e.rotation_deg, 1.5, atol=1e-9)
+    assert np.all(np.abs(e.tip_z_deg) < 1.5) and np.all(e.translation_m == 0.0)
+    with pytest.raises(ParameterError, match="one per sensor"):
+        mounting_errors(p.rig, T[:2])
+
+
+@pytest.mark.parametrize("source, scenario, match", [
+    ("eth:nanoswarm exp2", None, "simulated log's source"),
+    ("simulation:paper", None, "simulated log's source"),
+    ("simulation:my_lab seed=3", None, "not built in: give its TOML"),
+    ("simulation:paper seed=3", "l_room", "scenario given is"),
+])
+def test_true_rig_refuses_what_it_cannot_rebuild(source: str, scenario: str | None, match: str) -> None:
+    from tofloc.simulation import true_rig
+
+    with pytest.raises(ParameterError, match=match):
+        true_rig(source, scenario)
+
+
+def test_calibration_vs_truth_script(tmp_path) -> None:
+    """scripts/calibration_vs_truth.py rebuilds the simulated rig from the log's source and
+    measures a calibration against it: a support rotation equal to the true common rotation
+    leaves none in common, the CAD rig all of it."""
+    import importlib.util
+    from pathlib import Path
+
+    from tofloc.simulation import simulate, write_simulation
+
+    sim = simulate("paper", 2, hardware_seed=4)
+    write_simulation(sim, tmp_path / "sim.h5")
+    T_true = sim.rig_true.T_tip_sensor
+    common = mounting_errors(sim.log.rig, T_true).common_tip_z_deg
+    assert abs(common - 8.0) < 3.0  # the scenario's 8 deg support rotation, plus the sensors' own
+    cal = SensorCalibration(RangeUncertainty(), support_yaw_deg=common, support_yaw_sigma_deg=0.2, sensor_mounting=MOUNT)
+    cal.write(tmp_path / "cal.toml")
+    spec = importlib.util.spec_from_file_location("calibration_vs_truth", Path(__file__).parents[1] / "scripts" / "calibration_vs_truth.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = script.main([str(tmp_path / "cal.toml"), str(tmp_path / "sim.h5")])
+    rows = [r.split("|")[1:-1] for r in out.splitlines()[2:]]
+    common_rows = [float(r[3]) for r in rows if r[1].strip() == "common rotation"]
+    assert len(common_rows) == 3  # CAD, support, support + mounting
+    assert common_rows[0] == pytest.approx(common, abs=1e-3) and common_rows[1] == pytest.approx(0.0, abs=1e-3)
+    assert abs(common_rows[2]) > 0.1  # MOUNT turns tof2 by -1.5 deg about the tip axis

@@ -304,3 +304,54 @@ def test_api_simulate_is_what_the_command_writes(tmp_path, capsys) -> None:
     assert main(["simulate", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     assert all(name in text for name in builtin_scenarios()), text
+
+
+def test_zone_offsets_are_fixed_per_zone_and_not_in_the_reported_sigma() -> None:
+    """``[tof] zone_offset_sigma``: each zone reads off by its own offset in every sample
+    (the mean error over 400 samples of a plane is that offset), on top of the noise; the
+    sensor's reported sigma does not know it."""
+    rig = Rig((Sensor("s"),))
+    tof = ToFPhysics(sub_rays=1, bias_offset=0.0, bias_slope=0.0, multipath_probability=0.0, ghost_probability=0.0,
+                     invalid_base_rate=0.0, invalid_weak_rate=0.0, accuracy_percent=1.755, sigma_floor=0.003,
+                     edge_zone_sigma_factor=1.0, reported_sigma_jitter=0.0, zone_offset_sigma=0.005)
+    r = cast_zones(_plane_world(0.5), rig, np.repeat(np.eye(4)[None, None], 400, axis=0), tof)
+    offset = np.random.default_rng(3).normal(0.0, 0.005, (1, 64))
+    d, _, sigma = measure(r, rig, tof, np.random.default_rng(0), offset)
+    d0, _, sigma0 = measure(r, rig, tof, np.random.default_rng(0))
+    err = d / 1000.0 - 0.5
+    np.testing.assert_allclose(err.mean(axis=0), offset, atol=4 * 0.003 / math.sqrt(400) + 5e-4)  # + rounding to mm
+    assert abs((err - err.mean(axis=0)).std() - 0.003) < 3e-4  # 0.65 % of 0.5 m is below the 3 mm floor
+    np.testing.assert_array_equal(sigma, sigma0)
+    np.testing.assert_allclose(d - d0, np.round(offset * 1000.0)[None].repeat(400, 0), atol=1.0)
+
+
+def test_measured_noise_scenes_load_and_simulate() -> None:
+    """The scenes with the range errors of ETH's recordings: their knobs, a coarse run whose
+    zones read and whose hardware (the zones' offsets) is shared by two sessions."""
+    import dataclasses
+
+    for name, parent in (("paper_measured", "paper"), ("clutter_measured", "clutter")):
+        sc, base = load_scenario(name), load_scenario(parent)
+        assert sc.tof.zone_return == "strongest" and sc.tof.zone_offset_sigma == 0.005 and sc.tof.edge_zone_sigma_factor == 1.0
+        assert dataclasses.replace(sc, scenario=base.scenario, tof=base.tof, source=base.source) == base
+    sc = load_scenario("paper_measured")
+    sc = dataclasses.replace(sc, protocol=dataclasses.replace(sc.protocol, pressure_step=15.0))
+    quiet = dataclasses.replace(sc, tof=dataclasses.replace(sc.tof, accuracy_percent=0.0, sigma_floor=0.0, multipath_probability=0.0,
+                                                           ghost_probability=0.0, reported_sigma_jitter=0.0))
+    a, b = simulate(quiet, 1, hardware_seed=7), simulate(quiet, 1, hardware_seed=8)
+    none = simulate(dataclasses.replace(quiet, tof=dataclasses.replace(quiet.tof, zone_offset_sigma=0.0)), 1, hardware_seed=7)
+    both = np.isfinite(a.log.distance_mm) & np.isfinite(none.log.distance_mm)
+    diff = (a.log.distance_mm - none.log.distance_mm)[both]  # the offsets alone (noise-free otherwise), to the mm
+    assert 3.0 < np.std(diff) < 7.0
+    per_zone = np.where(both, a.log.distance_mm - none.log.distance_mm, np.nan)
+    seen = both.any(axis=0)
+    spread = np.nanmax(per_zone[:, seen], axis=0) - np.nanmin(per_zone[:, seen], axis=0)
+    assert seen.sum() > 100 and spread.max() <= 1.0  # the same offset in every sample (mm rounding)
+    assert not np.array_equal(a.log.distance_mm, b.log.distance_mm, equal_nan=True)  # another hardware, other offsets
+
+
+def test_an_unknown_zone_return_is_refused(tmp_path) -> None:
+    f = tmp_path / "s.toml"
+    f.write_text('[scenario]\nextends = "paper"\nname = "x"\n[tof]\nzone_return = "closest"\n')
+    with pytest.raises(FormatError, match=r"\[tof\].zone_return.*'signal' or 'strongest'"):
+        load_scenario(f)

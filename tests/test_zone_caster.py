@@ -453,3 +453,41 @@ def test_centre_hits_are_refused_when_they_cannot_be_used(monkeypatch) -> None:
     monkeypatch.setenv("TOFLOC_NUMBA", "0")
     with pytest.raises(ParameterError, match="centre_hits: expected None without the compiled kernels"):
         caster.cast_rough(p.map, t32[..., 0], lambda idx: feet, centre_hits=(n32.reshape(-1, 3), centre.reshape(-1, 6)))
+
+
+@pytest.mark.parametrize("far_x, merged", [(2.0, False), (1.4, True)])
+def test_strongest_target_reads_one_surface_unless_they_merge(far_x: float, merged: bool) -> None:
+    """A near wall (1 m) ending inside some zones' footprints, a far one behind it: with
+    ``"strongest"`` a straddling zone reads one of the two surfaces when they are 600 mm
+    or more apart (the VL53L5CX's target separation), where ``"signal"`` reads between
+    them; 400 mm apart they merge into one weighted peak, ``"signal"``'s reading. Zones on
+    one surface read the same either way, and the geometry's point lies on the chosen one."""
+    from tofloc.zone_caster import TARGET_SEPARATION, strongest_target
+
+    near = np.array([[1.0, 0.03, -5], [1.0, 5, -5], [1.0, 5, 5], [1.0, 0.03, 5]])
+    rig, walls = _looking_at([near, _quad([far_x, 0.0, 0.0], 0.0)])
+    T = rig.T_tip_sensor[None]
+    signal = ZoneCaster(rig, footprint=3, min_hit_fraction=0.34).cast(walls, T).reading[0, 0]
+    strong = ZoneCaster(rig, footprint=3, weighting="strongest", min_hit_fraction=0.34).cast(walls, T, geometry=True)
+    reading = strong.reading[0, 0]
+    d_near, d_far = 1.0, far_x  # perpendicular readings: every ray on a wall facing the sensor reads its depth
+    straddling = (np.abs(signal - d_near) > 0.01) & (np.abs(signal - d_far) > 0.01)
+    assert straddling.sum() >= 8
+    if merged:
+        np.testing.assert_allclose(reading, signal, atol=1e-12)
+    else:
+        assert far_x - 1.0 >= TARGET_SEPARATION
+        # one surface: the sub-rays of one target, whose readings spread over its footprint only
+        on_one = np.minimum(np.abs(reading - d_near), np.abs(reading - d_far)) < 0.05
+        assert on_one.all() and not np.allclose(reading[straddling], signal[straddling], atol=0.05)
+        np.testing.assert_allclose(reading[~straddling], signal[~straddling], atol=1e-12)
+        x = strong.point[0, 0, straddling, 0]
+        assert np.all(np.minimum(np.abs(x - 1.0), np.abs(x - far_x)) < 1e-6)
+    # the mask itself: sorted readings split at gaps >= the separation; the heavier target, the nearer on a tie
+    r = np.array([[1.0, 1.1, 2.0, 2.1], [1.0, 2.0, np.nan, 1.05], [1.0, 1.0, 2.0, 2.0]])
+    ret = np.isfinite(r)
+    w = np.array([[1.0, 1.0, 3.0, 0.0], [1.0, 5.0, 0.0, 1.0], [1.0, 1.0, 1.0, 1.0]])
+    keep = strongest_target(r, ret, w)
+    assert keep.tolist() == [[False, False, True, True], [False, True, False, False], [True, True, False, False]]
+    with pytest.raises(ParameterError, match="footprint_tolerance: expected None with weighting 'strongest'"):
+        ZoneCaster(rig, footprint=3, weighting="strongest", footprint_tolerance=0.01)

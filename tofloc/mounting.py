@@ -33,8 +33,8 @@ from tofloc import frames
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig
 
-__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "MountingTolerance", "check_sensor_mounting", "corrected_T_tip_sensor",
-           "correction_matrices", "rig_with_mounting"]
+__all__ = ["MAX_ROTATION_DEG", "MAX_TRANSLATION_M", "MountingErrors", "MountingTolerance", "check_sensor_mounting",
+           "corrected_T_tip_sensor", "correction_matrices", "mounting_errors", "rig_with_mounting"]
 
 #: Largest per-sensor correction we accept: a mounting error, not a different rig.
 MAX_ROTATION_DEG = 30.0
@@ -150,3 +150,52 @@ def rig_with_mounting(rig: Rig, support_yaw_deg: float = 0.0,
         return rig
     T = corrected_T_tip_sensor(rig, support_yaw_deg, sensor_mounting)
     return dataclasses.replace(rig, sensors=tuple(dataclasses.replace(s, T_tip_sensor=t) for s, t in zip(rig.sensors, T)))
+
+
+@dataclass(frozen=True)
+class MountingErrors:
+    """How far a rig's sensor poses are from the true ones (:func:`mounting_errors`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The sensors, in the rig's order.
+    rotation_deg : ndarray, shape (S,)
+        Angle of each sensor's rotation error (deg).
+    tip_z_deg : ndarray, shape (S,)
+        Its component about the tip's z axis (deg): the part a support rotation shares.
+    translation_m : ndarray, shape (S,)
+        Length of each sensor's translation error (m).
+    common_tip_z_deg : float
+        The mean of ``tip_z_deg``: what a support rotation about the tip axis can take up
+        (the rotation every sensor shares), the rest being each sensor's own.
+    """
+
+    names: tuple[str, ...]
+    rotation_deg: NDArray[np.float64]
+    tip_z_deg: NDArray[np.float64]
+    translation_m: NDArray[np.float64]
+    common_tip_z_deg: float
+
+
+def mounting_errors(rig: Rig, T_tip_sensor_true: NDArray[np.float64]) -> MountingErrors:
+    """The error of each of ``rig``'s sensor poses against the true ones, in the tip frame:
+    the rotation ``R_true R^T`` (its angle and its tip-z component) and the translation
+    ``t_true - t``. A simulated log's true rig is
+    :func:`tofloc.simulation.true_rig`; ``rig`` is, e.g., :func:`rig_with_mounting` of a
+    calibration.
+
+    Raises
+    ------
+    ParameterError
+        ``T_tip_sensor_true`` is not one rigid ``(4, 4)`` pose per sensor of ``rig``.
+    """
+    T_true = np.asarray(T_tip_sensor_true, dtype=float)
+    T = rig.T_tip_sensor
+    if T_true.shape != T.shape or not np.all(np.isfinite(T_true)):
+        raise ParameterError(f"true sensor poses: expected {T.shape} finite values (one per sensor of the rig), "
+                             f"got shape {T_true.shape}")
+    rv = np.stack([frames.rotvec_from_matrix(T_true[i, :3, :3] @ T[i, :3, :3].T) for i in range(T.shape[0])])
+    tip_z = np.degrees(rv[:, 2])
+    return MountingErrors(tuple(s.name for s in rig.sensors), np.degrees(np.linalg.norm(rv, axis=1)), tip_z,
+                          np.linalg.norm(T_true[:, :3, 3] - T[:, :3, 3], axis=1), float(np.mean(tip_z)))

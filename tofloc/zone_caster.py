@@ -27,9 +27,19 @@ sub-rays' readings, with weights
 * ``"signal"`` (default): ``max(cos i, 0.05) / max(t, 0.05)^2`` (a Lambertian return:
   closer and more perpendicular surfaces dominate a mixed zone, as the simulator models
   the VL53L5CX);
-* ``"mean"``: equal weights.
+* ``"mean"``: equal weights;
+* ``"strongest"``: the signal weights over the returning sub-rays of the zone's strongest
+  *target* only: the VL53L5CX reports one target per zone by default, the strongest
+  (ST's ULD API, ``vl53l5cx_set_target_order``), and tells two targets apart only when
+  they are at least :data:`TARGET_SEPARATION` (600 mm) apart (closer ones merge into one
+  weighted peak; UM2884). So the sub-rays' readings, sorted, split into targets at every
+  gap of 600 mm or more; the target of the largest summed weight (ties: the nearest) gives
+  the reading. A zone straddling a box 1 m in front of a wall reads the box or the wall,
+  never a depth between them (as ETH's recordings of a panel's edge show, docs/simulator.md);
+  with ``"signal"`` it reads their weighted mean. The simulator's scenes that set
+  ``[tof] zone_return = "strongest"`` use it; no footprint tolerance with it.
 
-With one sub-ray both give the same reading.
+With one sub-ray all give the same reading.
 
 Footprints only where the surface is not smooth
 -----------------------------------------------
@@ -70,10 +80,14 @@ from tofloc import numba_kernels
 from tofloc.errors import ParameterError
 from tofloc.rig import Rig, Sensor
 
-__all__ = ["WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions",
-           "check_footprint_params", "model_caster", "facing_normals"]
+__all__ = ["TARGET_SEPARATION", "WEIGHTINGS", "FOOTPRINT_PIECE_BYTES", "ZoneCast", "ZoneCaster", "PlanarZoneRays", "subray_directions",
+           "check_footprint_params", "model_caster", "facing_normals", "strongest_target"]
 
-WEIGHTINGS = ("signal", "mean")
+WEIGHTINGS = ("signal", "mean", "strongest")
+#: Smallest gap (m) between two readings of a zone's sub-rays that makes them two targets
+#: (weighting ``"strongest"``): the VL53L5CX's "minimum distance between two targets to be
+#: detected" (UM2884, 600 mm).
+TARGET_SEPARATION = 0.6
 #: Largest footprint (sub-rays per side).
 MAX_FOOTPRINT = 9
 #: Bytes the rough zones' footprints may hold at once in :meth:`ZoneCaster.cast_rough` (their
@@ -166,6 +180,27 @@ class ZoneCast:
         return np.isfinite(self.reading)
 
 
+def strongest_target(sub_reading: FloatArray, ret: NDArray[np.bool_], w: FloatArray,
+                     separation: float = TARGET_SEPARATION) -> NDArray[np.bool_]:
+    """The returning sub-rays ``(..., n)`` of each zone's strongest target (module doc,
+    ``"strongest"``): the readings ``sub_reading`` of the returning ones (``ret``), sorted,
+    split at every gap of at least ``separation``; the target whose weights ``w`` sum
+    highest (ties: the nearest)."""
+    r = np.where(ret, sub_reading, np.inf)
+    order = np.argsort(r, axis=-1, kind="stable")
+    r_s = np.take_along_axis(r, order, axis=-1)
+    w_s = np.take_along_axis(np.where(ret, w, 0.0), order, axis=-1)
+    with np.errstate(invalid="ignore"):  # inf - inf: no gap among the sub-rays that did not return
+        gap = np.diff(r_s, axis=-1) >= separation
+    label = np.concatenate([np.zeros(r_s.shape[:-1] + (1,), dtype=np.int64), np.cumsum(gap, axis=-1)], axis=-1)
+    n = r_s.shape[-1]
+    totals = np.stack([np.where(label == c, w_s, 0.0).sum(axis=-1) for c in range(n)], axis=-1)
+    keep_sorted = label == np.argmax(totals, axis=-1)[..., None]
+    keep = np.empty_like(keep_sorted)
+    np.put_along_axis(keep, order, keep_sorted, axis=-1)
+    return keep & ret
+
+
 class ZoneCaster:
     """Expected zone readings of a rig (see the module doc).
 
@@ -175,8 +210,8 @@ class ZoneCaster:
         The sensors; their ``T_tip_sensor`` is not used here (poses are given per call).
     footprint : int
         Sub-rays per side of a zone's footprint (1: the centre ray).
-    weighting : {"signal", "mean"}
-        How the returning sub-rays' readings are averaged.
+    weighting : {"signal", "mean", "strongest"}
+        How the returning sub-rays' readings are averaged (module doc).
     min_hit_fraction : float
         A zone reports a target only if at least this fraction of its sub-rays return.
     min_range : float
@@ -192,7 +227,7 @@ class ZoneCaster:
         self,
         rig: Rig,
         footprint: int = 1,
-        weighting: Literal["signal", "mean"] = "signal",
+        weighting: Literal["signal", "mean", "strongest"] = "signal",
         min_hit_fraction: float = 0.0,
         min_range: float = 0.0,
         max_range: float | None = None,
@@ -236,6 +271,9 @@ class ZoneCaster:
         if footprint_tolerance is not None and self.footprint > 1:
             if self.footprint % 2 == 0:
                 raise ParameterError(f"footprint_tolerance needs an odd footprint (a centre sub-ray), got footprint={footprint}")
+            if weighting == "strongest":
+                raise ParameterError("footprint_tolerance: expected None with weighting 'strongest' (a zone's targets "
+                                     "need its whole footprint cast)")
             self.footprint_tolerance = float(footprint_tolerance)
             self._stencil = _smoothness_stencil(rig, dirs)
             self._along_centre = np.ascontiguousarray(self.along[..., self.n_sub // 2])
@@ -248,7 +286,7 @@ class ZoneCaster:
     @property
     def needs_normals(self) -> bool:
         """Whether readings need the hits' normals (the signal weighting of several sub-rays)."""
-        return self.weighting == "signal" and self.n_sub > 1
+        return self.weighting != "mean" and self.n_sub > 1
 
     def cast_ray_buffer(self, the_map: Any, rays: NDArray[np.float32]) -> ZoneCast:
         """Readings and hit fractions (no geometry) from sub-rays already packed for the ray
@@ -306,7 +344,7 @@ class ZoneCaster:
             return self.cast_ray_buffer(the_map, rays)
         hits = the_map.raycast(origins, d, max_range=self.max_ray_length)
         t = np.asarray(hits.t, dtype=float)  # (..., S, Z, n)
-        normal = np.asarray(hits.normal, dtype=float) if (geometry or self.weighting == "signal") and self.n_sub > 1 else None
+        normal = np.asarray(hits.normal, dtype=float) if (geometry or self.needs_normals) and self.n_sub > 1 else None
         if not geometry:
             return self._reduce(t, normal, d)
         reading, frac, ret, n_ret, target, w, wsum = self._weighted(t, normal, d)
@@ -370,6 +408,8 @@ class ZoneCaster:
         frac = n_ret / self.n_sub
         target = (n_ret > 0) & (frac >= self.min_hit_fraction - 1e-12)
         w = self._weights(t, ret, normal, d, cos_i)
+        if self.weighting == "strongest" and self.n_sub > 1:
+            w = np.where(strongest_target(sub_reading, ret, w), w, 0.0)
         wsum = w.sum(axis=-1)
         with np.errstate(invalid="ignore", divide="ignore"):
             reading = np.where(target, (w * np.where(ret, sub_reading, 0.0)).sum(axis=-1) / wsum, np.nan)

@@ -34,7 +34,8 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="Log to write (HDF5); the maps are written beside it."),
     scenario: str = typer.Option(
         "paper", "--scenario",
-        help="Built-in scenario name (paper, pillars, l_room, clutter, corridor: see docs/simulator.md) or a scenario TOML file."),
+        help="Built-in scenario name (paper, pillars, l_room, clutter, corridor; paper_measured and clutter_measured with the "
+        "range errors of real recordings: see docs/simulator.md) or a scenario TOML file."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw (same seed, same bytes)."),
     hardware_seed: Optional[int] = typer.Option(
         None, "--hardware-seed",

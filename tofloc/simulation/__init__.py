@@ -48,7 +48,7 @@ from tofloc.simulation.tof import build_rig, cast_zones, measure
 from tofloc.simulation.world import cad_mesh as build_cad_mesh
 from tofloc.simulation.world import estimator_map, true_world
 
-__all__ = ["SimulationResult", "simulate", "write_simulation", "simulation_paths", "load_scenario", "builtin_scenarios",
+__all__ = ["SimulationResult", "simulate", "true_rig", "write_simulation", "simulation_paths", "load_scenario", "builtin_scenarios",
            "Scenario", "RIG_VARIANTS"]
 
 
@@ -114,9 +114,11 @@ def simulate(
     sc = with_rig_variant(sc, rig_variant)
     if seed < 0 or (hardware_seed is not None and hardware_seed < 0):
         raise ParameterError(f"seeds must be non-negative, got seed={seed}, hardware_seed={hardware_seed}")
-    r_env, r_map, r_robot, r_mocap, r_tof, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
+    # the 7th stream (the zones' fixed offsets) was added after the others: spawn(7)'s first
+    # six are spawn(6)'s, so scenes without zone offsets keep their bytes
+    r_env, r_map, r_robot, r_mocap, r_tof, r_mount, r_zones = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(7))
     if hardware_seed is not None:
-        r_env, r_map, _, _, _, r_mount = (np.random.default_rng(s) for s in np.random.SeedSequence(hardware_seed).spawn(6))
+        r_env, r_map, _, _, _, r_mount, r_zones = (np.random.default_rng(s) for s in np.random.SeedSequence(hardware_seed).spawn(7))
     if base is not None:
         import dataclasses
 
@@ -150,7 +152,9 @@ def simulate(
     rig_true = build_rig(sc.rig, actuators, r_mount)  # how the sensors are really mounted
     T_map_sensor = T_map_base @ T_base_tip_true[:, None] @ rig_true.T_tip_sensor[None]
     returns = cast_zones(world, rig, T_map_sensor, sc.tof)
-    distance_mm, status, sigma_mm = measure(returns, rig, sc.tof, r_tof)
+    zone_offset = (r_zones.normal(0.0, sc.tof.zone_offset_sigma, (rig.n_sensors, rig.n_zones))
+                   if sc.tof.zone_offset_sigma > 0 else None)  # the hardware's: the same in every session
+    distance_mm, status, sigma_mm = measure(returns, rig, sc.tof, r_tof, zone_offset)
 
     K = pressures.shape[0]
     # what the log declares about its configurations: motion capture, with the noise
@@ -175,6 +179,53 @@ def simulate(
         created=sc.scenario.created,
     )
     return SimulationResult(log, the_map, cad_mesh, world, T_base_tip_true, sc, seed, rig_true)
+
+
+def true_rig(source: str, scenario: Scenario | str | None = None) -> "object":
+    """How the sensors of a simulated log were really mounted (the log carries the CAD rig):
+    the rig :func:`simulate` cast from, rebuilt from the log's ``source``
+    (``"simulation:NAME seed=S [hardware_seed=H] [rig=VARIANT]"``), e.g. to see how close
+    a calibration came (:func:`tofloc.mounting.mounting_errors`).
+
+    Parameters
+    ----------
+    source : str
+        The log's ``source`` attribute.
+    scenario : Scenario or str, optional
+        The scenario the log was simulated from (a built-in name or a TOML path); by
+        default the built-in scenario the source names.
+
+    Returns
+    -------
+    tofloc.rig.Rig
+
+    Raises
+    ------
+    ParameterError
+        A source the simulator did not write, or a scenario of another name than the source's.
+    """
+    head, _, rest = str(source).partition(" ")
+    fields = dict(part.split("=", 1) for part in rest.split() if "=" in part)
+    try:
+        if not head.startswith("simulation:"):
+            raise ValueError
+        seed = int(fields["seed"])
+        hw = int(fields.get("hardware_seed", seed))
+    except (KeyError, ValueError):
+        raise ParameterError(f"source {source!r}: expected a simulated log's source, 'simulation:NAME seed=S "
+                             "[hardware_seed=H] [rig=VARIANT]'") from None
+    name = head[len("simulation:"):]
+    if scenario is None and name not in builtin_scenarios():
+        raise ParameterError(f"source {source!r}: scenario {name!r} is not built in: give its TOML "
+                             f"(built in: {', '.join(builtin_scenarios())})")
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(name if scenario is None else scenario)
+    if sc.scenario.name != name:
+        raise ParameterError(f"source {source!r}: simulated from scenario {name!r}, but the scenario given is "
+                             f"{sc.scenario.name!r}")
+    sc = with_rig_variant(sc, fields.get("rig"))
+    r_mount = np.random.default_rng(np.random.SeedSequence(hw).spawn(6)[5])
+    actuators = tuple(f"chamber{i + 1}" for i in range(len(sc.robot.chamber_angles_deg)))
+    return build_rig(sc.rig, actuators, r_mount)
 
 
 def simulation_paths(out: str | Path) -> dict[str, Path]:

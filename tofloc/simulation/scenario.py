@@ -187,6 +187,11 @@ class ToFPhysics:
     invalid_statuses: tuple[int, ...] = (4, 6, 10, 12, 13)
     status9_rate: float = field(default=0.05, metadata=_r(0.0, 1.0))
     reported_sigma_jitter: float = field(default=0.2, metadata=_r(0.0, 5.0))
+    # how a zone's sub-rays make its reading (tofloc.zone_caster.WEIGHTINGS): "signal" (their
+    # signal-weighted mean) or "strongest" (the strongest target's, the real sensor's default)
+    zone_return: str = "signal"
+    # each zone of each sensor reads off by its own fixed offset (m, one sigma; hardware)
+    zone_offset_sigma: float = field(default=0.0, metadata=_r(0.0, 0.5))
 
 
 @dataclass(frozen=True)
@@ -383,6 +388,8 @@ def _check_consistency(sc: Scenario) -> None:
         raise FormatError(src, "[rig].resolution", "[4, 4] or [8, 8] (VL53L5CX)", list(sc.rig.resolution))
     if sc.rig.distance not in ("perpendicular", "radial"):
         raise FormatError(src, "[rig].distance", "'perpendicular' or 'radial'", sc.rig.distance)
+    if sc.tof.zone_return not in ("signal", "strongest"):
+        raise FormatError(src, "[tof].zone_return", "'signal' or 'strongest'", sc.tof.zone_return)
     angles = [a % 360.0 for a in sc.robot.chamber_angles_deg]
     if any(min(abs(a - b), 360.0 - abs(a - b)) < 1e-6 for i, a in enumerate(angles) for b in angles[:i]):
         raise FormatError(src, "[robot].chamber_angles_deg", "distinct chamber angles (modulo 360 deg)", list(sc.robot.chamber_angles_deg))

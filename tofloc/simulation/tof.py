@@ -84,7 +84,7 @@ class ZoneReturns:
 def zone_caster(rig: Rig, tof: ToFPhysics) -> ZoneCaster:
     """The shared :class:`~tofloc.zone_caster.ZoneCaster` with the simulator's ToF physics:
     ``sub_rays`` per side, signal-weighted readings, ``min_hit_fraction``, range limits."""
-    return ZoneCaster(rig, footprint=tof.sub_rays, weighting="signal", min_hit_fraction=tof.min_hit_fraction,
+    return ZoneCaster(rig, footprint=tof.sub_rays, weighting=tof.zone_return, min_hit_fraction=tof.min_hit_fraction,
                       min_range=tof.min_range, max_range=tof.max_range)
 
 
@@ -104,10 +104,13 @@ def noise_sigma(distance: NDArray[np.float64], tof: ToFPhysics, edge: NDArray[np
 
 
 def measure(
-    returns: ZoneReturns, rig: Rig, tof: ToFPhysics, rng: np.random.Generator
+    returns: ZoneReturns, rig: Rig, tof: ToFPhysics, rng: np.random.Generator,
+    zone_offset: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.uint8], NDArray[np.float32]]:
     """Turn noise-free zone returns into what the sensor reports: ``distance_mm`` (integer
-    millimetres as float32, NaN with no target), ``status`` and ``sigma_mm``."""
+    millimetres as float32, NaN with no target), ``status`` and ``sigma_mm``.
+    ``zone_offset`` ``(S, Z)`` (m): each zone's fixed offset (``[tof] zone_offset_sigma``),
+    added to every sample's reading; the reported ``sigma_mm`` does not know it."""
     d = returns.distance
     shape = d.shape
     target = np.isfinite(d)
@@ -115,6 +118,8 @@ def measure(
     d0 = np.where(target, d, 0.0)
     sigma = noise_sigma(d0, tof, edge)
     meas = d0 + tof.bias_offset + tof.bias_slope * d0 + rng.normal(0.0, 1.0, shape) * sigma
+    if zone_offset is not None:
+        meas = meas + zone_offset
     # multipath at corners: a longer path
     mp = returns.corner & (rng.random(shape) < tof.multipath_probability)
     meas = meas + np.where(mp, rng.exponential(max(tof.multipath_excess_mean, 1e-12), shape), 0.0)
