@@ -355,3 +355,21 @@ def test_an_unknown_zone_return_is_refused(tmp_path) -> None:
     f.write_text('[scenario]\nextends = "paper"\nname = "x"\n[tof]\nzone_return = "closest"\n')
     with pytest.raises(FormatError, match=r"\[tof\].zone_return.*'signal' or 'strongest'"):
         load_scenario(f)
+
+
+def test_a_file_without_extends_gets_the_papers_robot_and_tof_physics() -> None:
+    """The code's defaults of ``[robot]`` and ``[tof]`` are paper.toml's values (an audit: a
+    file without ``extends`` got 8 % accuracy, a 3 % invalid rate and a quarter of the
+    robot's scatter, none of them sourced); the world, base and rig errors default to none."""
+    import dataclasses
+    import tomllib
+    from importlib import resources
+
+    from tofloc.simulation.scenario import Robot
+
+    paper = tomllib.loads((resources.files("tofloc.simulation") / "scenarios" / "paper.toml").read_text())
+    for section, cls in (("robot", Robot), ("tof", ToFPhysics)):
+        code = cls()
+        for f in dataclasses.fields(cls):
+            value = getattr(code, f.name)
+            assert (list(value) if isinstance(value, tuple) else value) == paper[section][f.name], (section, f.name)
