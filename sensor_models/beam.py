@@ -716,8 +716,7 @@ def _fused_constants(bound: BoundBeamModel) -> dict[str, Any] | None:
     S, Z = rig.n_sensors, rig.n_zones
     J = S * Z
     edge = np.broadcast_to(edge_zone_mask(rig), (S, Z))
-    b0 = np.where(edge, unc.edge_bias_offset, unc.bias_offset)
-    b1 = np.where(edge, unc.edge_bias_slope, unc.bias_slope)
+    b0, b1 = unc.bias_coefficients(rig)
     factor = np.where(edge, unc.edge_factor, 1.0)
     K = bound.n_steps
     if unc.use_reported_sigma and problem.sigma_m is not None:

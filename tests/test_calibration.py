@@ -164,6 +164,7 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     cap = capsys.readouterr()
     assert code == 0, cap.err
     assert "sim.cad.ply" in cap.err and "beam mixture" in cap.out
+    assert "zone offsets not fitted (below the noise or not significant)" in " ".join(cap.err.split())  # none simulated
     u = RangeUncertainty.from_toml(out)
     assert u.sigma_slope == pytest.approx(TRUE_SIGMA_SLOPE, rel=0.08)
     data = tomllib.loads(out.read_text())
@@ -240,3 +241,72 @@ def test_mounting_table_bad_values_are_refused(tmp_path: Path) -> None:
         p.write_text(good.replace(bad, what))
         with pytest.raises(FormatError, match="mounting"):
             SensorCalibration.from_toml(p)
+
+
+def _measured_scenario(offset_sigma: float):
+    """The clean paper scenario (exact rig, no CAD error, no multipath) with the measured
+    scene's range errors: 0.65 % noise, a 3 mm floor, the zones' fixed offsets of
+    ``offset_sigma``; 126 postures."""
+    sc = _clean_scenario(pressure_step=3.0)
+    return dataclasses.replace(sc, tof=dataclasses.replace(sc.tof, accuracy_percent=1.755, sigma_floor=0.003,
+                                                           edge_zone_sigma_factor=1.0, zone_offset_sigma=offset_sigma))
+
+
+def test_zone_offsets_are_fitted_where_they_are_and_matter() -> None:
+    """Each zone's fixed offset: recovered (shrunk) where the simulator put 5 mm ones, with
+    EM's sigma then the noise alone; not fitted where there are none (the range model the
+    same as without the step), nor on the datasheet's noise (a spread far below sigma)."""
+    from sensor_models.calibration import calibrate_rig
+    from tofloc.simulation import simulate
+
+    sim = simulate(_measured_scenario(0.005), seed=2)
+    fit = calibrate_rig([(sim.log, sim.cad_mesh)], footprint=3, support_yaw=False, mounting=False)
+    zo, u = fit.zone_offsets, fit.result.uncertainty
+    assert zo.fitted and 0.004 < zo.tau_m < 0.006, zo.summary()
+    off, true = np.asarray(u.zone_offsets), sim.zone_offset
+    seen = off != 0.0
+    assert seen.sum() > 120
+    true_c = true - true[seen].mean()  # the class curves keep the offset every zone shares
+    assert np.sqrt(np.mean((off - true_c)[seen] ** 2)) < 0.3 * np.sqrt(np.mean(true_c[seen] ** 2))
+    # sigma is the noise left: ~3 mm (the floor at these distances), not the 5.8 mm noise + offsets
+    without = calibrate_rig([(sim.log, sim.cad_mesh)], footprint=3, support_yaw=False, mounting=False, zone_offsets=False)
+    s_with, s_without = (max(x.sigma_floor, 0.35 * x.sigma_slope) for x in (u, without.result.uncertainty))
+    assert s_with < 0.0040 < 0.0050 < s_without
+    assert without.zone_offsets is None and not without.result.uncertainty.zone_offsets
+    cal = fit.sensor_calibration()
+    assert cal.meta["zone_offsets"]["fitted"] is True and any("zone offsets fitted" in n for n in cal.meta["notes"])
+    for quiet in (simulate(_measured_scenario(0.0), seed=2), simulate(dataclasses.replace(_clean_scenario(3.0)), seed=2)):
+        fit0 = calibrate_rig([(quiet.log, quiet.cad_mesh)], footprint=3, support_yaw=False, mounting=False)
+        plain = calibrate_rig([(quiet.log, quiet.cad_mesh)], footprint=3, support_yaw=False, mounting=False, zone_offsets=False)
+        assert not fit0.zone_offsets.fitted, fit0.zone_offsets.summary()
+        assert fit0.result.uncertainty == plain.result.uncertainty
+
+
+def test_zone_offsets_in_the_range_model_and_its_file(tmp_path: Path) -> None:
+    """``[uncertainty] zone_offsets``: added to the bias zone by zone, written and read back,
+    absent from files without them, refused when malformed or for a rig of another shape."""
+    from tofloc.errors import ParameterError
+    from tofloc.problem import ProblemError
+    from tofloc.testing import easy_problem
+
+    p, _ = easy_problem(n_samples=1)
+    S, Z = p.distance_m.shape[1:]
+    off = np.random.default_rng(0).normal(0.0, 0.005, (S, Z))
+    u = RangeUncertainty(bias_offset=0.002, bias_slope=0.01, zone_offsets=off)
+    d = np.full((2, S, Z), 0.5)
+    np.testing.assert_allclose(u.bias(p.rig, d) - RangeUncertainty(bias_offset=0.002, bias_slope=0.01).bias(p.rig, d),
+                               np.broadcast_to(off, d.shape), atol=1e-15)
+    cal = SensorCalibration(u)
+    back = SensorCalibration.from_toml(cal.write(tmp_path / "m.toml"))
+    assert back.uncertainty == u
+    plain = SensorCalibration(RangeUncertainty()).write(tmp_path / "plain.toml")
+    assert "zone_offsets" not in plain.read_text()
+    for bad, match in (([[0.1], [0.1, 0.2]], "same number of zones"), ([[float("nan")]], r"zone_offsets\[0\]"),
+                       ([[0.6]], r"within \+-0.5 m"), ("x", "list of at most 64 rows")):
+        with pytest.raises(ParameterError, match=match):
+            RangeUncertainty(zone_offsets=bad)
+    other = RangeUncertainty(zone_offsets=off[:, :16])
+    with pytest.raises(ParameterError, match=rf"expected {S} rows of {Z} zones .* got {S} of 16"):
+        SensorCalibration(other).check_rig(p.rig)
+    with pytest.raises(ProblemError, match="zone_offsets"):
+        dataclasses.replace(p, range_model=other)

@@ -30,7 +30,8 @@ RTOL = 1e-9
 def _hard_problem(known: bool = True, cov: bool = True) -> Problem:
     """The easy problem with everything the fused kernels must keep: half the map's floor
     plan unknown, a configuration covariance per sample, support-yaw and range-scale
-    nuisances, a range model with biases and edge zones, no-return and dropped zones."""
+    nuisances, a range model with biases, edge zones and each zone's own offset, no-return
+    and dropped zones."""
     p, _ = easy_problem(n_samples=3)
     lo, hi = (np.asarray(b, dtype=float) for b in p.map.bounds())
     the_map = p.map
@@ -50,7 +51,8 @@ def _hard_problem(known: bool = True, cov: bool = True) -> Problem:
     return dataclasses.replace(
         p, map=the_map, status=status, distance_m=distance, T_base_tip_cov=T_cov, tip_source="knn" if cov else p.tip_source,
         nuisance=NuisancePriors(support_yaw_sigma=math.radians(2.0), range_scale_sigma=0.03),
-        range_model=RangeUncertainty(bias_offset=0.004, bias_slope=0.01, edge_bias_offset=-0.003, edge_bias_slope=0.02),
+        range_model=RangeUncertainty(bias_offset=0.004, bias_slope=0.01, edge_bias_offset=-0.003, edge_bias_slope=0.02,
+                                     zone_offsets=np.random.default_rng(7).normal(0.0, 0.005, p.distance_m.shape[1:])),
     )
 
 

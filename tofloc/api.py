@@ -475,6 +475,7 @@ def calibrate(
     support_yaw_bound_deg: float = 20.0,
     mounting: bool = True,
     reporter: Reporter = _SILENT,
+    zone_offsets: bool = True,
 ) -> CalibrationRun:
     """Calibrate the rig's mounting and the range model from logs with ground truth.
 
@@ -501,6 +502,9 @@ def calibrate(
         not used, nor checked, without ``support_yaw``).
     mounting : bool
         Also fit each sensor's mounting error.
+    zone_offsets : bool
+        Then each zone's fixed offset, kept where they are there and matter
+        (:mod:`sensor_models.calibration.zone_offsets`).
     reporter : Reporter
         Gets every stage's progress (zones cast per log, the support-rotation candidates,
         the mounting fit's solver evaluations, the EM iterations).
@@ -583,11 +587,11 @@ def calibrate(
             return zs.subset((zs.expected_m >= lo) & (zs.expected_m <= hi))
         return zs
 
-    steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"]
+    steps = ["the support's rotation"] * support_yaw + ["each sensor's mounting"] * mounting + ["EM"] + ["each zone's offset"] * zone_offsets
     reporter.note(f"calibrating: {', then '.join(steps)}")
     rc = calibrate_rig(pairs, footprint=footprint, valid_statuses=valid_statuses, support_yaw=support_yaw,
                        support_yaw_bound_deg=support_yaw_bound_deg, mounting=mounting, max_iter=max_iter, zone_filter=in_range,
-                       progress=reporter.progress)
+                       progress=reporter.progress, zone_offsets=bool(zone_offsets))
     from tofloc.provenance import provenance
 
     meta = {"logs": [str(getattr(lg, "path", lg)) for lg, _ in pairs], "maps": used, "footprint": footprint,

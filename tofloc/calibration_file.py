@@ -141,8 +141,11 @@ class SensorCalibration:
         Raises
         ------
         ParameterError
-            Naming both rigs' sensors.
+            Naming both rigs' sensors; or ``[uncertainty].zone_offsets`` shaped other than
+            the rig's sensors and zones (any file).
         """
+        if self.uncertainty.zone_offsets:
+            self.uncertainty.bias_coefficients(rig)  # one offset per zone of this rig
         rec = self.meta.get("rig")
         if not isinstance(rec, Mapping) or "fingerprint" not in rec:
             return  # an older or hand-written file: nothing recorded

@@ -303,6 +303,11 @@ class Problem:
         object.__setattr__(self, "valid_statuses", frozenset(int(v) for v in self.valid_statuses))
         if not isinstance(self.range_model, RangeUncertainty):
             raise ProblemError(f"range_model must be a RangeUncertainty, got {type(self.range_model).__name__}")
+        if self.range_model.zone_offsets:
+            try:
+                self.range_model.bias_coefficients(self.rig)  # one offset per zone of the rig
+            except ParameterError as e:
+                raise ProblemError(str(e)) from None
         if not isinstance(self.nuisance, NuisancePriors):
             raise ProblemError(f"nuisance must be a NuisancePriors, got {type(self.nuisance).__name__}")
         tol = self.map_tolerance_m

@@ -4,8 +4,15 @@ For each sensor and zone, the reported distance ``d_rep`` of a target at true di
 ``d`` (in the sensor's own convention) is modelled as::
 
     d_rep = d + bias(d) + N(0, sigma(d)^2),
-    bias(d)  = bias_offset + bias_slope * d                    (per zone class)
-    sigma(d) = max(sigma_floor, sigma_slope * d) * class_factor (per zone class)
+    bias(d)  = bias_offset + bias_slope * d (+ zone_offsets[s][z])  (per zone class)
+    sigma(d) = max(sigma_floor, sigma_slope * d) * class_factor    (per zone class)
+
+``zone_offsets`` (optional, one row per sensor, one value per zone): each zone's own fixed
+offset, the same at every distance and in every sample. Real VL53L5CX zones have them
+(4-7 mm, one sigma, on ETH's recordings: docs/simulator.md, "Range errors as recorded");
+being fixed, they do not average out over samples, so an estimator that folds them into
+sigma is overconfident with many samples. ``tofloc calibrate`` fits them when they matter
+(:func:`sensor_models.calibration.fit_zone_offsets`).
 
 Zone classes: ``"inner"`` and ``"edge"`` (the outer ring of the grid: weaker, vignetted
 returns). Defaults come from ST's datasheet (DS13754, 8x8: +-11 % at 2.7 sigma for grey
@@ -49,6 +56,9 @@ class RangeUncertainty:
         The same for edge zones.
     use_reported_sigma : bool
         Use the log's ``range_sigma_mm`` instead of sigma(d) where it is present.
+    zone_offsets : tuple of tuples of float
+        Each zone's fixed offset (m), ``[sensor][zone]`` in the rig's order, added to the
+        bias; empty (the default): none. A rig of another shape is refused where it is used.
     """
 
     sigma_slope: float = 0.11 / 2.7
@@ -59,10 +69,14 @@ class RangeUncertainty:
     edge_bias_offset: float = 0.0
     edge_bias_slope: float = 0.0
     use_reported_sigma: bool = False
+    zone_offsets: tuple[tuple[float, ...], ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "zone_offsets", _zone_offsets(self.zone_offsets))
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.name == "zone_offsets":
+                continue
             if f.name == "use_reported_sigma":
                 if not isinstance(v, bool):
                     raise ParameterError(f"uncertainty.use_reported_sigma must be true or false, got {v!r}")
@@ -104,13 +118,38 @@ class RangeUncertainty:
 
     def bias(self, rig: Rig, distance_m: ArrayLike) -> NDArray[np.float64]:
         """Expected bias (m) of zones ``(..., S, Z)`` at distances ``distance_m``."""
-        d = np.asarray(distance_m, dtype=float)
+        b0, b1 = self.bias_coefficients(rig)
+        return b0 + b1 * np.asarray(distance_m, dtype=float)
+
+    def bias_coefficients(self, rig: Rig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(b0, b1)``, each ``(S, Z)``: every zone's ``bias(d) = b0 + b1 * d`` (its class's
+        curve, and its own offset when there are ``zone_offsets``).
+
+        Raises
+        ------
+        ParameterError
+            ``zone_offsets`` shaped other than the rig's sensors and zones.
+        """
         edge = edge_zone_mask(rig)
-        return np.where(edge, self.edge_bias_offset + self.edge_bias_slope * d, self.bias_offset + self.bias_slope * d)
+        b0 = np.where(edge, self.edge_bias_offset, self.bias_offset)
+        b1 = np.where(edge, self.edge_bias_slope, self.bias_slope)
+        if self.zone_offsets:
+            off = np.asarray(self.zone_offsets, dtype=float)
+            if off.shape != edge.shape:
+                raise ParameterError(f"uncertainty.zone_offsets: expected {edge.shape[0]} rows of {edge.shape[1]} zones (the "
+                                     f"rig's sensors and zones), got {off.shape[0]} of {off.shape[1]}")
+            b0 = b0 + off
+        return np.broadcast_to(b0, edge.shape), np.broadcast_to(b1, edge.shape)
 
     # -- files ---------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The ``[uncertainty]`` table (``zone_offsets`` only when there are any, as lists)."""
+        d = asdict(self)
+        if self.zone_offsets:
+            d["zone_offsets"] = [list(row) for row in self.zone_offsets]
+        else:
+            del d["zone_offsets"]
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<uncertainty>") -> "RangeUncertainty":
@@ -125,3 +164,30 @@ class RangeUncertainty:
         from tofloc.toml_tables import params_from_toml
 
         return params_from_toml(cls, path, "uncertainty")
+
+
+#: Largest zone offset (m) a range model accepts.
+MAX_ZONE_OFFSET = 0.5
+
+
+def _zone_offsets(value: Any) -> tuple[tuple[float, ...], ...]:
+    """``zone_offsets`` as a tuple of equally long tuples of finite floats within
+    +-:data:`MAX_ZONE_OFFSET` (at most 64 sensors of 1024 zones), or :class:`ParameterError`."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)) or len(value) > 64:
+        raise ParameterError(f"uncertainty.zone_offsets must be a list of at most 64 rows (one per sensor), got {type(value).__name__}")
+    rows = []
+    for i, row in enumerate(value):
+        if isinstance(row, np.ndarray):
+            row = row.tolist()
+        ok = isinstance(row, (list, tuple)) and 1 <= len(row) <= 1024 and all(
+            isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool) and math.isfinite(v)
+            and abs(v) <= MAX_ZONE_OFFSET for v in row)
+        if not ok:
+            raise ParameterError(f"uncertainty.zone_offsets[{i}] must be 1 to 1024 finite numbers within +-{MAX_ZONE_OFFSET} m "
+                                 f"(one per zone), got {str(row)[:60]}")
+        rows.append(tuple(float(v) for v in row))
+    if len({len(r) for r in rows}) > 1:
+        raise ParameterError(f"uncertainty.zone_offsets: every row must have the same number of zones, got {[len(r) for r in rows]}")
+    return tuple(rows)

@@ -405,6 +405,7 @@ class RigCalibration:
     result: CalibrationResult
     support_yaw: SupportYawFit | None
     mounting: MountingFit | None
+    zone_offsets: Any = None  # sensor_models.calibration.zone_offsets.ZoneOffsetFit, when asked for
 
     @property
     def support_yaw_deg(self) -> float | None:
@@ -428,6 +429,10 @@ class RigCalibration:
         if self.mounting is not None:
             record["mounting_median_abs_residual_m"] = [self.mounting.median_abs_residual_before_m,
                                                         self.mounting.median_abs_residual_after_m]
+        if self.zone_offsets is not None:
+            zo = self.zone_offsets
+            record["zone_offsets"] = {"fitted": zo.fitted, "spread_m": zo.tau_m, "median_sigma_m": zo.median_sigma_m,
+                                      "chi2": zo.chi2, "chi2_threshold": zo.chi2_threshold, "zones_used": zo.zones_used}
         if res.notes:
             record["notes"] = list(res.notes)
         record.update(dict(meta or {}))
@@ -453,6 +458,7 @@ def calibrate_rig(
     max_iter: int = 200,
     zone_filter: Any = None,
     progress: ProgressFn | None = None,
+    zone_offsets: bool = True,
 ) -> RigCalibration:
     """The whole calibration of ``tofloc calibrate``: the support's rotation
     (:func:`fit_support_yaw`), a first EM fit on it, each sensor's mounting
@@ -461,7 +467,10 @@ def calibrate_rig(
     ZoneSamples`` restricts the zones of the EM fits (e.g. a distance range).
     ``progress(done, total, label)`` reports every stage as it goes (the support-yaw
     candidates, the mounting fit's solver evaluations, the EM iterations of the first and
-    the final fit); the calibration is the same without it."""
+    the final fit); the calibration is the same without it. ``zone_offsets``: then each
+    zone's fixed offset (:func:`sensor_models.calibration.zone_offsets.fit_zone_offsets`),
+    kept, and EM fitted once more without them, only where they are there and matter
+    (otherwise the calibration is the one without this step)."""
     psi = fit_support_yaw(logs_and_maps, footprint=footprint, valid_statuses=valid_statuses,
                           bound_deg=support_yaw_bound_deg, progress=progress) if support_yaw else None
     psi_deg = 0.0 if psi is None else psi.support_yaw_deg
@@ -479,4 +488,18 @@ def calibrate_rig(
         fit = fit_mounting(logs_and_maps, result.uncertainty, support_yaw_deg=psi_deg, footprint=footprint,
                            valid_statuses=valid_statuses, mixture=result.beam, progress=progress)
         result = em(fit.sensor_mounting, "EM iterations (final fit, mounting corrected)")
-    return RigCalibration(result, psi, fit)
+    offsets = None
+    if zone_offsets:
+        import dataclasses
+
+        from sensor_models.calibration.zone_offsets import corrected_samples, fit_zone_offsets
+
+        rig = logs_and_maps[0][0].rig
+        offsets = fit_zone_offsets(result, (rig.n_sensors, rig.n_zones))
+        if offsets.fitted:
+            again = fit_em(corrected_samples(result.samples, offsets.offsets), init=result.uncertainty,
+                           init_beam=result.beam, max_iter=max_iter, progress=progress,
+                           label="EM iterations (zone offsets taken out)")
+            unc = dataclasses.replace(again.uncertainty, zone_offsets=tuple(map(tuple, offsets.offsets.tolist())))
+            result = dataclasses.replace(again, uncertainty=unc, notes=[*again.notes, offsets.summary()])
+    return RigCalibration(result, psi, fit, offsets)

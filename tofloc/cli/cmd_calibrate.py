@@ -39,6 +39,10 @@ def calibrate(
         True, "--mounting/--no-mounting",
         help=escape("Also fit each sensor's mounting error (rotation, translation; robust least squares; written as "
                     "[mounting.sensors]).")),
+    zone_offsets: bool = typer.Option(
+        True, "--zone-offsets/--no-zone-offsets",
+        help=escape("Then each zone's fixed offset, kept where they are there and matter ([uncertainty] zone_offsets; "
+                    "docs/calibration.md).")),
 ) -> None:
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
     from sensor_models.calibration.plots import plot_zone_residuals, zone_plot_path
@@ -75,7 +79,8 @@ def calibrate(
     with RichReporter() as reporter:
         run = api.calibrate(logs, maps=map_paths, out=out, footprint=footprint, valid_statuses=statuses, max_iter=max_iter,
                             distance_range=(min_distance, max_distance), support_yaw=support_yaw,
-                            support_yaw_bound_deg=support_yaw_bound, mounting=mounting, reporter=reporter)
+                            support_yaw_bound_deg=support_yaw_bound, mounting=mounting, reporter=reporter,
+                            zone_offsets=zone_offsets)
     for lp, mp, c in zip(logs, run.maps, run.zone_counts):
         err_console.print(f"{lp}: {c['samples']} samples, {c['zones']} zones with an expected distance (map {mp}); "
                           f"{c['no_expected_hit']} zones see no map, {c['partial_footprint']} only partly", highlight=False)
@@ -98,6 +103,8 @@ def calibrate(
                               "mounting as exact instead (its uncertainty is not estimated, docs/rig.md): --no-mounting keeps "
                               "the declared tolerance", highlight=False)
     _print(result)
+    if rc.zone_offsets is not None and not rc.zone_offsets.fitted:
+        err_console.print(rc.zone_offsets.summary(), highlight=False)
     for note in result.notes:
         err_console.print(f"note: {note}", highlight=False)
     err_console.print(f"wrote {out}", highlight=False)

@@ -69,6 +69,8 @@ class SimulationResult:
     seed: int
     rig_true: "object" = None  # tofloc.rig.Rig
     paths: dict[str, Path] = field(default_factory=dict)
+    #: each zone's true fixed offset (m, (S, Z); ``[tof] zone_offset_sigma``), None without
+    zone_offset: np.ndarray | None = None
 
     @property
     def map_cloud(self) -> "object":
@@ -178,7 +180,7 @@ def simulate(
         + ("" if rig_variant is None else f" rig={rig_variant}"),
         created=sc.scenario.created,
     )
-    return SimulationResult(log, the_map, cad_mesh, world, T_base_tip_true, sc, seed, rig_true)
+    return SimulationResult(log, the_map, cad_mesh, world, T_base_tip_true, sc, seed, rig_true, zone_offset=zone_offset)
 
 
 def true_rig(source: str, scenario: Scenario | str | None = None) -> "object":
