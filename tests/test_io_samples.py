@@ -110,3 +110,32 @@ def test_a_pressure_line_whose_frames_were_all_lost_is_kept() -> None:
     np.testing.assert_array_equal(lone.pressure_kpa, [3, 4])
     assert (lone.status == 255).all() and asm.incomplete == 1  # "incomplete" counts missing sensors only
     assert out[1].complete and np.isnan(out[1].pressure_kpa).all()
+
+
+def test_a_late_line_of_any_of_the_last_64_samples_is_a_duplicate_not_a_new_sample() -> None:
+    """Only the last sample's counter was remembered: a line of the one before made a
+    second, incomplete copy of it. The last MEMORY (64) counters are remembered now."""
+    asm = SampleAssembler(rig(S=2, C=0))
+    out = run(asm, [e for k in range(65) for e in (frame(0, k, k), frame(1, k, k))])
+    assert [s.sample_id for s in out] == list(range(65)) and SampleAssembler.MEMORY == 64
+    assert run(asm, [frame(1, 99, 1), frame(0, 99, 63)]) == [] and asm.duplicates == 2  # both written already
+    assert asm.push(frame(1, 99, 0)) == []  # beyond the memory: taken for a new sample (documented)
+    (again,) = asm.flush()
+    assert again.sample_id == 0 and again.sensors_present == (False, True) and asm.duplicates == 2
+    # a flush (disconnect, restart, end) forgets the counters: the device may count from 0 again
+    (s,) = run(asm, [frame(0, 1, 1), frame(1, 2, 1)])
+    assert s.sample_id == 1 and s.complete and asm.duplicates == 2
+
+
+def test_two_counted_samples_may_be_open_and_a_third_closes_the_oldest() -> None:
+    asm = SampleAssembler(rig(S=2, C=1))  # no pressure line ever arrives: no sample is full
+    assert run(asm, [frame(0, 1, 7), frame(1, 2, 7), frame(0, 3, 8), frame(1, 4, 8)]) == []
+    (s,) = asm.push(frame(0, 5, 9))
+    assert s.sample_id == 7 and s.complete and np.isnan(s.pressure_kpa).all()
+    assert [x.sample_id for x in asm.flush()] == [8, 9]
+
+
+def test_sample_host_time_is_its_last_line() -> None:
+    asm = SampleAssembler(rig(S=1, C=1))
+    (s,) = run(asm, [frame(0, 1, 3, t=0.0), pressure([1.0], 3, t=0.5)])  # the pressure line came last
+    assert s.t_host_s == 100.5 and s.t_s == 0.0

@@ -195,14 +195,14 @@ class SerialCapture:
                     waiting = conn.port.in_waiting
                     chunk = conn.port.read(min(max(waiting, 1), 65536))
                 except (serial.SerialException, OSError) as e:
-                    now = self.clock()
+                    now = self._stamp()
                     yield from self._lost(conn, journal, splitter, now, str(e) or type(e).__name__)
                     if conn.port is None:
                         break
                     splitter = LineSplitter(self.max_line_bytes)
                     last_data = self.clock()
                     continue
-                now = self.clock()
+                now = self._stamp()
                 if chunk:
                     got_bytes = True
                     last_data = now
@@ -245,7 +245,7 @@ class SerialCapture:
         finally:
             try:
                 tail = splitter.flush_partial()
-                end = self.clock()
+                end = self._stamp()
                 self._final = []
                 if journal.failed is None:
                     for piece in tail:
@@ -262,6 +262,11 @@ class SerialCapture:
                 if conn.port is not None:
                     conn.port.close()
         yield from self._final
+
+    def _stamp(self) -> float:
+        """The host time given to the lines read now, rounded to the microsecond the journal
+        keeps, so that a log rebuilt from the journal has the very same samples."""
+        return round(self.clock(), 6)
 
     def _check_decoding(self, elapsed: float, text_arrived: bool = False) -> None:
         """Bytes but no frame after the time-out: wrong format or baud rate. A start-up

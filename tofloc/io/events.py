@@ -3,7 +3,9 @@
 Every decoder turns raw lines (bytes, without the line terminator) into a list of
 events: a :class:`Frame` (one sensor's zones), a :class:`Pressure` reading (one line of
 actuation), a :class:`Gap` (lines lost in transit), or a :class:`Rejected` line (kept for
-the statistics; the raw bytes are in the journal). Lines that are plain text (banners,
+the statistics; the raw bytes are in the journal). The tofloc protocol's line counter
+adds :class:`Late` (a line counted as lost arrived after all), :class:`Repeated` (a
+line received twice) and :class:`Restart` (the device began a new counter and clock epoch). Lines that are plain text (banners,
 ``rate: 15.0Hz``) are :class:`Rejected` with ``kind="text"`` so they are counted apart
 from real corruption.
 """
@@ -16,7 +18,7 @@ from typing import Literal, Union
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Frame", "Pressure", "Rejected", "Event", "Decoder", "Gap", "is_text", "UNFINISHED"]
+__all__ = ["Frame", "Pressure", "Rejected", "Event", "Decoder", "Gap", "Late", "Repeated", "Restart", "is_text", "UNFINISHED"]
 
 #: Reason given for a line cut short by a disconnect or by the end of the capture.
 UNFINISHED = "unfinished line (cut by a disconnect or the end of the capture)"
@@ -89,7 +91,35 @@ class Gap:
     line_no: int = 0
 
 
-Event = Union[Frame, Pressure, Rejected, Gap]
+@dataclass(frozen=True)
+class Late:
+    """A line whose sequence number had been counted among the lost ones arrived after
+    all (reordered): the lost-line count is corrected by one."""
+
+    line_no: int = 0
+
+
+@dataclass(frozen=True)
+class Repeated:
+    """A line received a second time (same kind, sequence number, device time and
+    checksum as one of the last lines): counted as a duplicate and ignored."""
+
+    line_no: int = 0
+
+
+@dataclass(frozen=True)
+class Restart:
+    """The device restarted: its line counter and clock begin a new epoch with this line.
+
+    The samples still open are closed before the line's own event; no line is counted
+    as lost across a restart.
+    """
+
+    reason: str
+    line_no: int = 0
+
+
+Event = Union[Frame, Pressure, Rejected, Gap, Late, Repeated, Restart]
 
 
 @dataclass
@@ -106,7 +136,8 @@ class Decoder:
         raise NotImplementedError
 
     def finish(self) -> list[Event]:
-        """End of stream (or of a connection): report any unfinished block."""
+        """End of stream (or of a connection): report any unfinished block. After it, the
+        next line may come from a restarted device (the tofloc decoder checks)."""
         return []
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import binascii
 import re
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -27,7 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc.errors import ParameterError
-from tofloc.io.events import UNFINISHED, Decoder, Event, Frame, Gap, Pressure, Rejected, is_text
+from tofloc.io.events import UNFINISHED, Decoder, Event, Frame, Gap, Late, Pressure, Rejected, Repeated, Restart, is_text
 from tofloc.rig import Rig
 
 __all__ = [
@@ -150,9 +151,38 @@ def _parse_values(field_: bytes, n: int) -> NDArray[np.float64] | None:
     return tok.astype(np.float64)
 
 
+#: Lines remembered for telling a repeated or late line from a restart (their keys, and
+#: the sequence numbers counted as lost among the last this many).
+LINE_MEMORY = 1024
+#: A line whose device time is this much older than the latest one, although its
+#: sequence number is ahead (by more than :data:`RESTART_MIN_AHEAD`), comes from a
+#: restarted device (frames of one cycle may be stamped out of order by less than that).
+RESTART_BACK_S = 2.0
+#: The next few line numbers with an older time are not a restart (a restarted counter
+#: lands far from the last one; a replayed log may go back in time).
+RESTART_MIN_AHEAD = 64
+#: How far a device clock may stray from the host's elapsed time (s) and still count as
+#: the same clock, across a 32-bit wrap or a disconnect.
+CLOCK_SLACK_S = 5.0
+_HALF = SEQ_MODULO // 2
+_LOW, _HIGH = 0x40000000, 0xC0000000
+
+
 @dataclass
 class TofLocDecoder(Decoder):
     """Decoder of the tofloc line protocol for a given rig.
+
+    Besides decoding, it follows the device's line counter and clock (``docs/serial-protocol.md``,
+    "Line counter, clock and restarts"): a line ``seq`` ahead of the last one counts the
+    numbers skipped as lost (:class:`Gap`); a line seen before is :class:`Repeated`; a
+    line that fills one of those holes is :class:`Late`; a line whose counter went back
+    otherwise, or whose clock went back (more than :data:`RESTART_BACK_S` while its counter
+    jumped by more than :data:`RESTART_MIN_AHEAD`, or a "32-bit wrap" the host's clock
+    cannot explain), starts a new epoch (:class:`Restart`):
+    no loss is counted across it and its times continue from the previous epoch's latest
+    time plus the host's elapsed time. After a disconnect (:meth:`finish`) the device's
+    clock must also have run on about as long as the host's did (within
+    :data:`CLOCK_SLACK_S`), else the device is taken to have restarted.
 
     Parameters
     ----------
@@ -162,8 +192,16 @@ class TofLocDecoder(Decoder):
 
     rig: Rig = field(default=None)  # type: ignore[assignment]
     _last_seq: int | None = field(default=None, init=False, repr=False)
-    _last_t_raw: int | None = field(default=None, init=False, repr=False)
-    _t_offset: int = field(default=0, init=False, repr=False)
+    _holes: deque[int] = field(default_factory=deque, init=False, repr=False)
+    _hole_set: set[int] = field(default_factory=set, init=False, repr=False)
+    _recent: deque[tuple[bytes, int, int, int]] = field(default_factory=deque, init=False, repr=False)
+    _recent_set: set[tuple[bytes, int, int, int]] = field(default_factory=set, init=False, repr=False)
+    _offset_us: int = field(default=0, init=False, repr=False)  # epoch offset plus the wraps seen, us
+    _seg_max_raw: int | None = field(default=None, init=False, repr=False)  # latest raw time since the last wrap
+    _wrapped: bool = field(default=False, init=False, repr=False)
+    _latest_us: int | None = field(default=None, init=False, repr=False)  # latest device time (unwrapped, us)
+    _latest_host_s: float = field(default=0.0, init=False, repr=False)  # host time of the line that set it
+    _after_disconnect: bool = field(default=False, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.rig, Rig):
@@ -172,27 +210,105 @@ class TofLocDecoder(Decoder):
         self._perm = [s.raw_order.raw_to_scene(s.resolution) for s in self.rig.sensors]
         self._names = {s.name.encode(): i for i, s in enumerate(self.rig.sensors)}
 
-    # -- helpers --------------------------------------------------------------------------
-    def _time(self, raw: int) -> float:
-        """Device seconds, unwrapping a 32-bit microsecond counter (micros() on most MCUs)."""
-        last = self._last_t_raw
-        if last is not None and last < 0x40000000 and 0xC0000000 <= raw < _WRAP32 and self._t_offset >= _WRAP32:
-            # a late (repeated or reordered) stamp from before the last wrap: not a new wrap
-            return (raw + self._t_offset - _WRAP32) * 1e-6
-        if last is not None and raw < last and last >= 0xC0000000 and raw < 0x40000000 and last < _WRAP32:
-            self._t_offset += _WRAP32
-        self._last_t_raw = raw
-        return (raw + self._t_offset) * 1e-6
+    def finish(self) -> list[Event]:
+        """End of the stream or of a connection: the next line may come from a restarted
+        device (checked on it)."""
+        self._after_disconnect = self._last_seq is not None
+        return []
 
-    def _seq(self, seq: int, line_no: int) -> list[Event]:
+    # -- line counter and clock ------------------------------------------------------------
+    def _unwrapped(self, raw: int) -> tuple[int, str]:
+        """The device time (us) ``raw`` would have in the current epoch, and how:
+        ``"first"``, ``"normal"``, ``"wrap"`` (a 32-bit micros() wrap) or ``"before-wrap"``
+        (a late stamp from before the last wrap)."""
+        seg = self._seg_max_raw
+        if seg is None:
+            return raw + self._offset_us, "first"
+        if self._wrapped and seg < _LOW and _HIGH <= raw < _WRAP32:
+            return raw + self._offset_us - _WRAP32, "before-wrap"
+        if _HIGH <= seg < _WRAP32 and raw < _LOW:
+            return raw + self._offset_us + _WRAP32, "wrap"
+        return raw + self._offset_us, "normal"
+
+    def _restart_reason(self, ahead: int, raw: int, t_us: int, how: str, t_host_s: float) -> str:
+        """Why a line whose counter is ``ahead`` of the last one comes from a restarted device
+        ("" if it does not)."""
+        if self._latest_us is None:
+            return ""
+        elapsed_us = max(0.0, t_host_s - self._latest_host_s) * 1e6
+        slack_us = (CLOCK_SLACK_S + 0.01 * elapsed_us * 1e-6) * 1e6
+        advance_us = t_us - self._latest_us
+        if how == "wrap" and advance_us > elapsed_us + slack_us:
+            return f"device clock went back to {raw} us (not a 32-bit wrap: the host's clock ran {elapsed_us * 1e-6:.1f} s)"
+        if advance_us < -RESTART_BACK_S * 1e6 and ahead > RESTART_MIN_AHEAD:
+            return f"device clock went back by {-advance_us * 1e-6:.3f} s"
+        if self._after_disconnect and advance_us < elapsed_us - slack_us:
+            return (f"after the disconnect the device clock ran {advance_us * 1e-6:.1f} s while the host's ran "
+                    f"{elapsed_us * 1e-6:.1f} s")
+        return ""
+
+    def _admit(self, key: tuple[bytes, int, int, int], seq: int, raw: int, t_host_s: float,
+               line_no: int) -> tuple[list[Event], float | None]:
+        """Counter and clock bookkeeping of one decoded line: the events that precede it
+        and its device time in seconds (None: a repeated line, to be ignored)."""
+        if key in self._recent_set:
+            return [Repeated(line_no)], None
         out: list[Event] = []
+        t_us, how = self._unwrapped(raw)
+        reason = ""
         if self._last_seq is not None:
-            gap = (seq - self._last_seq - 1) % SEQ_MODULO
-            # a huge "gap" is a restart or a reordering, not 60000 lost lines
-            if 0 < gap < SEQ_MODULO // 2:
-                out.append(Gap(gap, line_no))
+            ahead = (seq - self._last_seq) % SEQ_MODULO
+            if 0 < ahead < _HALF:
+                reason = self._restart_reason(ahead, raw, t_us, how, t_host_s)
+            elif seq in self._hole_set:  # counted as lost, arrived after all: not the newest line
+                self._hole_set.discard(seq)
+                self._holes.remove(seq)
+                self._remember(key)
+                if how == "wrap":  # older than the newest line: never the start of a new wrap
+                    t_us = raw + self._offset_us
+                return [Late(line_no)], t_us * 1e-6
+            elif ahead == 0:
+                reason = f"line number {seq} came again with another line"
+            else:
+                reason = f"line counter went back from {self._last_seq} to {seq}"
+        if reason:
+            out.append(Restart(reason, line_no))
+            assert self._latest_us is not None
+            elapsed_us = int(round(max(0.0, t_host_s - self._latest_host_s) * 1e6))
+            self._offset_us = self._latest_us + elapsed_us - raw  # the new epoch continues the time line
+            self._seg_max_raw, self._wrapped = raw, False
+            self._holes.clear()
+            self._hole_set.clear()
+            self._recent.clear()
+            self._recent_set.clear()
+            t_us = raw + self._offset_us
+        else:
+            if self._last_seq is not None:
+                lost = (seq - self._last_seq - 1) % SEQ_MODULO
+                if lost:
+                    out.append(Gap(lost, line_no))
+                    for s in range(max(self._last_seq + 1, self._last_seq + 1 + lost - LINE_MEMORY), self._last_seq + 1 + lost):
+                        self._holes.append(s % SEQ_MODULO)
+                        self._hole_set.add(s % SEQ_MODULO)
+            if how == "wrap":
+                self._offset_us += _WRAP32
+                self._seg_max_raw, self._wrapped = raw, True
+            elif how != "before-wrap":
+                self._seg_max_raw = raw if self._seg_max_raw is None else max(self._seg_max_raw, raw)
         self._last_seq = seq
-        return out
+        self._after_disconnect = False
+        while self._holes and (seq - self._holes[0]) % SEQ_MODULO >= LINE_MEMORY:
+            self._hole_set.discard(self._holes.popleft())
+        if self._latest_us is None or t_us > self._latest_us:
+            self._latest_us, self._latest_host_s = t_us, t_host_s
+        self._remember(key)
+        return out, t_us * 1e-6
+
+    def _remember(self, key: tuple[bytes, int, int, int]) -> None:
+        self._recent.append(key)
+        self._recent_set.add(key)
+        if len(self._recent) > LINE_MEMORY:
+            self._recent_set.discard(self._recent.popleft())
 
     # -- decoding -------------------------------------------------------------------------
     def feed(self, line: bytes, t_host_s: float, line_no: int, partial: bool = False) -> list[Event]:
@@ -212,8 +328,8 @@ class TofLocDecoder(Decoder):
             return [Rejected(f"checksum mismatch (line says {crc_hex.decode()}, computed {crc:04X})", line_no)]
         fields = body.split(b",")
         if kind == b"F":
-            return self._frame(fields, t_host_s, line_no)
-        return self._pressure(fields, t_host_s, line_no)
+            return self._frame(fields, t_host_s, line_no, crc)
+        return self._pressure(fields, t_host_s, line_no, crc)
 
     def _header(self, fields: list[bytes], line_no: int) -> tuple[int, int, int | None] | Rejected:
         seq_b, t_b, sample_b = fields[0], fields[1], fields[2]
@@ -229,7 +345,7 @@ class TofLocDecoder(Decoder):
             return Rejected("sample must be an unsigned integer or '-'", line_no)
         return int(seq_b), int(t_b), sample
 
-    def _frame(self, fields: list[bytes], t_host_s: float, line_no: int) -> list[Event]:
+    def _frame(self, fields: list[bytes], t_host_s: float, line_no: int, crc: int) -> list[Event]:
         if len(fields) not in (7, 8):
             return [Rejected(f"a frame line has 7 or 8 fields, found {len(fields)}", line_no)]
         head = self._header(fields, line_no)
@@ -268,14 +384,16 @@ class TofLocDecoder(Decoder):
                 return [Rejected(f"expected {Z} sigmas (numbers >= 0 or '-')", line_no)]
         d[d < 0] = np.nan  # the driver's int16 can dip below 0 on invalid zones: no distance
         p = self._perm[idx]
-        events = self._seq(seq, line_no)
+        events, t_device_s = self._admit((b"F", seq, t_raw, crc), seq, t_raw, t_host_s, line_no)
+        if t_device_s is None:
+            return events
         events.append(
             Frame(
                 sensor=idx,
                 distance_mm=d[p].astype(np.float32),
                 status=st[p].astype(np.uint8),
                 sigma_mm=None if sigma is None else sigma[p].astype(np.float32),
-                t_device_s=self._time(t_raw),
+                t_device_s=t_device_s,
                 t_host_s=t_host_s,
                 sample=sample,
                 line_no=line_no,
@@ -283,7 +401,7 @@ class TofLocDecoder(Decoder):
         )
         return events
 
-    def _pressure(self, fields: list[bytes], t_host_s: float, line_no: int) -> list[Event]:
+    def _pressure(self, fields: list[bytes], t_host_s: float, line_no: int, crc: int) -> list[Event]:
         if len(fields) != 4:
             return [Rejected(f"a pressure line has 4 fields, found {len(fields)}", line_no)]
         head = self._header(fields, line_no)
@@ -296,6 +414,7 @@ class TofLocDecoder(Decoder):
         p = _parse_values(fields[3], C)
         if p is None:
             return [Rejected(f"expected {C} pressures (the rig's actuators)", line_no)]
-        events = self._seq(seq, line_no)
-        events.append(Pressure(p.astype(np.float32), self._time(t_raw), t_host_s, sample, line_no))
+        events, t_device_s = self._admit((b"P", seq, t_raw, crc), seq, t_raw, t_host_s, line_no)
+        if t_device_s is not None:
+            events.append(Pressure(p.astype(np.float32), t_device_s, t_host_s, sample, line_no))
         return events

@@ -4,8 +4,15 @@ Rules (:class:`SampleAssembler`):
 
 * Frames that carry a sample counter (tofloc protocol) are grouped by it. A sample is
   emitted as soon as every sensor of the rig has reported and, when the rig has actuators,
-  its pressure line has arrived; otherwise when a line with another counter arrives (or
-  the stream ends).
+  its pressure line has arrived. Two samples may be open at once (a firmware may
+  interleave the lines of consecutive read cycles): an incomplete one is emitted when a
+  later one completes (it goes first: samples leave in the order they opened), when the
+  lines of a third one begin, or when the stream ends, the connection drops or the
+  device restarts (:meth:`SampleAssembler.flush`).
+* A line whose counter is one of the last :attr:`SampleAssembler.MEMORY` (64) samples
+  emitted is a late or repeated line of that sample: counted as a duplicate and ignored,
+  never a second copy of the sample. That memory is cleared at a disconnect or a device
+  restart (the counter may start again from 0).
 * Frames without a counter (SparkFun, ST ULD, or tofloc lines with ``-``) are grouped by
   time: a sample closes when a sensor reports a second time, when ``window_s`` has
   passed since its first frame, or when every sensor has reported. A pressure line
@@ -13,16 +20,17 @@ Rules (:class:`SampleAssembler`):
 * A sample that closes with sensors missing is still emitted (nothing valid is thrown
   away): the missing sensors' zones are NaN with status 255, and it is counted as
   incomplete. That includes a sample whose pressure line arrived but none of its
-  frames. A second frame of the same sensor for the same counter is counted as a
-  duplicate and ignored (the first one wins).
+  frames. A second frame of the same sensor (or a second pressure line) for the same
+  counter is counted as a duplicate and ignored (the first one wins).
 * The sample's time is the earliest device time stamp of its frames (the host's receive
   time for formats without one).
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,7 +56,7 @@ class Sample:
     t_s : float
         Sample time (s): earliest device time of its frames, else host time.
     t_host_s : float
-        Host time when the sample was completed.
+        Host time when the last of its lines arrived.
     distance_mm, status, sigma_mm : ndarray, shape (S, Z)
         As in the log (``sigma_mm`` None when no frame carried sigmas).
     pressure_kpa : ndarray, shape (C,), optional
@@ -100,9 +108,15 @@ class SampleAssembler:
     duplicates: int = 0
     incomplete: int = 0
     orphan_pressures: int = 0
-    _open: _Open | None = field(default=None, init=False, repr=False)
+    #: counted samples open at once (read cycles whose lines may interleave)
+    MAX_OPEN: ClassVar[int] = 2
+    #: counters of the last samples written, remembered to tell a late line from a new sample
+    MEMORY: ClassVar[int] = 64
+    _open: _Open | None = field(default=None, init=False, repr=False)  # the open sample without counter
+    _counted: dict[int, _Open] = field(default_factory=dict, init=False, repr=False)  # open samples by counter, oldest first
     _pending_pressure: Pressure | None = field(default=None, init=False, repr=False)
-    _last_emitted_id: int | None = field(default=None, init=False, repr=False)
+    _written: deque[int] = field(default_factory=deque, init=False, repr=False)
+    _written_set: set[int] = field(default_factory=set, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -117,11 +131,15 @@ class SampleAssembler:
         return self._pressure(event)
 
     def flush(self) -> list[Sample]:
-        """Emit the open sample (end of stream or of a connection)."""
-        out = self._emit()
+        """Emit the open samples (end of stream, a disconnect or a device restart) and
+        forget the counters written so far (the device may count again from 0)."""
+        out = self._close_counted() + self._emit(self._open)
+        self._open = None
         if self._pending_pressure is not None:
             self.orphan_pressures += 1
             self._pending_pressure = None
+        self._written.clear()
+        self._written_set.clear()
         return out
 
     # -- internals ---------------------------------------------------------------------
@@ -134,22 +152,46 @@ class SampleAssembler:
             return False
         return o.sample_id is None or self.rig.n_actuators == 0 or o.pressure is not None
 
+    def _close_counted(self, upto: int | None = None) -> list[Sample]:
+        """Emit the open counted samples, oldest first: all, or those opened before ``upto``
+        and ``upto`` itself."""
+        out: list[Sample] = []
+        for sid in list(self._counted):
+            out += self._emit(self._counted.pop(sid))
+            if sid == upto:
+                break
+        return out
+
+    def _counted_sample(self, sid: int) -> tuple[_Open | None, list[Sample]]:
+        """The open sample of counter ``sid`` (opened if need be, which may close the oldest
+        ones), or None when ``sid`` was written already (a late or repeated line)."""
+        out: list[Sample] = []
+        if self._open is not None:  # lines without a counter before: that sample is over
+            out += self._emit(self._open)
+            self._open = None
+        o = self._counted.get(sid)
+        if o is not None:
+            return o, out
+        if sid in self._written_set:
+            self.duplicates += 1
+            return None, out
+        o = self._counted[sid] = _Open(sid)
+        while len(self._counted) > self.MAX_OPEN:
+            out += self._emit(self._counted.pop(next(iter(self._counted))))
+        return o, out
+
     def _frame(self, f: Frame) -> list[Sample]:
         out: list[Sample] = []
-        o = self._open
         if f.sample is not None:
-            if o is not None and o.sample_id != f.sample:
-                out += self._emit()
-                o = None
+            o, out = self._counted_sample(f.sample)
             if o is None:
-                if f.sample == self._last_emitted_id:
-                    self.duplicates += 1
-                    return out
-                o = self._open = _Open(f.sample)
+                return out
         else:
-            if o is not None and (o.sample_id is not None or f.sensor in o.frames or self._t(f) - o.t_first > self.window_s):
-                out += self._emit()
-                o = None
+            out += self._close_counted()
+            o = self._open
+            if o is not None and (f.sensor in o.frames or self._t(f) - o.t_first > self.window_s):
+                out += self._emit(o)
+                o = self._open = None
             if o is None:
                 o = self._open = _Open(None)
                 if self._pending_pressure is not None:
@@ -160,29 +202,28 @@ class SampleAssembler:
         o.frames[f.sensor] = f
         o.t_first = min(o.t_first, self._t(f))
         if self._full(o):
-            out += self._emit()
+            if o.sample_id is not None:
+                out += self._close_counted(upto=o.sample_id)
+            else:
+                out += self._emit(o)
+                self._open = None
         return out
 
     def _pressure(self, p: Pressure) -> list[Sample]:
         out: list[Sample] = []
-        o = self._open
         if p.sample is not None:
-            if o is not None and o.sample_id != p.sample:
-                out += self._emit()
-                o = None
+            o, out = self._counted_sample(p.sample)
             if o is None:
-                if p.sample == self._last_emitted_id:
-                    self.duplicates += 1
-                    return out
-                o = self._open = _Open(p.sample)
+                return out
             if o.pressure is not None:
                 self.duplicates += 1
                 return out
             o.pressure = p
             if self._full(o):
-                out += self._emit()
+                out += self._close_counted(upto=o.sample_id)
             return out
-        if o is not None and o.sample_id is None and o.pressure is None:
+        o = self._open
+        if o is not None and o.pressure is None:
             o.pressure = p
         else:
             if self._pending_pressure is not None:
@@ -190,10 +231,14 @@ class SampleAssembler:
             self._pending_pressure = p
         return out
 
-    def _emit(self) -> list[Sample]:
-        o, self._open = self._open, None
+    def _emit(self, o: _Open | None) -> list[Sample]:
         if o is None:
             return []
+        if o.sample_id is not None:
+            self._written.append(o.sample_id)
+            self._written_set.add(o.sample_id)
+            if len(self._written) > self.MEMORY:
+                self._written_set.discard(self._written.popleft())
         if not o.frames and o.pressure is None:
             return []
         S, Z, C = self.rig.n_sensors, self.rig.n_zones, self.rig.n_actuators
@@ -214,15 +259,14 @@ class SampleAssembler:
         present = tuple(i in o.frames for i in range(S))
         if not all(present):
             self.incomplete += 1
+        hosts = [f.t_host_s for f in o.frames.values()] + ([o.pressure.t_host_s] if o.pressure is not None else [])
         if o.frames:
             t_first = o.t_first
-            t_host = max(f.t_host_s for f in o.frames.values())
         else:  # only the pressure line arrived: kept (its frames were lost), as an incomplete sample
             assert o.pressure is not None
-            t_first, t_host = self._t(o.pressure), o.pressure.t_host_s
-        sample = Sample(self._count, float(t_first), t_host, d, st, sg, pressure, o.sample_id, present)
+            t_first = self._t(o.pressure)
+        sample = Sample(self._count, float(t_first), max(hosts), d, st, sg, pressure, o.sample_id, present)
         self._count += 1
-        self._last_emitted_id = o.sample_id
         return [sample]
 
 

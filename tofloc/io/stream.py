@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tofloc.io.events import Frame, Gap, Pressure, Rejected
+from tofloc.io.events import Frame, Gap, Late, Pressure, Rejected, Repeated, Restart
 from tofloc.io.formats import make_decoder
 from tofloc.io.lines import RawLine
 from tofloc.io.samples import Sample, SampleAssembler
@@ -36,11 +36,17 @@ class CaptureStats:
         Lines cut short by a disconnect or by the end of the capture.
     lost : int
         Lines the device sent that never decoded, from the tofloc sequence counter
-        (includes the malformed ones that were protocol lines; 0 for other formats).
-    duplicates, incomplete, orphan_pressures : int
+        (includes the malformed ones that were protocol lines; 0 for other formats). A
+        line that arrives late, after its number was counted, is taken off again.
+    duplicates : int
+        Lines received twice (:class:`tofloc.io.events.Repeated`), lines of a sample
+        already written, and second frames of a sensor (or pressure lines) in one sample.
+    incomplete, orphan_pressures : int
         See :class:`tofloc.io.samples.SampleAssembler`.
     disconnects : int
         Times the port went away.
+    restarts : int
+        Times the device restarted (a new line-counter and clock epoch; tofloc only).
     first_rejections : list of str
         The first few rejection reasons, with line numbers (for messages).
     first_text : str
@@ -61,12 +67,13 @@ class CaptureStats:
     incomplete: int = 0
     orphan_pressures: int = 0
     disconnects: int = 0
+    restarts: int = 0
     first_rejections: list[str] = field(default_factory=list)
     first_text: str = ""
     last_text_line: int = 0
 
     def summary(self) -> str:
-        """One line: frames, samples, dropped/malformed lines, disconnects."""
+        """One line: frames, samples, malformed and lost lines, duplicates, disconnects, restarts."""
         s = f"{self.frames} frames, {self.samples} samples"
         if self.incomplete:
             s += f" ({self.incomplete} incomplete)"
@@ -79,6 +86,8 @@ class CaptureStats:
             s += f", {self.duplicates} duplicates"
         if self.disconnects:
             s += f", {self.disconnects} disconnects"
+        if self.restarts:
+            s += f", {self.restarts} device restart{'s' if self.restarts > 1 else ''}"
         return s
 
 
@@ -105,6 +114,7 @@ class StreamProcessor:
         self.decoder = make_decoder(fmt, rig, no_target_at_or_below_mm=no_target_at_or_below_mm)
         self.assembler = SampleAssembler(rig, window_s=window_s)
         self.stats = CaptureStats()
+        self._repeated = 0
 
     def feed(self, line: RawLine, t_host_s: float, line_no: int | None = None) -> list[Sample]:
         """Decode one line, named in rejections as line ``line_no`` (a journal's own line
@@ -135,7 +145,8 @@ class StreamProcessor:
 
     def _sync(self) -> None:
         a = self.assembler
-        self.stats.duplicates, self.stats.incomplete, self.stats.orphan_pressures = a.duplicates, a.incomplete, a.orphan_pressures
+        self.stats.duplicates = a.duplicates + self._repeated
+        self.stats.incomplete, self.stats.orphan_pressures = a.incomplete, a.orphan_pressures
 
     def _handle(self, events: list) -> list[Sample]:
         out: list[Sample] = []
@@ -149,6 +160,13 @@ class StreamProcessor:
                 out += self.assembler.push(e)
             elif isinstance(e, Gap):
                 st.lost += e.lost_lines
+            elif isinstance(e, Late):
+                st.lost -= 1
+            elif isinstance(e, Repeated):
+                self._repeated += 1
+            elif isinstance(e, Restart):
+                st.restarts += 1
+                out += self.assembler.flush()  # the old epoch's samples; its counters may come again
             elif isinstance(e, Rejected):
                 if e.kind == "text":
                     st.text += 1
