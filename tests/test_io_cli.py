@@ -198,3 +198,48 @@ def test_replay_stops_on_sigterm_while_it_waits_for_a_reader(simulated: Path, tm
         rep.wait()
     assert rep.returncode == 0, err
     assert "sent 0 lines (stopped by SIGTERM)" in err
+
+
+def test_replay_says_what_the_tofloc_protocol_cannot_carry(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A log with a negative distance or time was replayed without a word, although the
+    docs called a tofloc replay lossless: the protocol reads a negative distance as "no
+    distance" and its t_us is unsigned. The replay now says so; the statement holds."""
+    from tofloc.io.formats import encode_log, tofloc_not_carried
+    from tofloc.io.lines import RawLine
+    from tofloc.io.stream import StreamProcessor
+    from tofloc.rig import Rig, Sensor
+
+    rig = Rig((Sensor("s0", resolution=(4, 4)),), ())
+    d = np.full((3, 1, 16), 500.0, np.float32)
+    d[1, 0, 3], d[2, 0, 5] = -7.0, -1.5
+    log = Log.from_arrays(rig, np.array([-0.5, 0.0, 0.5]), d, np.full((3, 1, 16), 5))
+    assert tofloc_not_carried(log) == ["2 distances below 0 mm (read back as no distance, NaN)",
+                                       "1 sample time before 0 s (sent as t_us 0)"]
+    assert tofloc_not_carried(Log.from_arrays(rig, np.array([0.0, 1.0]), d[:2] ** 2, np.full((2, 1, 16), 5))) == []
+    proc = StreamProcessor("tofloc", rig)  # what a recorder of the replay gets
+    got = [s for _, lines, _ in encode_log(log, "tofloc") for line in lines for s in proc.feed(RawLine(line.rstrip(b"\n")), 0.0)]
+    got += proc.finish()
+    assert [s.t_s for s in got] == [0.0, 0.0, 0.5] and np.isnan(got[1].distance_mm[0, 3]) and np.isnan(got[2].distance_mm[0, 5])
+    path = write_log(log, tmp_path / "neg.h5")
+    assert main(["replay", str(path), "--pty", "--wait", "0.2"]) == 2  # nobody reads it: it says so and stops
+    err = " ".join(capsys.readouterr().err.split())
+    assert (f"warning: {path}: this replay is not lossless: the tofloc protocol does not carry 2 distances below 0 mm "
+            "(read back as no distance, NaN) nor 1 sample time before 0 s (sent as t_us 0)") in err
+
+
+def test_record_progress_tells_lost_lines_from_malformed_ones() -> None:
+    """The progress line showed the malformed lines as "dropped lines" whenever the line
+    counter had lost none (and for formats that have no counter)."""
+    from types import SimpleNamespace
+
+    from tofloc.cli.cmd_record import _progress
+    from tofloc.io.stream import CaptureStats
+
+    st = CaptureStats(frames=30, samples=10, malformed=3, disconnects=1)
+    line = _progress(SimpleNamespace(stats=st, fmt="tofloc"), "P", 2.0).plain
+    assert line == "P: 30 frames, 10 samples, 5.0 samples/s, 0 dropped lines, 3 malformed lines (kept in the journal), 1 disconnects"
+    st.lost, st.duplicates, st.restarts = 4, 2, 1
+    assert ", 4 dropped lines, 3 malformed lines (kept in the journal), 1 disconnects, 2 duplicates, 1 device restart" in (
+        _progress(SimpleNamespace(stats=st, fmt="tofloc"), "P", 2.0).plain)
+    other = _progress(SimpleNamespace(stats=CaptureStats(frames=5, samples=5, malformed=2), fmt="st-uld"), "P", 1.0).plain
+    assert "dropped" not in other and "2 malformed lines (kept in the journal)" in other

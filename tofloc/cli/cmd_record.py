@@ -197,10 +197,15 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
 
 
 def _progress(cap: Any, port: str, elapsed: float) -> Text:
+    """The progress line: lines lost in transit (the tofloc line counter's gaps; other formats
+    cannot tell) apart from malformed lines, which reached the host and are in the journal."""
     st = cap.stats
     rate = st.samples / elapsed if elapsed > 0 else 0.0
-    dropped = st.lost if st.lost else st.malformed
+    dropped = f"{st.lost} dropped lines, " if cap.fmt == "tofloc" else ""
+    extra = f", {st.duplicates} duplicates" if st.duplicates else ""
+    if st.restarts:
+        extra += f", {st.restarts} device restart{'s' if st.restarts > 1 else ''}"
     return Text(
         f"{port}: {st.frames} frames, {st.samples} samples, {rate:.1f} samples/s, "
-        f"{dropped} dropped lines ({st.malformed} malformed kept in the journal), {st.disconnects} disconnects",
+        f"{dropped}{st.malformed} malformed lines (kept in the journal), {st.disconnects} disconnects{extra}",
     )

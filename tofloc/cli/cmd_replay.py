@@ -48,6 +48,14 @@ def replay(
             raise ParameterError(f"--link {link}: is a link to {os.readlink(link)}, not to a terminal device; "
                                  "choose another path")
     data = read_log(log)
+    if fmt == "tofloc":
+        from tofloc.io.formats import tofloc_not_carried
+
+        lost = tofloc_not_carried(data)
+        if lost:
+            err_console.print(f"warning: {log}: this replay is not lossless: the tofloc protocol does not carry "
+                              f"{' nor '.join(lost)}; a log recorded from it will differ there",
+                              highlight=False, markup=False)
     idx = None
     if sensor is not None:
         names = [s.name for s in data.rig.sensors]

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from typing import Iterator
 
+import numpy as np
+
 from tofloc.errors import ParameterError
 from tofloc.io.events import Decoder
 from tofloc.io.protocol import TofLocDecoder, encode_frame_line, encode_pressure_line
@@ -22,7 +24,7 @@ from tofloc.io.st_uld import StUldDecoder, encode_st_uld
 from tofloc.logs import Log
 from tofloc.rig import Rig
 
-__all__ = ["FORMATS", "FORMAT_HINTS", "check_format", "make_decoder", "encode_log", "EncodedSample"]
+__all__ = ["FORMATS", "FORMAT_HINTS", "check_format", "make_decoder", "encode_log", "EncodedSample", "tofloc_not_carried"]
 
 FORMATS: tuple[str, ...] = ("tofloc", "sparkfun-csv", "sparkfun-grid", "st-uld")
 
@@ -76,7 +78,9 @@ def encode_log(log: Log, fmt: str, *, sensor: int | None = None) -> Iterator[Enc
     -----
     ``tofloc`` writes ``t_us = round(timestamp_s * 1e6)`` (clamped at 0), sample counters
     ``0, 1, ...`` and zones in raw order (the inverse of the rig's ``raw_order``), so
-    decoding gives back the same float32 distances, statuses, sigmas and pressures.
+    decoding gives back the same float32 distances, statuses, sigmas and pressures, except
+    what the protocol cannot carry (:func:`tofloc_not_carried`): a distance below 0 is
+    read back as "no distance" (NaN) and a time before 0 as 0.
     The other formats round distances to whole millimetres, print 0 for "no target" and
     (SparkFun) drop statuses.
     """
@@ -93,6 +97,26 @@ def encode_log(log: Log, fmt: str, *, sensor: int | None = None) -> Iterator[Enc
         if R != C or rig.sensors[sensor].n_zones != R * C:
             raise ParameterError(f"format {fmt} prints a square grid; sensor {rig.sensors[sensor].name} is {R}x{C}")
     return _encode(log, fmt, sensor)
+
+
+def tofloc_not_carried(log: Log) -> list[str]:
+    """What a ``tofloc``-format replay of ``log`` cannot give back, one phrase per kind
+    (``[]``: the replay is lossless).
+
+    The protocol reads a negative distance as "no distance" (the VL53L5CX driver's
+    ``int16`` dips below 0 on zones that measured nothing) and its ``t_us`` is unsigned,
+    so a log holding either (a converter may copy them) does not survive a replay.
+    """
+    d = log.distance_mm
+    negative = int(np.count_nonzero(np.isfinite(d) & (d < 0)))
+    before = int(np.count_nonzero(log.timestamp_s < 0))
+    out = []
+    if negative:
+        out.append(f"{negative} distance{'s' if negative > 1 else ''} below 0 mm "
+                   "(read back as no distance, NaN)")
+    if before:
+        out.append(f"{before} sample time{'s' if before > 1 else ''} before 0 s (sent as t_us 0)")
+    return out
 
 
 def _encode(log: Log, fmt: str, sensor: int | None) -> Iterator[EncodedSample]:
