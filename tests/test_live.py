@@ -258,7 +258,7 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
     class OneBatch:  # the capture thread, replaced by one batch of samples
         received: list = []
 
-        def __init__(self, cap) -> None:
+        def __init__(self, cap, keep_received: bool = False) -> None:
             self.batches = [samples, None]
 
         def start(self) -> None:
@@ -278,7 +278,8 @@ def test_live_estimates_carry_the_fit_check_and_flagged_ones_warn(paper, monkeyp
             return "3 samples"
 
     monkeypatch.setattr("tofloc.io.capture.BackgroundCapture", OneBatch)
-    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
+    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats(), "clock": staticmethod(lambda: 3.0)})(), None, "PORT", "tofloc",
+                       115200, "icp_pf", "j")
     err = capsys.readouterr().err
     assert "warning: sample 2: the data do not fit the map at the estimate" in err
 
@@ -324,7 +325,7 @@ def test_live_names_a_left_out_sample_once(paper, monkeypatch, capsys) -> None:
                          model, window=10)
 
     class OneByOne:  # the background capture, replaced by four one-sample batches
-        def __init__(self, cap) -> None:
+        def __init__(self, cap, keep_received: bool = False) -> None:
             self.batches = [[s] for s in samples] + [None]
 
         def start(self) -> None: ...
@@ -340,7 +341,73 @@ def test_live_names_a_left_out_sample_once(paper, monkeypatch, capsys) -> None:
 
     monkeypatch.setattr(capture, "BackgroundCapture", OneByOne)
     capsys.readouterr()
-    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats()})(), None, "PORT", "tofloc", 115200, "icp_pf", "j")
+    live_cmd._run_loop(live, type("Cap", (), {"stats": Stats(), "clock": staticmethod(lambda: 4.0)})(), None, "PORT", "tofloc",
+                       115200, "icp_pf", "j")
     err = " ".join(capsys.readouterr().err.split())
     assert err.count("left out of the weights") == 1, err
     assert "warning: sample 0: sample(s) 0 left out of the weights" in err and "--json" not in err
+
+
+class _FakeCapture:
+    """A SerialCapture stand-in for BackgroundCapture: it yields ``samples`` and reads the
+    host clock ``now`` (a fixed time, so that the latency printed is known)."""
+
+    def __init__(self, samples: list, now: float) -> None:
+        from tofloc.io.stream import CaptureStats
+
+        self._samples, self._now, self.stats = samples, now, CaptureStats(samples=len(samples))
+
+    def samples(self):
+        yield from self._samples
+
+    def clock(self) -> float:
+        return self._now
+
+    def stop(self) -> None:
+        pass
+
+
+def test_live_lines_are_one_per_estimate_with_latency_and_keep_no_sample_without_out(paper, tmp_path, monkeypatch,
+                                                                                     capsys) -> None:
+    """Piped stdout is 80 columns wide: the estimate lines (about 130 characters) were
+    folded onto two lines. Each line (and the CSV's latency_s) gives the latency from the
+    sample's last line received to the estimate; without --out the capture kept every
+    sample received all the same."""
+    import csv
+
+    from tofloc.cli import live_cmd
+    from tofloc.cli.app import console
+    from tofloc.io.estimates import EstimatesWriter
+    from tofloc.io.samples import Sample
+
+    sim, model = paper
+    log = sim.log.subset(model.validation_indices[:3])
+    prior = Prior(frames.xyyaw_from_se3(sim.log.T_map_base), np.array([0.05, 0.05, 0.1]), z=0.5)
+    samples = [Sample(index=i, t_s=float(i), t_host_s=1000.0 + 0.1 * i, distance_mm=log.distance_mm[i],
+                      status=log.status[i], sigma_mm=None, pressure_kpa=log.pressure_kpa[i], sample_id=i,
+                      sensors_present=(True,) * 3) for i in range(3)]
+    monkeypatch.setattr(console, "_width", 80)  # what rich uses when stdout is not a terminal
+    capsys.readouterr()
+    for keep in (False, True):
+        live = LiveLocalizer(ICPScorePF(n_particles=100), log.rig, sim.map_cloud, prior, model, window=3)
+        with EstimatesWriter(tmp_path / f"est{keep}.csv", z=0.5) as writer:
+            args = (live, _FakeCapture(samples, now=1000.45), writer, "PORT", "tofloc", 115200, "icp_pf", tmp_path / "j")
+            bg = live_cmd._run_loop(*args, keep_received=True) if keep else live_cmd._run_loop(*args)
+        assert bg.received == (samples if keep else [])  # only --out keeps them to the end
+        out = capsys.readouterr().out.splitlines()
+        estimates = [ln for ln in out if "+-" in ln]
+        assert estimates and all(ln.startswith("sample ") for ln in estimates) and len(out) == len(estimates), out
+        last = estimates[-1]
+        assert len(last) > 80 and last.endswith(", latency 0.25 s)") and "(estimate " in last, last
+        rows = list(csv.DictReader((tmp_path / f"est{keep}.csv").open()))
+        assert rows[-1]["sample_index"] == "2" and float(rows[-1]["latency_s"]) == pytest.approx(0.25, abs=1e-9)
+
+
+def test_offline_estimate_rows_leave_the_latency_empty(tmp_path) -> None:
+    from tofloc.io.estimates import ESTIMATE_COLUMNS, write_trial_estimates
+
+    record = {"estimate": [0.1, 0.2, 0.3], "covariance": np.eye(3).tolist(), "runtime_s": 0.5, "sample_indices": [0, 2]}
+    assert write_trial_estimates(tmp_path / "e.csv", [record], np.array([1.0, 2.0, 3.0]), z=0.5) == 1
+    header, row = (tmp_path / "e.csv").read_text().splitlines()
+    assert header.split(",") == list(ESTIMATE_COLUMNS) and ESTIMATE_COLUMNS[-2:] == ["runtime_s", "latency_s"]
+    assert row.split(",")[-2:] == ["0.5", ""] and row.startswith("2,3.000000000,2,0,")

@@ -23,6 +23,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.text import Text
 
 app = typer.Typer(
     name="tofloc",
@@ -33,11 +34,23 @@ app = typer.Typer(
     rich_markup_mode="rich",
 )
 
-#: Results and tables go to stdout; progress and messages to stderr. Messages are not
-#: wrapped at the console's width (80 columns when stderr is a pipe or a file): a path in
-#: "wrote PATH" or in a one-line error stays whole, for the terminal to fold and for
-#: scripts to read.
-console = Console()
+
+
+class _TextConsole(Console):
+    """A console whose text lines are never wrapped (soft wrap) while tables and other
+    renderables are laid out as usual (fitted to the width, titles centred)."""
+
+    def print(self, *objects: Any, soft_wrap: bool | None = None, **kwargs: Any) -> None:  # type: ignore[override]
+        if soft_wrap is None:
+            soft_wrap = all(isinstance(o, (str, Text)) for o in objects)
+        super().print(*objects, soft_wrap=soft_wrap, **kwargs)
+
+
+#: Results and tables go to stdout; progress and messages to stderr. Neither wraps text at
+#: the console's width (80 columns when the stream is a pipe or a file): a path in "wrote
+#: PATH", a one-line error or a live estimate stays one line, for the terminal to fold and
+#: for scripts to read. Tables on stdout still fit their columns to the width.
+console = _TextConsole()
 err_console = Console(stderr=True, soft_wrap=True)
 
 _state = {"debug": os.environ.get("TOFLOC_DEBUG", "") not in ("", "0")}

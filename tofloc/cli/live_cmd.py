@@ -5,7 +5,9 @@ adds no command of its own). The capture path is ``tofloc record``'s (journal fi
 resynchronizing parsers) and runs in its own thread, so the port is read and every line
 journaled however long an estimate takes. The estimator then works on the latest
 ``--window`` samples: each estimate covers every sample that arrived since the previous
-one, and says how many it skipped. ``--estimates-out`` saves each estimate as it comes.
+one, and says how many it skipped, the estimator's time and the latency (from the
+sample's last line received to the estimate printed). ``--estimates-out`` saves each
+estimate as it comes.
 An estimate whose data do not fit the map (:mod:`tofloc.fit_check`) gets a warning line.
 """
 
@@ -126,7 +128,7 @@ def run_live(
 
             writer = stack.enter_context(EstimatesWriter(estimates_out, z=prior.z, roll=prior.roll, pitch=prior.pitch))
         suggest = None if suggest_next is None else _suggester(live, suggest_next, seed)
-        bg = _run_loop(live, cap, writer, port, fmt, baud, estimator, journal, suggest)
+        bg = _run_loop(live, cap, writer, port, fmt, baud, estimator, journal, suggest, keep_received=out is not None)
         if out is not None and bg.received:
             from tofloc.io.samples import samples_to_log
             from tofloc.logs import write_log
@@ -154,13 +156,18 @@ def _suggester(live: Any, path: Path, seed: int) -> Any:
 
 
 def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, estimator: str, journal: Path,
-              suggest: Any = None) -> Any:
+              suggest: Any = None, *, keep_received: bool = False) -> Any:
     """The consumer loop: estimate on the latest samples while the capture thread reads (and,
-    with ``suggest``, say which posture to command next before the first sample and after every estimate)."""
+    with ``suggest``, say which posture to command next before the first sample and after every estimate).
+
+    Each estimate's line (and ``writer``'s row) gives the estimator's time and the latency:
+    from the arrival of the estimated sample's last line (``Sample.t_host_s``, on the
+    capture's clock) to the estimate's output. ``keep_received``: keep every sample for a
+    log at the end (``--out``); otherwise the capture holds none once taken."""
     from tofloc.io.capture import BackgroundCapture
 
     err_console.print(f"live localization with {estimator} on {port} ({fmt}, {baud} baud); journal {journal}; Ctrl-C to stop")
-    bg = BackgroundCapture(cap)
+    bg = BackgroundCapture(cap, keep_received=keep_received)
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.getsignal(signal.SIGINT)
     if in_main:
@@ -185,10 +192,12 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
                 continue
             x, y, yaw = upd.estimate.pose
             sd = np.sqrt(np.clip(np.diag(upd.estimate.covariance), 0, None))
+            latency = cap.clock() - batch[-1].t_host_s  # the sample's last line in -> this estimate out
             console.print(
                 f"sample {upd.sample_index} ({upd.n_used} used{more}): x = {x:.4f} +- {sd[0]:.4f} m, "
                 f"y = {y:.4f} +- {sd[1]:.4f} m, yaw = {math.degrees(yaw):.2f} +- {math.degrees(sd[2]):.2f} deg "
-                f"({upd.estimate.runtime_s:.2f} s)"
+                f"(estimate {upd.estimate.runtime_s:.2f} s, latency {latency:.2f} s)",
+                highlight=False, markup=False,
             )
             fit = upd.estimate.fit
             if fit is not None and not fit.ok:
@@ -202,7 +211,7 @@ def _run_loop(live: Any, cap: Any, writer: Any, port: str, fmt: str, baud: int, 
                 err_console.print(f"warning: sample {upd.sample_index}: {excluded_text(new_excluded, where='')}",
                                   style="yellow", highlight=False, markup=False)
             if writer is not None:
-                writer.write(upd, batch[-1].t_s)
+                writer.write(upd, batch[-1].t_s, latency_s=latency)
             if suggest is not None:
                 suggest(upd.estimate, int(upd.sample_index))
     finally:

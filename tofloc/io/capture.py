@@ -335,6 +335,9 @@ class BackgroundCapture:
     ----------
     capture : SerialCapture
         The capture to run (its journal, time-outs and reconnection apply).
+    keep_received : bool
+        Keep every sample received in :attr:`received` (for writing a log at the end).
+        Off, a long capture holds only the samples not yet taken.
 
     Examples
     --------
@@ -344,9 +347,10 @@ class BackgroundCapture:
     >>> bg.join()                                    # re-raises a capture error
     """
 
-    def __init__(self, capture: SerialCapture) -> None:
+    def __init__(self, capture: SerialCapture, *, keep_received: bool = True) -> None:
         self.capture = capture
-        #: every sample received, in order (for writing a log at the end)
+        self.keep_received = keep_received
+        #: every sample received, in order (for writing a log at the end); empty unless ``keep_received``
         self.received: list[Sample] = []
         self.error: BaseException | None = None
         self._pending: list[Sample] = []
@@ -363,7 +367,8 @@ class BackgroundCapture:
             for s in self.capture.samples():
                 with self._cond:
                     self._pending.append(s)
-                    self.received.append(s)
+                    if self.keep_received:
+                        self.received.append(s)
                     self._cond.notify_all()
         except BaseException as e:  # handed to the consumer's thread by join()
             self.error = e

@@ -11,7 +11,9 @@ format:
   map), readable by ``evo`` and the TUM tools;
 * anything else: CSV with a header line, the same pose plus ``yaw_rad``, the number of
   samples used and skipped, and the 3x3 covariance of ``(x, y, yaw)`` row by row
-  (``cov_x_x, cov_x_y, cov_x_yaw, cov_y_x, ...``; m^2, m rad, rad^2).
+  (``cov_x_x, cov_x_y, cov_x_yaw, cov_y_x, ...``; m^2, m rad, rad^2), the estimator's
+  time ``runtime_s`` and, live, ``latency_s``: from the arrival of the estimated sample's
+  last line to the row's output (empty offline).
 
 The timestamp is the sample's time as the log stores it (``/samples/timestamp_s``: the
 device clock for the tofloc protocol). Samples without an estimate write no row. Offline,
@@ -42,7 +44,7 @@ _AXES = ("x", "y", "yaw")
 ESTIMATE_COLUMNS = (
     ["sample_index", "timestamp_s", "n_used", "skipped", "x_m", "y_m", "z_m", "yaw_rad", "qx", "qy", "qz", "qw"]
     + [f"cov_{a}_{b}" for a in _AXES for b in _AXES]
-    + ["runtime_s"]
+    + ["runtime_s", "latency_s"]
 )
 
 
@@ -87,8 +89,18 @@ class EstimatesWriter:
         except OSError as e:
             raise ParameterError(f"--estimates-out {self.path}: cannot write: {e.strerror} ({self.rows} estimates written)") from None
 
-    def write(self, update: Any, timestamp_s: float) -> None:
-        """Append one :class:`tofloc.live.LiveUpdate` (nothing when it has no estimate)."""
+    def write(self, update: Any, timestamp_s: float, latency_s: float | None = None) -> None:
+        """Append one :class:`tofloc.live.LiveUpdate` (nothing when it has no estimate).
+
+        Parameters
+        ----------
+        update : tofloc.live.LiveUpdate
+        timestamp_s : float
+            The estimated sample's time (``/samples/timestamp_s``).
+        latency_s : float, optional
+            Seconds from the arrival of the sample's last line to this estimate's output
+            (CSV ``latency_s``; empty when None, as offline). TUM has no column for it.
+        """
         est = update.estimate
         if est is None:
             return
@@ -102,7 +114,8 @@ class EstimatesWriter:
             cov = np.asarray(est.covariance, dtype=float).reshape(9)
             vals = [x, y, self.z, yaw, qx, qy, qz, qw, *cov, float(est.runtime_s)]
             head = f"{int(update.sample_index)},{timestamp_s:.9f},{int(update.n_used)},{int(update.skipped)},"
-            self._put(head + ",".join(f"{v:.17g}" for v in vals) + "\n")
+            latency = "" if latency_s is None else f"{float(latency_s):.6f}"
+            self._put(head + ",".join(f"{v:.17g}" for v in vals) + f",{latency}\n")
         self.rows += 1
 
     def close(self) -> None:
