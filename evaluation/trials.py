@@ -569,6 +569,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     """Draw a trial's samples and prior, run its estimator and check the fit (the work of
     :func:`run_trial`; also used to re-run one trial for a plot: same seed, same numbers)."""
     from tofloc.fit_check import check_fit, widen_if_unfit
+    from tofloc.map_tolerance import add_map_tolerance_covariance
     from tofloc.mounting_uncertainty import add_mounting_covariance
 
     est = make_estimator(task.estimator_cls, task.params, task.estimator)
@@ -589,6 +590,7 @@ def solve_trial(context: TrialContext, task: TrialTask) -> TrialOutcome:
     result = est.estimate(problem, est_rng)
     if hasattr(problem.map, "raycast"):  # a map that cannot be ray cast cannot be checked
         add_mounting_covariance(problem, result)  # what a declared mounting tolerance adds to it
+        add_map_tolerance_covariance(problem, result)  # and a declared map tolerance
         result.fit = check_fit(problem, result)
         widen_if_unfit(problem, result)  # a flagged estimate's covariance is widened by the prior's
     return TrialOutcome(problem, result, truth_T, idx, setup_s, calibration is context.calibration, chosen)
@@ -599,6 +601,7 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     increasing order: each the outcome :func:`solve_trial` gives for the first k samples of
     the trial's draw, with its prior (a particle filter's answers from one pass)."""
     from tofloc.fit_check import check_fit, widen_if_unfit
+    from tofloc.map_tolerance import add_map_tolerance_covariance
     from tofloc.mounting_uncertainty import add_mounting_covariance
 
     if task.selection != "random":
@@ -627,6 +630,7 @@ def solve_nested(context: TrialContext, task: TrialTask) -> list[TrialOutcome]:
     for i, (k, problem, result) in enumerate(zip(ks, problems, results)):
         if hasattr(problem.map, "raycast"):
             add_mounting_covariance(problem, result)
+            add_map_tolerance_covariance(problem, result)
             result.fit = check_fit(problem, result)
             widen_if_unfit(problem, result)
         out.append(TrialOutcome(problem, result, context.truth(idx[:k]), idx[:k], setup_s if i == 0 else 0.0,

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -48,12 +49,13 @@ def room() -> dict:
     physics = ToFPhysics(sub_rays=1, min_hit_fraction=0.5)
     prior = Prior(mean=TRUTH, sigma=np.array([0.04, 0.04, math.radians(4.0)]), z=Z)
 
-    def readings(T_tip_sensor: np.ndarray) -> np.ndarray:
-        return cast_zones(cad, rig, T_map_base @ T_base_tip[:, None] @ T_tip_sensor[None], physics).distance
+    def readings(T_tip_sensor: np.ndarray, world: Map = cad) -> np.ndarray:
+        return cast_zones(world, rig, T_map_base @ T_base_tip[:, None] @ T_tip_sensor[None], physics).distance
 
-    def problem(d: np.ndarray, tol: MountingTolerance = MountingTolerance(ROT, TRANS, "test")) -> Problem:
+    def problem(d: np.ndarray, tol: MountingTolerance = MountingTolerance(ROT, TRANS, "test"), map_tolerance: float = 0.0) -> Problem:
         status = np.where(np.isfinite(d), 5, 255).astype(np.uint8)
-        return Problem(rig=rig, distance_m=d, status=status, T_base_tip=T_base_tip, map=cad, prior=prior, mounting=tol)
+        return Problem(rig=rig, distance_m=d, status=status, T_base_tip=T_base_tip, map=cad, prior=prior, mounting=tol,
+                       map_tolerance_m=map_tolerance)
 
     return {"rig": rig, "readings": readings, "problem": problem, "rng": rng}
 
@@ -102,15 +104,14 @@ def test_the_shared_reading_gradients_by_hand() -> None:
     np.testing.assert_allclose(a[1], [0.0, -1.0 / 0.3, -1.0 / 0.3])  # yaw: e_z x h = (0.5, 1, 0)
 
 
-def test_the_consider_covariance_matches_monte_carlo(room: dict) -> None:
-    """Weighted least squares on the rig as drawn, fed readings from rigs moved by draws of
-    the tolerance: the spread of its answers is the covariance mounting_covariance predicts."""
+def _solver(room: dict) -> Any:
+    """Weighted least squares of the base pose on the rig and the map as drawn (the problem's
+    own weights without the mounting tolerance's variance), from readings ``d``."""
     rig, problem = room["rig"], room["problem"]
-    p0 = problem(room["readings"](rig.T_tip_sensor))
-    P_inv = np.linalg.inv(p0.prior.covariance)
 
     def solve(d: np.ndarray) -> np.ndarray:
         p, x = problem(d), TRUTH.copy()
+        P_inv = np.linalg.inv(p.prior.covariance)
         for _ in range(4):
             r = zone_residuals(p, x, gradients=True)
             use = p.valid & np.isfinite(r.expected) & (np.abs(np.nan_to_num(r.r, nan=9.0)) < 3)
@@ -121,6 +122,16 @@ def test_the_consider_covariance_matches_monte_carlo(room: dict) -> None:
             H = np.einsum("ksz,kszi,kszj->ij", w, a, a) + P_inv
             x = x + np.linalg.solve(H, np.einsum("ksz,kszi,ksz->i", w, a, e) - P_inv @ (x - p.prior.mean))
         return x
+
+    return solve
+
+
+def test_the_consider_covariance_matches_monte_carlo(room: dict) -> None:
+    """Weighted least squares on the rig as drawn, fed readings from rigs moved by draws of
+    the tolerance: the spread of its answers is the covariance mounting_covariance predicts."""
+    rig, problem = room["rig"], room["problem"]
+    p0 = problem(room["readings"](rig.T_tip_sensor))
+    solve = _solver(room)
 
     ref = solve(p0.distance_m)
     rng = np.random.default_rng(5)
@@ -209,3 +220,39 @@ def test_simulated_logs_declare_the_scenarios_tolerance_and_trials_record_it(tmp
             assert np.all(np.linalg.eigvalsh(model) > -1e-12)
     exact = write_simulation(simulate("paper", 0, rig_variant="exact"), tmp_path / "exact.h5")
     assert not read_log(exact["log"]).rig.tolerances.declared
+
+
+def test_the_map_tolerance_consider_covariance_matches_monte_carlo(room: dict) -> None:
+    """The same weighted least squares fed readings from boxes whose five faces each stand
+    off the map by a draw of the declared tolerance (2 mm along their normals): the spread of
+    its answers is the covariance tofloc.map_tolerance predicts; an estimate gains it once,
+    and not when its estimator counted the tolerance itself (the smoother's diagnostics)."""
+    from tofloc.map_tolerance import add_map_tolerance_covariance, map_tolerance_covariance
+
+    rig, problem = room["rig"], room["problem"]
+    t = 0.002
+    p0 = problem(room["readings"](rig.T_tip_sensor), map_tolerance=t)
+    solve = _solver(room)
+    ref = solve(p0.distance_m)
+    rng = np.random.default_rng(11)
+    errors = []
+    for _ in range(120):
+        dxm, dxp, dym, dyp, dzm = rng.normal(0.0, t, 5)  # each face outward along its normal
+        world = Map.cuboid(size=(0.7 + dxm + dxp, 0.7 + dym + dyp, 0.6 + dzm), origin=(-0.35 - dxm, -0.35 - dym, -dzm),
+                           open_faces=("+z",))
+        errors.append(solve(room["readings"](rig.T_tip_sensor, world)) - ref)
+    errors = np.array(errors)
+    C, n_faces = map_tolerance_covariance(p0, TRUTH)
+    assert n_faces == 5
+    predicted, observed = np.sqrt(np.diag(C)), errors.std(axis=0)
+    assert np.all(predicted > 0.6 * observed) and np.all(predicted < 1.5 * observed), (predicted, observed)
+    assert predicted[0] > 5e-4  # a millimetre's order: not negligible
+    nees = np.einsum("ni,ij,nj->n", errors, np.linalg.inv(C), errors)
+    assert 1.5 < nees.mean() < 4.5
+    est = Estimate(pose=TRUTH.copy(), covariance=np.eye(3) * 1e-8)
+    assert add_map_tolerance_covariance(p0, est)
+    np.testing.assert_allclose(est.covariance, np.eye(3) * 1e-8 + C)
+    assert est.diagnostics["map_tolerance_faces"] == 5
+    counted = Estimate(pose=TRUTH.copy(), covariance=np.eye(3) * 1e-8, diagnostics={"map_tolerance": {"added": True}})
+    assert not add_map_tolerance_covariance(p0, counted)
+    assert not add_map_tolerance_covariance(problem(p0.distance_m), Estimate(pose=TRUTH.copy(), covariance=np.eye(3)))

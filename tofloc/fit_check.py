@@ -146,6 +146,10 @@ class ZoneResiduals:
         ``(K, S, Z, 3)`` and ``(K, S, Z, 6)``: the expected reading's derivatives with
         respect to the base pose and its sensor's mounting error
         (:func:`tofloc.mounting_uncertainty.pose_and_mounting_gradients`), when asked for.
+    hit_index, cos_incidence : ndarray or None
+        ``(K, S, Z)``: the map primitive each zone's ray hits (-1: none) and the absolute
+        cosine of its incidence, when gradients are asked for (a face's offset moves the
+        reading by ``1 / (cos_incidence * range_factor)`` per metre: :mod:`tofloc.map_tolerance`).
     """
 
     expected: NDArray[np.float64]
@@ -156,6 +160,8 @@ class ZoneResiduals:
     mounting_variance: NDArray[np.float64] | None = None
     pose_gradient: NDArray[np.float64] | None = None
     mounting_gradient: NDArray[np.float64] | None = None
+    hit_index: NDArray[np.int64] | None = None
+    cos_incidence: NDArray[np.float64] | None = None
 
     @property
     def outlier(self) -> NDArray[np.bool_]:
@@ -366,7 +372,9 @@ def zone_residuals(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, rang
     misfit = (valid & ~has) | (no_target & has)
     return ZoneResiduals(expected=expected, r=r, checked=valid | no_target, misfit=misfit, sigma=sigma,
                          mounting_variance=mount_var, pose_gradient=a if gradients else None,
-                         mounting_gradient=b if gradients else None)
+                         mounting_gradient=b if gradients else None,
+                         hit_index=cast.index if gradients else None,
+                         cos_incidence=None if not gradients or cast.mean_cos is None else np.abs(cast.mean_cos))
 
 
 def unknown_space_zones(problem: Any, pose: ArrayLike, res: ZoneResiduals, support_yaw: float = 0.0) -> NDArray[np.bool_] | None:
