@@ -655,7 +655,8 @@ def run_trial(context: TrialContext, task: TrialTask) -> dict[str, Any]:
         declares no truth covariance), ``nees_model`` (``nees`` with the estimator's own
         covariance, before :func:`tofloc.fit_check.widen_if_unfit`; with what a declared mounting
         tolerance adds, which is also kept alone in ``mounting_covariance`` (3x3, only then):
-        :mod:`tofloc.mounting_uncertainty`), ``covariance_widened``
+        :mod:`tofloc.mounting_uncertainty`; and a declared map tolerance's, in
+        ``map_tolerance_covariance``: :mod:`tofloc.map_tolerance`), ``covariance_widened``
         (whether the fit check failed and the prior's covariance was added), ``runtime_s`` (the
         estimator's own time on the trial, without one-off set-up; a nested trial's answer
         read off a pass: the time from the pass's start), ``work_s`` (nested trials only:
@@ -742,6 +743,9 @@ def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> d
     mounting = result.diagnostics.get("mounting_covariance") if isinstance(result.diagnostics, Mapping) else None
     if mounting is not None:  # what the rig's declared mounting tolerance added to the covariance
         record["mounting_covariance"] = jsonable(mounting)
+    map_tol = result.diagnostics.get("map_tolerance_covariance") if isinstance(result.diagnostics, Mapping) else None
+    if map_tol is not None:  # what the map's declared face tolerance added (tofloc.map_tolerance)
+        record["map_tolerance_covariance"] = jsonable(map_tol)
     basins = result.diagnostics.get("basin_check") if isinstance(result.diagnostics, Mapping) else None
     if basins is not None:  # other places checked after a global start (estimators/basin_check.py)
         record["basin_check"] = jsonable(basins)
