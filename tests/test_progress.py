@@ -110,7 +110,7 @@ def test_calibrate_reports_each_stage(small, tmp_path) -> None:
     log, mesh = small
     rec = Recorder()
     run = api.calibrate([log.subset(np.arange(0, log.n_samples, 2))], maps=[mesh], support_yaw=False, mounting=False, max_iter=25,
-                        reporter=rec)
+                        zone_offsets=False, reporter=rec)
     assert rec.labels() == ["casting every zone of the logs", "EM iterations"]
     assert rec.last("casting every zone of the logs") == (1, 1)
     d, t = rec.last("EM iterations")
@@ -121,6 +121,13 @@ def test_calibrate_reports_each_stage(small, tmp_path) -> None:
                   progress=rec.progress)
     assert rec.labels() == ["EM iterations (first fit, before the mounting)", "mounting fit: 3 rounds, solver evaluations",
                             "EM iterations (final fit, mounting corrected)"]
+    # the zones' offsets, when they are kept, get their own EM stage: here the support's 3 deg
+    # rotation, left uncorrected, leaves each zone a systematic residual the step keeps
+    rec = Recorder()
+    run = api.calibrate([log.subset(np.arange(0, log.n_samples, 2))], maps=[mesh], support_yaw=False, mounting=False, max_iter=25,
+                        reporter=rec)
+    assert run.rig_calibration.zone_offsets.fitted
+    assert rec.labels() == ["casting every zone of the logs", "EM iterations", "EM iterations (zone offsets taken out)"]
 
 
 def test_rich_reporter_bars_inside_a_stage_and_completion_lines(capsys) -> None:

@@ -331,7 +331,7 @@ ROOM = '[environment]\nkind = "room"\noutline = [[0.0, 0.0], [3.0, 0.0], [3.0, 2
 def test_room_scenario_from_scratch_and_extends(tmp_path) -> None:
     sc = load_scenario(_write(tmp_path, ROOM))
     assert sc.environment.kind == "room" and sc.scenario.name == "custom"
-    assert sc.tof.accuracy_percent == 8.0  # the dataclass default: nothing extended
+    assert sc.tof.accuracy_percent == 11.0 and sc.scenario.extends == ""  # the code's defaults (the paper's physics): nothing extended
     mine = load_scenario(_write(tmp_path, '[scenario]\nextends = "pillars"\n[base]\nx = 1.5\n'))
     pillars = load_scenario("pillars")
     assert mine.base.x == 1.5 and mine.base.y == pillars.base.y and mine.environment == pillars.environment

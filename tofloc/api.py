@@ -474,8 +474,8 @@ def calibrate(
     support_yaw: bool = True,
     support_yaw_bound_deg: float = 20.0,
     mounting: bool = True,
-    reporter: Reporter = _SILENT,
     zone_offsets: bool = True,
+    reporter: Reporter = _SILENT,
 ) -> CalibrationRun:
     """Calibrate the rig's mounting and the range model from logs with ground truth.
 
@@ -748,8 +748,8 @@ def localize(
     reporter: Reporter = _SILENT,
     plot: str | os.PathLike[str] | None = None,
     selection: str = "random",
-    map_tolerance_m: float = 0.0,
     selection_params: Mapping[str, Any] | None = None,
+    map_tolerance_m: float = 0.0,
 ) -> LocalizeResult:
     """Localize the base from a log with a registered estimator, over trials of the paper's protocol.
 
@@ -988,8 +988,8 @@ def paper(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
-    design: str | None = None,
     selection_params: Mapping[str, Any] | None = None,
+    design: str | None = None,
 ) -> PaperResult:
     """The paper's experiment (Table I and Fig. 4): every estimator, both tip sources, both
     prior modes, k = 1..``k_max``, ``trials`` trials each; results in ``out`` (what
@@ -1282,8 +1282,8 @@ def scenes(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
-    random_scenes: int = 0,
     selection_params: Mapping[str, Any] | None = None,
+    random_scenes: int = 0,
 ) -> ScenesResult:
     """Every estimator on every scene of the library (one :func:`paper` run per scene, in
     ``out/<scene>-<variant>/``, with ``k`` samples, one tip source and one prior mode), and
@@ -1642,10 +1642,10 @@ def evaluate(
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
     selection: str = "random",
+    selection_params: Mapping[str, Any] | None = None,
     plot_failures: int = 0,
     estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     set_aside_unusable: bool = False,
-    selection_params: Mapping[str, Any] | None = None,
 ) -> EvaluateResult:
     """Every estimator on every log with ground truth, the same trials for all, against each
     trial's oracle floor, each estimator's target checked at every estimator's answer where
