@@ -245,14 +245,18 @@ def test_the_map_tolerance_consider_covariance_matches_monte_carlo(room: dict) -
     C, n_faces = map_tolerance_covariance(p0, TRUTH)
     assert n_faces == 5
     predicted, observed = np.sqrt(np.diag(C)), errors.std(axis=0)
-    assert np.all(predicted > 0.6 * observed) and np.all(predicted < 1.5 * observed), (predicted, observed)
+    # bands a review's mutations fall outside (no incidence factor: NEES 4.4; the covariance x1.4: 2.1)
+    assert np.all(predicted > 0.8 * observed) and np.all(predicted < 1.25 * observed), (predicted, observed)
     assert predicted[0] > 5e-4  # a millimetre's order: not negligible
     nees = np.einsum("ni,ij,nj->n", errors, np.linalg.inv(C), errors)
-    assert 1.5 < nees.mean() < 4.5
+    assert 2.3 < nees.mean() < 3.8
     est = Estimate(pose=TRUTH.copy(), covariance=np.eye(3) * 1e-8)
     assert add_map_tolerance_covariance(p0, est)
     np.testing.assert_allclose(est.covariance, np.eye(3) * 1e-8 + C)
     assert est.diagnostics["map_tolerance_faces"] == 5
     counted = Estimate(pose=TRUTH.copy(), covariance=np.eye(3) * 1e-8, diagnostics={"map_tolerance": {"added": True}})
     assert not add_map_tolerance_covariance(p0, counted)
+    not_counted = Estimate(pose=TRUTH.copy(), covariance=np.eye(3) * 1e-8,
+                           diagnostics={"map_tolerance": {"added": False, "reason": "the incremental solve does not add it"}})
+    assert add_map_tolerance_covariance(p0, not_counted)
     assert not add_map_tolerance_covariance(problem(p0.distance_m), Estimate(pose=TRUTH.copy(), covariance=np.eye(3)))

@@ -483,6 +483,17 @@ def test_strongest_target_reads_one_surface_unless_they_merge(far_x: float, merg
         np.testing.assert_allclose(reading[~straddling], signal[~straddling], atol=1e-12)
         x = strong.point[0, 0, straddling, 0]
         assert np.all(np.minimum(np.abs(x - 1.0), np.abs(x - far_x)) < 1e-6)
+        # the reported target's geometry: the primitive hit is the reported wall's (triangles 0-1
+        # the near one, 2-3 the far one), not the first returning sub-ray's
+        far = np.abs(reading - d_far) < 0.05
+        wall = strong.index[0, 0] // 2
+        assert np.array_equal(wall[straddling], far[straddling].astype(int))  # here the near wall, the stronger return
+        # a far wall turned by 40 deg: the straddling zones' footprints span two normals 40 deg
+        # apart, but the target each reports is one plane: no corner (the signal mean's has one)
+        rig2, walls2 = _looking_at([near, _quad([far_x, 0.0, 0.0], 40.0)])
+        turned = ZoneCaster(rig2, footprint=3, weighting="strongest", min_hit_fraction=0.34).cast(walls2, T, geometry=True)
+        mixed = ZoneCaster(rig2, footprint=3, min_hit_fraction=0.34).cast(walls2, T, geometry=True)
+        assert mixed.corner.any() and not turned.corner.any()
     # the mask itself: sorted readings split at gaps >= the separation; the heavier target, the nearer on a tie
     r = np.array([[1.0, 1.1, 2.0, 2.1], [1.0, 2.0, np.nan, 1.05], [1.0, 1.0, 2.0, 2.0]])
     ret = np.isfinite(r)

@@ -26,7 +26,6 @@ from numpy.typing import NDArray
 
 from tofloc.errors import ParameterError
 from tofloc.fit_check import check_fit, widen_if_unfit
-from tofloc.map_tolerance import add_map_tolerance_covariance
 from tofloc.mounting_uncertainty import add_mounting_covariance
 from tofloc.problem import Estimate, Estimator, Prior, Problem, ProblemError
 from tofloc.problem_builder import build_problem, mm_to_m
@@ -171,7 +170,6 @@ class LiveLocalizer:
         except ProblemError as e:
             return LiveUpdate(index, problem.n_samples, None, str(e))
         add_mounting_covariance(problem, est)  # what a declared mounting tolerance adds to its covariance
-        add_map_tolerance_covariance(problem, est)  # and a declared map tolerance
         est.fit = check_fit(problem, est)  # does the window's data fit the map at the estimate?
         widen_if_unfit(problem, est)  # if not, its covariance is widened by the prior's
         steps = est.diagnostics.get("all_excluded", ()) if isinstance(est.diagnostics, dict) else ()

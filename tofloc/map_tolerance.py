@@ -21,9 +21,12 @@ covariance gains ``t^2 sum_f J_f J_f^T``. Faces are the map's planar faces
 (:meth:`tofloc.maps.Map.planar_faces`), so only maps with a mesh surface have them; on a
 bare cloud (the maps built from scans) nothing is added.
 
-An estimator that already counts the tolerance says so in its diagnostics
-(``diagnostics["map_tolerance"]``, the GTSAM smoother:
-:mod:`estimators.gtsam_map_tolerance`) and gets nothing more.
+An estimator that already counted the tolerance says so in its diagnostics
+(``diagnostics["map_tolerance"]["added"]`` true, the GTSAM smoother's batch solves:
+:mod:`estimators.gtsam_map_tolerance`) and gets nothing more; one that reports it could not
+(the smoother's incremental solve) gets this term like any other. Added where the offline
+trials add the mounting tolerance's (``tofloc localize``, ``paper``, ``scenes``,
+``evaluate``); live localization declares no map tolerance.
 """
 
 from __future__ import annotations
@@ -86,14 +89,15 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
 
 def add_map_tolerance_covariance(problem: Any, estimate: Any) -> bool:
     """Add the problem's map tolerance's covariance to ``estimate.covariance`` (in place),
-    unless the estimator counted it itself (``diagnostics["map_tolerance"]``).
+    unless the estimator counted it itself (``diagnostics["map_tolerance"]["added"]``).
 
     Returns True when something was added; the added ``(3, 3)`` matrix is kept in
     ``estimate.diagnostics["map_tolerance_covariance"]`` with its face count in
     ``["map_tolerance_faces"]``.
     """
     diag = getattr(estimate, "diagnostics", None)
-    if isinstance(diag, dict) and "map_tolerance" in diag:
+    counted = diag.get("map_tolerance") if isinstance(diag, dict) else None
+    if isinstance(counted, dict) and counted.get("added"):
         return False
     if float(getattr(problem, "map_tolerance_m", 0.0)) <= 0.0 or not hasattr(problem.map, "raycast"):
         return False

@@ -36,8 +36,10 @@ sub-rays' readings, with weights
   gap of 600 mm or more; the target of the largest summed weight (ties: the nearest) gives
   the reading. A zone straddling a box 1 m in front of a wall reads the box or the wall,
   never a depth between them (as ETH's recordings of a panel's edge show, docs/simulator.md);
-  with ``"signal"`` it reads their weighted mean. The simulator's scenes that set
-  ``[tof] zone_return = "strongest"`` use it; no footprint tolerance with it.
+  with ``"signal"`` it reads their weighted mean. The geometry (incidence, normal, point,
+  primitive, corner) is the reported target's; the hit fraction is the whole footprint's.
+  The simulator's scenes that set ``[tof] zone_return = "strongest"`` use it; no footprint
+  tolerance with it.
 
 With one sub-ray all give the same reading.
 
@@ -348,6 +350,11 @@ class ZoneCaster:
         if not geometry:
             return self._reduce(t, normal, d)
         reading, frac, ret, n_ret, target, w, wsum = self._weighted(t, normal, d)
+        if self.weighting == "strongest" and self.n_sub > 1:
+            # the geometry of the target the zone reports (its incidence, first primitive and
+            # corners), not of the sub-rays it discarded; the hit fraction stays the footprint's
+            ret = ret & (w > 0)
+            n_ret = ret.sum(axis=-1)
         nrm = np.asarray(hits.normal, dtype=float)
         facing, n_dot_d = facing_normals(nrm, d)  # normals turned toward the sensor
         cos_i = np.abs(n_dot_d)

@@ -501,5 +501,11 @@ def calibrate_rig(
                            init_beam=result.beam, max_iter=max_iter, progress=progress,
                            label="EM iterations (zone offsets taken out)")
             unc = dataclasses.replace(again.uncertainty, zone_offsets=tuple(map(tuple, offsets.offsets.tolist())))
-            result = dataclasses.replace(again, uncertainty=unc, notes=[*again.notes, offsets.summary()])
+            notes = [*again.notes, offsets.summary()]
+            skipped = [what for what, done in (("the support's rotation", support_yaw), ("each sensor's mounting", mounting))
+                       if not done]
+            if skipped:  # a geometry error left in the data looks like zone offsets, but changes with the pose
+                notes.append(f"zone offsets kept without fitting {' or '.join(skipped)}: they may hold part of a "
+                             "geometry error, which changes with the pose and does not carry over to another set-up")
+            result = dataclasses.replace(again, uncertainty=unc, notes=notes)
     return RigCalibration(result, psi, fit, offsets)

@@ -113,7 +113,8 @@ def localize(
         0.0, "--map-tolerance", metavar="METRES",
         help="The map's face tolerance (one sigma, m): each planar face of a mesh map (or of --surface) stands off its "
              "drawing by an unknown offset of this size, shared by every zone that sees it (a CAD model's assembly "
-             "tolerance). The smoother's covariance counts it and the Cramér-Rao bound with map tolerance uses it; "
+             "tolerance). Every estimator's covariance counts it (the smoother's its own way, the others' "
+             "tofloc/map_tolerance.py) and the Cramér-Rao bound with map tolerance uses it; "
              "0 (default): the faces are where the map draws them."),
     port: Optional[str] = typer.Option(None, "--port", help="Live: localize from this serial device (or pyserial URL) as samples arrive."),
     baud: int = typer.Option(115200, "--baud", help="Live: baud rate."),
