@@ -512,16 +512,10 @@ def map_tolerance_information(
     ``f`` reads ``delta_f / (|cos incidence| * range_factor)`` more, ``b_f = sum_i w_i J_i
     g_i`` and ``c_f = sum_i w_i g_i^2``. Each zone sees one face, so the nuisance block is
     diagonal. Zones whose hit is not a triangle of ``labels``' mesh count as on an exact face."""
+    from tofloc.map_tolerance import face_offset_sums
+
     assert g.cast.index is not None and g.cast.mean_cos is not None
-    idx = g.cast.index
-    cos = np.abs(g.cast.mean_cos)
-    on_face = use & (idx >= 0) & (idx < labels.size) & (cos > 1e-6)
-    rf = np.broadcast_to(rig.range_factor[None], idx.shape)
-    gi = np.where(on_face, 1.0 / np.where(on_face, cos * rf, 1.0), 0.0)
-    f = labels[np.where(on_face, idx, 0)][on_face]
-    n_faces = int(labels.max()) + 1 if labels.size else 0
-    wg = (w * gi)[on_face]
-    b = np.stack([np.bincount(f, weights=wg * Jz[on_face][:, j], minlength=n_faces) for j in range(3)], axis=1)
-    c = np.bincount(f, weights=wg * gi[on_face], minlength=n_faces) + 1.0 / tolerance_m**2
+    b, c, _ = face_offset_sums(g.cast.index, np.abs(g.cast.mean_cos), use, w, Jz, labels, rig.range_factor)
+    c = c + 1.0 / tolerance_m**2
     out = info - np.einsum("fi,fj,f->ij", b, b, 1.0 / c)
     return 0.5 * (out + out.T)

@@ -348,6 +348,10 @@ def test_measured_noise_scenes_load_and_simulate() -> None:
     spread = np.nanmax(per_zone[:, seen], axis=0) - np.nanmin(per_zone[:, seen], axis=0)
     assert seen.sum() > 100 and spread.max() <= 1.0  # the same offset in every sample (mm rounding)
     assert not np.array_equal(a.log.distance_mm, b.log.distance_mm, equal_nan=True)  # another hardware, other offsets
+    # the offsets are the hardware's: another session of hardware 7 has the same, hardware 8 others
+    np.testing.assert_array_equal(simulate(quiet, 5, hardware_seed=7).zone_offset, a.zone_offset)
+    assert a.zone_offset.shape == (3, 64) and not np.allclose(a.zone_offset, b.zone_offset) and none.zone_offset is None
+    np.testing.assert_allclose(np.nanmedian(per_zone[:, seen], axis=0), 1000.0 * a.zone_offset[seen], atol=1.0)  # both readings rounded to the mm
 
 
 def test_an_unknown_zone_return_is_refused(tmp_path) -> None:

@@ -36,7 +36,39 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["add_map_tolerance_covariance", "map_tolerance_covariance"]
+__all__ = ["add_map_tolerance_covariance", "face_offset_sums", "map_tolerance_covariance"]
+
+
+def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64], use: NDArray[np.bool_],
+                     w: NDArray[np.float64], a: NDArray[np.float64], labels: NDArray[np.int64],
+                     range_factor: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per planar face ``f``: ``b_f = sum_i w_i a_i g_i`` ``(F, 3)`` and ``c_f = sum_i w_i
+    g_i^2`` ``(F,)`` over the used zones ``i`` whose ray hits a triangle of the face, ``g_i =
+    1 / (|cos i| range_factor)`` (the module doc; this covariance's and the Cramér-Rao
+    bound's with map tolerance, :func:`evaluation.crlb.map_tolerance_information`), and the
+    face of each such zone.
+
+    Parameters
+    ----------
+    index, cos_incidence, use, w : ndarray (K, S, Z)
+        The primitive each zone's ray hits (-1: none), its ``|cos|`` of incidence, whether
+        it is used, its weight.
+    a : ndarray (K, S, Z, 3)
+        Each zone's reading's gradient with respect to the pose.
+    labels : ndarray (T,)
+        Each triangle's planar face (:meth:`tofloc.maps.Map.planar_faces`).
+    range_factor : ndarray (S, Z)
+        The rig's reading per metre along a zone's ray (``Rig.range_factor``).
+    """
+    on_face = use & (index >= 0) & (index < labels.size) & (cos_incidence > 1e-6)
+    rf = np.broadcast_to(range_factor[None], index.shape)
+    g = np.where(on_face, 1.0 / np.where(on_face, cos_incidence * rf, 1.0), 0.0)
+    f = labels[np.where(on_face, index, 0)][on_face]
+    n_faces = int(labels.max()) + 1 if labels.size else 0
+    wg = (w * g)[on_face]
+    b = np.stack([np.bincount(f, weights=wg * a[on_face][:, j], minlength=n_faces) for j in range(3)], axis=1)
+    c = np.bincount(f, weights=wg * g[on_face], minlength=n_faces)
+    return b, c, f
 
 
 def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
@@ -53,7 +85,8 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
     support_yaw, range_scale : float
         The answer's nuisance means (as :func:`tofloc.fit_check.zone_residuals` takes them).
     """
-    from tofloc.fit_check import OUTLIER_SIGMA, zone_residuals
+    from tofloc.fit_check import zone_residuals
+    from tofloc.mounting_uncertainty import weighted_pose_system
 
     t = float(getattr(problem, "map_tolerance_m", 0.0))
     the_map = problem.map
@@ -61,27 +94,11 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
         return np.zeros((3, 3)), 0
     labels = the_map.planar_faces()
     res = zone_residuals(problem, pose, support_yaw, range_scale, gradients=True)
-    assert res.pose_gradient is not None and res.sigma is not None and res.hit_index is not None
-    assert res.cos_incidence is not None
-    idx, cos = res.hit_index, res.cos_incidence
-    with np.errstate(invalid="ignore"):
-        use = problem.valid & np.isfinite(res.expected) & (np.abs(res.r) <= OUTLIER_SIGMA)
-    use &= np.all(np.isfinite(res.pose_gradient), axis=-1)
-    on_face = use & (idx >= 0) & (idx < labels.size) & (cos > 1e-6)
-    if not on_face.any():
+    assert res.hit_index is not None and res.cos_incidence is not None
+    use, w, a, H = weighted_pose_system(problem, res)
+    b, _, f = face_offset_sums(res.hit_index, res.cos_incidence, use, w, a, labels, problem.rig.range_factor)
+    if f.size == 0:
         return np.zeros((3, 3)), 0
-    var_m = np.nan_to_num(res.mounting_variance) if res.mounting_variance is not None else 0.0
-    w = np.where(use, 1.0 / np.maximum(res.sigma**2 - var_m, 1e-12), 0.0)  # the estimators' weights
-    a = np.where(use[..., None], res.pose_gradient, 0.0)
-    H = np.einsum("ksz,kszi,kszj->ij", w, a, a)
-    if not problem.prior.is_global:
-        H = H + np.linalg.inv(np.asarray(problem.prior.covariance, dtype=float))
-    rf = np.broadcast_to(problem.rig.range_factor[None], idx.shape)
-    g = np.where(on_face, 1.0 / np.where(on_face, cos * rf, 1.0), 0.0)
-    f = labels[np.where(on_face, idx, 0)][on_face]
-    n_faces = int(labels.max()) + 1
-    wg = (w * g)[on_face]
-    b = np.stack([np.bincount(f, weights=wg * a[on_face][:, j], minlength=n_faces) for j in range(3)], axis=1)  # (F, 3)
     J = -b @ np.linalg.pinv(H, rcond=1e-12, hermitian=True)  # rows J_f^T (H symmetric)
     C = t**2 * J.T @ J
     return 0.5 * (C + C.T), int(np.unique(f).size)

@@ -58,7 +58,8 @@ from tofloc.errors import ParameterError
 if TYPE_CHECKING:
     from tofloc.zone_caster import ZoneCast, ZoneCaster
 
-__all__ = ["MountingCovariance", "pose_and_mounting_gradients", "mounting_variance", "mounting_covariance", "add_mounting_covariance"]
+__all__ = ["MountingCovariance", "pose_and_mounting_gradients", "mounting_variance", "mounting_covariance", "add_mounting_covariance",
+           "weighted_pose_system"]
 
 FloatArray = NDArray[np.float64]
 
@@ -137,30 +138,66 @@ def mounting_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
     support_yaw, range_scale : float
         The answer's nuisance means (as :func:`tofloc.fit_check.zone_residuals` takes them).
     """
-    from tofloc.fit_check import OUTLIER_SIGMA, zone_residuals
+    from tofloc.fit_check import zone_residuals
 
     tol = problem.mounting
     if not tol.declared:
         return MountingCovariance(np.zeros((3, 3)), 0)
     res = zone_residuals(problem, pose, support_yaw, range_scale, gradients=True)
-    assert res.pose_gradient is not None and res.mounting_gradient is not None and res.sigma is not None
-    with np.errstate(invalid="ignore"):
-        use = problem.valid & np.isfinite(res.expected) & (np.abs(res.r) <= OUTLIER_SIGMA)
-    use &= np.all(np.isfinite(res.pose_gradient), axis=-1) & np.all(np.isfinite(res.mounting_gradient), axis=-1)
+    assert res.mounting_gradient is not None
+    use, w, a, H = weighted_pose_system(problem, res, np.all(np.isfinite(res.mounting_gradient), axis=-1))
     n = int(use.sum())
     if n == 0:
         return MountingCovariance(np.zeros((3, 3)), 0)
-    var_m = np.nan_to_num(res.mounting_variance) if res.mounting_variance is not None else 0.0
-    w = np.where(use, 1.0 / np.maximum(res.sigma**2 - var_m, 1e-12), 0.0)  # the estimators' weights: no mounting term
-    a = np.where(use[..., None], res.pose_gradient, 0.0)
     b = np.where(use[..., None], res.mounting_gradient, 0.0)
-    H = np.einsum("ksz,kszi,kszj->ij", w, a, a)
-    if not problem.prior.is_global:
-        H = H + np.linalg.inv(np.asarray(problem.prior.covariance, dtype=float))
     B = np.einsum("ksz,kszi,kszj->sij", w, a, b)  # (S, 3, 6): one block per sensor
     J = -np.einsum("ij,sjk->sik", np.linalg.pinv(H, rcond=1e-12, hermitian=True), B)
     C = np.einsum("sia,ab,sjb->ij", J, tol.covariance(), J)
     return MountingCovariance(0.5 * (C + C.T), n)
+
+
+def weighted_pose_system(problem: Any, res: Any, also: NDArray[np.bool_] | None = None
+                         ) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray]:
+    """The weighted least squares that an estimator taking the rig and the map as drawn
+    answers at a pose, for a consider covariance (this module's and
+    :mod:`tofloc.map_tolerance`'s).
+
+    Parameters
+    ----------
+    problem : tofloc.problem.Problem
+    res : tofloc.fit_check.ZoneResiduals
+        At the answer, with gradients.
+    also : ndarray of bool, optional
+        ``(K, S, Z)``: a further condition on the zones used.
+
+    Returns
+    -------
+    use : ndarray of bool (K, S, Z)
+        The zones that fit the answer (valid, a surface expected, ``|r| <=``
+        :data:`tofloc.fit_check.OUTLIER_SIGMA`, finite pose gradients).
+    w : ndarray (K, S, Z)
+        One over each used zone's variance without the mounting tolerance's part (the
+        estimators' weights), 0 elsewhere.
+    a : ndarray (K, S, Z, 3)
+        The used zones' pose gradients, 0 elsewhere.
+    H : ndarray (3, 3)
+        ``sum w a a^T``, plus the prior's information unless the prior is global.
+    """
+    from tofloc.fit_check import OUTLIER_SIGMA
+
+    assert res.pose_gradient is not None and res.sigma is not None
+    with np.errstate(invalid="ignore"):
+        use = problem.valid & np.isfinite(res.expected) & (np.abs(res.r) <= OUTLIER_SIGMA)
+    use &= np.all(np.isfinite(res.pose_gradient), axis=-1)
+    if also is not None:
+        use &= also
+    var_m = np.nan_to_num(res.mounting_variance) if res.mounting_variance is not None else 0.0
+    w = np.where(use, 1.0 / np.maximum(res.sigma**2 - var_m, 1e-12), 0.0)
+    a = np.where(use[..., None], res.pose_gradient, 0.0)
+    H = np.einsum("ksz,kszi,kszj->ij", w, a, a)
+    if not problem.prior.is_global:
+        H = H + np.linalg.inv(np.asarray(problem.prior.covariance, dtype=float))
+    return use, w, a, H
 
 
 def add_mounting_covariance(problem: Any, estimate: Any) -> bool:
