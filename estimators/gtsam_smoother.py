@@ -97,6 +97,7 @@ from numpy.typing import NDArray
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_map_tolerance import map_tolerance_covariance
+from tofloc.mounting_faces import matching_face_sensitivity
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
 from tofloc import frames
@@ -574,6 +575,10 @@ class GTSAMSmoother(Estimator):
                 elif "isam" in run:
                     diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
                                              "reason": "the incremental solve does not add it (batch solves only)"}
+                elif matching_face_sensitivity(problem) is not None:
+                    diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
+                                             "reason": "the calibration's mounting was fitted against this map's faces: the "
+                                                       "shared term counts the faces through it too (tofloc.mounting_faces)"}
                 else:
                     add, n_faces = map_tolerance_covariance(graph, run, tol)
                     body = body + add

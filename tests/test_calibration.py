@@ -181,6 +181,14 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     for entry in data["mounting"]["sensors"].values():
         assert np.linalg.norm(entry["rotation_deg"]) < 1.0 and np.linalg.norm(entry["translation_m"]) < 0.003
     assert "each sensor's mounting correction" in cap.out
+    # against a mesh with faces, how the mounting moves with them is written for the map tolerance (tofloc.mounting_faces)
+    from tofloc.maps import load_map
+    from tofloc.mounting_faces import face_surface_fingerprint
+
+    faces = data["mounting"]["map_faces"]
+    assert faces["surface"] == face_surface_fingerprint(load_map(tmp_path / "sim.cad.ply")) and len(faces["faces"]) >= 2
+    assert set(faces["sensors"]) == {"tof0", "tof1", "tof2"}
+    assert "the map's faces: the fitted mounting moves by up to" in " ".join(cap.err.split())
     # the scenario (the paper's) declares each sensor's mounting tolerance: fitting the mounting takes its place, and the command says so
     assert "note: the rig declares each sensor's mounting tolerance (1 deg / 1 mm)" in cap.err
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000

@@ -13,6 +13,12 @@ The file is TOML (written with ``tomli_w``):
     [mounting.sensors.tof0]       # per sensor, applied after the support's rotation
     rotation_deg = [0.4, -0.9, 0.2]
     translation_m = [0.0004, -0.0011, 0.0002]
+    [mounting.map_faces]          # optional: how the fitted mounting moves with the map's faces
+    surface = "3f0c..."           # the mesh whose planar faces are numbered (its fingerprint)
+    faces = [0, 1, 4]             # the faces the calibration's zones hit
+    [mounting.map_faces.sensors.tof0]
+    rotation = [[...], [...], [...]]      # rad per m of each face's offset (3 rows, one number per face)
+    translation = [[...], [...], [...]]   # m per m
     [beam]                        # tables of sensor models, read by the model of that name
     z_hit = 0.87
     ...
@@ -37,6 +43,7 @@ from typing import Any, Mapping
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
 from tofloc.mounting import check_sensor_mounting, rig_with_mounting
+from tofloc.mounting_faces import MountingFaceSensitivity
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import Rig
 from tofloc.toml_tables import dumps, params_from_table, read_toml
@@ -93,6 +100,10 @@ class SensorCalibration:
         The ``[calibration]`` record.
     source : str
         Where it came from (a path, or ``"<memory>"``).
+    mounting_face_sensitivity : tofloc.mounting_faces.MountingFaceSensitivity, optional
+        How ``sensor_mounting`` moves with the offsets of the faces of the map it was fitted
+        against (``[mounting.map_faces]``, :mod:`tofloc.mounting_faces`); None when the
+        calibration's map had no faces or the mounting was not fitted.
     """
 
     uncertainty: RangeUncertainty
@@ -102,6 +113,7 @@ class SensorCalibration:
     tables: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     meta: Mapping[str, Any] = field(default_factory=dict)
     source: str = "<memory>"
+    mounting_face_sensitivity: MountingFaceSensitivity | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.uncertainty, RangeUncertainty):
@@ -117,6 +129,13 @@ class SensorCalibration:
         bad = [k for k in self.tables if k in _OWN_TABLES]
         if bad:
             raise ParameterError(f"calibration tables may not be named {bad}: those are the calibration's own")
+        fs = self.mounting_face_sensitivity
+        if fs is not None:
+            if not isinstance(fs, MountingFaceSensitivity):
+                raise ParameterError("calibration mounting_face_sensitivity must be a MountingFaceSensitivity, got "
+                                     f"{type(fs).__name__}")
+            if not self.sensor_mounting:
+                raise ParameterError("calibration mounting_face_sensitivity needs the fitted sensor_mounting it describes")
 
     # -- use ---------------------------------------------------------------------------------
     def corrected_rig(self, rig: Rig) -> Rig:
@@ -170,6 +189,8 @@ class SensorCalibration:
             mounting["support_yaw_sigma_deg"] = float(self.support_yaw_sigma_deg)
         if self.sensor_mounting:
             mounting["sensors"] = {k: dict(v) for k, v in self.sensor_mounting.items()}
+        if self.mounting_face_sensitivity is not None:
+            mounting["map_faces"] = self.mounting_face_sensitivity.to_dict()
         if mounting:
             doc["mounting"] = mounting
         for name, t in self.tables.items():
@@ -201,11 +222,14 @@ class SensorCalibration:
         unc = params_from_table(RangeUncertainty, data["uncertainty"], source, "uncertainty")
         yaw: float | None = None
         yaw_sigma, mounting = 0.0, {}
+        face_sens: MountingFaceSensitivity | None = None
         if "mounting" in data:
             m = data["mounting"]
-            if not isinstance(m, Mapping) or not m or not set(m) <= {"support_yaw_deg", "support_yaw_sigma_deg", "sensors"}:
-                raise FormatError(source, "[mounting]", "support_yaw_deg (+ support_yaw_sigma_deg) and/or a [mounting.sensors] table",
-                                  f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
+            if not isinstance(m, Mapping) or not m or not set(m) <= {"support_yaw_deg", "support_yaw_sigma_deg", "sensors", "map_faces"}:
+                raise FormatError(source, "[mounting]", "support_yaw_deg (+ support_yaw_sigma_deg) and/or a [mounting.sensors] "
+                                  "table (+ [mounting.map_faces])", f"keys {sorted(m) if isinstance(m, Mapping) else m!r}")
+            if "map_faces" in m and "sensors" not in m:
+                raise FormatError(source, "[mounting.map_faces]", "the [mounting.sensors] table it describes", "none")
             if "support_yaw_sigma_deg" in m and "support_yaw_deg" not in m:
                 raise FormatError(source, "[mounting].support_yaw_sigma_deg", "support_yaw_deg beside it", "no support_yaw_deg")
             if "support_yaw_deg" in m:
@@ -218,6 +242,11 @@ class SensorCalibration:
                 except ParameterError as e:
                     raise FormatError(source, "[mounting.sensors]", "per sensor: rotation_deg and translation_m, 3 numbers each",
                                       str(e)) from None
+            if "map_faces" in m:
+                face_sens = MountingFaceSensitivity.from_dict(m["map_faces"], source)
+                if set(face_sens.sensors) != set(mounting):
+                    raise FormatError(source, "[mounting.map_faces.sensors]", f"the sensors of [mounting.sensors] "
+                                      f"({sorted(mounting)})", f"{sorted(face_sens.sensors)}")
         meta = data.get("calibration", {})
         if not isinstance(meta, Mapping):
             raise FormatError(source, "[calibration]", "a table", type(meta).__name__)
@@ -243,7 +272,7 @@ class SensorCalibration:
             if not isinstance(t, Mapping):
                 raise FormatError(source, name, "a table (a sensor model's parameters)", type(t).__name__)
             tables[name] = dict(t)
-        return cls(unc, yaw, yaw_sigma, mounting, tables, dict(meta), source)
+        return cls(unc, yaw, yaw_sigma, mounting, tables, dict(meta), source, face_sens)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "SensorCalibration":

@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["add_map_tolerance_covariance", "face_offset_sums", "map_tolerance_covariance"]
+__all__ = ["add_map_tolerance_covariance", "calibration_absorption", "face_offset_sums", "map_tolerance_covariance",
+           "pose_face_sensitivity"]
 
 
 def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64], use: NDArray[np.bool_],
@@ -71,11 +72,13 @@ def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64
     return b, c, f
 
 
-def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
-                             range_scale: float = 0.0) -> tuple[NDArray[np.float64], int]:
-    """The covariance ``(3, 3)`` the problem's map tolerance adds to an answer at ``pose``
-    (the module doc), and the number of faces its zones lie on (zeros and 0 when the problem
-    declares no tolerance or its map has no faces).
+def pose_face_sensitivity(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
+                          range_scale: float = 0.0) -> tuple[NDArray[np.float64], int, bool]:
+    """How an answer at ``pose`` moves per metre of each planar face's offset (the module
+    doc): rows ``T_f`` ``(F, 3)`` over the map's faces, ``J_f`` plus, when the problem's
+    calibration fitted its mounting against the same mesh, what the mounting carries over
+    (:func:`calibration_absorption`); the number of faces the answer's zones lie on; and
+    whether the calibration's part is in. ``(0, 3)``, 0, False on a map without faces.
 
     Parameters
     ----------
@@ -86,22 +89,73 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
         The answer's nuisance means (as :func:`tofloc.fit_check.zone_residuals` takes them).
     """
     from tofloc.fit_check import zone_residuals
+    from tofloc.mounting_faces import matching_face_sensitivity
     from tofloc.mounting_uncertainty import weighted_pose_system
 
-    t = float(getattr(problem, "map_tolerance_m", 0.0))
     the_map = problem.map
-    if t <= 0.0 or not getattr(the_map, "has_mesh_surface", False):
-        return np.zeros((3, 3)), 0
+    if not getattr(the_map, "has_mesh_surface", False):
+        return np.zeros((0, 3)), 0, False
     labels = the_map.planar_faces()
     res = zone_residuals(problem, pose, support_yaw, range_scale, gradients=True)
     assert res.hit_index is not None and res.cos_incidence is not None
     use, w, a, H = weighted_pose_system(problem, res)
     b, _, f = face_offset_sums(res.hit_index, res.cos_incidence, use, w, a, labels, problem.rig.range_factor)
     if f.size == 0:
+        return np.zeros((b.shape[0], 3)), 0, False
+    H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+    T = -b @ H_inv  # rows J_f^T (H symmetric)
+    sens = matching_face_sensitivity(problem)
+    if sens is not None:  # the calibration's mounting moved with the same faces (tofloc.mounting_faces)
+        T = T + calibration_absorption(problem, res, use, w, a, H_inv, sens, T.shape[0])
+    return T, int(np.unique(f).size), sens is not None
+
+
+def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
+                             range_scale: float = 0.0) -> tuple[NDArray[np.float64], int]:
+    """The covariance ``(3, 3)`` the problem's map tolerance adds to an answer at ``pose``,
+    ``t^2 sum_f T_f T_f^T`` (:func:`pose_face_sensitivity`), and the number of faces its
+    zones lie on (zeros and 0 when the problem declares no tolerance or its map has no faces).
+
+    Parameters
+    ----------
+    problem : tofloc.problem.Problem
+    pose : array (3,)
+        The answer's ``(x, y, yaw)``.
+    support_yaw, range_scale : float
+        The answer's nuisance means (as :func:`tofloc.fit_check.zone_residuals` takes them).
+    """
+    t = float(getattr(problem, "map_tolerance_m", 0.0))
+    if t <= 0.0:
         return np.zeros((3, 3)), 0
-    J = -b @ np.linalg.pinv(H, rcond=1e-12, hermitian=True)  # rows J_f^T (H symmetric)
-    C = t**2 * J.T @ J
-    return 0.5 * (C + C.T), int(np.unique(f).size)
+    T, n_faces, _ = pose_face_sensitivity(problem, pose, support_yaw, range_scale)
+    if n_faces == 0:
+        return np.zeros((3, 3)), 0
+    C = t**2 * T.T @ T
+    return 0.5 * (C + C.T), n_faces
+
+
+def calibration_absorption(problem: Any, res: Any, use: NDArray[np.bool_], w: NDArray[np.float64], a: NDArray[np.float64],
+                           H_inv: NDArray[np.float64], sens: Any, n_faces: int) -> NDArray[np.float64]:
+    """``(n_faces, 3)``: rows ``(C A_f)^T``, how the answer moves with face ``f``'s offset
+    through the calibration's mounting (:mod:`tofloc.mounting_faces`): ``C_s = -H^-1 B_s M_s``,
+    ``B_s = sum_{i in s} w_i a_i b_i^T`` over the used zones of sensor ``s``, ``b_i`` their
+    readings' mounting gradients (sensor frame), ``M_s``
+    :func:`tofloc.mounting_faces.parameters_to_sensor_frame`."""
+    from tofloc.mounting_faces import parameters_to_sensor_frame
+
+    assert res.mounting_gradient is not None
+    ok = use & np.all(np.isfinite(res.mounting_gradient), axis=-1)
+    b = np.where(ok[..., None], res.mounting_gradient, 0.0)
+    B = np.einsum("ksz,kszi,kszj->sij", np.where(ok, w, 0.0), a, b)  # (S, 3, 6)
+    rig = problem.rig
+    cal = problem.calibration
+    zero = {"rotation_deg": [0.0, 0.0, 0.0], "translation_m": [0.0, 0.0, 0.0]}
+    corr = [cal.sensor_mounting.get(s.name, zero) for s in rig.sensors]
+    M = parameters_to_sensor_frame(rig.T_tip_sensor, np.radians([c["rotation_deg"] for c in corr]),
+                                   [c["translation_m"] for c in corr])  # (S, 6, 6)
+    C = -np.einsum("ij,sjk,skl->sil", H_inv, B, M)  # (S, 3, 6): answer per calibration parameter
+    A = sens.columns(n_faces)  # (S, 6, F)
+    return np.einsum("sip,spf->fi", C, A)
 
 
 def add_map_tolerance_covariance(problem: Any, estimate: Any) -> bool:
@@ -110,7 +164,8 @@ def add_map_tolerance_covariance(problem: Any, estimate: Any) -> bool:
 
     Returns True when something was added; the added ``(3, 3)`` matrix is kept in
     ``estimate.diagnostics["map_tolerance_covariance"]`` with its face count in
-    ``["map_tolerance_faces"]``.
+    ``["map_tolerance_faces"]`` and, in ``["map_tolerance_through_calibration"]``, whether the
+    calibration's mounting's part is in it (:mod:`tofloc.mounting_faces`).
     """
     diag = getattr(estimate, "diagnostics", None)
     counted = diag.get("map_tolerance") if isinstance(diag, dict) else None
@@ -119,6 +174,7 @@ def add_map_tolerance_covariance(problem: Any, estimate: Any) -> bool:
     if float(getattr(problem, "map_tolerance_m", 0.0)) <= 0.0 or not hasattr(problem.map, "raycast"):
         return False
     from tofloc.fit_check import nuisance_means
+    from tofloc.mounting_faces import matching_face_sensitivity
 
     yaw, scale = nuisance_means(estimate)
     C, n_faces = map_tolerance_covariance(problem, estimate.pose, yaw, scale)
@@ -128,4 +184,5 @@ def add_map_tolerance_covariance(problem: Any, estimate: Any) -> bool:
     if isinstance(diag, dict):
         diag["map_tolerance_covariance"] = C.copy()
         diag["map_tolerance_faces"] = n_faces
+        diag["map_tolerance_through_calibration"] = matching_face_sensitivity(problem) is not None
     return True

@@ -23,6 +23,7 @@ from sensor_models.calibration.zones import ZoneSamples, cast_expected, collect_
 from tofloc.calibration_file import SensorCalibration
 from tofloc.errors import ParameterError
 from tofloc.mounting import corrected_T_tip_sensor
+from tofloc.mounting_faces import MountingFaceSensitivity
 from tofloc.range_model import RangeUncertainty
 from tofloc.rig import DEFAULT_VALID_STATUSES, edge_zone_mask
 
@@ -226,6 +227,9 @@ class MountingFit:
         Zones used (valid returns whose expected distance is defined).
     evaluations : int
         Ray casts of the whole zone set.
+    face_sensitivity : tofloc.mounting_faces.MountingFaceSensitivity or None
+        How the fitted mounting moves with each map face's offset, to first order (when the
+        logs' maps are one mesh with faces; :mod:`tofloc.mounting_faces`).
     """
 
     sensor_mounting: dict[str, dict[str, list[float]]]
@@ -234,6 +238,50 @@ class MountingFit:
     median_abs_residual_after_m: float
     zones: int
     evaluations: int
+    face_sensitivity: MountingFaceSensitivity | None = None
+
+
+def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDArray[np.bool_]], T_tip_sensor: NDArray[np.float64],
+                      sw: NDArray[np.float64], sigma: NDArray[np.float64], jac: NDArray[np.float64]) -> MountingFaceSensitivity | None:
+    """``A = -(J^T J)^-1 J^T G`` at the fit's solution (:mod:`tofloc.mounting_faces`), in rad
+    and m per metre of each face's offset; None unless every log's map is one mesh with faces.
+
+    ``data`` are the fit's logs (map, T_map_tip, readings, validity), ``use`` their zones
+    used, ``sw`` and ``sigma`` the last round's square-root weights and the zones' sigmas
+    (in the order of the used zones), ``jac`` the last solve's Jacobian (zone rows, then the
+    prior's rows) in the fit's units (deg, mm)."""
+    from tofloc.mounting_faces import MAX_FACES, face_surface_fingerprint
+    from tofloc.zone_caster import ZoneCaster
+
+    surfaces = {face_surface_fingerprint(m) for m, *_ in data}
+    if len(surfaces) != 1 or None in surfaces:
+        return None
+    the_map = data[0][0]
+    labels = the_map.planar_faces()
+    caster = ZoneCaster(rig)  # centre rays, as the map tolerance's term casts them
+    face, g = [], []
+    for (m, T_mt, _, _), u in zip(data, use):
+        cast = caster.cast(m, T_mt[:, None] @ T_tip_sensor[None], geometry=True)
+        assert cast.index is not None and cast.mean_cos is not None
+        cos = np.abs(cast.mean_cos)
+        ok = (cast.index >= 0) & (cast.index < labels.size) & (cos > 1e-6)
+        f = np.where(ok, labels[np.where(ok, cast.index, 0)], -1)
+        gg = np.where(ok, 1.0 / np.where(ok, cos * rig.range_factor[None], 1.0), 0.0)
+        face.append(f[u])
+        g.append(gg[u])
+    f_all, g_all = np.concatenate(face), np.concatenate(g)
+    on = f_all >= 0
+    faces = np.unique(f_all[on])
+    if faces.size == 0 or faces.size > MAX_FACES:
+        return None
+    col = np.searchsorted(faces, f_all[on])
+    n = f_all.size
+    Gv = -(sw * g_all / sigma)[on]  # the whitened residual's derivative on its face: readings shorter by g delta
+    JtG = np.stack([np.bincount(col, weights=jac[:n][on, p] * Gv, minlength=faces.size) for p in range(jac.shape[1])])
+    A = -np.linalg.solve(jac.T @ jac, JtG)  # (6 S, F) in deg and mm per m
+    A = A.reshape(len(names), 6, faces.size)
+    return MountingFaceSensitivity(str(surfaces.pop()), tuple(int(x) for x in faces), tuple(names),
+                                   np.radians(A[:, :3]), 1e-3 * A[:, 3:])
 
 
 def fit_mounting(
@@ -395,7 +443,10 @@ def fit_mounting(
     bias = (uncertainty.bias_offset, uncertainty.bias_slope, uncertainty.edge_bias_offset, uncertainty.edge_bias_slope)
     before = float(np.median(np.abs(errors(e0)[0])))
     after = float(np.median(np.abs(errors(geometry(x))[0])))
-    return MountingFit(mounting_of(x), bias, before, after, n_zones, counter["casts"])
+    faces = None if rounds < 1 else _face_sensitivity(
+        rig, names, data, use, corrected_T_tip_sensor(rig, support_yaw_deg, mounting_of(x)), sw, errors(geometry(x))[1],
+        np.asarray(jac(x)))
+    return MountingFit(mounting_of(x), bias, before, after, n_zones, counter["casts"], faces)
 
 
 @dataclass(eq=False)
@@ -444,6 +495,7 @@ class RigCalibration:
             tables={"beam": res.beam.to_dict()},
             meta=record,
             source=source,
+            mounting_face_sensitivity=None if self.mounting is None else self.mounting.face_sensitivity,
         )
 
 

@@ -102,6 +102,14 @@ def calibrate(
                               f"{1000 * tol.mounting_translation_m:g} mm); problems built with this calibration take the fitted "
                               "mounting as exact instead (its uncertainty is not estimated, docs/rig.md): --no-mounting keeps "
                               "the declared tolerance", highlight=False)
+        fs = rc.mounting.face_sensitivity
+        if fs is not None:
+            import numpy as np
+
+            err_console.print(f"the map's faces: the fitted mounting moves by up to {1e-3 * np.degrees(np.abs(fs.rotation).max()):.3f} "
+                              f"deg and {np.abs(fs.translation).max():.2f} mm per mm of a face's offset ({len(fs.faces)} faces "
+                              "seen); written as [mounting.map_faces], so that a declared --map-tolerance counts the faces "
+                              "through the mounting too against this mesh (docs/calibration.md)", highlight=False)
     _print(result)
     if rc.zone_offsets is not None and not rc.zone_offsets.fitted:
         err_console.print(rc.zone_offsets.summary(), highlight=False)
