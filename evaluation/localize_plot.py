@@ -254,7 +254,8 @@ def plot_localization(path: str | Path, problem: Any, estimate: Any, truth: NDAr
         axis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 5, 10]))
     ax.set_title("top view", fontsize=10)
     axz.set_title(f"near the estimate ({200 * half:.0f} cm across; ellipse not scaled)", fontsize=10)
-    verdict = ("the data fit the map at the estimate" if fit.ok else f"NOT OK: {fit.reason}")
+    verdict = ("the data fit the map at the estimate" if fit.ok else
+               f"NOT OK: {'; '.join(([fit.reason] if fit.reason else []) + (['outside the prior'] if fit.far_from_prior else []))}")
     line2 = (f"fit: statistic {fit.statistic:.2f} (threshold {fit.threshold:.2f}), outliers {100 * fit.outlier_fraction:.0f} % "
              f"(threshold {100 * fit.outlier_threshold:.0f} %): {verdict}")
     # wrapped to the figure's width (about 130 characters of 10-point text across 12 inches)

@@ -100,6 +100,38 @@ def test_check_fit_reports_and_explains() -> None:
     assert rec.ess_fraction == pytest.approx(0.25) and rec.log_evidence == -12.5 and rec.ok
 
 
+def test_an_estimate_its_prior_rules_out_is_flagged_whatever_the_data() -> None:
+    """The data fit the wall equally well anywhere along it (y, and a small turn is the same
+    wall): an estimate 5 sigma along y from a tight prior's mean is flagged as outside the
+    prior's 99.9 % region, one 3 sigma off is not; the yaw difference wraps (a prior at +179
+    deg and an estimate at -179 deg are 2 deg apart); a global prior rules nothing out; the
+    bare-pose check (the beam model's refit) does not apply it."""
+    import dataclasses
+
+    from tofloc.fit_check import PRIOR_CHI2_THRESHOLD, check_pose, prior_chi2
+    from tofloc.free_space import FreeSpace
+
+    exact = 0.5 / np.cos(np.radians([-15.0, 0.0, 15.0]))
+    good = _wall_problem(np.array([exact, [np.nan] * 3]), np.array([[5, 5, 5], [255, 255, 255]]))
+    tight = dataclasses.replace(good, prior=Prior(mean=np.zeros(3), sigma=np.array([0.01, 0.01, 0.02])))
+    at = lambda y, yaw=0.0: Estimate(pose=np.array([0.0, y, yaw]), covariance=np.eye(3))  # noqa: E731
+    near, far = check_fit(tight, at(0.03)), check_fit(tight, at(0.05))
+    assert near.ok and not near.far_from_prior and near.prior_chi2 == pytest.approx(9.0)
+    assert not far.ok and far.far_from_prior and far.prior_chi2 == pytest.approx(25.0) and 25.0 > PRIOR_CHI2_THRESHOLD
+    assert far.reason == "" and far.statistic == pytest.approx(0.0, abs=1e-6)  # the data fit: only the prior rules it out
+    assert "outside its prior's 99.9 % region (squared Mahalanobis distance 25.0 > 16.3)" in far.warning()
+    assert "the data do not fit" not in far.warning()
+    j = far.to_json()
+    assert j["far_from_prior"] is True and j["prior_chi2"] == pytest.approx(25.0)
+    json.dumps(j, allow_nan=False)
+    turned = dataclasses.replace(good, prior=Prior(mean=np.array([0.0, 0.0, math.radians(179.0)]), sigma=np.array([1.0, 1.0, 0.02])))
+    assert prior_chi2(turned, np.array([0.0, 0.0, math.radians(-179.0)])) == pytest.approx((math.radians(2.0) / 0.02) ** 2)
+    assert check_pose(tight, np.array([0.0, 0.05, 0.0])).ok  # a bare pose: no prior test
+    glob = dataclasses.replace(good, prior=Prior.uniform(FreeSpace.from_map(good.map, 0.0, region=(-0.4, 0.4, -0.4, 0.4))))
+    fc = check_fit(glob, at(0.05))
+    assert fc.ok and fc.prior_chi2 is None and not fc.far_from_prior
+
+
 def test_configuration_variance_matches_finite_differences() -> None:
     """A tip error (w, v) in the tip frame changes each zone's reading by J (w, v)."""
     rig = Rig((_sensor("a", 0.3),))

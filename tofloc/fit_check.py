@@ -59,6 +59,15 @@ known space are failures 9 times of 14, the flags of the unknown space alone 5 t
 failures (a failure beside a gap is explained by the gap as well): it is a triage of the
 warning, not a second verdict.
 
+**An estimate its prior rules out.** :func:`check_fit` also measures how far the estimate
+lies from a Gaussian prior's mean (``prior_chi2``, the squared Mahalanobis distance) and
+flags it beyond the prior's 99.9 % region (:data:`PRIOR_CHI2_THRESHOLD`, ``far_from_prior``):
+a search can end in a turned copy of a symmetric room whose data fit the map about as well
+as the truth's (the likelihood field on the simulated ``paper_measured`` scene, seed 1: 90
+deg off, 4.5 prior sigmas, not flagged by the data's statistics). A true pose drawn from
+the prior lies beyond with probability 0.001; a global prior rules nothing out.
+:func:`check_pose` (a bare pose: the beam model's refit) does not apply it.
+
 A covariance is a promise, and an estimate whose data do not fit the map cannot keep it:
 the model's covariance measures the curvature of a likelihood the data contradict (on
 the nano-swarm recordings every estimate off by more than 10 cm or 10 deg was flagged,
@@ -72,6 +81,7 @@ apply it (offline trials, live localization, the API).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Mapping
@@ -96,6 +106,8 @@ __all__ = [
     "STATISTIC_CAP",
     "STATISTIC_THRESHOLD",
     "OUTLIER_FRACTION_THRESHOLD",
+    "PRIOR_CHI2_THRESHOLD",
+    "prior_chi2",
     "FALSE_ALARM_RATE",
     "zone_residuals",
     "fit_statistics",
@@ -121,6 +133,12 @@ FALSE_ALARM_RATE = 0.01
 STATISTIC_THRESHOLD = 3.8
 #: Threshold of ``outlier_fraction`` (derived by ``scripts/fit_check_thresholds.py``).
 OUTLIER_FRACTION_THRESHOLD = 0.33
+#: An estimate whose squared Mahalanobis distance from a Gaussian prior's mean exceeds
+#: this is outside the prior's 99.9 % region (the chi-square quantile with 3 degrees of
+#: freedom): a search that left its prior (a turned copy of the room, a far basin), or a
+#: prior that was wrong. Analytic, not derived from data: a true pose drawn from the
+#: prior lies beyond it with probability 0.001.
+PRIOR_CHI2_THRESHOLD = 16.266
 
 
 @dataclass(frozen=True)
@@ -202,6 +220,12 @@ class FitCheck:
         a map without one.
     statistic_known, outlier_fraction_known : float
         The two statistics with those zones left out (NaN without a known space).
+    prior_chi2 : float or None
+        The estimate's squared Mahalanobis distance from the prior's mean (:func:`prior_chi2`;
+        None for a global prior or a check of a bare pose).
+    far_from_prior : bool
+        ``prior_chi2 >`` :data:`PRIOR_CHI2_THRESHOLD`: the estimate lies where its prior
+        rules it out; then ``ok`` is False too (``reason`` keeps the data's reasons only).
     """
 
     ok: bool
@@ -218,6 +242,8 @@ class FitCheck:
     ok_known_space: bool | None = None
     statistic_known: float = math.nan
     outlier_fraction_known: float = math.nan
+    prior_chi2: float | None = None
+    far_from_prior: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """``{"ok", "statistic", "threshold", "outlier_fraction", "reason", ...}`` (JSON-ready)."""
@@ -240,6 +266,8 @@ class FitCheck:
             "ok_known_space": None if self.ok_known_space is None else bool(self.ok_known_space),
             "statistic_known": num(self.statistic_known),
             "outlier_fraction_known": num(self.outlier_fraction_known),
+            "prior_chi2": None if self.prior_chi2 is None or not math.isfinite(self.prior_chi2) else float(self.prior_chi2),
+            "far_from_prior": bool(self.far_from_prior),
         }
 
     def warning(self) -> str:
@@ -251,15 +279,35 @@ class FitCheck:
 def warning_text(fit: Mapping[str, Any]) -> str:
     """The console line of a fit check, from :meth:`FitCheck.to_json` (what trial records
     hold): its reason and misfit count and, when ``ok_known_space`` is set, whether the
-    data contradict the space the map knows or only its unknown space."""
-    text = (f"the data do not fit the map at the estimate: {fit.get('reason', '')} "
-            f"({fit.get('n_misfits')} of {fit.get('n_zones')} zones are misfits)")
-    known, n_unknown = fit.get("ok_known_space"), fit.get("n_unknown", 0)
-    if known is True:
-        text += f"; without the {n_unknown} zones that read into space the map does not know they fit: a gap in the map, maybe not a wrong pose"
-    elif known is False:
-        text += f"; they do not fit the space the map knows either ({n_unknown} zones read into space it does not know)"
-    return text
+    data contradict the space the map knows or only its unknown space; and when the
+    estimate lies outside its prior's 99.9 % region, that."""
+    parts = []
+    if fit.get("reason"):
+        text = (f"the data do not fit the map at the estimate: {fit.get('reason', '')} "
+                f"({fit.get('n_misfits')} of {fit.get('n_zones')} zones are misfits)")
+        known, n_unknown = fit.get("ok_known_space"), fit.get("n_unknown", 0)
+        if known is True:
+            text += f"; without the {n_unknown} zones that read into space the map does not know they fit: a gap in the map, maybe not a wrong pose"
+        elif known is False:
+            text += f"; they do not fit the space the map knows either ({n_unknown} zones read into space it does not know)"
+        parts.append(text)
+    if fit.get("far_from_prior"):
+        chi2 = fit.get("prior_chi2")
+        parts.append(f"the estimate lies outside its prior's 99.9 % region (squared Mahalanobis distance {chi2:.1f} > "
+                     f"{PRIOR_CHI2_THRESHOLD:.1f}): a search that left the prior, or a wrong prior")
+    return "; ".join(parts) if parts else "the estimate's fit check failed"
+
+
+def prior_chi2(problem: Any, pose: ArrayLike) -> float | None:
+    """``(pose - mean)^T P^-1 (pose - mean)`` of the problem's prior (yaw difference wrapped
+    to (-pi, pi]); None for a global prior (uniform: nothing is ruled out)."""
+    prior = problem.prior
+    if prior.is_global:
+        return None
+    d = np.asarray(pose, dtype=float) - np.asarray(prior.mean, dtype=float)
+    d[2] = float(frames.wrap_angle(d[2]))
+    P = np.asarray(prior.covariance, dtype=float)
+    return float(d @ np.linalg.solve(P, d))
 
 
 def nuisance_means(estimate: "Estimate") -> tuple[float, float]:
@@ -444,8 +492,13 @@ def check_fit(problem: Any, estimate: Any, *, threshold: float = STATISTIC_THRES
     diag = estimate.diagnostics if isinstance(getattr(estimate, "diagnostics", None), Mapping) else {}
     ev = diag.get("log_evidence")
     evidence = float(ev) if isinstance(ev, (int, float, np.floating)) and not isinstance(ev, bool) else None
-    return check_pose(problem, estimate.pose, yaw, scale, threshold=threshold, outlier_threshold=outlier_threshold,
-                      ess_fraction=_ess_fraction(diag), log_evidence=evidence)
+    fc = check_pose(problem, estimate.pose, yaw, scale, threshold=threshold, outlier_threshold=outlier_threshold,
+                    ess_fraction=_ess_fraction(diag), log_evidence=evidence)
+    chi2 = prior_chi2(problem, estimate.pose)
+    if chi2 is None:
+        return fc
+    far = chi2 > PRIOR_CHI2_THRESHOLD
+    return dataclasses.replace(fc, ok=fc.ok and not far, prior_chi2=chi2, far_from_prior=far)
 
 
 def check_pose(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0, *,
