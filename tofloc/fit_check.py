@@ -62,11 +62,13 @@ warning, not a second verdict.
 **An estimate its prior rules out.** :func:`check_fit` also measures how far the estimate
 lies from a Gaussian prior's mean (``prior_chi2``, the squared Mahalanobis distance) and
 flags it beyond the prior's 99.9 % region (:data:`PRIOR_CHI2_THRESHOLD`, ``far_from_prior``):
-a search can end in a turned copy of a symmetric room whose data fit the map about as well
-as the truth's (the likelihood field on the simulated ``paper_measured`` scene, seed 1: 90
-deg off, 4.5 prior sigmas, not flagged by the data's statistics). A true pose drawn from
-the prior lies beyond with probability 0.001; a global prior rules nothing out.
-:func:`check_pose` (a bare pose: the beam model's refit) does not apply it.
+a search that left its prior for a far place whose data fit the map about as well (a
+turned copy of a symmetric room) is not caught by the data's statistics. A true pose drawn
+from the prior lies beyond with probability 0.001; a global prior rules nothing out.
+:func:`check_pose` (a bare pose: the beam model's refit) does not apply it. It cannot catch
+a turned copy nearer the prior's mean than the truth (the likelihood field's one failure
+on the simulated ``paper_measured`` scene, seed 1: 90 deg off the truth, 1.9 prior sigmas
+from the prior's mean, the truth 2.6).
 
 A covariance is a promise, and an estimate whose data do not fit the map cannot keep it:
 the model's covariance measures the curvature of a likelihood the data contradict (on
