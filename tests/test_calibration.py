@@ -4,6 +4,7 @@ noise knobs, the model TOML, and `tofloc calibrate` end to end."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 from pathlib import Path
@@ -189,6 +190,14 @@ def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert faces["surface"] == face_surface_fingerprint(load_map(tmp_path / "sim.cad.ply")) and len(faces["faces"]) >= 2
     assert set(faces["sensors"]) == {"tof0", "tof1", "tof2"}
     assert "the map's faces: the fitted mounting moves by up to" in " ".join(cap.err.split())
+    # ... and a localization against the same mesh with a declared map tolerance counts the faces through it
+    loc = tmp_path / "loc.json"
+    code = main(["localize", str(log_path), "--estimator", "gtsam_smoother", "--samples", "3", "--trials", "1", "--calibration",
+                 str(out), "--surface", str(tmp_path / "sim.cad.ply"), "--map-tolerance", "0.002", "--workers", "1",
+                 "--json", str(loc)])
+    assert code == 0, capsys.readouterr().err
+    rec = json.loads(loc.read_text())["trials"][0]
+    assert rec["map_tolerance_through_calibration"] is True and np.asarray(rec["map_tolerance_covariance"]).shape == (3, 3)
     # the scenario (the paper's) declares each sensor's mounting tolerance: fitting the mounting takes its place, and the command says so
     assert "note: the rig declares each sensor's mounting tolerance (1 deg / 1 mm)" in cap.err
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
