@@ -21,6 +21,11 @@ covariance gains ``t^2 sum_f J_f J_f^T``. Faces are the map's planar faces
 (:meth:`tofloc.maps.Map.planar_faces`), so only maps with a mesh surface have them; on a
 bare cloud (the maps built from scans) nothing is added.
 
+A calibration whose mounting was fitted against the same mesh took part of the faces'
+offsets up (:mod:`tofloc.mounting_faces`): the answer then moves with face ``f`` by ``T_f =
+J_f + C A_f`` (:func:`calibration_absorption`), and the covariance is ``t^2 sum_f T_f
+T_f^T``.
+
 An estimator that already counted the tolerance says so in its diagnostics
 (``diagnostics["map_tolerance"]["added"]`` true, the GTSAM smoother's batch solves:
 :mod:`estimators.gtsam_map_tolerance`) and gets nothing more; one that reports it could not
@@ -115,14 +120,7 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
     """The covariance ``(3, 3)`` the problem's map tolerance adds to an answer at ``pose``,
     ``t^2 sum_f T_f T_f^T`` (:func:`pose_face_sensitivity`), and the number of faces its
     zones lie on (zeros and 0 when the problem declares no tolerance or its map has no faces).
-
-    Parameters
-    ----------
-    problem : tofloc.problem.Problem
-    pose : array (3,)
-        The answer's ``(x, y, yaw)``.
-    support_yaw, range_scale : float
-        The answer's nuisance means (as :func:`tofloc.fit_check.zone_residuals` takes them).
+    The parameters are :func:`pose_face_sensitivity`'s.
     """
     t = float(getattr(problem, "map_tolerance_m", 0.0))
     if t <= 0.0:
