@@ -184,6 +184,22 @@ def test_another_mesh_or_rig_does_not_match(fits) -> None:
     p = build_problem(map=BOX, **kw)
     assert matching_face_sensitivity(dataclasses.replace(p, calibration=dataclasses.replace(
         cal, mounting_face_sensitivity=renamed))) is None
+    # the same sensors in another order (a hand-edited file): matched by name, rows reordered
+    fs = base.face_sensitivity
+    shuffled = MountingFaceSensitivity(fs.surface, fs.faces, fs.sensors[::-1], fs.rotation[::-1], fs.translation[::-1])
+    got = matching_face_sensitivity(dataclasses.replace(p, calibration=dataclasses.replace(cal, mounting_face_sensitivity=shuffled)))
+    assert got is not None and got.sensors == fs.sensors and np.array_equal(got.translation, fs.translation)
+    # a run against another mesh says the table is not used; the same mesh, or no tolerance, says nothing
+    from tofloc.mounting_faces import mismatch_note
+
+    assert "another mesh" in mismatch_note(cal, other, 0.002) and mismatch_note(cal, BOX, 0.002) is None
+    assert mismatch_note(cal, other, 0.0) is None
+    # tofloc calibrate says why it wrote no table when the logs' maps are not one mesh
+    from sensor_models.calibration.mounting_fit import _face_sensitivity
+
+    none, why = _face_sensitivity(rig, [s.name for s in rig.sensors], [(BOX, None, None, None), (other, None, None, None)],
+                                  [], np.eye(4)[None], np.ones(1), np.ones(1), np.ones((1, 18)))
+    assert none is None and "not one mesh" in why
 
 
 def test_the_smoother_leaves_the_faces_to_the_shared_term_when_the_calibration_has_them(fits) -> None:
@@ -266,3 +282,4 @@ def test_the_calibration_file_keeps_the_sensitivity_and_refuses_a_bad_one(tmp_pa
     refused(lambda m: m["map_faces"]["sensors"].pop("tof1"), r"the sensors of \[mounting.sensors\]")
     refused(lambda m: m.pop("sensors"), r"\[mounting.sensors\] table it describes")
     refused(lambda m: m["map_faces"].__setitem__("faces", list(range(6000))), "at most 5000")
+    refused(lambda m: m["map_faces"].__setitem__("surface", 12), r"\[mounting.map_faces\].surface")

@@ -880,6 +880,11 @@ def localize(
            if kinematics is not None and not isinstance(kinematics, KinematicsModel) else kinematics)
     if kin is not None:  # a model of another robot is refused before any trial runs
         kin.check_actuators(lg.rig.actuators, str(lg.path))
+    from tofloc.mounting_faces import mismatch_note
+
+    faces_note = mismatch_note(cal, the_map, map_tolerance_m)
+    if faces_note is not None:
+        reporter.note(faces_note)
     has_truth = lg.T_map_base is not None
     if prior is None:
         if not has_truth:

@@ -15,7 +15,8 @@ mounting as independent of the faces, counts the faces' offsets in full: NEES 0.
 To first order the fit's answer moves with the offsets: ``theta_hat = theta + A delta``
 (``A = -(J^T J)^-1 J^T G`` at the fit's solution, ``J`` its whitened Jacobian with the
 prior's rows, ``G`` its whitened residuals' derivative with respect to each face's offset,
-``-w_i g_i / sigma_i`` on the zones of the face, ``g_i = 1 / (|cos i| range_factor)``).
+``-s_i g_i / sigma_i`` on the zones of the face (``s_i`` the square root of the zone's robust
+weight), ``g_i = 1 / (|cos i| range_factor)``).
 ``tofloc calibrate`` writes ``A`` into the calibration file
 (:class:`MountingFaceSensitivity`, ``[mounting.map_faces]``) with the fingerprint of the
 mesh whose faces it numbers. A localization against the same mesh then moves with a face's
@@ -24,7 +25,9 @@ offset by ``T_f = J_f + C A_f`` (``J_f`` the direct term of :mod:`tofloc.map_tol
 parameters: :mod:`tofloc.mounting_uncertainty`'s ``B_s`` in the sensor's frame, ``M_s``
 :func:`parameters_to_sensor_frame`), and the map tolerance's covariance is ``t^2 sum_f T_f
 T_f^T`` (:func:`tofloc.map_tolerance.map_tolerance_covariance`). Against another mesh
-(another set-up's map) the calibration's faces are not the answer's and nothing changes.
+(another set-up's map) the calibration's faces are not the answer's and nothing is added
+(:func:`mismatch_note` says so); the mounting then carries the calibration walls' offsets as
+an error of its own that no term counts (a fitted mounting is taken as exact).
 
 First order, like the rest of the consider analysis; the support's rotation (fitted before
 the mounting, one angle) and the zones' offsets (fitted after it) take up a smaller part of
@@ -43,7 +46,7 @@ from numpy.typing import NDArray
 from tofloc.errors import FormatError, ParameterError
 
 __all__ = ["MAX_FACES", "MountingFaceSensitivity", "face_surface_fingerprint", "parameters_to_sensor_frame",
-           "matching_face_sensitivity"]
+           "matching_face_sensitivity", "mismatch_note"]
 
 FloatArray = NDArray[np.float64]
 
@@ -107,6 +110,16 @@ class MountingFaceSensitivity:
         object.__setattr__(self, "faces", faces)
         object.__setattr__(self, "sensors", tuple(str(s) for s in self.sensors))
 
+    def for_sensors(self, names: tuple[str, ...]) -> "MountingFaceSensitivity | None":
+        """The same sensitivity with its sensors in the order ``names`` (a rig's), or None when
+        the sensors are not the same."""
+        if tuple(names) == self.sensors:
+            return self
+        if sorted(names) != sorted(self.sensors):
+            return None
+        order = [self.sensors.index(n) for n in names]
+        return MountingFaceSensitivity(self.surface, self.faces, tuple(names), self.rotation[order], self.translation[order])
+
     def columns(self, n_faces: int) -> FloatArray:
         """``(S, 6, n_faces)``: (rotation, translation) per face label, zero for the faces the
         calibration did not see (its faces beyond ``n_faces`` are refused: another mesh)."""
@@ -151,8 +164,10 @@ class MountingFaceSensitivity:
                     raise FormatError(source, f"{where}.sensors.{name}.{key}",
                                       f"3 rows of {len(faces)} finite numbers within +-{MAX_ENTRY:g}", repr(v)[:60])
                 acc.append(np.asarray(v, dtype=float).reshape(3, len(faces)))
+        if not isinstance(data["surface"], str) or not data["surface"]:
+            raise FormatError(source, f"{where}.surface", "the mesh's fingerprint (a string)", repr(data["surface"])[:60])
         try:
-            return cls(str(data["surface"]), tuple(faces), tuple(sensors), np.asarray(rot), np.asarray(trans))
+            return cls(data["surface"], tuple(faces), tuple(sensors), np.asarray(rot), np.asarray(trans))
         except ParameterError as e:
             raise FormatError(source, where, "a valid face sensitivity", str(e)) from None
 
@@ -214,6 +229,16 @@ def matching_face_sensitivity(problem: Any) -> MountingFaceSensitivity | None:
         return None
     if face_surface_fingerprint(problem.map) != sens.surface:
         return None
-    if tuple(s.name for s in problem.rig.sensors) != sens.sensors:
+    return sens.for_sensors(tuple(s.name for s in problem.rig.sensors))
+
+
+def mismatch_note(calibration: Any, the_map: Any, map_tolerance_m: float) -> str | None:
+    """A note when a calibration holds its mounting's face sensitivity for another mesh than
+    ``the_map``'s while a map tolerance is declared (the faces are then counted in full, as
+    without the table), else None."""
+    sens = getattr(calibration, "mounting_face_sensitivity", None)
+    if sens is None or map_tolerance_m <= 0.0 or face_surface_fingerprint(the_map) == sens.surface:
         return None
-    return sens
+    return (f"{calibration.source} holds how its mounting moves with the faces of another mesh ([mounting.map_faces], "
+            f"surface {sens.surface[:12]}...) than this map's: the map tolerance counts the faces in full "
+            "(docs/calibration.md, 'The map's faces in the mounting')")

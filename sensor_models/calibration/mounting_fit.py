@@ -230,6 +230,8 @@ class MountingFit:
     face_sensitivity : tofloc.mounting_faces.MountingFaceSensitivity or None
         How the fitted mounting moves with each map face's offset, to first order (when the
         logs' maps are one mesh with faces; :mod:`tofloc.mounting_faces`).
+    face_note : str
+        Why it is None although the maps have faces (empty otherwise).
     """
 
     sensor_mounting: dict[str, dict[str, list[float]]]
@@ -239,12 +241,15 @@ class MountingFit:
     zones: int
     evaluations: int
     face_sensitivity: MountingFaceSensitivity | None = None
+    face_note: str = ""
 
 
 def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDArray[np.bool_]], T_tip_sensor: NDArray[np.float64],
-                      sw: NDArray[np.float64], sigma: NDArray[np.float64], jac: NDArray[np.float64]) -> MountingFaceSensitivity | None:
+                      sw: NDArray[np.float64], sigma: NDArray[np.float64], jac: NDArray[np.float64]
+                      ) -> tuple[MountingFaceSensitivity | None, str]:
     """``A = -(J^T J)^-1 J^T G`` at the fit's solution (:mod:`tofloc.mounting_faces`), in rad
-    and m per metre of each face's offset; None unless every log's map is one mesh with faces.
+    and m per metre of each face's offset, and an empty note; None and why not unless every
+    log's map is one mesh with faces.
 
     ``data`` are the fit's logs (map, T_map_tip, readings, validity), ``use`` their zones
     used, ``sw`` and ``sigma`` the last round's square-root weights and the zones' sigmas
@@ -254,8 +259,11 @@ def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDA
     from tofloc.zone_caster import ZoneCaster
 
     surfaces = {face_surface_fingerprint(m) for m, *_ in data}
-    if len(surfaces) != 1 or None in surfaces:
-        return None
+    if None in surfaces:
+        return None, ""  # a bare cloud: no faces, nothing to say
+    if len(surfaces) != 1:
+        return None, ("the logs' maps are not one mesh: how the mounting moves with the faces is not written "
+                      "([mounting.map_faces]); a declared map tolerance counts the faces in full")
     the_map = data[0][0]
     labels = the_map.planar_faces()
     caster = ZoneCaster(rig)  # centre rays, as the map tolerance's term casts them
@@ -273,7 +281,9 @@ def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDA
     on = f_all >= 0
     faces = np.unique(f_all[on])
     if faces.size == 0 or faces.size > MAX_FACES:
-        return None
+        return None, (f"the calibration's zones hit {faces.size} planar faces (at most {MAX_FACES} are written): how the "
+                      "mounting moves with them is not written ([mounting.map_faces]); a declared map tolerance counts "
+                      "the faces in full")
     col = np.searchsorted(faces, f_all[on])
     n = f_all.size
     Gv = -(sw * g_all / sigma)[on]  # the whitened residual's derivative on its face: readings shorter by g delta
@@ -281,7 +291,7 @@ def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDA
     A = -np.linalg.solve(jac.T @ jac, JtG)  # (6 S, F) in deg and mm per m
     A = A.reshape(len(names), 6, faces.size)
     return MountingFaceSensitivity(str(surfaces.pop()), tuple(int(x) for x in faces), tuple(names),
-                                   np.radians(A[:, :3]), 1e-3 * A[:, 3:])
+                                   np.radians(A[:, :3]), 1e-3 * A[:, 3:]), ""
 
 
 def fit_mounting(
@@ -443,10 +453,10 @@ def fit_mounting(
     bias = (uncertainty.bias_offset, uncertainty.bias_slope, uncertainty.edge_bias_offset, uncertainty.edge_bias_slope)
     before = float(np.median(np.abs(errors(e0)[0])))
     after = float(np.median(np.abs(errors(geometry(x))[0])))
-    faces = None if rounds < 1 else _face_sensitivity(
+    faces, face_note = (None, "") if rounds < 1 else _face_sensitivity(
         rig, names, data, use, corrected_T_tip_sensor(rig, support_yaw_deg, mounting_of(x)), sw, errors(geometry(x))[1],
         np.asarray(jac(x)))
-    return MountingFit(mounting_of(x), bias, before, after, n_zones, counter["casts"], faces)
+    return MountingFit(mounting_of(x), bias, before, after, n_zones, counter["casts"], faces, face_note)
 
 
 @dataclass(eq=False)

@@ -110,6 +110,8 @@ def calibrate(
                               f"deg and {np.abs(fs.translation).max():.2f} mm per mm of a face's offset ({len(fs.faces)} faces "
                               "seen); written as [mounting.map_faces], so that a declared --map-tolerance counts the faces "
                               "through the mounting too against this mesh (docs/calibration.md)", highlight=False)
+        elif rc.mounting.face_note:
+            err_console.print(f"note: {rc.mounting.face_note}", highlight=False)
     _print(result)
     if rc.zone_offsets is not None and not rc.zone_offsets.fitted:
         err_console.print(rc.zone_offsets.summary(), highlight=False)
