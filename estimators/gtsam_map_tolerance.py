@@ -37,17 +37,34 @@ from estimators.gtsam_factors import StackedMeasurements
 if TYPE_CHECKING:
     from estimators.gtsam_solvers import SmootherGraph
 
-__all__ = ["EPS_M", "map_tolerance_covariance"]
+__all__ = ["EPS_M", "face_rows", "map_tolerance_covariance"]
 
 FloatArray = NDArray[np.float64]
 #: The planes' offset step (m) of the central differences.
 EPS_M = 1e-5
+#: ``Sigma J^T g_f`` with ``g_f`` the rows' derivative for a plane moved along its stored
+#: normal, times this, is the base's move for an offset that shortens the readings.
+FACE_ROW_SIGN = 1.0
 
 
 def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolerance_m: float) -> tuple[FloatArray, int]:
-    """The base's covariance ``(3, 3)`` (GTSAM's Pose2 tangent: x, y along the base, yaw)
-    that the map's face tolerance adds at a batch solution, and the number of faces its
-    inlier zones lie on.
+    """The base's covariance ``(3, 3)`` (GTSAM's Pose2 tangent) that the faces' tolerance adds
+    at a batch solution, ``t^2 sum_f G_f G_f^T`` over :func:`face_rows`, and the number of
+    faces its inlier zones lie on (the parameters are :func:`face_rows`'s, with
+    ``tolerance_m``, the faces' offset sigma in m, > 0)."""
+    faces, G = face_rows(graph, run)
+    if faces.size == 0:
+        return np.zeros((3, 3)), 0
+    add = tolerance_m**2 * (G.T @ G)
+    return 0.5 * (add + add.T), int(faces.size)
+
+
+def face_rows(graph: "SmootherGraph", run: dict[str, Any]) -> tuple[NDArray[np.int64], FloatArray]:
+    """How the base moves per metre of each planar face's offset at a batch solution (the
+    module doc): the faces its inlier zones lie on (labels of
+    :meth:`tofloc.maps.Map.planar_faces`, increasing) and one row ``(3,)`` each, in GTSAM's
+    Pose2 tangent (x, y along the base, yaw), for an offset that shortens the readings (the
+    sign of :mod:`tofloc.map_tolerance`).
 
     Parameters
     ----------
@@ -57,8 +74,6 @@ def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolera
     run : dict
         The batch solution: ``values``, its factor ``graph`` (priors and zone factors) and
         ``meas``, its association (one per sample, ``key`` the triangle of each zone's plane).
-    tolerance_m : float
-        The faces' offset sigma (m), > 0.
     """
     import gtsam
     from gtsam.symbol_shorthand import B as Bk, C as Ck, D as Dk, X as Xk
@@ -71,7 +86,7 @@ def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolera
     key = np.concatenate([np.asarray(m.key, dtype=np.int64) for m in meas]) if meas else np.zeros(0, dtype=np.int64)
     on_face = st.inlier & (key >= 0) & (key < labels.size)
     if not on_face.any():
-        return np.zeros((3, 3)), 0
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
     xyyaw, C_list, D = graph.read(values, K)
     C = np.stack(C_list)
     bias = graph.bias(values)
@@ -98,9 +113,10 @@ def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolera
         c += 6
     if use_bias:
         J[:, c] = A[:, m - 1]
-    face = np.unique(labels[key[on_face]], return_inverse=True)[1].reshape(-1)
+    face_labels, face = np.unique(labels[key[on_face]], return_inverse=True)
+    face = face.reshape(-1)
     Jg = J[on_face] * g[on_face][:, None]
-    n_faces = int(face.max()) + 1
+    n_faces = int(face_labels.size)
     b = np.zeros((n_faces, n_var))
     np.add.at(b, face, Jg)  # (faces, variables): J^T g_f
     keys = [Xk(0)] + [Ck(i) for i in range(K)] + ([Dk(0)] if use_rig else []) + ([Bk(0)] if use_bias else [])
@@ -111,5 +127,4 @@ def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolera
     for j, kj in enumerate(keys):
         Sigma_x[:, starts[j] : starts[j + 1]] = np.asarray(joint.at(Xk(0), kj))
     G = b @ Sigma_x.T  # (faces, 3): the base's move per unit offset of each face
-    add = tolerance_m**2 * (G.T @ G)
-    return 0.5 * (add + add.T), n_faces
+    return face_labels.astype(np.int64), FACE_ROW_SIGN * G

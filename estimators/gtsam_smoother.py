@@ -96,7 +96,8 @@ from numpy.typing import NDArray
 
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
-from estimators.gtsam_map_tolerance import map_tolerance_covariance
+from estimators.gtsam_map_tolerance import face_rows
+from tofloc.map_tolerance import absorption_rows
 from tofloc.mounting_faces import matching_face_sensitivity
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
@@ -557,7 +558,8 @@ class GTSAMSmoother(Estimator):
                     diag: dict[str, Any]) -> tuple[FloatArray, str]:
         """The base's covariance in the map frame and where it came from; with a declared
         map tolerance on a map with faces, what the faces' offsets add
-        (:func:`estimators.gtsam_map_tolerance.map_tolerance_covariance`, batch solves;
+        (:func:`estimators.gtsam_map_tolerance.face_rows`, batch solves, plus the part through a
+        calibration fitted against the same mesh, :func:`tofloc.map_tolerance.absorption_rows`;
         ``diag["map_tolerance"]`` says what was added, or why nothing was)."""
         import gtsam
         from gtsam.symbol_shorthand import X as Xk
@@ -575,14 +577,23 @@ class GTSAMSmoother(Estimator):
                 elif "isam" in run:
                     diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
                                              "reason": "the incremental solve does not add it (batch solves only)"}
-                elif matching_face_sensitivity(problem) is not None:
-                    diag["map_tolerance"] = {"tolerance_m": tol, "added": False,
-                                             "reason": "the calibration's mounting was fitted against this map's faces: the "
-                                                       "shared term counts the faces through it too (tofloc.mounting_faces)"}
                 else:
-                    add, n_faces = map_tolerance_covariance(graph, run, tol)
+                    faces, G = face_rows(graph, run)  # the graph's own pull of each face (Pose2 tangent)
+                    through = False
+                    if matching_face_sensitivity(problem) is not None:  # and through the calibration's mounting
+                        pose_now = values.atPose2(Xk(0))
+                        absorbed = absorption_rows(problem, np.array([pose_now.x(), pose_now.y(), pose_now.theta()]))
+                        if absorbed is not None:
+                            c, s_ = math.cos(pose_now.theta()), math.sin(pose_now.theta())
+                            rows = absorbed.copy()  # map frame -> the base's tangent: R^T (dx, dy)
+                            rows[:, 0], rows[:, 1] = c * absorbed[:, 0] + s_ * absorbed[:, 1], -s_ * absorbed[:, 0] + c * absorbed[:, 1]
+                            rows[faces] += G
+                            faces, G, through = np.flatnonzero(np.any(rows != 0.0, axis=1)), rows[np.any(rows != 0.0, axis=1)], True
+                    add = tol**2 * (G.T @ G)
+                    add = 0.5 * (add + add.T)
                     body = body + add
-                    diag["map_tolerance"] = {"tolerance_m": tol, "added": True, "faces": n_faces,
+                    diag["map_tolerance"] = {"tolerance_m": tol, "added": True, "faces": int(faces.size),
+                                             "through_calibration": through,
                                              "added_sigma": np.sqrt(np.clip(np.diag(add), 0.0, None)).tolist()}
         except RuntimeError as e:
             if not is_indeterminate(e):

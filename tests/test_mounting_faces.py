@@ -202,25 +202,49 @@ def test_another_mesh_or_rig_does_not_match(fits) -> None:
     assert none is None and "not one mesh" in why
 
 
-def test_the_smoother_leaves_the_faces_to_the_shared_term_when_the_calibration_has_them(fits) -> None:
-    """The smoother's own face term (its graph's) has no calibration in it: with a matching
-    calibration it says why it adds nothing, and the shared term counts both."""
+def test_the_smoother_adds_the_calibration_s_part_to_its_own_face_term(fits, monkeypatch) -> None:
+    """The smoother's own face term (its graph's: the same rows as the shared term's direct
+    part on noise-free data, once turned to the map frame) plus the calibration's part:
+    its covariance's face term equals the shared term's with the calibration (5 %), says so,
+    and the shared term adds nothing more."""
+    import estimators.gtsam_smoother as smoother_module
     from estimators.gtsam_smoother import GTSAMSmoother
-    from tofloc.map_tolerance import add_map_tolerance_covariance
+    from tofloc.map_tolerance import add_map_tolerance_covariance, pose_face_sensitivity
     from tofloc.problem import Prior
     from tofloc.problem_builder import build_problem
 
     rig, base, _, _ = fits
     cal = SensorCalibration(UNC, sensor_mounting=base.sensor_mounting, mounting_face_sensitivity=base.face_sensitivity)
-    tips = _tips(4, 4)
+    tips = _tips(6, 4)
     d, status = _readings(BOX, rig, tips, LOC_BASE)
     prior = Prior(mean=LOC_BASE + [0.01, -0.01, 0.02], sigma=np.array([0.03, 0.03, 0.05]), z=Z)
     p = build_problem(rig=rig, distance_m=np.nan_to_num(d), status=status, T_base_tip=tips, map=BOX, prior=prior,
                       calibration=cal, map_tolerance_m=0.002)
+    seen = {}
+    real = smoother_module.face_rows
+
+    def spy(graph, run):
+        seen["rows"] = real(graph, run)
+        return seen["rows"]
+
+    monkeypatch.setattr(smoother_module, "face_rows", spy)
     est = GTSAMSmoother(n_starts=1).estimate(p, np.random.default_rng(0))
-    assert est.diagnostics["map_tolerance"]["added"] is False
-    assert "calibration" in est.diagnostics["map_tolerance"]["reason"]
-    assert add_map_tolerance_covariance(p, est) and est.diagnostics["map_tolerance_through_calibration"] is True
+    info = est.diagnostics["map_tolerance"]
+    assert info["added"] is True and info["through_calibration"] is True
+    faces, G = seen["rows"]
+    th = est.pose[2]
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    own_map = np.c_[G[:, :2] @ R.T, G[:, 2]]
+    direct, _, _ = pose_face_sensitivity(dataclasses.replace(p, calibration=SensorCalibration(
+        UNC, sensor_mounting=base.sensor_mounting)), est.pose)
+    np.testing.assert_allclose(own_map, direct[faces], atol=0.02 * np.abs(direct).max())
+    T, _, _ = pose_face_sensitivity(p, est.pose)
+    want = 0.002**2 * T.T @ T
+    got = np.asarray(info["added_sigma"]) ** 2  # the body frame's diagonal
+    body = np.c_[T[:, :2] @ R, T[:, 2]]
+    np.testing.assert_allclose(got, np.diag(0.002**2 * body.T @ body), rtol=0.05)  # measured: within 3.2 %
+    assert np.trace(want) > 0
+    assert not add_map_tolerance_covariance(p, est)  # counted already
 
 
 def test_parameters_to_sensor_frame_is_the_corrected_pose_s_change() -> None:

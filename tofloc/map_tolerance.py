@@ -41,8 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["add_map_tolerance_covariance", "calibration_absorption", "face_offset_sums", "map_tolerance_covariance",
-           "pose_face_sensitivity"]
+__all__ = ["absorption_rows", "add_map_tolerance_covariance", "calibration_absorption", "face_offset_sums",
+           "map_tolerance_covariance", "pose_face_sensitivity"]
 
 
 def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64], use: NDArray[np.bool_],
@@ -113,6 +113,23 @@ def pose_face_sensitivity(problem: Any, pose: ArrayLike, support_yaw: float = 0.
     if sens is not None:  # the calibration's mounting moved with the same faces (tofloc.mounting_faces)
         T = T + calibration_absorption(problem, res, use, w, a, H_inv, sens, T.shape[0])
     return T, int(np.unique(f).size), sens is not None
+
+
+def absorption_rows(problem: Any, pose: ArrayLike, support_yaw: float = 0.0, range_scale: float = 0.0) -> NDArray[np.float64] | None:
+    """Only the calibration's part of :func:`pose_face_sensitivity` (rows ``(C A_f)^T`` over
+    the map's faces, map frame), for an estimator that computes the faces' direct pull itself
+    (the GTSAM smoother's graph); None without a calibration fitted against this mesh."""
+    from tofloc.fit_check import zone_residuals
+    from tofloc.mounting_faces import matching_face_sensitivity
+    from tofloc.mounting_uncertainty import weighted_pose_system
+
+    sens = matching_face_sensitivity(problem)
+    if sens is None:
+        return None
+    res = zone_residuals(problem, pose, support_yaw, range_scale, gradients=True)
+    use, w, a, H = weighted_pose_system(problem, res)
+    n_faces = int(problem.map.planar_faces().max()) + 1
+    return calibration_absorption(problem, res, use, w, a, np.linalg.pinv(H, rcond=1e-12, hermitian=True), sens, n_faces)
 
 
 def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
