@@ -281,6 +281,7 @@ def test_the_calibration_file_keeps_the_sensitivity_and_refuses_a_bad_one(tmp_pa
     got = back.mounting_face_sensitivity
     assert got is not None and got.surface == "abc123" and got.faces == (0, 2, 5) and got.sensors == ("tof0", "tof1")
     assert np.array_equal(got.rotation, sens.rotation) and np.array_equal(got.translation, sens.translation)
+    assert got == sens and got != dataclasses.replace(sens, surface="other")  # compared by value (fits compare equal)
     full = got.columns(7)
     assert full.shape == (2, 6, 7) and np.array_equal(full[:, 3:, 2], sens.translation[:, :, 1]) and not full[:, :, 1].any()
     with pytest.raises(ParameterError, match="beyond the map's 4 faces"):

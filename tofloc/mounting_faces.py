@@ -110,6 +110,15 @@ class MountingFaceSensitivity:
         object.__setattr__(self, "faces", faces)
         object.__setattr__(self, "sensors", tuple(str(s) for s in self.sensors))
 
+    def __eq__(self, other: object) -> bool:
+        """Equal when every field is (arrays compared element by element)."""
+        if not isinstance(other, MountingFaceSensitivity):
+            return NotImplemented
+        return (self.surface == other.surface and self.faces == other.faces and self.sensors == other.sensors
+                and np.array_equal(self.rotation, other.rotation) and np.array_equal(self.translation, other.translation))
+
+    __hash__ = None  # type: ignore[assignment]
+
     def for_sensors(self, names: tuple[str, ...]) -> "MountingFaceSensitivity | None":
         """The same sensitivity with its sensors in the order ``names`` (a rig's), or None when
         the sensors are not the same."""
