@@ -382,7 +382,9 @@ def test_paper_calibrates_each_footprint_its_estimators_cast(data: dict[str, Pat
 
 @pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
 def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A log the simulator did not write has no calibration session: the k-NN training split."""
+    """A log the simulator did not write has no calibration session: the k-NN training split.
+    (The simulated log's first 200 of its 816 samples: the calibration fits the split's 157
+    samples, not ~650; the split is what is checked here, not the fit.)"""
     from tofloc.logs import read_log, write_log
 
     out = tmp_path / "rec"
@@ -390,7 +392,7 @@ def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Pa
     for name in ("paper.map.ply", "paper.cad.ply"):
         shutil.copy(data["folder"] / name, out / name)
     log = read_log(data["folder"] / "paper.h5")
-    write_log(dataclasses.replace(log, source="recorded by hand (converter)"), out / "paper.h5")
+    write_log(dataclasses.replace(log.subset(slice(0, 200)), source="recorded by hand (converter)"), out / "paper.h5")
     args = ["paper", "--estimators", "likelihood_field_pf", "--trials", "1", "--k-max", "1", "--seed", "3",
             "--out", str(out), "--workers", "1", "--param", "n_particles=100", "--calibrate"]
     code, _, err = _run(capsys, args)
