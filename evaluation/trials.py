@@ -746,8 +746,13 @@ def trial_record(context: TrialContext, task: TrialTask, out: TrialOutcome) -> d
     map_tol = result.diagnostics.get("map_tolerance_covariance") if isinstance(result.diagnostics, Mapping) else None
     if map_tol is not None:  # what the map's declared face tolerance added (tofloc.map_tolerance)
         record["map_tolerance_covariance"] = jsonable(map_tol)
-        # and whether it counts the faces' pull through a calibration fitted on the same mesh (tofloc.mounting_faces)
-        record["map_tolerance_through_calibration"] = bool(result.diagnostics.get("map_tolerance_through_calibration", False))
+    own_tol = result.diagnostics.get("map_tolerance") if isinstance(result.diagnostics, Mapping) else None
+    if map_tol is not None or (isinstance(own_tol, Mapping) and own_tol.get("added")):
+        # whether the faces' pull through a calibration fitted on the same mesh is counted (tofloc.mounting_faces):
+        # by the shared term, or by an estimator that counts the tolerance itself (the smoother's batch solves)
+        record["map_tolerance_through_calibration"] = bool(
+            result.diagnostics.get("map_tolerance_through_calibration", False)
+            or (isinstance(own_tol, Mapping) and own_tol.get("through_calibration", False)))
     basins = result.diagnostics.get("basin_check") if isinstance(result.diagnostics, Mapping) else None
     if basins is not None:  # other places checked after a global start (estimators/basin_check.py)
         record["basin_check"] = jsonable(basins)
