@@ -157,11 +157,10 @@ def calibration_absorption(problem: Any, res: Any, use: NDArray[np.bool_], w: ND
     readings' mounting gradients (sensor frame), ``M_s``
     :func:`tofloc.mounting_faces.parameters_to_sensor_frame`."""
     from tofloc.mounting_faces import parameters_to_sensor_frame
+    from tofloc.mounting_uncertainty import sensor_blocks
 
     assert res.mounting_gradient is not None
-    ok = use & np.all(np.isfinite(res.mounting_gradient), axis=-1)
-    b = np.where(ok[..., None], res.mounting_gradient, 0.0)
-    B = np.einsum("ksz,kszi,kszj->sij", np.where(ok, w, 0.0), a, b)  # (S, 3, 6)
+    B = sensor_blocks(use, w, a, res.mounting_gradient)  # (S, 3, 6)
     rig = problem.rig
     cal = problem.calibration
     zero = {"rotation_deg": [0.0, 0.0, 0.0], "translation_m": [0.0, 0.0, 0.0]}

@@ -211,11 +211,10 @@ def parameters_to_sensor_frame(T_tip_sensor: Any, rotation_rad: Any, translation
 
 
 def _skew(v: FloatArray) -> FloatArray:
-    """``[v]_x`` ``(..., 3, 3)``."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return out
+    """``[v]_x`` ``(..., 3, 3)``: minus the rotation columns of the shared point Jacobian."""
+    from tofloc.configuration_uncertainty import point_jacobian
+
+    return -point_jacobian(v)[..., :3]
 
 
 def _left_jacobian(r: FloatArray) -> FloatArray:

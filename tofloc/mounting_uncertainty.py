@@ -59,7 +59,7 @@ if TYPE_CHECKING:
     from tofloc.zone_caster import ZoneCast, ZoneCaster
 
 __all__ = ["MountingCovariance", "pose_and_mounting_gradients", "mounting_variance", "mounting_covariance", "add_mounting_covariance",
-           "weighted_pose_system"]
+           "sensor_blocks", "weighted_pose_system"]
 
 FloatArray = NDArray[np.float64]
 
@@ -149,11 +149,20 @@ def mounting_covariance(problem: Any, pose: ArrayLike, support_yaw: float = 0.0,
     n = int(use.sum())
     if n == 0:
         return MountingCovariance(np.zeros((3, 3)), 0)
-    b = np.where(use[..., None], res.mounting_gradient, 0.0)
-    B = np.einsum("ksz,kszi,kszj->sij", w, a, b)  # (S, 3, 6): one block per sensor
+    B = sensor_blocks(use, w, a, res.mounting_gradient)  # (S, 3, 6): one block per sensor
     J = -np.einsum("ij,sjk->sik", np.linalg.pinv(H, rcond=1e-12, hermitian=True), B)
     C = np.einsum("sia,ab,sjb->ij", J, tol.covariance(), J)
     return MountingCovariance(0.5 * (C + C.T), n)
+
+
+def sensor_blocks(use: NDArray[np.bool_], w: FloatArray, a: FloatArray, mounting_gradient: FloatArray) -> FloatArray:
+    """``B_s = sum_{i in s} w_i a_i b_i^T`` ``(S, 3, 6)`` over the zones ``use`` (K, S, Z) with a
+    finite mounting gradient ``b`` (K, S, Z, 6): how sensor ``s``'s mounting error moves a
+    weighted least-squares answer (``-H^-1 B_s``; this module's consider covariance and
+    :func:`tofloc.map_tolerance.calibration_absorption`)."""
+    ok = use & np.all(np.isfinite(mounting_gradient), axis=-1)
+    b = np.where(ok[..., None], mounting_gradient, 0.0)
+    return np.einsum("ksz,kszi,kszj->sij", np.where(ok, w, 0.0), a, b)
 
 
 def weighted_pose_system(problem: Any, res: Any, also: NDArray[np.bool_] | None = None
