@@ -68,7 +68,8 @@ real-data: install
 # Each set of REAL_DRONE_SETS: the flight REAL_DRONES_FLIGHT imported with only those drones
 # (--drones: their logs, maps from their scans alone) into $(REAL_DIR)/<flight>-d<set>, then
 # evaluated into $(REAL_DIR)/eval-<flight>-d<set> (docs/real-data.md, "Fewer drones"); one
-# comparison of every set (tofloc plot) in $(REAL_DIR)/compare-<flight>-subsets/comparison.md.
+# comparison of every set (tofloc plot) in $(REAL_DIR)/compare-<flight>-subsets/comparison.md. Evaluated with
+# REAL_EVALUATE's options, as `make real-data` is.
 real-data-drones: install
 	@test -f "$(NANOSWARM)/$(REAL_DRONES_FLIGHT)/scans.csv" || { \
 	  echo "real-data-drones: $(NANOSWARM) has no $(REAL_DRONES_FLIGHT)/ flight folder (set NANOSWARM=... or REAL_DRONES_FLIGHT=...)"; exit 2; }
@@ -77,7 +78,7 @@ real-data-drones: install
 	  if [ ! -d "$(REAL_DIR)/$$d/maps" ]; then \
 	    $(VENV)/bin/tofloc import nanoswarm "$(NANOSWARM)/$(REAL_DRONES_FLIGHT)" --drones $$s --out "$(REAL_DIR)/$$d" || exit $$?; fi; \
 	  $(VENV)/bin/tofloc evaluate "$(REAL_DIR)/$$d"/*.h5 --estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS) \
-	    --out "$(REAL_DIR)/eval-$$d" || exit $$?; \
+	    $(REAL_EVALUATE) --out "$(REAL_DIR)/eval-$$d" || exit $$?; \
 	  results="$$results $(REAL_DIR)/eval-$$d/results.json"; \
 	done; \
 	$(VENV)/bin/tofloc plot $$results --out "$(REAL_DIR)/compare-$(REAL_DRONES_FLIGHT)-subsets"

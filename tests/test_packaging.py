@@ -72,6 +72,7 @@ def test_make_real_data_drones_imports_each_drone_set_of_the_four_drone_flight()
     assert recipe
     body = recipe.group(1)
     assert '--drones $$s' in body and "tofloc evaluate" in body and "--estimators $(REAL_ESTIMATORS) --trials $(REAL_TRIALS)" in body
+    assert "$(REAL_EVALUATE) --out" in body  # the same evaluate options as `make real-data`
     assert 'tofloc plot $$results --out "$(REAL_DIR)/compare-$(REAL_DRONES_FLIGHT)-subsets"' in body
     sets = re.search(r"^REAL_DRONE_SETS \?= (.+)$", make, flags=re.M)
     assert sets and [parse_drones(s) for s in sets.group(1).split()] == [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2], [1, 3], [0, 2]]
