@@ -458,17 +458,20 @@ def test_a_covariance_without_configurations_is_read_and_unused(tmp_path: Path, 
 
 def test_non_finite_timestamp(tmp_path: Path) -> None:
     ts = np.array([0.0, 0.1, np.nan, 0.3])
-    assert_refused(bad_file(tmp_path, datasets={"/samples/timestamp_s": ts}), "/samples/timestamp_s", "finite times", "at index 2")
+    assert_refused(bad_file(tmp_path, datasets={"/samples/timestamp_s": ts}), "/samples/timestamp_s", "finite times", "found nan at index 2")
 
 
 def test_negative_sigma_and_infinite_pressure(tmp_path: Path) -> None:
     _, d = conforming()
     sig = d["/samples/sigma_mm"].copy()
     sig[0, 0, 0] = -1.0
-    assert_refused(bad_file(tmp_path, datasets={"/samples/sigma_mm": sig}), "/samples/sigma_mm", "finite sigma >= 0")
+    # the value as a user wrote it, not numpy's scalar repr (np.float32(-1.0))
+    assert_refused(bad_file(tmp_path, datasets={"/samples/sigma_mm": sig}), "/samples/sigma_mm", "finite sigma >= 0",
+                   "found -1.0 at index (0, 0, 0)")
     p = d["/samples/pressure_kpa"].copy()
     p[2, 1] = np.inf
-    assert_refused(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p}), "/samples/pressure_kpa", "finite pressures", "(2, 1)")
+    assert_refused(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p}), "/samples/pressure_kpa", "finite pressures",
+                   "found inf at index (2, 1)")
 
 
 def test_nan_pressure_means_unknown(tmp_path: Path) -> None:

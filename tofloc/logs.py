@@ -477,7 +477,8 @@ def _check_array(
 def _first_bad(bad: NDArray[np.bool_], values: NDArray[Any], where: str, loc: str, expected: str) -> None:
     if bad.any():
         i = tuple(int(v) for v in np.argwhere(bad)[0])
-        raise LogFormatError(where, loc, expected, f"{values[i]!r} at index {i if len(i) > 1 else i[0]}")
+        # the value as Python prints it (-1.0, nan, inf), not numpy's scalar repr (np.float32(-1.0))
+        raise LogFormatError(where, loc, expected, f"{values[i].item()!r} at index {i if len(i) > 1 else i[0]}")
 
 
 def _check_truth_covariance(cov: Any, truth: Any, K: int, where: str) -> None:
