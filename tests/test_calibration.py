@@ -292,11 +292,38 @@ def test_zone_offsets_are_fitted_where_they_are_and_matter() -> None:
     assert without.zone_offsets is None and not without.result.uncertainty.zone_offsets
     cal = fit.sensor_calibration()
     assert cal.meta["zone_offsets"]["fitted"] is True and any("zone offsets fitted" in n for n in cal.meta["notes"])
+    # a session whose base stayed in one place: the offsets may hold the place's geometry, and the record says so
+    assert any("base stayed in one place" in n and "a calibration in two or more places" in n for n in cal.meta["notes"])
     for quiet in (simulate(_measured_scenario(0.0), seed=2), simulate(dataclasses.replace(_clean_scenario(3.0)), seed=2)):
         fit0 = calibrate_rig([(quiet.log, quiet.cad_mesh)], footprint=3, support_yaw=False, mounting=False)
         plain = calibrate_rig([(quiet.log, quiet.cad_mesh)], footprint=3, support_yaw=False, mounting=False, zone_offsets=False)
         assert not fit0.zone_offsets.fitted, fit0.zone_offsets.summary()
         assert fit0.result.uncertainty == plain.result.uncertainty
+
+
+def test_one_place_is_every_true_base_pose_within_the_tolerance_of_the_first() -> None:
+    """A calibration's logs are in one place when every true base pose is within
+    PLACE_TOLERANCE (m, rad of yaw) of the first: several logs in one place are one place;
+    a base moved or turned beyond it, in the same log or another, is two; samples without
+    a true pose do not count."""
+    from types import SimpleNamespace
+
+    from sensor_models.calibration.mounting_fit import PLACE_TOLERANCE, one_place
+
+    def log(*poses: tuple[float, float, float]) -> SimpleNamespace:
+        T = np.stack([np.eye(4)] * len(poses))
+        for T_i, (x, y, yaw) in zip(T, poses):
+            T_i[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+            T_i[:2, 3] = x, y
+        return SimpleNamespace(truth_per_sample=lambda T=T: T)
+
+    near = 0.5 * PLACE_TOLERANCE
+    assert one_place([(log((1.0, 2.0, 3.1), (1.0 + near, 2.0, 3.1 + near)), None), (log((1.0, 2.0 - near, 3.1 - 2 * math.pi)), None)])
+    assert not one_place([(log((1.0, 2.0, 0.0), (1.0 + 2 * PLACE_TOLERANCE, 2.0, 0.0)), None)])
+    assert not one_place([(log((1.0, 2.0, 0.0)), None), (log((1.0, 2.0, 2 * PLACE_TOLERANCE)), None)])
+    gap = log((1.0, 2.0, 0.0), (5.0, 5.0, 1.0))
+    gap.truth_per_sample()[1, 0, 3] = np.nan
+    assert one_place([(gap, None)])
 
 
 def test_zone_offsets_in_the_range_model_and_its_file(tmp_path: Path) -> None:

@@ -509,6 +509,23 @@ class RigCalibration:
         )
 
 
+#: Base poses within this of the first (m, and rad of yaw) are one place (:func:`one_place`).
+PLACE_TOLERANCE = 0.05
+
+
+def one_place(logs_and_maps: Sequence[tuple[Any, Any]]) -> bool:
+    """Whether every true base pose of the logs is within :data:`PLACE_TOLERANCE` (m, rad of
+    yaw) of the first one: a calibration in one place (samples without a true pose do not
+    count)."""
+    T = np.concatenate([np.asarray(log.truth_per_sample(), dtype=float) for log, _ in logs_and_maps])
+    T = T[np.all(np.isfinite(T), axis=(1, 2))]
+    if T.shape[0] == 0:
+        return False
+    step = T[:, :3, 3] - T[0, :3, 3]
+    turn = np.abs(np.angle(np.exp(1j * (np.arctan2(T[:, 1, 0], T[:, 0, 0]) - math.atan2(T[0, 1, 0], T[0, 0, 0])))))
+    return bool(np.all(np.abs(step) < PLACE_TOLERANCE) and np.all(turn < PLACE_TOLERANCE))
+
+
 def calibrate_rig(
     logs_and_maps: Sequence[tuple[Any, Any]],
     *,
@@ -569,5 +586,10 @@ def calibrate_rig(
             if skipped:  # a geometry error left in the data looks like zone offsets, but changes with the pose
                 notes.append(f"zone offsets kept without fitting {' or '.join(skipped)}: they may hold part of a "
                              "geometry error, which changes with the pose and does not carry over to another set-up")
+            if one_place(logs_and_maps):  # each zone saw the same surfaces throughout
+                notes.append("zone offsets kept from logs whose base stayed in one place: each zone saw the same surfaces "
+                             "in every sample, so they may hold that place's geometry (what the range model gets wrong "
+                             "there), which does not carry over to another place; a calibration in two or more places "
+                             "tells them apart (docs/calibration.md)")
             result = dataclasses.replace(again, uncertainty=unc, notes=notes)
     return RigCalibration(result, psi, fit, offsets)
