@@ -326,6 +326,68 @@ def test_one_place_is_every_true_base_pose_within_the_tolerance_of_the_first() -
     assert one_place([(gap, None)])
 
 
+def test_zone_offsets_across_places_keep_what_replicates() -> None:
+    """Readings from two or more places: a zone's own offset is in every place's mean, an
+    error of what the zone sees in one place (a place's geometry, fixed within it) is not.
+    Place errors of 8 mm without offsets: the one-place test keeps them (the random rooms'
+    case), the test across places keeps none in 40 sets; 5 mm offsets under 3 mm place
+    errors are kept and recovered."""
+    from types import SimpleNamespace
+
+    from sensor_models.calibration.zone_offsets import fit_zone_offsets
+
+    def fit(tau: float, place_sigma: float, seed: int, n_places: int = 2, pooled: bool = False):
+        rng = np.random.default_rng(seed)
+        S, Z, n_per = 2, 64, 40  # readings per zone and place
+        off = rng.normal(0.0, tau, S * Z)
+        own = rng.normal(0.0, place_sigma, (n_places, S * Z))
+        zid = np.tile(np.repeat(np.arange(S * Z), n_per), n_places)
+        place = np.repeat(np.arange(n_places), S * Z * n_per)
+        edge = np.tile(np.r_[[True] * 8, np.tile([True] + [False] * 6 + [True], 6), [True] * 8], S)[zid]
+        d = rng.uniform(0.3, 1.5, zid.size)
+        z = d + off[zid] + own[place, zid] + rng.normal(0.0, 0.004, zid.size)
+        zs = ZoneSamples(z, d, edge, np.zeros(zid.size, dtype=bool), np.full(zid.size, 4.0), {}, zone_id=zid)
+        resp = np.zeros((zid.size, 4))
+        resp[:, 0] = 1.0
+        res = SimpleNamespace(samples=zs, uncertainty=RangeUncertainty(), responsibilities=resp)
+        return fit_zone_offsets(res, (S, Z), places=None if pooled else place), off
+
+    assert fit(0.0, 0.008, 0, pooled=True)[0].fitted  # one place's view of it: kept
+    found = [fit(0.0, 0.008, seed)[0] for seed in range(40)]
+    assert not any(f.fitted for f in found) and all(f.places == 2 for f in found)
+    assert "do not replicate across places" in found[0].summary()
+    for n_places in (2, 5):
+        f, off = fit(0.005, 0.003, 1, n_places=n_places)
+        assert f.fitted and f.places == n_places and 0.004 < f.tau_m < 0.0065, f.summary()
+        centred = off.reshape(2, 64) - np.mean(off)
+        v = 0.003**2 / n_places  # the places' own errors left in a zone's pooled mean
+        best = math.sqrt(0.005**2 * v / (0.005**2 + v))  # the posterior mean's error: 1.9 mm (2 places), 1.3 mm (5)
+        assert np.sqrt(np.mean((f.offsets - centred) ** 2)) < 1.25 * best
+    with pytest.raises(ValueError, match="one place per reading"):
+        fit_zone_offsets(SimpleNamespace(samples=ZoneSamples(np.ones(2), np.ones(2), np.zeros(2, bool), np.zeros(2, bool),
+                                                             np.ones(2), {}, zone_id=np.zeros(2, np.int64)),
+                                         uncertainty=RangeUncertainty(), responsibilities=np.ones((2, 4))), (1, 1),
+                         places=np.zeros(3, np.int64))
+
+
+def test_sample_places_number_the_base_poses_in_the_order_met() -> None:
+    """Each reading's place: its sample's true base pose, a pose within PLACE_TOLERANCE of a
+    place's first pose being that place, across logs (ZoneSamples' sample ids)."""
+    from types import SimpleNamespace
+
+    from sensor_models.calibration.mounting_fit import PLACE_TOLERANCE, sample_places
+    from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
+
+    def log(*xy: tuple[float, float]) -> SimpleNamespace:
+        T = np.stack([np.eye(4)] * len(xy))
+        T[:, :2, 3] = xy
+        return SimpleNamespace(truth_per_sample=lambda T=T: T)
+
+    logs = [(log((0.0, 0.0), (0.5 * PLACE_TOLERANCE, 0.0), (2.0, 0.0)), None), (log((2.0, 0.0), (0.0, 0.0)), None)]
+    sid = np.array([0, 1, 2, 2, SAMPLE_ID_STRIDE + 0, SAMPLE_ID_STRIDE + 1])
+    assert sample_places(logs, sid).tolist() == [0, 0, 1, 1, 1, 0]
+
+
 def test_zone_offsets_in_the_range_model_and_its_file(tmp_path: Path) -> None:
     """``[uncertainty] zone_offsets``: added to the bias zone by zone, written and read back,
     absent from files without them, refused when malformed or for a rig of another shape."""

@@ -494,6 +494,8 @@ class RigCalibration:
             zo = self.zone_offsets
             record["zone_offsets"] = {"fitted": zo.fitted, "spread_m": zo.tau_m, "median_sigma_m": zo.median_sigma_m,
                                       "chi2": zo.chi2, "chi2_threshold": zo.chi2_threshold, "zones_used": zo.zones_used}
+            if zo.places > 1:  # the test across places: chi2 holds its replication z
+                record["zone_offsets"]["places"] = zo.places
         if res.notes:
             record["notes"] = list(res.notes)
         record.update(dict(meta or {}))
@@ -524,6 +526,36 @@ def one_place(logs_and_maps: Sequence[tuple[Any, Any]]) -> bool:
     step = T[:, :3, 3] - T[0, :3, 3]
     turn = np.abs(np.angle(np.exp(1j * (np.arctan2(T[:, 1, 0], T[:, 0, 0]) - math.atan2(T[0, 1, 0], T[0, 0, 0])))))
     return bool(np.all(np.abs(step) < PLACE_TOLERANCE) and np.all(turn < PLACE_TOLERANCE))
+
+
+def sample_places(logs_and_maps: Sequence[tuple[Any, Any]], sample_id: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The place of each reading (``sample_id`` as :class:`ZoneSamples` numbers the logs'
+    samples): its true base pose's, places numbered in the order the logs and samples meet
+    them, a pose within :data:`PLACE_TOLERANCE` (m, rad of yaw) of a place's first pose
+    being that place."""
+    from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
+
+    sid = np.asarray(sample_id, dtype=np.int64)
+    out = np.zeros(sid.shape, dtype=np.int64)
+    firsts: list[NDArray[np.float64]] = []  # x, y, z, yaw of each place's first pose
+    for i, (log, _) in enumerate(logs_and_maps):
+        sel = np.flatnonzero(sid // SAMPLE_ID_STRIDE == i)
+        if sel.size == 0:
+            continue
+        rows, back = np.unique(sid[sel] % SAMPLE_ID_STRIDE, return_inverse=True)
+        T = np.asarray(log.truth_per_sample(), dtype=float)[rows]
+        pose = np.column_stack([T[:, :3, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
+        place = np.empty(rows.size, dtype=np.int64)
+        for k, p in enumerate(pose):  # once per sample of a calibration: places are few
+            for j, q in enumerate(firsts):
+                if np.all(np.abs(p[:3] - q[:3]) < PLACE_TOLERANCE) and abs(math.remainder(p[3] - q[3], 2 * math.pi)) < PLACE_TOLERANCE:
+                    place[k] = j
+                    break
+            else:
+                firsts.append(p)
+                place[k] = len(firsts) - 1
+        out[sel] = place[back]
+    return out
 
 
 def calibrate_rig(
@@ -574,7 +606,9 @@ def calibrate_rig(
         from sensor_models.calibration.zone_offsets import corrected_samples, fit_zone_offsets
 
         rig = logs_and_maps[0][0].rig
-        offsets = fit_zone_offsets(result, (rig.n_sensors, rig.n_zones))
+        in_one_place = one_place(logs_and_maps)
+        places = None if in_one_place else sample_places(logs_and_maps, result.samples.sample_id)
+        offsets = fit_zone_offsets(result, (rig.n_sensors, rig.n_zones), places=places)
         if offsets.fitted:
             again = fit_em(corrected_samples(result.samples, offsets.offsets), init=result.uncertainty,
                            init_beam=result.beam, max_iter=max_iter, progress=progress,
@@ -586,7 +620,7 @@ def calibrate_rig(
             if skipped:  # a geometry error left in the data looks like zone offsets, but changes with the pose
                 notes.append(f"zone offsets kept without fitting {' or '.join(skipped)}: they may hold part of a "
                              "geometry error, which changes with the pose and does not carry over to another set-up")
-            if one_place(logs_and_maps):  # each zone saw the same surfaces throughout
+            if in_one_place:  # each zone saw the same surfaces throughout
                 notes.append("zone offsets kept from logs whose base stayed in one place: each zone saw the same surfaces "
                              "in every sample, so they may hold that place's geometry (what the range model gets wrong "
                              "there), which does not carry over to another place; a calibration in two or more places "
