@@ -159,12 +159,7 @@ def fit_zone_offsets(result: CalibrationResult, shape: tuple[int, int],
     r = z - d - _bias(unc, d, edge)
     if places is not None and np.unique(np.asarray(places)[valid]).size >= 2:
         return _across_places(r, w, zid, edge, np.asarray(places)[valid], S, Z)
-    sw = np.bincount(zid, w, J)
-    sw2 = np.bincount(zid, w * w, J)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(sw > 0, np.bincount(zid, w * r, J) / sw, 0.0)
-        var = np.where(sw > 0, np.bincount(zid, w * r * r, J) / sw - mean**2, 0.0)
-        n_eff = np.where(sw2 > 0, sw**2 / sw2, 0.0)
+    mean, var, n_eff = _zone_stats(r, w, zid, J)
     used = n_eff >= MIN_EFFECTIVE_SAMPLES
     zone_edge = np.zeros(J, dtype=bool)
     zone_edge[zid] = edge
@@ -204,15 +199,15 @@ def corrected_samples(samples: ZoneSamples, offsets: NDArray[np.float64]) -> Zon
 
 def _zone_stats(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[np.int64], J: int
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Each zone's hit-weighted mean residual, its standard error and its effective count."""
+    """Each zone's hit-weighted mean residual, the weighted variance about it and its
+    effective count ``(sum w)^2 / sum w^2``."""
     sw = np.bincount(zid, w, J)
     sw2 = np.bincount(zid, w * w, J)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(sw > 0, np.bincount(zid, w * r, J) / sw, 0.0)
         var = np.where(sw > 0, np.bincount(zid, w * r * r, J) / sw - mean**2, 0.0)
         n_eff = np.where(sw2 > 0, sw**2 / sw2, 0.0)
-    se2 = np.maximum(var, 0.0) / np.maximum(n_eff - 1.0, 1.0)
-    return mean, se2, n_eff
+    return mean, var, n_eff
 
 
 def _across_places(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[np.int64], edge: NDArray[np.bool_],
@@ -221,7 +216,8 @@ def _across_places(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[
     J = S * Z
     ids = np.unique(place)
     in_a = np.isin(place, ids[::2])  # the places alternate between two groups
-    mean, se2, n_eff = _zone_stats(r, w, zid, J)
+    mean, var_all, n_eff = _zone_stats(r, w, zid, J)
+    se2 = np.maximum(var_all, 0.0) / np.maximum(n_eff - 1.0, 1.0)
     m_a, _, n_a = _zone_stats(r[in_a], w[in_a], zid[in_a], J)
     m_b, _, n_b = _zone_stats(r[~in_a], w[~in_a], zid[~in_a], J)
     used = (n_a >= MIN_EFFECTIVE_SAMPLES / 2) & (n_b >= MIN_EFFECTIVE_SAMPLES / 2)
@@ -232,8 +228,7 @@ def _across_places(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[
             if cls.any():
                 values[cls] -= np.average(values[cls], weights=n[cls])
     n_used = int(used.sum())
-    var_all = se2 * np.maximum(n_eff - 1.0, 1.0)
-    median_sigma = float(np.median(np.sqrt(var_all[used]))) if n_used else float("nan")
+    median_sigma = float(np.median(np.sqrt(np.maximum(var_all[used], 0.0)))) if n_used else float("nan")
     z_threshold = float(stats.norm.isf(1.0 - SIGNIFICANCE))
     if n_used < 3:
         return ZoneOffsetFit(np.zeros((S, Z)), False, 0.0, median_sigma, 0.0, z_threshold, n_used, int(ids.size))
