@@ -42,6 +42,7 @@ def calibrate(
     zone_offsets: bool = typer.Option(
         True, "--zone-offsets/--no-zone-offsets",
         help=escape("Then each zone's fixed offset, kept where they are there and matter ([uncertainty] zone_offsets; "
+                    "from logs whose base stood in two or more places, only where they replicate across the places; "
                     "docs/calibration.md).")),
 ) -> None:
     """Calibrate the rig's mounting, the per-zone range model and the beam mixture (EM, Probabilistic Robotics, Table 6.2)."""
