@@ -9,7 +9,8 @@ so (the random rooms of seed 2: every estimator off by the same 5-6 mm, the smoo
 9-10, docs/gtsam-smoother.md).
 
 With the tolerance declared (:attr:`tofloc.problem.Problem.map_tolerance_m`: data about the
-map, never an estimator default), :func:`map_tolerance_covariance` adds the answer's
+map, never an estimator default), the smoother adds (:func:`face_rows`, summed by
+:func:`tofloc.map_tolerance.rows_covariance`) the answer's
 covariance under those offsets. At the solution, where the normal equations hold, moving face
 ``f`` by ``delta`` moves the estimate by ``-Sigma J^T g_f delta`` (Gauss-Newton: ``Sigma`` the
 joint covariance of every variable, ``J`` the zones' whitened Jacobian rows, ``g_f`` the
@@ -37,7 +38,7 @@ from estimators.gtsam_factors import StackedMeasurements
 if TYPE_CHECKING:
     from estimators.gtsam_solvers import SmootherGraph
 
-__all__ = ["EPS_M", "face_rows", "map_tolerance_covariance"]
+__all__ = ["EPS_M", "face_rows"]
 
 FloatArray = NDArray[np.float64]
 #: The planes' offset step (m) of the central differences.
@@ -45,18 +46,6 @@ EPS_M = 1e-5
 #: ``Sigma J^T g_f`` with ``g_f`` the rows' derivative for a plane moved along its stored
 #: normal, times this, is the base's move for an offset that shortens the readings.
 FACE_ROW_SIGN = 1.0
-
-
-def map_tolerance_covariance(graph: "SmootherGraph", run: dict[str, Any], tolerance_m: float) -> tuple[FloatArray, int]:
-    """The base's covariance ``(3, 3)`` (GTSAM's Pose2 tangent) that the faces' tolerance adds
-    at a batch solution, ``t^2 sum_f G_f G_f^T`` over :func:`face_rows`, and the number of
-    faces its inlier zones lie on (the parameters are :func:`face_rows`'s, with
-    ``tolerance_m``, the faces' offset sigma in m, > 0)."""
-    faces, G = face_rows(graph, run)
-    if faces.size == 0:
-        return np.zeros((3, 3)), 0
-    add = tolerance_m**2 * (G.T @ G)
-    return 0.5 * (add + add.T), int(faces.size)
 
 
 def face_rows(graph: "SmootherGraph", run: dict[str, Any]) -> tuple[NDArray[np.int64], FloatArray]:

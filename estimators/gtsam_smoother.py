@@ -97,7 +97,7 @@ from numpy.typing import NDArray
 from estimators.gtsam_association import RESIDUALS, measurements, place_points, with_place_weights
 from estimators.gtsam_factors import ROBUST_KERNELS, SampleMeasurement
 from estimators.gtsam_map_tolerance import face_rows
-from tofloc.map_tolerance import absorption_rows
+from tofloc.map_tolerance import absorption_rows, rows_covariance
 from tofloc.mounting_faces import matching_face_sensitivity
 from estimators.gtsam_solvers import SmootherGraph, is_indeterminate
 from sensor_models.base import built_from_scans, check_bool_or_auto, check_place_params
@@ -562,7 +562,7 @@ class GTSAMSmoother(Estimator):
         calibration fitted against the same mesh, :func:`tofloc.map_tolerance.absorption_rows`;
         ``diag["map_tolerance"]`` says what was added, or why nothing was)."""
         import gtsam
-        from gtsam.symbol_shorthand import X as Xk
+        from gtsam.symbol_shorthand import D as Dk, X as Xk
 
         try:
             if "isam" in run:
@@ -582,15 +582,19 @@ class GTSAMSmoother(Estimator):
                     through = False
                     if matching_face_sensitivity(problem) is not None:  # and through the calibration's mounting
                         pose_now = values.atPose2(Xk(0))
-                        absorbed = absorption_rows(problem, np.array([pose_now.x(), pose_now.y(), pose_now.theta()]))
+                        # at the smoother's own support rotation and range scale, as the shared term takes them
+                        yaw = (float(frames.rotvec_from_matrix(values.atPose3(Dk(0)).matrix()[:3, :3])[2])
+                               if graph.use_rig else 0.0)
+                        b = graph.bias(values)
+                        absorbed = absorption_rows(problem, np.array([pose_now.x(), pose_now.y(), pose_now.theta()]),
+                                                   yaw, 0.0 if b is None else float(b[0]))
                         if absorbed is not None:
-                            c, s_ = math.cos(pose_now.theta()), math.sin(pose_now.theta())
-                            rows = absorbed.copy()  # map frame -> the base's tangent: R^T (dx, dy)
-                            rows[:, 0], rows[:, 1] = c * absorbed[:, 0] + s_ * absorbed[:, 1], -s_ * absorbed[:, 0] + c * absorbed[:, 1]
+                            rows = absorbed.copy()  # map frame -> the base's tangent: R^T (dx, dy), as rows
+                            rows[:, :2] = absorbed[:, :2] @ frames.rot_z(pose_now.theta())[:2, :2]
                             rows[faces] += G
-                            faces, G, through = np.flatnonzero(np.any(rows != 0.0, axis=1)), rows[np.any(rows != 0.0, axis=1)], True
-                    add = tol**2 * (G.T @ G)
-                    add = 0.5 * (add + add.T)
+                            hit = np.any(rows != 0.0, axis=1)
+                            faces, G, through = np.flatnonzero(hit), rows[hit], True
+                    add = rows_covariance(G, tol)
                     body = body + add
                     diag["map_tolerance"] = {"tolerance_m": tol, "added": True, "faces": int(faces.size),
                                              "through_calibration": through,

@@ -14,6 +14,7 @@ import pytest
 
 from sensor_models.beam import BeamMixture
 from sensor_models.calibration import RigCalibration, ZoneSamples, collect_zones, fit_em, fit_support_yaw, resolve_calibration_map
+from tofloc import frames
 from tofloc.calibration_file import SensorCalibration
 from tofloc.range_model import RangeUncertainty
 from tofloc.cli import main
@@ -321,6 +322,9 @@ def test_one_place_is_every_true_base_pose_within_the_tolerance_of_the_first() -
     assert one_place([(log((1.0, 2.0, 3.1), (1.0 + near, 2.0, 3.1 + near)), None), (log((1.0, 2.0 - near, 3.1 - 2 * math.pi)), None)])
     assert not one_place([(log((1.0, 2.0, 0.0), (1.0 + 2 * PLACE_TOLERANCE, 2.0, 0.0)), None)])
     assert not one_place([(log((1.0, 2.0, 0.0)), None), (log((1.0, 2.0, 2 * PLACE_TOLERANCE)), None)])
+    # the yaw difference wrapped across +-pi; every pose against the place's first, not the previous one
+    assert one_place([(log((1.0, 2.0, math.pi - 0.01), (1.0, 2.0, -math.pi + 0.01)), None)])
+    assert not one_place([(log((0.0, 0.0, 0.0), (0.04, 0.0, 0.0), (0.08, 0.0, 0.0)), None)])
     gap = log((1.0, 2.0, 0.0), (5.0, 5.0, 1.0))
     gap.truth_per_sample()[1, 0, 3] = np.nan
     assert one_place([(gap, None)])
@@ -336,7 +340,7 @@ def test_zone_offsets_across_places_keep_what_replicates() -> None:
 
     from sensor_models.calibration.zone_offsets import fit_zone_offsets
 
-    def fit(tau: float, place_sigma: float, seed: int, n_places: int = 2, pooled: bool = False):
+    def fit(tau: float, place_sigma: float, seed: int, n_places: int = 2, pooled: bool = False, edge_shift: float = 0.0):
         rng = np.random.default_rng(seed)
         S, Z, n_per = 2, 64, 40  # readings per zone and place
         off = rng.normal(0.0, tau, S * Z)
@@ -345,7 +349,7 @@ def test_zone_offsets_across_places_keep_what_replicates() -> None:
         place = np.repeat(np.arange(n_places), S * Z * n_per)
         edge = np.tile(np.r_[[True] * 8, np.tile([True] + [False] * 6 + [True], 6), [True] * 8], S)[zid]
         d = rng.uniform(0.3, 1.5, zid.size)
-        z = d + off[zid] + own[place, zid] + rng.normal(0.0, 0.004, zid.size)
+        z = d + off[zid] + own[place, zid] + rng.normal(0.0, 0.004, zid.size) + edge_shift * edge
         zs = ZoneSamples(z, d, edge, np.zeros(zid.size, dtype=bool), np.full(zid.size, 4.0), {}, zone_id=zid)
         resp = np.zeros((zid.size, 4))
         resp[:, 0] = 1.0
@@ -355,6 +359,7 @@ def test_zone_offsets_across_places_keep_what_replicates() -> None:
     assert fit(0.0, 0.008, 0, pooled=True)[0].fitted  # one place's view of it: kept
     found = [fit(0.0, 0.008, seed)[0] for seed in range(40)]
     assert not any(f.fitted for f in found) and all(f.places == 2 for f in found)
+    assert np.median([f.tau_m for f in found]) < 0.001  # the shared spread from the groups' cross products: ~0
     assert "do not replicate across places" in found[0].summary()
     for n_places in (2, 5):
         f, off = fit(0.005, 0.003, 1, n_places=n_places)
@@ -363,6 +368,16 @@ def test_zone_offsets_across_places_keep_what_replicates() -> None:
         v = 0.003**2 / n_places  # the places' own errors left in a zone's pooled mean
         best = math.sqrt(0.005**2 * v / (0.005**2 + v))  # the posterior mean's error: 1.9 mm (2 places), 1.3 mm (5)
         assert np.sqrt(np.mean((f.offsets - centred) ** 2)) < 1.25 * best
+        if n_places == 2:  # shrunk: narrower than the offsets themselves
+            assert np.std(f.offsets) < np.std(centred)
+    # a shift every edge zone shares is the class curve's, not an offset: centred per class
+    f, off = fit(0.005, 0.003, 1, edge_shift=0.01)
+    edge_zone = np.tile(np.r_[[True] * 8, np.tile([True] + [False] * 6 + [True], 6), [True] * 8], 2)
+    per_class = off.copy()
+    for cls in (edge_zone, ~edge_zone):
+        per_class[cls] -= per_class[cls].mean()
+    v = 0.003**2 / 2
+    assert f.fitted and np.sqrt(np.mean((f.offsets.ravel() - per_class) ** 2)) < 1.25 * math.sqrt(0.005**2 * v / (0.005**2 + v))
     with pytest.raises(ValueError, match="one place per reading"):
         fit_zone_offsets(SimpleNamespace(samples=ZoneSamples(np.ones(2), np.ones(2), np.zeros(2, bool), np.zeros(2, bool),
                                                              np.ones(2), {}, zone_id=np.zeros(2, np.int64)),
@@ -378,14 +393,25 @@ def test_sample_places_number_the_base_poses_in_the_order_met() -> None:
     from sensor_models.calibration.mounting_fit import PLACE_TOLERANCE, sample_places
     from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
 
-    def log(*xy: tuple[float, float]) -> SimpleNamespace:
+    def log(*xy: tuple[float, float], yaw: tuple[float, ...] | None = None) -> SimpleNamespace:
         T = np.stack([np.eye(4)] * len(xy))
         T[:, :2, 3] = xy
+        if yaw is not None:
+            T[:, :3, :3] = frames.rot_z(np.asarray(yaw))
         return SimpleNamespace(truth_per_sample=lambda T=T: T)
+
+    # turned by 0.1 rad: another place; across +-pi by 0.02 rad: the same; a place is its first pose
+    turned = log((0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), yaw=(0.0, 0.1, math.pi - 0.01, -math.pi + 0.01))
+    assert sample_places([(turned, None)], np.arange(4)).tolist() == [0, 1, 2, 2]
+    drift = log((0.0, 0.0), (0.04, 0.0), (0.08, 0.0))
+    assert sample_places([(drift, None)], np.arange(3)).tolist() == [0, 0, 1]
 
     logs = [(log((0.0, 0.0), (0.5 * PLACE_TOLERANCE, 0.0), (2.0, 0.0)), None), (log((2.0, 0.0), (0.0, 0.0)), None)]
     sid = np.array([0, 1, 2, 2, SAMPLE_ID_STRIDE + 0, SAMPLE_ID_STRIDE + 1])
     assert sample_places(logs, sid).tolist() == [0, 0, 1, 1, 1, 0]
+    logs[1][0].truth_per_sample()[1, 0, 3] = np.nan  # log 2's sample 1 without a true pose: not a place
+    with pytest.raises(ValueError, match="log 2's sample 1 has none"):
+        sample_places(logs, sid)
 
 
 def test_zone_offsets_in_the_range_model_and_its_file(tmp_path: Path) -> None:

@@ -182,8 +182,13 @@ def test_another_mesh_or_rig_does_not_match(fits) -> None:
     assert matching_face_sensitivity(build_problem(map=cloud.with_surface(BOX), **kw)) is not None
     renamed = dataclasses.replace(base.face_sensitivity, sensors=("a", "b", "c"))
     p = build_problem(map=BOX, **kw)
-    assert matching_face_sensitivity(dataclasses.replace(p, calibration=dataclasses.replace(
-        cal, mounting_face_sensitivity=renamed))) is None
+    # a table for sensors the rig does not have (and a calibration made in memory cannot pair
+    # it with this rig's mounting: refused as a file would be)
+    with pytest.raises(ParameterError, match="expected the sensors of sensor_mounting"):
+        dataclasses.replace(cal, mounting_face_sensitivity=renamed)
+    other_rig = dataclasses.replace(cal, sensor_mounting=dict(zip(renamed.sensors, cal.sensor_mounting.values())),
+                                    mounting_face_sensitivity=renamed)
+    assert matching_face_sensitivity(dataclasses.replace(p, calibration=other_rig)) is None
     # the same sensors in another order (a hand-edited file): matched by name, rows reordered
     fs = base.face_sensitivity
     shuffled = MountingFaceSensitivity(fs.surface, fs.faces, fs.sensors[::-1], fs.rotation[::-1], fs.translation[::-1])
@@ -194,6 +199,7 @@ def test_another_mesh_or_rig_does_not_match(fits) -> None:
 
     assert "another mesh" in mismatch_note(cal, other, 0.002) and mismatch_note(cal, BOX, 0.002) is None
     assert mismatch_note(cal, other, 0.0) is None
+    assert mismatch_note(cal, cloud, 0.002) is None  # a bare cloud has no faces to count: nothing to say
     # tofloc calibrate says why it wrote no table when the logs' maps are not one mesh
     from sensor_models.calibration.mounting_fit import _face_sensitivity
 
@@ -288,6 +294,20 @@ def test_the_calibration_file_keeps_the_sensitivity_and_refuses_a_bad_one(tmp_pa
         got.columns(4)
     with pytest.raises(ParameterError, match="needs the fitted sensor_mounting"):
         SensorCalibration(RangeUncertainty(), mounting_face_sensitivity=sens)
+    # made in memory as a file is read: the sensors must be the mounting's
+    with pytest.raises(ParameterError, match=r"expected the sensors of sensor_mounting \(\['tof0', 'tof1'\]\), "
+                                             r"got \['tof0', 'tof9'\]"):
+        SensorCalibration(RangeUncertainty(), sensor_mounting=mount,
+                          mounting_face_sensitivity=dataclasses.replace(sens, sensors=("tof0", "tof9")))
+    # the refusals name what was found
+    with pytest.raises(ParameterError, match="got 2 at position 2 after 5"):
+        dataclasses.replace(sens, faces=(0, 5, 2))
+    bad = sens.rotation.copy()
+    bad[1, 2, 0] = np.nan
+    bad[0, 0, 0] = 2e3
+    with pytest.raises(ParameterError, match=r"rotation must be finite numbers within \+-1000, got 1 non-finite and a "
+                                             r"largest \|entry\| of 2000"):
+        dataclasses.replace(sens, rotation=bad)
 
     doc = cal.to_dict()
 

@@ -135,7 +135,11 @@ class SensorCalibration:
                 raise ParameterError("calibration mounting_face_sensitivity must be a MountingFaceSensitivity, got "
                                      f"{type(fs).__name__}")
             if not self.sensor_mounting:
-                raise ParameterError("calibration mounting_face_sensitivity needs the fitted sensor_mounting it describes")
+                raise ParameterError("calibration mounting_face_sensitivity needs the fitted sensor_mounting it describes, "
+                                     "got none")
+            if set(fs.sensors) != set(self.sensor_mounting):  # as a file's tables are checked (from_dict)
+                raise ParameterError(f"calibration mounting_face_sensitivity: expected the sensors of sensor_mounting "
+                                     f"({sorted(self.sensor_mounting)}), got {sorted(fs.sensors)}")
 
     # -- use ---------------------------------------------------------------------------------
     def corrected_rig(self, rig: Rig) -> Rig:

@@ -306,8 +306,7 @@ def prior_chi2(problem: Any, pose: ArrayLike) -> float | None:
     prior = problem.prior
     if prior.is_global:
         return None
-    d = np.asarray(pose, dtype=float) - np.asarray(prior.mean, dtype=float)
-    d[2] = float(frames.wrap_angle(d[2]))
+    d = frames.planar_difference(pose, prior.mean)
     P = np.asarray(prior.covariance, dtype=float)
     return float(d @ np.linalg.solve(P, d))
 

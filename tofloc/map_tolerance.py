@@ -41,8 +41,21 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["absorption_rows", "add_map_tolerance_covariance", "calibration_absorption", "face_offset_sums",
-           "map_tolerance_covariance", "pose_face_sensitivity"]
+__all__ = ["absorption_rows", "add_map_tolerance_covariance", "calibration_absorption", "face_and_gain", "face_offset_sums",
+           "map_tolerance_covariance", "pose_face_sensitivity", "rows_covariance"]
+
+
+def face_and_gain(index: NDArray[np.int64], cos_incidence: NDArray[np.float64], labels: NDArray[np.int64],
+                  range_factor: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Per zone ``(..., S, Z)``: the planar face its ray hits (``labels`` of the primitive
+    ``index``; -1 for none, or a grazing hit with ``|cos i| <= 1e-6``) and its reading's change
+    per metre of that face's offset, ``g = 1 / (|cos i| range_factor)`` (0 off a face);
+    ``cos_incidence`` is ``|cos i|``, ``range_factor`` ``(S, Z)``."""
+    index = np.asarray(index)
+    on = (index >= 0) & (index < labels.size) & (cos_incidence > 1e-6)
+    rf = np.broadcast_to(range_factor, index.shape)
+    g = np.where(on, 1.0 / np.where(on, cos_incidence * rf, 1.0), 0.0)
+    return np.where(on, labels[np.where(on, index, 0)], -1), g
 
 
 def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64], use: NDArray[np.bool_],
@@ -66,10 +79,9 @@ def face_offset_sums(index: NDArray[np.int64], cos_incidence: NDArray[np.float64
     range_factor : ndarray (S, Z)
         The rig's reading per metre along a zone's ray (``Rig.range_factor``).
     """
-    on_face = use & (index >= 0) & (index < labels.size) & (cos_incidence > 1e-6)
-    rf = np.broadcast_to(range_factor[None], index.shape)
-    g = np.where(on_face, 1.0 / np.where(on_face, cos_incidence * rf, 1.0), 0.0)
-    f = labels[np.where(on_face, index, 0)][on_face]
+    face, g = face_and_gain(index, cos_incidence, labels, range_factor)
+    on_face = use & (face >= 0)
+    f = face[on_face]
     n_faces = int(labels.max()) + 1 if labels.size else 0
     wg = (w * g)[on_face]
     b = np.stack([np.bincount(f, weights=wg * a[on_face][:, j], minlength=n_faces) for j in range(3)], axis=1)
@@ -145,8 +157,14 @@ def map_tolerance_covariance(problem: Any, pose: ArrayLike, support_yaw: float =
     T, n_faces, _ = pose_face_sensitivity(problem, pose, support_yaw, range_scale)
     if n_faces == 0:
         return np.zeros((3, 3)), 0
-    C = t**2 * T.T @ T
-    return 0.5 * (C + C.T), n_faces
+    return rows_covariance(T, t), n_faces
+
+
+def rows_covariance(rows: NDArray[np.float64], tolerance_m: float) -> NDArray[np.float64]:
+    """``t^2 sum_f T_f T_f^T`` ``(3, 3)``, symmetric, from the answer's move per metre of each
+    face's offset, ``rows`` ``(F, 3)`` (here and in the GTSAM smoother's own term)."""
+    C = tolerance_m**2 * (rows.T @ rows)
+    return 0.5 * (C + C.T)
 
 
 def calibration_absorption(problem: Any, res: Any, use: NDArray[np.bool_], w: NDArray[np.float64], a: NDArray[np.float64],

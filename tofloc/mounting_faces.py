@@ -98,14 +98,21 @@ class MountingFaceSensitivity:
         S, F = len(self.sensors), len(faces)
         if not isinstance(self.surface, str) or not self.surface:
             raise ParameterError(f"face sensitivity: surface must be a fingerprint string, got {self.surface!r}")
-        if F > MAX_FACES or any(f < 0 for f in faces) or list(faces) != sorted(set(faces)):
-            raise ParameterError(f"face sensitivity: faces must be at most {MAX_FACES} distinct increasing non-negative "
-                                 f"integers, got {F} ({list(faces)[:5]}...)")
+        if F > MAX_FACES:
+            raise ParameterError(f"face sensitivity: faces must be at most {MAX_FACES}, got {F}")
+        bad = next((i for i, f in enumerate(faces) if f < 0 or (i and f <= faces[i - 1])), None)
+        if bad is not None:
+            raise ParameterError(f"face sensitivity: faces must be distinct increasing non-negative integers, got "
+                                 f"{faces[bad]} at position {bad}" + (f" after {faces[bad - 1]}" if bad else ""))
         for name in ("rotation", "translation"):
             a = np.asarray(getattr(self, name), dtype=float)
-            if a.shape != (S, 3, F) or not np.all(np.isfinite(a)) or (a.size and np.abs(a).max() > MAX_ENTRY):
-                raise ParameterError(f"face sensitivity: {name} must be finite numbers within +-{MAX_ENTRY:g} shaped "
-                                     f"(sensors {S}, 3, faces {F}), got shape {a.shape}")
+            if a.shape != (S, 3, F):
+                raise ParameterError(f"face sensitivity: {name} must be shaped (sensors {S}, 3, faces {F}), got {a.shape}")
+            if not np.all(np.isfinite(a)) or (a.size and np.abs(a).max() > MAX_ENTRY):
+                finite = a[np.isfinite(a)]
+                raise ParameterError(f"face sensitivity: {name} must be finite numbers within +-{MAX_ENTRY:g}, got "
+                                     f"{int(np.sum(~np.isfinite(a)))} non-finite and a largest |entry| of "
+                                     f"{float(np.abs(finite).max()) if finite.size else float('nan'):g}")
             object.__setattr__(self, name, a)
         object.__setattr__(self, "faces", faces)
         object.__setattr__(self, "sensors", tuple(str(s) for s in self.sensors))
@@ -245,8 +252,9 @@ def mismatch_note(calibration: Any, the_map: Any, map_tolerance_m: float) -> str
     ``the_map``'s while a map tolerance is declared (the faces are then counted in full, as
     without the table), else None."""
     sens = getattr(calibration, "mounting_face_sensitivity", None)
-    if sens is None or map_tolerance_m <= 0.0 or face_surface_fingerprint(the_map) == sens.surface:
-        return None
+    surface = face_surface_fingerprint(the_map)
+    if sens is None or map_tolerance_m <= 0.0 or surface is None or surface == sens.surface:
+        return None  # a map without faces (a bare cloud) has no map-tolerance term to count them in
     return (f"{calibration.source} holds how its mounting moves with the faces of another mesh ([mounting.map_faces], "
             f"surface {sens.surface[:12]}...) than this map's: the map tolerance counts the faces in full "
             "(docs/calibration.md, 'The map's faces in the mounting')")

@@ -255,6 +255,7 @@ def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDA
     used, ``sw`` and ``sigma`` the last round's square-root weights and the zones' sigmas
     (in the order of the used zones), ``jac`` the last solve's Jacobian (zone rows, then the
     prior's rows) in the fit's units (deg, mm)."""
+    from tofloc.map_tolerance import face_and_gain
     from tofloc.mounting_faces import MAX_FACES, face_surface_fingerprint
     from tofloc.zone_caster import ZoneCaster
 
@@ -271,10 +272,7 @@ def _face_sensitivity(rig: Any, names: list[str], data: list[Any], use: list[NDA
     for (m, T_mt, _, _), u in zip(data, use):
         cast = caster.cast(m, T_mt[:, None] @ T_tip_sensor[None], geometry=True)
         assert cast.index is not None and cast.mean_cos is not None
-        cos = np.abs(cast.mean_cos)
-        ok = (cast.index >= 0) & (cast.index < labels.size) & (cos > 1e-6)
-        f = np.where(ok, labels[np.where(ok, cast.index, 0)], -1)
-        gg = np.where(ok, 1.0 / np.where(ok, cos * rig.range_factor[None], 1.0), 0.0)
+        f, gg = face_and_gain(cast.index, np.abs(cast.mean_cos), labels, rig.range_factor)
         face.append(f[u])
         g.append(gg[u])
     f_all, g_all = np.concatenate(face), np.concatenate(g)
@@ -511,51 +509,64 @@ class RigCalibration:
         )
 
 
-#: Base poses within this of the first (m, and rad of yaw) are one place (:func:`one_place`).
+#: Base poses within this of a place's first pose (m per axis, and rad of yaw) are that
+#: place (:func:`place_ids`).
 PLACE_TOLERANCE = 0.05
 
 
+def place_ids(T_map_base: NDArray[np.float64]) -> NDArray[np.int64]:
+    """The place of each base pose ``(N, 4, 4)``: places numbered in the order the poses
+    meet them, a pose within :data:`PLACE_TOLERANCE` of a place's first pose (x, y, z and
+    the wrapped yaw, :func:`tofloc.frames.planar_difference`) being that place; one vector
+    pass per place."""
+    from tofloc.frames import planar_difference, xyyaw_from_se3
+
+    T = np.asarray(T_map_base, dtype=float)
+    pose = np.column_stack([xyyaw_from_se3(T), T[:, 2, 3]])  # x, y, yaw, z
+    out = np.full(T.shape[0], -1, dtype=np.int64)
+    n = 0
+    while (left := np.flatnonzero(out < 0)).size:
+        first = pose[left[0]]
+        d = planar_difference(pose[left, :3], first[:3])
+        near = np.all(np.abs(d) < PLACE_TOLERANCE, axis=1) & (np.abs(pose[left, 3] - first[3]) < PLACE_TOLERANCE)
+        out[left[near]] = n  # the first pose is always near itself
+        n += 1
+    return out
+
+
+def _sample_poses(logs_and_maps: Sequence[tuple[Any, Any]]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Every sample's true base pose ``(N, 4, 4)`` and its :class:`ZoneSamples` sample id
+    (log ``i``'s row ``k``: ``i * SAMPLE_ID_STRIDE + k``), samples without one left out."""
+    from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
+
+    T = [np.asarray(log.truth_per_sample(), dtype=float) for log, _ in logs_and_maps]
+    sid = np.concatenate([i * SAMPLE_ID_STRIDE + np.arange(t.shape[0], dtype=np.int64) for i, t in enumerate(T)])
+    T_all = np.concatenate(T)
+    known = np.all(np.isfinite(T_all), axis=(1, 2))
+    return T_all[known], sid[known]
+
+
 def one_place(logs_and_maps: Sequence[tuple[Any, Any]]) -> bool:
-    """Whether every true base pose of the logs is within :data:`PLACE_TOLERANCE` (m, rad of
-    yaw) of the first one: a calibration in one place (samples without a true pose do not
-    count)."""
-    T = np.concatenate([np.asarray(log.truth_per_sample(), dtype=float) for log, _ in logs_and_maps])
-    T = T[np.all(np.isfinite(T), axis=(1, 2))]
-    if T.shape[0] == 0:
-        return False
-    step = T[:, :3, 3] - T[0, :3, 3]
-    turn = np.abs(np.angle(np.exp(1j * (np.arctan2(T[:, 1, 0], T[:, 0, 0]) - math.atan2(T[0, 1, 0], T[0, 0, 0])))))
-    return bool(np.all(np.abs(step) < PLACE_TOLERANCE) and np.all(turn < PLACE_TOLERANCE))
+    """Whether every true base pose of the logs is one place (:func:`place_ids`): a
+    calibration in one place (samples without a true pose do not count; none: False)."""
+    T, _ = _sample_poses(logs_and_maps)
+    return bool(T.shape[0]) and int(place_ids(T).max()) == 0
 
 
 def sample_places(logs_and_maps: Sequence[tuple[Any, Any]], sample_id: NDArray[np.int64]) -> NDArray[np.int64]:
-    """The place of each reading (``sample_id`` as :class:`ZoneSamples` numbers the logs'
-    samples): its true base pose's, places numbered in the order the logs and samples meet
-    them, a pose within :data:`PLACE_TOLERANCE` (m, rad of yaw) of a place's first pose
-    being that place."""
-    from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
+    """The place (:func:`place_ids` over every sample of the logs with a true pose) of each
+    reading whose sample is ``sample_id`` (:class:`ZoneSamples`' numbering)."""
+    T, sid = _sample_poses(logs_and_maps)
+    ids = place_ids(T)
+    want = np.asarray(sample_id, dtype=np.int64)
+    at = np.minimum(np.searchsorted(sid, want), max(sid.size - 1, 0))  # sample ids ascend: log by log, row by row
+    if sid.size == 0 or not np.array_equal(sid[at], want):
+        from sensor_models.calibration.zones import SAMPLE_ID_STRIDE
 
-    sid = np.asarray(sample_id, dtype=np.int64)
-    out = np.zeros(sid.shape, dtype=np.int64)
-    firsts: list[NDArray[np.float64]] = []  # x, y, z, yaw of each place's first pose
-    for i, (log, _) in enumerate(logs_and_maps):
-        sel = np.flatnonzero(sid // SAMPLE_ID_STRIDE == i)
-        if sel.size == 0:
-            continue
-        rows, back = np.unique(sid[sel] % SAMPLE_ID_STRIDE, return_inverse=True)
-        T = np.asarray(log.truth_per_sample(), dtype=float)[rows]
-        pose = np.column_stack([T[:, :3, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
-        place = np.empty(rows.size, dtype=np.int64)
-        for k, p in enumerate(pose):  # once per sample of a calibration: places are few
-            for j, q in enumerate(firsts):
-                if np.all(np.abs(p[:3] - q[:3]) < PLACE_TOLERANCE) and abs(math.remainder(p[3] - q[3], 2 * math.pi)) < PLACE_TOLERANCE:
-                    place[k] = j
-                    break
-            else:
-                firsts.append(p)
-                place[k] = len(firsts) - 1
-        out[sel] = place[back]
-    return out
+        bad = int((want if sid.size == 0 else want[sid[at] != want])[0])
+        raise ValueError(f"sample ids must name samples with a true base pose (/truth/T_map_base); log "
+                         f"{bad // SAMPLE_ID_STRIDE + 1}'s sample {bad % SAMPLE_ID_STRIDE} has none")
+    return ids[at]
 
 
 def calibrate_rig(

@@ -164,12 +164,7 @@ def fit_zone_offsets(result: CalibrationResult, shape: tuple[int, int],
     zone_edge = np.zeros(J, dtype=bool)
     zone_edge[zid] = edge
     se2 = np.where(used, np.maximum(var, 0.0) / np.maximum(n_eff - 1.0, 1.0), np.inf)
-    centred = mean.copy()
-    classes = 0
-    for cls in (zone_edge & used, ~zone_edge & used):
-        if cls.any():
-            centred[cls] -= np.average(mean[cls], weights=n_eff[cls])
-            classes += 1
+    centred, classes = _centred_per_class(mean, n_eff, zone_edge, used)
     n_used = int(used.sum())
     if n_used - classes < 2:
         return ZoneOffsetFit(np.zeros((S, Z)), False, 0.0, float("nan"), 0.0, float("nan"), n_used)
@@ -210,6 +205,19 @@ def _zone_stats(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[np.
     return mean, var, n_eff
 
 
+def _centred_per_class(mean: NDArray[np.float64], n_eff: NDArray[np.float64], zone_edge: NDArray[np.bool_],
+                       used: NDArray[np.bool_]) -> tuple[NDArray[np.float64], int]:
+    """``mean`` with each class's (edge, inner) weighted mean over its used zones taken out
+    (the class curves keep what every zone of a class shares), and how many classes had one."""
+    centred = mean.copy()
+    classes = 0
+    for cls in (zone_edge & used, ~zone_edge & used):
+        if cls.any():
+            centred[cls] -= np.average(mean[cls], weights=n_eff[cls])
+            classes += 1
+    return centred, classes
+
+
 def _across_places(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[np.int64], edge: NDArray[np.bool_],
                    place: NDArray[np.int64], S: int, Z: int) -> ZoneOffsetFit:
     """The fit when the readings come from two or more places (module doc, "Across places")."""
@@ -223,10 +231,7 @@ def _across_places(r: NDArray[np.float64], w: NDArray[np.float64], zid: NDArray[
     used = (n_a >= MIN_EFFECTIVE_SAMPLES / 2) & (n_b >= MIN_EFFECTIVE_SAMPLES / 2)
     zone_edge = np.zeros(J, dtype=bool)
     zone_edge[zid] = edge
-    for values, n in ((mean, n_eff), (m_a, n_a), (m_b, n_b)):  # centred per class, each its own mean
-        for cls in (zone_edge & used, ~zone_edge & used):
-            if cls.any():
-                values[cls] -= np.average(values[cls], weights=n[cls])
+    mean, m_a, m_b = (_centred_per_class(v, n, zone_edge, used)[0] for v, n in ((mean, n_eff), (m_a, n_a), (m_b, n_b)))
     n_used = int(used.sum())
     median_sigma = float(np.median(np.sqrt(np.maximum(var_all[used], 0.0)))) if n_used else float("nan")
     z_threshold = float(stats.norm.isf(1.0 - SIGNIFICANCE))
