@@ -25,7 +25,7 @@ REAL_DRONE_SETS ?= 1,2,3 0,2,3 0,1,3 0,1,2 1,3 0,2
 TEST_WORKERS ?= 2
 PYTEST_WORKERS := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
-.PHONY: demo real-data real-data-drones test test-fast install syslibs clean
+.PHONY: demo real-data real-data-drones test test-slow install syslibs clean
 
 # Open3D links against libusb-1.0 (Debian/Ubuntu package libusb-1.0-0).
 syslibs:
@@ -83,11 +83,13 @@ real-data-drones: install
 	done; \
 	$(VENV)/bin/tofloc plot $$results --out "$(REAL_DIR)/compare-$(REAL_DRONES_FLIGHT)-subsets"
 
+# `make test`: every test but those marked `slow` (under 10 minutes on 2 cores);
+# `make test-slow`: those (a few minutes more). CI (.ci/run) runs both.
 test: install
-	$(PY) -m pytest -q $(PYTEST_WORKERS)
-
-test-fast: install
 	$(PY) -m pytest -q $(PYTEST_WORKERS) -m "not slow"
+
+test-slow: install
+	$(PY) -m pytest -q $(PYTEST_WORKERS) -m slow
 
 clean:
 	rm -rf $(VENV) $(DEMO_DIR) $(REAL_DIR) .pytest_cache build *.egg-info

@@ -153,7 +153,7 @@ def test_em_refuses_too_little_data() -> None:
         fit_em(s)
 
 
-@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
+@pytest.mark.slow  # ~20 s or more: skipped by `make test`, run by `make test-slow`
 def test_cli_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from tofloc.logs import read_log, write_log
     from tofloc.simulation import simulate, write_simulation

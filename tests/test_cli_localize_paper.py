@@ -289,7 +289,7 @@ def test_localize_refuses_a_tip_source_the_log_cannot_serve(data: dict[str, Path
     assert code == 2 and "/samples/pressure_kpa" in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
+@pytest.mark.slow  # ~20 s or more: skipped by `make test`, run by `make test-slow`
 def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A simulated log gets a calibration session of the same set-up (never the trial samples)."""
     from tofloc.calibration_file import SensorCalibration
@@ -380,7 +380,7 @@ def test_paper_calibrates_each_footprint_its_estimators_cast(data: dict[str, Pat
     assert bias == {"b2": 0.002, "b1": 0.001, "lf": 0.001, "icp": 0.0}  # the ICP score takes no calibration
 
 
-@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
+@pytest.mark.slow  # ~20 s or more: skipped by `make test`, run by `make test-slow`
 def test_paper_calibrate_a_recorded_log_on_its_training_split(data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A log the simulator did not write has no calibration session: the k-NN training split.
     (The simulated log's first 200 of its 816 samples: the calibration fits the split's 157

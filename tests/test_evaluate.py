@@ -683,7 +683,7 @@ def test_refit_summary_reports_what_was_fitted_per_trial() -> None:
 # -- the real flight -------------------------------------------------------------------------------
 
 
-@pytest.mark.slow  # ~22 s alone, ~65 s beside another test file: skipped by `make test-fast`
+@pytest.mark.slow  # ~22 s alone, ~65 s beside another test file: skipped by `make test`, run by `make test-slow`
 @pytest.mark.skipif(not (FOUR / "scans.csv").exists(), reason=f"ETH Nano_Swarm_Mapping data not found at {FOUR}")
 def test_real_nanoswarm_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(capsys, ["import", "nanoswarm", str(FOUR), "--out", str(tmp_path / "four")])

@@ -165,7 +165,7 @@ def _room_problem(seed: int = 0):
     return dataclasses.replace(p, map=room, distance_m=z, status=status), truth
 
 
-@pytest.mark.slow  # ~7 s (~16-22 s at the default cell): skipped by `make test-fast`
+@pytest.mark.slow  # ~7 s (~16-22 s at the default cell): skipped by `make test`, run by `make test-slow`
 def test_r_field_follows_the_zone_noise() -> None:
     from sensor_models.likelihood_field import R_FIELD_LEVELS, auto_r_field
 

@@ -97,7 +97,7 @@ def test_nuisance_priors_come_from_the_rig_and_the_calibration() -> None:
     assert _rebuilt(p, rig=tol).nuisance == n
 
 
-@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
+@pytest.mark.slow  # ~20 s or more: skipped by `make test`, run by `make test-slow`
 def test_mounting_fit_recovers_each_sensor() -> None:
     """On a clean simulation with a rotated support and per-sensor mounting errors, the fit
     brings every sensor's orientation closer to the truth than the support's rotation alone."""

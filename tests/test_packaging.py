@@ -1,4 +1,4 @@
-"""Issue 14, item 17: what the package declares is what it uses; `make test-fast` skips the slow tests."""
+"""Issue 14, item 17: what the package declares is what it uses; `make test` skips the slow tests, which `make test-slow` and CI run."""
 
 from __future__ import annotations
 
@@ -37,16 +37,19 @@ def test_filterpy_is_a_test_only_dependency() -> None:
     assert "filterpy" in readme and "filterpy#290" in readme and "test-only" in readme
 
 
-def test_make_test_fast_skips_the_slow_tests() -> None:
+def test_make_test_skips_the_slow_tests_and_ci_runs_them_too() -> None:
     make = (ROOT / "Makefile").read_text()
-    recipe = re.search(r"^test-fast:.*\n((?:\t.*\n)+)", make, flags=re.M)
-    assert recipe and '-m "not slow"' in recipe.group(1)
+    recipes = {t: re.search(rf"^{t}:.*\n((?:\t.*\n)+)", make, flags=re.M) for t in ("test", "test-slow")}
+    assert recipes["test"] and '-m "not slow"' in recipes["test"].group(1)
+    assert recipes["test-slow"] and re.search(r"-m slow\b", recipes["test-slow"].group(1))
+    ci = [ln.strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln.strip().startswith("make ")]
+    assert ci == ["make test", "make test-slow"]  # CI runs the whole suite
     markers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["markers"]
     assert any(m.startswith("slow:") for m in markers)
     slow = sum(len(re.findall(r"^@pytest\.mark\.slow\b", p.read_text(), flags=re.M)) for p in (ROOT / "tests").glob("test_*.py"))
     assert slow >= 1
     readme = (ROOT / "README.md").read_text()
-    sentence = re.search(r"`make test-fast` skips the (\d+) tests marked `slow`", readme)
+    sentence = re.search(r"`make test` skips the (\d+) tests marked `slow`", readme)
     assert sentence and int(sentence.group(1)) == slow, "the README's count of slow tests is out of date"
 
 
@@ -54,7 +57,7 @@ def test_make_test_runs_the_suite_in_worker_processes() -> None:
     make = (ROOT / "Makefile").read_text()
     workers = re.search(r"^PYTEST_WORKERS\s*:=\s*(.*)$", make, flags=re.M)
     assert workers and "-n $(TEST_WORKERS) --dist loadfile" in workers.group(1)
-    for target in ("test", "test-fast"):
+    for target in ("test", "test-slow"):
         recipe = re.search(rf"^{target}:.*\n((?:\t.*\n)+)", make, flags=re.M)
         assert recipe and "$(PYTEST_WORKERS)" in recipe.group(1), target
     test_extra = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["test"]
@@ -161,7 +164,7 @@ def _make_with_synthetic_flights(tmp_path: Path, target: str, flights: dict[str,
     return r, out
 
 
-@pytest.mark.slow  # ~45 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
+@pytest.mark.slow  # ~45 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test`, run by `make test-slow`
 def test_make_real_data_runs_every_flight_and_names_the_one_that_fails(tmp_path: Path) -> None:
     """`make real-data` takes every flight folder of NANOSWARM, at its top (``FLIGHT``) and
     in experiments (``EXP/FLIGHT``, imported and evaluated as ``EXP-FLIGHT``), as in a copy
@@ -214,7 +217,7 @@ def test_make_real_data_passes_real_import_to_every_import(tmp_path: Path) -> No
     assert "import nanoswarm" in strict.stdout and "--bad-scans" not in strict.stdout and "--map-from auto" in strict.stdout
 
 
-@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test-fast`
+@pytest.mark.slow  # ~40 s: `make` imports and evaluates synthetic flights in subprocesses; skipped by `make test`, run by `make test-slow`
 def test_make_real_data_drones_runs_end_to_end_on_a_small_flight(tmp_path: Path) -> None:
     """`make real-data-drones` on a synthetic three-drone flight with two drone sets: each
     set imported with only its drones (its logs name only their maps), evaluated, and the

@@ -412,7 +412,7 @@ def _numbers(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{k: v for k, v in r.items() if k not in ("runtime_s", "setup_s")} for r in records]
 
 
-@pytest.mark.slow  # ~20 s or more: skipped by `make test-fast`
+@pytest.mark.slow  # ~20 s or more: skipped by `make test`, run by `make test-slow`
 def test_executors_give_identical_results(sim: dict[str, Any]) -> None:
     distributed = pytest.importorskip("distributed")
     log, the_map, kin = sim["log"], sim["map"], sim["kin"]
