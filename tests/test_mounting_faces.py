@@ -114,52 +114,86 @@ def test_the_fit_moves_with_a_face_as_its_sensitivity_says(fits) -> None:
         assert np.abs(fd[:, j] - predicted[:, j]).max() < 0.1 * scale, (fd, predicted)
 
 
-def test_an_answer_moves_with_a_face_through_the_calibration_as_predicted(fits) -> None:
-    """The localization 5-6 cm away, in the world whose face moved, with the calibration
-    fitted in that world: its weighted least-squares answer moves with the face as
-    :func:`tofloc.map_tolerance.pose_face_sensitivity` says with the calibration's part
-    (within 10 %), and not as the face's direct pull alone says (the mounting takes up most
-    of it here); the covariance records that the calibration's part is in."""
-    from scipy.optimize import least_squares
-
-    from tofloc.fit_check import zone_residuals
-    from tofloc.map_tolerance import map_tolerance_covariance, pose_face_sensitivity
+def _localization(world: Map, fit, tips: np.ndarray):
+    """The localization 5-6 cm away: readings of the rig as it truly is (the CAD one) in
+    ``world``; the map as drawn, the rig corrected by the calibration ``fit`` (fitted in
+    ``world``), a 2 mm face tolerance."""
     from tofloc.problem import Prior
     from tofloc.problem_builder import build_problem
 
-    rig, base, face, moved = fits
-    tips = _tips(10, 2)
+    rig = _rig()
+    cal = SensorCalibration(UNC, sensor_mounting=fit.sensor_mounting, mounting_face_sensitivity=fit.face_sensitivity)
+    d, status = _readings(world, rig, tips, LOC_BASE)
     prior = Prior(mean=LOC_BASE.copy(), sigma=np.array([0.05, 0.05, math.radians(5.0)]), z=Z)
+    return build_problem(rig=rig, distance_m=np.nan_to_num(d, nan=0.0), status=status, T_base_tip=tips, map=BOX,
+                         prior=prior, calibration=cal, map_tolerance_m=0.002)
 
-    def problem(world: Map, fit):
-        """Readings of the rig as it truly is (the CAD one) in ``world``; the map as drawn,
-        the rig corrected by the calibration fitted in ``world``."""
-        cal = SensorCalibration(UNC, sensor_mounting=fit.sensor_mounting, mounting_face_sensitivity=fit.face_sensitivity)
-        d, status = _readings(world, rig, tips, LOC_BASE)
-        return build_problem(rig=rig, distance_m=np.nan_to_num(d, nan=0.0), status=status, T_base_tip=tips, map=BOX,
-                             prior=prior, calibration=cal, map_tolerance_m=0.002)
 
-    def answer(p) -> np.ndarray:
-        def fun(x):
-            r = zone_residuals(p, x).r
-            return np.r_[np.nan_to_num(r[p.valid]), (x - prior.mean) / prior.sigma]
+def _answer(p) -> np.ndarray:
+    """The weighted least-squares answer of problem ``p`` (its zones and its prior)."""
+    from scipy.optimize import least_squares
 
-        # steps of ~20 um: the casts are single precision
-        return least_squares(fun, LOC_BASE, diff_step=1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+    from tofloc.fit_check import zone_residuals
 
-    fd = (answer(problem(_moved(face, EPS), moved[1])) - answer(problem(_moved(face, -EPS), moved[-1]))) / (2 * EPS)
-    p0 = problem(BOX, base)
+    def fun(x):
+        r = zone_residuals(p, x).r
+        return np.r_[np.nan_to_num(r[p.valid]), (x - p.prior.mean) / p.prior.sigma]
+
+    # steps of ~20 um: the casts are single precision
+    return least_squares(fun, LOC_BASE, diff_step=1e-3, xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+
+
+def _sensitivities(base, tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The answer's face sensitivity at the drawn box with the calibration's part (the
+    shared term, checked to count it) and without it (the faces' direct pull alone)."""
+    from tofloc.map_tolerance import pose_face_sensitivity
+
+    p0 = _localization(BOX, base, tips)
     assert matching_face_sensitivity(p0) is base.face_sensitivity
     T, n_faces, through = pose_face_sensitivity(p0, LOC_BASE)
     assert through and n_faces >= 2
     direct, _, without = pose_face_sensitivity(dataclasses.replace(p0, calibration=SensorCalibration(
         UNC, sensor_mounting=base.sensor_mounting)), LOC_BASE)
     assert not without
+    return T, direct
+
+
+def test_an_answer_moves_with_a_face_through_the_calibration_as_predicted(fits) -> None:
+    """The localization 5-6 cm away, in the world whose face moved, with the calibration
+    fitted in that world: its weighted least-squares answer moves with the face as
+    :func:`tofloc.map_tolerance.pose_face_sensitivity` says with the calibration's part
+    (within 10 %), and not as the face's direct pull alone says (the mounting takes up most
+    of it here); the covariance records that the calibration's part is in."""
+    from tofloc.map_tolerance import map_tolerance_covariance
+
+    rig, base, face, moved = fits
+    tips = _tips(10, 2)
+    fd = (_answer(_localization(_moved(face, EPS), moved[1], tips))
+          - _answer(_localization(_moved(face, -EPS), moved[-1], tips))) / (2 * EPS)
+    T, direct = _sensitivities(base, tips)
     scale = np.abs(T[face]).max()
     assert np.abs(fd - T[face]).max() < 0.1 * max(scale, 1e-3), (fd, T[face], direct[face])
     assert np.abs(fd - direct[face]).max() > 3 * np.abs(fd - T[face]).max(), (fd, T[face], direct[face])
-    C, _ = map_tolerance_covariance(p0, LOC_BASE)
+    C, _ = map_tolerance_covariance(_localization(BOX, base, tips), LOC_BASE)
     assert np.allclose(C, 0.002**2 * T.T @ T)
+
+
+def test_an_answer_moves_with_a_face_it_sees_by_both_paths_together(fits) -> None:
+    """The face that pulls the localization's answer most directly, moved by +-1 mm with the
+    calibration refitted in each world: the answer moves as the sum of the direct pull and
+    the calibration's part says (within 10 %), and by neither part alone (each misses by
+    more than 3 times that), so neither part of the sum can be dropped unnoticed."""
+    rig, base, _, _ = fits
+    tips = _tips(10, 2)
+    T, direct = _sensitivities(base, tips)
+    face = int(np.argmax(np.abs(direct).max(axis=1)))
+    through = T[face] - direct[face]  # the calibration's part
+    moved = {s: _calibrate(_moved(face, s * EPS), rig, _tips(30, 1)) for s in (1, -1)}
+    fd = (_answer(_localization(_moved(face, EPS), moved[1], tips))
+          - _answer(_localization(_moved(face, -EPS), moved[-1], tips))) / (2 * EPS)
+    miss = np.abs(fd - T[face]).max()
+    assert miss < 0.1 * np.abs(T[face]).max(), (fd, T[face], direct[face])
+    assert np.abs(fd - direct[face]).max() > 3 * miss and np.abs(fd - through).max() > 3 * miss, (fd, direct[face], through)
 
 
 def test_another_mesh_or_rig_does_not_match(fits) -> None:
