@@ -42,8 +42,8 @@ def test_make_test_skips_the_slow_tests_and_ci_runs_them_too() -> None:
     recipes = {t: re.search(rf"^{t}:.*\n((?:\t.*\n)+)", make, flags=re.M) for t in ("test", "test-slow")}
     assert recipes["test"] and '-m "not slow"' in recipes["test"].group(1)
     assert recipes["test-slow"] and re.search(r"-m slow\b", recipes["test-slow"].group(1))
-    ci = [ln.strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln.strip().startswith("make ")]
-    assert ci == ["make test", "make test-slow"]  # CI runs the whole suite
+    ci = [ln.split("||")[0].strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln.strip().startswith("make ")]
+    assert ci == ["make test", "make test-slow"]  # CI runs the whole suite, the slow tests even when others failed
     markers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["markers"]
     assert any(m.startswith("slow:") for m in markers)
     slow = sum(len(re.findall(r"^@pytest\.mark\.slow\b", p.read_text(), flags=re.M)) for p in (ROOT / "tests").glob("test_*.py"))
