@@ -225,6 +225,11 @@ def test_bad_scan_rows_are_skipped_and_reported_when_asked(tmp_path: Path, capsy
         ("vicon_poses.csv", 3, "0/1,0,0,0.6,0.5,0,0,0", "row 3, field qw,qx,qy,qz", ("a unit quaternion", "norm 0.5000")),
         ("vicon_poses.csv", 3, "0/0,0,0,0.6,1,0,0,0", "row 3, field drone/node", ("one motion-capture pose per node (0/0 is on row 1 already, with a different pose; --duplicates first|last keeps one)",)),
         ("poses.csv", 1, "0/0,1e999,0,0", "row 1, field x", ("a finite decimal number",)),
+        # positions and yaws out of any arena (1e300 crashed the maps' normals, 1e6 their grid)
+        ("vicon_poses.csv", 3, "0/1,1e300,0.0,0.63,1.0,0.0,0.0,0.0", "row 3, field x", ("a decimal number within +-50 m", "'1e300'")),
+        ("vicon_poses.csv", 3, "0/1,0.5,0.0,-1e6,1.0,0.0,0.0,0.0", "row 3, field z", ("a decimal number within +-50 m", "'-1e6'")),
+        ("poses.csv", 1, "0/0,0,50.5,0", "row 1, field y", ("a decimal number within +-50 m", "'50.5'")),
+        ("poses.csv", 1, "0/0,0,0,1e4", "row 1, field yaw", ("a decimal number within +-1000 rad", "'1e4'")),
         ("poses.csv", 2, "", "row 2", ("a non-empty row", "an empty line")),
     ],
 )

@@ -107,6 +107,11 @@ MAX_DRONE = 15  # the firmware's pose id: 4 bits of drone,
 MAX_NODE = 4095  # 12 bits of node
 MAX_IN_SCAN_TRANSLATION_M = 5.0
 MAX_IN_SCAN_YAW_RAD = 2 * math.pi
+#: A node's position (motion capture or odometry, m): a flying arena, not the planet (a
+#: 1e300 or 1e6 m position would make the maps' grids impossible to allocate).
+MAX_POSITION_M = 50.0
+#: An odometry yaw (rad): unwrapped over a flight, so many turns, but not without bound.
+MAX_ODOMETRY_YAW_RAD = 1000.0
 QUATERNION_NORM_TOL = 1e-3
 
 _SCAN_DTYPE = np.dtype([("mm", "<i2", (DIRECTIONS, COLUMNS)), ("motion", "<f4", (3,))])
@@ -266,13 +271,21 @@ def _key(path: Path, row: int, text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def _number(path: Path, row: int, name: str, text: str) -> float:
+def _number(path: Path, row: int, name: str, text: str, limit: tuple[float, str] | None = None) -> float:
+    """The decimal number ``text`` of field ``name``; ``limit`` = (bound, unit): within +-bound."""
     if _NUMBER.fullmatch(text) is None:
         raise FormatError(path, f"row {row}, field {name}", "a finite decimal number", repr(text[:40]))
     v = float(text)
     if not math.isfinite(v):
         raise FormatError(path, f"row {row}, field {name}", "a finite decimal number", repr(text[:40]))
+    if limit is not None and abs(v) > limit[0]:
+        raise FormatError(path, f"row {row}, field {name}", f"a decimal number within +-{limit[0]:g} {limit[1]}", repr(text[:40]))
     return v
+
+
+#: Each position and yaw field's bound (the quaternion's are bound by its unit norm).
+_LIMITS = {"x": (MAX_POSITION_M, "m"), "y": (MAX_POSITION_M, "m"), "z": (MAX_POSITION_M, "m"),
+           "yaw": (MAX_ODOMETRY_YAW_RAD, "rad")}
 
 
 @dataclass(frozen=True)
@@ -500,7 +513,8 @@ def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
     ------
     FormatError
         Naming the row and the field: wrong field count, malformed key or number, a
-        repeated node, a quaternion whose norm is not 1 within 1e-3.
+        position beyond +-:data:`MAX_POSITION_M`, a repeated node, a quaternion whose
+        norm is not 1 within 1e-3.
     """
     check_policy("duplicates", duplicates)
     p = Path(path)
@@ -510,7 +524,7 @@ def read_vicon_csv(path: str | Path, duplicates: str = "refuse") -> NodePoses:
     for i, line in enumerate(_lines(p), start=1):
         parts = _fields(p, i, line, ("drone/node",) + VICON_FIELDS)
         key = _key(p, i, parts[0])
-        v = np.array([_number(p, i, name, t) for name, t in zip(VICON_FIELDS, parts[1:])])
+        v = np.array([_number(p, i, name, t, _LIMITS.get(name)) for name, t in zip(VICON_FIELDS, parts[1:])])
         qn = float(np.linalg.norm(v[3:]))
         if abs(qn - 1.0) > QUATERNION_NORM_TOL:  # every row is checked, a skipped one too
             raise FormatError(p, f"row {i}, field qw,qx,qy,qz", f"a unit quaternion (norm 1 within {QUATERNION_NORM_TOL:g})", f"norm {qn:.4f}")
@@ -538,7 +552,8 @@ def read_poses_csv(path: str | Path) -> NodePoses:
     Raises
     ------
     FormatError
-        Naming the row and the field: wrong field count, malformed key or number.
+        Naming the row and the field: wrong field count, malformed key or number, a
+        position beyond +-:data:`MAX_POSITION_M` or a yaw beyond +-:data:`MAX_ODOMETRY_YAW_RAD`.
     """
     p = Path(path)
     values: dict[tuple[int, int], NDArray[np.float64]] = {}
@@ -547,7 +562,7 @@ def read_poses_csv(path: str | Path) -> NodePoses:
     for i, line in enumerate(_lines(p), start=1):
         parts = _fields(p, i, line, ("drone/node",) + ODOMETRY_FIELDS)
         key = _key(p, i, parts[0])
-        v = np.array([_number(p, i, name, t) for name, t in zip(ODOMETRY_FIELDS, parts[1:])])
+        v = np.array([_number(p, i, name, t, _LIMITS.get(name)) for name, t in zip(ODOMETRY_FIELDS, parts[1:])])
         if key in values:
             later.setdefault(key, []).append(v)
         else:
