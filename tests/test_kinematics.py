@@ -333,6 +333,7 @@ def _non_rigid(f: dict[str, np.ndarray]) -> np.ndarray:
         ("fingerprint", "log_fingerprint", lambda f: {"log_fingerprint": np.asarray("abc")}),
         ("objects", "actuators", lambda f: {"actuators": np.array(["a", {"x": 1}, "c"], dtype=object)}),
         ("covnan", "configuration_covariance", lambda f: {"configuration_covariance": np.full((6, 6), np.nan)}),
+        ("covhuge", "configuration_covariance", lambda f: {"configuration_covariance": np.eye(6) * 1e300}),
     ],
 )
 def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, case: str, field: str, make: Any) -> None:
@@ -344,6 +345,8 @@ def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, cas
     assert str(bad) in str(e.value)
     if case == "covnan":  # the message said only "dtype float64, shape (6, 6)" (a bad-input audit)
         assert "36 NaN or infinite entries" in str(e.value)
+    if case == "covhuge":  # accepted before (a fuzzing audit): the data then counted for nothing
+        assert "expected standard deviations within 3.142 rad (rotation) and 100 m (translation), found sigma 1e+150 rad on axis 0" in str(e.value)
 
 
 def test_load_refuses_other_files(tmp_path: Path) -> None:

@@ -791,6 +791,18 @@ def test_covariance_violations_are_named(full_log: Log) -> None:
         full_log, T_base_tip_cov=partly
     )
     assert "found a matrix with infinite values" in _cov_case(full_log, T_base_tip_cov=inf)
+    # sigmas beyond a half turn or 100 m (a fuzzing audit: 1e300 variances were accepted, and
+    # then every reading counted for nothing); at the bound they are accepted
+    huge = cov.copy()
+    huge[1] = np.diag([1e-4, 1e-4, 1e-4, 1e-4, (100.5) ** 2, 1e-4])
+    assert "/samples/T_base_tip_cov[1]: expected standard deviations within 3.142 rad (rotation) and 100 m (translation), " \
+           "found translation y sigma 100.5 m" in _cov_case(full_log, T_base_tip_cov=huge)
+    turn = cov.copy()
+    turn[2] = np.diag([1e-4, 1e-4, 3.2**2, 1e-4, 1e-4, 1e-4])
+    assert "/samples/T_base_tip_cov[2]:" in _cov_case(full_log, T_base_tip_cov=turn) and "found rotation z sigma 3.2 rad" in _cov_case(full_log, T_base_tip_cov=turn)
+    edge = cov.copy()
+    edge[0] = np.diag([np.pi**2] * 3 + [100.0**2] * 3)
+    dataclasses.replace(full_log, T_base_tip_cov=edge).validate("x.h5")
     assert "expected shape (K, 6, 6) = (4, 6, 6), found shape (4, 3, 3)" in _cov_case(full_log, T_base_tip_cov=cov[:, :3, :3].copy())
     assert "/samples/T_base_tip_cov: expected dtype float64" in _cov_case(full_log, T_base_tip_cov=cov.astype(np.float32))
     msg = _cov_case(full_log, configuration_source="vicon")
@@ -798,10 +810,11 @@ def test_covariance_violations_are_named(full_log: Log) -> None:
 
 
 def test_covariance_tolerance_is_relative() -> None:
-    """Rounding-level asymmetry and negative eigenvalues are accepted, at any scale."""
+    """Rounding-level asymmetry and negative eigenvalues are accepted, at any scale a pose
+    covariance may have (its sigmas are bounded: within pi rad and 100 m)."""
     from tofloc.logs import COV_RTOL, _check_covariances
 
-    for scale in (1e-12, 1.0, 1e6):
+    for scale in (1e-12, 1e-4, 1.0):
         C = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 0.0]) * scale
         C[0, 1] = C[1, 0] = 0.5 * scale
         ok = C.copy()
@@ -822,6 +835,8 @@ def test_covariance_tolerance_is_relative() -> None:
         ({}, {"/samples/T_base_tip_cov": np.zeros((K, 6, 6), np.float32)}, "/samples/T_base_tip_cov", ("dtype float64", "float32")),
         ({}, {"/samples/T_base_tip_cov": np.zeros((K, 6, 5))}, "/samples/T_base_tip_cov", ("(K, 6, 6) = (4, 6, 6)", "(4, 6, 5)")),
         ({}, {"/samples/T_base_tip_cov": np.tile(-np.eye(6), (K, 1, 1))}, "/samples/T_base_tip_cov[0]", ("positive semi-definite",)),
+        ({}, {"/samples/T_base_tip_cov": np.tile(np.eye(6) * 1e300, (K, 1, 1))}, "/samples/T_base_tip_cov[0]",
+         ("standard deviations within 3.142 rad (rotation) and 100 m (translation)", "rotation x sigma 1e+150 rad")),
     ],
 )
 def test_covariance_and_source_violations_in_files(tmp_path: Path, attrs: dict[str, Any], datasets: dict[str, Any], where: str, frags: tuple[str, ...]) -> None:

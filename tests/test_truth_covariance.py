@@ -109,6 +109,10 @@ def test_bad_truth_covariances_are_refused_in_memory(rig: Rig) -> None:
     bad[2, 5, 5] = -1e-4
     e = _refusal(per, T_map_base_cov=bad)
     assert e.where == "/truth/T_map_base_cov[2]" and "expected a positive semi-definite matrix" in str(e)
+    huge = np.eye(6) * 1e300  # accepted before (a fuzzing audit): every NEES then read 0.00
+    e = _refusal(log, T_map_base_cov=huge)
+    assert e.where == "/truth/T_map_base_cov" and "expected standard deviations within 3.142 rad (rotation) and 100 m " \
+        "(translation), found rotation x sigma 1e+150 rad" in str(e)
     replace(log, T_map_base_cov=np.zeros((6, 6))).validate()  # an exact truth, declared
 
 

@@ -30,7 +30,39 @@ __all__ = [
     "rotvec_from_matrix",
     "matrix_from_rotvec",
     "circular_mean",
+    "MAX_POSE_SIGMA_RAD",
+    "MAX_POSE_SIGMA_M",
+    "pose_sigma_excess",
+    "pose_sigma_limit_text",
 ]
+
+#: Largest standard deviation a pose covariance (rotation vector in rad, then translation
+#: in m) may state about a rotation: beyond a half turn it no longer describes one.
+MAX_POSE_SIGMA_RAD = float(np.pi)
+#: ... and about a translation (m): a robot's configuration or its base in a mapped room,
+#: not an unbounded number (a sigma of 1e150 m swamps every reading and reads as no data).
+MAX_POSE_SIGMA_M = 100.0
+
+
+def pose_sigma_excess(cov: ArrayLike) -> tuple[int, int, float] | None:
+    """The first of finite pose covariances ``(n, 6, 6)`` (rotation vector, then
+    translation) whose standard deviation exceeds :data:`MAX_POSE_SIGMA_RAD` or
+    :data:`MAX_POSE_SIGMA_M`: ``(matrix, axis 0-5, sigma)``; None when all are within.
+    Matrices holding NaN (unknown) are skipped."""
+    C = np.asarray(cov, dtype=float).reshape(-1, 6, 6)
+    var = np.diagonal(C, axis1=1, axis2=2)
+    limit = np.array([MAX_POSE_SIGMA_RAD] * 3 + [MAX_POSE_SIGMA_M] * 3) ** 2
+    with np.errstate(invalid="ignore"):
+        bad = np.isfinite(var).all(axis=1)[:, None] & (var > limit)
+    if not bad.any():
+        return None
+    k, j = (int(v) for v in np.argwhere(bad)[0])
+    return k, j, float(np.sqrt(var[k, j]))
+
+
+def pose_sigma_limit_text() -> str:
+    """What :func:`pose_sigma_excess` accepts, for error messages."""
+    return f"standard deviations within {MAX_POSE_SIGMA_RAD:.4g} rad (rotation) and {MAX_POSE_SIGMA_M:g} m (translation)"
 
 
 def wrap_angle(a: ArrayLike) -> FloatArray:

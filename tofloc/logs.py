@@ -529,6 +529,18 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str, *, indexe
         raise LogFormatError(
             where, f"{loc}[{idx[j]}]" if indexed else loc, f"a positive semi-definite matrix (eigenvalues >= -{COV_RTOL:g} x its largest entry)", f"smallest eigenvalue {lam[j]:.3g}"
         )
+    if C.shape[1:] == (6, 6):  # pose covariances: bounded sigmas
+        from tofloc import frames
+
+        ex = frames.pose_sigma_excess(C)
+        if ex is not None:
+            j, axis, sigma = ex
+            raise LogFormatError(where, f"{loc}[{idx[j]}]" if indexed else loc, frames.pose_sigma_limit_text(),
+                                 f"{_POSE_AXES[axis]} sigma {sigma:.4g} {'rad' if axis < 3 else 'm'}")
+
+
+#: The axes of a pose covariance, for messages.
+_POSE_AXES = ("rotation x", "rotation y", "rotation z", "translation x", "translation y", "translation z")
 
 
 def _describe_pose(T: NDArray[np.float64]) -> str:
