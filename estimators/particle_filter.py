@@ -95,6 +95,9 @@ from tofloc.step_progress import report_step
 __all__ = ["ParticleFilter", "ICPScorePF", "BeamPF", "LikelihoodFieldPF", "weighted_pose_stats", "anneal_step",
            "KLD_MODES", "POINT_ESTIMATES", "SCHEDULES", "BatchLikelihood", "pose_bins"]
 
+#: Largest ``jitter_xy`` (m) and ``jitter_yaw_deg`` (deg) a filter accepts: a jitter, not a jump.
+MAX_JITTER_M = 1.0
+MAX_JITTER_YAW_DEG = 180.0
 #: When the particle count adapts (KLD sampling): with a global prior only, always, never.
 KLD_MODES = ("global", "always", "off")
 #: What the estimate is: the heaviest mode of the particles, or their weighted mean (the paper's).
@@ -219,9 +222,9 @@ class ParticleFilter(Estimator):
         Resample when ESS < threshold * M (1.0: at every step).
     jitter_xy : float
         Standard deviation (m) of the Gaussian jitter added to x and y after resampling
-        (the floor of the roughening jitter when ``roughening > 0``).
+        (the floor of the roughening jitter when ``roughening > 0``); at most 1 m.
     jitter_yaw_deg : float
-        Standard deviation (deg) of the yaw jitter (idem).
+        Standard deviation (deg) of the yaw jitter (idem); at most 180 deg.
     roughening : float
         Gordon's roughening constant K (0: fixed jitter); see the module docstring.
     anneal_ess : float
@@ -339,6 +342,11 @@ class ParticleFilter(Estimator):
             raise ParameterError(f"resample_threshold must be in [0, 1], got {self.resample_threshold!r}")
         check_positive("jitter_xy", self.jitter_xy, strict=False)
         check_positive("jitter_yaw_deg", self.jitter_yaw_deg, strict=False)
+        # a step of a metre or a half turn per resampling is no longer a jitter (a fuzzing
+        # audit: jitter_xy = 1000 put the answer 15 m off with no refusal)
+        for n, hi in (("jitter_xy", MAX_JITTER_M), ("jitter_yaw_deg", MAX_JITTER_YAW_DEG)):
+            if getattr(self, n) > hi:
+                raise ParameterError(f"{n} must be in [0, {hi:g}], got {getattr(self, n)!r}")
         check_positive("roughening", self.roughening, strict=False)
         if self.roughening > 10:
             raise ParameterError(f"roughening must be in [0, 10], got {self.roughening!r}")

@@ -95,6 +95,11 @@ def test_parameters_are_validated() -> None:
         BeamPF(max_stages=0)
     with pytest.raises(ParameterError, match="roughening"):
         BeamPF(roughening=-1.0)
+    with pytest.raises(ParameterError, match=r"jitter_xy must be in \[0, 1\], got 1000.0"):  # a fuzzing audit
+        BeamPF(jitter_xy=1000.0)
+    with pytest.raises(ParameterError, match=r"jitter_yaw_deg must be in \[0, 180\], got 181"):
+        BeamPF(jitter_yaw_deg=181)
+    BeamPF(jitter_xy=1.0, jitter_yaw_deg=180.0)  # the bounds themselves
     with pytest.raises(ParameterError, match="sum to 1"):
         BeamPF(sensor_model_params={"mixture": {"z_hit": 1.0, "z_short": 0.1, "z_max": 0.0, "z_rand": 0.1, "lambda_short": 1.0}})
     with pytest.raises(ParameterError, match="sensor_model must be"):

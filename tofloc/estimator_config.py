@@ -98,8 +98,9 @@ def _file_key(source: str, table: str) -> Callable[[tuple[str, ...]], str]:
 def _check_values(cls: type, params: Mapping[str, Any], origin: Mapping[tuple[str, ...], str]) -> None:
     """Build the estimator once so that a bad value of a config file fails now, named: the
     estimator's own refusal (``n_particles must be an integer in [...]``) prefixed with
-    where that parameter was given (``run.toml: [estimator].n_particles``) when the message
-    names exactly one of the keys given; otherwise the refusal as it is."""
+    where that parameter was given (``run.toml: [estimator].n_particles``), or where each
+    was when the message names several (``run.toml: [estimator].max_particles,
+    [estimator].min_particles``); the refusal as it is when it names none."""
     import re
 
     try:
@@ -115,9 +116,22 @@ def _check_values(cls: type, params: Mapping[str, Any], origin: Mapping[tuple[st
                 if re.search(rf"\b{re.escape(key[-1])}\b", message) or repr(params_at(params, key)) in message]
         deepest = max((n for n, _ in hits), default=0)
         named = {src for n, src in hits if n == deepest}
-        if len(named) != 1:
+        if len(named) > 1:  # several: only the keys the message names (a value may recur by chance)
+            named = {src for key, src in origin.items() if len(key) == deepest and src in named
+                     and re.search(rf"\b{re.escape(key[-1])}\b", message)}
+        if not named:
             raise
-        raise type(e)(f"{named.pop()}: {message}") from None
+        raise type(e)(f"{_join_origins(named)}: {message}") from None
+
+
+def _join_origins(origins: set[str]) -> str:
+    """Where several keys were given, one file named once: ``run.toml: [estimator].a,
+    [estimator].b`` (origins of different files or options joined by ``;``)."""
+    by_source: dict[str, list[str]] = {}
+    for o in sorted(origins):
+        source, sep, key = o.partition(": ")
+        by_source.setdefault(source if sep else o, []).append(key if sep else "")
+    return "; ".join(f"{src}: {', '.join(keys)}" if all(keys) else src for src, keys in by_source.items())
 
 
 def params_at(params: Mapping[str, Any], key: tuple[str, ...]) -> Any:
