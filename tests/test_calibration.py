@@ -145,6 +145,21 @@ def test_calibration_file_round_trips(tmp_path: Path) -> None:
         SensorCalibration.from_toml(bare)
 
 
+def test_calibrate_names_the_logs_when_no_zone_returned(clean_sim, tmp_path: Path) -> None:
+    """Logs whose every zone reports an invalid status: refused before any fit, naming the
+    logs, the field and the valid statuses (the EM's own refusal named no file: a fuzzing
+    audit)."""
+    from tofloc import api
+    from tofloc.errors import ParameterError
+
+    log = clean_sim.log.subset(np.arange(6))
+    dead = dataclasses.replace(log, status=np.full_like(log.status, 255), path=tmp_path / "dead.h5")
+    with pytest.raises(ParameterError) as e:
+        api.calibrate([dead], maps=[clean_sim.cad_mesh], footprint=1, support_yaw=False, mounting=False)
+    assert str(e.value).startswith(f"{tmp_path / 'dead.h5'}: /samples/status: expected some zones with a valid return "
+                                   "(a status in [5, 9]) where the map predicts a distance, found none of ")
+
+
 def test_em_refuses_too_little_data() -> None:
     from tofloc.errors import ParameterError
 
