@@ -93,6 +93,18 @@ def test_em_recovers_the_generative_model() -> None:
     start = fit_em(samples, max_iter=1)
     assert res.log_likelihood > start.log_likelihood
     assert res.beam.z_hit + res.beam.z_short + res.beam.z_max + res.beam.z_rand == pytest.approx(1.0, abs=1e-12)
+    assert not [n for n in res.notes if "bound of its search" in n], res.notes
+
+
+def test_em_says_when_a_curve_ends_on_its_bound(clean_sim) -> None:
+    """A log whose distances were written in metres, not millimetres (a fuzzing audit: it
+    was calibrated silently): the sigma slope ends on its upper bound, and a note says the
+    value is the bound, not a fit."""
+    log = clean_sim.log.subset(np.arange(40))
+    metres = dataclasses.replace(log, distance_mm=log.distance_mm / 1000.0)
+    res = fit_em(collect_zones(metres, clean_sim.cad_mesh, footprint=1))
+    assert res.uncertainty.sigma_slope > 0.99
+    assert any(n.startswith("sigma_slope = 0.999 is at the upper bound of its search ([1e-05, 1])") for n in res.notes), res.notes
 
 
 def test_calibration_recovers_the_simulator_noise_knobs(clean_sim) -> None:

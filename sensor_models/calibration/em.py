@@ -289,4 +289,29 @@ def fit_em(
                      f"floor/slope = {sig_p[1] / sig_p[0]:.3f} m")
     if not converged:
         notes.append(f"EM stopped after {max_iter} iterations without meeting the tolerance")
+    notes.extend(_bound_notes(sig_p, bias_p))
     return CalibrationResult(unc_fit, beam, ll, it, converged, resp, samples, notes, zone_ll)
+
+
+#: The fitted curves' bounds: (name, value index, lower, upper) of the sigma fit's and the
+#: bias fit's parameters, as :func:`_fit_sigma` and :func:`_fit_bias` bound them.
+_SIGMA_BOUNDS = (("sigma_slope", 1e-5, 1.0), ("sigma_floor", 1e-4, 1.0), ("edge_factor", 0.1, 10.0))
+_BIAS_BOUNDS = (("bias_offset", -0.5, 0.5), ("bias_slope", -0.5, 0.5), ("edge_bias_offset", -0.5, 0.5),
+                ("edge_bias_slope", -0.5, 0.5))
+
+
+def _bound_notes(sig_p: tuple[float, float, float], bias_p: tuple[float, float, float, float]) -> list[str]:
+    """A note per fitted curve parameter that ended on the bound of its search (within 1 %
+    of its range): the data
+    then disagree with the map beyond what the curves can hold (a log in other units than
+    metres, another map, another rig), and the value is the bound, not a fit. The sigma
+    floor's lower bound is left out (a floor the data barely identify has a note of its own)."""
+    out = []
+    for (name, lo, hi), v in zip(_SIGMA_BOUNDS + _BIAS_BOUNDS, (*sig_p, *bias_p)):
+        tol = 0.01 * (hi - lo)  # the search stops near its bound, within 1 % of the range
+        at = "upper" if v >= hi - tol else "lower" if v <= lo + tol and name != "sigma_floor" else None
+        if at is not None:
+            out.append(f"{name} = {v:.3g} is at the {at} bound of its search ([{lo:g}, {hi:g}]): the readings disagree with "
+                       "the map beyond what the curves hold (distances in other units than mm? another map or rig?); "
+                       "the value is the bound, not a fit")
+    return out
