@@ -157,6 +157,36 @@ def test_prediction_is_mean_position_and_chordal_mean_rotation() -> None:
     np.testing.assert_allclose(T_hat, frames.se3_from_xyyaw(0.05, -0.15, 0.5), atol=1e-12)
 
 
+def test_pressures_beyond_the_training_range_are_refused(data: dict[str, Any]) -> None:
+    """A pressure more than 10 % of the training range beyond it (a fuzzing audit: 1000x the
+    pressures were served the nearest trained posture, silently) is refused when a problem
+    is built from a log, naming the file, the field, the range and the first such sample;
+    pressures within the margin are served."""
+    from tofloc.maps import Map
+    from tofloc.problem import Prior, ProblemError
+    from tofloc.problem_builder import problem_from_log
+
+    model = data["model"]
+    lo, hi = model.training_range()
+    assert np.array_equal(lo, data["P"].min(axis=0)) and np.array_equal(hi, data["P"].max(axis=0))
+    span = hi - lo
+    P = np.stack([lo, hi + 0.09 * span, hi + 0.11 * span, lo - 0.11 * span])
+    assert model.outside_training_range(P).tolist() == [False, False, True, True]
+    rig = Rig((Sensor("s0", resolution=(4, 4)),), actuators=ACTUATORS)
+    K = 3
+    press = np.stack([data["P"][5], data["P"][6], hi * 1000.0])
+    log = Log.from_arrays(rig, np.arange(K, dtype=float), np.full((K, 1, 16), 500.0), np.full((K, 1, 16), 5, np.uint8),
+                          pressure_kpa=press)
+    box = Map.cuboid(size=(2.0, 2.0, 2.0), origin=(-1.0, -1.0, -1.0))
+    prior = Prior(mean=np.zeros(3), sigma=np.array([0.1, 0.1, 0.1]), z=0.0)
+    with pytest.raises(ProblemError) as e:
+        problem_from_log(log, np.arange(K), box, prior, "knn", kinematics=model)
+    msg = str(e.value)
+    assert "/samples/pressure_kpa: expected pressures within the k-NN model's training range (kPa: chamber1 " in msg
+    assert "found sample 2 at " in msg and "(1 of 3 samples outside)" in msg, msg
+    problem_from_log(log, np.arange(2), box, prior, "knn", kinematics=model)  # within the range: served
+
+
 def test_chordal_projection() -> None:
     R = frames.matrix_from_rotvec(np.array([[0.0, 0.0, 0.4], [0.0, 0.0, -0.2]]))
     np.testing.assert_allclose(chordal_mean_projection(R.mean(axis=0)), frames.rot_z(0.1), atol=1e-12)

@@ -54,6 +54,9 @@ def test_window_and_missing_pressures(paper) -> None:
 
     u0 = live.update(sample(0, np.full(3, np.nan)))
     assert u0.estimate is None and "pressure" in u0.reason
+    # beyond the k-NN model's training range: left out, said why (not its nearest posture)
+    far = live.update(sample(0, log.pressure_kpa[0] + 1000.0))
+    assert far.estimate is None and "beyond the k-NN model's training range" in far.reason and far.n_used == 0
     for i in range(3):
         u = live.update(sample(i, log.pressure_kpa[i]))
     assert u.n_used == 2  # the window

@@ -79,6 +79,10 @@ PAPER_VALIDATION_MSE_M2 = 3e-4
 #: Bounds on what a model (and a model file) may hold.
 MAX_SAMPLES = 2_000_000
 MAX_ACTUATORS = 64
+#: How far beyond its training range (a fraction of that range, per actuator) a pressure
+#: may lie and still be served: the k-NN answers farther pressures with its nearest trained
+#: posture, which is not a prediction (:meth:`KinematicsModel.outside_training_range`).
+RANGE_MARGIN = 0.1
 MAX_NAME_LENGTH = 256
 #: Largest total uncompressed size of the members of a model file (bytes).
 MAX_FILE_PAYLOAD = 512 * 1024 * 1024
@@ -435,6 +439,20 @@ class KinematicsModel:
         if flat.shape[0] == 0:
             return np.zeros(lead + (4, 4))
         return _poses_from_outputs(self._knn.predict(flat)).reshape(lead + (4, 4))
+
+    def training_range(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Lowest and highest training pressure of each actuator (kPa), ``(C,)`` each."""
+        return self.pressure_kpa.min(axis=0), self.pressure_kpa.max(axis=0)
+
+    def outside_training_range(self, pressure_kpa: ArrayLike, margin: float = RANGE_MARGIN) -> NDArray[np.bool_]:
+        """Which rows of ``pressure_kpa`` ``(M, C)`` lie beyond the training range of some
+        actuator by more than ``margin`` times that range (or by more than 1 kPa where every
+        training pressure was the same): there the model returns its nearest trained
+        posture, an extrapolation it cannot make."""
+        X = np.asarray(pressure_kpa, dtype=float).reshape(-1, self.n_actuators)
+        lo, hi = self.training_range()
+        slack = np.maximum(margin * (hi - lo), 1.0)
+        return np.any((X < lo - slack) | (X > hi + slack), axis=1)
 
     def check_actuators(self, actuators: Sequence[str], where: str) -> None:
         """Refuse to serve pressures of other actuators than the model's.
