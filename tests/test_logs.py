@@ -472,6 +472,9 @@ def test_negative_sigma_and_infinite_pressure(tmp_path: Path) -> None:
     p[2, 1] = np.inf
     assert_refused(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p}), "/samples/pressure_kpa", "finite pressures",
                    "found inf at index (2, 1)")
+    p[2, 1] = 3e38  # a fuzzing audit: read, fitted and served until bounded
+    assert_refused(bad_file(tmp_path, datasets={"/samples/pressure_kpa": p}), "/samples/pressure_kpa",
+                   "finite pressures in kPa within +-100000", "found 3.0000000054977558e+38 at index (2, 1)")
 
 
 def test_nan_pressure_means_unknown(tmp_path: Path) -> None:

@@ -104,6 +104,9 @@ HDF5_LIBVER = ("v110", "v110")
 #: Relative tolerance of the covariance test: ``|C - C^T| <= COV_RTOL * max|C|`` and the
 #: smallest eigenvalue ``>= -COV_RTOL * max|C|``.
 COV_RTOL = 1e-6
+#: Largest pressure magnitude a log may hold (kPa: 100 MPa, beyond any pneumatic or
+#: hydraulic actuator; a 3e38 pressure was read, fitted and served until December 2026).
+MAX_PRESSURE_KPA = 1e5
 #: Allowed values of the root attribute ``configuration_source``.
 CONFIGURATION_SOURCES = ("mocap", "kinematics", "odometry", "cad")
 #: Values of :attr:`Log.checksums`: HDF5 metadata checksums and Fletcher-32 on every
@@ -404,7 +407,9 @@ class Log:
             _first_bad(~(np.isnan(s) | (s >= 0) & np.isfinite(s)), s, where, "/samples/sigma_mm", "NaN or a finite sigma >= 0 mm")
         if self.pressure_kpa is not None:
             p = _check_array(self.pressure_kpa, where, "/samples/pressure_kpa", _F32, (K, C), "(K, C)")
-            _first_bad(np.isinf(p), p, where, "/samples/pressure_kpa", "finite pressures in kPa (NaN where unknown)")
+            with np.errstate(invalid="ignore"):
+                _first_bad(np.isinf(p) | (np.abs(p) > MAX_PRESSURE_KPA), p, where, "/samples/pressure_kpa",
+                           f"finite pressures in kPa within +-{MAX_PRESSURE_KPA:g} (NaN where unknown)")
         if self.T_base_tip is not None:
             T = _check_array(self.T_base_tip, where, "/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)")
             unknown = np.all(np.isnan(T), axis=(1, 2))
