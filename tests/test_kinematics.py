@@ -364,6 +364,7 @@ def _non_rigid(f: dict[str, np.ndarray]) -> np.ndarray:
         ("objects", "actuators", lambda f: {"actuators": np.array(["a", {"x": 1}, "c"], dtype=object)}),
         ("covnan", "configuration_covariance", lambda f: {"configuration_covariance": np.full((6, 6), np.nan)}),
         ("covhuge", "configuration_covariance", lambda f: {"configuration_covariance": np.eye(6) * 1e300}),
+        ("pressurehuge", "pressure_kpa", lambda f: {"pressure_kpa": f["pressure_kpa"] * 1e6}),
     ],
 )
 def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, case: str, field: str, make: Any) -> None:

@@ -50,7 +50,7 @@ from sklearn.neighbors import KNeighborsRegressor
 from tofloc import frames
 from tofloc.atomic import atomic_path
 from tofloc.errors import FormatError, ParameterError
-from tofloc.logs import POSE_ATOL
+from tofloc.logs import MAX_PRESSURE_KPA, POSE_ATOL
 from tofloc.npy_input import check_npz_member_headers
 
 __all__ = [
@@ -259,6 +259,8 @@ def _validated(
         raise fail("pressure_kpa", f"between 1 and {MAX_SAMPLES} samples", n)
     if not 1 <= c <= MAX_ACTUATORS:
         raise fail("pressure_kpa", f"between 1 and {MAX_ACTUATORS} actuators (columns)", c)
+    if np.any(np.abs(P) > MAX_PRESSURE_KPA):  # the log reader's bound (finite: checked above)
+        raise fail("pressure_kpa", f"pressures within +-{MAX_PRESSURE_KPA:g} kPa", f"{float(np.abs(P).max()):.4g}")
     T = _check_float_array(T_base_tip, "T_base_tip", 3, fail)
     if T.shape != (n, 4, 4):
         raise fail("T_base_tip", f"shape ({n}, 4, 4) (one pose per pressure sample)", f"shape {T.shape}")
