@@ -144,6 +144,8 @@ def test_explicit_zone_directions() -> None:
         (lambda d: d["sensors"][0].update(resolution=[5, 5]), "rig.sensors[0].resolution"),
         (lambda d: d["sensors"][0].update(distance="slant"), "rig.sensors[0].distance"),
         (lambda d: d["sensors"][0].update(T_tip_sensor=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "rig.sensors[0].T_tip_sensor"),
+        # a sensor 15 m from the tip (a fuzzing audit: read as it was, with a misfit warning only)
+        (lambda d: d["sensors"][0].update(T_tip_sensor=[[1, 0, 0, 15.0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "rig.sensors[0].T_tip_sensor: expected a translation within +-10 m"),
         (lambda d: d["sensors"][0].update(fov_deg=[45]), "rig.sensors[0].fov_deg"),
         (lambda d: d["sensors"][1].update(name="tof0"), "rig.sensors[].name"),
         (lambda d: d.update(sensors=[]), "rig.sensors"),

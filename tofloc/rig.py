@@ -52,6 +52,9 @@ DISTANCE_CONVENTIONS = ("perpendicular", "radial")
 VL53L5CX_RESOLUTIONS = ((4, 4), (8, 8))
 #: Largest number of zones a sensor may declare (bounds what a rig file may ask for).
 MAX_ZONES = 4096
+#: Largest offset of a sensor from the tip (m, per axis): a sensor on the robot (a rig in
+#: millimetres, or a stray 15 m, was read as it was and localized nothing).
+MAX_SENSOR_OFFSET_M = 10.0
 MAX_SENSORS = 256
 #: Keys every sensor of a log's rig must give (log format v1 has no defaults for them), with
 #: what each must hold; ``zone_directions`` may be left out (the default grid, as ``null``).
@@ -180,6 +183,9 @@ def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
         raise _fail(source, where, "a 4x4 matrix", f"shape {T.shape}")
     if not bool(frames.is_rigid(T, atol=1e-4)):
         raise _fail(source, where, "a finite rigid transform (orthonormal rotation, last row 0 0 0 1)")
+    if np.abs(T[:3, 3]).max() > MAX_SENSOR_OFFSET_M:
+        raise _fail(source, where, f"a translation within +-{MAX_SENSOR_OFFSET_M:g} m (a sensor on the robot, in metres)",
+                    f"{T[:3, 3].tolist()}")
     return T
 
 
