@@ -105,6 +105,11 @@ def test_em_says_when_a_curve_ends_on_its_bound(clean_sim) -> None:
     res = fit_em(collect_zones(metres, clean_sim.cad_mesh, footprint=1))
     assert res.uncertainty.sigma_slope > 0.99
     assert any(n.startswith("sigma_slope = 0.999 is at the upper bound of its search ([1e-05, 1])") for n in res.notes), res.notes
+    from sensor_models.calibration.em import _bound_notes
+
+    # a small legitimate slope (0.9 % of the distance) is no bound; a bias at -0.499 of +-0.5 is
+    assert _bound_notes((0.009, 0.004, 1.4), (0.0, 0.0, 0.0, 0.0)) == []
+    assert [n.split(" =")[0] for n in _bound_notes((0.05, 0.004, 1.4), (0.0, 0.0, 0.0, -0.499))] == ["edge_bias_slope"]
 
 
 def test_calibration_recovers_the_simulator_noise_knobs(clean_sim) -> None:
@@ -165,11 +170,14 @@ def test_calibrate_names_the_logs_when_no_zone_returned(clean_sim, tmp_path: Pat
     from tofloc.errors import ParameterError
 
     log = clean_sim.log.subset(np.arange(6))
-    dead = dataclasses.replace(log, status=np.full_like(log.status, 255), path=tmp_path / "dead.h5")
-    with pytest.raises(ParameterError) as e:
-        api.calibrate([dead], maps=[clean_sim.cad_mesh], footprint=1, support_yaw=False, mounting=False)
-    assert str(e.value).startswith(f"{tmp_path / 'dead.h5'}: /samples/status: expected some zones with a valid return "
-                                   "(a status in [5, 9]) where the map predicts a distance, found none of ")
+    # no target (255), or another invalid status (4: its zones are not kept at all)
+    for status in (255, 4):
+        dead = dataclasses.replace(log, status=np.full_like(log.status, status), path=tmp_path / "dead.h5")
+        with pytest.raises(ParameterError) as e:
+            api.calibrate([dead], maps=[clean_sim.cad_mesh], footprint=1, support_yaw=False, mounting=False)
+        assert str(e.value).startswith(f"{tmp_path / 'dead.h5'}: /samples/status: expected some zones with a valid return "
+                                       "(a status in [5, 9] and a distance > 0) where the map predicts a distance, found "
+                                       "none of "), (status, str(e.value))
 
 
 def test_em_refuses_too_little_data() -> None:

@@ -182,7 +182,8 @@ def test_pressures_beyond_the_training_range_are_refused(data: dict[str, Any]) -
     with pytest.raises(ProblemError) as e:
         problem_from_log(log, np.arange(K), box, prior, "knn", kinematics=model)
     msg = str(e.value)
-    assert "/samples/pressure_kpa: expected pressures within the k-NN model's training range (kPa: chamber1 " in msg
+    assert "/samples/pressure_kpa: expected pressures within the k-NN model's training range (chamber1 0..18, chamber2 0..18, " \
+           "chamber3 0..18 kPa (and 10 % of each range beyond it, at least 1 kPa))" in msg, msg
     assert "found sample 2 at " in msg and "(1 of 3 samples outside)" in msg, msg
     problem_from_log(log, np.arange(2), box, prior, "knn", kinematics=model)  # within the range: served
 

@@ -152,8 +152,10 @@ def test_a_bad_value_in_a_config_file_names_the_file_and_key(tmp_path: Path) -> 
     assert estimator_params(cfg, ["icp_pf"], ["n_particles=50"])[0]["icp_pf"]["n_particles"] == 50
     # a refusal of two values together names both keys (it named no file: a fuzzing audit),
     # and not a third key whose value merely recurs in the message
-    assert _config_refusal(cfg, "[estimator]\nmin_particles = 5000\nmax_particles = 10\nn_particles = 10\n", "beam_pf") == (
-        f"{cfg}: [estimator].max_particles, [estimator].min_particles: max_particles (10) must be >= min_particles (5000)")
+    for name in ("run.toml", "a: b.toml"):  # a file name holding ": " too
+        cfg = tmp_path / name
+        assert _config_refusal(cfg, "[estimator]\nmin_particles = 5000\nmax_particles = 10\nn_particles = 10\n", "beam_pf") == (
+            f"{cfg}: [estimator].max_particles, [estimator].min_particles: max_particles (10) must be >= min_particles (5000)")
 
 
 def test_a_bad_nested_value_or_model_in_a_config_file_names_the_file_and_key(tmp_path: Path) -> None:

@@ -161,6 +161,16 @@ def test_bad_rigs_are_refused_with_the_key(mutate, where: str) -> None:
     assert str(e.value).startswith("my.h5: ") and where in str(e.value) and "expected" in str(e.value)
 
 
+def test_a_sensor_far_from_the_tip_is_refused_in_memory_too() -> None:
+    """Built in Python, a sensor 15 m from the tip is refused as a rig file's is (it was
+    written into a log that the reader then refused)."""
+    from tofloc.errors import ParameterError
+
+    with pytest.raises(ParameterError, match=r"sensor 'a': T_tip_sensor: expected a translation within \+-10 m"):
+        Sensor("a", T_tip_sensor=frames.se3(np.eye(3), [0.0, 15.0, 0.0]))
+    Sensor("a", T_tip_sensor=frames.se3(np.eye(3), [0.0, 10.0, 0.0]))
+
+
 def test_malformed_json() -> None:
     with pytest.raises(FormatError, match="my.h5: rig: expected valid JSON"):
         Rig.from_json("{not json", source="my.h5")

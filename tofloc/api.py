@@ -575,19 +575,20 @@ def calibrate(
                              f"{rigs[0]['sensors']} (rig {rigs[0]['fingerprint']}), {getattr(pairs[other][0], 'path', f'log {other + 1}')} "
                              f"sensors {rigs[other]['sensors']} (rig {rigs[other]['fingerprint']})")
     counts = []
-    returns = 0
+    returns = expected = 0
     reporter.progress(0, len(pairs), "casting every zone of the logs")
     for i, (log, m) in enumerate(pairs):
         zs = collect_zones(log, m, footprint=footprint, valid_statuses=valid_statuses)
         counts.append({"samples": zs.counts["samples"], "zones": zs.n, "no_expected_hit": zs.counts["no_expected_hit"],
                        "partial_footprint": zs.counts["partial_footprint"]})
         returns += int((~zs.no_return).sum())
+        expected += zs.n + zs.counts["invalid_status"]  # zones the map predicts a distance for
         reporter.progress(i + 1, len(pairs), "casting every zone of the logs")
-    if returns == 0 and sum(c["zones"] for c in counts):  # the fit would find nothing to fit: say where and why
+    if returns == 0 and expected > 0:  # the fit would find nothing to fit: say where and why
         names = ", ".join(str(getattr(lg, "path", f"log {i + 1}")) for i, (lg, _) in enumerate(pairs))
         raise ParameterError(f"{names}: /samples/status: expected some zones with a valid return (a status in "
-                             f"{sorted(valid_statuses)}) where the map predicts a distance, found none of "
-                             f"{sum(c['zones'] for c in counts)}: nothing to fit the curves on")
+                             f"{sorted(valid_statuses)} and a distance > 0) where the map predicts a distance, found none "
+                             f"of {expected}: nothing to fit the curves on")
 
     def in_range(zs: ZoneSamples) -> ZoneSamples:
         if lo > 0.0 or hi < 100.0:

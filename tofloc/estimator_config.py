@@ -129,8 +129,8 @@ def _join_origins(origins: set[str]) -> str:
     [estimator].b`` (origins of different files or options joined by ``;``)."""
     by_source: dict[str, list[str]] = {}
     for o in sorted(origins):
-        source, sep, key = o.partition(": ")
-        by_source.setdefault(source if sep else o, []).append(key if sep else "")
+        source, sep, key = o.rpartition(": [")  # a file's key is ``FILE: [table].key`` (the file may hold ": ")
+        by_source.setdefault(source if sep else o, []).append("[" + key if sep else "")
     return "; ".join(f"{src}: {', '.join(keys)}" if all(keys) else src for src, keys in by_source.items())
 
 

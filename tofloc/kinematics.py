@@ -83,6 +83,8 @@ MAX_ACTUATORS = 64
 #: may lie and still be served: the k-NN answers farther pressures with its nearest trained
 #: posture, which is not a prediction (:meth:`KinematicsModel.outside_training_range`).
 RANGE_MARGIN = 0.1
+#: ... and at least this much (kPa), whatever the range (a narrow or single-valued one).
+RANGE_SLACK_FLOOR_KPA = 1.0
 MAX_NAME_LENGTH = 256
 #: Largest total uncompressed size of the members of a model file (bytes).
 MAX_FILE_PAYLOAD = 512 * 1024 * 1024
@@ -448,13 +450,22 @@ class KinematicsModel:
 
     def outside_training_range(self, pressure_kpa: ArrayLike, margin: float = RANGE_MARGIN) -> NDArray[np.bool_]:
         """Which rows of ``pressure_kpa`` ``(M, C)`` lie beyond the training range of some
-        actuator by more than ``margin`` times that range (or by more than 1 kPa where every
-        training pressure was the same): there the model returns its nearest trained
-        posture, an extrapolation it cannot make."""
+        actuator by more than ``margin`` times that range, and by more than 1 kPa (the
+        floor of the slack, which matters for narrow ranges and a single trained
+        pressure): there the model returns its nearest trained posture, an extrapolation
+        it cannot make."""
         X = np.asarray(pressure_kpa, dtype=float).reshape(-1, self.n_actuators)
         lo, hi = self.training_range()
-        slack = np.maximum(margin * (hi - lo), 1.0)
+        slack = np.maximum(margin * (hi - lo), RANGE_SLACK_FLOOR_KPA)
         return np.any((X < lo - slack) | (X > hi + slack), axis=1)
+
+    def describe_training_range(self) -> str:
+        """The training range and the slack served beyond it, for messages:
+        ``chamber1 0..18, chamber2 0..18 kPa (and 10 % of each range beyond it, at least 1 kPa)``."""
+        lo, hi = self.training_range()
+        names = list(self.actuators) or [f"actuator {c}" for c in range(self.n_actuators)]
+        return (", ".join(f"{n} {a:.4g}..{b:.4g}" for n, a, b in zip(names, lo, hi))
+                + f" kPa (and {100 * RANGE_MARGIN:g} % of each range beyond it, at least {RANGE_SLACK_FLOOR_KPA:g} kPa)")
 
     def check_actuators(self, actuators: Sequence[str], where: str) -> None:
         """Refuse to serve pressures of other actuators than the model's.

@@ -103,10 +103,8 @@ class LiveLocalizer:
         if p is None or not np.all(np.isfinite(p)):
             return "no complete pressure reading: configuration unknown"
         if self.kinematics.outside_training_range(np.asarray(p, dtype=float)[None, :])[0]:
-            lo, hi = self.kinematics.training_range()
             return (f"pressures {np.array2string(np.asarray(p, dtype=float), precision=4, separator=', ')} kPa lie beyond the "
-                    f"k-NN model's training range ({np.array2string(lo, precision=4, separator=', ')} .. "
-                    f"{np.array2string(hi, precision=4, separator=', ')}): configuration unknown")
+                    f"k-NN model's training range ({self.kinematics.describe_training_range()}): configuration unknown")
         T = self.kinematics.predict(np.asarray(p, dtype=float)[None, :])[0]
         self._distance_m.append(mm_to_m(sample.distance_mm))
         sig = getattr(sample, "sigma_mm", None)

@@ -292,16 +292,11 @@ def problem_from_log(
         bad = ~np.all(np.isfinite(p), axis=1)
         if bad.any():
             raise ProblemError(f"{name}: samples {idx[bad][:5].tolist()} have unknown pressures: they cannot be used with tip source knn")
-        from tofloc.kinematics import RANGE_MARGIN
-
         far = kinematics.outside_training_range(p)
         if far.any():  # refuse rather than serve the nearest trained posture as a prediction
-            lo, hi = kinematics.training_range()
             j = int(np.flatnonzero(far)[0])
-            names = list(kinematics.actuators) or [f"actuator {c}" for c in range(kinematics.n_actuators)]
-            rng = ", ".join(f"{n} {a:.4g}..{b:.4g}" for n, a, b in zip(names, lo, hi))
             raise ProblemError(f"{name}: /samples/pressure_kpa: expected pressures within the k-NN model's training range "
-                               f"(kPa: {rng}) or {100 * RANGE_MARGIN:g} % of it beyond, found sample {int(idx[j])} at "
+                               f"({kinematics.describe_training_range()}), found sample {int(idx[j])} at "
                                f"{np.array2string(p[j], precision=4, separator=', ')} ({int(far.sum())} of {far.size} samples "
                                "outside): the model would return its nearest trained posture, not a prediction; fit it on "
                                "postures that cover these pressures")

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tofloc import frames
-from tofloc.errors import FormatError
+from tofloc.errors import FormatError, ParameterError
 from tofloc.json_input import DuplicateKey, unique_keys
 from tofloc.map_validation import readonly as _readonly
 
@@ -227,6 +227,10 @@ class Sensor:
 
     def __post_init__(self) -> None:
         T = np.array(self.T_tip_sensor, dtype=float)
+        if T.shape == (4, 4) and np.isfinite(T).all() and np.abs(T[:3, 3]).max() > MAX_SENSOR_OFFSET_M:
+            # as a rig file is refused (_as_transform), so that a rig built here is never written and then refused
+            raise ParameterError(f"sensor {self.name!r}: T_tip_sensor: expected a translation within +-{MAX_SENSOR_OFFSET_M:g} m "
+                                 f"(a sensor on the robot, in metres), found {T[:3, 3].tolist()}")
         T.setflags(write=False)
         object.__setattr__(self, "T_tip_sensor", T)
         if self.zone_directions is not None:

@@ -118,6 +118,13 @@ def _bias(unc: RangeUncertainty, d: NDArray[np.float64], edge: NDArray[np.bool_]
     return np.where(edge, unc.edge_bias_offset + unc.edge_bias_slope * d, unc.bias_offset + unc.bias_slope * d)
 
 
+#: The searches' bounds, (name, lower, upper): the sigma fit's (scales, > 0) and the bias
+#: fit's (per class: offset m, slope), as :func:`_fit_sigma` and :func:`_fit_bias` use them.
+_SIGMA_BOUNDS = (("sigma_slope", 1e-5, 1.0), ("sigma_floor", 1e-4, 1.0), ("edge_factor", 0.1, 10.0))
+_BIAS_BOUNDS = (("bias_offset", -0.5, 0.5), ("bias_slope", -0.5, 0.5), ("edge_bias_offset", -0.5, 0.5),
+                ("edge_bias_slope", -0.5, 0.5))
+
+
 def _fit_bias(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.float64], edge: NDArray[np.bool_],
               old: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
     """Weighted least squares of ``r ~ a + b d`` per class; a class with too little weight keeps ``old``."""
@@ -128,7 +135,8 @@ def _fit_bias(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.floa
             continue
         A = np.stack([np.ones_like(dd), dd], axis=1) * np.sqrt(ww)[:, None]
         coef, *_ = np.linalg.lstsq(A, rr * np.sqrt(ww), rcond=None)
-        a, b = float(np.clip(coef[0], -0.5, 0.5)), float(np.clip(coef[1], -0.5, 0.5))
+        (alo, ahi), (blo, bhi) = _BIAS_BOUNDS[2 * j][1:], _BIAS_BOUNDS[2 * j + 1][1:]
+        a, b = float(np.clip(coef[0], alo, ahi)), float(np.clip(coef[1], blo, bhi))
         out[2 * j], out[2 * j + 1] = a, b
     return out[0], out[1], out[2], out[3]
 
@@ -155,7 +163,7 @@ def _fit_sigma(q: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.flo
         return float(nll.sum() / W), grad / W
 
     res = minimize(f, np.asarray(x0, dtype=float), jac=True, method="L-BFGS-B",
-                   bounds=[(1e-5, 1.0), (1e-4, 1.0), (0.1, 10.0)], options={"maxiter": 200})
+                   bounds=[(lo, hi) for _, lo, hi in _SIGMA_BOUNDS], options={"maxiter": 200})
     slope, floor, factor = (float(v) for v in res.x)
     return slope, floor, factor
 
@@ -293,23 +301,23 @@ def fit_em(
     return CalibrationResult(unc_fit, beam, ll, it, converged, resp, samples, notes, zone_ll)
 
 
-#: The fitted curves' bounds: (name, value index, lower, upper) of the sigma fit's and the
-#: bias fit's parameters, as :func:`_fit_sigma` and :func:`_fit_bias` bound them.
-_SIGMA_BOUNDS = (("sigma_slope", 1e-5, 1.0), ("sigma_floor", 1e-4, 1.0), ("edge_factor", 0.1, 10.0))
-_BIAS_BOUNDS = (("bias_offset", -0.5, 0.5), ("bias_slope", -0.5, 0.5), ("edge_bias_offset", -0.5, 0.5),
-                ("edge_bias_slope", -0.5, 0.5))
-
-
 def _bound_notes(sig_p: tuple[float, float, float], bias_p: tuple[float, float, float, float]) -> list[str]:
-    """A note per fitted curve parameter that ended on the bound of its search (within 1 %
-    of its range): the data
+    """A note per fitted curve parameter that ended on the bound of its search: the data
     then disagree with the map beyond what the curves can hold (a log in other units than
-    metres, another map, another rig), and the value is the bound, not a fit. The sigma
-    floor's lower bound is left out (a floor the data barely identify has a note of its own)."""
+    metres, another map, another rig), and the value is the bound, not a fit. Near means
+    within 1 % of the bound for the scales (sigma_slope, sigma_floor, edge_factor: their
+    lower bounds lie far below any sensor's, so a small legitimate slope is not flagged)
+    and within 1 % of the range for the biases. The sigma floor's lower bound is left out
+    (a floor the data barely identify has a note of its own)."""
     out = []
+    scales = {name for name, _, _ in _SIGMA_BOUNDS}
     for (name, lo, hi), v in zip(_SIGMA_BOUNDS + _BIAS_BOUNDS, (*sig_p, *bias_p)):
-        tol = 0.01 * (hi - lo)  # the search stops near its bound, within 1 % of the range
-        at = "upper" if v >= hi - tol else "lower" if v <= lo + tol and name != "sigma_floor" else None
+        if name in scales:
+            upper, lower = v >= 0.99 * hi, v <= 1.01 * lo and name != "sigma_floor"
+        else:
+            tol = 0.01 * (hi - lo)
+            upper, lower = v >= hi - tol, v <= lo + tol
+        at = "upper" if upper else "lower" if lower else None
         if at is not None:
             out.append(f"{name} = {v:.3g} is at the {at} bound of its search ([{lo:g}, {hi:g}]): the readings disagree with "
                        "the map beyond what the curves hold (distances in other units than mm? another map or rig?); "
