@@ -34,6 +34,8 @@ __all__ = [
     "MAX_POSE_SIGMA_M",
     "pose_sigma_excess",
     "pose_sigma_limit_text",
+    "POSE_AXES",
+    "describe_pose_sigma",
 ]
 
 #: Largest standard deviation a pose covariance (rotation vector in rad, then translation
@@ -63,6 +65,15 @@ def pose_sigma_excess(cov: ArrayLike) -> tuple[int, int, float] | None:
 def pose_sigma_limit_text() -> str:
     """What :func:`pose_sigma_excess` accepts, for error messages."""
     return f"standard deviations within {MAX_POSE_SIGMA_RAD:.4g} rad (rotation) and {MAX_POSE_SIGMA_M:g} m (translation)"
+
+
+#: The axes of a pose covariance (rotation vector, then translation), for messages.
+POSE_AXES = ("rotation x", "rotation y", "rotation z", "translation x", "translation y", "translation z")
+
+
+def describe_pose_sigma(axis: int, sigma: float) -> str:
+    """``translation y sigma 100.5 m``: an axis of :data:`POSE_AXES` and its sigma, for messages."""
+    return f"{POSE_AXES[axis]} sigma {sigma:.4g} {'rad' if axis < 3 else 'm'}"
 
 
 def wrap_angle(a: ArrayLike) -> FloatArray:

@@ -806,8 +806,7 @@ def _check_covariance(cov: Any, fail: _Fail) -> NDArray[np.float64] | None:
         raise fail("configuration_covariance", "a symmetric positive semi-definite matrix", "another matrix")
     ex = frames.pose_sigma_excess(c)
     if ex is not None:
-        raise fail("configuration_covariance", frames.pose_sigma_limit_text(),
-                   f"sigma {ex[2]:.4g} {'rad' if ex[1] < 3 else 'm'} on axis {ex[1]} (rotation vector 0-2, translation 3-5)")
+        raise fail("configuration_covariance", frames.pose_sigma_limit_text(), frames.describe_pose_sigma(ex[1], ex[2]))
     c.setflags(write=False)
     return c
 

@@ -541,11 +541,7 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str, *, indexe
         if ex is not None:
             j, axis, sigma = ex
             raise LogFormatError(where, f"{loc}[{idx[j]}]" if indexed else loc, frames.pose_sigma_limit_text(),
-                                 f"{_POSE_AXES[axis]} sigma {sigma:.4g} {'rad' if axis < 3 else 'm'}")
-
-
-#: The axes of a pose covariance, for messages.
-_POSE_AXES = ("rotation x", "rotation y", "rotation z", "translation x", "translation y", "translation z")
+                                 frames.describe_pose_sigma(axis, sigma))
 
 
 def _describe_pose(T: NDArray[np.float64]) -> str:
