@@ -29,7 +29,7 @@ import dataclasses
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, ClassVar, Literal, Sequence
+from typing import Any, ClassVar, Literal, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -455,6 +455,14 @@ class SensorModel(ABC):
     nuisances: ClassVar[tuple[str, ...]] = ()
     #: whether its scores depend on the problem's range model or calibrated mounting
     uses_calibration: ClassVar[bool] = True
+
+    @classmethod
+    def check_calibration_table(cls, table: Mapping[str, Any], source: str) -> None:
+        """Refuse a calibration file's table for this model (``[NAME]``) when it is unusable,
+        as the file is read rather than at the first estimate: a
+        :class:`tofloc.errors.FormatError` naming ``source`` and the table. Default: every
+        table is accepted here (the model checks it when it binds)."""
+        return None
 
     def calibration_footprint(self) -> int:
         """Sub-rays per zone side this model casts a zone with (its calibration must be fitted

@@ -318,6 +318,11 @@ class BeamModel(SensorModel):
     place_radius: float = 0.05
     refit_correlation: bool | str = "auto"
 
+    @classmethod
+    def check_calibration_table(cls, table: Mapping[str, Any], source: str) -> None:
+        """The ``[beam]`` table must be a valid mixture (:meth:`BeamMixture.from_dict`)."""
+        BeamMixture.from_dict(table, source)
+
     def __post_init__(self) -> None:
         if self.mixture is not None:
             _as_mixture(self.mixture)

@@ -25,7 +25,7 @@ from tofloc.rig import Rig
 from tofloc.toml_tables import read_toml
 
 BIG = "1" + "0" * 400  # an integer no float holds (math.isfinite / float() overflow on it)
-CAL = "[uncertainty]\nsigma_floor = 0.004\n[mounting]\nsupport_yaw_deg = 8.0\n[beam]\nz_hit = 0.9\n"
+CAL = "[uncertainty]\nsigma_floor = 0.004\n[mounting]\nsupport_yaw_deg = 8.0\n[beam]\nz_hit = 0.8\n"  # + defaults: sums to 1
 
 
 def _write(path: Path, text: str | bytes) -> Path:
@@ -55,11 +55,13 @@ def test_toml_keeps_64_bit_integers_and_ordinary_nesting(tmp_path: Path) -> None
     ("support_yaw_deg = 8.0", f"support_yaw_deg = {BIG}", "mounting.support_yaw_deg"),  # OverflowError in the angle check
     ("sigma_floor = 0.004", f"sigma_floor = {BIG}", "uncertainty.sigma_floor"),  # ... in RangeUncertainty
     ("[beam]", "[beem]", r"\[beem\]: .*found an unknown table"),  # a misspelt table was ignored: the beam model's defaults
+    # a mixture that does not sum to 1: refused as the file is read (it was at the first estimate, after set-up)
+    ("z_hit = 0.8", "z_hit = 5.0", r"\[beam\]: expected beam mixture weights z_hit \+ z_short \+ z_max \+ z_rand must sum to 1"),
 ])
 def test_calibration_refusals(tmp_path: Path, old: str, new: str, where: str) -> None:
     with pytest.raises(FormatError, match=r"cal\.toml: " + where):
         SensorCalibration.from_toml(_write(tmp_path / "cal.toml", CAL.replace(old, new)))
-    assert SensorCalibration.from_toml(_write(tmp_path / "ok.toml", CAL)).table("beam") == {"z_hit": 0.9}
+    assert SensorCalibration.from_toml(_write(tmp_path / "ok.toml", CAL)).table("beam") == {"z_hit": 0.8}
 
 
 def test_config_refuses_deep_nesting(tmp_path: Path) -> None:

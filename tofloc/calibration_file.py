@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from tofloc.atomic import atomic_path
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import FormatError, ParameterError, PluginError
 from tofloc.mounting import check_sensor_mounting, rig_with_mounting
 from tofloc.mounting_faces import MountingFaceSensitivity
 from tofloc.range_model import RangeUncertainty
@@ -276,6 +276,13 @@ class SensorCalibration:
             if not isinstance(t, Mapping):
                 raise FormatError(source, name, "a table (a sensor model's parameters)", type(t).__name__)
             tables[name] = dict(t)
+            try:  # checked now, not at the first estimate (a model whose plug-in cannot load checks it when used)
+                model_cls = SENSOR_MODELS.load(name)
+            except PluginError:
+                continue
+            check = getattr(model_cls, "check_calibration_table", None)
+            if callable(check):
+                check(tables[name], source)
         return cls(unc, yaw, yaw_sigma, mounting, tables, dict(meta), source, face_sens)
 
     @classmethod
