@@ -174,6 +174,16 @@ def _is_json_integer(v: Any) -> bool:
     return isinstance(v, int) or (isinstance(v, float) and v.is_integer())
 
 
+#: What a sensor's offset must be, for messages (:func:`_far_offset`).
+_OFFSET_EXPECTED = f"a translation within +-{MAX_SENSOR_OFFSET_M:g} m (a sensor on the robot, in metres)"
+
+
+def _far_offset(T: NDArray[np.float64]) -> bool:
+    """Whether the translation of a (4, 4) transform lies beyond :data:`MAX_SENSOR_OFFSET_M`
+    on some axis (NaN is not far: rigidity is checked apart)."""
+    return bool(np.any(np.abs(T[:3, 3]) > MAX_SENSOR_OFFSET_M))
+
+
 def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
     try:
         T = np.asarray(value, dtype=float)
@@ -183,9 +193,8 @@ def _as_transform(value: Any, source: str, where: str) -> NDArray[np.float64]:
         raise _fail(source, where, "a 4x4 matrix", f"shape {T.shape}")
     if not bool(frames.is_rigid(T, atol=1e-4)):
         raise _fail(source, where, "a finite rigid transform (orthonormal rotation, last row 0 0 0 1)")
-    if np.abs(T[:3, 3]).max() > MAX_SENSOR_OFFSET_M:
-        raise _fail(source, where, f"a translation within +-{MAX_SENSOR_OFFSET_M:g} m (a sensor on the robot, in metres)",
-                    f"{T[:3, 3].tolist()}")
+    if _far_offset(T):
+        raise _fail(source, where, _OFFSET_EXPECTED, f"{T[:3, 3].tolist()}")
     return T
 
 
@@ -227,10 +236,9 @@ class Sensor:
 
     def __post_init__(self) -> None:
         T = np.array(self.T_tip_sensor, dtype=float)
-        if T.shape == (4, 4) and np.isfinite(T).all() and np.abs(T[:3, 3]).max() > MAX_SENSOR_OFFSET_M:
+        if T.shape == (4, 4) and _far_offset(T):
             # as a rig file is refused (_as_transform), so that a rig built here is never written and then refused
-            raise ParameterError(f"sensor {self.name!r}: T_tip_sensor: expected a translation within +-{MAX_SENSOR_OFFSET_M:g} m "
-                                 f"(a sensor on the robot, in metres), found {T[:3, 3].tolist()}")
+            raise ParameterError(f"sensor {self.name!r}: T_tip_sensor: expected {_OFFSET_EXPECTED}, found {T[:3, 3].tolist()}")
         T.setflags(write=False)
         object.__setattr__(self, "T_tip_sensor", T)
         if self.zone_directions is not None:
