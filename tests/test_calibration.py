@@ -337,6 +337,25 @@ def test_zone_offsets_are_fitted_where_they_are_and_matter() -> None:
         assert fit0.result.uncertainty == plain.result.uncertainty
 
 
+def test_a_calibration_in_two_places_keeps_offsets_that_replicate_without_the_one_place_note() -> None:
+    """calibrate_rig on two sessions of one set-up (the same zones' offsets, 5 mm) with the
+    base 10 cm and 20 deg apart: the fit counts two places, keeps the offsets (they
+    replicate), and its notes do not say the base stayed in one place (a review: no test
+    ran calibrate_rig across places, so a path that ignored them passed)."""
+    from sensor_models.calibration import calibrate_rig
+    from tofloc.simulation import simulate
+
+    sc = _measured_scenario(0.005)
+    b = sc.base
+    one = simulate(sc, seed=2, hardware_seed=7)
+    two = simulate(sc, seed=3, hardware_seed=7, base=(b.x + 0.1, b.y - 0.05, b.yaw_deg + 20.0))
+    fit = calibrate_rig([(one.log, one.cad_mesh), (two.log, two.cad_mesh)], footprint=3, support_yaw=False, mounting=False)
+    zo = fit.zone_offsets
+    assert zo.places == 2 and zo.fitted, zo.summary()
+    notes = fit.sensor_calibration().meta["notes"]
+    assert not any("base stayed in one place" in n for n in notes), notes
+
+
 def test_one_place_is_every_true_base_pose_within_the_tolerance_of_the_first() -> None:
     """A calibration's logs are in one place when every true base pose is within
     PLACE_TOLERANCE (m, rad of yaw) of the first: several logs in one place are one place;

@@ -172,6 +172,11 @@ def test_pressures_beyond_the_training_range_are_refused(data: dict[str, Any]) -
     span = hi - lo
     P = np.stack([lo, hi + 0.09 * span, hi + 0.11 * span, lo - 0.11 * span])
     assert model.outside_training_range(P).tolist() == [False, False, True, True]
+    # a narrow range (2 kPa: 10 % is 0.2 kPa): the 1 kPa floor of the slack serves 0.9 kPa beyond, not 1.1
+    Pn = np.tile([5.0, 6.0, 7.0], (len(data["P"]), 1)) + np.linspace(0.0, 2.0, len(data["P"]))[:, None]
+    narrow = KinematicsModel(3, Pn, data["T"], actuators=ACTUATORS)
+    hi_n = Pn.max(axis=0)
+    assert narrow.outside_training_range(np.stack([hi_n + 0.9, hi_n + 1.1])).tolist() == [False, True]
     rig = Rig((Sensor("s0", resolution=(4, 4)),), actuators=ACTUATORS)
     K = 3
     press = np.stack([data["P"][5], data["P"][6], hi * 1000.0])
@@ -377,6 +382,8 @@ def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, cas
     assert str(bad) in str(e.value)
     if case == "covnan":  # the message said only "dtype float64, shape (6, 6)" (a bad-input audit)
         assert "36 NaN or infinite entries" in str(e.value)
+    if case == "pressurehuge":
+        assert "expected pressures within +-100000 kPa" in str(e.value), str(e.value)
     if case == "covhuge":  # accepted before (a fuzzing audit): the data then counted for nothing
         assert "expected standard deviations within 3.142 rad (rotation) and 100 m (translation), found rotation x sigma 1e+150 rad" in str(e.value)
 
