@@ -223,6 +223,13 @@ def sample_pool(
             raise ProblemError(f"{name}: the kinematics model was fit on this log (its fingerprint matches) but its {split} "
                                f"reach row {int(rows.max() if rows.max() >= log.n_samples else rows.min())}, outside the "
                                f"log's {log.n_samples} samples: the model file is inconsistent; fit it again")
+    tr = np.asarray(kinematics.train_indices, dtype=np.intp)
+    if not np.array_equal(np.asarray(log.pressure_kpa, dtype=np.float64)[tr], kinematics.pressure_kpa, equal_nan=True):
+        # the fingerprint covers the log's data, not the split: an edited split would hold
+        # training samples out as if unseen
+        raise ProblemError(f"{name}: the kinematics model was fit on this log (its fingerprint matches) but its training "
+                           "pressures are not the log's /samples/pressure_kpa rows at its train_indices: the model file "
+                           "is inconsistent; fit it again")
     val = np.intersect1d(np.asarray(kinematics.validation_indices, dtype=np.intp), all_rows)
     if val.size < k_max:
         return SamplePool(

@@ -388,6 +388,16 @@ def test_load_refuses_tampered_files(small_model_file: Path, tmp_path: Path, cas
         assert "expected standard deviations within 3.142 rad (rotation) and 100 m (translation), found rotation x sigma 1e+150 rad" in str(e.value)
 
 
+def test_load_refuses_unknown_members(small_model_file: Path, tmp_path: Path) -> None:
+    """A fuzzing audit: a member the format does not define was ignored."""
+    f = _fields(small_model_file)
+    bad = _tampered(tmp_path, small_model_file, "extra", train_weights=np.ones(len(f["train_indices"])))
+    with pytest.raises(FormatError, match=r"extra\.npz: <file>: expected only the members KinematicsModel\.save writes "
+                                          r"\(T_base_tip\.npy, actuators\.npy, .*found 'train_weights\.npy'"):
+        KinematicsModel.load(bad)
+    assert KinematicsModel.load(_tampered(tmp_path, small_model_file, "same")).k == int(f["k"])
+
+
 def test_load_refuses_other_files(tmp_path: Path) -> None:
     import pickle
 

@@ -720,3 +720,13 @@ def test_a_coordinate_beyond_ten_kilometres_is_refused(tmp_path) -> None:
         load_map(path)
     with pytest.raises(ParameterError, match="within"):
         Map.from_mesh(np.array([[0.0, 0, 0], [1e5, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+
+
+def test_one_point_map_refused_with_what_it_lacks() -> None:
+    """A fuzzing audit: a one-point map file ran to 'spacing needs at least 2 points', which
+    did not say that the map was the problem."""
+    m = Map.from_points(np.array([[0.5, 0.5, 0.2]]), source="one.ply")
+    with pytest.raises(ParameterError, match=r"one\.ply: expected a map of at least 2 points \(its point spacing sets "
+                                             r"the ICP inlier radius and the ray-casting surfels\), found 1"):
+        m.spacing()
+    assert Map.from_points(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])).spacing() > 0

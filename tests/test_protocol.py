@@ -333,6 +333,14 @@ def test_pool_fallbacks() -> None:
     object.__setattr__(beyond, "validation_indices", kin.validation_indices + 1000)
     with pytest.raises(ProblemError, match=r"validation_indices reach row 10\d\d, outside the log's 40 samples"):
         sample_pool(log, beyond, k_max=2)
+    # a fuzzing audit: a split shifted by one row (training samples then held out as unseen)
+    # was accepted because the fingerprint covers the log's data, not the split
+    shifted = copy.copy(kin)
+    object.__setattr__(shifted, "train_indices", (kin.train_indices + 1) % 40)
+    with pytest.raises(ProblemError, match=r"training pressures are not the log's /samples/pressure_kpa rows at its "
+                                           r"train_indices"):
+        sample_pool(log, shifted, k_max=2)
+    assert sample_pool(log, copy.copy(kin), k_max=2).source == "validation"  # the true split still passes
 
 
 def test_static_base_is_required() -> None:

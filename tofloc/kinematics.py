@@ -739,7 +739,9 @@ class KinematicsModel:
         total = sum(i.file_size for i in infos)
         if total > MAX_FILE_PAYLOAD:
             raise fail("<file>", f"at most {MAX_FILE_PAYLOAD} uncompressed bytes", total)
-        check_npz_member_headers(infos, path, {f"{name}.npy": name for name in (*_FIELDS, "configuration_covariance")}, fail)
+        members = {f"{name}.npy": name for name in (*_FIELDS, "configuration_covariance")}
+        extra = sorted(i.filename for i in infos if i.filename not in members)  # never read; refused below
+        check_npz_member_headers(infos, path, members, fail)
 
         raw: dict[str, NDArray[Any]] = {}
         try:
@@ -769,6 +771,9 @@ class KinematicsModel:
         ver = raw["version"]
         if ver.shape != () or ver.dtype.kind not in "iu" or int(ver) != FORMAT_VERSION:
             raise fail("version", str(FORMAT_VERSION), repr(ver.tolist())[:80])
+        if extra:  # a model file with members this version does not write: refuse rather than ignore them
+            raise fail("<file>", f"only the members KinematicsModel.save writes ({', '.join(sorted(members))})",
+                       ", ".join(repr(e[:40]) for e in extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else ""))
         act = raw["actuators"]
         if act.dtype.kind != "U":
             raise fail("actuators", "an array of strings", f"dtype {act.dtype}")

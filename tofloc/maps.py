@@ -657,7 +657,8 @@ class Map:
         if self._spacing is None:
             n = self.points.shape[0]
             if n < 2:
-                raise ParameterError(f"{self.source}: spacing needs at least 2 points, found {n}")
+                raise ParameterError(f"{self.source}: expected a map of at least 2 points (its point spacing sets the ICP "
+                                     f"inlier radius and the ray-casting surfels), found {n}")
             k = min(_SPACING_K, n - 1)
             d, _ = self._kdtree().query(self.points, k=k + 1, workers=-1)
             s = float(np.median(d[:, k]) * math.sqrt(math.pi / k))
