@@ -23,7 +23,8 @@ from tofloc.errors import FormatError, ParameterError
 
 __all__ = ["PaperData", "prepare_data", "calibrate_for_paper", "calibration_session", "LOG_NAME", "log_name",
            "experiment_log_path", "KNN_NAME",
-           "CALIBRATION_NAME", "calibration_name", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET", "KNN_STREAM"]
+           "CALIBRATION_NAME", "calibration_name", "CALIBRATION_LOG_NAME", "CALIBRATION_SEED_OFFSET", "CALIBRATION_BASE_OFFSET",
+           "CALIBRATION_BASE_OFFSETS", "CALIBRATION_PLACES", "calibration_log_name", "KNN_STREAM"]
 
 #: The log of the paper's scenario; before logs were named after their scenario, every
 #: scene's log had this name (such a folder is still reused: :func:`experiment_log_path`).
@@ -43,8 +44,21 @@ KNN_STREAM = 0x6B6E6E
 CALIBRATION_LOG_NAME = "calibration-session.h5"
 #: The calibration session's seed is the run's seed plus this (its own noise and postures).
 CALIBRATION_SEED_OFFSET = 1000
-#: Where the calibration session places the base relative to the experiment: (dx, dy) m, dyaw deg.
-CALIBRATION_BASE_OFFSET = (-0.04, 0.04, -20.0)
+#: Where the calibration sessions place the base relative to the experiment: (dx, dy) m,
+#: dyaw deg, one per place. Two places on either side of the experiment's base, so that
+#: each zone sees other surfaces in each (a one-place session cannot tell a zone's own
+#: offset from what the range model gets wrong about that place: docs/calibration.md).
+CALIBRATION_BASE_OFFSETS = ((-0.04, 0.04, -20.0), (0.04, -0.04, 20.0))
+#: The first place's offset (the only one before two places were the default).
+CALIBRATION_BASE_OFFSET = CALIBRATION_BASE_OFFSETS[0]
+#: How many places a simulated calibration session records by default.
+CALIBRATION_PLACES = len(CALIBRATION_BASE_OFFSETS)
+
+
+def calibration_log_name(place: int = 0) -> str:
+    """The calibration session's log of place ``place`` (0-based): :data:`CALIBRATION_LOG_NAME`
+    for the first, ``calibration-session-<place + 1>.h5`` for the others."""
+    return CALIBRATION_LOG_NAME if int(place) == 0 else f"calibration-session-{int(place) + 1}.h5"
 
 Note = Callable[[str], None]
 Stage = Callable[[str], ContextManager[Any]]
@@ -258,23 +272,27 @@ def _hardware_seed(source: str) -> int | None:
 
 
 def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_variant: str | None = None,
-                        note: Note = _quiet, stage: Stage = _no_stage) -> Path:
-    """``out/calibration-session.h5``: the set-up of hardware seed ``hw`` recorded again
-    (session seed ``seed +`` :data:`CALIBRATION_SEED_OFFSET`, the base moved by
-    :data:`CALIBRATION_BASE_OFFSET`) in the environment as mapped: objects the map does not
-    hold (a scene's ``unmapped_boxes``) are not there, as a lab calibrates where its map holds
-    everything (the frame's assembly error, the CAD cloud and the mounting are the same). An
-    existing file is reused only if it records that set-up."""
+                        note: Note = _quiet, stage: Stage = _no_stage, place: int = 0) -> Path:
+    """``out/calibration-session.h5`` (place 0; :func:`calibration_log_name` for the others):
+    the set-up of hardware seed ``hw`` recorded again (session seed ``seed +``
+    :data:`CALIBRATION_SEED_OFFSET` ``* (place + 1)``, the base moved by
+    ``CALIBRATION_BASE_OFFSETS[place]``) in the environment as mapped: objects the map does
+    not hold (a scene's ``unmapped_boxes``) are not there, as a lab calibrates where its map
+    holds everything (the frame's assembly error, the CAD cloud and the mounting are the
+    same). An existing file is reused only if it records that set-up."""
     import dataclasses
 
     from tofloc.logs import read_log
     from tofloc.simulation import load_scenario, simulate, write_simulation
 
-    cal_path = out / CALIBRATION_LOG_NAME
+    if not 0 <= int(place) < len(CALIBRATION_BASE_OFFSETS):
+        raise ParameterError(f"calibration place: expected 0 .. {len(CALIBRATION_BASE_OFFSETS) - 1}, found {place}")
+    cal_path = out / calibration_log_name(place)
     sc = load_scenario(scenario)
     sc = dataclasses.replace(sc, environment=dataclasses.replace(sc.environment, unmapped_boxes=()))
     b = sc.base
-    base = (b.x + CALIBRATION_BASE_OFFSET[0], b.y + CALIBRATION_BASE_OFFSET[1], b.yaw_deg + CALIBRATION_BASE_OFFSET[2])
+    off = CALIBRATION_BASE_OFFSETS[int(place)]
+    base = (b.x + off[0], b.y + off[1], b.yaw_deg + off[2])
     if cal_path.exists():
         src = read_log(cal_path).source
         if _hardware_seed(src) != hw or _rig_variant(src) != rig_variant:
@@ -284,23 +302,24 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
     if not cal_path.exists():
         with stage(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "
                    f"x={base[0]:+.3f} m, y={base[1]:+.3f} m, yaw={base[2]:+.1f} deg) into {cal_path}"):
-            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET, hardware_seed=hw, base=base,
+            write_simulation(simulate(sc, seed + CALIBRATION_SEED_OFFSET * (int(place) + 1), hardware_seed=hw, base=base,
                                       rig_variant=rig_variant), cal_path)
     return cal_path
 
 
 def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, sub_rays: int = 1, *,
                         note: Note = _quiet, stage: Stage = _no_stage,
-                        progress: Callable[[int, int, str], None] | None = None) -> tuple[SensorCalibration, Path]:
+                        progress: Callable[[int, int, str], None] | None = None,
+                        places: int = CALIBRATION_PLACES) -> tuple[SensorCalibration, Path]:
     """Fit the sensor model (``tofloc calibrate``: the support's rotation with its
     uncertainty, each sensor's mounting, then EM of the bias/sigma curves and the mixture)
     and write ``out/sensor_model.toml``; reuse that file when it records the same inputs.
 
     A simulated log gets a *calibration session*: the same set-up (hardware seed: frame,
-    CAD cloud, sensor mounting) recorded again with the base placed elsewhere
-    (:data:`CALIBRATION_BASE_OFFSET`) and its own noise, as a lab calibrates its rig with a
-    motion-captured base before the experiment; the experiment's samples and its base
-    pose are never used. Any other log is calibrated on the k-NN training split (the
+    CAD cloud, sensor mounting) recorded again with the base placed elsewhere, in
+    ``places`` places (:data:`CALIBRATION_BASE_OFFSETS`, 1 or 2; default 2) with their own
+    noise, as a lab calibrates its rig with a motion-captured base before the experiment;
+    the experiment's samples and its base pose are never used. Any other log is calibrated on the k-NN training split (the
     trials draw from the held-out split). The zones' expected distances are cast as the
     beam model casts them (``sub_rays`` per side, against the estimators' map), so that
     the fitted bias is the one the model needs. ``progress(done, total, label)`` gets the
@@ -310,13 +329,20 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
     from sensor_models.calibration import calibrate_rig
     from tofloc.logs import read_log
 
+    if not 1 <= int(places) <= len(CALIBRATION_BASE_OFFSETS):
+        raise ParameterError(f"calibration places: expected 1 .. {len(CALIBRATION_BASE_OFFSETS)}, found {places}")
     hw = _hardware_seed(data.log.source)
+    more: list[Any] = []  # the sessions of the places after the first
     if hw is not None:
-        cal_path = calibration_session(out, scenario, seed, hw, rig_variant=_rig_variant(data.log.source), note=note,
-                                       stage=stage)
+        cal_paths = [calibration_session(out, scenario, seed, hw, rig_variant=_rig_variant(data.log.source), note=note,
+                                         stage=stage, place=i) for i in range(int(places))]
+        cal_path = cal_paths[0]
         cal_log = read_log(cal_path)
+        more = [read_log(p) for p in cal_paths[1:]]
         rows = None
-        what = f"calibration session {cal_path.name} ({cal_log.n_samples} samples)"
+        what = (f"calibration session {cal_path.name} ({cal_log.n_samples} samples)" if not more else
+                f"calibration sessions in {len(cal_paths)} places, " + ", ".join(
+                    f"{p.name} ({lg.n_samples} samples)" for p, lg in zip(cal_paths, [cal_log, *more])))
     else:
         cal_log = data.log
         rows = np.asarray(data.kinematics.train_indices)
@@ -325,6 +351,7 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
         what = f"the k-NN training split ({rows.size} samples; the log is not simulated, so no calibration session)"
     cal_log_used = cal_log if rows is None else cal_log.subset(rows)
     key = fingerprint_arrays(cal_log_used.distance_mm, cal_log_used.status, cal_log_used.T_base_tip, cal_log_used.T_map_base,
+                             *(a for lg in more for a in (lg.distance_mm, lg.status, lg.T_base_tip, lg.T_map_base)),
                              extra={"map": data.map.fingerprint(), "rig": cal_log_used.rig.to_dict(), "footprint": sub_rays,
                                     "code": code_fingerprint()})
     path = out / calibration_name(sub_rays)
@@ -339,15 +366,18 @@ def calibrate_for_paper(data: PaperData, out: Path, scenario: str, seed: int, su
     message = f"calibrating the sensor model on {what}: the support's rotation, each sensor's mounting, then EM"
     if progress is not None:  # stage by stage, with counts
         note(message)
-        cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays, progress=progress)
+        cal = calibrate_rig([(cal_log_used, data.map), *((lg, data.map) for lg in more)], footprint=sub_rays,
+                            progress=progress)
     else:
         with stage(message):
-            cal = calibrate_rig([(cal_log_used, data.map)], footprint=sub_rays)
+            cal = calibrate_rig([(cal_log_used, data.map), *((lg, data.map) for lg in more)], footprint=sub_rays)
     from tofloc.provenance import provenance
 
     from tofloc.calibration_file import rig_signature
 
-    sc = cal.sensor_calibration({"log": str(cal_log.path), "samples": what, "map": str(data.map_path),
+    sc = cal.sensor_calibration({"log": str(cal_log.path), **({"logs": [str(cal_log.path), *(str(lg.path) for lg in more)]}
+                                                                if more else {}),
+                                 "samples": what, "map": str(data.map_path),
                                  "footprint": sub_rays, "key": key, "rig": rig_signature(cal_log_used.rig),
                                  "provenance": provenance()}, source=str(path))
     sc.write(path, "Sensor model fitted by `tofloc paper` (the calibration of `tofloc calibrate`).")

@@ -303,14 +303,24 @@ def test_paper_calibrate_on_a_calibration_session(data: dict[str, Path], tmp_pat
             "--out", str(out), "--workers", "1", "--param", "n_particles=100", "--calibrate"]
     code, _, err = _run(capsys, args)
     assert code == 0, err
-    assert "calibrated sensor_model.toml on calibration session" in " ".join(err.split())
+    assert "calibrated sensor_model.toml on calibration sessions in 2 places" in " ".join(err.split())
     session = read_log(out / "calibration-session.h5")
+    second = read_log(out / "calibration-session-2.h5")
     main = read_log(out / "paper.h5")
     # the same set-up (hardware seed 0: the log was simulated with seed 0), the base elsewhere, other noise
     assert "hardware_seed=0" in session.source and "seed=1003" in session.source
+    assert "hardware_seed=0" in second.source and "seed=2003" in second.source
     assert not np.allclose(session.T_map_base, main.T_map_base)
+    # the second place on the other side of the experiment's base: 4 cm and 20 deg each way
+    from tofloc import frames
+
+    b0, b1, bm = (frames.xyyaw_from_se3(lg.T_map_base) for lg in (session, second, main))
+    np.testing.assert_allclose((b0 + b1) / 2, bm, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(b1[2] - b0[2]), 40.0, atol=1e-9)
     assert (out / "calibration-session.map.ply").read_bytes() == (out / "paper.map.ply").read_bytes()
     cal = SensorCalibration.from_toml(out / "sensor_model.toml")
+    assert cal.meta["logs"] == [str(out / "calibration-session.h5"), str(out / "calibration-session-2.h5")]
+    assert not any("one place" in n for n in cal.meta.get("notes", [])), cal.meta
     # the paper scenario's range noise is 11 % / 2.7 = 4.1 % of d, plus unmodelled mounting errors
     assert 0.035 < cal.uncertainty.sigma_slope < 0.07
     # the support is rotated by 8 deg (plus 1 deg per-sensor mounting scatter), found with an uncertainty

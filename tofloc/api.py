@@ -991,6 +991,7 @@ def paper(
     prior_sigma_yaw_deg: float = 20.0,
     calibration: SensorCalibration | str | os.PathLike[str] | None = None,
     calibrate: bool | None = None,
+    calibration_places: int = 2,
     surface: bool = True,
     rig_variant: str | None = None,
     k_values: Sequence[int] | None = None,
@@ -1038,6 +1039,11 @@ def paper(
         Fit the sensor model on a calibration session of the same set-up
         (:func:`evaluation.paper_data.calibrate_for_paper`); default: when some estimator
         :meth:`~tofloc.problem.Estimator.uses_calibration` and no ``calibration`` is given.
+    calibration_places : {1, 2}
+        In how many places a simulated log's calibration session records the set-up
+        (:data:`evaluation.paper_data.CALIBRATION_BASE_OFFSETS`): 2 (default) lets the
+        calibration tell each zone's own offset from what the range model gets wrong about
+        one place (docs/calibration.md); 1 is the session of runs before 7 December 2026.
     surface : bool
         Give the ray-casting models the CAD mesh beside the map when it exists.
     rig_variant : {"exact", "perturbed"}, optional
@@ -1172,11 +1178,12 @@ def paper(
         footprints = sorted({int(e.calibration_footprint()) for e in ests.values() if e.uses_calibration()})
         if calibrate:
             cal, p = calibrate_for_paper(data, out_dir, scenario, seed, note=reporter.note, stage=reporter.stage,
-                                         progress=reporter.progress)
+                                         progress=reporter.progress, places=calibration_places)
             cal_path = str(p)
             for f in (f for f in footprints if f != 1):  # a model casting footprints gets a calibration fitted with them
                 footprint_cals[f], p = calibrate_for_paper(data, out_dir, scenario, seed, sub_rays=f, note=reporter.note,
-                                                           stage=reporter.stage, progress=reporter.progress)
+                                                           stage=reporter.stage, progress=reporter.progress,
+                                                           places=calibration_places)
                 footprint_paths[str(f)] = str(p)
         else:
             for message in footprint_mismatches(ests, cal):
@@ -1291,6 +1298,7 @@ def scenes(
     params: Mapping[str, Any] | None = None,
     estimator_params: Mapping[str, Mapping[str, Any]] | None = None,
     calibrate: bool | None = None,
+    calibration_places: int = 2,
     workers: int | None = None,
     scheduler: Any = None,
     reporter: Reporter = _SILENT,
@@ -1335,6 +1343,8 @@ def scenes(
     params, estimator_params : mapping, optional
         As :func:`paper`.
     calibrate : bool, optional
+        As :func:`paper`.
+    calibration_places : {1, 2}
         As :func:`paper`.
     workers : int or None
         Local worker processes (None: one per core; 1: inline).
@@ -1428,7 +1438,8 @@ def scenes(
         for scene, scenario in runs:
             reporter.note(f"scene {scene} ({rig_variant} rig)")
             run = paper(estimators, out=out_dir / f"{scene}-{rig_variant}", trials=trials, k_max=k, seed=seed, scenario=scenario,
-                        params=params, estimator_params=estimator_params, calibrate=calibrate, rig_variant=rig_variant,
+                        params=params, estimator_params=estimator_params, calibrate=calibrate,
+                        calibration_places=calibration_places, rig_variant=rig_variant,
                         k_values=[k], tip_sources=[tip_source], prior_modes=[prior_mode], region=region,
                         workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
                         selection_params=selection_changed)

@@ -87,6 +87,12 @@ def paper(
         "DIR/sensor_model.toml and apply it for every estimator that uses one. Default: on, unless --calibration is "
         "given or no estimator uses a calibration; --no-calibrate: the datasheet's model and the rig as described.",
     ),
+    calibration_places: int = typer.Option(
+        2, "--calibration-places", min=1, max=2,
+        help="In how many places the simulated calibration session records the set-up (the base 4 cm and 20 deg to "
+        "either side of the experiment's): 2 tells each zone's own offset from what the range model gets wrong about "
+        "one place (docs/calibration.md); 1: the one-place session of runs before 7 December 2026.",
+    ),
 ) -> None:
     """Reproduce the paper's Table I and Fig. 4: both tip sources, both prior modes."""
     from tofloc import api
@@ -139,7 +145,8 @@ def paper(
         run = api.paper(
             names, out=out, trials=trials, k_max=k_max, seed=seed, scenario=scenario, estimator_params=per_estimator,
             prior_sigma_xy=prior_sigma_xy, prior_sigma_yaw_deg=prior_sigma_yaw_deg, calibration=calibration,
-            calibrate=calibrate, surface=surface, rig_variant=rig_variant, k_values=ks, tip_sources=tips,
+            calibrate=calibrate, calibration_places=calibration_places, surface=surface, rig_variant=rig_variant,
+            k_values=ks, tip_sources=tips,
             prior_modes=modes, region=rect, workers=workers, scheduler=scheduler, reporter=reporter, selection=selection,
             design=design, selection_params=selection_params,
         )

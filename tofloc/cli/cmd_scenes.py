@@ -50,6 +50,7 @@ def scenes(
         help=escape("Estimator parameters from a TOML file ([estimator], [estimators.NAME]; as `tofloc paper`); "
                     "saved as DIR/config.toml.")),
     calibrate: Optional[bool] = typer.Option(None, "--calibrate/--no-calibrate", help="As `tofloc paper`."),
+    calibration_places: int = typer.Option(2, "--calibration-places", min=1, max=2, help="As `tofloc paper`."),
     out: Path = typer.Option(Path("scenes-results"), "--out", help="Output folder: one sub-folder per scene, DIR/SCENE-VARIANT/, its log SCENE.h5 and maps SCENE.map.ply, SCENE.cad.ply."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local worker processes (default: one per core)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Run trials on a Dask cluster: tcp://HOST:PORT."),
@@ -88,7 +89,7 @@ def scenes(
     with RichReporter() as reporter:
         res = api.scenes(names, out=out, scene_names=scene, rig_variant=rig_variant, k=k, trials=trials, seed=seed,
                          tip_source=tip_source, prior_mode=prior_mode, region=rect, estimator_params=per_estimator,
-                         calibrate=calibrate,
+                         calibrate=calibrate, calibration_places=calibration_places,
                          workers=workers, scheduler=scheduler, reporter=reporter, selection=selection, random_scenes=random,
                          selection_params=selection_params)
     t = Table(title=f"{rig_variant} rigs, k = {k}, {tip_source} tips, {prior_mode} prior, {trials} trials: mean error / mean sqrt(CRLB)")
