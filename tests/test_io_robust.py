@@ -359,12 +359,13 @@ def test_simulate_when_the_disk_fills_while_writing_leaves_nothing(small_fs) -> 
 
 
 def test_simulate_killed_while_writing_leaves_nothing(tmp_path: Path) -> None:
-    (tmp_path / "x.map.ply").write_text("ply\nthe previous map")  # a PLY: an earlier simulation's, replaceable
+    old_map = "ply\nformat binary_little_endian 1.0\ncomment written by tofloc\nthe previous map"
+    (tmp_path / "x.map.ply").write_text(old_map)  # a PLY tofloc wrote: an earlier simulation's, replaceable
     r = _child("sigterm-while-writing", "simulate", "--out", str(tmp_path / "x.h5"))
     assert r.returncode == 143, (r.returncode, r.stderr[-2000:])
     assert one_line(r.stderr) == "terminated"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.map.ply"]  # no temporaries, no half set
-    assert (tmp_path / "x.map.ply").read_text() == "ply\nthe previous map"
+    assert (tmp_path / "x.map.ply").read_text() == old_map
 
 
 def test_calibrate_killed_while_writing_leaves_nothing(simulated: Path, tmp_path: Path) -> None:

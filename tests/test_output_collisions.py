@@ -206,14 +206,81 @@ def test_simulate_replaces_an_earlier_simulation_but_nothing_else_without_force(
     cal = tmp_path / "mycal.toml"
     cal.write_text("x = 1\n")
     assert main(["simulate", "--seed", "3", "--out", str(cal)]) == 2
-    assert f"--out {cal}: exists and is not a tofloc log: without --force" in _err(capsys)
+    assert f"--out {cal}: exists and is not an earlier simulation's log: without --force" in _err(capsys)
     assert cal.read_text() == "x = 1\n" and sorted(p.name for p in tmp_path.iterdir()) == ["mycal.toml"]
     log = tmp_path / "s.h5"
     assert main(["simulate", "--seed", "3", "--out", str(log)]) == 0
     assert main(["simulate", "--seed", "4", "--out", str(log)]) == 0  # an earlier simulation: replaced
+    # a fresh-eyes review: a recording (any log whose source is not a simulation's) was replaced too
+    import h5py
+
+    with h5py.File(log, "a") as f:
+        f.attrs["source"] = "serial:/dev/ttyUSB0"
+    before = log.read_bytes()
+    assert main(["simulate", "--seed", "5", "--out", str(log)]) == 2
+    assert f"--out {log}: exists and is not an earlier simulation's log" in _err(capsys)
+    assert log.read_bytes() == before
+    (tmp_path / "u.map.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")  # a PLY tofloc did not write
+    assert main(["simulate", "--seed", "4", "--out", str(tmp_path / "u.h5")]) == 2
+    err = _err(capsys)
+    assert "--out (its map file)" in err and "is not a PLY map tofloc wrote" in err
     (tmp_path / "t.map.ply").write_text("notes\n")
     assert main(["simulate", "--seed", "4", "--out", str(tmp_path / "t.h5")]) == 2
     assert "--out (its map file)" in _err(capsys) and (tmp_path / "t.map.ply").read_text() == "notes\n"
     assert main(["simulate", "--seed", "4", "--out", str(tmp_path / "t.h5"), "--force"]) == 0
     assert (tmp_path / "t.map.ply").read_bytes().startswith(b"ply\n")
     capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "args, option",
+    [
+        (["kinematics", "fit", "{log}", "--out", "{other}"], "--out"),
+        (["calibrate", "{log}", "--out", "{other}"], "--out"),
+        (["localize", "{log}", "--estimator", "icp_pf", "--json", "{other}"], "--json"),
+        (["localize", "{log}", "--estimator", "icp_pf", "--plot", "{other}.png", "--json", "{tmp}/r.json"], "--plot"),
+    ],
+)
+def test_an_output_never_replaces_another_log(pillars: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                              args: list[str], option: str) -> None:
+    """A fresh-eyes review: `kinematics fit --out`, `calibrate --out` and `localize --json`
+    wrote a model, a TOML and JSON over logs (an imported flight, a recording) without a word."""
+    import shutil
+
+    other = tmp_path / "flight.h5"
+    shutil.copy(pillars, other)
+    target = Path(str(other) + ".png") if option == "--plot" else other
+    if option == "--plot":
+        shutil.copy(pillars, target)
+    before = target.read_bytes()
+    argv = [a.format(log=pillars, other=other, tmp=tmp_path) for a in args]
+    assert main(argv) == 2
+    assert f"{option} {target}: exists and is an HDF5 file (a log?), which this would replace with another kind of " \
+           "file; choose another name" in _err(capsys)
+    assert target.read_bytes() == before
+
+
+def test_check_output_path_replaces_other_files_and_logs_only_with_logs(tmp_path: Path) -> None:
+    from tofloc.atomic import check_output_path
+
+    text = tmp_path / "old.json"
+    text.write_text("{}")
+    assert check_output_path(text, option="--json") == text  # an earlier output: replaced, as before
+    log = tmp_path / "a.h5"
+    log.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(64))
+    with pytest.raises(ParameterError, match=r"--json .*a\.h5: exists and is an HDF5 file"):
+        check_output_path(log, option="--json")
+    assert check_output_path(log, option="--out", hdf5_output=True) == log  # a log over a log: the command's own rules
+
+
+def test_messages_keep_their_brackets(capsys: pytest.CaptureFixture[str]) -> None:
+    """A fresh-eyes review: `calibrate` printed "written as , so that ..." where its message
+    said `[mounting.map_faces]` (Rich read it as markup); paths and device messages with
+    brackets lost text the same way."""
+    from tofloc.cli.app import console, err_console
+
+    err_console.print("written as [mounting.map_faces], so that", highlight=False)
+    console.print("wrote run[1]/[red]x[/].json")
+    captured = capsys.readouterr()
+    assert "written as [mounting.map_faces], so that" in captured.err
+    assert "wrote run[1]/[red]x[/].json" in captured.out

@@ -90,6 +90,19 @@ def _writable_folder(folder: Path) -> str | None:
     return None
 
 
+#: The first bytes of every HDF5 file (a superblock at offset 0, as h5py writes it).
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _is_hdf5(path: Path) -> bool:
+    """Whether ``path`` starts with the HDF5 signature (unreadable: False)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(_HDF5_SIGNATURE)) == _HDF5_SIGNATURE
+    except OSError:
+        return False
+
+
 def check_output_path(
     path: str | Path,
     *,
@@ -97,6 +110,7 @@ def check_output_path(
     option: str = "--out",
     overwrite: bool = True,
     force_hint: str = "--force",
+    hdf5_output: bool = False,
 ) -> Path:
     """Check, before any work, that ``path`` can be written; ParameterError (one line) if not.
 
@@ -113,6 +127,10 @@ def check_output_path(
         Ignored for folders, which are written into.
     force_hint : str
         The option that allows overwriting, named in the refusal ("" for none).
+    hdf5_output : bool
+        Whether the command writes an HDF5 file (a log) there. When it does not, an existing
+        HDF5 file (a log, a recording) is never replaced: a JSON, TOML, CSV, plot or model
+        written over a log by a slip of the name would lose data no rerun gives back.
 
     Returns
     -------
@@ -140,6 +158,9 @@ def check_output_path(
         if p.exists() and not overwrite:
             hint = f"; choose another name or pass {force_hint} to overwrite it" if force_hint else "; choose another name"
             raise ParameterError(f"{option} {p}: exists{hint}")
+        if not hdf5_output and p.is_file() and _is_hdf5(p):
+            raise ParameterError(f"{option} {p}: exists and is an HDF5 file (a log?), which this would replace with "
+                                 "another kind of file; choose another name")
         folder = p.parent if str(p.parent) else Path(".")
     else:
         if p.exists() and not p.is_dir():

@@ -268,7 +268,7 @@ def _plugin_warnings_as_lines() -> Iterator[None]:
 
     def show(message: Any, category: type, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
         if issubclass(category, PluginWarning) and not debug_enabled():
-            err_console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+            err_console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True, markup=True)
         else:
             previous(message, category, filename, lineno, file, line)
 
@@ -319,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             except TofLocError as e:
                 if debug_enabled():
                     raise
-                err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
+                err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True, markup=True)
                 code = 2
             except typer.Exit as e:
                 code = e.exit_code
@@ -337,7 +337,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 where = f": {e.filename}" if getattr(e, "filename", None) else ""
                 text = e.strerror or (os.strerror(e.errno) if e.errno else str(e))
                 err_console.print(f"[bold red]error:[/] {escape(text.splitlines()[0])}{escape(where)}",
-                                  highlight=False, soft_wrap=True)
+                                  highlight=False, soft_wrap=True, markup=True)
                 code = 1
                 # an HDF5 file whose close failed (disk full) crashes the interpreter's teardown
                 hard_exit = argv is None and _h5py_has_open_files()

@@ -50,8 +50,11 @@ class _TextConsole(Console):
 #: the console's width (80 columns when the stream is a pipe or a file): a path in "wrote
 #: PATH", a one-line error or a live estimate stays one line, for the terminal to fold and
 #: for scripts to read. Tables on stdout still fit their columns to the width.
-console = _TextConsole()
-err_console = Console(stderr=True, soft_wrap=True)
+#: Neither reads Rich markup in what it prints unless a call asks (``markup=True``, with the
+#: text it interpolates escaped): a message quoting ``[mounting.map_faces]`` or a path with
+#: brackets would lose them (a fresh-eyes review).
+console = _TextConsole(markup=False)
+err_console = Console(stderr=True, soft_wrap=True, markup=False)
 
 _state = {"debug": os.environ.get("TOFLOC_DEBUG", "") not in ("", "0")}
 

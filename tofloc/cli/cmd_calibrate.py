@@ -51,14 +51,15 @@ def calibrate(
     from tofloc.logs import map_files_named_by
     from tofloc.plot_style import check_figure_path
 
+    # first: "is the input LOG" says more than any other refusal
+    check_distinct_paths({"--out": out, "--plot": plot, "--plot (its zone maps)": None if plot is None else zone_plot_path(plot)},
+                         {**{f"LOG {lg}": lg for lg in logs}, **{f"--map {m}": m for m in (map_paths or [])},
+                          **{k: v for lg in logs for k, v in map_files_named_by(lg).items()}})
     check_output_path(out, option="--out")
     if plot is not None:
         check_output_path(plot, option="--plot")
         check_figure_path(plot, "--plot")
         check_output_path(zone_plot_path(plot), option="--plot")
-    check_distinct_paths({"--out": out, "--plot": plot, "--plot (its zone maps)": None if plot is None else zone_plot_path(plot)},
-                         {**{f"LOG {lg}": lg for lg in logs}, **{f"--map {m}": m for m in (map_paths or [])},
-                          **{k: v for lg in logs for k, v in map_files_named_by(lg).items()}})
     from sensor_models.calibration import plot_calibration
     from sensor_models.calibration.mounting_fit import SUPPORT_YAW_STEP_DEG
     from tofloc import api

@@ -30,7 +30,7 @@ def eth_matrix(
     from tofloc.atomic import check_output_path
     from tofloc.io.eth_matrix import import_run, write_import
 
-    check_output_path(out, option="--out", overwrite=force)
+    check_output_path(out, option="--out", overwrite=force, hdf5_output=True)
     with status(f"importing {run_dir}"):
         imp = import_run(run_dir, latency_s=latency, drone_body=drone_body, panel_body=panel_body)
         write_import(imp, out)
@@ -128,7 +128,8 @@ def nanoswarm(
                       highlight=False, soft_wrap=True)
         if med > AT_TRUTH_WARN_CM:
             console.print(f"[yellow]warning:[/yellow] the median exceeds {AT_TRUTH_WARN_CM:g} cm: the map may not be of this maze "
-                          "or not in the same motion-capture frame (docs/real-data.md measured 1-3 cm)", highlight=False, soft_wrap=True)
+                          "or not in the same motion-capture frame (docs/real-data.md measured 1-3 cm)", highlight=False, soft_wrap=True,
+                          markup=True)
 
 
 def parse_drones(text: str) -> list[int]:

@@ -8,6 +8,9 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.table import Table
+from rich.text import Text
+
+from rich.markup import escape
 
 from tofloc.cli.app import app, console, status
 from tofloc.errors import ParameterError
@@ -51,10 +54,10 @@ def fit(
 
     if not validation_fraction < 1.0:
         raise ParameterError(f"--validation-fraction: expected a value in [0, 1), found {validation_fraction}")
-    check_output_path(out, option="--out")
     from tofloc.atomic import check_distinct_paths
 
-    check_distinct_paths({"--out": out}, {"LOG": log})
+    check_distinct_paths({"--out": out}, {"LOG": log})  # first: "is the input LOG" says more than any other refusal
+    check_output_path(out, option="--out")
 
     with status(f"reading {log}"):
         data = read_log(log)
@@ -76,7 +79,7 @@ def fit(
         mark = "[bold green]chosen[/]" if k == report.k else ("paper" if k == PAPER_K else "")
         if k == report.k == PAPER_K:
             mark = "[bold green]chosen[/] (= paper)"
-        cv.add_row(str(k), _fmt(mse), _rmse_mm(mse), mark)
+        cv.add_row(str(k), _fmt(mse), _rmse_mm(mse), Text.from_markup(mark))
     console.print(cv)
 
     summary = Table(title=f"k-NN kinematics fit of {log.name} (seed {seed})")
@@ -95,4 +98,5 @@ def fit(
 
     written = model.save(out)
     note = "" if written.suffix == ".npz" else " (an .npz archive)"
-    console.print(f"model saved to [bold]{written}[/]{note}", highlight=False, soft_wrap=True)
+    console.print(f"model saved to [bold]{escape(str(written))}[/]{escape(note)}", highlight=False, soft_wrap=True,
+                  markup=True)

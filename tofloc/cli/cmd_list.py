@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from tofloc.cli.app import app, console
 from tofloc.errors import ParameterError
@@ -36,9 +37,10 @@ def list_plugins(
             warnings.simplefilter("ignore")
             rows = registry.status()
         for spec, state in rows:
-            table.add_row(spec.name, spec.target, spec.origin, "[green]ok[/]" if state == "ok" else f"[red]{state}[/]")
+            table.add_row(spec.name, spec.target, spec.origin,
+                          Text.from_markup("[green]ok[/]" if state == "ok" else f"[red]{escape(state)}[/]"))
         for spec, why in registry.ignored:  # a name two plug-ins claim: the one not used says so
-            table.add_row(spec.name, spec.target, spec.origin, f"[yellow]ignored: {escape(why)}[/]")
+            table.add_row(spec.name, spec.target, spec.origin, Text.from_markup(f"[yellow]ignored: {escape(why)}[/]"))
         if not rows:
             table.add_row("-", "none registered", "", "")
         console.print(table)
@@ -67,7 +69,7 @@ def _print_params(name: str) -> None:
         for r in rows:
             meaning = r.meaning.replace("``", "`")
             shown = meaning if not r.type or meaning.startswith("one of ") else f"{meaning} ({r.type})"
-            t.add_row(r.name, escape(r.default), escape(shown))
+            t.add_row(r.name, r.default, shown)  # the consoles read no markup: shown as written
         console.print(t)
         if kind == "estimator" and any(r.name == "sensor_model" for r in rows):
             default_model = next(r.default for r in rows if r.name == "sensor_model").strip("'\"")

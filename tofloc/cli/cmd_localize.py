@@ -143,6 +143,15 @@ def localize(
         mode = "a live run (--port) reads no" if port is not None else "an offline run (a LOG, no --port) reads no"
         raise ParameterError(f"{mode} {', '.join(wrong)}: leave {'it' if len(wrong) == 1 else 'them'} out")
 
+    from tofloc.atomic import check_distinct_paths
+    from tofloc.logs import map_files_named_by
+
+    check_distinct_paths(  # first: "is the input LOG" says more than any other refusal
+        {"--json": json_out, "--plot-nees": plot_nees, "--plot": plot, "--estimates-out": estimates_out,
+         "--out": out, "--journal": journal, "--suggest-next": suggest_next},
+        {"LOG": log_path, "--map": map_path, "--surface": surface_path, "--kinematics": kinematics, "--config": config,
+         "--calibration": calibration, "--rig": rig_path,
+         **({} if log_path is None else map_files_named_by(log_path))})
     if json_out is not None:
         check_output_path(json_out, option="--json")
     if plot_nees is not None:
@@ -155,15 +164,6 @@ def localize(
             raise ParameterError("--plot draws the first trial of an offline run (not --port)")
         check_output_path(plot, option="--plot")
         check_figure_path(plot, "--plot")
-    from tofloc.atomic import check_distinct_paths
-    from tofloc.logs import map_files_named_by
-
-    check_distinct_paths(
-        {"--json": json_out, "--plot-nees": plot_nees, "--plot": plot, "--estimates-out": estimates_out,
-         "--out": out, "--journal": journal, "--suggest-next": suggest_next},
-        {"LOG": log_path, "--map": map_path, "--surface": surface_path, "--kinematics": kinematics, "--config": config,
-         "--calibration": calibration, "--rig": rig_path,
-         **({} if log_path is None else map_files_named_by(log_path))})
     if suggest_next is not None and port is None:
         raise ParameterError("--suggest-next chooses the next posture of a live run (--port); offline, use --selection active")
     if estimates_out is not None and port is None:

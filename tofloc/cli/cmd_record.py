@@ -11,6 +11,8 @@ import typer
 from rich.live import Live
 from rich.text import Text
 
+from rich.markup import escape
+
 from tofloc.cli.app import app, console, err_console
 from tofloc.errors import ParameterError
 
@@ -36,7 +38,7 @@ def _write(journal: Path, out: Path, rig: Any, window: float, no_target_mm: floa
 
     samples, stats, header, warnings = recover(journal, rig, window_s=window, no_target_at_or_below_mm=no_target_mm)
     for w in warnings:
-        err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
+        err_console.print(f"[yellow]warning:[/] {escape(str(w))}", highlight=False, soft_wrap=True, markup=True)
     if not samples:
         raise ParameterError(f"no complete frame in the journal {journal} ({stats.summary()}): nothing to write to {out}; "
                              "the journal is kept as it is (read it, or remove it to record again)")
@@ -93,7 +95,7 @@ def record(
     # an output that is an input (--out the journal being recovered, or the rig) would replace it
     check_distinct_paths({"--out": out, "--journal": journal if recover_path is None else None},
                          {"--recover": recover_path, "--rig": rig_path})
-    check_output_path(out, option="--out", overwrite=force)
+    check_output_path(out, option="--out", overwrite=force, hdf5_output=True)
     if recover_path is None:
         check_output_path(journal, option="--journal", overwrite=True)
     rig = _load_rig(rig_path) if rig_path is not None else None
@@ -132,7 +134,7 @@ def _capture(out: Path, port: str, baud: int, fmt: str, rig: Any, journal: Path,
     from tofloc.io.journal import JournalWriteError
 
     def notice(msg: str) -> None:
-        live.console.print(f"[yellow]{msg}[/]", highlight=False, soft_wrap=True)
+        live.console.print(f"[yellow]{escape(msg)}[/]", highlight=False, soft_wrap=True, markup=True)
 
     cap = SerialCapture(
         port,

@@ -14,19 +14,26 @@ from tofloc.cli.app import app, console, status
 from tofloc.errors import ParameterError
 
 
+#: The header comment of every PLY file tofloc writes (:mod:`tofloc.map_files`).
+_TOFLOC_PLY_COMMENT = b"\ncomment written by tofloc\n"
+
+
 def _earlier_output(path: Path, log: bool) -> bool:
-    """Whether ``path`` looks like what ``simulate`` writes there (a tofloc log, a PLY map):
-    replacing an earlier simulation is the usual rerun; replacing anything else (a
-    calibration named by mistake, found by a bad-input audit) needs ``--force``."""
+    """Whether ``path`` is what ``simulate`` writes there: a tofloc log whose ``source`` is a
+    simulation's, a PLY map tofloc wrote. Replacing an earlier simulation is the usual rerun;
+    replacing anything else (a calibration named by mistake, a recording, an imported flight,
+    a hand-made map: found by bad-input audits) needs ``--force``."""
     from tofloc.logs import FORMAT_NAME, root_text_attribute
 
     if log:
-        return root_text_attribute(path, "format") == FORMAT_NAME
+        return (root_text_attribute(path, "format") == FORMAT_NAME
+                and (root_text_attribute(path, "source") or "").startswith("simulation"))
     try:
         with open(path, "rb") as fh:
-            return fh.read(4) == b"ply\n"
+            head = fh.read(256)
     except OSError:
         return False
+    return head.startswith(b"ply\n") and _TOFLOC_PLY_COMMENT in head.split(b"end_header", 1)[0]
 
 
 @app.command()
@@ -59,13 +66,13 @@ def simulate(
 
     outputs = {("--out" if key == "log" else f"--out (its {key} file)"): path for key, path in simulation_paths(out).items()}
     for option, path in outputs.items():
-        check_output_path(path, option=option)
+        check_output_path(path, option=option, hdf5_output=option == "--out")
     check_distinct_paths(outputs, {"--scenario": Path(scenario) if Path(scenario).is_file() else None})
     for option, path in outputs.items():
         if not force and path.is_file() and not _earlier_output(path, option == "--out"):
-            raise ParameterError(f"{option} {path}: exists and is not {'a tofloc log' if option == '--out' else 'a PLY map'}: "
-                                 "without --force only an earlier simulation's files are replaced (choose another name, "
-                                 "or pass --force)")
+            what = "an earlier simulation's log" if option == "--out" else "a PLY map tofloc wrote"
+            raise ParameterError(f"{option} {path}: exists and is not {what}: without --force only an earlier "
+                                 "simulation's files are replaced (choose another name, or pass --force)")
     if seed < 0:
         raise ParameterError(f"--seed must be >= 0, got {seed}")
     if hardware_seed is not None and hardware_seed < 0:

@@ -22,6 +22,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from rich.markup import escape
+
 from tofloc.cli.app import console, err_console
 from tofloc.errors import ParameterError
 
@@ -63,7 +65,8 @@ def run_live(
         journal = journal_path_for(out) if out is not None else Path(f"live-{port.replace('/', '_').strip('_')}.journal")
     # every output is checked before anything is loaded or opened
     if out is not None:
-        check_output_path(out, option="--out")
+        # the capture's log: an existing file (an earlier recording) is never replaced
+        check_output_path(out, option="--out", overwrite=False, force_hint="", hdf5_output=True)
     check_output_path(journal, option="--journal")
     if journal.exists():
         raise ParameterError(
@@ -109,7 +112,7 @@ def run_live(
         except ParameterError as e:
             raise ParameterError(f"--calibration {calibration}: {e}") from None
     for message in api.footprint_mismatches({estimator: est}, cal):
-        err_console.print(f"[yellow]{message}[/]", highlight=False)
+        err_console.print(f"[yellow]{escape(message)}[/]", highlight=False, markup=True)
     prior = Prior(
         np.array([prior_x, prior_y, math.radians(float(prior_yaw_deg))]),  # type: ignore[arg-type]
         np.array([prior_sigma_xy, prior_sigma_xy, math.radians(prior_sigma_yaw_deg)]),
@@ -118,7 +121,7 @@ def run_live(
     live = LiveLocalizer(est, rig, the_map, prior, kin, window=window, seed=seed, valid_statuses=valid_statuses,
                          calibration=cal)
     cap = SerialCapture(port, fmt=fmt, rig=rig, journal=journal, baud=baud, timeout_s=timeout, duration_s=duration,
-                        on_notice=lambda m: err_console.print(f"[yellow]{m}[/]"))
+                        on_notice=lambda m: err_console.print(f"[yellow]{escape(m)}[/]", markup=True))
     with contextlib.ExitStack() as stack:
         for path, option in outputs:
             stack.enter_context(OutputLock(path, option))
