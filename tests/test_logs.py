@@ -366,6 +366,21 @@ def test_partly_nan_configuration(tmp_path: Path) -> None:
     assert_refused(bad_file(tmp_path, datasets={"/samples/T_base_tip": T}), "/samples/T_base_tip[3]", "all NaN where unknown", "partly NaN")
 
 
+def test_nan_rows_over_a_homogeneous_last_row_are_unknown(tmp_path: Path) -> None:
+    """A fresh-eyes review: the spec's "NaN rows where unknown" read as a sample's first three
+    rows NaN over a last row 0 0 0 1 was refused as partly NaN; it is unknown, as an all-NaN
+    matrix is (anything else partly NaN is still refused, above)."""
+    _, d = conforming()
+    T = d["/samples/T_base_tip"].copy()
+    T[2, :3, :] = np.nan
+    log = read_log(bad_file(tmp_path, datasets={"/samples/T_base_tip": T}))
+    assert np.isnan(log.T_base_tip[2]).all()
+    np.testing.assert_array_equal(np.delete(log.T_base_tip, 2, axis=0), np.delete(T, 2, axis=0))
+    T[2, 3, :] = (0.0, 0.0, 1.0, 1.0)  # not a homogeneous last row: corrupt
+    assert_refused(bad_file(tmp_path, datasets={"/samples/T_base_tip": T}), "/samples/T_base_tip[2]", "all NaN where unknown",
+                   "partly NaN")
+
+
 def test_infinite_configuration(tmp_path: Path) -> None:
     _, d = conforming()
     T = d["/samples/T_base_tip"].copy()

@@ -262,6 +262,11 @@ def test_problem_from_log_refusals() -> None:
     # an imported log is told how to get the attribute
     with pytest.raises(ProblemError, match=r"import it again with `tofloc import eth-matrix`"):
         check_configuration_uncertainty(dataclasses.replace(log, configuration_source=None, source="import:eth-matrix"))
+    # ... but not another converter's (a fresh-eyes review: docs/log-format.md's own example was told to run
+    # `tofloc import my-converter`, which does not exist)
+    with pytest.raises(ProblemError) as e:
+        check_configuration_uncertainty(dataclasses.replace(log, configuration_source=None, source="import:my-converter"))
+    assert "tofloc import" not in str(e.value) and "Write each sample's covariance" in str(e.value)
     kin, _ = KinematicsModel.fit_log(log, np.random.default_rng(1), k_candidates=range(1, 4))
     # the k-NN model states its own uncertainty: the log's silence does not matter there
     silent = dataclasses.replace(log, configuration_source=None)

@@ -544,6 +544,25 @@ def _check_covariances(cov: NDArray[np.float64], where: str, loc: str, *, indexe
                                  frames.describe_pose_sigma(axis, sigma))
 
 
+def _unknown_rows_as_nan(T: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+    """The configurations as read, a sample whose rotation and translation rows are all NaN
+    made all NaN: the spec's "NaN rows where unknown" read either way (the sample's whole
+    matrix, or its first three rows over a last row ``0 0 0 1``). Any other NaN stays, for
+    the validation to refuse as partly NaN."""
+    if T is None:
+        return None
+    T = np.asarray(T)
+    with np.errstate(invalid="ignore"):
+        top_nan = np.all(np.isnan(T[:, :3, :]), axis=(1, 2))
+        last_row = np.all(np.isnan(T[:, 3, :]), axis=1) | np.all(T[:, 3, :] == (0.0, 0.0, 0.0, 1.0), axis=1)
+    fix = top_nan & last_row & ~np.all(np.isnan(T[:, 3, :]), axis=1)
+    if not fix.any():
+        return T
+    T = np.array(T, dtype=np.float64)
+    T[fix] = np.nan
+    return T
+
+
 def _describe_pose(T: NDArray[np.float64]) -> str:
     if np.isnan(T).all():
         return "a matrix that is all NaN"
@@ -749,7 +768,7 @@ def read_log(path: str | Path) -> Log:
         status = load("/samples/status", _U8, (K, S, Z), _KSZ, True)
         sigma = load("/samples/sigma_mm", _F32, (K, S, Z), _KSZ, False)
         pressure = load("/samples/pressure_kpa", _F32, (K, C), "(K, C)", False)
-        T_base_tip = load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False)
+        T_base_tip = _unknown_rows_as_nan(load("/samples/T_base_tip", _F64, (K, 4, 4), "(K, 4, 4)", False))
         T_base_tip_cov = load("/samples/T_base_tip_cov", _F64, (K, 6, 6), "(K, 6, 6)", False)
         def load_truth(name: str, n: int) -> Any:
             """An optional float64 dataset of shape (n, n) (a fixed truth) or (K, n, n) (per sample)."""

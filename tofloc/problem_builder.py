@@ -152,6 +152,8 @@ def build_problem(
 #: give it motion capture's sigmas). Any other source, or none, needs
 #: ``/samples/T_base_tip_cov``: log format v1 forbids treating it as exact.
 STATED_EXACT_SOURCES = ("cad", "mocap")
+#: The importers of ``tofloc import`` (a log's ``source`` is ``"import:<name>"``).
+TOFLOC_IMPORTERS = ("eth-matrix", "nanoswarm")
 
 
 def _unstated_uncertainty(name: str, source: str | None, log_source: str | None = None,
@@ -162,9 +164,10 @@ def _unstated_uncertainty(name: str, source: str | None, log_source: str | None 
             else f"configuration_source is {source!r}")
     which = "" if samples is None else f" for samples {np.asarray(samples)[:5].tolist()}{' ...' if np.size(samples) > 5 else ''}"
     hint = ""
-    if isinstance(log_source, str) and log_source.startswith("import:"):
+    importer = log_source[len("import:"):] if isinstance(log_source, str) and log_source.startswith("import:") else None
+    if importer in TOFLOC_IMPORTERS:  # another converter's log: only the fix above applies
         hint = (f"; this log was imported ({log_source}): logs imported before tofloc wrote configuration_source "
-                f"lack it, so import it again with `tofloc import {log_source[len('import:'):]}`")
+                f"lack it, so import it again with `tofloc import {importer}`")
     return (f"{name}: /samples/T_base_tip has no stated uncertainty{which} ({said} and there is no "
             f"/samples/T_base_tip_cov, or it is NaN): log format v1 forbids treating such a "
             f"configuration as exact. Write each sample's covariance to /samples/T_base_tip_cov, or set "
