@@ -144,7 +144,10 @@ def test_a_bad_value_in_a_config_file_names_the_file_and_key(tmp_path: Path) -> 
     """A value the estimator refuses is refused while the config file is read, prefixed
     with where it was given (the estimator's own message said only the parameter)."""
     cfg = tmp_path / "run.toml"
-    assert _config_refusal(cfg, '[estimator]\nn_particles = "many"\n', "icp_pf").startswith(
+    assert _config_refusal(cfg, '[estimator]\nn_particles = "many"\n', "icp_pf") == (  # text for a number: refused by type
+        f"{cfg}: [estimator].n_particles: estimator 'icp_pf''s parameter 'n_particles': expected an integer (int), found "
+        "the text 'many' (see `tofloc list --params icp_pf`)")
+    assert _config_refusal(cfg, '[estimator]\nn_particles = 2.5\n', "icp_pf").startswith(
         f"{cfg}: [estimator].n_particles: n_particles must be an integer")
     assert _config_refusal(cfg, '[estimators.icp_pf]\nn_particles = 0\n', "icp_pf").startswith(
         f"{cfg}: [estimators.icp_pf].n_particles: n_particles must be")
@@ -232,3 +235,22 @@ def test_scenes_refuses_a_bad_parameter_before_simulating_any_scene(tmp_path: Pa
         api.scenes(["icp_pf", "beam_pf"], out=tmp_path / "scenes", estimator_params={"beam_pf": {"n_particls": 10}},
                    reporter=rep)
     assert rep.notes == [] and not (tmp_path / "scenes").exists()
+
+
+def test_text_for_a_number_or_a_flag_is_refused_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A fresh-eyes review: `--param sensor_model__nu=abc` (not JSON, so passed on as text)
+    reached a plug-in's arithmetic inside the first trial and printed a traceback."""
+    with pytest.raises(ParameterError) as e:
+        estimator_params(None, ["beam_pf"], ["sensor_model__temper=abc"])
+    assert str(e.value) == ("--param sensor_model__temper: sensor model 'beam' of estimator 'beam_pf''s parameter 'temper': "
+                            "expected a number (float), found the text 'abc' (see `tofloc list --params beam`)")
+    with pytest.raises(ParameterError, match=r"^--param n_particles: estimator 'beam_pf''s parameter 'n_particles': "
+                                             r"expected an integer \(int\), found the text '1e3x'"):
+        estimator_params(None, ["beam_pf"], ["n_particles=1e3x"])
+    # numbers, and text where text is taken, pass as before
+    resolved, _ = estimator_params(None, ["beam_pf"], ["n_particles=300", "sensor_model__temper=0.5"])
+    assert resolved["beam_pf"]["n_particles"] == 300
+    from tofloc.param_docs import _scalar_type
+
+    assert _scalar_type(get_estimator("beam_pf"), "n_particles") == "int"
+    assert _scalar_type(get_estimator("beam_pf"), "sensor_model") is None  # a name or an object

@@ -166,16 +166,35 @@ def _see(kind: str, name: str) -> str:
     return f"tofloc list --params {name}" if kind in ("estimator", "sensor model") else ""
 
 
+def _scalar_type(cls: type, key: str) -> str | None:
+    """``"float"``, ``"int"`` or ``"bool"`` when the dataclass field ``key`` of ``cls`` is
+    annotated as that type (or it or None), else None (any other type, not a dataclass)."""
+    if not dataclasses.is_dataclass(cls):
+        return None
+    field = next((f for f in dataclasses.fields(cls) if f.name == key), None)
+    if field is None:
+        return None
+    ann = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
+    ann = str(ann).strip()
+    if ann.startswith("Optional[") and ann.endswith("]"):
+        ann = ann[len("Optional["):-1]
+    parts = {p.strip() for p in ann.split("|")} - {"None"}
+    return next(iter(parts)) if len(parts) == 1 and parts <= {"float", "int", "bool"} else None
+
+
 def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, name: str,
                           source: Callable[[tuple[str, ...]], str | None] | None = None,
                           owner: str | None = None, _path: tuple[str, ...] = ()) -> None:
-    """Refuse a parameter name ``cls`` does not take, at any depth, before anything is built.
+    """Refuse a parameter name ``cls`` does not take, at any depth, before anything is built,
+    and a text value for a parameter its dataclass field declares a ``float``, ``int`` or
+    ``bool`` (``--param nu=abc`` is passed on as the text ``"abc"``; a plug-in would fail on it
+    inside its first trial, with a traceback: a fresh-eyes review).
 
     A parameter ``X_params`` (:data:`NESTED_SUFFIX`) whose sibling ``X`` names a plug-in of a
     registry (:func:`tofloc.registry.registry_for`: ``sensor_model``) holds that plug-in's
     parameters; they are checked against its class in the same way (``X`` as given in
     ``params``, else ``cls``'s default; a plug-in given as an object is not looked into).
-    Only names are checked: values are the constructors' business.
+    Other values are the constructors' business.
 
     Parameters
     ----------
@@ -196,6 +215,8 @@ def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, na
     ------
     UnknownParameterError
         One line: where, whose, the unknown name, the closest valid one, every valid one.
+    tofloc.errors.ParameterError
+        Text given for a number or a flag (one line: where, whose, the parameter, its type).
     tofloc.errors.PluginError
         ``X`` names no registered plug-in while ``X_params`` is given.
     """
@@ -211,6 +232,16 @@ def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, na
                     leaf = next(iter(value))  # --param a__b__c names all of it, not a_params
                     where, value = where + (leaf,), value[leaf]
                 raise UnknownParameterError(owner, key, valid, source(where) if source else None, _see(kind, name))
+    for key, value in params.items():
+        expected = _scalar_type(cls, key) if isinstance(value, str) else None
+        if expected is not None:
+            from tofloc.errors import ParameterError
+
+            given = source(_path + (key,)) if source else None
+            what = {"float": "a number", "int": "an integer", "bool": "true or false"}[expected]
+            see = _see(kind, name)
+            raise ParameterError(f"{given + ': ' if given else ''}{owner}'s parameter {key!r}: expected {what} ({expected}), "
+                                 f"found the text {value[:40]!r}" + (f" (see `{see}`)" if see else ""))
     for key, value in params.items():
         if not (key.endswith(NESTED_SUFFIX) and isinstance(value, Mapping) and value):
             continue
