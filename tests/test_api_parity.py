@@ -323,7 +323,7 @@ def test_numpy_integers_in_evaluate_workers_and_simulate(tmp_path: Path) -> None
     assert doc["trials"] == 1 and doc["seed"] == 0 and len(next(iter(doc["logs"].values()))["estimators"]["icp_pf"]["records"]) == 1
     assert run.document["trials"] == 1
     assert api.resolve_workers(np.int64(2), 4) == 2 and type(api.resolve_workers(np.int64(2), 4)) is int
-    with pytest.raises(ParameterError, match="workers must be an integer >= 1, got True"):
+    with pytest.raises(ParameterError, match=r"workers \(--workers\) must be an integer >= 1, got True"):
         api.resolve_workers(True, 4)
     with pytest.raises(ParameterError, match="seed must be an integer >= 0, got None"):
         api.simulate("pillars", None)

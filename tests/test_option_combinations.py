@@ -107,9 +107,9 @@ def test_localize_refuses_the_other_modes_options(pillars: Path, tmp_path: Path,
 
 
 @pytest.mark.parametrize("command, args, message", [
-    ("paper", ["--estimators", "icp_pf", "--workers", "0"], "workers must be an integer >= 1"),
-    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--workers", "0"], "workers must be an integer >= 1"),
-    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--selection", "bogus"], "selection must be one of"),
+    ("paper", ["--estimators", "icp_pf", "--workers", "0"], "workers (--workers) must be an integer >= 1"),
+    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--workers", "0"], "workers (--workers) must be an integer >= 1"),
+    ("scenes", ["--estimators", "icp_pf", "--scene", "pillars", "--selection", "bogus"], "selection (--selection) must be one of"),
     ("paper", ["--estimators", "icp_pf", "--prior-modes", "global", "--region", "5,6,5,6"],
      "--region 5,6,5,6: the true base position of scenario paper (0.021, -0.013) m lies outside it"),
     # the first scene's base is in the region, the second's not: refused before the first runs

@@ -279,6 +279,17 @@ def test_help_texts_keep_their_brackets(capsys: pytest.CaptureFixture[str], monk
             assert needle in out, (command, needle)
 
 
+def test_help_shows_no_value_type_beside_a_flag(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fresh-eyes review: every command's --help listed `--force <bool>`, `--help <bool>`
+    (typer's display), as if the flag took a value; options with values keep their type."""
+    monkeypatch.setenv("COLUMNS", "200")
+    for command in (["simulate", "--help"], ["evaluate", "--help"], ["record", "--help"], ["kinematics", "fit", "--help"]):
+        assert main(command) == 0
+        out = capsys.readouterr().out
+        assert "<bool>" not in out, command
+        assert "<int>" in out or "<int range>" in out or "<path>" in out, command
+
+
 def test_command_list_gives_each_summary_as_one_paragraph(capsys: pytest.CaptureFixture[str],
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """`tofloc --help` listed a docstring's first paragraph with the source's line breaks

@@ -184,7 +184,7 @@ def test_an_unknown_policy_is_refused_before_any_work(command, tmp_path, capsys)
         args += ["--out", str(tmp_path / "paper")]
     assert main(args + ["--selection", "smart"]) == 2
     err = capsys.readouterr().err
-    assert "selection must be one of active, random, got 'smart'" in err
+    assert "selection (--selection) must be one of active, random, got 'smart'" in err
     assert not (tmp_path / "paper").exists() and not (tmp_path / "OUT").exists()
 
 

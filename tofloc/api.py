@@ -200,7 +200,7 @@ def resolve_workers(workers: int | None, n_tasks: int) -> int:
     if workers is None:
         return max(1, min(os.cpu_count() or 1, n_tasks))
     if not _is_int(workers) or workers < 1:
-        raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+        raise ParameterError(f"workers (--workers) must be an integer >= 1, got {workers!r}")
     return int(workers)
 
 
@@ -289,7 +289,7 @@ def check_selection(name: str, params: Mapping[str, Any] | None = None) -> str:
     from tofloc.selection import make_policy, policy_names
 
     if not isinstance(name, str) or name not in policy_names():
-        raise ParameterError(f"selection must be one of {', '.join(policy_names())}, got {name!r}")
+        raise ParameterError(f"selection (--selection) must be one of {', '.join(policy_names())}, got {name!r}")
     if params is not None and not isinstance(params, Mapping):
         raise ParameterError(f"selection_params must be a mapping of the policy's parameters, got {params!r}")
     make_policy(name, params)  # loads and checks the plug-in and its parameters now

@@ -25,6 +25,27 @@ from rich.progress import (
 )
 from rich.text import Text
 
+def _flags_show_no_type() -> None:
+    """``--help`` lists a flag (``--force``, ``--help``) without a value type: typer 0.2x
+    shows ``<bool>`` beside it, as if it took a value (``--force true`` is then refused as
+    an extra argument: a fresh-eyes review). Only the help text changes."""
+    from typer.core import TyperOption
+
+    shown = getattr(TyperOption, "display_type_rich", None)
+    if shown is None or getattr(shown, "_tofloc_flags", False):
+        return
+
+    def display_type_rich(self: Any, ctx: Any) -> str | None:
+        if getattr(self, "is_flag", False) and self.metavar is None:
+            return None
+        return shown(self, ctx)
+
+    display_type_rich._tofloc_flags = True  # type: ignore[attr-defined]
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+
+
+_flags_show_no_type()
+
 app = typer.Typer(
     name="tofloc",
     help="Localize a robot in a known map from distributed multizone ToF sensors (VL53L5CX).",

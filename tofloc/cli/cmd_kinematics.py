@@ -39,7 +39,7 @@ def fit(
     k_max: int = typer.Option(20, "--k-max", min=1, help="Candidates k = 1 .. k-max neighbours."),
     folds: int = typer.Option(5, "--folds", min=2, help="Cross-validation folds on the training part."),
     validation_fraction: float = typer.Option(
-        0.2, "--validation-fraction", min=0.0, max=1.0, help="Share of the samples held out for validation, in [0, 1)."
+        0.2, "--validation-fraction", min=0.0, help="Share of the samples held out for validation, in [0, 1)."
     ),
 ) -> None:
     """Fit the k-NN kinematics on LOG (80/20 split, k by k-fold CV) and save it to --out."""

@@ -133,9 +133,10 @@ def _plot_evaluated(files: list, labels: list[str], out: Path, fmt: str = "png")
     docs = [f.document for f in files]
     text += "\n".join(paired_lines(docs, labels) + pooled_lines(docs, labels)) + "\n" + _made_by()
     written.append(write_text_atomic(text, out / "comparison.md"))
-    t = Table(title="medians over every trial of each file", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
-    for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("e_x mm", "right"),
-                         ("e_γ deg", "right"), ("failed", "right"), ("NEES", "right")):
+    t = Table(title="every trial of each file: median errors, failures, mean NEES", box=box.SIMPLE_HEAD, pad_edge=False,
+              collapse_padding=True)
+    for col, justify in (("file", "left"), ("estimator", "left"), ("n", "right"), ("median e_x mm", "right"),
+                         ("median e_γ deg", "right"), ("failed", "right"), ("mean NEES", "right")):
         t.add_column(col, justify=justify)  # type: ignore[arg-type]
     for r in rows:
         t.add_row(r["file"], r["estimator"], na(r["n"], "d"), na(r["e_x_mm_median"], ".1f"), na(r["e_gamma_deg_median"], ".2f"),
