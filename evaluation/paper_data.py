@@ -292,7 +292,8 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
     sc = dataclasses.replace(sc, environment=dataclasses.replace(sc.environment, unmapped_boxes=()))
     b = sc.base
     off = CALIBRATION_BASE_OFFSETS[int(place)]
-    base = (b.x + off[0], b.y + off[1], b.yaw_deg + off[2])
+    yaw = (b.yaw_deg + off[2] + 180.0) % 360.0 - 180.0  # a base at 170 deg turned by +20: -170 deg
+    base = (b.x + off[0], b.y + off[1], yaw)
     if cal_path.exists():
         src = read_log(cal_path).source
         if _hardware_seed(src) != hw or _rig_variant(src) != rig_variant:

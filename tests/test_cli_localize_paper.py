@@ -426,6 +426,27 @@ def test_a_calibration_session_of_another_set_up_is_simulated_again(tmp_path: Pa
     assert read_log(path).source == "simulation:paper seed=1002 hardware_seed=7"
 
 
+def test_a_calibration_place_turned_past_180_deg_wraps(tmp_path: Path) -> None:
+    """A random room's base at 175.7 deg gave the second place a yaw of 195.7 deg, which
+    the simulator refuses (found by `tofloc scenes --random 4 --seed 1`)."""
+    from evaluation.paper_data import calibration_session
+    from tofloc import frames
+    from tofloc.logs import read_log
+    from tofloc.simulation import builtin_scenarios
+
+    import tofloc.simulation as simulation
+
+    assert "pillars" in builtin_scenarios()
+    text = (Path(simulation.__file__).parent / "scenarios" / "pillars.toml").read_text()
+    assert "yaw_deg = 17.0" in text
+    scenario = tmp_path / "turned.toml"
+    scenario.write_text(text.replace("yaw_deg = 17.0", "yaw_deg = 175.0", 1))
+    second = read_log(calibration_session(tmp_path, str(scenario), 0, 0, place=1))
+    first = read_log(calibration_session(tmp_path, str(scenario), 0, 0, place=0))
+    assert np.degrees(frames.xyyaw_from_se3(second.T_map_base)[2]) == pytest.approx(-165.0)
+    assert np.degrees(frames.xyyaw_from_se3(first.T_map_base)[2]) == pytest.approx(155.0)
+
+
 # -- issue 14, items 14-16: estimates, NEES plot, set-up time, config ---------------------------------
 
 
