@@ -9,7 +9,8 @@ docs/evaluation.md quotes):
    variants (``exact``, ``perturbed``), simulated with seed 0 as ``tofloc paper`` lays it
    out (the CAD mesh as the ray-casting surface, the k-NN model fit on the log);
 2. both range models: the datasheet's (no calibration) and the one ``tofloc paper``
-   fits on a calibration session of the same set-up; both tip sources (``mocap``,
+   fitted on a calibration session of the same set-up in one place (the default before
+   7 December 2026, when the thresholds were set: ``places=1``); both tip sources (``mocap``,
    ``knn`` with its validation-error covariance);
 3. ``draws`` problems per combination, each of ``k`` samples (``k`` uniform in
    ``1..k_max``) drawn from the trials' pool, and two poses per problem: the truth, and a
@@ -82,7 +83,9 @@ def good_estimate_statistics(
             pool = sample_pool(data.log, data.kinematics, k_max).indices
             truth = data.log.truth_per_sample()
             for cal_name in calibrations:
-                cal = calibrate_for_paper(data, folder, scene, seed)[0] if cal_name == "fitted" else None
+                # places=1: the one-place session the stored thresholds were derived with (the
+                # default became two places on 7 December 2026, after they were set)
+                cal = calibrate_for_paper(data, folder, scene, seed, places=1)[0] if cal_name == "fitted" else None
                 for tip in tip_sources:
                     note(f"{scene} {variant} {cal_name} {tip}")
                     for d in range(draws):

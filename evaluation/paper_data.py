@@ -292,13 +292,17 @@ def calibration_session(out: Path, scenario: str, seed: int, hw: int, *, rig_var
     sc = dataclasses.replace(sc, environment=dataclasses.replace(sc.environment, unmapped_boxes=()))
     b = sc.base
     off = CALIBRATION_BASE_OFFSETS[int(place)]
-    yaw = (b.yaw_deg + off[2] + 180.0) % 360.0 - 180.0  # a base at 170 deg turned by +20: -170 deg
+    from tofloc.frames import wrap_deg
+
+    yaw = float(wrap_deg(b.yaw_deg + off[2]))  # 170 deg turned by +20: -170 deg; in range: unchanged
     base = (b.x + off[0], b.y + off[1], yaw)
     if cal_path.exists():
         src = read_log(cal_path).source
-        if _hardware_seed(src) != hw or _rig_variant(src) != rig_variant:
-            note(f"{cal_path.name} records another set-up than the experiment's log (hardware seed, rig variant): "
-                 "simulating it again")
+        session_seed = re.search(r"\bseed=(\d+)", src)
+        if (_hardware_seed(src) != hw or _rig_variant(src) != rig_variant or session_seed is None
+                or int(session_seed.group(1)) != seed + CALIBRATION_SEED_OFFSET * (int(place) + 1)):
+            note(f"{cal_path.name} records another set-up or session than this place's (hardware seed, rig variant, "
+                 "session seed): simulating it again")
             cal_path.unlink()
     if not cal_path.exists():
         with stage(f"simulating a calibration session (same set-up, hardware seed {hw}; base at "

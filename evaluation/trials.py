@@ -224,12 +224,17 @@ def sample_pool(
                                f"reach row {int(rows.max() if rows.max() >= log.n_samples else rows.min())}, outside the "
                                f"log's {log.n_samples} samples: the model file is inconsistent; fit it again")
     tr = np.asarray(kinematics.train_indices, dtype=np.intp)
-    if not np.array_equal(np.asarray(log.pressure_kpa, dtype=np.float64)[tr], kinematics.pressure_kpa, equal_nan=True):
-        # the fingerprint covers the log's data, not the split: an edited split would hold
-        # training samples out as if unseen
+    # the fingerprint covers the log's data, not the split: an edited split would hold training
+    # samples out as if unseen. Pressures and tip positions are stored as read (the rotations
+    # re-projected onto SO(3)), so both must equal the log's rows at train_indices
+    same = np.all(np.asarray(log.pressure_kpa, dtype=np.float64)[tr] == kinematics.pressure_kpa, axis=1)
+    same &= np.all(np.asarray(log.T_base_tip, dtype=np.float64)[tr, :3, 3] == kinematics.T_base_tip[:, :3, 3], axis=1)
+    if not same.all():
+        j = int(np.flatnonzero(~same)[0])
         raise ProblemError(f"{name}: the kinematics model was fit on this log (its fingerprint matches) but its training "
-                           "pressures are not the log's /samples/pressure_kpa rows at its train_indices: the model file "
-                           "is inconsistent; fit it again")
+                           f"pressures and tip positions are not the log's /samples/pressure_kpa and /samples/T_base_tip "
+                           f"rows at its train_indices (training sample {j}: log row {int(tr[j])}): the model file is "
+                           "inconsistent; fit it again")
     val = np.intersect1d(np.asarray(kinematics.validation_indices, dtype=np.intp), all_rows)
     if val.size < k_max:
         return SamplePool(

@@ -678,3 +678,29 @@ def test_samples_no_particle_explains_are_named(data: dict[str, Path], tmp_path:
     assert code == 0 and "left out of the weights" not in err
     doc = json.loads(out.read_text())
     assert all("excluded_samples" not in t for t in doc["trials"]) and "excluded_samples" not in doc["summary"]
+
+
+def test_calibration_places_are_checked_before_any_work_and_sessions_of_another_seed_are_not_reused(
+        tmp_path: Path) -> None:
+    """A review of the two-place change: `calibration_places` was checked only after the
+    experiment was simulated, 1.7 and True passed int(); a session simulated for another
+    run seed was reused for this one (only the hardware seed and rig variant were compared)."""
+    from evaluation.paper_data import calibration_session
+    from tofloc import api
+    from tofloc.errors import ParameterError
+    from tofloc.logs import read_log
+
+    for bad in (0, 3, 1.7, True):
+        with pytest.raises(ParameterError, match=r"calibration_places \(--calibration-places\) must be an integer in "
+                                                 r"\[1, 2\]"):
+            api.paper(["icp_pf"], out=tmp_path / "p", trials=1, k_values=[1], calibration_places=bad)
+        assert not (tmp_path / "p").exists()
+    path = calibration_session(tmp_path, "pillars", 2, 2, place=1)
+    assert "seed=2002 hardware_seed=2" in read_log(path).source
+    assert "seed=2003 hardware_seed=2" in read_log(calibration_session(tmp_path, "pillars", 3, 2, place=1)).source
+    # the unwrapped yaw of place 0 is the scene's own plus the offset, bit for bit (the
+    # one-place sessions of earlier runs)
+    from tofloc import frames
+
+    assert frames.wrap_deg(17.0 - 20.0) == -3.0 and frames.wrap_deg(195.7) == pytest.approx(-164.3)
+    assert frames.wrap_deg(180.0) == 180.0 and frames.wrap_deg(-180.0) == 180.0

@@ -843,6 +843,11 @@ def test_covariance_tolerance_is_relative() -> None:
         bad[5, 5] = -10 * COV_RTOL * 5 * scale
         with pytest.raises(LogFormatError, match="positive semi-definite"):
             _check_covariances(bad[None], "x", "c")
+    # the scale 1e6 this test also ran before the sigmas were bounded: its 1000 rad (2236 m)
+    # sigmas are now refused as what no configuration covariance describes
+    big = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 0.0]) * 1e6
+    with pytest.raises(LogFormatError, match=r"expected standard deviations within 3.142 rad \(rotation\) and 100 m \(translation\), found rotation x sigma 1000 rad"):
+        _check_covariances(big[None], "x", "c")
 
 
 @pytest.mark.parametrize(

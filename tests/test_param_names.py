@@ -145,7 +145,7 @@ def test_a_bad_value_in_a_config_file_names_the_file_and_key(tmp_path: Path) -> 
     with where it was given (the estimator's own message said only the parameter)."""
     cfg = tmp_path / "run.toml"
     assert _config_refusal(cfg, '[estimator]\nn_particles = "many"\n', "icp_pf") == (  # text for a number: refused by type
-        f"{cfg}: [estimator].n_particles: estimator 'icp_pf''s parameter 'n_particles': expected an integer (int), found "
+        f"{cfg}: [estimator].n_particles: parameter 'n_particles' of estimator 'icp_pf': expected an integer (int), found "
         "the text 'many' (see `tofloc list --params icp_pf`)")
     assert _config_refusal(cfg, '[estimator]\nn_particles = 2.5\n', "icp_pf").startswith(
         f"{cfg}: [estimator].n_particles: n_particles must be an integer")
@@ -242,9 +242,9 @@ def test_text_for_a_number_or_a_flag_is_refused_before_any_work(tmp_path: Path, 
     reached a plug-in's arithmetic inside the first trial and printed a traceback."""
     with pytest.raises(ParameterError) as e:
         estimator_params(None, ["beam_pf"], ["sensor_model__temper=abc"])
-    assert str(e.value) == ("--param sensor_model__temper: sensor model 'beam' of estimator 'beam_pf''s parameter 'temper': "
+    assert str(e.value) == ("--param sensor_model__temper: parameter 'temper' of sensor model 'beam' of estimator 'beam_pf': "
                             "expected a number (float), found the text 'abc' (see `tofloc list --params beam`)")
-    with pytest.raises(ParameterError, match=r"^--param n_particles: estimator 'beam_pf''s parameter 'n_particles': "
+    with pytest.raises(ParameterError, match=r"^--param n_particles: parameter 'n_particles' of estimator 'beam_pf': "
                                              r"expected an integer \(int\), found the text '1e3x'"):
         estimator_params(None, ["beam_pf"], ["n_particles=1e3x"])
     # numbers, and text where text is taken, pass as before

@@ -342,8 +342,9 @@ def test_pool_fallbacks() -> None:
     # was accepted because the fingerprint covers the log's data, not the split
     shifted = copy.copy(kin)
     object.__setattr__(shifted, "train_indices", (kin.train_indices + 1) % 40)
-    with pytest.raises(ProblemError, match=r"training pressures are not the log's /samples/pressure_kpa rows at its "
-                                           r"train_indices"):
+    with pytest.raises(ProblemError, match=r"training pressures and tip positions are not the log's "
+                                           r"/samples/pressure_kpa and /samples/T_base_tip rows at its train_indices "
+                                           r"\(training sample 0: log row \d+\)"):
         sample_pool(log, shifted, k_max=2)
     assert sample_pool(log, copy.copy(kin), k_max=2).source == "validation"  # the true split still passes
 

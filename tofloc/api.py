@@ -178,6 +178,14 @@ class NoteList(Reporter):
 _SILENT = Reporter()
 
 
+def _check_calibration_places(places: Any) -> None:
+    """``calibration_places`` (``--calibration-places``): an integer from 1 to the places
+    :data:`evaluation.paper_data.CALIBRATION_BASE_OFFSETS` defines, refused before any work."""
+    from evaluation.paper_data import CALIBRATION_BASE_OFFSETS
+
+    check_int("calibration_places (--calibration-places)", places, 1, len(CALIBRATION_BASE_OFFSETS))
+
+
 def resolve_workers(workers: int | None, n_tasks: int) -> int:
     """The number of local worker processes a run uses.
 
@@ -1107,6 +1115,7 @@ def paper(
 
     check_scheduler(scheduler)
     resolve_workers(workers, 1)  # refused before any work (it failed after simulating)
+    _check_calibration_places(calibration_places)
     if not names or len(set(names)) != len(names):
         raise ParameterError(f"estimators must be distinct registered names, got {names!r}")
     if not _is_int(trials) or not 1 <= trials <= MAX_TRIALS:
@@ -1407,6 +1416,7 @@ def scenes(
 
     check_scheduler(scheduler)
     resolve_workers(workers, 1)
+    _check_calibration_places(calibration_places)
     check_selection(selection, selection_params)
     from tofloc.selection import changed_policy_params
 

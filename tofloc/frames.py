@@ -17,6 +17,7 @@ FloatArray = NDArray[np.float64]
 
 __all__ = [
     "wrap_angle",
+    "wrap_deg",
     "planar_difference",
     "rot_z",
     "se3",
@@ -82,6 +83,16 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
     w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
     # mod maps +pi to -pi; the documented interval is (-pi, pi]
     return np.where(w <= -np.pi, w + 2.0 * np.pi, w)
+
+
+def wrap_deg(a: ArrayLike) -> FloatArray:
+    """Wrap angles (deg) into ``(-180, 180]``; angles already there are returned unchanged,
+    bit for bit (:func:`wrap_angle` in degrees: a round trip through radians would move them
+    by rounding)."""
+    a = np.asarray(a, dtype=float)
+    w = np.mod(a + 180.0, 360.0) - 180.0
+    w = np.where(w <= -180.0, w + 360.0, w)
+    return np.where((a > -180.0) & (a <= 180.0), a, w)
 
 
 def planar_difference(a: ArrayLike, b: ArrayLike) -> FloatArray:

@@ -25,12 +25,16 @@ from tofloc.npy_input import NPY_HEADER_ERRORS, UnsupportedNpyVersion, read_npy_
 if TYPE_CHECKING:
     from tofloc.maps import Map
 
-__all__ = ["READERS", "ply_bytes", "npy_bytes", "cad_mesh_beside"]
+__all__ = ["READERS", "TOFLOC_PLY_COMMENT", "ply_bytes", "npy_bytes", "cad_mesh_beside"]
 
 
 # --------------------------------------------------------------------------------------
 # Writers
 # --------------------------------------------------------------------------------------
+#: The header comment of every PLY file tofloc writes (``tofloc simulate`` replaces only such maps).
+TOFLOC_PLY_COMMENT = "comment written by tofloc"
+
+
 def cad_mesh_beside(map_path: str | Path) -> Path | None:
     """The CAD mesh ``<stem>.cad.ply`` the simulator writes beside a ``<stem>.map.ply`` (the
     mesh calibration prefers, and an output must not replace), whether or not it exists;
@@ -41,7 +45,7 @@ def cad_mesh_beside(map_path: str | Path) -> Path | None:
 
 def ply_bytes(m: "Map") -> bytes:
     n = m.points.shape[0]
-    head = ["ply", "format binary_little_endian 1.0", "comment written by tofloc"]
+    head = ["ply", "format binary_little_endian 1.0", TOFLOC_PLY_COMMENT]
     head += [f"element vertex {n}", "property double x", "property double y", "property double z"]
     tris = m.triangles()
     if tris is None:

@@ -240,7 +240,7 @@ def check_parameter_names(cls: type, params: Mapping[str, Any], *, kind: str, na
             given = source(_path + (key,)) if source else None
             what = {"float": "a number", "int": "an integer", "bool": "true or false"}[expected]
             see = _see(kind, name)
-            raise ParameterError(f"{given + ': ' if given else ''}{owner}'s parameter {key!r}: expected {what} ({expected}), "
+            raise ParameterError(f"{given + ': ' if given else ''}parameter {key!r} of {owner}: expected {what} ({expected}), "
                                  f"found the text {value[:40]!r}" + (f" (see `{see}`)" if see else ""))
     for key, value in params.items():
         if not (key.endswith(NESTED_SUFFIX) and isinstance(value, Mapping) and value):

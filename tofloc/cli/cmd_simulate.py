@@ -14,16 +14,13 @@ from tofloc.cli.app import app, console, status
 from tofloc.errors import ParameterError
 
 
-#: The header comment of every PLY file tofloc writes (:mod:`tofloc.map_files`).
-_TOFLOC_PLY_COMMENT = b"\ncomment written by tofloc\n"
-
-
 def _earlier_output(path: Path, log: bool) -> bool:
     """Whether ``path`` is what ``simulate`` writes there: a tofloc log whose ``source`` is a
     simulation's, a PLY map tofloc wrote. Replacing an earlier simulation is the usual rerun;
     replacing anything else (a calibration named by mistake, a recording, an imported flight,
     a hand-made map: found by bad-input audits) needs ``--force``."""
     from tofloc.logs import FORMAT_NAME, root_text_attribute
+    from tofloc.map_files import TOFLOC_PLY_COMMENT
 
     if log:
         return (root_text_attribute(path, "format") == FORMAT_NAME
@@ -33,7 +30,7 @@ def _earlier_output(path: Path, log: bool) -> bool:
             head = fh.read(256)
     except OSError:
         return False
-    return head.startswith(b"ply\n") and _TOFLOC_PLY_COMMENT in head.split(b"end_header", 1)[0]
+    return head.startswith(b"ply\n") and f"\n{TOFLOC_PLY_COMMENT}\n".encode() in head.split(b"end_header", 1)[0]
 
 
 @app.command()
