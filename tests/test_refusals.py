@@ -136,3 +136,32 @@ def test_problem_refuses_sample_indices_that_are_not_one_per_sample() -> None:
     for bad in (np.arange(K + 1), np.arange(K - 1), np.linspace(0, 1, K)):
         with pytest.raises(ProblemError, match=rf"sample_indices must be \({K},\) integers"):
             dataclasses.replace(p, sample_indices=bad)
+
+
+def test_units_note_names_a_map_in_millimetres() -> None:
+    from tofloc.map_validation import UNITS_EXTENT_FACTOR, units_note
+
+    assert units_note([-0.35, -0.35, 0.0], [0.35, 0.35, 0.6], 4.0, "m.ply") is None  # the paper's box in metres
+    assert units_note([0.0, 0.0, 0.0], [390.0, 10.0, 3.0], 4.0, "hall.ply") is None  # a 390 m hall: below 100 x 4 m
+    msg = units_note([-350.0, -350.0, 0.0], [350.0, 350.0, 600.0], 4.0, "mm.ply")
+    assert msg is not None and "\n" not in msg
+    assert "mm.ply" in msg and "700 m across" in msg and "175 times" in msg and "0.001" in msg
+    edge = UNITS_EXTENT_FACTOR * 4.0
+    assert units_note([0, 0, 0], [edge, 1, 1], 4.0, "e") is None and units_note([0, 0, 0], [edge * 1.01, 1, 1], 4.0, "e")
+
+
+def test_cli_localize_notes_a_map_in_millimetres(paper, tmp_path: Path, capsys) -> None:
+    from tofloc.logs import write_log
+    from tofloc.maps import Map
+
+    sim, _ = paper
+    path = write_log(sim.log, tmp_path / "log.h5")
+    args = ["localize", str(path), "--estimator", "icp_pf", "--samples", "2", "--trials", "1",
+            "--param", "n_particles=20", "--workers", "1", "--map"]
+    sim.map_cloud.save(tmp_path / "m.ply")
+    assert main(args + [str(tmp_path / "m.ply")]) == 0
+    assert "millimetres" not in capsys.readouterr().err  # the map in metres: no note
+    Map.from_points(sim.map_cloud.points * 1000.0, source="mm").save(tmp_path / "mm.ply")
+    assert main(args + [str(tmp_path / "mm.ply")]) == 0  # a note, not a refusal
+    err = capsys.readouterr().err
+    assert f"map {tmp_path / 'mm.ply'} is " in err and "if this one is in millimetres, scale it by 0.001" in err

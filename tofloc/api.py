@@ -734,6 +734,13 @@ def localize_prior(
     return PriorSpec(mode, sigma_xy, sigma_yaw_deg)
 
 
+def _units_note(the_map: Any, rig: Any, name: str) -> str | None:
+    """:func:`tofloc.map_validation.units_note` of a map against a rig's longest sensor range."""
+    from tofloc.map_validation import units_note
+
+    return units_note(*the_map.bounds(), float(max(rig.max_range_m)), name)
+
+
 def _map_tolerance(value: Any) -> float:
     """A declared map tolerance (m) checked (:func:`tofloc.problem.is_map_tolerance`)."""
     from tofloc.problem import is_map_tolerance
@@ -898,6 +905,9 @@ def localize(
         kin.check_actuators(lg.rig.actuators, str(lg.path))
     from tofloc.mounting_faces import mismatch_note
 
+    units = _units_note(the_map, lg.rig, str(map_path))
+    if units is not None:
+        reporter.note(units)
     faces_note = mismatch_note(cal, the_map, map_tolerance_m)
     if faces_note is not None:
         reporter.note(faces_note)
@@ -1813,6 +1823,9 @@ def evaluate(
                            on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
     for why in (set_aside or {}).values():
         reporter.note(f"set aside: {why}")  # the reason names the log
+    for message in dict.fromkeys(filter(None, (_units_note(en.context.map, en.context.log.rig, str(en.map_path))
+                                              for en in entries))):
+        reporter.note(message)
     if prior.mode == "global" and prior.region is not None:  # a region that leaves a log's base out: before any trial
         for en in entries:
             prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))

@@ -16,7 +16,8 @@ from numpy.typing import ArrayLike, NDArray
 from tofloc.errors import FormatError, ParameterError
 
 __all__ = ["MAX_POINTS", "MAX_TRIANGLES", "MAX_COORDINATE_M", "MAX_FILE_BYTES", "MAX_HEADER_BYTES", "Fail", "param_fail", "file_fail",
-           "readonly", "check_xyz", "check_normals", "check_triangles", "as_query", "check_rng", "check_box"]
+           "readonly", "check_xyz", "check_normals", "check_triangles", "as_query", "check_rng", "check_box",
+           "UNITS_EXTENT_FACTOR", "units_note"]
 
 #: Largest number of points (or mesh vertices) a map may have.
 MAX_POINTS = 5_000_000
@@ -30,6 +31,10 @@ MAX_HEADER_BYTES = 1 << 16
 #: 10 km is 1 mm (a map far from its origin, or with a stray point at 1e30, is refused
 #: rather than cast at centimetres' precision or sized into a grid it cannot hold).
 MAX_COORDINATE_M = 10_000.0
+
+#: A map whose bounding box is more than this many times the sensors' longest range across
+#: is probably not in metres (:func:`units_note`).
+UNITS_EXTENT_FACTOR = 100.0
 
 class Fail(Protocol):
     """Builds the exception for a broken input: ``fail(where, expected, found=None)``."""
@@ -142,3 +147,21 @@ def check_box(lo: ArrayLike, hi: ArrayLike) -> tuple[NDArray[np.float64], NDArra
     if np.isnan(lo_a).any() or np.isnan(hi_a).any() or (lo_a > hi_a).any():
         raise ParameterError(f"crop: expected lo <= hi (no NaN), found lo={lo_a.tolist()} hi={hi_a.tolist()}")
     return lo_a, hi_a
+
+
+def units_note(lo: ArrayLike, hi: ArrayLike, max_range_m: float, map_name: str) -> str | None:
+    """A note when a map looks as if it were not in metres, else None.
+
+    A room mapped in millimetres is 1000x too large: every zone then misfits and the
+    estimators answer "unobservable" rather than naming the cause. A map whose bounding box
+    ``lo``..``hi`` (m) is more than :data:`UNITS_EXTENT_FACTOR` times the sensors' longest
+    range ``max_range_m`` across (400 m for the VL53L5CX's 4 m) is named, with its size and
+    the scale that would turn millimetres into metres. A note, not a refusal: a map that
+    large in metres is possible, only unlikely for sensors of this range.
+    """
+    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    across = float(np.max(extent)) if extent.size else 0.0
+    if not max_range_m > 0 or not across > UNITS_EXTENT_FACTOR * max_range_m:
+        return None
+    return (f"map {map_name} is {across:.4g} m across, {across / max_range_m:.0f} times the sensors' range "
+            f"({max_range_m:g} m): tofloc reads maps in metres; if this one is in millimetres, scale it by 0.001")

@@ -111,7 +111,8 @@ def run_live(
             cal.check_rig(rig)  # before the port opens and the journal starts
         except ParameterError as e:
             raise ParameterError(f"--calibration {calibration}: {e}") from None
-    for message in api.footprint_mismatches({estimator: est}, cal):
+    units = api._units_note(the_map, rig, str(map_path))
+    for message in api.footprint_mismatches({estimator: est}, cal) + ([units] if units else []):
         err_console.print(f"[yellow]{escape(message)}[/]", highlight=False, markup=True)
     prior = Prior(
         np.array([prior_x, prior_y, math.radians(float(prior_yaw_deg))]),  # type: ignore[arg-type]
