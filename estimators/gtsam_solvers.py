@@ -33,7 +33,7 @@ from tofloc.zone_caster import ZoneCaster, model_caster
 if TYPE_CHECKING:
     from estimators.gtsam_smoother import GTSAMSmoother
 
-__all__ = ["SmootherGraph", "base_change", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M", "FIXED_BASE_SIGMA"]
+__all__ = ["SmootherGraph", "base_change", "prior_noise", "is_indeterminate", "D_FIXED_SIGMA_RAD", "D_FIXED_SIGMA_M", "FIXED_BASE_SIGMA"]
 
 FloatArray = NDArray[np.float64]
 #: A round that moves the base by less than this (m, rad) ends the association loop even if
@@ -62,6 +62,25 @@ def is_indeterminate(e: BaseException) -> bool:
 #: 1 cm and 1 deg, 5 % with these (docs/gtsam-smoother.md).
 MERGE_M = 0.003
 MERGE_RAD = math.radians(0.3)
+
+
+def prior_noise(mean: FloatArray, sigma: FloatArray) -> Any:
+    """The noise model of the base's prior factor: the prior's sigmas are in the map frame
+    (x, y, yaw), as every other estimator and the fit check read them, while a
+    ``PriorFactorPose2`` whitens its error in the prior mean's own frame. Equal x and y
+    sigmas are the same in both (a diagonal model, as always); unequal ones are rotated
+    into the mean's frame, ``R^T diag(sx^2, sy^2) R`` with ``R`` the mean's yaw."""
+    import gtsam
+
+    sigma = np.asarray(sigma, dtype=float)
+    if sigma[0] == sigma[1]:
+        return gtsam.noiseModel.Diagonal.Sigmas(sigma)
+    c, s = math.cos(float(mean[2])), math.sin(float(mean[2]))
+    R = np.array([[c, -s], [s, c]])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = R.T @ np.diag(sigma[:2] ** 2) @ R
+    cov[2, 2] = sigma[2] ** 2
+    return gtsam.noiseModel.Gaussian.Covariance(cov)
 
 
 def base_change(a: FloatArray, b: FloatArray) -> float:
@@ -139,7 +158,7 @@ class SmootherGraph:
         g = gtsam.NonlinearFactorGraph()
         pr = self.problem.prior
         if not pr.is_global:  # a global prior is uniform: no factor
-            g.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*pr.mean), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(pr.sigma))))
+            g.add(gtsam.PriorFactorPose2(Xk(0), gtsam.Pose2(*pr.mean), prior_noise(pr.mean, pr.sigma)))
         for k in range(self.problem.n_samples):
             g.add(gtsam.PriorFactorPose3(Ck(k), gtsam.Pose3(np.asarray(self.problem.T_base_tip[k])), self.config_noise(k)))
         if self.use_rig:

@@ -314,6 +314,13 @@ def zone_weights(
     w : ndarray (..., S, Z)
         ``1 / (sigma^2 + extra)`` where used, 0 elsewhere.
     Jz : ndarray (..., S, Z, 3)
+        The Jacobians of the expected *readings*: a zone reads ``d + b0 + b1 d``
+        (:meth:`tofloc.range_model.RangeUncertainty.bias_coefficients`), so its reading
+        moves ``1 + b1`` times as far as its distance (the bound ignored ``b1`` before
+        7 December 2026: 2 % too wide with the paper's ``b1 = 0.02``). That sigma grows
+        with the distance is information too (``2 (dsigma/dd)^2 / sigma^2`` per zone and
+        direction); it is left out: ``2 a^2``, 0.3 % of a zone's information at the
+        VL53L5CX's 4 % slope ``a``.
     """
     unc = uncertainty or RangeUncertainty()
     use = np.isfinite(r) & np.all(np.isfinite(J), axis=-1)
@@ -325,7 +332,8 @@ def zone_weights(
     sigma = unc.sigma(rig, np.where(use, r, 1.0))
     var = sigma**2 if extra_variance is None else sigma**2 + np.nan_to_num(np.asarray(extra_variance, dtype=float))
     w = np.where(use, 1.0 / var, 0.0)
-    Jz = np.where(use[..., None], J, 0.0)
+    scale = 1.0 + unc.bias_coefficients(rig)[1]  # (S, Z): d(reading)/d(distance)
+    Jz = np.where(use[..., None], J * scale[..., None], 0.0)
     return use, w, Jz
 
 

@@ -37,21 +37,22 @@ def base_pose_parts(T_map_base: ArrayLike) -> tuple[Any, Any, Any, Any]:
     """
     T = np.asarray(T_map_base, dtype=float)
     R = T[..., :3, :3].reshape(-1, 3, 3)
-    # se3_from_xyyaw composes Rz(yaw) with a fixed tilt; take the Euler order that rebuilds it
-    best = None
-    for seq, order in (("ZXY", (0, 1, 2)), ("ZYX", (0, 2, 1))):
+    # se3_from_xyyaw composes Rz(yaw) @ Ry(pitch) @ Rx(roll), which "ZYX" inverts (but at
+    # pitch = +-90 deg); "ZXY" is kept for every matrix it rebuilds exactly (a level pose or
+    # one tilted about one axis: the values every earlier run used) and "ZYX" for the rest,
+    # chosen per matrix, not for a stack from its first poses.
+    def angles(seq: str, order: tuple[int, int, int]) -> tuple[Any, Any, Any]:
         ang = Rotation.from_matrix(R).as_euler(seq)
-        yaw, roll, pitch = ang[:, order[0]], ang[:, order[1]], ang[:, order[2]]
-        ok = all(
-            np.allclose(frames.se3_from_xyyaw(0.0, 0.0, yaw[i], 0.0, float(roll[i]), float(pitch[i]))[:3, :3], R[i], atol=1e-9)
-            for i in range(min(len(R), 3))
-        )
-        if ok or best is None:
-            best = (yaw, roll, pitch)
-        if ok:
-            break
-    assert best is not None
-    yaw, roll, pitch = best
+        return ang[:, order[0]], ang[:, order[1]], ang[:, order[2]]
+
+    def rebuilds(yaw: Any, roll: Any, pitch: Any) -> Any:
+        Rb = np.einsum("nij,njk->nik", frames.rot_z(yaw),
+                       Rotation.from_euler("YX", np.column_stack([pitch, roll])).as_matrix())
+        return np.all(np.abs(Rb - R) <= 1e-9, axis=(1, 2))
+
+    zxy, zyx = angles("ZXY", (0, 1, 2)), angles("ZYX", (0, 2, 1))
+    use_zxy = rebuilds(*zxy)
+    yaw, roll, pitch = (np.where(use_zxy, a, b) for a, b in zip(zxy, zyx))
     lead = T.shape[:-2]
     xyyaw = np.stack([T[..., 0, 3], T[..., 1, 3], frames.wrap_angle(yaw.reshape(lead))], axis=-1)
     z, roll, pitch = T[..., 2, 3], roll.reshape(lead), pitch.reshape(lead)

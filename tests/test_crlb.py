@@ -104,6 +104,30 @@ def test_two_walls_match_the_hand_computation() -> None:
     assert math.isinf(crlb(np.eye(4), np.eye(4)[None], rig, m, FLAT, valid).position_m)
 
 
+def test_a_bias_slope_scales_the_readings_jacobian() -> None:
+    """A zone reads ``d + b0 + b1 d``: its reading moves ``1 + b1`` times its distance, so the
+    information is ``(1 + b1)^2`` times that of the distance (b1 was ignored before 7
+    December 2026); b0 and a zone's own offset move nothing; edge zones their own slope."""
+    import dataclasses
+
+    wa, wb = 0.5, 0.7
+    rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
+    m = _mesh(wall_square(0, wa), wall_square(1, wb))
+    base = crlb(np.eye(4), np.eye(4)[None], rig, m, FLAT).information
+    sloped = dataclasses.replace(FLAT, bias_offset=0.01, bias_slope=0.05, edge_bias_slope=0.05)
+    np.testing.assert_allclose(crlb(np.eye(4), np.eye(4)[None], rig, m, sloped).information, 1.05**2 * base, rtol=1e-9, atol=1e-6)
+    # an edge zone of its own slope: only its rows scale by (1 + its slope)
+    from tofloc.rig import edge_zone_mask
+
+    edge = edge_zone_mask(rig)
+    r, J = zone_jacobians(np.eye(4), np.eye(4)[None], rig, m)
+    mixed = dataclasses.replace(FLAT, bias_slope=0.05, edge_bias_slope=-0.1)
+    scale = np.where(edge, 0.9, 1.05)[None, ..., None]
+    Js = np.where(np.isfinite(J), J * scale, 0.0)
+    np.testing.assert_allclose(crlb(np.eye(4), np.eye(4)[None], rig, m, mixed).information,
+                               np.einsum("kszi,kszj->ij", Js, Js) / SIGMA**2, rtol=1e-9, atol=1e-6)
+
+
 def test_analytic_and_numeric_jacobians_agree_on_the_cuboid() -> None:
     """The paper's rig at a tilted, turned base pose in the open cuboid: the central-difference
     Jacobian of the ray cast matches the map-normal formula on every zone away from an edge."""

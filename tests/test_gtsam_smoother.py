@@ -761,3 +761,22 @@ def test_a_base_crossing_pi_by_a_hair_has_barely_moved() -> None:
 
     assert base_change(a, b) == pytest.approx(2e-9, abs=1e-12)
     assert base_change(np.array([0.0, 0.0, 0.0]), np.array([0.0, 3e-6, 0.0])) == 3e-6
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 90.0, -135.0])
+def test_prior_factor_reads_its_sigmas_in_the_map_frame(yaw_deg: float) -> None:
+    """The prior's (x, y, yaw) sigmas are map-frame sigmas everywhere (particle filters,
+    the fit check); the smoother's PriorFactorPose2 whitens in the mean's own frame, so
+    unequal x and y sigmas are rotated into it: a pose one sigma_x off along the map's x
+    costs chi2 1, whatever the mean's yaw (it cost 0.01 at 90 deg with sigma_y = 10 sigma_x)."""
+    from estimators.gtsam_solvers import prior_noise
+
+    mean = np.array([0.3, -0.2, math.radians(yaw_deg)])
+    sigma = np.array([0.01, 0.1, 0.1])
+    for offset, chi2 in (([0.01, 0.0, 0.0], 1.0), ([0.0, 0.1, 0.0], 1.0), ([0.0, 0.0, 0.1], 1.0), ([0.01, 0.1, 0.0], 2.0)):
+        factor = gtsam.PriorFactorPose2(0, gtsam.Pose2(*mean), prior_noise(mean, sigma))
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*(mean + np.array(offset))))
+        assert 2.0 * factor.error(values) == pytest.approx(chi2, rel=1e-9)
+    equal = prior_noise(mean, np.array([0.2, 0.2, 0.3]))  # the CLI's priors: the diagonal model, as before
+    assert isinstance(equal, gtsam.noiseModel.Diagonal) and np.allclose(equal.sigmas(), [0.2, 0.2, 0.3])
