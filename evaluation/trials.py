@@ -198,9 +198,23 @@ def sample_pool(
     if log.T_base_tip is not None:
         usable &= np.all(np.isfinite(np.asarray(log.T_base_tip)), axis=(1, 2))
         needs.append(_known_configuration(log))
+    far_note = ""
     if kinematics is not None and log.pressure_kpa is not None:
-        usable &= np.all(np.isfinite(np.asarray(log.pressure_kpa)), axis=1)
+        P = np.asarray(log.pressure_kpa, dtype=np.float64)
+        finite = np.all(np.isfinite(P), axis=1)
+        usable &= finite
         needs.append("finite pressures")
+        if P.ndim == 2 and P.shape[1] == kinematics.n_actuators:  # another count is refused where the model meets the log
+            # pressures the model cannot serve (it would answer its nearest trained posture) are
+            # left out of the pool for both tip sources, rather than refused in a trial that draws them
+            far = np.zeros(P.shape[0], dtype=bool)
+            far[finite] = kinematics.outside_training_range(P[finite])
+            n_far = int(np.count_nonzero(far & usable))
+            usable &= ~far
+            needs.append("pressures within the k-NN model's training range")
+            if n_far:
+                far_note = (f"; {n_far} sample(s) left out, their pressures beyond the k-NN model's training range "
+                            f"({kinematics.describe_training_range()})")
     all_rows = np.flatnonzero(usable).astype(np.intp)
     what = ", ".join(needs)
     if all_rows.size < k_max:
@@ -215,7 +229,7 @@ def sample_pool(
     if not fits_log:
         return SamplePool(
             all_rows, "all", f"all {all_rows.size} usable samples (with {what}): the kinematics model was fit on another log, "
-            "so every sample of this one is held out"
+            f"so every sample of this one is held out{far_note}"
         )
     for split in ("train_indices", "validation_indices"):  # the model says it was fit on this log: its rows must exist
         rows = np.asarray(getattr(kinematics, split), dtype=np.intp)
@@ -239,11 +253,12 @@ def sample_pool(
     if val.size < k_max:
         return SamplePool(
             all_rows, "all", f"all {all_rows.size} usable samples (with {what}): the k-NN model's held-out split has only "
-            f"{val.size} usable samples, fewer than the {k_max} a trial draws (some samples also trained the model)"
+            f"{val.size} usable samples, fewer than the {k_max} a trial draws (some samples also trained the model){far_note}"
         )
     return SamplePool(
         val.astype(np.intp), "validation",
-        f"the k-NN model's held-out validation split: {val.size} usable samples (with {what}), the same for both tip sources",
+        f"the k-NN model's held-out validation split: {val.size} usable samples (with {what}), the same for both tip "
+        f"sources{far_note}",
     )
 
 

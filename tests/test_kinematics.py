@@ -193,6 +193,28 @@ def test_pressures_beyond_the_training_range_are_refused(data: dict[str, Any]) -
     problem_from_log(log, np.arange(2), box, prior, "knn", kinematics=model)  # within the range: served
 
 
+def test_sample_pool_leaves_out_pressures_beyond_the_training_range(data: dict[str, Any]) -> None:
+    """A model fit on another log: samples whose pressures it cannot serve are left out of
+    the pool (for both tip sources) with a note, instead of refusing the first trial that
+    draws one; none left, the pool is refused naming the need."""
+    from evaluation.trials import sample_pool
+    from tofloc.problem import ProblemError
+
+    model = data["model"]
+    lo, hi = model.training_range()
+    rig = Rig((Sensor("s0", resolution=(4, 4)),), actuators=ACTUATORS)
+    press = np.stack([data["P"][5], hi * 1000.0, data["P"][6], lo - 0.5 * (hi - lo)])
+    K = len(press)
+    log = Log.from_arrays(rig, np.arange(K, dtype=float), np.full((K, 1, 16), 500.0), np.full((K, 1, 16), 5, np.uint8),
+                          pressure_kpa=press)
+    pool = sample_pool(log, model, 2)
+    assert pool.indices.tolist() == [0, 2] and pool.source == "all"
+    assert "2 sample(s) left out, their pressures beyond the k-NN model's training range (chamber1 0..18" in pool.note
+    assert sample_pool(log, None, 2).indices.tolist() == [0, 1, 2, 3]  # no model: nothing to serve, nothing left out
+    with pytest.raises(ProblemError, match="pressures within the k-NN model's training range"):
+        sample_pool(log, model, 3)
+
+
 def test_chordal_projection() -> None:
     R = frames.matrix_from_rotvec(np.array([[0.0, 0.0, 0.4], [0.0, 0.0, -0.2]]))
     np.testing.assert_allclose(chordal_mean_projection(R.mean(axis=0)), frames.rot_z(0.1), atol=1e-12)
