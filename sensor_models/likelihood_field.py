@@ -347,13 +347,21 @@ class BoundLikelihoodField(BoundSensorModel):
         5-6 mm in the L-shaped room, whose bound is 3 mm). The beam model takes sigma at its
         ray cast. Its ``-log sigma`` is part of the density, so the model stays a
         likelihood of the state. The configuration's variance of the distance along the
-        normal is one of the range over ``cos_in^2``."""
+        normal is one of the range over ``cos_in^2``.
+
+        ``r`` is a length along the ray and the range model's sigma one of the reported
+        distance, which is ``1 / range_factor`` of it (perpendicular distances): the sigma
+        is taken along the ray, ``range_factor`` times the range model's, as the beam model
+        (in reading units throughout) and the smoother (``sigma_L``) read it. Before
+        7 December 2026 it was not: off-axis zones counted up to 1.12x too many sigmas (the
+        8 x 8's corners; 1.06x the nano-swarm's outer columns)."""
+        rf = self.range_factor[step][None, :]
         if self.problem.range_model.use_reported_sigma:
-            sig = self.sigma[step][None, :]
+            sig = self.sigma[step][None, :] * rf
         else:
             z = self.z_true[step][None, :]
-            z_exp = np.maximum(z + r / self.range_factor[step][None, :], 0.5 * z)
-            sig = self.problem.range_model.sigma_of_zones(self.problem.rig, z_exp, self.zone_index[step][None, :])
+            z_exp = np.maximum(z + r / rf, 0.5 * z)
+            sig = self.problem.range_model.sigma_of_zones(self.problem.rig, z_exp, self.zone_index[step][None, :]) * rf
         v_cfg = self.configuration_variance(states, step)
         if v_cfg is not None:
             sig = np.sqrt(sig**2 + v_cfg[None, :] / cos_in**2)

