@@ -130,10 +130,37 @@ def _packages_distributions() -> Mapping[str, list[str]]:
     return metadata.packages_distributions()
 
 
+#: The most Python files of one plug-in package hashed into :func:`code_fingerprint`; a
+#: package with more counts by the modules defining its objects and its version alone.
+MAX_PACKAGE_SOURCES = 2000
+
+
+def _package_sources(top: str) -> list[Any]:
+    """The ``.py`` files of the top-level package ``top`` (a plug-in's, already imported),
+    or none: not a package, the toolkit's own (hashed anyway), or more than
+    :data:`MAX_PACKAGE_SOURCES` files."""
+    import sys
+    from pathlib import Path
+
+    mod = sys.modules.get(top)
+    if not top or top in ("tofloc", "estimators", "sensor_models", "evaluation", "builtins") or mod is None:
+        return []
+    found: list[Path] = []
+    for base in getattr(mod, "__path__", []) or []:
+        for f in Path(base).rglob("*.py"):
+            found.append(f)
+            if len(found) > MAX_PACKAGE_SOURCES:
+                return []
+    return found
+
+
 def code_fingerprint(*objects: Any) -> str:
     """SHA-256 (16 hex digits) of the toolkit's Python sources, of the modules defining
     ``objects`` (e.g. :func:`plugin_objects`: a plug-in estimator and the sensor model it
-    resolves) and of the installed versions of the distributions providing them.
+    resolves) and every module of their top-level packages (a plug-in's helper module,
+    :func:`_package_sources`; until 7 December 2026 only the defining modules, so an edited
+    helper left old batches in use), and of the installed versions of the distributions
+    providing them.
 
     Saved partial results carry it, so that editing an estimator, a sensor model (a
     plug-in's too) or the protocol invalidates them instead of silently mixing old and
@@ -163,6 +190,7 @@ def code_fingerprint(*objects: Any) -> str:
         except (TypeError, OSError):
             pass
         top = (getattr(obj, "__module__", "") or "").split(".")[0]
+        files.update(_package_sources(top))  # a plug-in's helper modules make its numbers too
         for dist in top_to_dists.get(top, []):
             try:
                 dists.add(f"{dist}=={metadata.version(dist)}")

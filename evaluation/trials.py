@@ -56,6 +56,7 @@ on another log.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -340,6 +341,16 @@ def make_estimator(cls: type, params: Mapping[str, Any], name: str = "") -> Esti
     est = build_plugin(cls, params, kind="estimator", name=label)
     if not isinstance(est, Estimator):
         raise ParameterError(f"estimator {label!r} does not follow tofloc.problem.Estimator")
+    if isinstance(params, Mapping) and params:
+        # a parameter get_params() does not read back (a class that is not a dataclass, an
+        # InitVar, a constructor of its own) is kept on the estimator, so that it is recorded
+        # (config.toml, results.json) and keys saved results like the others: a plug-in
+        # author's walkthrough found one used but dropped, and a rerun with another value
+        # reused the saved batch
+        recorded = est.get_params()
+        extra = {k: v for k, v in params.items() if k not in recorded}
+        if extra:
+            est.record_params(extra)
     return est
 
 

@@ -130,6 +130,16 @@ def test_names_come_from_the_constructor_a_plugin_really_has() -> None:
     assert isinstance(make_estimator(Budgeted, {"budget": 5}), Budgeted)
     with pytest.raises(UnknownParameterError, match="did you mean 'scale'"):
         make_estimator(ScaledPF, {"scal": 2.0})
+    # what get_params() cannot read back from the instance is kept, so that it is recorded
+    # and keys saved results (it was dropped: a rerun with another value reused old batches)
+    assert make_estimator(ScaledPF, {"scale": 2.0}).get_params()["scale"] == 2.0
+    budgeted = make_estimator(Budgeted, {"budget": 5, "n_particles": 50})
+    assert budgeted.get_params()["budget"] == 5 and budgeted.get_params()["n_particles"] == 50
+    assert make_estimator(Budgeted, {"budget": 7}).get_params()["budget"] == 7
+    assert "budget" not in make_estimator(Budgeted, {}).get_params()  # nothing given, nothing kept
+    from tofloc.api import changed_params
+
+    assert changed_params(budgeted) == {"budget": 5, "n_particles": 50}
 
 
 def _config_refusal(cfg: Path, text: str, name: str, error: type[Exception] = ParameterError) -> str:

@@ -441,3 +441,32 @@ def test_a_policys_parameters_are_in_the_saved_batches_key(tmp_path) -> None:
         assert reused == [False, False, True]
     finally:
         SELECTION_POLICIES.unregister(Ordered.name)
+
+
+def test_editing_a_plugin_packages_helper_module_changes_the_code_key(tmp_path, monkeypatch) -> None:
+    """A plug-in's numbers come from its whole package: an edited helper module (constants
+    the estimator imports) gives another key, so its saved batches are recomputed (a
+    plug-in author's walkthrough found old batches reused after such an edit)."""
+    import importlib
+    import sys
+
+    from evaluation.result_cache import code_fingerprint, plugin_objects
+
+    pkg = tmp_path / "tofloc_test_plugin_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "consts.py").write_text("SCALE = 1.0\n")
+    (pkg / "est.py").write_text(
+        "from dataclasses import dataclass\nfrom tofloc.problem import Estimator\nfrom .consts import SCALE\n\n"
+        "@dataclass\nclass Helped(Estimator):\n    name = 'helped'\n\n"
+        "    def _estimate(self, problem, rng):\n        raise NotImplementedError\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        mod = importlib.import_module("tofloc_test_plugin_pkg.est")
+        before = code_fingerprint(*plugin_objects(mod.Helped()))
+        assert code_fingerprint(*plugin_objects(mod.Helped())) == before  # the same files: the same key
+        (pkg / "consts.py").write_text("SCALE = 3.0\n")
+        assert code_fingerprint(*plugin_objects(mod.Helped())) != before
+    finally:
+        for name in [m for m in sys.modules if m.startswith("tofloc_test_plugin_pkg")]:
+            sys.modules.pop(name, None)

@@ -458,10 +458,18 @@ class Estimator(ABC):
         return 1
 
     def get_params(self) -> dict[str, Any]:
-        """The parameters, as given to the constructor (JSON-friendly)."""
-        if dataclasses.is_dataclass(self):
-            return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
-        return {}
+        """The parameters, as given to the constructor (JSON-friendly): a dataclass's init
+        fields, and those :meth:`record_params` kept (constructor arguments that are not
+        fields: an ``InitVar``, a class's own ``__init__``, a class that is not a dataclass)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init} if dataclasses.is_dataclass(self) else {}
+        out.update(getattr(self, "_recorded_params", None) or {})
+        return out
+
+    def record_params(self, params: Mapping[str, Any]) -> None:
+        """Keep constructor arguments ``params`` that :meth:`get_params` cannot read back from
+        the instance, so that they are recorded and key saved results
+        (:func:`evaluation.trials.make_estimator` calls it)."""
+        object.__setattr__(self, "_recorded_params", {**(getattr(self, "_recorded_params", None) or {}), **dict(params)})
 
     def prepare(self, problem: Problem) -> None:
         """Build what estimating ``problem`` will reuse and keep per map or per process
