@@ -190,8 +190,11 @@ def oracle_fit(problem: Problem, truth: ArrayLike, *, max_iterations: int = MAX_
     pts, sigma, p_tip, sample = oracle_points(problem, with_tip=True)
     n = pts.shape[0]
     if n < 3:
-        return OracleFit(x0.copy(), 0.0, 0.0, False, 0, n, None, 0,
-                         f"only {n} valid zone(s): too few to fit (x, y, yaw); the truth is reported")
+        # no fit: its errors are undefined (None in JSON), not 0: a floor of zero pulled the
+        # oracle's medians down and every ratio to it up (a statistics review's finding);
+        # like an estimator's undefined error, it counts as a failure
+        return OracleFit(x0.copy(), math.nan, math.nan, False, 0, n, None, 0,
+                         f"only {n} valid zone(s): too few to fit (x, y, yaw); no error is reported")
     the_map = problem.map
     cov = problem.T_base_tip_cov
     known = None if cov is None else np.all(np.isfinite(cov.reshape(cov.shape[0], -1)), axis=1)

@@ -527,6 +527,25 @@ def test_oracle_returns_the_truth_on_noise_free_data(scene: str) -> None:
     assert fit.e_x_m < 1e-3 and fit.e_gamma_deg < 0.05
 
 
+def test_oracle_with_too_few_zones_reports_no_error() -> None:
+    """Fewer than 3 valid zones cannot fit (x, y, yaw): the errors are undefined (None in
+    JSON, left out of the medians, a failure like an estimator's undefined error), not the
+    truth's zero (which pulled the oracle's medians down and every ratio to it up)."""
+    import dataclasses as dc
+
+    from evaluation.evaluate import is_failure
+    from tofloc.simulation import simulate
+
+    problem, truth = _problem(simulate(_noise_free("paper"), 0))
+    keep = np.zeros_like(problem.valid)
+    keep[0, 0, np.flatnonzero(problem.valid[0, 0])[:2]] = True
+    fit = oracle_fit(dc.replace(problem, status=np.where(keep, problem.status, 255).astype(problem.status.dtype)), truth)
+    assert fit.n_points == 2 and not fit.converged and "too few" in fit.note
+    doc = fit.to_json()
+    assert doc["e_x_m"] is None and doc["e_gamma_deg"] is None
+    assert is_failure(doc)
+
+
 def test_oracle_fits_rather_than_echoing_its_start() -> None:
     """Every configuration moved by the same planar offset D: the data then fit the map at
     T_map_base D^-1, and the oracle goes there from the truth."""
