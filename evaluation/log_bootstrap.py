@@ -362,19 +362,30 @@ def _paired_logs(logs_a: Mapping[str, Mapping[str, Any]], logs_b: Mapping[str, M
     ``drone0-node000``, beside another flight's node of that name ``two/drone0-node000``;
     its seeds come from its file name, docs/evaluation.md "Pairing"). Pairs of labels
     ``(label in A, label in B)``, in A's label order; the same label is preferred, a log of
-    A that matches several of B is left out, and logs without true poses pair by label only."""
+    A that matches several of B is left out, so is a log of B that several of A match (but
+    for A's log of its own label), and logs without true poses pair by label only."""
     ids_b: dict[tuple[str, frozenset[tuple[float, ...]]], list[str]] = {}
     for label in sorted(logs_b):
         ids_b.setdefault((_file_name(label), log_identity(logs_b[label])), []).append(label)
-    out = []
+    matches: dict[str, str] = {}
     for label in sorted(logs_a):  # in label order, as log_bootstrap: the resamples' indices point into it
         lg = logs_a[label]
         found = ids_b.get((_file_name(label), log_identity(lg)), [])
         # without true poses (an empty identity) nothing tells logs of one name apart: the same label only
         match = label if label in found else found[0] if len(found) == 1 and log_identity(lg) else None
-        if match is None:
+        if match is not None:
+            matches[label] = match
+    # one to one: a log of B claimed by several of A (two simulations of one scene, `seed0/paper`
+    # and `seed1/paper`, share a file name and true poses) pairs only with A's log of its own
+    # label, else with none (a statistics review: B's trials were counted once per claimant)
+    claims: dict[str, int] = {}
+    for match in matches.values():
+        claims[match] = claims.get(match, 0) + 1
+    out = []
+    for label, match in matches.items():
+        if claims[match] > 1 and label != match:
             continue
-        other = logs_b[match]
+        lg, other = logs_a[label], logs_b[match]
         if name not in lg["estimators"] or name not in other["estimators"]:
             continue
         sa, sb = _record_seeds(lg, name), _record_seeds(other, name)

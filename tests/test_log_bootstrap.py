@@ -272,6 +272,28 @@ def test_paired_runs_pair_a_log_by_identity_not_label() -> None:
     assert paired_runs({"log0": a["log0"]}, {"two/log9": b["two/log0"]}, ["a"], seed=0)["estimators"]["a"]["logs"] == 0
 
 
+def test_paired_runs_pair_one_to_one() -> None:
+    """Two simulations of one scene (`tofloc paper --out seed0` and `--out seed1`: both
+    `paper.h5`, the same true poses, the same trial seeds) in run A, one of them alone in run
+    B: B's log pairs with at most one of A's (its own label's), not with both (a statistics
+    review: B's trials were counted twice, the second time against the other log)."""
+    import copy
+
+    a = _seeded(_random_logs(np.random.default_rng(5), 4, 3))
+    for part in [a["log0"]["oracle"], *a["log0"]["estimators"].values()]:
+        for r in part["records"]:
+            r["truth"] = [0.0, 1.0, 0.5]
+    twins = {"seed0/paper": copy.deepcopy(a["log0"]), "seed1/paper": copy.deepcopy(a["log0"]), "room": a["log1"]}
+    for r in twins["seed1/paper"]["estimators"]["a"]["records"]:
+        r["e_x_m"] = 0.5  # another log's data: every trial fails
+    alone = {"paper": copy.deepcopy(a["log0"]), "room": copy.deepcopy(a["log1"])}
+    assert paired_runs(twins, alone, ["a"], seed=0)["estimators"]["a"]["logs"] == 1  # room only: paper is ambiguous
+    got = paired_runs(twins, {**alone, "seed1/paper": alone["paper"]}, ["a"], seed=0)["estimators"]["a"]
+    ok_b = sum(not is_failure(r) for r in alone["paper"]["estimators"]["a"]["records"])
+    assert got["logs"] == 2 and got["fixed"] == ok_b >= 1  # seed1/paper pairs with its own label; "paper" with none
+    assert paired_runs(alone, twins, ["a"], seed=0)["estimators"]["a"]["logs"] == 1  # the other way: already refused
+
+
 def test_logs_that_drew_the_same_trials_are_resampled_together() -> None:
     """Logs of one file name from two flights draw their trials from the same seeds (docs/
     evaluation.md "Pairing"), so their errors are not independent: the bootstrap resamples
