@@ -265,7 +265,10 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "",
         f"Each trial: {samples} of the log {selection_words(doc)}, prior `{prior['mode']}` "
         f"({prior_words(prior)}), the log's own configurations "
-        f"({', '.join(sources)}); the same samples and prior for every estimator (paired seeds).",
+        f"({', '.join(sources)}); " + ("the same samples and prior for every estimator (paired seeds)."
+                                         if (doc.get("selection") or "random") == "random" else
+                                         "the same prior for every estimator (paired seeds), the samples each "
+                                         "estimator's policy chose (they differ between estimators)."),
         f"A trial fails when e_x > {fail['e_x_m'] * 1000:.0f} mm or e_gamma > {fail['e_gamma_deg']:.0f} deg. "
         "NEES: 3 for a consistent estimator (chi2(3)); an estimate whose data do not fit the map (the fit check, "
         "tofloc/fit_check.py) has the prior's covariance added to its own (flagged column); the last NEES column "
@@ -291,7 +294,10 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
     lines += [
         "",
         f"Oracle floor: a robust registration of each trial's zones to the map started at the true pose "
-        f"(evaluation/oracle.py); {o['not_converged']} of {o['n']} fits did not converge.",
+        f"(evaluation/oracle.py); {o['not_converged']} of {o['n']} fits did not converge."
+        + ("" if (doc.get("selection") or "random") == "random" else
+           " It fits each trial's random draw of as many samples (the trial seed's), not the samples a selection "
+           "policy chose: the ratios to it below compare other samples, a reference rather than a pairing."),
         "",
     ]
     lines += detection_lines(doc)
@@ -302,7 +308,9 @@ def table_markdown(doc: Mapping[str, Any]) -> str:
         "## Ratios to the oracle floor",
         "",
         "Median error over every trial divided by the oracle's median over the same trials, and the median over",
-        "logs of the same ratio per log.",
+        "logs of the same ratio per log." + ("" if (doc.get("selection") or "random") == "random" else
+                                             " With a selection policy the oracle's trials hold other samples "
+                                             "(above)."),
         "",
         "| estimator | e_x / oracle | e_gamma / oracle | per-log e_x ratio (median) | per-log e_gamma ratio (median) |",
         "|---|---|---|---|---|",

@@ -1247,7 +1247,11 @@ def test_a_selection_policys_parameters_are_run_recorded_and_keyed(logs: list[Pa
     assert doc["selection"] == "active" and doc["selection_params"] == {"particles": 4}
     (rec,) = next(iter(doc["logs"].values()))["estimators"]["icp_pf"]["records"]
     assert rec["selection"]["policy"] == "active" and len(rec["sample_indices"]) == 2
-    assert "chosen one at a time by the selection policy `active` (particles=4; docs/selection.md)" in (out / "table.md").read_text()
+    table = (out / "table.md").read_text()
+    assert "chosen one at a time by the selection policy `active` (particles=4; docs/selection.md)" in table
+    # the oracle fits the trial seed's random draw, not the chosen samples: the table says so, not "the same samples"
+    assert "the same samples and prior for every estimator" not in table
+    assert "the samples each estimator's policy chose" in table and "compare other samples" in table
     assert main([*base, "--selection-param", "particles=16"]) == 0  # the default: the run without the option
     assert "reused" not in capsys.readouterr().err
     doc = json.loads((out / "results.json").read_text())
