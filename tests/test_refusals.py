@@ -165,3 +165,31 @@ def test_cli_localize_notes_a_map_in_millimetres(paper, tmp_path: Path, capsys) 
     assert main(args + [str(tmp_path / "mm.ply")]) == 0  # a note, not a refusal
     err = capsys.readouterr().err
     assert f"map {tmp_path / 'mm.ply'} is " in err and "if this one is in millimetres, scale it by 0.001" in err
+
+
+def test_a_model_that_ignores_a_declared_nuisance_is_named(paper, tmp_path: Path, capsys) -> None:
+    """The paper's log declares a support rotation with its uncertainty (3 deg): a model
+    that does not estimate it (icp_score, or a plug-in's with ``nuisances = ()``) takes it as
+    exact, and localize says so before the trials; beam estimates it, no note."""
+    import dataclasses as dc
+
+    from tofloc.api import ignored_nuisance_notes
+    from tofloc.logs import write_log
+
+    sim, _ = paper
+    assert sim.log.rig.tolerances.support_yaw_deg > 0
+    path = write_log(sim.log, tmp_path / "log.h5")
+    sim.map_cloud.save(tmp_path / "m.ply")
+    args = ["localize", str(path), "--map", str(tmp_path / "m.ply"), "--samples", "2", "--trials", "1",
+            "--param", "n_particles=20", "--workers", "1", "--estimator"]
+    assert main(args + ["icp_pf"]) == 0
+    err = capsys.readouterr().err
+    assert ("icp_pf: its sensor model 'icp_score' does not estimate the support's rotation (3 deg, rig tolerance), "
+            "declared with its uncertainty: it takes it as exact") in err
+    assert main(args + ["beam_pf"]) == 0
+    assert "does not estimate" not in capsys.readouterr().err
+    exact = dc.replace(sim.log.rig, tolerances=dc.replace(sim.log.rig.tolerances, support_yaw_deg=0.0))
+    assert ignored_nuisance_notes({"icp_pf": ICPScorePF()}, exact, None) == []  # nothing declared: nothing ignored
+    both = dc.replace(sim.log.rig, tolerances=dc.replace(sim.log.rig.tolerances, range_scale=0.02))
+    (note,) = ignored_nuisance_notes({"icp_pf": ICPScorePF()}, both, None)
+    assert "or the range scale (2 %, rig tolerance), declared with their uncertainty: it takes them as exact" in note

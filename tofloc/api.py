@@ -362,6 +362,49 @@ def footprint_mismatches(estimators: Mapping[str, Any], calibration: SensorCalib
             for n, e in estimators.items() if e.uses_calibration() and int(fitted) != int(e.calibration_footprint())]
 
 
+def ignored_nuisance_notes(estimators: Mapping[str, Any], rig: Any, calibration: SensorCalibration | None) -> list[str]:
+    """One note per estimator whose sensor model does not estimate a nuisance the rig (or the
+    calibration it applies) declares, a support rotation or a range scale with its
+    uncertainty: such a model takes that part of the rig as exact, which what the user
+    declared says it is not (a plug-in author's model with ``nuisances = ()`` on the paper's
+    log: 5.1 deg median yaw error, beam 0.43 deg; nothing said so). Estimators without a
+    sensor model (``make_sensor_model``) are not judged.
+
+    Parameters
+    ----------
+    estimators : mapping of str to Estimator
+        By the names the user gave them.
+    rig : tofloc.rig.Rig
+    calibration : SensorCalibration or None
+        Applied by the estimators that use one.
+
+    Returns
+    -------
+    list of str
+    """
+    import math as _math
+
+    from tofloc.problem_builder import nuisance_priors
+
+    out = []
+    for n, e in estimators.items():
+        make = getattr(e, "make_sensor_model", None)
+        if not callable(make):
+            continue
+        model = make()
+        declared = nuisance_priors(rig, calibration if e.uses_calibration() else None)
+        missing = [v for v in declared.declared if v not in tuple(getattr(model, "nuisances", ()) or ())]
+        if not missing:
+            continue
+        what = [f"the support's rotation ({_math.degrees(declared.sigma(v)):.3g} deg, {declared.support_yaw_source})"
+                if v == "support_yaw" else f"the range scale ({100 * declared.sigma(v):.3g} %, {declared.range_scale_source})"
+                for v in missing]
+        out.append(f"{n}: its sensor model {getattr(model, 'name', type(model).__name__)!r} does not estimate "
+                   f"{' or '.join(what)}, declared with {'its' if len(what) == 1 else 'their'} uncertainty: it takes "
+                   f"{'it' if len(what) == 1 else 'them'} as exact (a model's `nuisances`, README 'Writing a plug-in')")
+    return out
+
+
 def load_calibration(calibration: SensorCalibration | str | os.PathLike[str] | None) -> SensorCalibration | None:
     """A calibration object from a path (``tofloc calibrate``'s TOML), an object, or None.
 
@@ -911,6 +954,8 @@ def localize(
     faces_note = mismatch_note(cal, the_map, map_tolerance_m)
     if faces_note is not None:
         reporter.note(faces_note)
+    for message in ignored_nuisance_notes({estimator_name: est}, lg.rig, cal):  # after every refusal, before the trials
+        reporter.note(message)
     has_truth = lg.T_map_base is not None
     if prior is None:
         if not has_truth:
@@ -1823,12 +1868,14 @@ def evaluate(
                            on_map=lambda p: reporter.note(f"map {p}"), set_aside=set_aside)
     for why in (set_aside or {}).values():
         reporter.note(f"set aside: {why}")  # the reason names the log
-    for message in dict.fromkeys(filter(None, (_units_note(en.context.map, en.context.log.rig, str(en.map_path))
-                                              for en in entries))):
-        reporter.note(message)
     if prior.mode == "global" and prior.region is not None:  # a region that leaves a log's base out: before any trial
         for en in entries:
             prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))
+    for message in dict.fromkeys(filter(None, (_units_note(en.context.map, en.context.log.rig, str(en.map_path))
+                                              for en in entries))):
+        reporter.note(message)
+    for message in dict.fromkeys(m for en in entries for m in ignored_nuisance_notes(ests, en.context.log.rig, cal)):
+        reporter.note(message)
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         ks = sorted({en.k for en in entries})
         reporter.note(f"{len(entries)} log(s), {len(set(en.map_path for en in entries))} map(s), "

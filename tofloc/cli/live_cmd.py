@@ -112,7 +112,8 @@ def run_live(
         except ParameterError as e:
             raise ParameterError(f"--calibration {calibration}: {e}") from None
     units = api._units_note(the_map, rig, str(map_path))
-    for message in api.footprint_mismatches({estimator: est}, cal) + ([units] if units else []):
+    for message in (api.footprint_mismatches({estimator: est}, cal) + api.ignored_nuisance_notes({estimator: est}, rig, cal)
+                    + ([units] if units else [])):
         err_console.print(f"[yellow]{escape(message)}[/]", highlight=False, markup=True)
     prior = Prior(
         np.array([prior_x, prior_y, math.radians(float(prior_yaw_deg))]),  # type: ignore[arg-type]
