@@ -391,6 +391,12 @@ class ParticleFilter(Estimator):
                               owner=f"sensor model {self.sensor_model!r} of estimator {self.name!r}")
         try:
             return cls(**dict(self.sensor_model_params))
+        except ParameterError as e:
+            from tofloc.param_docs import is_toolkit_class
+
+            if is_toolkit_class(cls) or f"{self.sensor_model!r}" in str(e):
+                raise
+            raise ParameterError(f"sensor model {self.sensor_model!r}: {e}") from None  # a plug-in's own, named
         except TofLocError:
             raise
         except (TypeError, ValueError) as e:  # a plug-in's own refusal of a value, as one line naming it

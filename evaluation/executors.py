@@ -177,12 +177,44 @@ class _Shared:
         return self.contexts[group]
 
 
+def _plugin_crash(task: TrialTask, e: BaseException) -> str | None:
+    """One line for an ordinary exception raised where a plug-in (the estimator, or the
+    sensor model it composes) takes part: what it raised and the innermost frame outside
+    the toolkit, numpy and scipy; None when only the toolkit's code runs the trial (its own
+    bug keeps its traceback)."""
+    import traceback
+
+    from tofloc.param_docs import is_toolkit_class
+
+    try:
+        est = make_estimator(task.estimator_cls, task.params, task.estimator)
+        make = getattr(est, "make_sensor_model", None)
+        classes = [type(est)] + ([type(make())] if callable(make) else [])
+    except Exception:  # noqa: BLE001 - cannot tell: leave the traceback as it is
+        return None
+    plugins = [c for c in classes if not is_toolkit_class(c)]
+    if not plugins:
+        return None
+    frames = traceback.extract_tb(e.__traceback__)
+    toolkit = ("/tofloc/", "/estimators/", "/sensor_models/", "/evaluation/", "/numpy/", "/scipy/")
+    own = [f for f in frames if not any(t in f.filename.replace("\\", "/") for t in toolkit)]
+    where = f" at {own[-1].filename}:{own[-1].lineno} in {own[-1].name}" if own else ""
+    names = ", ".join(f"{c.__module__}.{c.__qualname__}" for c in plugins)
+    return (f"trial {task.group} k={task.k} #{task.trial} (seed {task.seed}): estimator {task.estimator!r} raised "
+            f"{type(e).__name__}: {e}{where} (plug-in code: {names}; a bug there, not in the input)")
+
+
 def _guarded(context: Contexts, task: TrialTask) -> dict[str, Any]:
     try:
         return run_trial(context if isinstance(context, TrialContext) else context[task.group], task)
     except TofLocError as e:
         # re-raised as a plain one-argument exception: FormatError & co. do not unpickle
         raise TrialError(f"trial {task.group} k={task.k} #{task.trial} (seed {task.seed}): {e}") from None
+    except Exception as e:  # noqa: BLE001 - a plug-in's crash as one line naming it; the toolkit's own keeps its traceback
+        line = _plugin_crash(task, e)
+        if line is None:
+            raise
+        raise TrialError(line) from e
 
 
 def _run_in_process(task: TrialTask) -> dict[str, Any]:

@@ -229,6 +229,27 @@ def test_a_plugins_own_value_check_is_a_parameter_error_naming_it() -> None:
     finally:
         SENSOR_MODELS.unregister("test_picky")
 
+    # a plug-in raising the toolkit's ParameterError, as the docs advise, is named too (it was
+    # the one form that came out as a bare "sigma_m must be > 0, got -1")
+    @dataclass(frozen=True)
+    class Strict(BeamModel):
+        name = "test_strict"
+        temper: float = 1.0
+
+        def __post_init__(self) -> None:
+            if self.temper > 2:
+                raise ParameterError(f"temper must be <= 2, got {self.temper}")
+
+    Strict.__module__ = "my_plugins.models"  # defined here, but as a plug-in's would be
+    with pytest.raises(ParameterError, match=r"^estimator 'strict': temper must be <= 2, got 5$"):
+        build_plugin(Strict, {"temper": 5}, kind="estimator", name="strict")
+    SENSOR_MODELS.register("test_strict", Strict)
+    try:
+        with pytest.raises(ParameterError, match=r"^sensor model 'test_strict': temper must be <= 2, got 5$"):
+            ParticleFilter(sensor_model="test_strict", sensor_model_params={"temper": 5}).make_sensor_model()
+    finally:
+        SENSOR_MODELS.unregister("test_strict")
+
 
 def test_a_nested_param_after_its_table_given_whole_is_refused_naming_both() -> None:
     with pytest.raises(ParameterError, match=r"^--param sensor_model__temper: sensor_model_params is given as a whole too$"):

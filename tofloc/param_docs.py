@@ -288,11 +288,25 @@ def build_plugin(cls: type, params: Mapping[str, Any] | None, *, kind: str, name
     check_parameter_names(cls, given, kind=kind, name=name)
     try:
         return cls(**given)
+    except ParameterError as e:
+        if is_toolkit_class(cls) or f"{name!r}" in str(e):
+            raise
+        raise ParameterError(f"{kind} {name!r}: {e}") from None  # a plug-in's own ParameterError, named
     except TofLocError:
         raise
     except (TypeError, ValueError) as e:  # a plug-in's own refusal of a value (ValueError), as one line naming it
         known = parameter_names(cls)
         raise ParameterError(f"{kind} {name!r}: {e}" + (f" (its parameters: {', '.join(known)})" if known else "")) from None
+
+
+#: The toolkit's own top-level packages: a class from them is a built-in, whose messages
+#: already say whose value they refuse.
+TOOLKIT_PACKAGES = ("tofloc", "estimators", "sensor_models", "evaluation")
+
+
+def is_toolkit_class(cls: Any) -> bool:
+    """Whether ``cls`` is defined in the toolkit (a built-in), not in a plug-in."""
+    return (getattr(cls, "__module__", "") or "").split(".")[0] in TOOLKIT_PACKAGES
 
 
 def cli_source(path: tuple[str, ...]) -> str:
