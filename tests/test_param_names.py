@@ -5,6 +5,7 @@ is read (tofloc.param_docs.check_parameter_names)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import InitVar, dataclass  # at module level: the string annotation InitVar[...] is resolved here
 from pathlib import Path
 
@@ -64,6 +65,10 @@ def test_a_name_with_no_close_match_gets_the_list_but_no_guess() -> None:
 
 def test_any_depth_of_double_underscores() -> None:
     assert parse_params(["a__b__c=1", "a__b__d=x", "a__e=2"]) == {"a_params": {"b_params": {"c": 1, "d": "x"}, "e": 2}}
+    for raw in ("-inf", "inf", "+Infinity", "NaN", "-Infinity"):  # a non-finite number, said so (was "the text '-inf'")
+        with pytest.raises(ParameterError, match=rf"^--param x: expected a finite number, got '{re.escape(raw)}'$"):
+            parse_params([f"x={raw}"])
+    assert parse_params(["x=info"]) == {"x": "info"}  # text that merely starts like one stays text
     with pytest.raises(ParameterError, match="given twice"):
         parse_params(["a__b__c=1", "a__b__c=2"])
     message = _refusal(["sensor_model__hit_dof__x=1"])

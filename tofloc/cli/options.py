@@ -66,6 +66,8 @@ def parse_params(items: Sequence[str] | None, option: str = "--param") -> dict[s
             value = json.loads(raw)
         except ValueError:
             value = raw
+        if isinstance(value, str) and value.strip().lower().lstrip("+-") in ("inf", "infinity", "nan"):
+            value = float(value)  # refused below as the number it spells, not as text where a number was expected
         if isinstance(value, float) and not math.isfinite(value):
             raise ParameterError(f"{option} {key}: expected a finite number, got {raw!r}")
         *owners, last = key.split("__")
