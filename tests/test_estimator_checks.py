@@ -5,6 +5,8 @@ from __future__ import annotations
 import warnings
 from typing import ClassVar
 
+import pytest
+
 from tofloc.registry import ESTIMATORS, SELECTION_POLICIES, SENSOR_MODELS
 from tofloc.testing import parametrize_with_checks, parametrize_with_policy_checks, parametrize_with_sensor_model_checks
 
@@ -169,3 +171,43 @@ def test_an_answer_that_breaks_the_estimate_contract_is_refused_naming_the_estim
     C = np.diag([1e-4, 1e-4, 1e-4])
     C[0, 1] = 1e-13
     assert np.array_equal(Estimate(np.zeros(3), C).covariance, Estimate(np.zeros(3), C).covariance.T)
+
+
+def test_the_checks_say_what_a_plugin_got_wrong() -> None:
+    """Two mistakes of a plug-in author's walkthrough, each told in words: parameters kept
+    outside dataclass fields (get_params() returns {}), and a model listing a nuisance its
+    bound model never puts in its state (it was `AssertionError: []`)."""
+    from dataclasses import dataclass
+
+    import numpy as np
+
+    from sensor_models.beam import BeamModel, BoundBeamModel
+    from tofloc.problem import Estimate, Estimator
+    from tofloc.testing import check_model_honours_the_declared_state, check_params_round_trip
+
+    class Shifted(Estimator):
+        name = "test_shifted"
+
+        def __init__(self, shift: float = 0.0) -> None:
+            self.shift = shift
+
+        def _estimate(self, problem, rng):
+            return Estimate(problem.prior.mean + self.shift, np.eye(3) * 1e-4)
+
+    with pytest.raises(AssertionError, match=r"get_params\(\) returned \{\} .* declare them as fields of a @dataclass"):
+        check_params_round_trip(Shifted(shift=0.01))
+
+    class StatelessBound(BoundBeamModel):
+        def __init__(self, model, problem):
+            super().__init__(model, problem)
+            self.state = ()
+
+    @dataclass(frozen=True)
+    class Stateless(BeamModel):
+        name = "test_stateless"
+
+        def bind(self, problem):
+            return StatelessBound(self, problem)
+
+    with pytest.raises(AssertionError, match=r"must hold \['support_yaw'.*but holds \[\]: set `self.state = "):
+        check_model_honours_the_declared_state(Stateless())

@@ -207,9 +207,15 @@ def check_no_valid_zone_is_an_error(est: Estimator) -> None:
 
 def check_params_round_trip(est: Estimator) -> None:
     """``type(est)(**est.get_params())`` builds an equivalent estimator (same result)."""
-    clone = type(est)(**est.get_params())
+    params = est.get_params()
+    clone = type(est)(**params)
     p, _ = easy_problem(n_samples=1)
-    _assert_same(est.estimate(p, np.random.default_rng(5)), clone.estimate(p, np.random.default_rng(5)))
+    a, b = est.estimate(p, np.random.default_rng(5)), clone.estimate(p, np.random.default_rng(5))
+    if not params and not (np.array_equal(a.pose, b.pose) and np.array_equal(a.covariance, b.covariance, equal_nan=True)):
+        raise AssertionError(f"get_params() returned {{}} and the clone type(est)() answers differently: "
+                             f"{type(est).__name__} keeps parameters get_params() cannot read back; declare them as "
+                             "fields of a @dataclass (README, 'Writing a plug-in')")
+    _assert_same(a, b)
 
 
 def check_rng_must_be_generator(est: Estimator) -> None:
@@ -405,7 +411,12 @@ def check_model_honours_the_declared_state(model: Any) -> None:
     declaring = _declaring(p)
     bound = model.bind(declaring)
     names = [v.name for v in bound.state]
-    assert names == [n for n in declaring.nuisance.declared if n in model.nuisances], names
+    want = [n for n in declaring.nuisance.declared if n in model.nuisances]
+    assert names == want, (
+        f"the problem declares the nuisances {list(declaring.nuisance.declared)} and the model lists "
+        f"{list(model.nuisances)} in `nuisances`, so its bound model's `state` must hold {want}, in that order, "
+        f"but holds {names}: set `self.state = sensor_models.base.declared_state(problem, model.nuisances)` in the "
+        "bound model, or list only the nuisances it estimates")
     for i, v in enumerate(bound.state):
         assert v.sigma == declaring.nuisance.sigma(v.name), (v.name, v.sigma)
         a = _states(bound, truth[None])
