@@ -68,7 +68,7 @@ def end_points(problem: Problem, n_points: int) -> FloatArray:
     rig, rm = problem.rig, problem.range_model
     z = np.where(problem.valid, problem.distance_m, np.nan)
     lifted = problem.prior.T_map_base(np.zeros(3))[None] @ problem.T_base_tip
-    pts = rig.points_in_base(z - rm.bias(rig, z), lifted)  # (K, S, Z, 3)
+    pts = rig.points_in_base(rm.unbiased(rig, z), lifted)  # (K, S, Z, 3)
     p = pts[problem.valid]
     p = p[np.all(np.isfinite(p), axis=1)]
     if p.shape[0] > n_points:

@@ -103,7 +103,7 @@ def measurements(problem: Problem) -> list[SampleMeasurement]:
     rig = problem.rig
     valid = problem.valid
     d = np.where(valid, problem.distance_m, np.nan)
-    d_corr = d - unc.bias(rig, d)
+    d_corr = unc.unbiased(rig, d)
     sigma_d = unc.sigma(rig, d, problem.sigma_m)
     rf = rig.range_factor  # (S, Z)
     p_tip = rig.points_in_tip(d_corr)  # (K, S, Z, 3)

@@ -204,7 +204,7 @@ class BoundLikelihoodField(BoundSensorModel):
         rig = problem.rig
         valid = problem.valid
         z = np.where(valid, problem.distance_m, np.nan)
-        z_true = z - unc.bias(rig, z)  # the reading's expected bias removed
+        z_true = unc.unbiased(rig, z)  # the reading's expected bias removed (exactly)
         sigma = unc.sigma(rig, z_true, problem.sigma_m)
         T_fixed = problem.prior.T_map_base(np.zeros(3))
         self.T_lift_tip = T_fixed[None] @ problem.T_base_tip  # (K, 4, 4)

@@ -326,3 +326,18 @@ def test_face_labels_refuse_a_cloud_naming_it() -> None:
 
     with pytest.raises(ParameterError, match="face labels need a mesh map.*'points' map"):
         crlb_mod.face_labels(cloud)
+
+
+def test_unbiased_inverts_the_reading_model_exactly() -> None:
+    """``unbiased(d + bias(d)) == d`` per zone (edge zones with their own curve, zone
+    offsets too); ``reading - bias(reading)``, used before, is off by ``b1 (b1 d + b0)``."""
+    import dataclasses
+
+    rig = Rig((_horizontal_sensor("a", 0.0), _horizontal_sensor("b", math.pi / 2)))
+    unc = dataclasses.replace(FLAT, bias_offset=0.002, bias_slope=0.02, edge_bias_offset=-0.001, edge_bias_slope=0.05,
+                              zone_offsets=((0.003, 0.0, -0.002), (0.0, 0.001, 0.0)))
+    d = np.array([[[0.5, 1.0, 2.0], [4.0, 0.3, 1.5]]])  # (K, S, Z)
+    reading = d + unc.bias(rig, d)
+    np.testing.assert_allclose(unc.unbiased(rig, reading), d, rtol=0, atol=1e-15)
+    b0, b1 = unc.bias_coefficients(rig)
+    np.testing.assert_allclose(reading - unc.bias(rig, reading) - d, -b1 * (b1 * d + b0), atol=1e-15)

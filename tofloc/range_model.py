@@ -121,6 +121,15 @@ class RangeUncertainty:
         b0, b1 = self.bias_coefficients(rig)
         return b0 + b1 * np.asarray(distance_m, dtype=float)
 
+    def unbiased(self, rig: Rig, reading_m: ArrayLike) -> NDArray[np.float64]:
+        """The distance ``d`` (m) whose expected reading is ``reading_m`` ``(..., S, Z)``: the
+        exact inverse of ``reading = d + bias(d)``, ``(reading - b0) / (1 + b1)``.
+        ``reading - bias(reading)`` (used until 7 December 2026, a geometry review's
+        finding) leaves ``b1 (b1 d + b0)``: 0.8 mm at 2 m with the paper simulator's
+        ``b0 = 2 mm``, ``b1 = 0.02``."""
+        b0, b1 = self.bias_coefficients(rig)
+        return (np.asarray(reading_m, dtype=float) - b0) / (1.0 + b1)
+
     def bias_coefficients(self, rig: Rig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(b0, b1)``, each ``(S, Z)``: every zone's ``bias(d) = b0 + b1 * d`` (its class's
         curve, and its own offset when there are ``zone_offsets``).
