@@ -377,3 +377,23 @@ def test_a_file_without_extends_gets_the_papers_robot_and_tof_physics() -> None:
         for f in dataclasses.fields(cls):
             value = getattr(code, f.name)
             assert (list(value) if isinstance(value, tuple) else value) == paper[section][f.name], (section, f.name)
+
+
+def test_a_bend_scattered_below_zero_bends_the_other_way() -> None:
+    """Repeatability scatter that pushes a small bend's angle below zero is a bend of the
+    opposite sign: the reached bend vector has no systematic component along the nominal
+    direction beyond the nominal angle's (abs() alone mirrored every such bend back to the
+    nominal side, a geometry review's finding)."""
+    import dataclasses
+
+    from tofloc.simulation.robot import BendingState, reached_state
+    from tofloc.simulation.scenario import Robot
+
+    robot = dataclasses.replace(Robot(), hysteresis=0.0, repeat_direction_sigma_deg=0.0, repeat_length_sigma=0.0)
+    n = 20000
+    nominal = BendingState(np.tile([math.radians(0.5), 0.0], (n, 1)), np.full(n, 0.1))  # 0.5 deg along +x, sigma 1.5 deg
+    got = reached_state(robot, nominal, np.random.default_rng(0))
+    along = got.bend[:, 0]
+    assert np.allclose(got.bend[:, 1], 0.0, atol=1e-12)  # no direction scatter: the bend stays on the x axis
+    assert (along < 0).mean() == pytest.approx(0.37, abs=0.02)  # P(N(0.5, 1.5) < 0): bent the other way
+    assert math.degrees(along.mean()) == pytest.approx(0.5, abs=0.05)  # unbiased, where abs() gave ~1.3 deg

@@ -85,6 +85,10 @@ def reached_state(robot: Robot, nominal: BendingState, rng: np.random.Generator)
     n = bend.shape[0]
     angle = np.linalg.norm(bend, axis=-1) + rng.normal(0.0, np.radians(robot.repeat_bending_sigma_deg), n)
     direction = np.arctan2(bend[:, 1], bend[:, 0]) + rng.normal(0.0, np.radians(robot.repeat_direction_sigma_deg), n)
+    # a bend the scatter pushes below zero is a bend the other way: |angle| toward direction + pi
+    # (abs alone mirrored it back to the side it came from; no shipped protocol's bend is that
+    # small, so no simulated log changes)
+    direction = np.where(angle < 0.0, direction + np.pi, direction)
     angle = np.abs(angle)
     bend = np.stack([angle * np.cos(direction), angle * np.sin(direction)], axis=-1)
     length = length + rng.normal(0.0, robot.repeat_length_sigma, n)
