@@ -589,6 +589,23 @@ def test_write_refuses_an_invalid_log_and_writes_nothing(tmp_path: Path, full_lo
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("change, where", [
+    ({"max_range_m": float("inf")}, "all finite (strict JSON)"),
+    ({"fov_deg": (float("nan"), 45.0)}, "all finite (strict JSON)"),
+    ({"distance": "bogus"}, "rig.sensors[0].distance: expected one of ['perpendicular', 'radial']"),
+])
+def test_write_refuses_a_rig_the_reader_would_refuse(tmp_path: Path, full_log: Log, change: dict, where: str) -> None:
+    """A rig built in Python is not validated on construction: one with a value the log
+    reader refuses (or JSON cannot hold) was written, then refused when read back (a
+    spec-conformance review). The writer checks it as the reader will, and writes nothing."""
+    rig = full_log.rig
+    bad = dataclasses.replace(rig, sensors=(dataclasses.replace(rig.sensors[0], **change),) + rig.sensors[1:])
+    with pytest.raises(LogFormatError) as e:
+        write_log(dataclasses.replace(full_log, rig=bad), tmp_path / "bad.h5")
+    assert "root attribute `rig`" in str(e.value) and where in str(e.value), str(e.value)
+    assert not (tmp_path / "bad.h5").exists()
+
+
 def test_atomic_write_failure_leaves_nothing_behind(tmp_path: Path, full_log: Log, monkeypatch: pytest.MonkeyPatch) -> None:
     dest = tmp_path / "session.h5"
     write_log(full_log, dest)

@@ -37,6 +37,7 @@ import calendar
 import math
 import io
 import os
+import json
 import re
 import secrets
 from contextlib import contextmanager
@@ -51,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofloc import __version__ as _TOFLOC_VERSION
 from tofloc import frames
-from tofloc.errors import FormatError, ParameterError
+from tofloc.errors import FormatError, ParameterError, TofLocError
 from tofloc.rig import DEFAULT_VALID_STATUSES, Rig, valid_mask
 
 __all__ = [
@@ -386,6 +387,18 @@ class Log:
         """
         if not isinstance(self.rig, Rig):
             raise LogFormatError(where, "root attribute `rig`", "a tofloc.rig.Rig", type(self.rig).__name__)
+        # the rig as a reader will see it: strict JSON (no NaN/Infinity) that the strict reader
+        # takes back (a rig built in Python with a bad value was written, then refused on reading)
+        try:
+            text = json.dumps(self.rig.to_dict(), allow_nan=False)
+        except ValueError as e:
+            raise LogFormatError(where, "root attribute `rig`", "a rig whose numbers are all finite (strict JSON)", str(e)) from None
+        try:
+            Rig.from_json(text, where, strict=True)
+        except FormatError as e:  # the reader's own refusal, as the reader would word it
+            raise LogFormatError(where, f"root attribute `rig`: {e.where}", e.expected, e.found) from None
+        except TofLocError as e:
+            raise LogFormatError(where, "root attribute `rig`", "a rig the log reader accepts", str(e)) from None
         S, Z, C = self.rig.n_sensors, self.rig.n_zones, self.rig.n_actuators
 
         ts = _check_array(self.timestamp_s, where, "/samples/timestamp_s", _F64)

@@ -594,7 +594,8 @@ class Rig:
         return out
 
     def to_json(self) -> str:
-        return json.dumps(self.to_dict())
+        """Strict JSON (a non-finite number, which JSON has not, raises ``ValueError``)."""
+        return json.dumps(self.to_dict(), allow_nan=False)
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "<rig>", *, strict: bool = False) -> "Rig":
