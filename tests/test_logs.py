@@ -184,6 +184,34 @@ def test_other_writers_encodings_are_accepted(tmp_path: Path) -> None:
         np.testing.assert_array_equal(getattr(log, name.rsplit("/", 1)[1]), arr)
 
 
+def test_unwritten_storage_with_a_nan_fill_reads_as_unknown(tmp_path: Path) -> None:
+    """A converter that creates a NaN-filled dataset and writes only its known samples
+    follows the spec ("NaN where unknown"): accepted (it was refused, 'all chunks stored');
+    a dataset left unwritten with another fill value (0) would read as zeros: refused."""
+    a, d = conforming()
+    T = d["/samples/T_base_tip"]
+    path = tmp_path / "sparse.h5"
+    with h5py.File(path, "w") as f:
+        for k, v in a.items():
+            f.attrs[k] = v
+        for name, arr in d.items():
+            if name == "/samples/T_base_tip":
+                ds = f.create_dataset(name, shape=arr.shape, dtype=arr.dtype, chunks=(1, 4, 4), fillvalue=np.nan)
+                ds[0] = T[0]  # only the first sample's configuration is known
+            elif name == "/samples/sigma_mm":
+                f.create_dataset(name, shape=arr.shape, dtype=arr.dtype, fillvalue=np.nan)  # declared, never written
+            else:
+                f.create_dataset(name, data=arr)
+    log = read_log(path)
+    np.testing.assert_array_equal(log.T_base_tip[0], T[0])
+    assert np.isnan(log.T_base_tip[1:]).all() and np.isnan(log.sigma_mm).all()
+    with h5py.File(path, "a") as f:
+        del f["/samples/sigma_mm"]
+        f.create_dataset("/samples/sigma_mm", shape=d["/samples/sigma_mm"].shape, dtype=np.float32, chunks=(1, S, Z))
+    with pytest.raises(LogFormatError, match="chunks stored"):
+        read_log(path)
+
+
 def test_extra_datasets_attributes_and_groups_are_ignored(tmp_path: Path) -> None:
     a, d = conforming()
     a["operator"] = "someone"
