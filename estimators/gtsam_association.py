@@ -335,10 +335,17 @@ def associate(
         s = s0 / math.sqrt(information_scale)
     gate_e = zone_gate / s
     b = stack.bounds
+    d_b = None
+    if bias is not None and t_exp is not None and usable is not None:
+        # the range scale multiplies the distance the plane predicts, not the noisy reading
+        # (SampleMeasurement's `d`): frozen for the round, as the sigmas are
+        d_b = np.where(usable, t_exp / np.linalg.norm(stack.v_tip, axis=1), stack.d)
     out = [m.associated(q[b[k] : b[k + 1]], n[b[k] : b[k + 1]], s[b[k] : b[k + 1]], inlier[b[k] : b[k + 1]],
-                        gate_e[b[k] : b[k + 1]], key[b[k] : b[k + 1]]) for k, m in enumerate(stack.members)]
+                        gate_e[b[k] : b[k + 1]], key[b[k] : b[k + 1]], None if d_b is None else d_b[b[k] : b[k + 1]])
+           for k, m in enumerate(stack.members)]
     changed = _changed_by_sample(stack, key, inlier, (q, n) if footprint is not None else None)
-    return AssociatedMeasurements(out, dataclasses.replace(stack, members=tuple(out))), changed
+    new_stack = dataclasses.replace(stack, members=tuple(out)) if d_b is None else dataclasses.replace(stack, members=tuple(out), d=d_b)
+    return AssociatedMeasurements(out, new_stack), changed
 
 
 def _cast_planes(problem: Problem, p: FloatArray, o: FloatArray, u: FloatArray, zones: NDArray[np.int64],

@@ -242,9 +242,14 @@ class SampleMeasurement:
     sigma_L : (N,)
         Range sigma along each ray (m).
     d : (N,)
-        Reported distances (m): the range-bias variable ``b`` moves each point by
+        The distances (m) the range-scale variable ``b`` scales: it moves each point by
         ``-b d v`` with ``v`` the point's displacement per metre of reported distance
-        (``range_factor * u``).
+        (``range_factor * u``). The reported distances at first; after an association
+        with ``b`` declared, the distances the associated planes predict
+        (:func:`estimators.gtsam_association.associate`): a reading's own noise in the
+        term that multiplies ``b`` biased ``b`` by about ``sigma^2 / d^2`` and the pose
+        with it, and the reading made ``b`` estimate ``s / (1 + s)`` for a sensor reading
+        ``(1 + s) d`` (a review's Monte Carlo, 7 December 2026).
     v_tip : (N, 3)
     zones : (N,) int
         Flat ``sensor * Z + zone`` index of each row (for the record).
@@ -291,13 +296,17 @@ class SampleMeasurement:
         return changed
 
     def associated(
-        self, q: FloatArray, n: FloatArray, s: FloatArray, inlier: NDArray[np.bool_], gate_e: FloatArray, key: NDArray[np.int64]
+        self, q: FloatArray, n: FloatArray, s: FloatArray, inlier: NDArray[np.bool_], gate_e: FloatArray, key: NDArray[np.int64],
+        d: FloatArray | None = None,
     ) -> "SampleMeasurement":
-        """A copy holding the new association (the arrays as given) and sharing this one's
-        zones: :meth:`set_association` on a shallow copy, without comparing the two."""
+        """A copy holding the new association (the arrays as given; ``d``: the distances the
+        range scale multiplies, when they change) and sharing this one's other zone arrays:
+        :meth:`set_association` on a shallow copy, without comparing the two."""
         new = object.__new__(SampleMeasurement)
         new.__dict__.update(self.__dict__)
         new.q, new.n, new.s, new.inlier, new.gate_e, new.key = q, n, s, inlier, gate_e, key
+        if d is not None:
+            new.d = d
         return new
 
     def points(self, bias: FloatArray | None = None) -> FloatArray:
