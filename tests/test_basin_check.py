@@ -96,7 +96,12 @@ def test_a_mirror_image_is_found_and_covered() -> None:
     weights = [b["weight"] for b in check["basins"]]
     poses = [np.array(b["pose"]) for b in check["basins"]]
     assert any(_near(q, ROOM_TRUTH) for q in poses[:2]) and any(_near(q, mirror) for q in poses[:2]), poses
-    assert weights[1] > AMBIGUOUS_SHARE and is_ambiguous(r.diagnostics["modes"])
+    # the basin that is not the filter's carries more than the ambiguity share (which of the
+    # two mirror images the robust test prefers turns on the field's discretization: the
+    # likelihood field's sigma along the ray, 7 December 2026, turned it from the filter's
+    # basin to the other, 0.017 : 0.983)
+    other = [b["weight"] for b in check["basins"] if not b["filter_basin"]]
+    assert max(other) > AMBIGUOUS_SHARE and check["ambiguous"] and is_ambiguous(r.diagnostics["modes"])
     # the covariance covers both places: the truth is within it whichever one is the answer
     assert nees(ROOM_TRUTH, r.pose, r.covariance) < chi2.ppf(0.99, 3)
     # without the check: the filter's own answer, one place, confidently

@@ -43,7 +43,7 @@ from tofloc import bounded_nearest
 from tofloc.threads import kdtree_workers
 from tofloc.zone_caster import rotate_z
 
-__all__ = ["DistanceGrid", "distance_grid_for", "MAX_CANDIDATE_BYTES"]
+__all__ = ["DistanceGrid", "distance_grid_for", "kd_within", "MAX_CANDIDATE_BYTES"]
 
 #: Largest grid (cells) we build; beyond it the cell size grows.
 MAX_CELLS = 8_000_000
@@ -444,8 +444,7 @@ class DistanceGrid:
                 d2 = diff if d2 is None else np.add(d2, diff, out=d2)
             res[has] = d2.min(axis=1) < r2
         if not has.all():
-            d, _ = self.tree.query(q[~has], k=1, distance_upper_bound=self.r_max)
-            res[~has] = d < self.r_max
+            res[~has] = kd_within(self.tree, q[~has], self.r_max)
         return res
 
     def _exact_within(self, q: NDArray[np.float64], radius: float) -> NDArray[np.bool_]:
@@ -453,8 +452,7 @@ class DistanceGrid:
         if radius == self.r_max:
             flat, inside = self._cells(q)
             return self._exact_within_rows(q, np.where(inside, self._cand_row[flat], -1))
-        d, _ = self.tree.query(q, k=1, distance_upper_bound=radius)
-        return d < radius
+        return kd_within(self.tree, q, radius)
 
     def _padded(self) -> NDArray[np.float32]:
         if getattr(self, "_pad", None) is None:
@@ -479,6 +477,22 @@ def _moved_pairs(pts: NDArray[np.float64], poses: NDArray[np.float64], p_idx: ND
     q[:, 0] += poses[m_idx, 0]
     q[:, 1] += poses[m_idx, 1]
     return q
+
+
+def kd_within(tree: Any, q: NDArray[np.float64], radius: float) -> NDArray[np.bool_]:
+    """Whether each point of ``q`` ``(n, 3)`` has a point of ``tree`` (a
+    ``scipy.spatial.cKDTree``) with squared distance below ``radius ** 2``, as Open3D's
+    hybrid search tests it: the nearest point within the next float above ``radius``, then
+    its squared distance summed x, y, z (``sqrt(d2) < radius`` and ``d2 < radius ** 2``
+    disagree within an ulp of the radius: a review found 3,728 of 29,632 such points)."""
+    d, idx = tree.query(q, k=1, distance_upper_bound=float(np.nextafter(radius, np.inf)))
+    out = np.zeros(q.shape[0], dtype=bool)
+    ok = np.isfinite(d)
+    if ok.any():
+        diff = np.asarray(tree.data)[idx[ok]] - q[ok]
+        d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2]
+        out[ok] = d2 < radius * radius
+    return out
 
 
 def distance_grid_for(the_map: Any, cell: float, r_max: float) -> DistanceGrid:
