@@ -210,6 +210,8 @@ def _guarded(context: Contexts, task: TrialTask) -> dict[str, Any]:
     except TofLocError as e:
         # re-raised as a plain one-argument exception: FormatError & co. do not unpickle
         raise TrialError(f"trial {task.group} k={task.k} #{task.trial} (seed {task.seed}): {e}") from None
+    except AssertionError:  # an invariant (a check, a test's plug-in) keeps its traceback
+        raise
     except Exception as e:  # noqa: BLE001 - a plug-in's crash as one line naming it; the toolkit's own keeps its traceback
         line = _plugin_crash(task, e)
         if line is None:

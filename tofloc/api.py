@@ -954,8 +954,6 @@ def localize(
     faces_note = mismatch_note(cal, the_map, map_tolerance_m)
     if faces_note is not None:
         reporter.note(faces_note)
-    for message in ignored_nuisance_notes({estimator_name: est}, lg.rig, cal):  # after every refusal, before the trials
-        reporter.note(message)
     has_truth = lg.T_map_base is not None
     if prior is None:
         if not has_truth:
@@ -963,6 +961,8 @@ def localize(
         prior = PriorSpec("offset")
     prior.check_truth_in_region(lg.T_map_base, str(lg.path))  # before the trials
     pool = sample_pool(lg, kin, 1 if samples is None else samples, valid_statuses)
+    for message in ignored_nuisance_notes({estimator_name: est}, lg.rig, cal):  # after every refusal, before the trials
+        reporter.note(message)
     k = pool.indices.size if samples is None else samples
     context = TrialContext(lg, the_map, pool, kin, valid_statuses, cal, map_tolerance_m=map_tolerance_m)
     tasks = make_tasks("localize", estimator_name, type(est), dict(params or {}), tip_source, prior, [k], trials, seed,
@@ -1871,10 +1871,10 @@ def evaluate(
     if prior.mode == "global" and prior.region is not None:  # a region that leaves a log's base out: before any trial
         for en in entries:
             prior.check_truth_in_region(en.context.log.T_map_base, str(en.path))
-    for message in dict.fromkeys(filter(None, (_units_note(en.context.map, en.context.log.rig, str(en.map_path))
-                                              for en in entries))):
+    contexts = [(en, en.context) for en in entries if getattr(en, "context", None) is not None]
+    for message in dict.fromkeys(filter(None, (_units_note(ctx.map, ctx.log.rig, str(en.map_path)) for en, ctx in contexts))):
         reporter.note(message)
-    for message in dict.fromkeys(m for en in entries for m in ignored_nuisance_notes(ests, en.context.log.rig, cal)):
+    for message in dict.fromkeys(m for _, ctx in contexts for m in ignored_nuisance_notes(ests, ctx.log.rig, cal)):
         reporter.note(message)
     with _output_folder(out_dir, reporter):  # one run at a time; an interruption says what it kept
         ks = sorted({en.k for en in entries})
