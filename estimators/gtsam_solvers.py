@@ -75,8 +75,7 @@ def prior_noise(mean: FloatArray, sigma: FloatArray) -> Any:
     sigma = np.asarray(sigma, dtype=float)
     if sigma[0] == sigma[1]:
         return gtsam.noiseModel.Diagonal.Sigmas(sigma)
-    c, s = math.cos(float(mean[2])), math.sin(float(mean[2]))
-    R = np.array([[c, -s], [s, c]])
+    R = frames.rot_z(float(mean[2]))[:2, :2]
     cov = np.zeros((3, 3))
     cov[:2, :2] = R.T @ np.diag(sigma[:2] ** 2) @ R
     cov[2, 2] = sigma[2] ** 2

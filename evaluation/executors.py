@@ -184,7 +184,7 @@ def _plugin_crash(task: TrialTask, e: BaseException) -> str | None:
     bug keeps its traceback)."""
     import traceback
 
-    from tofloc.param_docs import is_toolkit_class
+    from tofloc.param_docs import TOOLKIT_PACKAGES, is_toolkit_class
 
     try:
         est = make_estimator(task.estimator_cls, task.params, task.estimator)
@@ -196,7 +196,7 @@ def _plugin_crash(task: TrialTask, e: BaseException) -> str | None:
     if not plugins:
         return None
     frames = traceback.extract_tb(e.__traceback__)
-    toolkit = ("/tofloc/", "/estimators/", "/sensor_models/", "/evaluation/", "/numpy/", "/scipy/")
+    toolkit = tuple(f"/{p}/" for p in (*TOOLKIT_PACKAGES, "numpy", "scipy"))
     own = [f for f in frames if not any(t in f.filename.replace("\\", "/") for t in toolkit)]
     where = f" at {own[-1].filename}:{own[-1].lineno} in {own[-1].name}" if own else ""
     names = ", ".join(f"{c.__module__}.{c.__qualname__}" for c in plugins)

@@ -142,8 +142,10 @@ def _package_sources(top: str) -> list[Any]:
     import sys
     from pathlib import Path
 
+    from tofloc.param_docs import TOOLKIT_PACKAGES
+
     mod = sys.modules.get(top)
-    if not top or top in ("tofloc", "estimators", "sensor_models", "evaluation", "builtins") or mod is None:
+    if not top or top in TOOLKIT_PACKAGES or top == "builtins" or mod is None:
         return []
     found: list[Path] = []
     for base in getattr(mod, "__path__", []) or []:

@@ -382,8 +382,6 @@ def ignored_nuisance_notes(estimators: Mapping[str, Any], rig: Any, calibration:
     -------
     list of str
     """
-    import math as _math
-
     from tofloc.problem_builder import nuisance_priors
 
     out = []
@@ -396,7 +394,7 @@ def ignored_nuisance_notes(estimators: Mapping[str, Any], rig: Any, calibration:
         missing = [v for v in declared.declared if v not in tuple(getattr(model, "nuisances", ()) or ())]
         if not missing:
             continue
-        what = [f"the support's rotation ({_math.degrees(declared.sigma(v)):.3g} deg, {declared.support_yaw_source})"
+        what = [f"the support's rotation ({math.degrees(declared.sigma(v)):.3g} deg, {declared.support_yaw_source})"
                 if v == "support_yaw" else f"the range scale ({100 * declared.sigma(v):.3g} %, {declared.range_scale_source})"
                 for v in missing]
         out.append(f"{n}: its sensor model {getattr(model, 'name', type(model).__name__)!r} does not estimate "

@@ -37,7 +37,6 @@ import calendar
 import math
 import io
 import os
-import json
 import re
 import secrets
 from contextlib import contextmanager
@@ -390,7 +389,7 @@ class Log:
         # the rig as a reader will see it: strict JSON (no NaN/Infinity) that the strict reader
         # takes back (a rig built in Python with a bad value was written, then refused on reading)
         try:
-            text = json.dumps(self.rig.to_dict(), allow_nan=False)
+            text = self.rig.to_json()
         except ValueError as e:
             raise LogFormatError(where, "root attribute `rig`", "a rig whose numbers are all finite (strict JSON)", str(e)) from None
         try:

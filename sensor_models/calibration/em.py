@@ -73,11 +73,16 @@ class CalibrationResult:
     zone_loglik: NDArray[np.float64] | None = None
 
 
+def _hit_mass(d: NDArray[np.float64], mu: NDArray[np.float64], s: NDArray[np.float64],
+              zmax: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The share of a hit Gaussian (mean ``d + mu``, sd ``s``) whose readings lie in ``[0, z_max]``."""
+    return ndtr((zmax - d - mu) / s) - ndtr((-d - mu) / s)
+
+
 def _hit_density(r: NDArray[np.float64], mu: NDArray[np.float64], s: NDArray[np.float64], z: NDArray[np.float64],
                  zmax: NDArray[np.float64]) -> NDArray[np.float64]:
     """Gaussian of residual ``r`` (= z - z*) around ``mu`` with sd ``s``, truncated so that z lies in [0, z_max]."""
-    zs = z - r  # expected distance
-    norm = ndtr((zmax - zs - mu) / s) - ndtr((-zs - mu) / s)
+    norm = _hit_mass(z - r, mu, s, zmax)  # z - r: the expected distance
     return np.exp(-0.5 * ((r - mu) / s) ** 2) / (s * _SQRT_2PI) / np.maximum(norm, 1e-12)
 
 
@@ -173,7 +178,7 @@ def _fit_sigma(q: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.flo
 TRUNCATION_TOLERANCE = 1e-9
 
 
-def _truncation_matters(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np.float64], edge: NDArray[np.bool_],
+def _truncation_matters(d: NDArray[np.float64], w: NDArray[np.float64], edge: NDArray[np.bool_],
                         zmax: NDArray[np.float64], sig_p: tuple[float, float, float],
                         bias_p: tuple[float, float, float, float]) -> bool:
     """Whether some hit-weighted zone keeps less than ``1 - TRUNCATION_TOLERANCE`` of its
@@ -183,8 +188,7 @@ def _truncation_matters(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArr
         return False
     unc = RangeUncertainty(*sig_p, *bias_p)
     du, eu = d[use], edge[use]
-    mu, sd = _bias(unc, du, eu), _sigma_parts(unc, du, eu)
-    mass = ndtr((zmax[use] - du - mu) / sd) - ndtr((-du - mu) / sd)
+    mass = _hit_mass(du, _bias(unc, du, eu), _sigma_parts(unc, du, eu), zmax[use])
     return bool(np.max(1.0 - mass) > TRUNCATION_TOLERANCE)
 
 
@@ -208,8 +212,7 @@ def _fit_truncated(r: NDArray[np.float64], d: NDArray[np.float64], w: NDArray[np
     def parts(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         unc = RangeUncertainty(*(float(v) for v in theta[:3]), *(float(v) for v in theta[3:]))
         mu, sd = _bias(unc, du, eu), _sigma_parts(unc, du, eu)
-        mass = ndtr((zu - du - mu) / sd) - ndtr((-du - mu) / sd)
-        return mu, sd, mass
+        return mu, sd, _hit_mass(du, mu, sd, zu)
 
     theta0 = np.asarray(tuple(sig_p) + tuple(bias_p), dtype=float)
     W = float(wu.sum())
@@ -335,7 +338,7 @@ def fit_em(
         if abs(ll - prev) < tol * N:
             # converged with the two-pass M-step: where the truncation matters, go on with the
             # exact one until converged again (only then: it costs a joint search per step)
-            if not polish and _truncation_matters(np.where(ok, r, 0.0), d, w_hit, edge, zmax, sig_p, bias_p):
+            if not polish and _truncation_matters(d, w_hit, edge, zmax, sig_p, bias_p):
                 polish = True
                 sig_p, bias_p = _fit_truncated(np.where(ok, r, 0.0), d, w_hit, edge, zmax, sig_p, bias_p)
                 prev = ll
